@@ -1,0 +1,44 @@
+# Two commands do all the set-up on a fresh machine:
+#   make demo   set-up, then the main job on built-in synthetic data
+#   make test   set-up, then the test suite
+SHELL := /bin/bash
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PIP := $(PY) -m pip
+SETUP_STAMP := $(VENV)/.setup-$(shell cat pyproject.toml Makefile | sha1sum | cut -c1-12)
+DEMO_DATA ?= demo-data
+DEMO_OUT ?= demo-out
+WORKERS ?= 2
+
+.PHONY: setup demo test bench clean
+
+setup: $(SETUP_STAMP)
+
+$(SETUP_STAMP): pyproject.toml Makefile
+	@command -v python3 >/dev/null || { echo "python3 (3.11) is required"; exit 1; }
+	@# open3d's wheel links libusb-1.0; install it where missing (needs root or sudo).
+	@if ! ldconfig -p | grep -q 'libusb-1.0.so.0'; then \
+	  echo "installing libusb-1.0-0 (needed by open3d)"; \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq libusb-1.0-0; \
+	fi
+	@[ -x $(PY) ] || python3 -m venv $(VENV)
+	$(PIP) install -q --upgrade pip
+	@# torch first: the CPU build of 2.13.0; anything else would pull GBs of CUDA wheels.
+	$(PIP) install -q torch==2.13.0
+	$(PIP) install -q -e '.[dev]'
+	@# nuscenes-devkit pins numpy<2: test dependency, installed without its pins.
+	$(PIP) install -q --no-deps nuscenes-devkit==1.2.0
+	@rm -f $(VENV)/.setup-*; touch $@
+
+demo: setup
+	$(VENV)/bin/mobileocc demo --data $(DEMO_DATA) --out $(DEMO_OUT) --workers $(WORKERS)
+
+test: setup
+	$(PY) -m pytest -q -n 2 --dist loadgroup
+
+bench: setup
+	$(VENV)/bin/mobileocc bench --quick --json bench.json
+
+clean:
+	rm -rf $(DEMO_DATA) $(DEMO_OUT) .pytest_cache
