@@ -1,0 +1,215 @@
+"""The `mobileocc` command line. Heavy imports happen inside the commands."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import yaml
+
+
+def _add_config_args(p: argparse.ArgumentParser, runtime: bool = True) -> None:
+    p.add_argument("--config", type=Path, default=None,
+                   help="config YAML (default: configs/default.yaml)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config key, e.g. --set fuse.grid.voxel_size_m=0.1 (repeatable)")
+    p.add_argument("--data", type=Path, default=None, help="dataset root (dataset.root)")
+    p.add_argument("--out", type=Path, default=None, help="output store (output.root)")
+    if runtime:
+        p.add_argument("--workers", type=int, default=None, help="Dask / thread workers (dask.workers)")
+        p.add_argument("--runner", choices=["thread", "dask"], default=None,
+                       help="task runner (dask.runner)")
+        p.add_argument("--address", default=None,
+                       help="existing Dask scheduler, e.g. tcp://host:8786 (dask.address)")
+
+
+def _config(args: argparse.Namespace):
+    from configs.schema import load_config
+
+    overrides = {}
+    for item in args.overrides:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise SystemExit(f"--set {item!r}: expected KEY=VALUE")
+        overrides[key.strip()] = yaml.safe_load(value)
+    for attr, key in (("data", "dataset.root"), ("out", "output.root"), ("workers", "dask.workers"),
+                      ("runner", "dask.runner"), ("address", "dask.address")):
+        value = getattr(args, attr, None)
+        if value is not None:
+            overrides[key] = str(value) if isinstance(value, Path) else value
+    if getattr(args, "address", None):
+        overrides["dask.runner"] = "dask"
+    return load_config(args.config, overrides)
+
+
+def cmd_config(args: argparse.Namespace) -> int:
+    from configs.schema import ConfigError, config_hash, load_config
+
+    if args.action == "validate":
+        try:
+            cfg = load_config(args.file)
+        except ConfigError as exc:
+            print(exc, file=sys.stderr)
+            return 1
+        print(f"{args.file}: valid (hash {config_hash(cfg)})")
+        return 0
+    cfg = _config(args)
+    print(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False), end="")
+    print(f"# config hash: {config_hash(cfg)}")
+    return 0
+
+
+def _run(args: argparse.Namespace, force: bool) -> int:
+    from flows.pipeline import rebuild_dataset, summary_table
+    from flows.runtime import prefect_api, task_runner
+
+    cfg = _config(args)
+    with prefect_api():
+        flow = rebuild_dataset.with_options(task_runner=task_runner(cfg))
+        report = flow(cfg, force=force, progress=not args.quiet)
+    print(summary_table(report))
+    return 1 if report.failed else 0
+
+
+def cmd_rebuild(args: argparse.Namespace) -> int:
+    return _run(args, force=args.force)
+
+
+def cmd_reprocess(args: argparse.Namespace) -> int:
+    if args.dry_run:
+        return _print_plan(args, dry_run=True)
+    return _run(args, force=False)
+
+
+def _print_plan(args: argparse.Namespace, dry_run: bool) -> int:
+    from flows.plan import plan_run
+    from storage.manifest import FileHasher, Manifest
+
+    cfg = _config(args)
+    out = Path(cfg.output.root)
+    manifest = Manifest.load(out)
+    plans = plan_run(cfg, manifest, FileHasher(out / ".cache" / "file-hashes.json"))
+    runs = 0
+    for plan in plans:
+        if plan.error:
+            print(f"{plan.sequence:>6}  cannot be read: {plan.error}")
+            continue
+        for stage, unit in plan.units.items():
+            rec = manifest.get(plan.sequence, stage)
+            if unit.fresh:
+                state = "fresh"
+            elif rec is not None and rec.status == "failed" and not dry_run:
+                state = f"failed: {rec.error.splitlines()[0] if rec.error else ''}"
+            else:
+                state = f"{'would run' if dry_run else 'stale'}: {unit.reason}"
+            runs += not unit.fresh
+            print(f"{plan.sequence:>6}  {stage:<7} {state}")
+    if dry_run:
+        print(f"{runs} unit(s) would run")
+    return 0
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    return _print_plan(args, dry_run=False)
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from flows.simulate import simulate
+
+    ids = simulate(args.out, sequences=args.sequences, frames=args.frames, seed=args.seed,
+                   pedestrians=args.pedestrians, crowd=args.crowd, night=args.night,
+                   progress=not args.quiet)
+    print(f"wrote sequence(s) {', '.join(map(str, ids))} to {args.out}")
+    return 0
+
+
+def cmd_show(args: argparse.Namespace) -> int:
+    from flows.show import show
+
+    png = show(args.path, args.png, frame=args.frame)
+    print(png)
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from flows.simulate import simulate
+
+    data = args.data or Path("demo-data")
+    if not (data / "timestamps").is_dir():
+        print(f"generating the synthetic demo dataset in {data} ...")
+        simulate(data, sequences=2, frames=args.frames, seed=0, crowd="crowded",
+                 progress=not args.quiet)
+    args.data = data
+    args.force = False
+    return _run(args, force=False)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="mobileocc",
+        description="Human-aware 3D semantic occupancy datasets from raw robot sensor logs.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("config", help="show the resolved config and its hash, or validate a file")
+    csub = p.add_subparsers(dest="action", required=True)
+    ps = csub.add_parser("show", help="print the resolved config and its hash")
+    _add_config_args(ps, runtime=False)
+    pv = csub.add_parser("validate", help="validate a config file, listing every error by key path")
+    pv.add_argument("file", type=Path)
+    p.set_defaults(func=cmd_config)
+
+    for name, func, text in (
+        ("rebuild", cmd_rebuild, "run every sequence through the pipeline (cached units are reused)"),
+        ("reprocess", cmd_reprocess, "run only what is stale (changed inputs, config or code)"),
+        ("status", cmd_status, "per sequence and stage: fresh, stale with reason, or failed"),
+    ):
+        p = sub.add_parser(name, help=text)
+        _add_config_args(p)
+        p.add_argument("--quiet", action="store_true", help="no progress bars")
+        if name == "rebuild":
+            p.add_argument("--force", action="store_true", help="ignore the cache, run everything")
+        if name == "reprocess":
+            p.add_argument("--dry-run", action="store_true", help="list what would run and why")
+        p.set_defaults(func=func)
+
+    p = sub.add_parser("simulate", help="generate synthetic campus sequences (CODa layout + ground truth)")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--sequences", type=int, default=1)
+    p.add_argument("--frames", type=int, default=20, help="raw 10 Hz frames per sequence")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--pedestrians", type=int, default=None)
+    p.add_argument("--crowd", choices=["crowded", "uncrowded"], default="uncrowded")
+    p.add_argument("--night", action="store_true")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("show", help="render a bird's-eye view and the camera image of a frame to PNG")
+    p.add_argument("path", type=Path, help="a sequence folder (see README)")
+    p.add_argument("--frame", type=int, default=None)
+    p.add_argument("--png", type=Path, default=None, help="output PNG path")
+    p.set_defaults(func=cmd_show)
+
+    p = sub.add_parser("demo", help="generate the synthetic demo data (if missing) and process it")
+    _add_config_args(p)
+    p.add_argument("--frames", type=int, default=40, help="raw frames per demo sequence")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_demo)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from configs.schema import ConfigError
+
+    try:
+        return args.func(args)
+    except ConfigError as exc:
+        print(exc, file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,195 @@
+"""Prefect flows: ``rebuild_dataset`` (many sequences) and ``process_sequence`` (one).
+
+One Prefect task is one (sequence, stage) unit: the unit of caching, retry and failure. Units whose
+key is fresh in the manifest are not submitted. A unit whose upstream failed is skipped. The flow
+process records every finished unit in the manifest at once (atomic rewrite), so a killed run
+resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from prefect import flow, task
+from prefect.cache_policies import NO_CACHE
+from prefect.futures import PrefectFuture, as_completed
+
+from configs.schema import Config, config_hash
+from flows.plan import STAGES, SequencePlan, UnitPlan, plan_run
+from flows.stages import STAGE_FUNCTIONS, StageContext
+from storage.manifest import (FileHasher, Manifest, StageRecord, remove_stale_versions, run_lock,
+                              stage_dir, staged_output, sweep_temporaries)
+
+import json
+
+
+def execute_unit(config: Config, unit: UnitPlan, out_root: Path, upstream: dict[str, dict]) -> dict:
+    """Run one (sequence, stage): returns an outcome dict; never raises for a stage error."""
+    base = {"sequence": unit.sequence, "stage": unit.stage, "key": unit.key, "parts": unit.parts}
+    blocked = [s for s, o in upstream.items() if o["status"] not in ("done", "cached")]
+    if blocked:
+        return {**base, "status": "skipped", "error": f"upstream {', '.join(blocked)} did not finish"}
+    final = stage_dir(out_root, unit.stage, unit.sequence, unit.key)
+    location = str(final.relative_to(out_root))
+    if (final / "summary.json").exists():  # finished by a run that was killed before recording it
+        summary = json.loads((final / "summary.json").read_text())
+        return {**base, "status": "done", "location": location, "summary": summary, "seconds": 0.0}
+    started = time.perf_counter()
+    try:
+        with staged_output(final) as tmp:
+            ctx = StageContext(config, unit.sequence, Path(out_root), tmp,
+                               {s: Path(out_root) / o["location"] for s, o in upstream.items()})
+            summary = STAGE_FUNCTIONS[unit.stage](ctx)
+            (tmp / "summary.json").write_text(json.dumps(summary, sort_keys=True, indent=1))
+    except Exception as exc:  # noqa: BLE001 - one bad sequence fails alone, with its error
+        return {**base, "status": "failed", "seconds": time.perf_counter() - started,
+                "error": f"{type(exc).__name__}: {exc}",
+                "traceback": traceback.format_exc(limit=8)}
+    return {**base, "status": "done", "location": location, "summary": summary,
+            "seconds": time.perf_counter() - started}
+
+
+@task(name="stage", cache_policy=NO_CACHE, task_run_name="{unit.stage}-{unit.sequence}")
+def stage_task(config: Config, unit: UnitPlan, out_root: Path, upstream: dict[str, dict]) -> dict:
+    return execute_unit(config, unit, out_root, upstream)
+
+
+@dataclass
+class RunReport:
+    out_root: Path
+    plans: list[SequencePlan]
+    outcomes: dict[tuple[str, str], dict] = field(default_factory=dict)
+    seconds: float = 0.0
+
+    @property
+    def failed(self) -> list[dict]:
+        return [o for o in self.outcomes.values() if o["status"] == "failed"]
+
+    def ran(self, stage: str | None = None) -> list[tuple[str, str]]:
+        return sorted(k for k, o in self.outcomes.items()
+                      if o["status"] in ("done", "failed") and o.get("ran", True)
+                      and (stage is None or k[1] == stage))
+
+
+def _record(manifest: Manifest, outcome: dict) -> None:
+    if outcome["status"] not in ("done", "failed"):
+        return
+    manifest.put(StageRecord(
+        sequence=outcome["sequence"], stage=outcome["stage"], key=outcome["key"],
+        status=outcome["status"], location=outcome.get("location", ""),
+        error=outcome.get("error", ""), seconds=round(outcome.get("seconds", 0.0), 3),
+        finished_at=time.time(), summary=outcome.get("summary", {}), parts=outcome["parts"]))
+    manifest.save()
+    if outcome["status"] == "done":
+        remove_stale_versions(manifest.root, outcome["stage"], outcome["sequence"], outcome["key"])
+
+
+def _gpu_annotation(config: Config, stage: str):
+    if stage == "fit" and config.dask.gpu_fit and config.dask.runner == "dask":
+        import dask
+
+        return dask.annotate(resources={"GPU": 1})
+    return contextlib.nullcontext()
+
+
+def run_units(config: Config, force: bool = False, sequences: list[str] | None = None,
+              progress: bool = True) -> RunReport:
+    """Plan and run; the body of both flows. Must be called inside a flow (it submits tasks)."""
+    out_root = Path(config.output.root)
+    started = time.perf_counter()
+    with run_lock(out_root):
+        sweep_temporaries(out_root)
+        manifest = Manifest.load(out_root)
+        manifest.meta.update({"config_hash": config_hash(config),
+                              "config": config.model_dump(mode="json")})
+        hasher = FileHasher(out_root / ".cache" / "file-hashes.json")
+        plans = plan_run(config, manifest, hasher, force=force, sequences=sequences)
+        hasher.save()
+        report = RunReport(out_root, plans)
+        futures: list[PrefectFuture] = []
+        for plan in plans:
+            if plan.error:  # the sequence cannot be opened: it fails alone
+                outcome = {"sequence": plan.sequence, "stage": "detect", "key": "", "parts": {},
+                           "status": "failed", "error": plan.error}
+                report.outcomes[(plan.sequence, "detect")] = outcome
+                _record(manifest, outcome)
+                continue
+            results: dict[str, object] = {}
+            for stage, upstream in STAGES.items():
+                unit = plan.units[stage]
+                ups = {u: results[u] for u in upstream}
+                if unit.fresh:
+                    rec = manifest.get(plan.sequence, stage)
+                    outcome = {"sequence": plan.sequence, "stage": stage, "key": unit.key,
+                               "parts": unit.parts, "status": "cached", "location": rec.location,
+                               "summary": rec.summary, "seconds": 0.0, "ran": False}
+                    report.outcomes[(plan.sequence, stage)] = outcome
+                    results[stage] = outcome
+                    continue
+                with _gpu_annotation(config, stage):
+                    fut = stage_task.submit(config, unit, out_root, ups)
+                futures.append(fut)
+                results[stage] = fut
+        bars = _progress_bars(report, futures, progress)
+        for fut in as_completed(futures):
+            outcome = fut.result()
+            report.outcomes[(outcome["sequence"], outcome["stage"])] = outcome
+            _record(manifest, outcome)
+            if bars:
+                bars[outcome["stage"]].update(1)
+        for bar in (bars or {}).values():
+            bar.close()
+    report.seconds = time.perf_counter() - started
+    return report
+
+
+def _progress_bars(report: RunReport, futures: list, progress: bool):
+    if not progress or not futures:
+        return None
+    from tqdm import tqdm
+
+    counts = {s: sum(1 for p in report.plans if not p.error and not p.units[s].fresh) for s in STAGES}
+    return {s: tqdm(total=counts[s], desc=f"{s:>6}", unit="seq", position=i, leave=True)
+            for i, s in enumerate(STAGES)}
+
+
+@flow(name="rebuild-dataset", log_prints=True)
+def rebuild_dataset(config: Config, force: bool = False, sequences: list[str] | None = None,
+                    progress: bool = True) -> RunReport:
+    """Every selected sequence through detect -> track -> fit / map -> fuse -> export."""
+    return run_units(config, force=force, sequences=sequences, progress=progress)
+
+
+@flow(name="process-sequence", log_prints=True)
+def process_sequence(config: Config, sequence: str, force: bool = False) -> RunReport:
+    """One sequence through the six stages."""
+    return run_units(config, force=force, sequences=[sequence], progress=False)
+
+
+def summary_table(report: RunReport) -> str:
+    """Sequences, frames, time per stage, cached vs run, failures."""
+    lines = []
+    header = f"{'stage':<8}{'ran':>5}{'cached':>8}{'failed':>8}{'skipped':>9}{'seconds':>10}"
+    lines.append(header)
+    lines.append("-" * len(header))
+    for stage in STAGES:
+        outs = [o for (s, st), o in report.outcomes.items() if st == stage]
+        ran = sum(o["status"] == "done" for o in outs)
+        cached = sum(o["status"] == "cached" for o in outs)
+        failed = sum(o["status"] == "failed" for o in outs)
+        skipped = sum(o["status"] == "skipped" for o in outs)
+        secs = sum(o.get("seconds", 0.0) for o in outs)
+        lines.append(f"{stage:<8}{ran:>5}{cached:>8}{failed:>8}{skipped:>9}{secs:>10.1f}")
+    frames = sum(p.num_frames for p in report.plans)
+    lines.append(f"{len(report.plans)} sequence(s), {frames} frame(s), {report.seconds:.1f} s wall")
+    not_impl = sorted({st for (s, st), o in report.outcomes.items()
+                       if o.get("summary", {}).get("implemented") is False})
+    if not_impl:
+        lines.append(f"not implemented yet (placeholders): {', '.join(not_impl)}")
+    for o in report.failed:
+        lines.append(f"FAILED {o['sequence']}/{o['stage']}: {o['error']}")
+    return "\n".join(lines)

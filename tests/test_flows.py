@@ -1,0 +1,116 @@
+"""Small flows under Prefect's test harness: thread and Dask process runners, the stage cache,
+failure isolation and the run lock."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from configs.schema import load_config
+from flows.pipeline import rebuild_dataset
+from flows.plan import STAGES
+from flows.runtime import task_runner
+from storage.manifest import Manifest, StoreLockedError, run_lock
+from tests.coda_fixture import make_coda
+
+pytestmark = [pytest.mark.usefixtures("prefect_harness"), pytest.mark.xdist_group("prefect")]
+
+
+def _config(data: Path, out: Path, **overrides):
+    return load_config(overrides={"dataset.root": str(data), "output.root": str(out), **overrides})
+
+
+def _run(cfg, **kw):
+    return rebuild_dataset.with_options(task_runner=task_runner(cfg))(cfg, progress=False, **kw)
+
+
+def _ran(report) -> set[tuple[str, str]]:
+    return {k for k, o in report.outcomes.items() if o["status"] in ("done", "failed")}
+
+
+@pytest.fixture()
+def dataset(tmp_path):
+    data = tmp_path / "data"
+    make_coda(data, seq=0, frames=4)
+    make_coda(data, seq=1, frames=4)
+    return data
+
+
+def test_thread_runner_and_cache_consequences(dataset, tmp_path):
+    out = tmp_path / "out"
+    cfg = _config(dataset, out)
+    first = _run(cfg)
+    assert _ran(first) == {(s, st) for s in ("0", "1") for st in STAGES}
+    assert all(o["status"] == "done" for o in first.outcomes.values())
+    # every stage says plainly whether it computes its product yet
+    assert all("implemented" in o["summary"] for o in first.outcomes.values())
+
+    # nothing changed -> nothing recomputed
+    assert _ran(_run(cfg)) == set()
+
+    # one sequence's files edited -> only that sequence runs
+    bin_path = dataset / "3d_raw/os1/1/3d_raw_os1_1_2.bin"
+    raw = bytearray(bin_path.read_bytes())
+    raw[0:4] = bytes([0, 0, 192, 63])  # 1.5f
+    bin_path.write_bytes(bytes(raw))
+    assert _ran(_run(cfg)) == {("1", st) for st in STAGES}
+
+    # a fuse-only setting changed -> only fuse and export run
+    finer = _config(dataset, out, **{"fuse.grid.voxel_size_m": 0.1})
+    assert _ran(_run(finer)) == {(s, st) for s in ("0", "1") for st in ("fuse", "export")}
+
+    # a stage's output deleted -> that stage and what depends on it run again
+    manifest = Manifest.load(out)
+    shutil.rmtree(out / manifest.get("0", "map").location)
+    assert _ran(_run(finer)) == {("0", "map"), ("0", "fuse"), ("0", "export")}
+
+    # a sequence added -> only it runs
+    make_coda(dataset, seq=2, frames=2)
+    assert _ran(_run(finer)) == {("2", st) for st in STAGES}
+
+
+def test_bad_sequence_fails_alone(dataset, tmp_path):
+    out = tmp_path / "out"
+    path = dataset / "3d_raw/os1/0/3d_raw_os1_0_2.bin"
+    path.write_bytes(path.read_bytes()[:1000])
+    report = _run(_config(dataset, out))
+    failed = report.failed
+    assert [(o["sequence"], o["stage"]) for o in failed] == [("0", "detect")]
+    assert "3d_raw_os1_0_2.bin (frame 2)" in failed[0]["error"] and "truncated" in failed[0]["error"]
+    assert all(report.outcomes[("1", st)]["status"] == "done" for st in STAGES)
+    assert report.outcomes[("0", "fuse")]["status"] == "skipped"
+    manifest = Manifest.load(out)
+    assert manifest.get("0", "detect").status == "failed"
+    assert "truncated" in manifest.get("0", "detect").error
+    assert manifest.get("1", "export").status == "done"
+
+
+def test_unknown_sequence_is_recorded(dataset, tmp_path):
+    cfg = _config(dataset, tmp_path / "out", **{"dataset.sequences": ["1", "9"]})
+    report = _run(cfg)
+    assert report.outcomes[("9", "detect")]["status"] == "failed"
+    assert "unknown sequence id '9'" in report.outcomes[("9", "detect")]["error"]
+    assert report.outcomes[("1", "export")]["status"] == "done"
+
+
+def test_second_run_on_same_store_is_refused(dataset, tmp_path):
+    out = tmp_path / "out"
+    with run_lock(out):
+        with pytest.raises(StoreLockedError, match="is in use by another run"):
+            _run(_config(dataset, out))
+
+
+def test_dask_process_runner_matches_thread_runner(dataset, tmp_path):
+    threads = _run(_config(dataset, tmp_path / "a"))
+    dask = _run(_config(dataset, tmp_path / "b", **{"dask.runner": "dask", "dask.workers": 2}))
+    assert {k: o["status"] for k, o in dask.outcomes.items()} == {
+        k: o["status"] for k, o in threads.outcomes.items()}
+    ma, mb = Manifest.load(tmp_path / "a"), Manifest.load(tmp_path / "b")
+    assert {k: r.key for k, r in ma.rows.items()} == {k: r.key for k, r in mb.rows.items()}
+    for (seq, stage), rec in ma.rows.items():
+        a = (tmp_path / "a" / rec.location / "summary.json").read_text()
+        b = (tmp_path / "b" / mb.get(seq, stage).location / "summary.json").read_text()
+        assert json.loads(a) == json.loads(b)

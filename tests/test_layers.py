@@ -1,0 +1,50 @@
+"""The layers of DESIGN.md: kernels and storage stay free of orchestration and formats."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+FORBIDDEN = {
+    # layer: (module prefixes it must never import, why)
+    "tasks": ("prefect", "dask.distributed", "distributed", "zarr", "pyarrow", "fsspec",
+              "storage", "flows", "configs"),
+    "storage": ("flows", "prefect", "distributed", "dask.distributed"),
+    "configs": ("flows", "storage", "tasks", "prefect"),
+}
+
+
+def imported_modules(path: Path) -> list[tuple[int, str]]:
+    tree = ast.parse(path.read_text(), filename=str(path))
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, alias.name) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.append((node.lineno, node.module))
+    return found
+
+
+def violations(layer: str, root: Path = ROOT) -> list[str]:
+    bad = []
+    for path in sorted((root / layer).rglob("*.py")):
+        for lineno, module in imported_modules(path):
+            for prefix in FORBIDDEN[layer]:
+                if module == prefix or module.startswith(prefix + "."):
+                    bad.append(f"{path.relative_to(root)}:{lineno} imports {module}")
+    return bad
+
+
+@pytest.mark.parametrize("layer", sorted(FORBIDDEN))
+def test_layer_imports(layer):
+    assert violations(layer) == []
+
+
+def test_the_check_catches_a_violation(tmp_path):
+    (tmp_path / "tasks").mkdir()
+    (tmp_path / "tasks" / "bad.py").write_text("def f():\n    import zarr\n    from prefect import flow\n")
+    assert violations("tasks", tmp_path) == ["tasks/bad.py:2 imports zarr", "tasks/bad.py:3 imports prefect"]
