@@ -1,0 +1,204 @@
+"""Per detection (hence per track and frame) the LiDAR points that belong to the person.
+
+1. Project the sweep into the image with K and T_cam_from_lidar (z > ``min_depth_m``, inside),
+   and drop ground points (less than ``ground_tol_m`` above the local ground of
+   :func:`tasks.perception.lidar_clusters.ground_height`): ground runs continuously from the
+   feet to the background and would bridge the range gaps of step 3. After step 3 the ground-band
+   points of the selection lying within ``feet_radius_m`` (horizontally) of the chosen points are
+   added back: they are the feet.
+2. Keep the points whose pixel is in the detection's instance mask (its box if the mask is empty).
+3. The kept points still hold background seen past the silhouette edge (calibration, sweep/shutter
+   timing, mask noise) and occluders in front: sort them by range from the camera, split at gaps
+   larger than ``gap_m`` (1D range clustering) and keep the segment with the best score
+   ``points x exp(-0.5 ((median range - expected) / sigma)^2) x centrality``, where ``expected`` is
+   the range of an associated LiDAR box if any, else the range a ``person_height_m`` tall person
+   would have at the box's pixel height (the term is dropped when the box is cut by the image
+   border), sigma = ``range_sigma_frac`` x expected, and centrality is the fraction of the
+   segment's points whose pixel lies in the inner part of the box (the middle ``core_frac`` of
+   its width).
+
+LiDAR boxes are associated with image detections by the Hungarian method on the IoU between the
+detection box and the image rectangle of the projected 3D box (``min_iou``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
+
+from tasks.perception.lidar_clusters import ground_height
+from tasks.perception.types import box_corners
+
+
+def _rigid(points: np.ndarray, T: np.ndarray) -> np.ndarray:
+    # column by column: (N, 3) @ (3, 3) through BLAS is several times slower for tall N here
+    R, t = T[:3, :3], T[:3, 3]
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    return np.stack([R[i, 0] * x + R[i, 1] * y + R[i, 2] * z + t[i] for i in range(3)], axis=1)
+
+
+def _pixels(cam: np.ndarray, K: np.ndarray, min_depth_m: float) -> np.ndarray:
+    uv = np.full((cam.shape[0], 2), np.nan)
+    front = cam[:, 2] > min_depth_m
+    x, y, z = cam[front, 0], cam[front, 1], cam[front, 2]
+    uv[front, 0] = (K[0, 0] * x + K[0, 1] * y) / z + K[0, 2]
+    uv[front, 1] = K[1, 1] * y / z + K[1, 2]
+    return uv
+
+
+def project_points(
+    points_lidar: np.ndarray, K: np.ndarray, T_cam_from_lidar: np.ndarray, min_depth_m: float = 0.1
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pinhole projection (no distortion: undistort the image or the detections first).
+
+    points_lidar: (N, 3) float metres, LiDAR frame. K: (3, 3) float64 pixels (zero K[1, 0], K[2, :2]).
+    T_cam_from_lidar: (4, 4) float64. Returns uv (N, 2) float64 pixels and depth (N,) float64
+    camera z in metres; uv is NaN where depth <= min_depth_m.
+    """
+    points = np.asarray(points_lidar, np.float64).reshape(-1, 3)
+    cam = _rigid(points, np.asarray(T_cam_from_lidar, np.float64))
+    return _pixels(cam, np.asarray(K, np.float64), min_depth_m), cam[:, 2]
+
+
+def associate_lidar_boxes(
+    boxes_xyxy: np.ndarray,
+    centers: np.ndarray,
+    sizes: np.ndarray,
+    yaws: np.ndarray,
+    K: np.ndarray,
+    T_cam_from_lidar: np.ndarray,
+    min_iou: float = 0.3,
+) -> np.ndarray:
+    """Match image detections to LiDAR pedestrian boxes.
+
+    boxes_xyxy: (D, 4) float pixels. centers, sizes: (M, 3) metres LiDAR frame (l, w, h); yaws:
+    (M,) radians. Returns (D,) int64 row of the matched LiDAR box, -1 if none. Boxes with a corner
+    behind the camera are not matched.
+    """
+    boxes = np.asarray(boxes_xyxy, np.float64).reshape(-1, 4)
+    count, m = boxes.shape[0], np.asarray(centers).reshape(-1, 3).shape[0]
+    matched = np.full(count, -1, np.int64)
+    if count == 0 or m == 0:
+        return matched
+    corners = box_corners(
+        np.asarray(centers).reshape(-1, 3), np.asarray(sizes).reshape(-1, 3), np.asarray(yaws).reshape(-1)
+    )
+    uv, _ = project_points(corners.reshape(-1, 3), K, T_cam_from_lidar)
+    uv = uv.reshape(m, 8, 2)
+    valid = ~np.isnan(uv).any(axis=(1, 2))
+    rect = np.zeros((m, 4))
+    rect[valid] = np.concatenate([uv[valid].min(axis=1), uv[valid].max(axis=1)], axis=1)
+    lo = np.maximum(boxes[:, None, :2], rect[None, :, :2])
+    hi = np.minimum(boxes[:, None, 2:], rect[None, :, 2:])
+    inter = np.prod(np.clip(hi - lo, 0, None), axis=2)
+    area_a = np.prod(boxes[:, 2:] - boxes[:, :2], axis=1)
+    area_b = np.prod(rect[:, 2:] - rect[:, :2], axis=1)
+    iou = inter / np.maximum(area_a[:, None] + area_b[None] - inter, 1e-9)
+    iou[:, ~valid] = 0.0
+    rows, cols = linear_sum_assignment(-iou)
+    good = iou[rows, cols] >= min_iou
+    matched[rows[good]] = cols[good]
+    return matched
+
+
+def _split_by_range(ranges: np.ndarray, gap_m: float) -> list[np.ndarray]:
+    order = np.argsort(ranges, kind="stable")
+    cuts = np.flatnonzero(np.diff(ranges[order]) > gap_m) + 1
+    return np.split(order, cuts)
+
+
+def person_point_indices(
+    points_lidar: np.ndarray,
+    K: np.ndarray,
+    T_cam_from_lidar: np.ndarray,
+    image_size: tuple[int, int],
+    boxes_xyxy: np.ndarray,
+    masks: np.ndarray | None = None,
+    expected_range_m: np.ndarray | None = None,
+    gap_m: float = 0.3,
+    min_points: int = 3,
+    person_height_m: float = 1.7,
+    range_sigma_frac: float = 0.25,
+    core_frac: float = 0.5,
+    min_depth_m: float = 0.5,
+    ground_tol_m: float | None = 0.15,
+    ground_cell_m: float = 2.0,
+    feet_radius_m: float = 0.1,
+) -> list[np.ndarray]:
+    """LiDAR point indices of each detected person.
+
+    points_lidar: (N, 3) float32 metres, LiDAR frame. K: (3, 3) float64; T_cam_from_lidar: (4, 4)
+    float64; image_size: (width, height) pixels. boxes_xyxy: (D, 4) float pixels. masks: (D, H, W)
+    bool instance masks or None (an all-False mask falls back to its box). expected_range_m: (D,)
+    float metres from the camera centre (e.g. an associated LiDAR box), NaN = unknown, or None.
+    ground_tol_m: height above the local ground (``ground_cell_m`` grid, LiDAR z up) below which
+    points are ground, kept only within ``feet_radius_m`` (xy) of the person's other points; None
+    keeps all.
+    Returns D int64 arrays of row indices into points_lidar (sorted; empty when nothing is found).
+    """
+    width, height = int(image_size[0]), int(image_size[1])
+    boxes = np.asarray(boxes_xyxy, np.float64).reshape(-1, 4)
+    count = boxes.shape[0]
+    if count == 0:
+        return []
+    if masks is not None and tuple(masks.shape) != (count, height, width):
+        raise ValueError(f"masks: expected ({count}, {height}, {width}), got {masks.shape}")
+    expected = np.full(count, np.nan)
+    if expected_range_m is not None:
+        expected = np.asarray(expected_range_m, np.float64).reshape(count)
+
+    points = np.asarray(points_lidar, np.float64).reshape(-1, 3)
+    cam_all = _rigid(points, np.asarray(T_cam_from_lidar, np.float64))
+    front = np.flatnonzero(cam_all[:, 2] > min_depth_m)
+    uv = _pixels(cam_all[front], np.asarray(K, np.float64), min_depth_m)
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
+    idx = front[inside]
+    uv, cam = uv[inside], cam_all[idx]
+    is_ground = np.zeros(idx.size, bool)
+    lidar_xyz = points[idx]
+    if ground_tol_m is not None and idx.size:
+        is_ground = lidar_xyz[:, 2] - ground_height(lidar_xyz, ground_cell_m) < ground_tol_m
+    u, v = uv[:, 0], uv[:, 1]
+    col, row = u.astype(np.int64), v.astype(np.int64)
+    ranges_all = np.linalg.norm(cam, axis=1)
+    fy = float(np.asarray(K)[1, 1])
+
+    result = []
+    for d in range(count):
+        u0, v0, u1, v1 = boxes[d]
+        in_box = (u >= u0) & (u < u1) & (v >= v0) & (v < v1)
+        if masks is not None and masks[d].any():
+            sel = np.flatnonzero(in_box)
+            sel = sel[masks[d][row[sel], col[sel]]]
+        else:
+            sel = np.flatnonzero(in_box)
+        ground_sel, sel = sel[is_ground[sel]], sel[~is_ground[sel]]
+        if sel.size == 0:
+            result.append(np.zeros(0, np.int64))
+            continue
+        exp_range = expected[d]
+        cut = v0 <= 1 or v1 >= height - 1
+        if not np.isfinite(exp_range) and not cut and v1 - v0 > 1:
+            exp_range = fy * person_height_m / (v1 - v0)
+        centre, half = (u0 + u1) / 2, core_frac * (u1 - u0) / 2
+        best, best_score = None, -np.inf
+        for segment in _split_by_range(ranges_all[sel], gap_m):
+            if segment.size < min_points:
+                continue
+            members = sel[segment]
+            score = segment.size * max(np.mean(np.abs(u[members] - centre) <= half), 0.05)
+            if np.isfinite(exp_range):
+                z = (np.median(ranges_all[members]) - exp_range) / (range_sigma_frac * exp_range)
+                score *= np.exp(-0.5 * z * z)
+            if score > best_score:
+                best, best_score = members, score
+        if best is None:
+            result.append(np.zeros(0, np.int64))
+            continue
+        if ground_sel.size:
+            tree = cKDTree(lidar_xyz[best, :2])
+            near, _ = tree.query(lidar_xyz[ground_sel, :2], distance_upper_bound=feet_radius_m)
+            best = np.concatenate([best, ground_sel[np.isfinite(near)]])
+        result.append(np.sort(idx[best]))
+    return result

@@ -1,0 +1,1 @@
+"""Multi-object tracking of pedestrians across frames (OC-SORT)."""

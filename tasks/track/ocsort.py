@@ -1,0 +1,118 @@
+"""OC-SORT pedestrian tracking over 2D boxes, one tracker instance per sequence.
+
+Wraps ``trackers.OCSORTTracker`` (roboflow ``trackers``, Apache-2.0, a clean-room OC-SORT: Kalman
+state [u, v, s, r, du, dv, ds], observation-centric momentum, recovery and re-update). The wrapper
+adds what the pipeline needs: ids aligned with the *input* detections (so keypoints and masks stay
+attached), ids numbered 1, 2, ... per instance in the order they are first confirmed, and plain
+numpy in / out.
+
+The library keeps its id counter on the tracker instance (``_next_track_id``), not on the class,
+so two ``PedestrianTracker`` instances never share ids; we still re-number to start at 1.
+
+As in the OC-SORT reference, during the first ``min_hits`` frames of a sequence every matched
+detection gets an id at once (so people present from the first frame are not delayed); later
+tracks need ``min_hits`` consecutive hits before they get an id.
+
+After a miss, OC-SORT's hit streak restarts, and the reference hides a re-found track for
+``min_hits - 1`` frames although it already has an id. With ``keep_confirmed_ids`` (default) the
+wrapper reports the id of an already confirmed track as soon as it is matched again (found as the
+tracklet whose last observation is exactly the input box), so a one-frame miss does not cost the
+later stages three frames of that person; ``keep_confirmed_ids=False`` gives the reference output.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import supervision as sv
+from trackers import OCSORTTracker
+
+
+class PedestrianTracker:
+    """OC-SORT over one sequence's 2D pedestrian boxes; call ``update`` once per frame, in order.
+
+    det_thresh: detections scoring below it never start or update a track (id -1).
+    max_age: frames a lost track survives without a detection. min_hits: consecutive hits before a
+    track gets an id. iou_threshold: minimum IoU to associate. delta_t: frames back used for the
+    motion direction. inertia: weight of the direction-consistency term in the association cost.
+    keep_confirmed_ids: report a confirmed track's id again on its first re-match after a miss.
+    """
+
+    def __init__(
+        self,
+        det_thresh: float = 0.6,
+        max_age: int = 30,
+        min_hits: int = 3,
+        iou_threshold: float = 0.3,
+        delta_t: int = 3,
+        inertia: float = 0.2,
+        keep_confirmed_ids: bool = True,
+    ) -> None:
+        if max_age < 0 or min_hits < 1 or delta_t < 1:
+            raise ValueError(
+                f"PedestrianTracker: need max_age >= 0, min_hits >= 1, delta_t >= 1; got "
+                f"max_age={max_age}, min_hits={min_hits}, delta_t={delta_t}"
+            )
+        # frame_rate == 30 makes the library's lost-track buffer exactly ``max_age`` frames.
+        self._tracker = OCSORTTracker(
+            lost_track_buffer=int(max_age),
+            frame_rate=30.0,
+            minimum_consecutive_frames=int(min_hits),
+            minimum_iou_threshold=float(iou_threshold),
+            direction_consistency_weight=float(inertia),
+            high_conf_det_threshold=float(det_thresh),
+            delta_t=int(delta_t),
+        )
+        self._keep_confirmed_ids = bool(keep_confirmed_ids)
+        self._our_id: dict[int, int] = {}
+        self.frame_count = 0
+
+    def update(self, boxes_xyxy: np.ndarray, scores: np.ndarray) -> np.ndarray:
+        """Advance one frame.
+
+        boxes_xyxy: (D, 4) float pixels (u_min, v_min, u_max, v_max); scores: (D,) float in [0, 1].
+        Returns track_ids (D,) int64 aligned with the input rows; -1 = no confirmed track.
+        """
+        boxes = np.asarray(boxes_xyxy, dtype=np.float64).reshape(-1, 4)
+        conf = np.asarray(scores, dtype=np.float64).reshape(-1)
+        if conf.shape[0] != boxes.shape[0]:
+            raise ValueError(
+                f"PedestrianTracker.update (frame {self.frame_count}): {boxes.shape[0]} boxes but "
+                f"{conf.shape[0]} scores"
+            )
+        if not (np.isfinite(boxes).all() and np.isfinite(conf).all()):
+            raise ValueError(f"PedestrianTracker.update (frame {self.frame_count}): NaN/inf input")
+        count = boxes.shape[0]
+        detections = sv.Detections(
+            xyxy=boxes,
+            confidence=conf,
+            class_id=np.zeros(count, dtype=int),
+            data={"row": np.arange(count)},
+        )
+        result = self._tracker.update(detections)
+        track_ids = np.full(count, -1, dtype=np.int64)
+        if len(result) > 0:
+            rows = np.asarray(result.data["row"], dtype=np.int64)
+            library_ids = np.asarray(result.tracker_id, dtype=np.int64).copy()
+            if self._keep_confirmed_ids and (library_ids < 0).any():
+                library_ids = self._recover_confirmed(boxes, rows, library_ids)
+            for row, library_id in zip(rows, library_ids):
+                if library_id < 0:
+                    continue
+                if library_id not in self._our_id:
+                    self._our_id[int(library_id)] = len(self._our_id) + 1
+                track_ids[row] = self._our_id[int(library_id)]
+        self.frame_count += 1
+        return track_ids
+
+    def _recover_confirmed(self, boxes: np.ndarray, rows: np.ndarray, library_ids: np.ndarray) -> np.ndarray:
+        """Library ids for rows matched this frame to a track that already has an id."""
+        by_box: dict[tuple[float, ...], list[int]] = {}
+        for tracklet in self._tracker.tracks:
+            if tracklet.time_since_update == 0 and tracklet.tracker_id >= 0:
+                key = tuple(np.asarray(tracklet.last_observation, np.float64).tolist())
+                by_box.setdefault(key, []).append(int(tracklet.tracker_id))
+        for k in np.flatnonzero(library_ids < 0):
+            candidates = by_box.get(tuple(boxes[rows[k]].tolist()), [])
+            if len(candidates) == 1:
+                library_ids[k] = candidates[0]
+        return library_ids
