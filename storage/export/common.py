@@ -1,0 +1,129 @@
+"""What the exports share: deterministic tokens, scene / file names, pose conversions, inputs."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from storage.dataset import Dataset
+
+CAM_CHANNEL = "CAM_FRONT"
+LIDAR_CHANNEL = "LIDAR_TOP"
+
+
+def token(kind: str, *parts: object) -> str:
+    """A 32-hex-character token, a pure function of (kind, parts): stable across runs."""
+    key = "/".join(["mobileocc", kind, *(str(p) for p in parts)])
+    return hashlib.sha1(key.encode()).hexdigest()[:32]
+
+
+def scene_name(prefix: str, sequence: str) -> str:
+    return f"{prefix}-{sequence}"
+
+
+def sample_token(sequence: str, frame: int) -> str:
+    return token("sample", sequence, int(frame))
+
+
+def sample_file_name(scene: str, channel: str, stamp_us: int, ext: str) -> str:
+    """nuScenes-style sample file name, e.g. ``samples/CAM_FRONT/coda-0__CAM_FRONT__1675...png``."""
+    return f"samples/{channel}/{scene}__{channel}__{stamp_us}{ext}"
+
+
+def quat_wxyz_from_matrix(R: np.ndarray) -> list[float]:
+    """(3, 3) rotation -> quaternion [w, x, y, z] with w >= 0 (Shepperd's method)."""
+    R = np.asarray(R, dtype=np.float64)
+    t = np.trace(R)
+    if t > 0:
+        s = 2.0 * np.sqrt(1.0 + t)
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    else:
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
+        q = [0.0] * 4
+        q[0] = (R[k, j] - R[j, k]) / s
+        q[1 + i] = 0.25 * s
+        q[1 + j] = (R[j, i] + R[i, j]) / s
+        q[1 + k] = (R[k, i] + R[i, k]) / s
+    q = np.asarray(q)
+    q = q / np.linalg.norm(q)
+    if q[0] < 0:
+        q = -q
+    return [float(v) for v in q]
+
+
+def pose_record(T: np.ndarray) -> dict:
+    """4x4 pose -> {"translation": [x, y, z], "rotation": [w, x, y, z]}."""
+    T = np.asarray(T, dtype=np.float64).reshape(4, 4)
+    return {"translation": [float(v) for v in T[:3, 3]], "rotation": quat_wxyz_from_matrix(T[:3, :3])}
+
+
+def mat4(values) -> np.ndarray:
+    return np.asarray(values, dtype=np.float64).reshape(4, 4)
+
+
+@dataclass(frozen=True)
+class SequenceExportInfo:
+    """Per-sequence facts both exports need, read from the dataset tables."""
+
+    sequence: str
+    frames: list[dict]  # rows of the frames table, sorted by frame
+    K: np.ndarray  # (3, 3)
+    T_cam0_from_lidar: np.ndarray
+    T_base_from_lidar: np.ndarray
+    width: int
+    height: int
+
+    @property
+    def T_base_from_cam0(self) -> np.ndarray:
+        return self.T_base_from_lidar @ np.linalg.inv(self.T_cam0_from_lidar)
+
+
+def sequence_info(ds: Dataset, sequence: str) -> SequenceExportInfo:
+    seqs = ds.table("sequences", sequence).to_pylist()
+    if len(seqs) != 1:
+        raise ValueError(f"dataset {ds.root}: sequences table has {len(seqs)} rows for {sequence!r}, expected 1")
+    row = seqs[0]
+    for key in ("K", "T_cam0_from_lidar", "T_base_from_lidar", "image_width", "image_height"):
+        if row[key] is None:
+            raise ValueError(f"dataset {ds.root}: sequence {sequence!r} has no {key} in the sequences table")
+    frames = ds.table("frames", sequence).to_pylist()
+    return SequenceExportInfo(
+        sequence=sequence,
+        frames=frames,
+        K=np.asarray(row["K"], dtype=np.float64).reshape(3, 3),
+        T_cam0_from_lidar=mat4(row["T_cam0_from_lidar"]),
+        T_base_from_lidar=mat4(row["T_base_from_lidar"]),
+        width=int(row["image_width"]),
+        height=int(row["image_height"]),
+    )
+
+
+def resolve(path: str | None, source_root: Path | None, what: str, sequence: str, frame: int) -> Path:
+    """A source path from the frames table, made absolute against ``source_root``."""
+    if not path:
+        raise ValueError(f"sequence {sequence!r} frame {frame}: no {what} path in the frames table")
+    p = Path(path)
+    if not p.is_absolute() and source_root is not None:
+        p = Path(source_root) / p
+    if not p.is_file():
+        raise FileNotFoundError(f"sequence {sequence!r} frame {frame}: {what} file {p} does not exist")
+    return p
+
+
+def link_or_copy(src: Path, dst: Path) -> None:
+    """Hard-link ``src`` at ``dst`` (copy when linking fails, e.g. across filesystems)."""
+    import shutil
+
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    if dst.exists():
+        dst.unlink()
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copyfile(src, dst)

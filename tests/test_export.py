@@ -1,0 +1,201 @@
+"""Occ3D and nuScenes exports of a tiny dataset built through our own storage API."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from storage import occupancy_store as occ
+from storage import tables
+from storage.export import export_nuscenes, export_occ3d
+from storage.export.common import quat_wxyz_from_matrix, sample_token
+from tasks.conventions import FREE, PEDESTRIAN, ROAD
+
+GRID = (48, 48, 24)
+SEQS = ("s0", "s1")
+NF = 4
+POINTS = 128 * 1024
+W, H = 64, 48
+
+
+def rz(yaw: float, t=(0.0, 0.0, 0.0)) -> np.ndarray:
+    T = np.eye(4)
+    c, s = np.cos(yaw), np.sin(yaw)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:3, 3] = t
+    return T
+
+
+T_BASE_FROM_LIDAR = rz(0.1, (0.2, 0.0, 0.8))
+T_CAM0_FROM_LIDAR = np.array([[0, -1, 0, 0.05], [0, 0, -1, -0.1], [1, 0, 0, 0.0], [0, 0, 0, 1]], dtype=np.float64)
+K = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
+BOX_CENTER_BASE = np.array([4.0, 1.0, 0.9])
+BOX_SIZE_LWH = np.array([0.6, 0.5, 1.8])
+BOX_YAW = 0.3
+
+
+def T_world_from_base(seq_i: int, f: int) -> np.ndarray:
+    return rz(0.2 * f + seq_i, (10.0 * seq_i + 0.5 * f, -2.0, 0.1))
+
+
+def write_sweep(path: Path, frame: int) -> None:
+    raw = np.zeros((POINTS, 5), np.float32)  # zeros = no-return
+    ang = np.linspace(-np.pi, np.pi, 1024, endpoint=False)
+    raw[:1024, 0], raw[:1024, 1], raw[:1024, 3] = 8 * np.cos(ang), 8 * np.sin(ang), 7.0
+    # 10 points inside the pedestrian box (given in base, stored in the LiDAR frame)
+    inside_base = BOX_CENTER_BASE + np.c_[np.linspace(-0.1, 0.1, 10), np.zeros(10), np.linspace(-0.5, 0.5, 10)]
+    inside_lidar = (np.c_[inside_base, np.ones(10)] @ np.linalg.inv(T_BASE_FROM_LIDAR).T)[:, :3]
+    raw[5000:5010, :3] = inside_lidar
+    raw[5000:5010, 3] = frame
+    path.parent.mkdir(parents=True, exist_ok=True)
+    raw.tofile(path)
+
+
+def build_tiny_dataset(root: Path, src: Path) -> Path:
+    """2 sequences x 4 frames of 48x48x24, fake CODa .bin / .png sources under ``src``."""
+    for si, seq in enumerate(SEQS):
+        with occ.sequence_writer(root, seq, "k1") as staged:
+            layout = occ.create_store(staged.store_path, NF, GRID, 2, {"voxel_size_m": 0.2,
+                                      "range_min": [0.4, -4.8, -1.0], "range_max": [10.0, 4.8, 3.8]})
+            sem = np.full((NF, *GRID), FREE, np.uint8)
+            sem[:, :, :, 4] = ROAD
+            sem[:, 18:21, 28:31, 5:14] = PEDESTRIAN
+            sem[:, 0, 0, 0] = np.arange(NF) + 10 * si  # frame marker
+            mask = np.zeros((NF, *GRID), np.uint8)
+            mask[:, :, :, :12] = 1
+            for start, stop in layout.write_units():
+                occ.write_frames(staged.store_path, start, {"semantics": sem[start:stop],
+                                 "mask_lidar": mask[start:stop], "mask_camera": mask[start:stop] * 0 + 1})
+            rows = []
+            for f in range(NF):
+                raw = 2 * f
+                lidar = f"3d_raw/os1/{si}/3d_raw_os1_{si}_{raw}.bin"
+                cam = f"2d_raw/cam0/{si}/2d_raw_cam0_{si}_{raw}.png"
+                write_sweep(src / lidar, f)
+                (src / cam).parent.mkdir(parents=True, exist_ok=True)
+                Image.fromarray(np.full((H, W, 3), f * 20, np.uint8)).save(src / cam)
+                Twb = T_world_from_base(si, f)
+                rows.append({"frame": f, "raw_frame": raw, "stamp_ns": 1_675_000_000_000_000_000 + si * 10**12 + f * 200_000_000,
+                             "T_world_from_lidar": (Twb @ T_BASE_FROM_LIDAR).ravel(), "T_world_from_base": Twb.ravel(),
+                             "lidar_path": lidar, "cam0_path": cam, "class_counts": [0] * 10, "is_night": False})
+            tables.stage_table(staged, "frames", rows)
+            tables.stage_table(staged, "instances", [
+                {"track_id": 7, "frame": f, "box3d_center": BOX_CENTER_BASE, "box3d_size": BOX_SIZE_LWH,
+                 "box3d_yaw": BOX_YAW, "vx": 1.0 if f % 2 else 0.0, "vy": 0.0} for f in range(NF)])
+            tables.stage_table(staged, "sequences", [{
+                "fingerprint": f"fp{si}", "config_hash": "c", "code_version": "0.1.0", "status": "ok",
+                "num_frames": NF, "occupancy_version": "k1", "K": K.ravel(), "T_cam0_from_lidar": T_CAM0_FROM_LIDAR.ravel(),
+                "T_base_from_lidar": T_BASE_FROM_LIDAR.ravel(), "image_width": W, "image_height": H}])
+    return root
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    base = tmp_path_factory.mktemp("tiny")
+    return build_tiny_dataset(base / "dataset", base / "dataset"), base
+
+
+def test_occ3d_labels_and_annotations(tiny):
+    root, base = tiny
+    ann_path = export_occ3d(root, base / "occ3d", val_sequences=("s1",))
+    ann = json.loads(ann_path.read_text())
+    assert ann["train_split"] == ["coda-s0"] and ann["val_split"] == ["coda-s1"]
+    infos = ann["scene_infos"]["coda-s1"]
+    assert len(infos) == NF
+    tok2 = sample_token("s1", 2)
+    rec = infos[tok2]
+    assert rec["prev"] == sample_token("s1", 1) and rec["next"] == sample_token("s1", 3)
+    assert infos[sample_token("s1", 0)]["prev"] == "" and infos[sample_token("s1", 3)]["next"] == ""
+    assert rec["timestamp"] == (1_675_000_000_000_000_000 + 10**12 + 2 * 200_000_000) // 1000
+    np.testing.assert_allclose(rec["ego_pose"]["translation"], T_world_from_base(1, 2)[:3, 3])
+    cam = rec["camera_sensor"]["CAM_FRONT"]
+    assert cam["intrinsic"] == K.tolist() and cam["img_path"].startswith("samples/CAM_FRONT/coda-s1__CAM_FRONT__")
+    # the way Occ3D / FlashOcc loaders read labels
+    labels = np.load(base / "occ3d" / "gts" / "coda-s1" / tok2 / "labels.npz")
+    sem, ml, mc = labels["semantics"], labels["mask_lidar"], labels["mask_camera"]
+    assert sem.shape == ml.shape == mc.shape == GRID
+    assert sem.dtype == ml.dtype == mc.dtype == np.uint8
+    assert sem[0, 0, 0] == 12 and sem[19, 29, 8] == PEDESTRIAN and sem[5, 5, 4] == ROAD and sem[5, 5, 20] == FREE
+    assert ml[:, :, :12].all() and not ml[:, :, 12:].any() and mc.all()
+    assert rec["gt_path"] == f"gts/coda-s1/{tok2}/labels.npz"
+    # deterministic: a second export is byte-identical
+    export_occ3d(root, base / "occ3d_again", val_sequences=("s1",))
+    for rel in ("annotations.json", f"gts/coda-s1/{tok2}/labels.npz"):
+        a, b = (base / d / rel for d in ("occ3d", "occ3d_again"))
+        assert hashlib.sha1(a.read_bytes()).digest() == hashlib.sha1(b.read_bytes()).digest()
+    with pytest.raises(ValueError, match="val_sequences"):
+        export_occ3d(root, base / "bad", val_sequences=("s9",))
+
+
+def test_quaternion_round_trip():
+    from pyquaternion import Quaternion
+
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        R = Quaternion(q).rotation_matrix
+        got = quat_wxyz_from_matrix(R)
+        np.testing.assert_allclose(Quaternion(got).rotation_matrix, R, atol=1e-12)
+        assert got[0] >= 0
+    np.testing.assert_allclose(quat_wxyz_from_matrix(np.diag([1.0, -1.0, -1.0])), [0, 1, 0, 0], atol=1e-12)
+
+
+def test_nuscenes_export_loads_in_devkit(tiny):
+    pytest.importorskip("nuscenes")
+    from nuscenes.nuscenes import NuScenes
+    from nuscenes.utils.data_classes import LidarPointCloud
+
+    root, base = tiny
+    out = base / "nusc"
+    export_nuscenes(root, out, version="v1.0-mini")
+    nusc = NuScenes("v1.0-mini", str(out), verbose=False)
+    assert len(nusc.scene) == 2 and len(nusc.sample) == 2 * NF and len(nusc.instance) == 2
+    assert {s["name"] for s in nusc.scene} == {"coda-s0", "coda-s1"}
+    sample = nusc.get("sample", sample_token("s1", 1))
+    assert set(sample["data"]) == {"CAM_FRONT", "LIDAR_TOP"} and len(sample["anns"]) == 1
+    assert sample["timestamp"] == (1_675_000_000_000_000_000 + 10**12 + 200_000_000) // 1000
+    # LiDAR: 5 channels, no-returns dropped, in the sensor frame; the box comes back in that frame
+    path, boxes, _ = nusc.get_sample_data(sample["data"]["LIDAR_TOP"])
+    pc = LidarPointCloud.from_file(path)
+    assert pc.points.shape == (4, 1024 + 10)
+    np.testing.assert_allclose(pc.points[3, 1024:], 1.0)  # intensity = frame index 1
+    (box,) = boxes
+    center_lidar = np.linalg.inv(T_BASE_FROM_LIDAR) @ np.r_[BOX_CENTER_BASE, 1.0]
+    np.testing.assert_allclose(box.center, center_lidar[:3], atol=1e-9)
+    np.testing.assert_allclose(box.wlh, [0.5, 0.6, 1.8])
+    np.testing.assert_allclose(box.orientation.yaw_pitch_roll[0], BOX_YAW - 0.1, atol=1e-9)
+    ann = nusc.get("sample_annotation", sample["anns"][0])
+    assert ann["num_lidar_pts"] == 10 and ann["category_name"] == "human.pedestrian.adult"
+    assert nusc.get("attribute", ann["attribute_tokens"][0])["name"] == "pedestrian.moving"
+    R_wb = T_world_from_base(1, 1)[:3, :3]
+    np.testing.assert_allclose(ann["velocity"], R_wb @ [1.0, 0.0, 0.0], atol=1e-6)
+    # camera: image present, size recorded, intrinsics
+    cam_path, _, K_back = nusc.get_sample_data(sample["data"]["CAM_FRONT"])
+    assert Image.open(cam_path).size == (W, H)
+    np.testing.assert_allclose(K_back, K)
+    sd = nusc.get("sample_data", sample["data"]["CAM_FRONT"])
+    assert (sd["width"], sd["height"]) == (W, H)
+    cs = nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
+    from pyquaternion import Quaternion
+
+    T = np.eye(4)
+    T[:3, :3] = Quaternion(cs["rotation"]).rotation_matrix
+    T[:3, 3] = cs["translation"]
+    np.testing.assert_allclose(T, T_BASE_FROM_LIDAR @ np.linalg.inv(T_CAM0_FROM_LIDAR), atol=1e-12)
+    # deterministic tables
+    again = base / "nusc2"
+    export_nuscenes(root, again, version="v1.0-mini")
+    for name in ("sample", "sample_annotation", "ego_pose", "sample_data"):
+        assert (out / "v1.0-mini" / f"{name}.json").read_bytes() == (again / "v1.0-mini" / f"{name}.json").read_bytes()
+
+
+def test_nuscenes_export_names_missing_source(tiny, tmp_path):
+    root, base = tiny
+    with pytest.raises(FileNotFoundError, match=r"frame 0: cam0 image file"):
+        export_nuscenes(root, tmp_path / "out", source_root=tmp_path / "nowhere")
