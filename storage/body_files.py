@@ -1,0 +1,274 @@
+"""Body model and pose prior files: SMPL-format ``.npz`` / official ``.pkl``, ``gmm_08.pkl``.
+
+Formats (field by field):
+
+- Body model (``.npz`` written by :func:`save_body_model_npz`, or the official SMPL ``.pkl``):
+  ``v_template`` (V, 3) float metres, y-up template; ``f`` (F, 3) int faces; ``shapedirs``
+  (V, 3, B); ``posedirs`` (V, 3, 207); ``weights`` (V, 24); ``kintree_table`` (2, 24) (row 0
+  parents, root parent 2**32 - 1; row 1 joint ids); ``J_regressor`` (24, V) (scipy.sparse in the
+  official pkl, returned dense); optional ``coco_vertex_ids`` (5,) and any other array keys.
+- Pose prior (``gmm_08.pkl``, a Python-2 pickle, encoding latin1): a dict with ``means``
+  (K, 69), ``covars`` (K, 69, 69), ``weights`` (K,), float64.
+
+Pickles are read with a restricted unpickler: only numpy array / dtype reconstruction, the
+copyreg helpers that rebuild plain objects, and stand-ins for scipy.sparse matrices and chumpy
+arrays are allowed; any other global (os.system, builtins.eval, ...) raises
+:class:`UnsafePickleError` before anything runs. Chumpy objects become plain numpy arrays.
+"""
+
+from __future__ import annotations
+
+import collections
+import copyreg
+import io
+import pickle
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse
+
+BODY_MODEL_KEYS = ("v_template", "f", "shapedirs", "posedirs", "weights", "kintree_table", "J_regressor")
+POSE_PRIOR_KEYS = ("means", "covars", "weights")
+
+
+class UnsafePickleError(ValueError):
+    """A pickle asked for a global outside the allow-list (it could run code)."""
+
+
+class BodyFileError(ValueError):
+    """A body model / prior file with a missing key, a wrong shape or an unknown format."""
+
+
+class _ChumpyStandIn:
+    """Receives the state of a pickled chumpy object (``chumpy.ch.Ch`` and friends)."""
+
+    state = None  # pickles may build the object with __new__ only
+
+    def __init__(self, *args, **kwargs):
+        self.state = None
+
+    def __setstate__(self, state):
+        self.state = state
+
+    def to_array(self) -> np.ndarray:
+        st = self.state
+        if isinstance(st, tuple) and len(st) == 2 and isinstance(st[0], dict):
+            st = st[0]  # (dict state, slot state)
+        if isinstance(st, dict):
+            for key in ("x", "r", "a"):
+                if key in st:
+                    return _to_plain(st[key])
+            arrays = [v for v in st.values() if isinstance(v, (np.ndarray, _ChumpyStandIn))]
+            if len(arrays) == 1:
+                return _to_plain(arrays[0])
+        elif isinstance(st, np.ndarray):
+            return st
+        raise BodyFileError(f"a chumpy object without a recognisable array (state keys: "
+                            f"{sorted(st) if isinstance(st, dict) else type(st).__name__})")
+
+
+class _SparseStandIn:
+    """Receives the state of a pickled scipy.sparse matrix (``data``/``indices``/``indptr``)."""
+
+    state = None
+    kind = "csc"
+
+    def __init__(self, *args, **kwargs):
+        self.state = None
+
+    def __setstate__(self, state):
+        self.state = state
+
+    def to_array(self) -> np.ndarray:
+        st = self.state
+        if isinstance(st, tuple) and len(st) == 2 and isinstance(st[0], dict):
+            st = st[0]
+        if not isinstance(st, dict):
+            raise BodyFileError(f"a pickled sparse matrix with state {type(st).__name__}")
+        shape = st.get("_shape", st.get("shape"))
+        fmt = st.get("format", self.kind)
+        if isinstance(fmt, bytes):
+            fmt = fmt.decode("latin1")
+        if fmt in ("csc", "csr"):
+            cls = scipy.sparse.csc_matrix if fmt == "csc" else scipy.sparse.csr_matrix
+            m = cls((st["data"], st["indices"], st["indptr"]), shape=tuple(int(s) for s in shape))
+        elif fmt == "coo":
+            m = scipy.sparse.coo_matrix(
+                (st["data"], (st["row"], st["col"])), shape=tuple(int(s) for s in shape)
+            )
+        else:
+            raise BodyFileError(f"unsupported pickled sparse format {fmt!r}")
+        return np.asarray(m.toarray())
+
+
+_SPARSE_STAND_INS = {
+    kind: type(f"_Sparse_{kind}", (_SparseStandIn,), {"kind": kind}) for kind in ("csc", "csr", "coo")
+}
+
+
+_NUMPY_ALLOWED = {
+    ("numpy.core.multiarray", "_reconstruct"),
+    ("numpy._core.multiarray", "_reconstruct"),
+    ("numpy.core.multiarray", "scalar"),
+    ("numpy._core.multiarray", "scalar"),
+    ("numpy", "ndarray"),
+    ("numpy", "dtype"),
+    ("numpy.core.numeric", "_frombuffer"),
+    ("numpy._core.numeric", "_frombuffer"),
+}
+
+
+def _latin1_encode(text, encoding="latin1", errors="strict"):
+    """What protocol-2 pickles of ``bytes`` call (``_codecs.encode(str, 'latin1')``)."""
+    if encoding not in ("latin1", "latin-1", "iso-8859-1") or not isinstance(text, str):
+        raise UnsafePickleError(f"pickle calls _codecs.encode with encoding {encoding!r}")
+    return text.encode("latin1", errors="strict")
+
+
+# Constructors of plain data types (chumpy states hold sets, for instance); none can run code.
+_SAFE_BUILTINS = {
+    t.__name__: t
+    for t in (object, set, frozenset, list, dict, tuple, slice, complex, bytearray, bool, int, float, str)
+}
+
+
+class _RestrictedUnpickler(pickle.Unpickler):
+    def find_class(self, module: str, name: str):
+        if (module, name) == ("_codecs", "encode"):
+            return _latin1_encode
+        if (module, name) in _NUMPY_ALLOWED:
+            mod = "numpy._core.multiarray" if module.endswith("multiarray") else module
+            mod = "numpy._core.numeric" if module.endswith("numeric") else mod
+            return getattr(__import__(mod, fromlist=[name]), name)
+        if module in ("copy_reg", "copyreg") and name in ("_reconstructor", "__newobj__"):
+            return getattr(copyreg, name)
+        if module in ("__builtin__", "builtins") and name in _SAFE_BUILTINS:
+            return _SAFE_BUILTINS[name]
+        if module == "collections" and name == "OrderedDict":
+            return collections.OrderedDict
+        if module == "chumpy" or module.startswith("chumpy."):
+            return _ChumpyStandIn
+        is_sparse = name[:3] in _SPARSE_STAND_INS and name[3:] in ("_matrix", "_array")
+        if module.startswith("scipy.sparse") and is_sparse:
+            return _SPARSE_STAND_INS[name[:3]]
+        raise UnsafePickleError(f"pickle refers to the global {module}.{name}, which is not allowed")
+
+    def persistent_load(self, pid):
+        raise UnsafePickleError("pickle uses persistent ids, which are not allowed")
+
+
+def _to_plain(obj):
+    if isinstance(obj, (_ChumpyStandIn, _SparseStandIn)):
+        return obj.to_array()
+    if isinstance(obj, dict):
+        return {(k.decode("latin1") if isinstance(k, bytes) else k): _to_plain(v) for k, v in obj.items()}
+    return obj
+
+
+def _restricted_load(path: Path) -> dict:
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise BodyFileError(f"{path}: cannot read ({e})") from e
+    try:
+        obj = _RestrictedUnpickler(io.BytesIO(data), encoding="latin1").load()
+    except UnsafePickleError as e:
+        raise UnsafePickleError(f"{path}: {e}") from None
+    except (pickle.UnpicklingError, EOFError, AttributeError, TypeError, ValueError) as e:
+        raise BodyFileError(f"{path}: not a readable pickle ({type(e).__name__}: {e})") from e
+    if not isinstance(obj, dict):
+        raise BodyFileError(f"{path}: expected a pickled dict, got {type(obj).__name__}")
+    out = {}
+    for k, v in obj.items():
+        key = k.decode("latin1") if isinstance(k, bytes) else k
+        try:
+            out[key] = _to_plain(v)
+        except BodyFileError as e:
+            if key in BODY_MODEL_KEYS or key in POSE_PRIOR_KEYS:
+                raise BodyFileError(f"{path}: key {key!r}: {e}") from e
+            # an auxiliary chumpy expression we cannot evaluate: not needed, dropped
+    return out
+
+
+def load_body_model(path) -> dict[str, np.ndarray]:
+    """Read SMPL-format parameters from ``.npz`` or an official ``.pkl`` (restricted unpickler).
+
+    Returns a dict of numpy arrays with at least BODY_MODEL_KEYS (J_regressor dense);
+    non-array entries of a pkl (e.g. ``bs_style`` strings) are dropped.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".npz":
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                params = {k: z[k] for k in z.files}
+        except (OSError, ValueError) as e:
+            raise BodyFileError(f"{path}: cannot read body model npz ({e})") from e
+    elif suffix == ".pkl":
+        raw = _restricted_load(path)
+        params = {}
+        for k, v in raw.items():
+            if isinstance(v, np.ndarray):
+                params[k] = v
+            elif isinstance(v, scipy.sparse.spmatrix):
+                params[k] = np.asarray(v.toarray())
+    else:
+        raise BodyFileError(f"{path}: expected a .npz or .pkl body model file")
+    missing = [k for k in BODY_MODEL_KEYS if k not in params]
+    if missing:
+        raise BodyFileError(f"{path}: body model lacks keys {missing}; has {sorted(params)}")
+    V = params["v_template"].shape[0]
+    if params["v_template"].shape != (V, 3) or params["J_regressor"].shape != (24, V):
+        raise BodyFileError(
+            f"{path}: v_template {params['v_template'].shape} / J_regressor "
+            f"{params['J_regressor'].shape} do not match (V, 3) / (24, V)"
+        )
+    return params
+
+
+def save_body_model_npz(path, params: dict) -> None:
+    """Write body model parameters (dict of arrays, SMPL keys) as an uncompressed ``.npz``."""
+    path = Path(path)
+    missing = [k for k in BODY_MODEL_KEYS if k not in params]
+    if missing:
+        raise BodyFileError(f"{path}: refusing to write a body model without keys {missing}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez(tmp, **{k: np.asarray(v) for k, v in params.items()})
+    tmp.replace(path)
+
+
+def _check_prior(path: Path, prior: dict) -> dict[str, np.ndarray]:
+    missing = [k for k in POSE_PRIOR_KEYS if k not in prior]
+    if missing:
+        raise BodyFileError(f"{path}: pose prior lacks keys {missing}; has {sorted(prior)}")
+    out = {k: np.asarray(prior[k], dtype=np.float64) for k in POSE_PRIOR_KEYS}
+    K = out["weights"].reshape(-1).shape[0]
+    out["weights"] = out["weights"].reshape(-1)
+    m, c = out["means"], out["covars"]
+    if m.ndim != 2 or m.shape[0] != K or c.shape != (K, m.shape[1], m.shape[1]):
+        raise BodyFileError(
+            f"{path}: pose prior shapes means {m.shape}, covars {c.shape}, weights ({K},) "
+            f"are not (K, d), (K, d, d), (K,)"
+        )
+    return out
+
+
+def save_pose_prior_pkl(path, prior: dict) -> None:
+    """Write a pose prior dict (means, covars, weights) as a protocol-2 pickle (gmm_08 layout)."""
+    path = Path(path)
+    out = _check_prior(path, prior)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as fh:
+        pickle.dump(out, fh, protocol=2)
+    tmp.replace(path)
+
+
+def load_pose_prior(path) -> dict[str, np.ndarray]:
+    """Read a ``gmm_08.pkl``-layout prior with the restricted unpickler (encoding latin1).
+
+    Returns means (K, d), covars (K, d, d), weights (K,), float64.
+    """
+    path = Path(path)
+    return _check_prior(path, _restricted_load(path))
