@@ -1,0 +1,215 @@
+"""Synthetic campus sequences: determinism, CODa layout, ground-truth consistency, show."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from storage import coda_writer as W
+from storage import gt as GT
+from tasks import conventions as C
+from tasks.sim import GridSpec, SimOptions, Simulator
+from tasks.sim import groundtruth as G
+from tasks.sim.geometry import box_solid, ground_tile, transform_points
+from tasks.sim.sensors import LidarNoise, make_rig
+
+SEED = 3
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory) -> tuple[Path, Path]:
+    from flows.simulate import simulate
+
+    a, b = tmp_path_factory.mktemp("simA"), tmp_path_factory.mktemp("simB")
+    assert simulate(a, sequences=1, frames=2, seed=SEED, pedestrians=5, progress=False) == [0]
+    simulate(b, sequences=1, frames=2, seed=SEED, pedestrians=5, progress=False)
+    return a, b
+
+
+@pytest.fixture(scope="module")
+def clean_frame():
+    """A noise-free frame (the geometry the ground truth describes), 8 people."""
+    sim = Simulator(SimOptions(seed=11, frames=30, pedestrians=8),
+                    rig=make_rig(noise=LidarNoise(range_std_m=0.0, angle_std_deg=0.0)))
+    return sim, sim.frame(10)
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_same_seed_gives_byte_identical_files(runs):
+    a, b = _files(runs[0]), _files(runs[1])
+    assert sorted(a) == sorted(b)
+    assert [k for k in a if a[k] != b[k]] == []
+
+
+def test_written_layout_is_coda(runs):
+    root = runs[0]
+    names = set(_files(root))
+    for f in range(2):
+        for name in (f"3d_raw/os1/0/3d_raw_os1_0_{f}.bin", f"2d_rect/cam0/0/2d_rect_cam0_0_{f}.png",
+                     f"2d_rect/cam1/0/2d_rect_cam1_0_{f}.png", f"3d_bbox/os1/0/3d_bbox_os1_0_{f}.json",
+                     f"gt/0/gt_0_{f}.npz"):
+            assert name in names
+        assert (root / f"3d_raw/os1/0/3d_raw_os1_0_{f}.bin").stat().st_size == 131072 * 5 * 4
+    calib = root / "calibrations/0"
+    for cam in ("cam0", "cam1"):
+        intr = yaml.safe_load((calib / f"calib_{cam}_intrinsics.yaml").read_text())
+        assert {"image_width", "image_height", "camera_matrix", "distortion_model", "distortion_coefficients",
+                "rectification_matrix", "projection_matrix"} <= set(intr)
+        assert (intr["image_width"], intr["image_height"]) == (1224, 1024)
+        assert intr["distortion_model"] == "plumb_bob"
+        assert intr["distortion_coefficients"]["rows"] == 1 and intr["distortion_coefficients"]["cols"] == 5
+        assert len(intr["projection_matrix"]["data"]) == 12
+        ext = yaml.safe_load((calib / f"calib_os1_to_{cam}.yaml").read_text())["extrinsic_matrix"]
+        assert (ext["rows"], ext["cols"], len(ext["data"])) == (4, 4, 16)
+    base = yaml.safe_load((calib / "calib_os1_to_base.yaml").read_text())["extrinsic_matrix"]
+    assert 0.8 <= np.asarray(base["data"]).reshape(4, 4)[2, 3] <= 1.0
+    stamps = (root / "timestamps/0.txt").read_text().splitlines()
+    assert stamps == ["1700000000.000000", "1700000000.100000"]
+    poses = [line.split() for line in (root / "poses/dense_global/0.txt").read_text().splitlines()]
+    assert len(poses) == 2 and all(len(p) == 8 for p in poses) and poses[1][0] == stamps[1]
+    meta = json.loads((root / "metadata/0.json").read_text())
+    assert meta["synthetic"] is True and meta["lighting"] == "day" and meta["frames"] == 2
+    assert meta["sensor"] == "os1-128" and meta["crowd"] == "uncrowded" and "seed" in meta
+    boxes = json.loads((root / "3d_bbox/os1/0/3d_bbox_os1_0_0.json").read_text())["3dbbox"]
+    peds = [b for b in boxes if b["classId"] == "Pedestrian"]
+    assert peds and all(b["instanceId"].startswith("Pedestrian:") for b in peds)
+    for b in boxes:
+        assert {"cX", "cY", "cZ", "l", "w", "h", "r", "p", "y", "instanceId", "labelAttributes"} <= set(b)
+        assert b["labelAttributes"]["isOccluded"] in {"None", "Light", "Medium", "Heavy", "Full", "Unknown"}
+
+
+def test_lidar_file_matches_ground_truth_labels(runs):
+    root = runs[0]
+    data = W.read_lidar(root, 0, 1)
+    gt = GT.read_frame_gt(root, 0, 1)
+    returned = np.any(data[:, :3] != 0, axis=1)
+    assert np.array_equal(returned, gt.point_class != C.UNLABELED)
+    assert 0.5 < returned.mean() < 0.905  # 10 % dropout, the sky and the top rows return nothing
+    assert np.all(gt.point_instance[~returned] == 0)
+    seq = GT.read_sequence_gt(root, 0)
+    assert seq.frames == (0, 1) and seq.grid_shape == (48, 48, 24)
+    # The written (noisy, 10 mm) points: ~99 % of those inside the grid lie in a voxel of their class
+    # (98.9-99.4 % over seeds: noise near voxel faces, ground returns in a foot's or wheel's voxel).
+    pb = transform_points(seq.T_base_from_lidar, data[returned, :3].astype(np.float64))
+    q = np.floor((pb - seq.grid_range_min) / seq.grid_voxel_size_m).astype(int)
+    inside = np.all((q >= 0) & (q < seq.grid_shape), axis=1)
+    agree = gt.occupancy[tuple(q[inside].T)] == gt.point_class[returned][inside]
+    assert inside.sum() > 10000 and agree.mean() >= 0.985
+
+
+def test_points_fall_in_voxels_of_their_class(clean_frame):
+    sim, f = clean_frame
+    s = f.sweep
+    ok = s.point_class != C.UNLABELED
+    pb = transform_points(sim.rig.T_base_from_lidar, s.points[ok].astype(np.float64))
+    q = np.floor((pb - np.asarray(sim.grid.range_min)) / sim.grid.voxel_size_m).astype(int)
+    inside = np.all((q >= 0) & (q < sim.grid.shape), axis=1)
+    assert inside.sum() > 10000
+    grid_cls = f.occupancy[tuple(q[inside].T)]
+    pt_cls = s.point_class[ok][inside]
+    assert np.mean(grid_cls != C.FREE) > 0.999
+    # Mixed voxels (a foot or a wheel on the road) keep the object's label, so ground points there
+    # disagree: all points >= 98 %, points of objects >= 99.9 %.
+    assert np.mean(grid_cls == pt_cls) >= 0.98
+    objects = (pt_cls != C.ROAD) & (pt_cls != C.TERRAIN)
+    assert np.mean(grid_cls[objects] == pt_cls[objects]) >= 0.999
+    ped = pt_cls == C.PEDESTRIAN
+    assert ped.sum() > 100
+    inst = f.occupancy_instance[tuple(q[inside].T)]
+    assert np.mean(inst[ped] == s.point_instance[ok][inside][ped]) >= 0.99
+
+
+def test_unoccluded_keypoints_fall_in_the_instance_mask(clean_frame):
+    _, f = clean_frame
+    p = f.people
+    clear = np.flatnonzero(p.visible_fraction >= 0.95)
+    assert len(clear) >= 1
+    mask_hits = []
+    for k in clear:
+        mask = f.cam0.instance == p.track_id[k]
+        # 1-pixel dilation: joints of limbs seen edge-on sit on the silhouette border.
+        grown = mask.copy()
+        grown[1:] |= mask[:-1]; grown[:-1] |= mask[1:]; grown[:, 1:] |= mask[:, :-1]; grown[:, :-1] |= mask[:, 1:]
+        kp = p.keypoints[k]
+        vis = kp[:, 2] == 2
+        u, v = np.rint(kp[vis, 0]).astype(int), np.rint(kp[vis, 1]).astype(int)
+        mask_hits.extend(grown[v, u])
+    assert len(mask_hits) >= 12 and np.mean(mask_hits) >= 0.9
+
+
+def test_stored_body_parameters_reproduce_vertices(clean_frame):
+    sim, f = clean_frame
+    p = f.people
+    with torch.no_grad():
+        out = sim.model(torch.as_tensor(p.betas), torch.as_tensor(p.global_orient), torch.as_tensor(p.body_pose),
+                        torch.as_tensor(p.transl))
+    assert np.abs(out.vertices.numpy() - p.vertices).max() < 1e-3
+    assert np.abs(out.joints.numpy() - p.joints).max() < 1e-3
+
+
+def test_occupancy_of_a_box_on_the_road_is_exact():
+    grid = GridSpec()
+    box = box_solid([1.2, 0.0, 0.3], [0.4, 0.8, 0.6], 0.0, C.CAR, 1000)  # x 1.0-1.4, y +-0.4, z 0-0.6
+    tile = ground_tile(0.0, 3.0, -1.0, 1.0, 0.0, C.ROAD)
+    inp = G.OccupancyInput([(tile.vertices, tile.faces, C.ROAD, True), (box.vertices, box.faces, C.CAR, False)],
+                           [(box.planes, C.CAR, box.vertices.min(0), box.vertices.max(0))], [],
+                           np.zeros((0, 3), np.int64), np.zeros(48 * 48 * 24, np.int32))
+    sem, inst = G.occupancy_grid(inp, grid)
+    expected = np.full(grid.shape, C.FREE, np.uint8)
+    # Road (closed cubes: an edge or the plane on a voxel face counts for both neighbours):
+    # x 0.4-3.0 -> 0..13, y -1..1 -> 18..29, z = 0 -> layers 4 and 5. The car (interior only):
+    # x 1.0-1.4 -> 3..4, y -0.4..0.4 -> 22..25, z 0-0.6 -> 5..7, over the road in layer 5.
+    expected[0:14, 18:30, 4:6] = C.ROAD
+    expected[3:5, 22:26, 5:8] = C.CAR
+    assert np.array_equal(sem, expected)
+    assert not inst.any()
+
+
+def test_bad_ground_truth_field_is_rejected(tmp_path):
+    arrays = {"grid_range_min": np.zeros(3), "grid_voxel_size_m": np.float64(0.2), "grid_shape": np.ones(3, np.int64),
+              "person_faces": np.zeros((1, 3), np.int64), "keypoint_vertex_ids": np.zeros(5, np.int64),
+              "T_base_from_lidar": np.eye(4, dtype=np.float32)}
+    with pytest.raises(GT.GTFormatError, match="T_base_from_lidar"):
+        GT.write_sequence_gt(tmp_path, 0, arrays)
+
+
+def test_show_renders_a_frame(runs, tmp_path):
+    from PIL import Image
+
+    from flows.show import show
+
+    out = show(runs[0] / "gt" / "0", tmp_path / "frame.png", frame=1)
+    im = np.asarray(Image.open(out))
+    assert im.ndim == 3 and im.shape[0] == 640 and im.shape[1] > 1000
+    assert len(np.unique(im.reshape(-1, 3), axis=0)) > 50
+    with pytest.raises(ValueError, match="no frame 7"):
+        show(runs[0] / "gt" / "0", tmp_path / "x.png", frame=7)
+
+
+def test_lidar_on_a_flat_ground_hits_at_the_analytic_range():
+    from tasks.sim.sensors import MeshSet, cast_lidar, lidar_directions
+
+    tile = ground_tile(-50, 50, -50, 50, 0.0, C.ROAD)
+    meshes = MeshSet(tile.vertices.astype(np.float32), tile.faces.astype(np.uint32), np.array([C.ROAD] * 2, np.uint8),
+                     np.zeros(2, np.uint16), np.ones((2, 3), np.float32))
+    T = np.eye(4)
+    T[2, 3] = 0.9
+    noise = LidarNoise(range_std_m=0.0, angle_std_deg=0.0, dropout=0.0)
+    sweep = cast_lidar(meshes.raycasting_scene(), meshes, T, "os1-32", noise, np.random.default_rng(0))
+    dirs = lidar_directions().reshape(-1, 3)
+    rows = np.repeat(np.arange(128), 1024)
+    expect_hit = (dirs[:, 2] < 0) & (rows % 4 == 0) & (0.9 / np.maximum(-dirs[:, 2], 1e-9) <= 90.0)
+    hit = sweep.point_class == C.ROAD
+    assert np.array_equal(hit, expect_hit)
+    rng_m = np.linalg.norm(sweep.points[hit], axis=1)
+    np.testing.assert_allclose(rng_m, 0.9 / -dirs[hit, 2], rtol=1e-5)
+    np.testing.assert_allclose(sweep.points[hit, 2], -0.9, atol=1e-4)
+    assert np.all(sweep.points[~hit] == 0) and np.all(sweep.intensity[~hit] == 0)
