@@ -1,0 +1,210 @@
+"""Benchmarks of the occupancy kernels (plain functions, no prefect).
+
+``bench_freespace``: one synthetic OS1-128 scan inserted by our :class:`OccupancyMap` and by
+octomap-python's ``insertPointCloud`` in the same run, best of several repeats (process CPU time,
+so other load on the machine counts less), plus the agreement of the voxel states on the benchmark
+grid. ``bench_map_fuse``: static-map accumulation and per-frame fusion in frames per second.
+
+Run: ``.venv/bin/python -m flows.bench_occupancy [--quick]`` (prints JSON).
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import sys
+import time
+
+import numpy as np
+
+BENCH_RANGE_MIN = (0.4, -4.8, -1.0)
+BENCH_RANGE_MAX = (10.0, 4.8, 3.8)
+
+
+def _best(fn, repeats: int) -> float:
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.process_time()
+        fn()
+        best = min(best, time.process_time() - t0)
+    return best
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def bench_freespace(quick: bool = False, voxel_size_m: float = 0.2, max_range_m: float = 20.0,
+                    discretize: bool = False) -> dict:
+    """Our free-space insertion vs octomap-python on one 131,072-ray OS1-128 scan.
+
+    Returns seconds per scan (best of repeats, process CPU time) for both, the speed ratio, and the
+    agreement of -1/0/1 states at the benchmark grid's centres, placed at the sensor and at a
+    rotated, shifted pose.
+    """
+    import octomap
+
+    from tasks.occupancy.freespace import OccupancyMap
+    from tasks.occupancy.grid import GridSpec
+    from tasks.occupancy.synthetic import campus_scene, os1_directions, raycast
+
+    origin = np.array([0.0, 0.0, 0.8])
+    pts, _ = raycast(campus_scene(0), origin, os1_directions(128, 1024))
+    pts64 = pts.astype(np.float64)
+    repeats = 2 if quick else 5
+
+    OccupancyMap(voxel_size_m).insert_scan(pts[:100], origin, max_range_m)  # JIT / cache load
+
+    def ours():
+        m = OccupancyMap(voxel_size_m)
+        m.insert_scan(pts, origin, max_range_m, discretize=discretize)
+        return m
+
+    def theirs():
+        t = octomap.OcTree(voxel_size_m)
+        t.insertPointCloud(pts64, origin, maxrange=max_range_m, discretize=discretize)
+        return t
+
+    t_ours = _best(ours, repeats)
+    t_theirs = _best(theirs, repeats)
+    m, tree = ours(), theirs()
+    spec = GridSpec(BENCH_RANGE_MIN, BENCH_RANGE_MAX, voxel_size_m)
+    centres = spec.centers().reshape(-1, 3).astype(np.float64)
+    agreement = {}
+    for name, yaw, t in (("at_sensor", 0.0, (0.0, 0.0, 0.0)), ("rotated", 2.1, (1.3, -0.7, 0.13))):
+        c, s = np.cos(yaw), np.sin(yaw)
+        q = centres @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]).T + np.asarray(t)
+        a, b = m.query(q), tree.getLabels(q)
+        agreement[name] = float((a == b).mean())
+        agreement[name + "_octomap_counts"] = {int(k): int((b == k).sum()) for k in (-1, 0, 1)}
+    t_query_ours = _best(lambda: m.query_grid(spec, np.eye(4)), repeats)
+    t_query_theirs = _best(lambda: tree.getLabels(centres), repeats)
+    return {
+        "rays": int(len(pts)),
+        "voxel_size_m": voxel_size_m,
+        "max_range_m": max_range_m,
+        "discretize": discretize,
+        "ours_s": t_ours,
+        "octomap_s": t_theirs,
+        "speed_ratio": t_theirs / t_ours,
+        "agreement": agreement,
+        "query_grid_ours_s": t_query_ours,
+        "getLabels_octomap_s": t_query_theirs,
+        "ours_map_bytes": m.memory_bytes,
+        "peak_rss_mb": _peak_rss_mb(),
+    }
+
+
+def bench_map_fuse(quick: bool = False, voxel_size_m: float = 0.2, map_voxel_size_m: float | None = None,
+                   max_range_m: float = 20.0) -> dict:
+    """Map stage (pedestrian removal, static-map votes, occupancy insertion) and fuse stage (local
+    grid with one body-like mesh, lidar and camera masks) on a synthetic OS1-128 sequence.
+
+    Returns frames per second of each stage (process CPU time), map sizes and the peak RSS of this
+    process. Run one resolution per process to read its own peak.
+    """
+    from tasks.occupancy.freespace import OccupancyMap
+    from tasks.occupancy.fuse import CameraView, PedestrianMesh, fuse_frame
+    from tasks.occupancy.grid import GridSpec
+    from tasks.occupancy.static_map import StaticSemanticMap, pedestrian_point_mask
+    from tasks.occupancy.synthetic import box_mesh, campus_scene, os1_directions, raycast
+
+    import open3d as o3d
+
+    map_vs = voxel_size_m if map_voxel_size_m is None else map_voxel_size_m
+    n_frames = 3 if quick else 10
+    scene = campus_scene(0)
+    dirs = os1_directions(128, 1024)
+    lidar_h = 0.8
+    body = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=60)  # ~7k vertices
+    body_v = np.asarray(body.vertices) * [0.25, 0.2, 0.85] + [0, 0, 0.85]
+    body_f = np.asarray(body.triangles)
+    frames = []
+    for k in range(n_frames):
+        pose = np.eye(4)
+        pose[:3, 3] = (0.5 * k, 0.1 * k, 0.0)  # T_world_from_base; the LiDAR sits 0.8 m above
+        person = np.array([4.0 + 0.5 * k, 1.0 - 0.3 * k, 0.85, 0.6, 0.6, 1.7, 0.0])
+        world_person = person.copy()
+        world_person[:3] += pose[:3, 3]
+        origin = pose[:3, 3] + [0, 0, lidar_h]
+        pts, _ = raycast(scene + [box_mesh(world_person[:3], world_person[3:6])], origin, dirs)
+        frames.append((pose, origin, pts, person, world_person))
+    # -- map stage
+    smap, omap = StaticSemanticMap(map_vs), OccupancyMap(map_vs)
+    omap.insert_scan(frames[0][2][:10], frames[0][1], max_range_m)  # JIT / cache load
+
+    def map_stage():
+        for pose, origin, pts, person, world_person in frames:
+            keep = ~pedestrian_point_mask(pts, boxes_lidar=world_person[None], box_margin_m=0.1)
+            lab = np.where(pts[:, 2] < 0.05, 4, 2).astype(np.uint8)
+            smap.add_sweep(pts, lab, keep)
+            omap.insert_scan(pts[keep], origin, max_range_m)
+
+    t0 = time.process_time()
+    map_stage()
+    t_map = time.process_time() - t0
+    t0 = time.process_time()
+    static = smap.finalize()
+    t_finalize = time.process_time() - t0
+    # -- fuse stage
+    spec = GridSpec(BENCH_RANGE_MIN, BENCH_RANGE_MAX, voxel_size_m)
+    T_cam = np.eye(4)
+    T_cam[:3, :3] = [[0, 0, 1.0], [-1.0, 0, 0], [0, -1.0, 0]]
+    T_cam[:3, 3] = (0.2, 0.0, 1.0)
+    cam = CameraView(np.array([[700.0, 0, 611.5], [0, 700.0, 511.5], [0, 0, 1]]), 1224, 1024, T_cam)
+    fuse_s = []
+    for i, (pose, origin, pts, person, _) in enumerate(frames):
+        t0 = time.process_time()
+        local = static.crop_to_grid(spec, pose)
+        sp, sl = local.sample_points(voxel_size_m)
+        pts_base = pts - pose[:3, 3]
+        g = fuse_frame(spec, pose, static_points_world=sp, static_labels=sl,
+                       pedestrians=[PedestrianMesh(1, body_v + person[:3] * [1, 1, 0], body_f,
+                                                   np.array([1.0, -0.5]))],
+                       occupancy=omap, lidar_points_base=pts_base,
+                       lidar_origin_base=np.array([0, 0, lidar_h]), camera=cam)
+        if i > 0 or n_frames == 1:  # the first frame includes JIT / cache loading
+            fuse_s.append(time.process_time() - t0)
+    counts = {
+        "pedestrian_voxels": int((g.semantics == 0).sum()),
+        "static_voxels": int(((g.semantics != 0) & (g.semantics != 9)).sum()),
+        "mask_lidar": int(g.mask_lidar.sum()), "mask_camera": int(g.mask_camera.sum()),
+        "unknown": int((g.occupancy_state == -1).sum()),
+    }
+    return {
+        "voxel_size_m": voxel_size_m,
+        "map_voxel_size_m": map_vs,
+        "grid_shape": list(spec.shape),
+        "frames": n_frames,
+        "map_fps": n_frames / t_map,
+        "map_finalize_s": t_finalize,
+        "static_map_voxels": int(len(static.keys)),
+        "static_map_bytes": smap.memory_bytes,
+        "occupancy_map_bytes": omap.memory_bytes,
+        "fuse_fps": 1.0 / float(np.mean(fuse_s)),
+        "last_frame_counts": counts,
+        "peak_rss_mb": _peak_rss_mb(),
+    }
+
+
+def _in_subprocess(fn, *args, **kwargs) -> dict:
+    """Run a benchmark in a fresh process so its peak RSS is its own."""
+    import multiprocessing as mp
+
+    with mp.get_context("spawn").Pool(1) as pool:
+        return pool.apply(fn, args, kwargs)
+
+
+def main(argv: list[str] | None = None) -> None:
+    argv = sys.argv[1:] if argv is None else argv
+    quick = "--quick" in argv
+    out = {"freespace": _in_subprocess(bench_freespace, quick),
+           "freespace_discretize": _in_subprocess(bench_freespace, quick, discretize=True)}
+    for vs in (0.2, 0.05) if quick else (0.2, 0.05, 0.02):
+        out[f"map_fuse_{vs}"] = _in_subprocess(bench_map_fuse, quick, vs,
+                                               map_voxel_size_m=max(vs, 0.05))
+    print(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()

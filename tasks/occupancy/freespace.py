@@ -1,0 +1,564 @@
+"""Free / unknown / occupied space with OctoMap's semantics over a sparse voxel map.
+
+Semantics (OctoMap 1.10 ``insertPointCloud``, the defaults of ``AbstractOccupancyOcTree``):
+
+- per voxel a float32 log-odds, starting at 0 when first updated; a hit adds
+  ``logit(prob_hit)`` (+0.847), a miss adds ``logit(prob_miss)`` (-0.405); the value is clamped to
+  ``[logit(clamp_min), logit(clamp_max)]`` = [-2.0, +3.5]; occupied iff log-odds >= 0; a voxel that
+  was never updated is unknown;
+- per scan: a 3D DDA (Amanatides & Woo, as OctoMap's ``computeRayKeys``) from the sensor origin to
+  each endpoint; the origin voxel is on the ray, the end voxel is not; every voxel is updated at
+  most once per scan and a voxel holding an endpoint is never freed by the same scan (occupied
+  wins); a point farther than ``max_range_m`` is not inserted: its ray is cut at ``max_range_m`` and
+  only frees;
+- voxels are aligned to multiples of the resolution around 0 (OctoMap's key = floor(x / res) +
+  2^15), so with the same resolution our voxels coincide with OctoMap's.
+
+Storage: voxels are grouped in 8 x 8 x 8 blocks; an open-addressing hash table (int64 block key ->
+row) indexes a block pool (log-odds float32 (B, 512), NaN = unknown). A scan first marks its voxels
+in two 64-byte bitsets per block (on a ray / holds an endpoint), then applies one update per marked
+voxel (hit wins). Memory grows with the observed volume (about 2.2 KiB per touched block, i.e. per
+(8 * voxel_size_m)^3 of space crossed by any ray), not with the number of scans.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+_BLOCK_SHIFT = 3
+_BLOCK_CELLS = 1 << (3 * _BLOCK_SHIFT)  # 512
+# Block keys pack 21 bits per axis with an offset of 2^20 blocks: +-8.4 M voxels per axis.
+
+
+class OccupancyError(ValueError):
+    """Bad input to the occupancy map (shapes, non-finite values, parameters)."""
+
+
+def _logit(p: float) -> float:
+    return math.log(p / (1.0 - p))
+
+
+@njit(cache=True, inline="always")
+def _block_key(kx, ky, kz):
+    return (
+        (((kx >> 3) + 1048576) << 42) | (((ky >> 3) + 1048576) << 21) | ((kz >> 3) + 1048576)
+    )
+
+
+@njit(cache=True, inline="always")
+def _cell(kx, ky, kz):
+    return ((kx & 7) << 6) | ((ky & 7) << 3) | (kz & 7)
+
+
+_KEY_OFFSET = 1 << 20  # packing voxel keys into one int64 (21 bits per axis)
+_KEY_MASK = (1 << 21) - 1
+
+
+@njit(cache=True, inline="always")
+def _slot(bk, mask):
+    # splitmix64-style mixing (every key bit reaches the low bits), then a power-of-two mask.
+    h = np.uint64(bk)
+    h ^= h >> np.uint64(31)
+    h *= np.uint64(0xBF58476D1CE4E5B9)
+    h ^= h >> np.uint64(29)
+    return np.int64(h & np.uint64(mask))
+
+
+@njit(cache=True, inline="always")
+def _find(hkeys, hvals, bk):
+    """Pool row of block ``bk`` or -1."""
+    mask = hkeys.shape[0] - 1
+    s = _slot(bk, mask)
+    while True:
+        k = hkeys[s]
+        if k == bk:
+            return hvals[s]
+        if k == -1:
+            return -1
+        s = (s + 1) & mask
+
+
+@njit(cache=True, inline="always")
+def _find_or_add(hkeys, hvals, bkeys, nused, bk):
+    """Pool row of block ``bk``, adding it when absent; -1 when the pool is full."""
+    mask = hkeys.shape[0] - 1
+    s = _slot(bk, mask)
+    while True:
+        k = hkeys[s]
+        if k == bk:
+            return hvals[s]
+        if k == -1:
+            b = nused[0]
+            if b >= bkeys.shape[0]:
+                return -1
+            hkeys[s] = bk
+            hvals[s] = b
+            bkeys[b] = bk
+            nused[0] = b + 1
+            return b
+        s = (s + 1) & mask
+
+
+@njit(cache=True)
+def _rehash(bkeys, nused, hkeys, hvals):
+    mask = hkeys.shape[0] - 1
+    for b in range(nused):
+        bk = bkeys[b]
+        s = _slot(bk, mask)
+        while hkeys[s] != -1:
+            s = (s + 1) & mask
+        hkeys[s] = bk
+        hvals[s] = b
+
+
+@njit(cache=True, inline="always")
+def _touch_block(hkeys, hvals, bkeys, nused, bstamp, touched, ntouched, bk, scan_id):
+    """Pool row of block ``bk`` (added if absent, -1 when the pool is full), listed as touched."""
+    b = _find_or_add(hkeys, hvals, bkeys, nused, bk)
+    if b >= 0 and bstamp[b] != scan_id:
+        bstamp[b] = scan_id
+        touched[ntouched[0]] = b
+        ntouched[0] += 1
+    return b
+
+
+@njit(cache=True)
+def _mark_scan(points, origin, max_range, res, scan_id, hkeys, hvals, bkeys, nused, bstamp,
+               touched, ntouched, fbits, hbits, phase0, ray0):
+    """Mark one scan's voxels in per-block bitsets: fbits = on a ray, hbits = holds an endpoint.
+
+    Phase 0 walks the rays, phase 1 marks the endpoints. Returns (phase, ray) where the block pool
+    ran out, or (2, 0) when done; resuming a ray after the pool grew sets the same bits again.
+    One 64-byte bitset per block keeps the marks of a scan in L1 cache: the walk runs close to the
+    speed of the bare DDA.
+    """
+    inv = 1.0 / res
+    ox = origin[0]
+    oy = origin[1]
+    oz = origin[2]
+    n = points.shape[0]
+    last_bk = np.int64(-1)
+    last_b = np.int64(-1)
+    # A direct-mapped cache of blocks touched in this scan (1024 slots, stays in L1): rays from
+    # one origin revisit the same blocks, so most block changes skip the hash table.
+    ckeys = np.full(1024, -1, dtype=np.int64)
+    crows = np.zeros(1024, dtype=np.int64)
+    kox = np.int64(math.floor(ox * inv))
+    koy = np.int64(math.floor(oy * inv))
+    koz = np.int64(math.floor(oz * inv))
+    big = 1e300
+    r0 = ray0 if phase0 == 0 else n
+    for i in range(r0, n):
+        ex = points[i, 0]
+        ey = points[i, 1]
+        ez = points[i, 2]
+        dx = ex - ox
+        dy = ey - oy
+        dz = ez - oz
+        length = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if max_range >= 0.0 and length > max_range:
+            # OctoMap: new_end = origin + direction * maxrange; the ray only frees.
+            s = max_range / length
+            ex = ox + dx * s
+            ey = oy + dy * s
+            ez = oz + dz * s
+            dx = ex - ox
+            dy = ey - oy
+            dz = ez - oz
+            length = math.sqrt(dx * dx + dy * dy + dz * dz)
+        kex = np.int64(math.floor(ex * inv))
+        key = np.int64(math.floor(ey * inv))
+        kez = np.int64(math.floor(ez * inv))
+        if kox == kex and koy == key and koz == kez:
+            continue
+        # The DDA of OctoMap's computeRayKeys: origin voxel on the ray, end voxel not.
+        dx /= length
+        dy /= length
+        dz /= length
+        sx = 1 if dx > 0 else (-1 if dx < 0 else 0)
+        sy = 1 if dy > 0 else (-1 if dy < 0 else 0)
+        sz = 1 if dz > 0 else (-1 if dz < 0 else 0)
+        if sx != 0:
+            tmx = ((kox + 0.5) * res + sx * res * 0.5 - ox) / dx
+            tdx = res / abs(dx)
+        else:
+            tmx = big
+            tdx = big
+        if sy != 0:
+            tmy = ((koy + 0.5) * res + sy * res * 0.5 - oy) / dy
+            tdy = res / abs(dy)
+        else:
+            tmy = big
+            tdy = big
+        if sz != 0:
+            tmz = ((koz + 0.5) * res + sz * res * 0.5 - oz) / dz
+            tdz = res / abs(dz)
+        else:
+            tmz = big
+            tdz = big
+        cx = kox
+        cy = koy
+        cz = koz
+        while True:
+            bk = _block_key(cx, cy, cz)
+            if bk != last_bk:
+                slot = ((cx >> 3) & 15) | (((cy >> 3) & 15) << 4) | (((cz >> 3) & 3) << 8)
+                if ckeys[slot] == bk:
+                    b = crows[slot]
+                else:
+                    b = _touch_block(hkeys, hvals, bkeys, nused, bstamp, touched, ntouched, bk,
+                                     scan_id)
+                    if b < 0:
+                        return 0, i
+                    ckeys[slot] = bk
+                    crows[slot] = b
+                last_bk = bk
+                last_b = b
+            c = _cell(cx, cy, cz)
+            fbits[last_b, c >> 6] |= np.uint64(1) << np.uint64(c & 63)
+            if tmx < tmy:
+                if tmx < tmz:
+                    cx += sx
+                    tmx += tdx
+                else:
+                    cz += sz
+                    tmz += tdz
+            elif tmy < tmz:
+                cy += sy
+                tmy += tdy
+            else:
+                cz += sz
+                tmz += tdz
+            if cx == kex and cy == key and cz == kez:
+                break
+            if min(tmx, min(tmy, tmz)) > length:
+                break
+    e0 = 0 if phase0 == 0 else ray0
+    for i in range(e0, n):
+        px = points[i, 0]
+        py = points[i, 1]
+        pz = points[i, 2]
+        if max_range >= 0.0:
+            r = math.sqrt((px - ox) ** 2 + (py - oy) ** 2 + (pz - oz) ** 2)
+            if r > max_range:
+                continue
+        kx = np.int64(math.floor(px * inv))
+        ky = np.int64(math.floor(py * inv))
+        kz = np.int64(math.floor(pz * inv))
+        bk = _block_key(kx, ky, kz)
+        if bk != last_bk:
+            b = _touch_block(hkeys, hvals, bkeys, nused, bstamp, touched, ntouched, bk, scan_id)
+            if b < 0:
+                return 1, i
+            last_bk = bk
+            last_b = b
+        c = _cell(kx, ky, kz)
+        hbits[last_b, c >> 6] |= np.uint64(1) << np.uint64(c & 63)
+    return 2, 0
+
+
+@njit(cache=True)
+def _apply_marks(touched, ntouched, fbits, hbits, logodds, hit, miss, lo_min, lo_max):
+    """One update per marked voxel of the touched blocks (occupied wins), then clear the marks."""
+    one = np.uint64(1)
+    for t in range(ntouched[0]):
+        b = touched[t]
+        for w in range(_BLOCK_CELLS // 64):
+            hw = hbits[b, w]
+            fw = fbits[b, w] & ~hw
+            hbits[b, w] = 0
+            fbits[b, w] = 0
+            if hw == 0 and fw == 0:
+                continue
+            for j in range(64):
+                bit = one << np.uint64(j)
+                if hw & bit:
+                    c = w * 64 + j
+                    v = logodds[b, c]
+                    if v != v:
+                        v = np.float32(0.0)
+                    v = v + hit
+                    if v > lo_max:
+                        v = lo_max
+                    logodds[b, c] = v
+                elif fw & bit:
+                    c = w * 64 + j
+                    v = logodds[b, c]
+                    if v != v:
+                        v = np.float32(0.0)
+                    v = v + miss
+                    if v < lo_min:
+                        v = lo_min
+                    logodds[b, c] = v
+    ntouched[0] = 0
+
+
+@njit(cache=True, inline="always")
+def _state(hkeys, hvals, logodds, kx, ky, kz, thres):
+    b = _find(hkeys, hvals, _block_key(kx, ky, kz))
+    if b < 0:
+        return -1
+    v = logodds[b, _cell(kx, ky, kz)]
+    if v != v:
+        return -1
+    return 1 if v >= thres else 0
+
+
+@njit(cache=True)
+def _query_points(points, res, hkeys, hvals, logodds, thres, out):
+    inv = 1.0 / res
+    for i in range(points.shape[0]):
+        kx = np.int64(math.floor(points[i, 0] * inv))
+        ky = np.int64(math.floor(points[i, 1] * inv))
+        kz = np.int64(math.floor(points[i, 2] * inv))
+        out[i] = _state(hkeys, hvals, logodds, kx, ky, kz, thres)
+
+
+@njit(cache=True)
+def _query_grid(R, t, lo, vs, nx, ny, nz, res, hkeys, hvals, logodds, thres, out):
+    inv = 1.0 / res
+    last_bk = np.int64(-1)
+    last_b = np.int64(-1)
+    for i in range(nx):
+        gx = lo[0] + (i + 0.5) * vs
+        for j in range(ny):
+            gy = lo[1] + (j + 0.5) * vs
+            for k in range(nz):
+                gz = lo[2] + (k + 0.5) * vs
+                kx = np.int64(math.floor((R[0, 0] * gx + R[0, 1] * gy + R[0, 2] * gz + t[0]) * inv))
+                ky = np.int64(math.floor((R[1, 0] * gx + R[1, 1] * gy + R[1, 2] * gz + t[1]) * inv))
+                kz = np.int64(math.floor((R[2, 0] * gx + R[2, 1] * gy + R[2, 2] * gz + t[2]) * inv))
+                bk = _block_key(kx, ky, kz)
+                if bk != last_bk:  # neighbouring grid voxels mostly share a map block
+                    last_bk = bk
+                    last_b = _find(hkeys, hvals, bk)
+                if last_b < 0:
+                    out[i, j, k] = -1
+                    continue
+                v = logodds[last_b, _cell(kx, ky, kz)]
+                if v != v:
+                    out[i, j, k] = -1
+                else:
+                    out[i, j, k] = 1 if v >= thres else 0
+
+
+@njit(cache=True)
+def _export(bkeys, logodds, nused):
+    count = 0
+    for b in range(nused):
+        for c in range(_BLOCK_CELLS):
+            if logodds[b, c] == logodds[b, c]:
+                count += 1
+    keys = np.empty((count, 3), dtype=np.int64)
+    vals = np.empty(count, dtype=np.float32)
+    n = 0
+    for b in range(nused):
+        bk = bkeys[b]
+        bx = ((bk >> 42) & 2097151) - 1048576
+        by = ((bk >> 21) & 2097151) - 1048576
+        bz = (bk & 2097151) - 1048576
+        for c in range(_BLOCK_CELLS):
+            v = logodds[b, c]
+            if v == v:
+                keys[n, 0] = (bx << 3) | (c >> 6)
+                keys[n, 1] = (by << 3) | ((c >> 3) & 7)
+                keys[n, 2] = (bz << 3) | (c & 7)
+                vals[n] = v
+                n += 1
+    return keys, vals
+
+
+@njit(cache=True)
+def _import(keys, vals, hkeys, hvals, bkeys, logodds, nused):
+    for i in range(keys.shape[0]):
+        kx = keys[i, 0]
+        ky = keys[i, 1]
+        kz = keys[i, 2]
+        b = _find_or_add(hkeys, hvals, bkeys, nused, _block_key(kx, ky, kz))
+        logodds[b, _cell(kx, ky, kz)] = vals[i]
+
+
+class OccupancyMap:
+    """A sparse occupancy map of one sequence in the world frame, fed scan by scan.
+
+    voxel_size_m: resolution (OctoMap's ``res``). prob_hit / prob_miss / clamp_min / clamp_max /
+    occupancy_threshold: OctoMap's probabilities (defaults are OctoMap's).
+    State lives on the instance; ``insert_scan`` advances it by one scan.
+    """
+
+    def __init__(
+        self,
+        voxel_size_m: float,
+        prob_hit: float = 0.7,
+        prob_miss: float = 0.4,
+        clamp_min: float = 0.1192,
+        clamp_max: float = 0.971,
+        occupancy_threshold: float = 0.5,
+        initial_blocks: int = 1024,
+    ) -> None:
+        if not voxel_size_m > 0:
+            raise OccupancyError(f"voxel_size_m must be > 0, got {voxel_size_m}")
+        for name, p in (("prob_hit", prob_hit), ("prob_miss", prob_miss), ("clamp_min", clamp_min),
+                        ("clamp_max", clamp_max), ("occupancy_threshold", occupancy_threshold)):
+            if not 0.0 < p < 1.0:
+                raise OccupancyError(f"{name} must be in (0, 1), got {p}")
+        if not (prob_miss < 0.5 < prob_hit and clamp_min < clamp_max):
+            raise OccupancyError(
+                f"expected prob_miss < 0.5 < prob_hit and clamp_min < clamp_max, got "
+                f"{prob_miss}, {prob_hit}, {clamp_min}, {clamp_max}"
+            )
+        self.voxel_size_m = float(voxel_size_m)
+        self.params = (prob_hit, prob_miss, clamp_min, clamp_max, occupancy_threshold)
+        self._hit = np.float32(_logit(prob_hit))
+        self._miss = np.float32(_logit(prob_miss))
+        self._lo_min = np.float32(_logit(clamp_min))
+        self._lo_max = np.float32(_logit(clamp_max))
+        self._thres = np.float32(_logit(occupancy_threshold))
+        cap = 1 << max(4, int(np.ceil(np.log2(max(1, initial_blocks)))))
+        self._logodds = np.full((cap, _BLOCK_CELLS), np.nan, dtype=np.float32)
+        self._fbits = np.zeros((cap, _BLOCK_CELLS // 64), dtype=np.uint64)
+        self._hbits = np.zeros((cap, _BLOCK_CELLS // 64), dtype=np.uint64)
+        self._bstamp = np.full(cap, -1, dtype=np.int32)
+        self._touched = np.zeros(cap, dtype=np.int64)
+        self._ntouched = np.zeros(1, dtype=np.int64)
+        self._bkeys = np.full(cap, -1, dtype=np.int64)
+        self._hkeys = np.full(2 * cap, -1, dtype=np.int64)
+        self._hvals = np.full(2 * cap, -1, dtype=np.int64)
+        self._nused = np.zeros(1, dtype=np.int64)
+        self.num_scans = 0
+
+    # -- state ---------------------------------------------------------------------------------
+    def _grow(self) -> None:
+        n = self._logodds.shape[0]
+        self._logodds = np.concatenate(
+            [self._logodds, np.full((n, _BLOCK_CELLS), np.nan, dtype=np.float32)])
+        self._fbits = np.concatenate([self._fbits, np.zeros((n, _BLOCK_CELLS // 64), dtype=np.uint64)])
+        self._hbits = np.concatenate([self._hbits, np.zeros((n, _BLOCK_CELLS // 64), dtype=np.uint64)])
+        self._bstamp = np.concatenate([self._bstamp, np.full(n, -1, dtype=np.int32)])
+        self._touched = np.concatenate([self._touched, np.zeros(n, dtype=np.int64)])
+        self._bkeys = np.concatenate([self._bkeys, np.full(n, -1, dtype=np.int64)])
+        # Keep the hash table at most half full.
+        self._hkeys = np.full(4 * n, -1, dtype=np.int64)
+        self._hvals = np.full(4 * n, -1, dtype=np.int64)
+        _rehash(self._bkeys, int(self._nused[0]), self._hkeys, self._hvals)
+
+    @property
+    def num_blocks(self) -> int:
+        return int(self._nused[0])
+
+    @property
+    def memory_bytes(self) -> int:
+        """Bytes held by the block pool and its hash table (allocated capacity)."""
+        arrays = (self._logodds, self._fbits, self._hbits, self._bstamp, self._touched,
+                  self._bkeys, self._hkeys, self._hvals)
+        return sum(a.nbytes for a in arrays)
+
+    def insert_scan(
+        self,
+        points_world: np.ndarray,
+        origin_world: np.ndarray,
+        max_range_m: float = -1.0,
+        discretize: bool = False,
+    ) -> None:
+        """Insert one scan (OctoMap ``insertPointCloud``).
+
+        points_world: (N, 3) float, metres, world frame: the scan's endpoints (human-free points
+        for the static map). origin_world: (3,) float, the sensor origin in the world frame.
+        max_range_m: < 0 for no limit. discretize: OctoMap's ``discretize`` (one ray per distinct
+        endpoint voxel, aimed at its centre).
+        """
+        pts = np.asarray(points_world)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise OccupancyError(f"points_world must be (N, 3), got shape {pts.shape}")
+        origin = np.asarray(origin_world, dtype=np.float64).reshape(-1)
+        if origin.shape != (3,) or not np.all(np.isfinite(origin)):
+            raise OccupancyError(f"origin_world must be 3 finite values, got {origin_world}")
+        # OctoMap holds points as float32; do the same so rays start and end where its do.
+        pts = pts.astype(np.float32).astype(np.float64)
+        origin = origin.astype(np.float32).astype(np.float64)
+        finite = np.all(np.isfinite(pts), axis=1)
+        if not finite.all():
+            pts = pts[finite]
+        if discretize and len(pts):
+            keys = np.floor(pts * (1.0 / self.voxel_size_m)).astype(np.int64) + _KEY_OFFSET
+            packed = np.unique((keys[:, 0] << 42) | (keys[:, 1] << 21) | keys[:, 2])
+            keys = np.stack([packed >> 42, (packed >> 21) & _KEY_MASK, packed & _KEY_MASK], axis=1)
+            pts = (keys - _KEY_OFFSET + 0.5) * self.voxel_size_m
+        pts = np.ascontiguousarray(pts)
+        scan_id = np.int32(self.num_scans % (2**31 - 1))
+        phase, ray = 0, 0
+        while True:
+            phase, ray = _mark_scan(
+                pts, origin, float(max_range_m), self.voxel_size_m, scan_id, self._hkeys,
+                self._hvals, self._bkeys, self._nused, self._bstamp, self._touched,
+                self._ntouched, self._fbits, self._hbits, phase, ray,
+            )
+            if phase == 2:
+                break
+            self._grow()
+        _apply_marks(self._touched, self._ntouched, self._fbits, self._hbits, self._logodds, self._hit,
+                     self._miss, self._lo_min, self._lo_max)
+        self.num_scans += 1
+
+    # -- queries -------------------------------------------------------------------------------
+    def query(self, points_world: np.ndarray) -> np.ndarray:
+        """State at points: (N, 3) float metres, world frame -> (N,) int8, -1 unknown / 0 free /
+        1 occupied (octomap-python's ``getLabels``)."""
+        # float32 like OctoMap's point3d, so a point on a voxel face lands where OctoMap puts it.
+        pts = np.ascontiguousarray(
+            np.asarray(points_world).reshape(-1, 3).astype(np.float32).astype(np.float64))
+        out = np.empty(len(pts), dtype=np.int8)
+        _query_points(pts, self.voxel_size_m, self._hkeys, self._hvals, self._logodds, self._thres, out)
+        return out
+
+    def query_grid(self, spec, T_world_from_grid: np.ndarray) -> np.ndarray:
+        """State at the centres of every voxel of a grid.
+
+        spec: :class:`tasks.occupancy.grid.GridSpec` in its own frame (e.g. base).
+        T_world_from_grid: (4, 4) float64. Returns (X, Y, Z) int8, -1 unknown / 0 free /
+        1 occupied; centres are computed on the fly (no dense float temporaries).
+        """
+        T = np.asarray(T_world_from_grid, dtype=np.float64)
+        if T.shape != (4, 4):
+            raise OccupancyError(f"T_world_from_grid must be (4, 4), got {T.shape}")
+        nx, ny, nz = spec.shape
+        out = np.empty((nx, ny, nz), dtype=np.int8)
+        _query_grid(np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), spec.origin,
+                    spec.voxel_size_m, nx, ny, nz, self.voxel_size_m, self._hkeys, self._hvals, self._logodds,
+                    self._thres, out)
+        return out
+
+    # -- persistence (storage/ writes these arrays) ----------------------------------------------
+    def to_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """Known voxels: keys (K, 3) int64 (voxel = [k, k+1) * voxel_size_m, world frame) and
+        their log-odds (K,) float32."""
+        return _export(self._bkeys, self._logodds, int(self._nused[0]))
+
+    @classmethod
+    def from_arrays(cls, voxel_size_m: float, keys: np.ndarray, logodds: np.ndarray,
+                    **params) -> "OccupancyMap":
+        """Rebuild a map from :meth:`to_arrays` output (scan count restarts at 0)."""
+        keys = np.ascontiguousarray(np.asarray(keys, dtype=np.int64).reshape(-1, 3))
+        vals = np.ascontiguousarray(np.asarray(logodds, dtype=np.float32).reshape(-1))
+        if len(keys) != len(vals):
+            raise OccupancyError(f"{len(keys)} keys but {len(vals)} log-odds values")
+        blocks = len(np.unique(keys >> _BLOCK_SHIFT, axis=0)) if len(keys) else 1
+        m = cls(voxel_size_m, initial_blocks=blocks, **params)
+        _import(keys, vals, m._hkeys, m._hvals, m._bkeys, m._logodds, m._nused)
+        return m
+
+    def __getstate__(self):
+        keys, vals = self.to_arrays()
+        return {"voxel_size_m": self.voxel_size_m, "params": self.params, "keys": keys,
+                "logodds": vals, "num_scans": self.num_scans}
+
+    def __setstate__(self, state):
+        ph, pm, cmin, cmax, thr = state["params"]
+        other = OccupancyMap.from_arrays(state["voxel_size_m"], state["keys"], state["logodds"],
+                                         prob_hit=ph, prob_miss=pm, clamp_min=cmin,
+                                         clamp_max=cmax, occupancy_threshold=thr)
+        self.__dict__.update(other.__dict__)
+        self.num_scans = state["num_scans"]

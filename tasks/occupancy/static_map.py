@@ -1,0 +1,345 @@
+"""The human-free static semantic map of a sequence (paper, "Static Map Generation").
+
+Per sweep the caller lifts image semantics to the LiDAR points (:func:`lift_image_semantics`),
+drops pedestrian points (:func:`pedestrian_point_mask`: instance masks and 3D boxes), moves the rest
+to the world frame and adds them to a :class:`StaticSemanticMap`, which keeps compact per-voxel
+label counts (uint16 per occupied class, one row per voxel of a sorted int64 key array), so memory
+grows with the mapped volume, not with the number of sweeps. :meth:`StaticSemanticMap.finalize`
+applies the ground-consistency check (road / terrain votes far from a robust local ground height
+are rejected) and max voting.
+
+Class ids are those of :mod:`tasks.conventions` (0 pedestrian .. 8 vegetation, 255 unlabeled).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from tasks.conventions import FREE, PEDESTRIAN, ROAD, TERRAIN, UNLABELED
+
+NUM_OCCUPIED_CLASSES = FREE  # classes 0..8 take votes; 9 (free) never does
+_OFF = 1 << 20  # 21 bits per axis in a packed key: +-2^20 voxels
+_MASK = (1 << 21) - 1
+
+
+class StaticMapError(ValueError):
+    """Bad input to the static-map kernels (shapes, classes, parameters)."""
+
+
+def pack_keys(keys: np.ndarray) -> np.ndarray:
+    """(N, 3) int voxel keys -> (N,) int64 packed keys (sortable, 21 bits per axis)."""
+    k = np.asarray(keys, dtype=np.int64).reshape(-1, 3) + _OFF
+    if len(k) and (k.min() < 0 or k.max() > _MASK):
+        raise StaticMapError(f"voxel keys beyond +-2^20 (got {k.min() - _OFF}..{k.max() - _OFF})")
+    return (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
+
+
+def unpack_keys(packed: np.ndarray) -> np.ndarray:
+    """(N,) int64 packed keys -> (N, 3) int64 voxel keys."""
+    p = np.asarray(packed, dtype=np.int64)
+    return np.stack([(p >> 42) & _MASK, (p >> 21) & _MASK, p & _MASK], axis=1) - _OFF
+
+
+# -- per-sweep helpers ----------------------------------------------------------------------------
+def project_points(points_lidar: np.ndarray, K: np.ndarray, T_cam_from_lidar: np.ndarray,
+                   width: int, height: int, min_depth_m: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels of LiDAR points in a rectified pinhole image.
+
+    points_lidar: (N, 3) float metres, LiDAR frame. K: (3, 3) intrinsics (pixels).
+    T_cam_from_lidar: (4, 4) float64. Returns (pixel (N, 2) int64 column/row of the pixel whose
+    centre is nearest, OpenCV convention: centre of pixel (0, 0) at (0, 0); valid (N,) bool: depth
+    z_cam > min_depth_m and inside the image).
+    """
+    p = np.asarray(points_lidar, dtype=np.float64).reshape(-1, 3)
+    T = np.asarray(T_cam_from_lidar, dtype=np.float64)
+    pc = p @ T[:3, :3].T + T[:3, 3]
+    z = pc[:, 2]
+    front = z > min_depth_m
+    zs = np.where(front, z, 1.0)
+    uv = (pc[:, :2] / zs[:, None]) @ np.asarray(K, dtype=np.float64)[:2, :2].T + np.asarray(K)[:2, 2]
+    pix = np.floor(uv + 0.5).astype(np.int64)
+    valid = front & (pix[:, 0] >= 0) & (pix[:, 0] < width) & (pix[:, 1] >= 0) & (pix[:, 1] < height)
+    pix[~valid] = 0
+    return pix, valid
+
+
+def lift_image_semantics(points_lidar: np.ndarray, semantic_image: np.ndarray, K: np.ndarray,
+                         T_cam_from_lidar: np.ndarray, class_lut: np.ndarray,
+                         fallback: str = "nearest") -> np.ndarray:
+    """Class of each LiDAR point from a semantic image.
+
+    points_lidar: (N, 3) float metres, LiDAR frame. semantic_image: (H, W) uint8 Cityscapes train
+    ids of a rectified image. K: (3, 3). T_cam_from_lidar: (4, 4). class_lut: (256,) uint8 train id
+    -> our class (UNLABELED for none, e.g. :data:`tasks.conventions.CITYSCAPES_TO_CLASS`).
+    fallback for points not in the image: "nearest" (class of the nearest labelled point, 3D) or
+    "unknown" (UNLABELED). Returns (N,) uint8.
+    """
+    if fallback not in ("nearest", "unknown"):
+        raise StaticMapError(f"fallback must be 'nearest' or 'unknown', got {fallback!r}")
+    img = np.asarray(semantic_image)
+    if img.ndim != 2:
+        raise StaticMapError(f"semantic_image must be (H, W), got shape {img.shape}")
+    lut = np.asarray(class_lut, dtype=np.uint8)
+    if lut.shape != (256,):
+        raise StaticMapError(f"class_lut must be (256,) uint8, got shape {lut.shape}")
+    p = np.asarray(points_lidar, dtype=np.float64).reshape(-1, 3)
+    pix, valid = project_points(p, K, T_cam_from_lidar, img.shape[1], img.shape[0])
+    labels = np.full(len(p), UNLABELED, dtype=np.uint8)
+    labels[valid] = lut[img[pix[valid, 1], pix[valid, 0]].astype(np.uint8)]
+    if fallback == "nearest":
+        src = valid & (labels != UNLABELED)
+        dst = ~valid
+        if src.any() and dst.any():
+            _, nn = cKDTree(p[src]).query(p[dst], k=1)
+            labels[dst] = labels[src][nn]
+    return labels
+
+
+def points_in_boxes(points: np.ndarray, boxes: np.ndarray, margin_m: float = 0.0) -> np.ndarray:
+    """Which points lie inside any of the boxes (rotated about z).
+
+    points: (N, 3) float metres. boxes: (M, 7) [cx, cy, cz, l, w, h, yaw] in the same frame
+    (l along the box x, w along y, h along z; yaw rad). margin_m grows every half-size.
+    Returns (N,) bool.
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+    inside = np.zeros(len(p), dtype=bool)
+    for cx, cy, cz, ln, w, h, yaw in b:
+        d = p - (cx, cy, cz)
+        c, s = np.cos(yaw), np.sin(yaw)
+        lx = c * d[:, 0] + s * d[:, 1]
+        ly = -s * d[:, 0] + c * d[:, 1]
+        inside |= ((np.abs(lx) <= ln / 2 + margin_m) & (np.abs(ly) <= w / 2 + margin_m)
+                   & (np.abs(d[:, 2]) <= h / 2 + margin_m))
+    return inside
+
+
+def pedestrian_point_mask(points_lidar: np.ndarray, *, K: np.ndarray | None = None,
+                          T_cam_from_lidar: np.ndarray | None = None,
+                          instance_image: np.ndarray | None = None,
+                          boxes_lidar: np.ndarray | None = None,
+                          box_margin_m: float = 0.1) -> np.ndarray:
+    """Points to remove before static mapping: True where a point projects into a pedestrian
+    instance mask (instance_image (H, W) int > 0, with K (3, 3) and T_cam_from_lidar (4, 4)) or lies
+    in a pedestrian box (boxes_lidar (M, 7) [cx, cy, cz, l, w, h, yaw], LiDAR frame, grown by
+    box_margin_m). points_lidar: (N, 3) float metres, LiDAR frame. Returns (N,) bool."""
+    p = np.asarray(points_lidar, dtype=np.float64).reshape(-1, 3)
+    out = np.zeros(len(p), dtype=bool)
+    if instance_image is not None:
+        if K is None or T_cam_from_lidar is None:
+            raise StaticMapError("instance_image needs K and T_cam_from_lidar")
+        inst = np.asarray(instance_image)
+        pix, valid = project_points(p, K, T_cam_from_lidar, inst.shape[1], inst.shape[0])
+        out[valid] = inst[pix[valid, 1], pix[valid, 0]] > 0
+    if boxes_lidar is not None and len(boxes_lidar):
+        out |= points_in_boxes(p, boxes_lidar, box_margin_m)
+    return out
+
+
+# -- the map --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class StaticMap:
+    """The final static map: one row per labelled voxel, world frame.
+
+    keys: (K, 3) int64, voxel [k, k + 1) * voxel_size_m (aligned to multiples of the voxel size
+    around 0, like the occupancy map). labels: (K,) uint8 class ids. counts: (K, 9) uint16 votes
+    per class after the ground check. ground_rejected: ground votes removed by the check.
+    """
+
+    voxel_size_m: float
+    keys: np.ndarray
+    labels: np.ndarray
+    counts: np.ndarray
+    ground_rejected: int
+
+    def centers(self) -> np.ndarray:
+        """(K, 3) float64 voxel centres, metres, world frame."""
+        return (self.keys + 0.5) * self.voxel_size_m
+
+    def crop(self, center_world: np.ndarray, radius_m: float) -> "StaticMap":
+        """Voxels whose centre is within radius_m (horizontally) of center_world (3,)."""
+        c = self.centers()
+        keep = np.hypot(c[:, 0] - center_world[0], c[:, 1] - center_world[1]) <= radius_m
+        return StaticMap(self.voxel_size_m, self.keys[keep], self.labels[keep], self.counts[keep],
+                         self.ground_rejected)
+
+    def crop_to_grid(self, spec, T_world_from_grid: np.ndarray) -> "StaticMap":
+        """Voxels that can overlap a grid: centre within the grid box (spec: GridSpec in its own
+        frame, T_world_from_grid (4, 4) float64) grown by one map voxel diagonal."""
+        T = np.asarray(T_world_from_grid, dtype=np.float64)
+        c = (self.centers() - T[:3, 3]) @ T[:3, :3]  # world -> grid frame
+        pad = self.voxel_size_m * np.sqrt(3.0)
+        keep = np.all((c >= np.asarray(spec.range_min) - pad) & (c <= np.asarray(spec.range_max) + pad),
+                      axis=1)
+        return StaticMap(self.voxel_size_m, self.keys[keep], self.labels[keep], self.counts[keep],
+                         self.ground_rejected)
+
+    def sample_points(self, spacing_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """Points filling every voxel at <= spacing_m (for voxelizing into a finer grid).
+
+        Returns (points (K * n^3, 3) float32 world frame, labels (K * n^3,) uint8), n =
+        ceil(voxel_size_m / spacing_m) sub-voxel centres per axis (n = 1: the voxel centres).
+        """
+        n = max(1, int(np.ceil(self.voxel_size_m / spacing_m - 1e-9)))
+        sub = (np.arange(n) + 0.5) / n
+        offs = np.stack(np.meshgrid(sub, sub, sub, indexing="ij"), -1).reshape(-1, 3)
+        pts = ((self.keys[:, None, :] + offs[None]) * self.voxel_size_m).reshape(-1, 3)
+        return pts.astype(np.float32), np.repeat(self.labels, len(offs))
+
+
+class StaticSemanticMap:
+    """Accumulates semantic sweeps into per-voxel label counts (one sequence, world frame).
+
+    voxel_size_m: map resolution. flush_points: pending points merged into the sorted count table
+    once this many are buffered (memory vs merge cost). State lives on the instance.
+    """
+
+    def __init__(self, voxel_size_m: float, flush_points: int = 2_000_000) -> None:
+        if not voxel_size_m > 0:
+            raise StaticMapError(f"voxel_size_m must be > 0, got {voxel_size_m}")
+        self.voxel_size_m = float(voxel_size_m)
+        self.flush_points = int(flush_points)
+        self._keys = np.empty(0, dtype=np.int64)  # sorted packed keys
+        self._counts = np.empty((0, NUM_OCCUPIED_CLASSES), dtype=np.uint16)
+        self._pending_keys: list[np.ndarray] = []
+        self._pending_labels: list[np.ndarray] = []
+        self._pending = 0
+        self.num_sweeps = 0
+
+    @property
+    def num_voxels(self) -> int:
+        self._flush()
+        return len(self._keys)
+
+    @property
+    def memory_bytes(self) -> int:
+        return self._keys.nbytes + self._counts.nbytes + 9 * self._pending
+
+    def add_sweep(self, points_world: np.ndarray, labels: np.ndarray,
+                  keep: np.ndarray | None = None) -> None:
+        """Add one sweep's votes.
+
+        points_world: (N, 3) float32 metres, world frame. labels: (N,) uint8 class ids (UNLABELED
+        points cast no vote; FREE is rejected). keep: optional (N,) bool, False for points to drop
+        (pedestrian points).
+        """
+        p = np.asarray(points_world).reshape(-1, 3)
+        lab = np.asarray(labels).reshape(-1)
+        if len(lab) != len(p):
+            raise StaticMapError(f"sweep {self.num_sweeps}: {len(p)} points but {len(lab)} labels")
+        sel = lab != UNLABELED
+        if keep is not None:
+            keep = np.asarray(keep, dtype=bool).reshape(-1)
+            if len(keep) != len(p):
+                raise StaticMapError(f"sweep {self.num_sweeps}: keep has {len(keep)} rows, expected {len(p)}")
+            sel &= keep
+        sel &= np.all(np.isfinite(p), axis=1)
+        lab = lab[sel].astype(np.uint8)
+        if len(lab) and lab.max() >= NUM_OCCUPIED_CLASSES:
+            raise StaticMapError(
+                f"sweep {self.num_sweeps}: class {int(lab.max())} cannot vote (expected 0..8 or 255)")
+        keys = np.floor(np.asarray(p[sel], dtype=np.float64) / self.voxel_size_m).astype(np.int64)
+        self._pending_keys.append(pack_keys(keys))
+        self._pending_labels.append(lab)
+        self._pending += len(lab)
+        self.num_sweeps += 1
+        if self._pending >= self.flush_points:
+            self._flush()
+
+    def _flush(self) -> None:
+        if not self._pending_keys:
+            return
+        pk = np.concatenate(self._pending_keys)
+        pl = np.concatenate(self._pending_labels)
+        self._pending_keys, self._pending_labels, self._pending = [], [], 0
+        if not len(pk):
+            return
+        uk, inv = np.unique(pk, return_inverse=True)
+        add = np.bincount(inv * NUM_OCCUPIED_CLASSES + pl,
+                          minlength=len(uk) * NUM_OCCUPIED_CLASSES).reshape(len(uk), -1)
+        keys = np.union1d(self._keys, uk)
+        counts = np.zeros((len(keys), NUM_OCCUPIED_CLASSES), dtype=np.uint32)
+        counts[np.searchsorted(keys, self._keys)] = self._counts
+        counts[np.searchsorted(keys, uk)] += add.astype(np.uint32)
+        self._keys = keys
+        self._counts = np.minimum(counts, np.iinfo(np.uint16).max).astype(np.uint16)  # saturate
+
+    def counts(self) -> tuple[np.ndarray, np.ndarray]:
+        """Raw votes so far: keys (K, 3) int64 and counts (K, 9) uint16."""
+        self._flush()
+        return unpack_keys(self._keys), self._counts.copy()
+
+    def finalize(self, ground_classes: tuple[int, ...] = (ROAD, TERRAIN),
+                 ground_tolerance_m: float = 0.3, ground_cell_m: float = 1.0,
+                 ground_neighbourhood: int = 1, ground_quantile: float = 0.5,
+                 ignore_classes: tuple[int, ...] = (PEDESTRIAN,), min_votes: int = 1) -> StaticMap:
+        """Ground check, then max voting.
+
+        Ground check: per xy cell of ground_cell_m, the local ground height is the vote-weighted
+        ground_quantile of the z of voxels with ground-class votes, over the
+        (2 * ground_neighbourhood + 1)^2 surrounding cells; ground votes of a voxel whose centre is
+        more than ground_tolerance_m from it are rejected. Voting: the class with most votes
+        (ties: the lower id), ignoring ignore_classes (the map is human-free); voxels with fewer
+        than min_votes remaining votes are dropped.
+        """
+        self._flush()
+        keys = unpack_keys(self._keys)
+        counts = self._counts.astype(np.int64)
+        centers = (keys + 0.5) * self.voxel_size_m
+        g_idx = np.asarray(ground_classes, dtype=np.int64)
+        rejected = 0
+        if len(g_idx) and len(keys):
+            gvotes = counts[:, g_idx].sum(axis=1)
+            height = _local_ground_height(centers, gvotes, ground_cell_m, ground_neighbourhood,
+                                          ground_quantile)
+            bad = (gvotes > 0) & np.isfinite(height) & (np.abs(centers[:, 2] - height) > ground_tolerance_m)
+            rejected = int(gvotes[bad].sum())
+            counts[np.ix_(bad, g_idx)] = 0
+        vote = counts.copy()
+        if ignore_classes:
+            vote[:, list(ignore_classes)] = 0
+        labels = np.argmax(vote, axis=1).astype(np.uint8)
+        keep = vote.max(axis=1) >= max(1, min_votes)
+        return StaticMap(self.voxel_size_m, keys[keep], labels[keep],
+                         np.minimum(counts[keep], 65535).astype(np.uint16), rejected)
+
+
+def _local_ground_height(centers: np.ndarray, gvotes: np.ndarray, cell_m: float, nb: int,
+                         quantile: float) -> np.ndarray:
+    """Per voxel: the vote-weighted quantile of ground-voxel z over the neighbouring xy cells
+    (NaN where no ground votes are near). centers (K, 3) metres; gvotes (K,) int."""
+    cell = np.floor(centers[:, :2] / cell_m).astype(np.int64) + _OFF
+    cell_id = (cell[:, 0] << 21) | cell[:, 1]
+    g = gvotes > 0
+    if not g.any():
+        return np.full(len(centers), np.nan)
+    gz, gw, gc = centers[g, 2], gvotes[g].astype(np.float64), cell[g]
+    tz, tw, tid = [], [], []
+    for dx in range(-nb, nb + 1):  # every ground voxel votes in its neighbours' cells too
+        for dy in range(-nb, nb + 1):
+            tid.append(((gc[:, 0] + dx) << 21) | (gc[:, 1] + dy))
+            tz.append(gz)
+            tw.append(gw)
+    tid, tz, tw = np.concatenate(tid), np.concatenate(tz), np.concatenate(tw)
+    order = np.lexsort((tz, tid))
+    tid, tz, tw = tid[order], tz[order], tw[order]
+    ucell, start = np.unique(tid, return_index=True)
+    sizes = np.diff(np.append(start, len(tid)))
+    csum = np.cumsum(tw)
+    before = np.concatenate([[0.0], csum])[start]
+    rel = csum - np.repeat(before, sizes)  # cumulative weight within each cell
+    target = np.repeat(quantile * np.add.reduceat(tw, start), sizes)
+    # the first row of each cell whose cumulative weight reaches the quantile
+    rows = np.nonzero(rel >= target - 1e-9)[0]
+    grp = np.searchsorted(start, rows, side="right") - 1
+    first_rows = np.full(len(ucell), len(tid) - 1, dtype=np.int64)
+    np.minimum.at(first_rows, grp, rows)
+    height_cell = tz[first_rows]
+    pos = np.searchsorted(ucell, cell_id)
+    pos_c = np.minimum(pos, len(ucell) - 1)
+    found = ucell[pos_c] == cell_id
+    return np.where(found, height_cell[pos_c], np.nan)

@@ -1,0 +1,179 @@
+"""Static semantic map: max voting, ground consistency, lifting semantics, pedestrian removal and
+the ghost trail a walking person leaves when its points are not removed."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tasks.conventions import (CITYSCAPES_TO_CLASS, CITYSCAPES_TRAIN_IDS, OTHER_STRUCTURE,
+                               PEDESTRIAN, ROAD, TERRAIN, UNLABELED, VEGETATION)
+from tasks.occupancy.freespace import OccupancyMap
+from tasks.occupancy.static_map import (StaticMapError, StaticSemanticMap, lift_image_semantics,
+                                        pedestrian_point_mask, points_in_boxes)
+
+VS = 0.2
+
+
+def _at(keys, n):
+    return np.repeat((np.asarray(keys, float) + 0.5) * VS, n, axis=0)
+
+
+def _labels(result):
+    return {tuple(int(v) for v in k): int(lab) for k, lab in zip(result.keys, result.labels)}
+
+
+def test_max_voting_ties_and_pedestrian_votes():
+    m = StaticSemanticMap(VS)
+    m.add_sweep(_at([[1, 1, 1]], 3), np.full(3, OTHER_STRUCTURE, np.uint8))
+    m.add_sweep(_at([[1, 1, 1]], 2), np.full(2, VEGETATION, np.uint8))
+    m.add_sweep(_at([[2, 1, 1]], 2), np.array([VEGETATION, OTHER_STRUCTURE], np.uint8))  # tie
+    m.add_sweep(_at([[3, 1, 1]], 4), np.array([PEDESTRIAN] * 3 + [VEGETATION], np.uint8))
+    m.add_sweep(_at([[4, 1, 1]], 2), np.full(2, PEDESTRIAN, np.uint8))  # only pedestrian votes
+    m.add_sweep(_at([[5, 1, 1]], 2), np.full(2, UNLABELED, np.uint8))  # no votes at all
+    # keep-mask: these 5 votes for the road are dropped by the caller's pedestrian mask
+    m.add_sweep(_at([[1, 1, 1]], 5), np.full(5, ROAD, np.uint8), keep=np.zeros(5, bool))
+    res = m.finalize(ground_classes=())
+    assert _labels(res) == {(1, 1, 1): OTHER_STRUCTURE, (2, 1, 1): OTHER_STRUCTURE,
+                            (3, 1, 1): VEGETATION}
+    keys, counts = m.counts()
+    assert counts.dtype == np.uint16 and counts.shape == (4, 9)
+    assert counts[[tuple(k) for k in keys].index((1, 1, 1))].tolist() == [0, 0, 3, 0, 0, 0, 0, 0, 3 - 1]
+
+
+def test_ground_consistency_rejects_far_ground_votes():
+    m = StaticSemanticMap(VS)
+    ground = [[i, j, 0] for i in range(-10, 10) for j in range(-10, 10)]  # z centre 0.1
+    m.add_sweep(_at(ground, 5), np.full(len(ground) * 5, ROAD, np.uint8))
+    near = [[2, 2, 1]]  # centre 0.3: 0.2 m above ground -> kept
+    far = [[3, 3, 2]]  # centre 0.5: 0.4 m above -> road votes rejected, the wall votes decide
+    far_only = [[4, 4, 7]]  # centre 1.5: only road votes -> dropped
+    below = [[5, 5, -2]]  # centre -0.3: 0.4 m below
+    m.add_sweep(_at(near + far + far_only + below, 4),
+                np.full(16, TERRAIN, np.uint8))
+    m.add_sweep(_at(far, 1), np.full(1, OTHER_STRUCTURE, np.uint8))
+    res = m.finalize(ground_tolerance_m=0.3, ground_cell_m=1.0)
+    lab = _labels(res)
+    assert lab[(2, 2, 1)] == TERRAIN
+    assert lab[(3, 3, 2)] == OTHER_STRUCTURE
+    assert (4, 4, 7) not in lab and (5, 5, -2) not in lab
+    assert res.ground_rejected == 12
+    assert sum(v == ROAD for v in lab.values()) == len(ground)
+    # without the check the far votes win
+    lab_nocheck = _labels(m.finalize(ground_classes=()))
+    assert lab_nocheck[(3, 3, 2)] == TERRAIN and lab_nocheck[(4, 4, 7)] == TERRAIN
+
+
+def test_merges_across_flushes_equal_one_merge():
+    rng = np.random.default_rng(0)
+    sweeps = [(rng.uniform(-2, 2, (500, 3)).astype(np.float32), rng.integers(0, 9, 500).astype(np.uint8))
+              for _ in range(6)]
+    a, b = StaticSemanticMap(VS, flush_points=300), StaticSemanticMap(VS, flush_points=10**9)
+    for p, lab in sweeps:
+        a.add_sweep(p, lab)
+        b.add_sweep(p, lab)
+    (ka, ca), (kb, cb) = a.counts(), b.counts()
+    np.testing.assert_array_equal(ka, kb)
+    np.testing.assert_array_equal(ca, cb)
+    assert ca.sum() == 3000
+
+
+def test_crop_to_grid_and_sample_points():
+    from tasks.occupancy.grid import GridSpec
+
+    m = StaticSemanticMap(VS)
+    m.add_sweep(_at([[0, 0, 0], [20, 0, 0], [-20, 0, 0], [0, 30, 0]], 1),
+                np.array([ROAD, VEGETATION, TERRAIN, OTHER_STRUCTURE], np.uint8))
+    res = m.finalize(ground_classes=())
+    spec = GridSpec((0.0, -1.0, -1.0), (5.0, 1.0, 1.0), 0.1)
+    T = np.eye(4)
+    T[:3, :3] = [[-1.0, 0, 0], [0, -1.0, 0], [0, 0, 1]]  # facing -x: the voxel at x = -4 is inside
+    T[:3, 3] = (0.05, 0.05, 0.0)
+    assert _labels(res.crop_to_grid(spec, T)) == {(0, 0, 0): ROAD, (-20, 0, 0): TERRAIN}
+    pts, lab = res.crop_to_grid(spec, T).sample_points(0.1)
+    assert len(pts) == 2 * 8 and set(lab.tolist()) == {ROAD, TERRAIN}
+    np.testing.assert_allclose(np.sort(np.unique(pts[:, 0])), [-3.95, -3.85, 0.05, 0.15], atol=1e-6)
+
+
+def test_bad_votes_raise():
+    m = StaticSemanticMap(VS)
+    with pytest.raises(StaticMapError, match="class 9"):
+        m.add_sweep(np.zeros((1, 3)), np.array([9], np.uint8))
+    with pytest.raises(StaticMapError, match="labels"):
+        m.add_sweep(np.zeros((2, 3)), np.array([1], np.uint8))
+
+
+R_CAM_FROM_LIDAR = np.array([[0, -1.0, 0], [0, 0, -1.0], [1.0, 0, 0]])  # lidar x forward = cam z
+
+
+def _cam():
+    T = np.eye(4)
+    T[:3, :3] = R_CAM_FROM_LIDAR
+    K = np.array([[20.0, 0, 19.5], [0, 20.0, 9.5], [0, 0, 1]])
+    return K, T
+
+
+def test_lift_image_semantics_and_fallback():
+    K, T = _cam()
+    img = np.full((20, 40), CITYSCAPES_TRAIN_IDS["road"], np.uint8)
+    img[:, :20] = CITYSCAPES_TRAIN_IDS["building"]
+    img[:2, :] = CITYSCAPES_TRAIN_IDS["sky"]
+    pts = np.array([[5, 1, 0], [5, -1, 0], [5, 0, 2.25], [-5, 1.2, 0], [5, 40, 0]], float)
+    # u = 19.5 - 20 y / x, v = 9.5 - 20 z / x
+    lab = lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS, fallback="nearest")
+    assert lab.tolist() == [OTHER_STRUCTURE, ROAD, UNLABELED, OTHER_STRUCTURE, OTHER_STRUCTURE]
+    lab = lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS, fallback="unknown")
+    assert lab.tolist() == [OTHER_STRUCTURE, ROAD, UNLABELED, UNLABELED, UNLABELED]
+
+
+def test_pedestrian_point_mask_instances_and_rotated_boxes():
+    K, T = _cam()
+    inst = np.zeros((20, 40), np.int32)
+    inst[:, 25:30] = 3
+    pts = np.array([[5, -1.5, 0], [5, 1, 0], [0.55, 0, 0], [0.0, 0.45, 0], [0.5, 0.5, 0]], float)
+    mask = pedestrian_point_mask(pts, K=K, T_cam_from_lidar=T, instance_image=inst)
+    assert mask.tolist() == [True, False, False, False, False]
+    box = np.array([[0, 0, 0, 1.0, 0.2, 2.0, 0.0]])
+    assert points_in_boxes(pts, box, 0.1).tolist() == [False, False, True, False, False]
+    box_rot = box.copy()
+    box_rot[0, 6] = np.pi / 2  # now 1 m along y
+    assert points_in_boxes(pts, box_rot, 0.0).tolist() == [False, False, False, True, False]
+    box_diag = box.copy()
+    box_diag[0, 6] = np.pi / 4  # along the diagonal: (0.5, 0.5) is 0.707 m along the box
+    assert points_in_boxes(pts, box_diag, 0.0).tolist() == [False] * 5
+    # margin 0.25: half sizes 0.75 x 0.35; (0, 0.45) -> (0.32, 0.32) inside, (0.55, 0) -> (0.39, -0.39) not
+    assert points_in_boxes(pts, box_diag, 0.25).tolist() == [False, False, False, True, True]
+
+
+def test_ghost_trail_removed_by_pedestrian_boxes():
+    """A person walks across the robot's view; with its points removed (3D boxes) the static map
+    and the occupancy map hold nothing along its path; without removal a trail appears."""
+    from tasks.occupancy.synthetic import box_mesh, os1_directions, raycast
+
+    scene = [box_mesh((0, 0, -0.1), (30, 30, 0.2)), box_mesh((8.1, 0, 1.5), (0.2, 12, 3.0))]
+    dirs = os1_directions(48, 360)
+    origin = np.array([0.0, 0.0, 1.0])
+
+    def run(remove: bool):
+        smap, omap = StaticSemanticMap(VS), OccupancyMap(VS)
+        for y in np.linspace(-3, 3, 13):
+            person = (4.0, y, 0.85, 0.5, 0.5, 1.7, 0.3)
+            pts, _ = raycast(scene + [box_mesh(person[:3], person[3:6], person[6])], origin, dirs)
+            # image semantics missing (person outside the camera): the nearest static class
+            lab = np.where(pts[:, 2] < 0.05, ROAD, OTHER_STRUCTURE).astype(np.uint8)
+            keep = ~pedestrian_point_mask(pts, boxes_lidar=np.array([person]), box_margin_m=0.1) \
+                if remove else np.ones(len(pts), bool)
+            smap.add_sweep(pts, lab, keep)
+            omap.insert_scan(pts[keep], origin, max_range_m=20.0)
+        res = smap.finalize()
+        c = res.centers()
+        corridor = (np.abs(c[:, 0] - 4.0) < 0.6) & (np.abs(c[:, 1]) < 3.5) & (c[:, 2] > 0.25)
+        xs, ys, zs = np.meshgrid(np.arange(3.5, 4.5, VS), np.arange(-3.4, 3.4, VS),
+                                 np.arange(0.3, 1.7, VS), indexing="ij")
+        occ = omap.query(np.stack([xs, ys, zs], -1).reshape(-1, 3) + VS / 2)
+        return int(corridor.sum()), int((occ == 1).sum()), int((occ == 0).sum())
+
+    static_trail, occupied, free = run(remove=True)
+    assert static_trail == 0 and occupied == 0 and free > 100
+    static_trail, occupied, _ = run(remove=False)
+    assert static_trail > 50 and occupied > 10
