@@ -89,26 +89,43 @@ class DatasetConfig(Strict):
 
 
 class OracleNoise(Strict):
-    """Noise of the `oracle` perception provider (synthetic data only)."""
+    """Noise of the `oracle` perception provider (synthetic data only); see tasks.perception.oracle."""
 
-    miss_rate: float = Field(0.01, ge=0, le=1)
-    miss_rate_night: float = Field(0.23, ge=0, le=1)
-    occlusion_miss_gain: float = Field(0.6, ge=0)
-    distance_miss_gain: float = Field(0.01, ge=0)
-    false_positive_rate: float = Field(0.01, ge=0)
-    box_jitter_px: float = Field(3.0, ge=0)
-    keypoint_noise_px: float = Field(4.0, ge=0)
-    mask_boundary_px: int = Field(1, ge=0)
-    semantic_flip_rate: float = Field(0.02, ge=0, le=1)
+    day_recall: float = Field(0.99, ge=0, le=1)
+    night_recall: float = Field(0.77, ge=0, le=1)
+    occlusion_miss: float = Field(0.6, ge=0, le=1)
+    min_visible_fraction: float = Field(0.05, ge=0, le=1)
+    distance_miss: float = Field(0.3, ge=0, le=1)
+    near_m: float = Field(10.0, gt=0)
+    far_m: float = Field(40.0, gt=0)
+    fp_per_frame: float = Field(0.02, ge=0)
+    fp_score_range: tuple[float, float] = (0.3, 0.75)
+    box_jitter: float = Field(0.03, ge=0)
+    keypoint_sigma: float = Field(0.01, ge=0)
+    mask_flip_prob: float = Field(0.3, ge=0, le=1)
+    semantic_patches: float = Field(3.0, ge=0)
+    semantic_patch_px: tuple[int, int] = (8, 48)
+    night_noise_scale: float = Field(2.0, ge=0)
+    lidar_recall: float = Field(0.97, ge=0, le=1)
+    lidar_far_m: float = Field(40.0, gt=0)
+    lidar_center_sigma_m: float = Field(0.05, ge=0)
+    lidar_size_sigma_m: float = Field(0.05, ge=0)
+    lidar_yaw_sigma_rad: float = Field(0.1, ge=0)
 
 
 class LidarClustersConfig(Strict):
-    ground_height_m: float = 0.25
-    cluster_eps_m: float = Field(0.35, gt=0)
+    """The weight-free LiDAR pedestrian detector (tasks.perception.lidar_clusters)."""
+
+    ground_cell_m: float = Field(2.0, gt=0)
+    ground_tol_m: float = Field(0.2, ge=0)
+    ceiling_m: float = Field(2.4, gt=0)
+    voxel_m: float = Field(0.1, gt=0)
+    cluster_tol_m: float = Field(0.3, gt=0)
     min_points: int = Field(10, ge=1)
-    min_height_m: float = 1.0
-    max_height_m: float = 2.1
-    max_footprint_m: float = 1.2
+    min_height_m: float = Field(1.0, gt=0)
+    max_height_m: float = Field(2.1, gt=0)
+    max_footprint_m: float = Field(1.2, gt=0)
+    max_range_m: float = Field(40.0, gt=0)
 
 
 class DetectConfig(Strict):
@@ -127,8 +144,23 @@ class DetectConfig(Strict):
         return self
 
 
+class PersonPointsConfig(Strict):
+    """Separating a person's LiDAR points (tasks.perception.person_points)."""
+
+    gap_m: float = Field(0.3, gt=0)
+    min_points: int = Field(3, ge=1)
+    person_height_m: float = Field(1.7, gt=0)
+    range_sigma_frac: float = Field(0.25, gt=0)
+    core_frac: float = Field(0.5, gt=0, le=1)
+    min_depth_m: float = Field(0.5, ge=0)
+    ground_tol_m: float | None = 0.15
+    ground_cell_m: float = Field(2.0, gt=0)
+    feet_radius_m: float = Field(0.1, ge=0)
+    assoc_min_iou: float = Field(0.3, ge=0, le=1)
+
+
 class TrackConfig(Strict):
-    """OC-SORT defaults (Cao et al.)."""
+    """OC-SORT defaults (Cao et al.) and person-point extraction."""
 
     det_thresh: float = Field(0.6, ge=0, le=1)
     max_age: int = Field(30, ge=1)
@@ -136,8 +168,9 @@ class TrackConfig(Strict):
     iou_threshold: float = Field(0.3, ge=0, le=1)
     delta_t: int = Field(3, ge=1)
     inertia: float = Field(0.2, ge=0, le=1)
-    person_min_points: int = Field(5, ge=1)
-    depth_cluster_gap_m: float = Field(0.5, gt=0)
+    #: report a re-found confirmed track at once (False = reference OC-SORT output)
+    keep_confirmed_ids: bool = True
+    person_points: PersonPointsConfig = PersonPointsConfig()
 
 
 class LossWeights(Strict):

@@ -115,6 +115,31 @@ def cmd_status(args: argparse.Namespace) -> int:
     return _print_plan(args, dry_run=False)
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    from flows.pipeline import export_dataset
+
+    cfg = _config(args)
+    target = export_dataset(cfg, args.format, args.to)
+    print(f"{args.format} export written to {target}")
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from flows.evaluate import evaluate
+
+    evaluate(args.dataset, args.gt, args.report)
+    print(f"report: {args.report / 'report.md'} (figures in {args.report / 'figures'}, "
+          f"numbers in {args.report / 'results.json'})")
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from flows.bench import bench
+
+    bench(quick=args.quick, json_path=args.json, workers=args.workers)
+    return 0
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     from flows.simulate import simulate
 
@@ -142,8 +167,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
         simulate(data, sequences=2, frames=args.frames, seed=0, crowd="crowded",
                  progress=not args.quiet)
     args.data = data
-    args.force = False
-    return _run(args, force=False)
+    status = _run(args, force=False)
+    from flows.evaluate import evaluate
+
+    out = Path(_config(args).output.root)
+    report = out / "report"
+    evaluate(out, data, report)
+    print(f"\ndemo dataset: {out} (Zarr arrays in {out / 'occupancy'}, tables in {out / 'tables'})")
+    print(f"evaluation report: {report / 'report.md'} (pictures in {report / 'figures'})")
+    return status
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -173,6 +205,25 @@ def build_parser() -> argparse.ArgumentParser:
         if name == "reprocess":
             p.add_argument("--dry-run", action="store_true", help="list what would run and why")
         p.set_defaults(func=func)
+
+    p = sub.add_parser("export", help="export the dataset for occupancy trainers (Occ3D or nuScenes)")
+    _add_config_args(p, runtime=False)
+    p.add_argument("--format", choices=["occ3d", "nuscenes"], required=True)
+    p.add_argument("--to", type=Path, required=True, help="export folder")
+    p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("evaluate", help="label quality against ground truth: Markdown report + JSON")
+    p.add_argument("--dataset", type=Path, required=True, help="the output store (OUT)")
+    p.add_argument("--gt", type=Path, default=None,
+                   help="ground-truth root (default: the dataset root recorded in OUT)")
+    p.add_argument("--report", type=Path, required=True, help="report folder")
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("bench", help="measure stage speeds, memory and reference ratios in one run")
+    p.add_argument("--quick", action="store_true", help="small inputs, a few minutes")
+    p.add_argument("--json", type=Path, default=None, help="write the figures as JSON")
+    p.add_argument("--workers", type=int, default=2)
+    p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("simulate", help="generate synthetic campus sequences (CODa layout + ground truth)")
     p.add_argument("--out", type=Path, required=True)

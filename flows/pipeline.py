@@ -42,7 +42,8 @@ def execute_unit(config: Config, unit: UnitPlan, out_root: Path, upstream: dict[
     try:
         with staged_output(final) as tmp:
             ctx = StageContext(config, unit.sequence, Path(out_root), tmp,
-                               {s: Path(out_root) / o["location"] for s, o in upstream.items()})
+                               {s: Path(out_root) / o["location"] for s, o in upstream.items()},
+                               key=unit.key)
             summary = STAGE_FUNCTIONS[unit.stage](ctx)
             (tmp / "summary.json").write_text(json.dumps(summary, sort_keys=True, indent=1))
     except Exception as exc:  # noqa: BLE001 - one bad sequence fails alone, with its error
@@ -157,11 +158,33 @@ def _progress_bars(report: RunReport, futures: list, progress: bool):
             for i, s in enumerate(STAGES)}
 
 
+def export_dataset(config: Config, fmt: str, target: Path | None = None) -> Path:
+    """Export the published dataset (every sequence) for occupancy trainers."""
+    from storage.export.nuscenes import export_nuscenes
+    from storage.export.occ3d import export_occ3d
+
+    out = Path(config.output.root)
+    target = Path(target) if target is not None else out / "exports" / fmt
+    ex = config.export
+    if fmt == "occ3d":
+        export_occ3d(out, target, scene_prefix=ex.scene_prefix, val_sequences=tuple(ex.val_sequences))
+    else:
+        export_nuscenes(out, target, version=ex.nuscenes_version, scene_prefix=ex.scene_prefix,
+                        source_root=Path(config.dataset.root), min_range_m=config.dataset.min_range_m)
+    return target
+
+
 @flow(name="rebuild-dataset", log_prints=True)
 def rebuild_dataset(config: Config, force: bool = False, sequences: list[str] | None = None,
                     progress: bool = True) -> RunReport:
-    """Every selected sequence through detect -> track -> fit / map -> fuse -> export."""
-    return run_units(config, force=force, sequences=sequences, progress=progress)
+    """Every selected sequence through detect -> track -> fit / map -> fuse -> export, then the
+    dataset-level exports of ``export.formats`` when any sequence was (re)published."""
+    report = run_units(config, force=force, sequences=sequences, progress=progress)
+    published = [o for (s, st), o in report.outcomes.items() if st == "export" and o["status"] == "done"]
+    if published:  # the sequences that failed stay out; the others are exported
+        for fmt in config.export.formats:
+            export_dataset(config, fmt)
+    return report
 
 
 @flow(name="process-sequence", log_prints=True)

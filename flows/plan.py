@@ -21,7 +21,7 @@ STAGES: dict[str, tuple[str, ...]] = {
     "fit": ("track",),
     "map": ("detect",),
     "fuse": ("fit", "map"),
-    "export": ("fuse",),
+    "export": ("fuse", "track", "fit"),  # tables take tracks and body fits too
 }
 
 #: Explicit code versions: bump a stage's version when its output for the same input changes.

@@ -18,3 +18,27 @@ def prefect_harness():
 
     with prefect_test_harness(server_startup_timeout=120):
         yield
+
+
+@pytest.fixture(scope="session")
+def synthetic_root(tmp_path_factory):
+    """Two tiny synthetic sequences (4 raw frames = 2 frames at 5 Hz each), made once per session.
+
+    Tests that edit files copy it first (``copy_dataset``)."""
+    from flows.simulate import simulate
+
+    root = tmp_path_factory.mktemp("synthetic")
+    simulate(root, sequences=2, frames=4, seed=7, pedestrians=3, crowd="uncrowded", progress=False)
+    return root
+
+
+@pytest.fixture()
+def copy_dataset(synthetic_root, tmp_path):
+    import shutil
+
+    def copy(name: str = "data"):
+        dst = tmp_path / name
+        shutil.copytree(synthetic_root, dst)
+        return dst
+
+    return copy

@@ -74,3 +74,31 @@ def test_stage_slices_isolate_stages():
     assert a.stage_slice("fuse") != b.stage_slice("fuse")
     moved = load_config(overrides={"dataset.root": "/elsewhere"})
     assert a.stage_slice("detect") == moved.stage_slice("detect")
+
+
+def _kwargs(fn) -> set[str]:
+    import inspect
+
+    return {n for n, p in inspect.signature(fn).parameters.items() if p.default is not inspect._empty}
+
+
+def test_config_sections_mirror_kernel_parameters():
+    """Flows hand config sections to kernels as keyword arguments: the names must line up."""
+    import dataclasses
+
+    from configs.schema import LidarClustersConfig, OracleNoise as OracleCfg, PersonPointsConfig
+    from tasks.fit.losses import FitWeights
+    from tasks.perception.lidar_clusters import detect_pedestrians_lidar
+    from tasks.perception.oracle import OracleNoise
+    from tasks.perception.person_points import person_point_indices
+    from tasks.track.ocsort import PedestrianTracker
+
+    assert set(OracleCfg.model_fields) == {f.name for f in dataclasses.fields(OracleNoise)}
+    assert set(LidarClustersConfig.model_fields) == _kwargs(detect_pedestrians_lidar)
+    pp = set(PersonPointsConfig.model_fields) - {"assoc_min_iou"}
+    assert pp == _kwargs(person_point_indices) - {"masks", "expected_range_m"}
+    from configs.schema import TrackConfig
+    assert _kwargs(PedestrianTracker.__init__) <= set(TrackConfig.model_fields)
+    assert {f.name for f in dataclasses.fields(FitWeights)} == {
+        "rho_px", "lambda_theta", "lambda_a", "lambda_beta", "lambda_3d", "lambda_occ", "w", "j_conf",
+        "conf_power", "square_lambdas"}

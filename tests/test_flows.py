@@ -14,13 +14,14 @@ from flows.pipeline import rebuild_dataset
 from flows.plan import STAGES
 from flows.runtime import task_runner
 from storage.manifest import Manifest, StoreLockedError, run_lock
-from tests.coda_fixture import make_coda
 
 pytestmark = [pytest.mark.usefixtures("prefect_harness"), pytest.mark.xdist_group("prefect")]
 
 
 def _config(data: Path, out: Path, **overrides):
-    return load_config(overrides={"dataset.root": str(data), "output.root": str(out), **overrides})
+    # few fit iterations: these tests are about orchestration, not fit quality
+    return load_config(overrides={"dataset.root": str(data), "output.root": str(out),
+                                  "fit.iterations": 5, **overrides})
 
 
 def _run(cfg, **kw):
@@ -32,11 +33,8 @@ def _ran(report) -> set[tuple[str, str]]:
 
 
 @pytest.fixture()
-def dataset(tmp_path):
-    data = tmp_path / "data"
-    make_coda(data, seq=0, frames=4)
-    make_coda(data, seq=1, frames=4)
-    return data
+def dataset(copy_dataset):
+    return copy_dataset()
 
 
 def test_thread_runner_and_cache_consequences(dataset, tmp_path):
@@ -54,7 +52,7 @@ def test_thread_runner_and_cache_consequences(dataset, tmp_path):
     # one sequence's files edited -> only that sequence runs
     bin_path = dataset / "3d_raw/os1/1/3d_raw_os1_1_2.bin"
     raw = bytearray(bin_path.read_bytes())
-    raw[0:4] = bytes([0, 0, 192, 63])  # 1.5f
+    raw[-8:-4] = bytes([0, 0, 192, 63])  # one intensity value becomes 1.5
     bin_path.write_bytes(bytes(raw))
     assert _ran(_run(cfg)) == {("1", st) for st in STAGES}
 
@@ -68,7 +66,14 @@ def test_thread_runner_and_cache_consequences(dataset, tmp_path):
     assert _ran(_run(finer)) == {("0", "map"), ("0", "fuse"), ("0", "export")}
 
     # a sequence added -> only it runs
-    make_coda(dataset, seq=2, frames=2)
+    for sub in ("3d_raw/os1", "2d_rect/cam0", "2d_rect/cam1", "3d_bbox/os1", "calibrations", "gt"):
+        src = dataset / sub / "1"
+        dst = dataset / sub / "2"
+        shutil.copytree(src, dst)
+        for f in sorted(dst.rglob("*_1_*")):
+            f.rename(f.with_name(f.name.replace("_1_", "_2_")))
+    for sub, ext in (("timestamps", "txt"), ("poses/dense_global", "txt"), ("metadata", "json")):
+        shutil.copy(dataset / sub / f"1.{ext}", dataset / sub / f"2.{ext}")
     assert _ran(_run(finer)) == {("2", st) for st in STAGES}
 
 

@@ -1,0 +1,143 @@
+"""fit: a body-model fit per tracked person and frame, fused with its LiDAR points.
+
+Rows of the track product are fitted in batches of ``fit.batch_persons`` (Adam over the paper's
+six-term objective, tasks/fit/optimize.py), fanned out to Dask (routed to ``GPU=1`` workers when
+``dask.gpu_fit``). The initial estimate comes from the ``oracle`` (ground truth perturbed like a
+monocular regressor; synthetic data) or ``precomputed`` CLIFF outputs.
+
+Product ``bodies.npz`` (one row per fitted person-frame, LiDAR frame of that frame): frame (R,)
+int64 raw frame, track_id (R,) int64, det_index (R,), betas (R, 10), global_orient (R, 3),
+body_pose (R, 69), transl (R, 3) float32, velocity_base (R, 2) float32 m/s (from the track's
+pelvis motion, base frame), loss_j / loss_3d / loss_total (R,) float32 final term values,
+num_points (R,) int64.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from configs.schema import Config
+from flows.parallel import fan_out
+from flows.plan import open_sequence
+from flows.stages.common import StageContext, frame_rng
+from storage.body_files import load_body_model, load_pose_prior
+from storage.gt import read_frame_gt
+from storage.intermediate import read_product, write_product
+from tasks.body.model import BodyModel
+from tasks.body.prior import GMMPosePrior, generate_pose_prior
+from tasks.body.procedural import default_body_model
+from tasks.fit.init_oracle import BodyParams, oracle_initial_estimate
+from tasks.fit.losses import FitWeights
+from tasks.fit.optimize import fit_persons
+from tasks.fit.reframe import reframe_params
+from tasks.track.velocity import track_velocities
+
+
+def body_model(config: Config):
+    path = config.fit.body_model_path
+    return BodyModel(load_body_model(path)) if path is not None else default_body_model()
+
+
+def pose_prior(config: Config) -> GMMPosePrior:
+    path = config.fit.pose_prior_path
+    p = load_pose_prior(path) if path is not None else generate_pose_prior()
+    return GMMPosePrior(p["means"], p["covars"], p["weights"])
+
+
+def fit_weights(config: Config) -> FitWeights:
+    w = config.fit.weights
+    return FitWeights(rho_px=w.rho, lambda_theta=w.lambda_theta, lambda_a=w.lambda_a,
+                      lambda_beta=w.lambda_beta, lambda_3d=w.lambda_3d, lambda_occ=w.lambda_occ,
+                      w=w.w, j_conf=w.j_conf, conf_power=config.fit.confidence_power,
+                      square_lambdas=config.fit.squared_weights)
+
+
+def _device(config: Config) -> str:
+    if config.fit.device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return config.fit.device
+
+
+def fit_batch(config: Config, sequence: str, rows: list[int], tracks: dict) -> dict:
+    """Fit some rows of the track product; returns their parameters in the LiDAR frame."""
+    seq = open_sequence(config, sequence)
+    cam = seq.info.calibration.cameras[config.dataset.camera]
+    model = body_model(config)
+    T_cam = cam.T_cam_from_lidar
+    truths, points, sweeps = [], [], {}
+    for r in rows:
+        raw = int(tracks["frame"][r])
+        if raw not in sweeps:
+            sweeps[raw] = seq.frame(seq.info.frame_indices.index(raw)).points_lidar
+        lo, hi = tracks["points_offsets"][r], tracks["points_offsets"][r + 1]
+        points.append(sweeps[raw][tracks["points_index"][lo:hi]])
+        if config.fit.init_provider != "oracle":
+            raise NotImplementedError(
+                f"sequence {sequence}: fit.init_provider 'precomputed' (CLIFF outputs) has no file "
+                "reader yet; use 'oracle' on synthetic data")
+        gt = read_frame_gt(seq.root, int(sequence), raw)
+        g = [int(tracks["gt_index"][r])]
+        truths.append(BodyParams(gt.betas[g], gt.global_orient[g], gt.body_pose[g], gt.transl[g]))
+    truth = BodyParams(*(np.concatenate([getattr(t, f) for t in truths]) for f in
+                         ("betas", "global_orient", "body_pose", "transl")))
+    init = oracle_initial_estimate(model, reframe_params(model, truth, T_cam),
+                                   frame_rng(config.fit.seed, sequence, rows[0], 3))
+    pmax = max(1, max(len(p) for p in points))
+    padded = np.zeros((len(rows), pmax, 3), np.float32)
+    mask = np.zeros((len(rows), pmax), bool)
+    for k, p in enumerate(points):
+        padded[k, :len(p)] = p
+        mask[k, :len(p)] = True
+    result = fit_persons(model, pose_prior(config), init, tracks["keypoints"][rows], cam.K, T_cam,
+                         padded, mask, weights=fit_weights(config), iterations=config.fit.iterations,
+                         lr=config.fit.learning_rate, device=_device(config), seed=config.fit.seed)
+    T_lidar_from_cam = np.linalg.inv(T_cam)
+    lidar = reframe_params(model, result.params(), T_lidar_from_cam)
+    pelvis = result.joints[:, 0].astype(np.float64) @ T_lidar_from_cam[:3, :3].T + T_lidar_from_cam[:3, 3]
+    res = result.residuals
+    return {"rows": np.asarray(rows, np.int64), "betas": lidar.betas,
+            "global_orient": lidar.global_orient, "body_pose": lidar.body_pose,
+            "transl": lidar.transl, "pelvis_lidar": pelvis,
+            "loss_j": np.asarray(res["L_J"], np.float32), "loss_3d": np.asarray(res["L_3D"], np.float32),
+            "loss_total": np.asarray(res["total"], np.float32),
+            "num_points": np.array([len(p) for p in points], np.int64)}
+
+
+_FIELDS = {"rows": (0,), "betas": (0, 10), "global_orient": (0, 3), "body_pose": (0, 69),
+           "transl": (0, 3), "pelvis_lidar": (0, 3), "loss_j": (0,), "loss_3d": (0,),
+           "loss_total": (0,), "num_points": (0,)}
+
+
+def run_fit(ctx: StageContext) -> dict:
+    cfg = ctx.config
+    tracks = read_product(ctx.upstream["track"], "tracks")
+    rows = np.arange(len(tracks["track_id"]))
+    if cfg.fit.init_provider == "oracle":  # the oracle has no estimate for a false positive
+        rows = rows[tracks["gt_index"] >= 0]
+    step = cfg.fit.batch_persons
+    batches = [rows[a:a + step].tolist() for a in range(0, len(rows), step)]
+    resources = {"GPU": 1} if cfg.dask.gpu_fit else None
+    parts = fan_out(fit_batch, [(cfg, ctx.sequence, b, tracks) for b in batches], resources)
+    out = {k: (np.concatenate([p[k] for p in parts]) if parts else np.zeros(shape))
+           for k, shape in _FIELDS.items()}
+    r = out["rows"].astype(np.int64)
+    info = ctx.open().info
+    pos = {raw: k for k, raw in enumerate(info.frame_indices)}
+    at = np.array([pos[int(f)] for f in tracks["frame"][r]], np.int64)
+    T_w = info.poses[at].reshape(-1, 4, 4)
+    pelvis_world = np.einsum("rij,rj->ri", T_w[:, :3, :3], out["pelvis_lidar"]) + T_w[:, :3, 3]
+    v_world = track_velocities(tracks["track_id"][r], info.stamps_ns[at] * 1e-9, pelvis_world)
+    R_base_from_world = info.calibration.T_base_from_lidar[:3, :3] @ np.transpose(T_w[:, :3, :3], (0, 2, 1))
+    v_base = np.einsum("rij,rj->ri", R_base_from_world, v_world)[:, :2]
+    f32 = np.float32
+    write_product(ctx.out_dir, "bodies", {
+        "frame": tracks["frame"][r].astype(np.int64), "track_id": tracks["track_id"][r].astype(np.int64),
+        "det_index": tracks["det_index"][r].astype(np.int64), "betas": out["betas"].astype(f32),
+        "global_orient": out["global_orient"].astype(f32), "body_pose": out["body_pose"].astype(f32),
+        "transl": out["transl"].astype(f32), "velocity_base": v_base.astype(f32),
+        "loss_j": out["loss_j"].astype(f32), "loss_3d": out["loss_3d"].astype(f32),
+        "loss_total": out["loss_total"].astype(f32), "num_points": out["num_points"].astype(np.int64)})
+    return {"implemented": True, "fitted": int(len(r)), "batches": len(batches),
+            "skipped_false_positives": int(len(tracks["track_id"]) - len(rows)),
+            "device": _device(cfg), "preset": cfg.fit.preset}
