@@ -233,13 +233,19 @@ class FitConfig(Strict):
 
 
 class FreeSpaceConfig(Strict):
-    """OctoMap sensor model (defaults are OctoMap's)."""
+    """OctoMap sensor model (defaults are OctoMap's) of the free / unknown map."""
 
+    #: its own resolution: memory grows with the volume the rays cross (keep 0.1-0.2 m; the fused
+    #: grid may still be finer)
+    voxel_size_m: float = Field(0.2, ge=0.02, le=1.0)
     prob_hit: float = Field(0.7, gt=0.5, lt=1)
     prob_miss: float = Field(0.4, gt=0, lt=0.5)
     clamp_min: float = Field(0.1192, gt=0, lt=0.5)
     clamp_max: float = Field(0.971, gt=0.5, lt=1)
+    occupancy_threshold: float = Field(0.5, gt=0, lt=1)
     max_range_m: float = Field(20.0, gt=0)
+    #: OctoMap's `discretize`: one ray per distinct endpoint voxel
+    discretize: bool = False
 
 
 class MapConfig(Strict):
@@ -248,7 +254,13 @@ class MapConfig(Strict):
     cityscapes_to_class: dict[int, str] = Field(default_factory=dict)
     outside_image_fallback: Literal["nearest", "unknown"] = "nearest"
     pedestrian_box_margin_m: float = Field(0.15, ge=0)
+    #: ground consistency: road / terrain votes farther than this from the local ground are rejected
     ground_max_deviation_m: float = Field(0.3, gt=0)
+    ground_cell_m: float = Field(1.0, gt=0)
+    ground_neighbourhood_cells: int = Field(1, ge=0)
+    ground_quantile: float = Field(0.5, ge=0, le=1)
+    ground_classes: list[str] = ["road", "terrain"]
+    min_votes: int = Field(1, ge=1)
     freespace: FreeSpaceConfig = FreeSpaceConfig()
 
 
@@ -256,6 +268,9 @@ class FuseConfig(Strict):
     grid: GridConfig = GridConfig()
     body_source: Literal["fit", "ground-truth"] = "fit"
     camera_mask: bool = True
+    #: exact per-pixel ray walks or a depth buffer (auto: rays for voxels >= 0.1 m)
+    camera_method: Literal["auto", "rays", "zbuffer"] = "auto"
+    camera_pixel_stride: int | None = Field(None, ge=1)
 
 
 class ExportConfig(Strict):
@@ -310,6 +325,9 @@ class Config(Strict):
     @model_validator(mode="after")
     def _mapping_targets_known(self) -> Config:
         names = {c.name for c in self.classes} - {"free"}
+        for name in self.map.ground_classes:
+            if name not in names:
+                raise ValueError(f"map.ground_classes: {name!r} is not an occupied class")
         for cs_id, name in self.map.cityscapes_to_class.items():
             if not 0 <= cs_id <= 18:
                 raise ValueError(f"map.cityscapes_to_class: Cityscapes train id {cs_id} not in 0..18")

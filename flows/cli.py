@@ -145,7 +145,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     ids = simulate(args.out, sequences=args.sequences, frames=args.frames, seed=args.seed,
                    pedestrians=args.pedestrians, crowd=args.crowd, night=args.night,
-                   progress=not args.quiet)
+                   progress=not args.quiet, first_id=args.first_id)
     print(f"wrote sequence(s) {', '.join(map(str, ids))} to {args.out}")
     return 0
 
@@ -233,6 +233,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pedestrians", type=int, default=None)
     p.add_argument("--crowd", choices=["crowded", "uncrowded"], default="uncrowded")
     p.add_argument("--night", action="store_true")
+    p.add_argument("--first-id", type=int, default=0,
+                   help="id of the first sequence (add sequences of another condition beside others)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_simulate)
 

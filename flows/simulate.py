@@ -70,9 +70,11 @@ def write_frame(out: Path, seq: int, frame, stamp_ns: int) -> None:
 
 def simulate(out: Path, sequences: int, frames: int, seed: int, pedestrians: int | None = None,
              crowd: str = "uncrowded", night: bool = False, sensor: str = "os1-128",
-             progress: bool = True) -> list[int]:
-    """Write ``sequences`` synthetic sequences (ids 0..sequences-1) of ``frames`` raw 10 Hz frames
-    under ``out`` in the CODa layout plus ``gt/``. Returns the sequence ids written."""
+             progress: bool = True, first_id: int = 0) -> list[int]:
+    """Write ``sequences`` synthetic sequences (ids first_id..first_id+sequences-1) of ``frames``
+    raw 10 Hz frames under ``out`` in the CODa layout plus ``gt/``. Returns the sequence ids
+    written. Sequence ``s`` is seeded from (seed, s), so a benchmark can add sequences of another
+    condition (``--night``, ``--crowd``) beside existing ones with a different ``first_id``."""
     from tqdm import tqdm
 
     from storage import coda_writer as W
@@ -84,7 +86,9 @@ def simulate(out: Path, sequences: int, frames: int, seed: int, pedestrians: int
     out = Path(out)
     written = []
     bar = tqdm(total=sequences * frames, desc="simulate", unit="frame", disable=not progress)
-    for seq in range(sequences):
+    if first_id < 0:
+        raise ValueError(f"first_id must be >= 0, got {first_id}")
+    for seq in range(first_id, first_id + sequences):
         opts = SimOptions(seed=sequence_seed(seed, seq), frames=frames, pedestrians=pedestrians,
                           crowd=crowd, night=night, sensor=sensor)
         sim = Simulator(opts)

@@ -22,6 +22,7 @@ import collections
 import copyreg
 import io
 import pickle
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -233,7 +234,9 @@ def save_body_model_npz(path, params: dict) -> None:
     if missing:
         raise BodyFileError(f"{path}: refusing to write a body model without keys {missing}")
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.npz")
+    tmp = path.with_name(f".tmp-{uuid.uuid4().hex[:8]}-{path.name}")  # unique: writers may race
+    if tmp.suffix != ".npz":
+        tmp = tmp.with_name(tmp.name + ".npz")
     np.savez(tmp, **{k: np.asarray(v) for k, v in params.items()})
     tmp.replace(path)
 
@@ -259,7 +262,7 @@ def save_pose_prior_pkl(path, prior: dict) -> None:
     path = Path(path)
     out = _check_prior(path, prior)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
+    tmp = path.with_name(f".tmp-{uuid.uuid4().hex[:8]}-{path.name}")  # unique: writers may race
     with open(tmp, "wb") as fh:
         pickle.dump(out, fh, protocol=2)
     tmp.replace(path)

@@ -177,3 +177,16 @@ def test_ghost_trail_removed_by_pedestrian_boxes():
     assert static_trail == 0 and occupied == 0 and free > 100
     static_trail, occupied, _ = run(remove=False)
     assert static_trail > 50 and occupied > 10
+
+
+def test_merge_static_maps_primary_wins_and_fallback_fills():
+    from tasks.occupancy.static_map import StaticMap, merge_static_maps
+
+    counts = np.zeros((1, 9), np.uint16)
+    cam = StaticMap(0.2, np.array([[0, 0, 0]]), np.array([2], np.uint8), counts, 1)
+    fallback = StaticMap(0.2, np.array([[0, 0, 0], [5, 0, 0]]), np.array([8, 4], np.uint8),
+                         np.zeros((2, 9), np.uint16), 2)
+    merged = merge_static_maps(cam, fallback)
+    assert merged.keys.tolist() == [[0, 0, 0], [5, 0, 0]]
+    assert merged.labels.tolist() == [2, 4]  # the camera's label stays; the fallback fills the rest
+    assert merged.ground_rejected == 3

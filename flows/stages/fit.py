@@ -14,6 +14,9 @@ num_points (R,) int64.
 
 from __future__ import annotations
 
+import functools
+from pathlib import Path
+
 import numpy as np
 import torch
 
@@ -21,12 +24,13 @@ from configs.schema import Config
 from flows.parallel import fan_out
 from flows.plan import open_sequence
 from flows.stages.common import StageContext, frame_rng
-from storage.body_files import load_body_model, load_pose_prior
+from storage.body_files import (load_body_model, load_pose_prior, save_body_model_npz,
+                                save_pose_prior_pkl)
 from storage.gt import read_frame_gt
 from storage.intermediate import read_product, write_product
 from tasks.body.model import BodyModel
 from tasks.body.prior import GMMPosePrior, generate_pose_prior
-from tasks.body.procedural import default_body_model
+from tasks.body.procedural import generate_body_model
 from tasks.fit.init_oracle import BodyParams, oracle_initial_estimate
 from tasks.fit.losses import FitWeights
 from tasks.fit.optimize import fit_persons
@@ -34,15 +38,40 @@ from tasks.fit.reframe import reframe_params
 from tasks.track.velocity import track_velocities
 
 
-def body_model(config: Config):
+#: our procedural stand-ins are generated once per output store and saved in the official formats
+PROCEDURAL_MODEL = "procedural_smpl_v1.npz"
+PROCEDURAL_PRIOR = "procedural_gmm_08_v1.pkl"
+
+
+@functools.lru_cache(maxsize=4)
+def _load_model(path: str) -> BodyModel:
+    return BodyModel(load_body_model(path))
+
+
+def body_model(config: Config) -> BodyModel:
+    """The user's SMPL file, or our procedural model (cached under OUT/.cache, made once)."""
     path = config.fit.body_model_path
-    return BodyModel(load_body_model(path)) if path is not None else default_body_model()
+    if path is None:
+        path = Path(config.output.root) / ".cache" / PROCEDURAL_MODEL
+        if not path.exists():
+            save_body_model_npz(path, generate_body_model())
+    return _load_model(str(path))
+
+
+@functools.lru_cache(maxsize=4)
+def _load_prior(path: str) -> GMMPosePrior:
+    p = load_pose_prior(path)
+    return GMMPosePrior(p["means"], p["covars"], p["weights"])
 
 
 def pose_prior(config: Config) -> GMMPosePrior:
+    """The user's gmm_08.pkl, or our generated prior (cached under OUT/.cache, made once)."""
     path = config.fit.pose_prior_path
-    p = load_pose_prior(path) if path is not None else generate_pose_prior()
-    return GMMPosePrior(p["means"], p["covars"], p["weights"])
+    if path is None:
+        path = Path(config.output.root) / ".cache" / PROCEDURAL_PRIOR
+        if not path.exists():
+            save_pose_prior_pkl(path, generate_pose_prior())
+    return _load_prior(str(path))
 
 
 def fit_weights(config: Config) -> FitWeights:

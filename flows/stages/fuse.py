@@ -21,6 +21,7 @@ from flows.parallel import fan_out
 from flows.plan import CODE_VERSIONS, open_sequence
 from flows.stages.common import StageContext
 from flows.stages.fit import body_model
+from flows.stages.map import occupancy_params
 from storage.gt import read_frame_gt, read_sequence_gt
 from storage.intermediate import read_product, write_product
 from storage.occupancy_store import create_store, write_frames
@@ -68,10 +69,8 @@ def fuse_chunk(config: Config, sequence: str, positions: list[int], store: Path,
     static = read_product(map_dir, "static_map")
     smap = StaticMap(float(static["voxel_size_m"]), static["keys"], static["labels"], static["counts"], 0)
     occ = read_product(map_dir, "occupancy")
-    fs = config.map.freespace
     occupancy = OccupancyMap.from_arrays(float(occ["voxel_size_m"]), occ["keys"], occ["logodds"],
-                                         prob_hit=fs.prob_hit, prob_miss=fs.prob_miss,
-                                         clamp_min=fs.clamp_min, clamp_max=fs.clamp_max)
+                                         **occupancy_params(config))
     camera = CameraView(cam.K, cam.width, cam.height, T_base_from_lidar @ np.linalg.inv(cam.T_cam_from_lidar))
     if config.fuse.body_source == "ground-truth":
         faces = read_sequence_gt(seq.root, int(sequence)).person_faces
@@ -95,7 +94,9 @@ def fuse_chunk(config: Config, sequence: str, positions: list[int], store: Path,
                            static_labels=static_labels, pedestrians=people, occupancy=occupancy,
                            lidar_points_base=_transform(T_base_from_lidar, frame.points_lidar),
                            lidar_origin_base=T_base_from_lidar[:3, 3],
-                           camera=camera if config.fuse.camera_mask else None)
+                           camera=camera if config.fuse.camera_mask else None,
+                           pixel_stride=config.fuse.camera_pixel_stride,
+                           camera_method=config.fuse.camera_method)
         mask_lidar = (grids.mask_lidar.astype(bool) | (grids.occupancy_state >= 0)).astype(np.uint8)
         for name, value in (("semantics", grids.semantics), ("instances", grids.instances),
                             ("mask_lidar", mask_lidar), ("mask_camera", grids.mask_camera),

@@ -343,3 +343,23 @@ def _local_ground_height(centers: np.ndarray, gvotes: np.ndarray, cell_m: float,
     pos_c = np.minimum(pos, len(ucell) - 1)
     found = ucell[pos_c] == cell_id
     return np.where(found, height_cell[pos_c], np.nan)
+
+
+def merge_static_maps(primary: StaticMap, secondary: StaticMap) -> StaticMap:
+    """Union of two maps of one voxel size: ``primary`` wins where both have a voxel.
+
+    Used to let camera-labelled votes decide every voxel the camera saw, and fallback labels (points
+    outside the image) fill only the voxels it never saw: out-of-view points outnumber in-view ones
+    several times, so pooling their votes would let the fallback outvote the camera.
+    """
+    if primary.voxel_size_m != secondary.voxel_size_m:
+        raise StaticMapError(
+            f"cannot merge maps of {primary.voxel_size_m} m and {secondary.voxel_size_m} m voxels")
+    a, b = pack_keys(primary.keys), pack_keys(secondary.keys)
+    only_b = ~np.isin(b, a)
+    keys = np.concatenate([primary.keys, secondary.keys[only_b]])
+    order = np.argsort(pack_keys(keys), kind="stable")
+    return StaticMap(primary.voxel_size_m, keys[order],
+                     np.concatenate([primary.labels, secondary.labels[only_b]])[order],
+                     np.concatenate([primary.counts, secondary.counts[only_b]])[order],
+                     primary.ground_rejected + secondary.ground_rejected)

@@ -1,0 +1,383 @@
+"""``mobileocc evaluate``: label quality of a built dataset against ground truth, as a report.
+
+``evaluate(dataset, gt, report_dir)`` reads the published dataset (storage/dataset.py), the stage
+products of the run that built it (stage folders named in ``OUT/manifest.json``) and the ground
+truth beside the raw data (``GT/gt/{SEQ}/``, storage/GT_FORMAT.md), hands arrays to the metric
+kernels of tasks/metrics and tasks/fit/metrics.py, and writes ``report.md``, ``results.json`` and
+figures through flows/report.py. A section whose inputs are absent (no fit product, no ground
+truth for a sequence, a grid that is not the ground truth's) is replaced by a note saying why.
+
+Definitions beyond the kernels' own (each kernel's docstring has the rest):
+- frames: the published frames of each sequence (frames table ``raw_frame``), base frame grids;
+- static: GT LiDAR points of the frame (organised sweep order, reader's ``min_range_m``) in the
+  base frame, pedestrian points (class 0 or a pedestrian instance) left out;
+- pedestrian vs boxes: GT boxes (LiDAR frame) moved to the base frame, mask_camera visible voxels;
+- pedestrian vs LiDAR body: GT points with a pedestrian instance that project into cam0, voxelised;
+  evaluated region = voxels whose centre projects into cam0 (the camera frustum on the grid);
+- detection: GT persons with a finite box2d and visible_fraction > 0; "visible" when
+  visible_fraction >= ``VISIBLE_FRACTION`` (the GT_FORMAT "Medium" occlusion level or better);
+  condition "night" for night sequences, else the sequence's crowd ("crowded" / "uncrowded");
+- tracking: the same GT persons, ids = GT track ids, against the track product's rows;
+- fit: each fitted row's detection box matched (IoU >= 0.5, Hungarian) to the GT persons' box2d
+  of its frame; vertices / joints from the configured body model;
+- velocity: GT velocity grid = velocity_base of the person on each of its occupancy_instance voxels.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from storage.coda import CodaSequence, read_lidar_bin
+from storage.dataset import open_dataset
+from storage.gt import gt_dir, read_frame_gt, read_sequence_gt
+from storage.intermediate import read_product
+from storage.manifest import Manifest
+from tasks import conventions as C
+from tasks.metrics.detection import DetectionCounts, detection_counts, match_boxes
+from tasks.metrics.occupancy import OccupancyMetric
+from tasks.metrics.pedestrian import pedestrian_box_counts, pedestrian_lidar_counts, voxelize_points
+from tasks.metrics.static import StaticCounts, static_counts
+from tasks.metrics.tracking import tracking_scores
+from tasks.metrics._common import PRCounts
+from tasks.metrics.velocity import VelocityErrors, velocity_errors, voxel_velocity_errors
+
+#: a GT person counts as "visible" for detection when at least this fraction of its silhouette shows
+VISIBLE_FRACTION = 0.3
+#: 2D IoU for a fitted row's box to claim a GT person
+FIT_MATCH_IOU = 0.5
+
+
+class EvaluateError(ValueError):
+    """The dataset or the ground truth cannot be evaluated (names the path and what is missing)."""
+
+
+# ---- locating inputs ----------------------------------------------------------------------------
+
+def _stage_folder(out: Path, manifest: Manifest, sequence: str, stage: str) -> Path | None:
+    """The stage's output folder of ``sequence``: the manifest's record, else the only (or newest)
+    key folder under ``OUT/stages/<stage>/<sequence>/`` (runs driven without the manifest)."""
+    rec = manifest.get(sequence, stage)
+    if rec is not None and rec.status == "done" and rec.location and (out / rec.location).is_dir():
+        return out / rec.location
+    base = out / "stages" / stage / sequence
+    keys = sorted((p for p in base.glob("*") if p.is_dir() and not p.name.startswith(".")
+                   and (p / "summary.json").exists()), key=lambda p: p.stat().st_mtime) if base.is_dir() else []
+    return keys[-1] if keys else None
+
+
+def _gt_root(out: Path, manifest: Manifest, gt: Path | None) -> Path:
+    if gt is not None:
+        return Path(gt)
+    root = ((manifest.meta.get("config") or {}).get("dataset") or {}).get("root")
+    if not root:
+        raise EvaluateError(f"{out / 'manifest.json'}: no meta.config.dataset.root recorded; pass --gt GT "
+                            "(the raw data root holding gt/)")
+    return Path(root)
+
+
+def _transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    return np.asarray(points, np.float64) @ T[:3, :3].T + T[:3, 3]
+
+
+def _boxes_to_base(T_base_from_lidar: np.ndarray, centers, yaws) -> tuple[np.ndarray, np.ndarray]:
+    """Box centres (B, 3) and yaws (B,) from the LiDAR frame to the base frame (rotation about z)."""
+    R = T_base_from_lidar[:3, :3]
+    return _transform(T_base_from_lidar, centers), np.asarray(yaws, np.float64) + np.arctan2(R[1, 0], R[0, 0])
+
+
+def _in_image(points_lidar: np.ndarray, cam) -> np.ndarray:
+    """(N,) bool: the LiDAR-frame points that project into the camera image (in front of it)."""
+    pc = _transform(cam.T_cam_from_lidar, points_lidar)
+    z = pc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = cam.K[0, 0] * pc[:, 0] / z + cam.K[0, 2]
+        v = cam.K[1, 1] * pc[:, 1] / z + cam.K[1, 2]
+    return (z > 0.1) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+
+
+def _frustum(shape, range_min, voxel_size_m: float, T_base_from_lidar, cam) -> np.ndarray:
+    """(X, Y, Z) bool: voxels whose centre projects into the camera image."""
+    idx = np.indices(shape).reshape(3, -1).T
+    centres = np.asarray(range_min) + (idx + 0.5) * voxel_size_m
+    return _in_image(_transform(np.linalg.inv(T_base_from_lidar), centres), cam).reshape(shape)
+
+
+def _gt_persons(gtf) -> np.ndarray:
+    """Rows of the GT persons seen by cam0 (finite box and some visible pixels)."""
+    return np.flatnonzero(np.all(np.isfinite(gtf.box2d), axis=1) & (gtf.visible_fraction > 0))
+
+
+def _condition(metadata: dict) -> str:
+    if str(metadata.get("lighting", "day")).lower() in ("night", "dark"):
+        return "night"
+    return str(metadata.get("crowd", "unknown"))
+
+
+def _body_model(config: dict):
+    from storage.body_files import load_body_model
+    from tasks.body.model import BodyModel
+    from tasks.body.procedural import default_body_model
+
+    path = ((config or {}).get("fit") or {}).get("body_model_path")
+    return BodyModel(load_body_model(Path(path))) if path else default_body_model()
+
+
+def _posed(model, params: dict, rows) -> tuple[np.ndarray, np.ndarray]:
+    import torch
+
+    with torch.no_grad():
+        out = model(*(torch.as_tensor(np.asarray(params[k])[rows], dtype=torch.float32)
+                      for k in ("betas", "global_orient", "body_pose", "transl")))
+    return out.vertices.numpy(), out.joints.numpy()
+
+
+# ---- per sequence -------------------------------------------------------------------------------
+
+class _Totals:
+    """Counts of every section, per sequence and summed."""
+
+    def __init__(self) -> None:
+        self.occ: dict[str, OccupancyMetric] = {}
+        self.static: dict[str, StaticCounts] = {}
+        self.boxes: dict[str, PRCounts] = {}
+        self.lidar: dict[str, PRCounts] = {}
+        self.detection: dict[str, DetectionCounts] = {}
+        self.tracking: dict = {}
+        self.velocity: dict[str, VelocityErrors] = {}
+        self.fit: dict[str, dict[str, list]] = {}
+        self.notes: dict[str, str] = {}
+        self.hist: dict[str, list] = {"velocity_error": [], "PVE_mm": [], "MPJPE_mm": []}
+        self.samples: list[dict] = []
+
+
+def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: str, tot: _Totals,
+                       sample_positions: set[int], config: dict) -> None:
+    arrays = ds.arrays(seq, lazy="zarr")
+    attrs = ds.attrs(seq)
+    range_min = np.asarray(attrs["range_min"], np.float64)
+    vs = float(attrs["voxel_size_m"])
+    raw_frames = [int(r) for r in ds.table("frames", seq).column("raw_frame").to_pylist()]
+    if not (gt_dir(gt_root, int(seq)) / "sequence.npz").exists() if seq.isdigit() else True:
+        tot.notes[f"sequence {seq}"] = f"no ground truth under {gt_root}/gt/{seq}: not evaluated"
+        return
+    gseq = read_sequence_gt(gt_root, int(seq))
+    coda = CodaSequence(gt_root, seq)
+    cam = coda.info.calibration.cameras[((config.get("dataset") or {}).get("camera")) or "cam0"]
+    T_bl = np.asarray(gseq.T_base_from_lidar, np.float64)
+    shape = tuple(arrays["semantics"].shape[1:4])
+    same_grid = (shape == tuple(gseq.grid_shape) and abs(vs - gseq.grid_voxel_size_m) < 1e-9
+                 and np.allclose(range_min, gseq.grid_range_min))
+    if not same_grid:
+        tot.notes[f"occupancy {seq}"] = (f"grid {shape} at {vs} m differs from the ground truth's "
+                                         f"{tuple(gseq.grid_shape)} at {gseq.grid_voxel_size_m} m: occupancy, "
+                                         "velocity and BEV comparisons skipped")
+    condition = _condition(coda.info.metadata)
+    min_range = float((config.get("dataset") or {}).get("min_range_m", coda.min_range_m))
+    frustum = _frustum(shape, range_min, vs, T_bl, cam)
+
+    detect_dir = _stage_folder(out, manifest, seq, "detect")
+    track_dir = _stage_folder(out, manifest, seq, "track")
+    fit_dir = _stage_folder(out, manifest, seq, "fit")
+    tracks = read_product(track_dir, "tracks") if track_dir is not None else None
+    bodies = (read_product(fit_dir, "bodies")
+              if fit_dir is not None and (fit_dir / "bodies.npz").exists() else None)
+    if detect_dir is None:
+        tot.notes[f"detection {seq}"] = "no detect stage output: detection robustness skipped"
+    if tracks is None:
+        tot.notes[f"tracking {seq}"] = "no track stage output: tracking skipped"
+    if bodies is None or len(bodies.get("frame", ())) == 0:
+        tot.notes[f"fit {seq}"] = "no fit bodies.npz (fit not run or fitted nobody): fit metrics not available"
+        bodies = None
+    model = _body_model(config) if bodies is not None else None
+
+    occ = tot.occ.setdefault(seq, OccupancyMetric())
+    st, bx, li, ve = StaticCounts(), PRCounts(), PRCounts(), VelocityErrors()
+    track_frames, fit_rows = [], {k: [] for k in ("pve", "mpjpe", "pa_mpjpe", "mpere")}
+    for k, raw in enumerate(raw_frames):
+        gtf = read_frame_gt(gt_root, int(seq), raw)
+        pred = np.asarray(arrays["semantics"][k])
+        mask_cam = np.asarray(arrays["mask_camera"][k]).astype(bool)
+        # static semantics vs labelled GT points (pedestrian points out)
+        sweep = read_lidar_bin(coda.path(coda.lidar_source, "os1", raw, ".bin"), min_range, frame=raw)
+        pcls = gtf.point_class[sweep.index].copy()
+        pinst = gtf.point_instance[sweep.index]
+        is_ped = (pcls == C.PEDESTRIAN) | ((pinst >= 1) & (pinst < 1000))
+        pcls[is_ped] = C.UNLABELED
+        pts_base = _transform(T_bl, sweep.points)
+        st = st + static_counts(pred, range_min, vs, pts_base, pcls)
+        # pedestrian vs boxes and vs LiDAR body points
+        centers, yaws = _boxes_to_base(T_bl, gtf.box_center, gtf.box_yaw)
+        bx = bx + pedestrian_box_counts(pred, range_min, vs, centers, gtf.box_size, yaws, visible=mask_cam)
+        body_pts = (pinst >= 1) & (pinst < 1000) & _in_image(sweep.points, cam)
+        li = li + pedestrian_lidar_counts(pred, voxelize_points(pts_base[body_pts], range_min, vs, shape),
+                                          region=frustum)
+        if same_grid:
+            occ.update(pred, gtf.occupancy, mask_cam)
+            gvel = np.zeros(shape + (2,), np.float32)
+            for j, tid in enumerate(gtf.track_id):
+                gvel[gtf.occupancy_instance == tid] = gtf.velocity_base[j]
+            pvel = np.asarray(arrays["velocity"][k]).astype(np.float32)
+            ve = ve + velocity_errors(pred, pvel, gtf.occupancy, gvel, mask_cam)
+            tot.hist["velocity_error"].append(voxel_velocity_errors(pred, pvel, gtf.occupancy, gvel, mask_cam)[0])
+            if len(tot.samples) < len(sample_positions) + 1 and (seq, k) in sample_positions:
+                tot.samples.append({"title": f"sequence {seq} frame {raw} ({condition})", "pred": pred,
+                                    "gt": gtf.occupancy, "mask": mask_cam, "range_min": range_min,
+                                    "voxel_size_m": vs})
+        persons = _gt_persons(gtf)
+        vis = gtf.visible_fraction[persons] >= VISIBLE_FRACTION
+        if detect_dir is not None:
+            det = read_product(detect_dir, f"frame_{raw}")
+            tot.detection[condition] = tot.detection.get(condition, DetectionCounts()) + detection_counts(
+                gtf.box2d[persons], vis, det["boxes_xyxy"])
+        if tracks is not None:
+            r = tracks["frame"] == raw
+            track_frames.append((gtf.track_id[persons].astype(np.int64), gtf.box2d[persons],
+                                 tracks["track_id"][r], tracks["boxes_xyxy"][r]))
+        if bodies is not None and detect_dir is not None:
+            rows = np.flatnonzero(bodies["frame"] == raw)
+            if rows.size:
+                det = read_product(detect_dir, f"frame_{raw}")
+                boxes = det["boxes_xyxy"][bodies["det_index"][rows]]
+                gi, fi = match_boxes(gtf.box2d[persons], boxes, FIT_MATCH_IOU)
+                if gi.size:
+                    pv, pj = _posed(model, bodies, rows[fi])
+                    from tasks.fit.metrics import fit_metrics
+
+                    m = fit_metrics(pv, pj, gtf.vertices[persons[gi]], gtf.joints[persons[gi]], gseq.person_faces)
+                    for key in fit_rows:
+                        fit_rows[key].append(np.asarray(m[key], np.float64))
+    tot.static[seq], tot.boxes[seq], tot.lidar[seq], tot.velocity[seq] = st, bx, li, ve
+    if not same_grid:
+        tot.occ.pop(seq)
+        tot.velocity.pop(seq)
+    if tracks is not None:
+        tot.tracking[seq] = tracking_scores(track_frames)
+    if bodies is not None:
+        got = {k: np.concatenate(v) if v else np.zeros(0) for k, v in fit_rows.items()}
+        tot.fit[seq] = got
+        tot.hist["PVE_mm"].append(got["pve"])
+        tot.hist["MPJPE_mm"].append(got["mpjpe"])
+
+
+# ---- entry point --------------------------------------------------------------------------------
+
+def _sum(values):
+    it = iter(values)
+    total = next(it)
+    for v in it:
+        total = total + v
+    return total
+
+
+def _fit_row(v: dict) -> dict:
+    n = len(v["pve"])
+    mean = (lambda a: float(np.mean(a)) if n else float("nan"))
+    return {"PVE_mm": mean(v["pve"]), "MPJPE_mm": mean(v["mpjpe"]), "PA_MPJPE_mm": mean(v["pa_mpjpe"]),
+            "MPERE": mean(v["mpere"]), "persons": n}
+
+
+def _sample_positions(ds, sample_frames: int) -> set:
+    """``sample_frames`` (sequence, frame position) pairs spread over the sequences and frames."""
+    pairs = []
+    for seq in ds.sequences:
+        n = int(ds.arrays(seq, lazy="zarr")["semantics"].shape[0])
+        pairs += [(seq, k) for k in range(n)]
+    if not pairs or sample_frames <= 0:
+        return set()
+    pick = np.unique(np.linspace(0, len(pairs) - 1, min(sample_frames, len(pairs))).round().astype(int))
+    return {pairs[i] for i in pick}
+
+
+def evaluate(dataset: Path, gt: Path | None, report_dir: Path, sample_frames: int = 3) -> dict:
+    """Evaluate the dataset at ``dataset`` (OUT) against the ground truth under ``gt`` (the raw data
+    root holding ``gt/``; None = the ``dataset.root`` recorded in OUT/manifest.json). Writes
+    report.md, results.json and figures/ under ``report_dir``; returns the results dict."""
+    out = Path(dataset)
+    manifest = Manifest.load(out)
+    config = manifest.meta.get("config") or {}
+    gt_root = _gt_root(out, manifest, gt)
+    if not gt_root.is_dir():
+        raise EvaluateError(f"ground-truth root {gt_root} does not exist (pass --gt GT, the raw data root)")
+    ds = open_dataset(out)
+    if not ds.sequences:
+        raise EvaluateError(f"{out}: no published sequence to evaluate (run the pipeline first)")
+    tot = _Totals()
+    positions = _sample_positions(ds, sample_frames)
+    for seq in ds.sequences:
+        _evaluate_sequence(ds, out, manifest, gt_root, seq, tot, positions, config)
+
+    results: dict = {"title": "mobileocc label quality",
+                     "meta": {"dataset": str(out), "ground truth": str(gt_root),
+                              "sequences": ", ".join(ds.sequences),
+                              "frames": sum(int(ds.arrays(s, lazy="zarr")["semantics"].shape[0])
+                                            for s in ds.sequences),
+                              "body source": ds.attrs(ds.sequences[0]).get("body_source", "?")}}
+    if tot.occ:
+        results["occupancy"] = _sum_metric(tot.occ).as_dict()
+        results["occupancy_by_sequence"] = {s: _brief(m.compute().as_dict()) for s, m in tot.occ.items()}
+    if tot.static:
+        results["static"] = _sum(tot.static.values()).as_dict()
+        results["static_by_sequence"] = {s: _brief(v.as_dict()) for s, v in tot.static.items()}
+    if tot.boxes:
+        results["pedestrian_boxes"] = {**{s: v.as_dict() for s, v in tot.boxes.items()},
+                                       "all": _sum(tot.boxes.values()).as_dict()}
+        results["pedestrian_lidar"] = {**{s: v.as_dict() for s, v in tot.lidar.items()},
+                                       "all": _sum(tot.lidar.values()).as_dict()}
+    if tot.detection:
+        results["detection"] = {**{c: v.as_dict() for c, v in tot.detection.items()},
+                                "all": _sum(tot.detection.values()).as_dict()}
+    if tot.tracking:
+        results["tracking"] = {**{s: v.as_dict() for s, v in tot.tracking.items()},
+                               "all": _sum(tot.tracking.values()).as_dict()}
+    if tot.fit:
+        allfit = {k: np.concatenate([v[k] for v in tot.fit.values()]) for k in ("pve", "mpjpe", "pa_mpjpe", "mpere")}
+        results["fit"] = {**{s: _fit_row(v) for s, v in tot.fit.items()}, "all": _fit_row(allfit)}
+    if tot.velocity:
+        results["velocity"] = {**{s: v.as_dict() for s, v in tot.velocity.items()},
+                               "all": _sum(tot.velocity.values()).as_dict()}
+    if tot.notes:
+        results["notes"] = {k: {"note": v} for k, v in tot.notes.items()}
+    hist = {}
+    if tot.hist["velocity_error"]:
+        hist["pedestrian voxel velocity error"] = {"values": np.concatenate(tot.hist["velocity_error"]),
+                                                   "xlabel": "|v_pred - v_gt| (m/s), voxels pedestrian in both"}
+    for key, label in (("PVE_mm", "PVE (mm) per fitted person"), ("MPJPE_mm", "MPJPE (mm) per fitted person")):
+        if tot.hist[key]:
+            hist[f"fit {key}"] = {"values": np.concatenate(tot.hist[key]), "xlabel": label}
+    from flows.report import to_jsonable, write_report
+
+    write_report(report_dir, results, {"bev": tot.samples, "histograms": hist})
+    return to_jsonable(results)
+
+
+def _sum_metric(metrics: dict[str, OccupancyMetric]):
+    total = OccupancyMetric()
+    for m in metrics.values():
+        total.confusion += m.confusion
+    return total.compute()
+
+
+def _brief(row: dict) -> dict:
+    """A per-sequence row: the summary numbers and per-class IoU."""
+    return {k: v for k, v in row.items() if k not in ("num_points_ignored",)}
+
+
+def main(argv: list[str] | None = None) -> None:  # pragma: no cover - the CLI calls evaluate()
+    import argparse
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--dataset", type=Path, required=True)
+    p.add_argument("--gt", type=Path, default=None)
+    p.add_argument("--report", type=Path, required=True)
+    p.add_argument("--sample-frames", type=int, default=3)
+    a = p.parse_args(argv)
+    res = evaluate(a.dataset, a.gt, a.report, a.sample_frames)
+    print(json.dumps({k: res[k] for k in res if k not in ("meta",)}, indent=1)[:4000])
+    print(f"report: {a.report / 'report.md'}")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()
