@@ -202,10 +202,14 @@ class FitConfig(Strict):
     preset: str = "ut_campus"
     #: named loss-weight presets; the paper's four are always available, YAML may add more
     presets: dict[str, LossWeights] = Field(default_factory=dict)
-    squared_weights: bool = False
-    confidence_power: float = Field(1.0, ge=0)
+    #: the paper does not say whether lambdas multiply squared; squared measured better here
+    squared_weights: bool = True
+    #: keypoint confidence power in L_J (SMPLify-X / SPIN use 2)
+    confidence_power: float = Field(2.0, ge=0)
     iterations: int = Field(150, ge=0)
     learning_rate: float = Field(0.02, gt=0)
+    #: recompute the Chamfer nearest pairs every this many steps (the k-d tree search dominates)
+    nn_every: int = Field(5, ge=1)
     batch_persons: int = Field(64, ge=1)
     device: Literal["cpu", "cuda", "auto"] = "auto"
     warm_start: bool = False
@@ -365,9 +369,20 @@ class Config(Strict):
         return out
 
 
-def config_hash(config: Config) -> str:
-    """sha256 (first 16 hex) of the canonical JSON of the resolved config."""
-    blob = json.dumps(config.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+def config_hash(config: Config, content_only: bool = False) -> str:
+    """sha256 (first 16 hex) of the canonical JSON of the resolved config.
+
+    content_only: leave out what does not change a single output byte (where the data and the
+    output store live, which sequences are selected, how many workers run). This is the hash
+    written beside the data, so the same inputs give byte-identical outputs whatever the runner.
+    """
+    dump = config.model_dump(mode="json")
+    if content_only:
+        dump.pop("dask")
+        dump["output"].pop("root")
+        for key in ("root", "sequences"):
+            dump["dataset"].pop(key)
+    blob = json.dumps(dump, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 

@@ -37,6 +37,7 @@ def bench_fit(
     chunk: int = 16,
     seed: int = 0,
     warm_start: bool = False,
+    nn_every: int = 5,
 ) -> dict:
     """Run the benchmark; returns {sensor: {variant: {metric: mean}}} plus 'person_fits_per_s'.
 
@@ -76,7 +77,7 @@ def bench_fit(
             r = fit_persons(
                 model, prior, init.take(idx), sp.keypoints[idx], sp.K, sp.T_cam_from_lidar,
                 sp.points_lidar[idx], sp.point_mask[idx], w, iterations=iterations, lr=lr,
-                device=device, seed=seed, **extra,
+                device=device, seed=seed, nn_every=nn_every, **extra,
             )
             if count:
                 fit_time += time.perf_counter() - t0
@@ -193,9 +194,12 @@ def main(argv=None) -> None:
     ap.add_argument("--iterations", type=int, default=150)
     ap.add_argument("--chunk", type=int, default=16)
     ap.add_argument("--warm-start", action="store_true")
+    ap.add_argument("--preset", default="3dpw")
+    ap.add_argument("--nn-every", type=int, default=5,
+                    help="recompute Chamfer nearest pairs every N steps")
     a = ap.parse_args(argv)
-    bench_fit(a.persons, tuple(a.sensors.split(",")), not a.no_ablations, a.device,
-              iterations=a.iterations, chunk=a.chunk, warm_start=a.warm_start)
+    bench_fit(a.persons, tuple(a.sensors.split(",")), not a.no_ablations, a.device, preset=a.preset,
+              iterations=a.iterations, chunk=a.chunk, warm_start=a.warm_start, nn_every=a.nn_every)
 
 
 if __name__ == "__main__":

@@ -63,12 +63,11 @@ def cmd_config(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace, force: bool) -> int:
     from flows.pipeline import rebuild_dataset, summary_table
-    from flows.runtime import prefect_api, task_runner
+    from flows.runtime import prefect_api
 
     cfg = _config(args)
     with prefect_api():
-        flow = rebuild_dataset.with_options(task_runner=task_runner(cfg))
-        report = flow(cfg, force=force, progress=not args.quiet)
+        report = rebuild_dataset(cfg, force=force, progress=not args.quiet)
     print(summary_table(report))
     return 1 if report.failed else 0
 

@@ -174,12 +174,24 @@ def export_dataset(config: Config, fmt: str, target: Path | None = None) -> Path
     return target
 
 
+@flow(name="run-units", log_prints=True)
+def _run_units_flow(config: Config, force: bool, sequences: list[str] | None, progress: bool) -> RunReport:
+    return run_units(config, force=force, sequences=sequences, progress=progress)
+
+
 @flow(name="rebuild-dataset", log_prints=True)
 def rebuild_dataset(config: Config, force: bool = False, sequences: list[str] | None = None,
                     progress: bool = True) -> RunReport:
     """Every selected sequence through detect -> track -> fit / map -> fuse -> export, then the
-    dataset-level exports of ``export.formats`` when any sequence was (re)published."""
-    report = run_units(config, force=force, sequences=sequences, progress=progress)
+    dataset-level exports of ``export.formats`` when any sequence was (re)published.
+
+    The units run in a subflow on the task runner ``config.dask`` asks for (threads, a Dask
+    LocalCluster, or ``dask.address``), however this flow was started (CLI, deployment, test).
+    """
+    from flows.runtime import task_runner
+
+    inner = _run_units_flow.with_options(task_runner=task_runner(config))
+    report = inner(config, force, sequences, progress)
     published = [o for (s, st), o in report.outcomes.items() if st == "export" and o["status"] == "done"]
     if published:  # the sequences that failed stay out; the others are exported
         for fmt in config.export.formats:
@@ -189,8 +201,8 @@ def rebuild_dataset(config: Config, force: bool = False, sequences: list[str] | 
 
 @flow(name="process-sequence", log_prints=True)
 def process_sequence(config: Config, sequence: str, force: bool = False) -> RunReport:
-    """One sequence through the six stages."""
-    return run_units(config, force=force, sequences=[sequence], progress=False)
+    """One sequence through the six stages (on the task runner of ``config.dask``)."""
+    return rebuild_dataset(config, force=force, sequences=[sequence], progress=False)
 
 
 def summary_table(report: RunReport) -> str:

@@ -192,7 +192,12 @@ def staged_output(final: Path) -> Iterator[Path]:
     if final.exists():  # same key = same content: keep the one already published
         shutil.rmtree(tmp, ignore_errors=True)
         return
-    os.replace(tmp, final)
+    try:
+        os.replace(tmp, final)
+    except OSError:
+        if not final.exists():
+            raise
+        shutil.rmtree(tmp, ignore_errors=True)  # another writer published the same key meanwhile
 
 
 def sweep_temporaries(root: Path) -> int:

@@ -39,7 +39,7 @@ def to_table(name: str, data: pa.Table | Mapping[str, Any] | Sequence[Mapping[st
         columns = dict(data)
     else:
         rows = list(data)
-        keys = {k for row in rows for k in row}
+        keys = {k for row in rows for k in row} if rows else set(schema.names)  # no rows: empty table
         columns = {k: [row.get(k) for row in rows] for k in sorted(keys)}
     columns.pop("sequence", None)  # lives in the partition path
     unknown = set(columns) - set(schema.names)

@@ -12,7 +12,6 @@ import pytest
 from configs.schema import load_config
 from flows.pipeline import rebuild_dataset
 from flows.plan import STAGES
-from flows.runtime import task_runner
 from storage.manifest import Manifest, StoreLockedError, run_lock
 
 pytestmark = [pytest.mark.usefixtures("prefect_harness"), pytest.mark.xdist_group("prefect")]
@@ -25,7 +24,7 @@ def _config(data: Path, out: Path, **overrides):
 
 
 def _run(cfg, **kw):
-    return rebuild_dataset.with_options(task_runner=task_runner(cfg))(cfg, progress=False, **kw)
+    return rebuild_dataset(cfg, progress=False, **kw)
 
 
 def _ran(report) -> set[tuple[str, str]]:

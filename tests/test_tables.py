@@ -135,3 +135,12 @@ def test_older_partition_without_a_new_column_reads_as_null(tmp_path):
     t = tables.read_table(tmp_path, "frames")
     assert t.column("sequence").to_pylist() == ["new", "old", "old"]
     assert t.column("is_night").to_pylist() == [False, None, None]
+
+
+def test_no_rows_gives_an_empty_partition(tmp_path):
+    """Regression: a sequence with no tracked person wrote no instances table ('track_id' missing)."""
+    from storage.tables import read_table, to_table, write_partition
+
+    assert to_table("instances", []).num_rows == 0
+    write_partition(tmp_path, "instances", "7", [])
+    assert read_table(tmp_path, "instances", "7").num_rows == 0

@@ -62,7 +62,7 @@ def run_export(ctx: StageContext) -> dict:
             "class_counts": fused["class_counts"][k].tolist(), "is_night": night})
     sequences = [{
         "fingerprint": sequence_fingerprint(info.root, info.files, FileHasher(None)),
-        "config_hash": config_hash(ctx.config), "code_version": CODE_VERSIONS["export"],
+        "config_hash": config_hash(ctx.config, content_only=True), "code_version": CODE_VERSIONS["export"],
         "status": "ok", "error": None, "num_frames": len(frames), "occupancy_version": version,
         "K": cam.K.reshape(-1).tolist(), "T_cam0_from_lidar": cam.T_cam_from_lidar.reshape(-1).tolist(),
         "T_base_from_lidar": calib.T_base_from_lidar.reshape(-1).tolist(),

@@ -118,7 +118,7 @@ def run_fuse(ctx: StageContext) -> dict:
     store = ctx.out_dir / "occupancy.zarr"
     layout = create_store(store, n, spec.shape, cfg.output.frames_per_chunk, {
         "range_min": list(spec.range_min), "range_max": list(spec.range_max),
-        "voxel_size_m": spec.voxel_size_m, "config_hash": config_hash(cfg),
+        "voxel_size_m": spec.voxel_size_m, "config_hash": config_hash(cfg, content_only=True),
         "code_version": CODE_VERSIONS["fuse"], "sequence": ctx.sequence,
         "body_source": cfg.fuse.body_source})
     units = [list(range(a, b)) for a, b in layout.write_units()]

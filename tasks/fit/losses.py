@@ -110,7 +110,7 @@ def reprojection_loss(
     return (conf * pen).sum(-1)
 
 
-def _masked_centroid(points: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+def masked_centroid(points: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     m = mask.to(points.dtype)[..., None]
     return (points * m).sum(1) / m.sum(1).clamp(min=1.0)
 
@@ -173,6 +173,7 @@ def chamfer_loss(
     vertex_mask: torch.Tensor,
     points: torch.Tensor,
     point_mask: torch.Tensor,
+    indices: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> torch.Tensor:
     """L_3D: symmetric, size-normalised squared Chamfer distance per person (B,), m^2.
 
@@ -181,11 +182,16 @@ def chamfer_loss(
     the person's point centroid first (precision at long range). Squared distances are formed
     from coordinate differences of nearest pairs (found without gradient), so the gradient is
     finite at zero distance. A person with no valid vertex or point contributes 0.
+    indices: the nearest pairs (idx_vp (B, V), idx_pv (B, P)) from an earlier call of
+    :func:`nearest_indices`, to reuse correspondences for a few steps (they change slowly); None =
+    search now.
     """
-    c = _masked_centroid(points, point_mask).detach()[:, None, :]
+    c = masked_centroid(points, point_mask).detach()[:, None, :]
     v = vertices - c
     p = points - c
-    idx_vp, idx_pv = nearest_indices(v.detach(), vertex_mask, p, point_mask)
+    if indices is None:
+        indices = nearest_indices(v.detach(), vertex_mask, p, point_mask)
+    idx_vp, idx_pv = indices
     p_near = torch.gather(p, 1, idx_vp[..., None].expand(-1, -1, 3))
     v_near = torch.gather(v, 1, idx_pv[..., None].expand(-1, -1, 3))
     d_vp = ((v - p_near) ** 2).sum(-1)

@@ -91,12 +91,14 @@ def fit_persons(
     keypoint_weights=None,
     icp_max_rotation_deg: float = 30.0,
     min_points: int = 10,
+    nn_every: int = 1,
 ) -> FitResult:
     """Fit B persons jointly (batched Adam), returning cam-frame bodies.
 
     model: BodyModel; prior: callable body_pose (B, 69) -> (B,) neg. log-likelihood (the GMM);
     init: BodyParams (cam frame) of the initial estimate (oracle, CLIFF, or the track's previous
-    frame for a warm start); keypoints (B, 17, 3) COCO-17 (u, v, confidence), pixels;
+    frame for a warm start); nn_every: recompute the Chamfer nearest pairs every this many steps
+    (the k-d tree search dominates a CPU step; pairs change slowly); keypoints (B, 17, 3) COCO-17 (u, v, confidence), pixels;
     K (B, 3, 3) or (3, 3); T_cam_from_lidar (4, 4) or (B, 4, 4) float64; points (B, P, 3) lidar
     frame (m), padded; point_mask (B, P) bool. Persons with fewer than ``min_points`` points skip
     ICP and L_3D. use_visibility=False uses every vertex and flags no joint occluded (ablation).
@@ -180,14 +182,21 @@ def fit_persons(
     params = [t.clone().requires_grad_(True) for t in (betas, go, bp, tr)]
     opt = torch.optim.Adam(params, lr=lr)
 
-    def terms(p_betas, p_go, p_bp, p_tr):
+    pairs = None
+
+    def terms(p_betas, p_go, p_bp, p_tr, refresh=True):
+        nonlocal pairs
         o = model(p_betas, p_go, p_bp, p_tr)
+        visible = _gather_rows(o.vertices, vidx)
+        if refresh or pairs is None:
+            c = L.masked_centroid(pts, pmask)[:, None, :]
+            pairs = L.nearest_indices((visible - c).detach(), vvalid, pts - c, pmask)
         t = {}
         t["L_J"] = L.reprojection_loss(
             model_keypoints(o.joints, o.vertices, model.keypoint_vertex_ids), kp, Kt,
             weights.rho_px, weights.conf_power, kw,
         )
-        t["L_3D"] = L.chamfer_loss(_gather_rows(o.vertices, vidx), vvalid, pts, pmask)
+        t["L_3D"] = L.chamfer_loss(visible, vvalid, pts, pmask, indices=pairs)
         t["L_theta"] = prior(p_bp)
         t["L_a"] = L.hyperextension_loss(p_bp)
         t["L_beta"] = L.shape_loss(p_betas)
@@ -203,9 +212,9 @@ def fit_persons(
         )
         return o, t
 
-    for _ in range(iterations):
+    for step in range(iterations):
         opt.zero_grad(set_to_none=True)
-        _, t = terms(*params)
+        _, t = terms(*params, refresh=step % max(1, nn_every) == 0)
         t["total"].sum().backward()
         opt.step()
 

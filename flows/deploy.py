@@ -1,0 +1,123 @@
+"""Prefect deployments of the two flows, and an idempotent trigger.
+
+Two ways to deploy (see infra/README.md):
+
+- ``python -m flows.deploy serve``: ``prefect.serve`` of both flows in this process (one machine;
+  the flow runs execute here). Needs ``PREFECT_API_URL`` of a running server.
+- ``prefect deploy --all`` with ``infra/prefect.yaml``: deployments on a work pool, executed by a
+  worker (process, Docker or Kubernetes).
+
+``trigger_rebuild`` starts the rebuild deployment with an idempotency key: a second trigger with the
+same key returns the flow run of the first instead of starting another (the server deduplicates on
+(deployment, key)). A new key starts a new run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from typing import Any
+
+from configs.schema import Config, config_hash
+
+#: deployment names, as ``run_deployment`` takes them ("<flow name>/<deployment name>")
+REBUILD_DEPLOYMENT = "rebuild-dataset/rebuild"
+SEQUENCE_DEPLOYMENT = "process-sequence/sequence"
+
+
+def deployments(tags: tuple[str, ...] = ("mobileocc",)) -> list:
+    """RunnerDeployments of ``rebuild_dataset`` ("rebuild") and ``process_sequence`` ("sequence")."""
+    from prefect.deployments.runner import EntrypointType
+
+    from flows.pipeline import process_sequence, rebuild_dataset
+
+    module = EntrypointType.MODULE_PATH  # "flows.pipeline:rebuild_dataset", as in infra/prefect.yaml
+    return [
+        rebuild_dataset.to_deployment(name="rebuild", tags=list(tags), entrypoint_type=module,
+                                      parameters={"progress": False},
+                                      description="Every selected sequence through the six stages"),
+        process_sequence.to_deployment(name="sequence", tags=list(tags), entrypoint_type=module,
+                                       description="One sequence through the six stages"),
+    ]
+
+
+def apply_deployments(tags: tuple[str, ...] = ("mobileocc",)) -> list:
+    """Register both deployments with the API (no work pool: runs wait for ``serve`` or a runner)."""
+    return [d.apply() for d in deployments(tags)]
+
+
+def serve(limit: int | None = None) -> None:
+    """Serve both deployments from this process until interrupted."""
+    from prefect import serve as prefect_serve
+
+    prefect_serve(*deployments(), limit=limit)
+
+
+def default_idempotency_key(config: Config, force: bool = False,
+                            sequences: list[str] | None = None, window: str = "") -> str:
+    """A key for "this config, these sequences, this window" (e.g. a date or a data version).
+
+    Two triggers of the same request within one window start one run; pass a new ``window`` (or
+    your own key) to run the same request again later.
+    """
+    payload = {"config": config_hash(config), "force": force,
+               "sequences": sorted(sequences) if sequences is not None else None, "window": window}
+    digest = hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:24]
+    return f"rebuild-{digest}"
+
+
+def trigger_rebuild(config: Config, force: bool = False, sequences: list[str] | None = None,
+                    idempotency_key: str | None = None, deployment: str = REBUILD_DEPLOYMENT,
+                    timeout: float | None = 0, **kwargs: Any):
+    """Start (or find) a rebuild run of the deployment; returns the FlowRun.
+
+    ``timeout=0`` returns at once (the run is scheduled); ``None`` waits for it to finish. With
+    ``idempotency_key`` a duplicate trigger returns the first trigger's flow run.
+    """
+    from prefect.deployments import run_deployment
+
+    parameters = {"config": config.model_dump(mode="json"), "force": force,
+                  "sequences": sequences, "progress": False}
+    return run_deployment(deployment, parameters=parameters, timeout=timeout,
+                          idempotency_key=idempotency_key, **kwargs)
+
+
+def trigger_sequence(config: Config, sequence: str, force: bool = False,
+                     idempotency_key: str | None = None, timeout: float | None = 0, **kwargs: Any):
+    """Start (or find) a run of the one-sequence deployment; returns the FlowRun."""
+    from prefect.deployments import run_deployment
+
+    parameters = {"config": config.model_dump(mode="json"), "sequence": str(sequence), "force": force}
+    return run_deployment(SEQUENCE_DEPLOYMENT, parameters=parameters, timeout=timeout,
+                          idempotency_key=idempotency_key, **kwargs)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m flows.deploy")
+    sub = parser.add_subparsers(dest="command", required=True)
+    sub.add_parser("serve", help="serve both flows from this process (needs PREFECT_API_URL)")
+    sub.add_parser("apply", help="register both deployments without serving them")
+    t = sub.add_parser("trigger", help="trigger the rebuild deployment")
+    t.add_argument("--config", default=None, help="config YAML (default: configs/default.yaml)")
+    t.add_argument("--force", action="store_true")
+    t.add_argument("--key", default=None, help="idempotency key (default: from the config and --window)")
+    t.add_argument("--window", default="", help="part of the default key, e.g. today's date")
+    args = parser.parse_args(argv)
+    if args.command == "serve":
+        serve()
+    elif args.command == "apply":
+        for dep_id in apply_deployments():
+            print(dep_id)
+    else:
+        from configs.schema import load_config
+
+        cfg = load_config(args.config)
+        key = args.key or default_idempotency_key(cfg, args.force, window=args.window)
+        run = trigger_rebuild(cfg, force=args.force, idempotency_key=key)
+        print(f"flow run {run.id} ({run.state.name if run.state else 'unknown'}), key {key}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
