@@ -26,7 +26,7 @@ $(SETUP_STAMP): pyproject.toml Makefile
 	$(PIP) install -q --upgrade pip
 	@# torch first: the CPU build of 2.13.0; anything else would pull GBs of CUDA wheels.
 	$(PIP) install -q torch==2.13.0
-	$(PIP) install -q -e '.[dev]'
+	$(PIP) install -q -e '.[dev,cluster]'
 	@# nuscenes-devkit pins numpy<2: test dependency, installed without its pins.
 	$(PIP) install -q --no-deps nuscenes-devkit==1.2.0
 	@rm -f $(VENV)/.setup-*; touch $@
