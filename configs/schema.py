@@ -271,6 +271,9 @@ class MapConfig(Strict):
 class FuseConfig(Strict):
     grid: GridConfig = GridConfig()
     body_source: Literal["fit", "ground-truth"] = "fit"
+    #: ground-truth bodies: fuse only people the sensors observe (>= this many LiDAR returns and
+    #: some pixels in cam0), the people a real pipeline can annotate; 0 = every simulated person
+    gt_min_points: int = Field(10, ge=0)
     camera_mask: bool = True
     #: exact per-pixel ray walks or a depth buffer (auto: rays for voxels >= 0.1 m)
     camera_method: Literal["auto", "rays", "zbuffer"] = "auto"

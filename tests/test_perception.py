@@ -324,3 +324,22 @@ def bench_track_and_person_points(frames: int = 30, width: int = 1224, height: i
     recall = [np.isin(np.flatnonzero(owner == p), f).mean() for p, f in enumerate(found)]
     print(f"{len(points)} points, purity {np.round(purity, 3)}, recall {np.round(recall, 3)}")
     return frames / elapsed
+
+
+def test_oracle_never_detects_a_person_without_a_box():
+    """Regression: with min_visible_fraction 0 a person outside the image (NaN box) crashed."""
+    from tasks.perception.oracle import OracleNoise, oracle_image_perception
+
+    h, w = 40, 60
+    boxes = np.array([[10, 5, 20, 35], [np.nan] * 4], np.float32)
+    kps = np.zeros((2, 17, 3), np.float32)
+    kps[:, :, :2] = 15
+    kps[1] = np.nan
+    inst = np.zeros((h, w), np.uint16)
+    inst[5:35, 10:20] = 1
+    noise = OracleNoise(day_recall=1.0, occlusion_miss=0.0, distance_miss=0.0, min_visible_fraction=0.0,
+                        fp_per_frame=0.0)
+    out, gt_index = oracle_image_perception(boxes, kps, np.array([1.0, 0.0]), np.array([5.0, 5.0]),
+                                            np.array([1, 2]), inst, np.zeros((h, w), np.uint8),
+                                            np.random.default_rng(0), noise=noise)
+    assert gt_index.tolist() == [0]

@@ -41,10 +41,12 @@ def _transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def _gt_people(root: Path, sequence: str, frame: int, faces: np.ndarray,
-               T_base_from_lidar: np.ndarray) -> list[PedestrianMesh]:
+               T_base_from_lidar: np.ndarray, min_points: int) -> list[PedestrianMesh]:
     gt = read_frame_gt(root, int(sequence), frame)
+    returns = np.array([(gt.point_instance == t).sum() for t in gt.track_id], np.int64)
+    observed = (returns >= min_points) & (gt.visible_fraction > 0) if min_points else returns >= 0
     return [PedestrianMesh(int(tid), _transform(T_base_from_lidar, gt.vertices[k]), faces,
-                           gt.velocity_base[k]) for k, tid in enumerate(gt.track_id)]
+                           gt.velocity_base[k]) for k, tid in enumerate(gt.track_id) if observed[k]]
 
 
 def _fit_people(model, bodies: dict, frame: int, T_base_from_lidar: np.ndarray) -> list[PedestrianMesh]:
@@ -86,7 +88,8 @@ def fuse_chunk(config: Config, sequence: str, positions: list[int], store: Path,
         local = smap.crop(T_world_from_base[:3, 3], reach)
         static_pts, static_labels = local.sample_points(spec.voxel_size_m)
         if config.fuse.body_source == "ground-truth":
-            people = _gt_people(seq.root, sequence, frame.index, faces, T_base_from_lidar)
+            people = _gt_people(seq.root, sequence, frame.index, faces, T_base_from_lidar,
+                                config.fuse.gt_min_points)
         else:
             people = (_fit_people(model, bodies, frame.index, T_base_from_lidar)
                       if bodies is not None else [])

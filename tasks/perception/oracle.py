@@ -140,6 +140,9 @@ def oracle_image_perception(
     scale = noise.night_noise_scale if night else 1.0
 
     detected = rng.random(count) < detection_probability(visible, distance_m, night, noise)
+    # a person with no box in this image (NaN: outside the view) cannot be detected, whatever the
+    # noise settings (regression: min_visible_fraction 0 crashed on NaN boxes)
+    detected &= np.isfinite(boxes_gt).all(axis=1)
     boxes, scores, keypoints, masks, gt_index = [], [], [], [], []
     for p in np.flatnonzero(detected):
         box = boxes_gt[p]
