@@ -38,7 +38,8 @@ from storage.manifest import Manifest
 from tasks import conventions as C
 from tasks.metrics.detection import DetectionCounts, detection_counts, match_boxes
 from tasks.metrics.occupancy import OccupancyMetric
-from tasks.metrics.pedestrian import pedestrian_box_counts, pedestrian_lidar_counts, voxelize_points
+from tasks.metrics.pedestrian import (pedestrian_box_counts, pedestrian_lidar_counts,
+                                     person_point_counts, voxelize_points)
 from tasks.metrics.static import StaticCounts, static_counts
 from tasks.metrics.tracking import tracking_scores
 from tasks.metrics._common import PRCounts
@@ -148,6 +149,7 @@ class _Totals:
         self.tracking: dict = {}
         self.velocity: dict[str, VelocityErrors] = {}
         self.fit: dict[str, dict[str, list]] = {}
+        self.person_points: dict[str, PRCounts] = {}
         self.notes: dict[str, str] = {}
         self.hist: dict[str, list] = {"velocity_error": [], "PVE_mm": [], "MPJPE_mm": []}
         self.samples: list[dict] = []
@@ -194,14 +196,16 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
     model = _body_model(config) if bodies is not None else None
 
     occ = tot.occ.setdefault(seq, OccupancyMetric())
-    st, bx, li, ve = StaticCounts(), PRCounts(), PRCounts(), VelocityErrors()
+    st, bx, li, ve, pp = StaticCounts(), PRCounts(), PRCounts(), VelocityErrors(), PRCounts()
     track_frames, fit_rows = [], {k: [] for k in ("pve", "mpjpe", "pa_mpjpe", "mpere")}
     for k, raw in enumerate(raw_frames):
         gtf = read_frame_gt(gt_root, int(seq), raw)
         pred = np.asarray(arrays["semantics"][k])
         mask_cam = np.asarray(arrays["mask_camera"][k]).astype(bool)
         # static semantics vs labelled GT points (pedestrian points out)
-        sweep = read_lidar_bin(coda.path(coda.lidar_source, "os1", raw, ".bin"), min_range, frame=raw)
+        max_range = float((config.get("dataset") or {}).get("max_range_m", np.inf))
+        sweep = read_lidar_bin(coda.path(coda.lidar_source, "os1", raw, ".bin"), min_range, max_range,
+                               frame=raw)
         pcls = gtf.point_class[sweep.index].copy()
         pinst = gtf.point_instance[sweep.index]
         is_ped = (pcls == C.PEDESTRIAN) | ((pinst >= 1) & (pinst < 1000))
@@ -236,6 +240,12 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
             r = tracks["frame"] == raw
             track_frames.append((gtf.track_id[persons].astype(np.int64), gtf.box2d[persons],
                                  tracks["track_id"][r], tracks["boxes_xyxy"][r]))
+            rows = np.flatnonzero(r & (tracks["gt_index"] >= 0))  # oracle rows know their person
+            if rows.size:
+                off = tracks["points_offsets"]
+                pp = pp + person_point_counts(
+                    pinst, [tracks["points_index"][off[j]:off[j + 1]] for j in rows],
+                    gtf.track_id[tracks["gt_index"][rows]])
         if bodies is not None and detect_dir is not None:
             rows = np.flatnonzero(bodies["frame"] == raw)
             if rows.size:
@@ -250,6 +260,8 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
                     for key in fit_rows:
                         fit_rows[key].append(np.asarray(m[key], np.float64))
     tot.static[seq], tot.boxes[seq], tot.lidar[seq], tot.velocity[seq] = st, bx, li, ve
+    if pp.pred_total:
+        tot.person_points[seq] = pp
     if not same_grid:
         tot.occ.pop(seq)
         tot.velocity.pop(seq)
@@ -332,6 +344,9 @@ def evaluate(dataset: Path, gt: Path | None, report_dir: Path, sample_frames: in
     if tot.tracking:
         results["tracking"] = {**{s: v.as_dict() for s, v in tot.tracking.items()},
                                "all": _sum(tot.tracking.values()).as_dict()}
+    if tot.person_points:  # the track stage's LiDAR points per person vs per-point GT instances
+        results["person_points"] = {**{s: v.as_dict() for s, v in tot.person_points.items()},
+                                    "all": _sum(tot.person_points.values()).as_dict()}
     if tot.fit:
         allfit = {k: np.concatenate([v[k] for v in tot.fit.values()]) for k in ("pve", "mpjpe", "pa_mpjpe", "mpere")}
         results["fit"] = {**{s: _fit_row(v) for s, v in tot.fit.items()}, "all": _fit_row(allfit)}

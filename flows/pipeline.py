@@ -112,29 +112,35 @@ def run_units(config: Config, force: bool = False, sequences: list[str] | None =
         hasher.save()
         report = RunReport(out_root, plans)
         futures: list[PrefectFuture] = []
+        results: dict[str, dict[str, object]] = {}
         for plan in plans:
             if plan.error:  # the sequence cannot be opened: it fails alone
                 outcome = {"sequence": plan.sequence, "stage": "detect", "key": "", "parts": {},
                            "status": "failed", "error": plan.error}
                 report.outcomes[(plan.sequence, "detect")] = outcome
                 _record(manifest, outcome)
-                continue
-            results: dict[str, object] = {}
-            for stage, upstream in STAGES.items():
+            else:
+                results[plan.sequence] = {}
+        # stage-major order: a thread pool runs tasks in submission order and a task waiting on its
+        # upstream holds a thread, so every sequence's detect goes first, then every track, ...
+        for stage, upstream in STAGES.items():
+            for plan in plans:
+                if plan.error:
+                    continue
+                mine = results[plan.sequence]
                 unit = plan.units[stage]
-                ups = {u: results[u] for u in upstream}
                 if unit.fresh:
                     rec = manifest.get(plan.sequence, stage)
                     outcome = {"sequence": plan.sequence, "stage": stage, "key": unit.key,
                                "parts": unit.parts, "status": "cached", "location": rec.location,
                                "summary": rec.summary, "seconds": 0.0, "ran": False}
                     report.outcomes[(plan.sequence, stage)] = outcome
-                    results[stage] = outcome
+                    mine[stage] = outcome
                     continue
                 with _gpu_annotation(config, stage):
-                    fut = stage_task.submit(config, unit, out_root, ups)
+                    fut = stage_task.submit(config, unit, out_root, {u: mine[u] for u in upstream})
                 futures.append(fut)
-                results[stage] = fut
+                mine[stage] = fut
         bars = _progress_bars(report, futures, progress)
         for fut in as_completed(futures):
             outcome = fut.result()

@@ -267,3 +267,14 @@ def test_bev_top_and_difference():
     assert bev_difference(extra, np.full((1, 1, 3), FREE, np.uint8)).tolist() == [[DIFF_EXTRA]]
     empty = np.full((1, 1, 3), FREE, np.uint8)
     assert bev_difference(empty, empty).tolist() == [[DIFF_FREE]]
+
+
+def test_person_point_counts_hand_made():
+    from tasks.metrics.pedestrian import person_point_counts
+
+    inst = np.array([0, 7, 7, 7, 7, 9, 9, 0])
+    # person 7: 3 of its 4 points and one background point; person 9: both points; a false positive
+    c = person_point_counts(inst, [np.array([1, 2, 3, 0]), np.array([5, 6]), np.array([7])],
+                            np.array([7, 9, -1]))
+    assert (c.pred_matched, c.pred_total, c.ref_matched, c.ref_total) == (5, 7, 5, 6)
+    assert c.precision == pytest.approx(5 / 7) and c.recall == pytest.approx(5 / 6)

@@ -190,3 +190,15 @@ def test_merge_static_maps_primary_wins_and_fallback_fills():
     assert merged.keys.tolist() == [[0, 0, 0], [5, 0, 0]]
     assert merged.labels.tolist() == [2, 4]  # the camera's label stays; the fallback fills the rest
     assert merged.ground_rejected == 3
+
+
+def test_lookup_labels_resamples_an_offset_grid_without_holes():
+    """Regression: pushing map voxel centres into a grid offset by half a voxel left striped holes
+    (two centres in one cell, none in the next). Pulling by the cell centres fills every cell."""
+    from tasks.occupancy.static_map import StaticMap, lookup_labels
+
+    keys = np.array([[i, 0, -1] for i in range(10)])  # a 2 m strip of road, 0.2 m voxels
+    road = StaticMap(0.2, keys, np.full(10, 4, np.uint8), np.zeros((10, 9), np.uint16), 0)
+    centres = np.stack([0.2 + 0.2 * np.arange(9), np.full(9, 0.1), np.full(9, -0.1)], 1)  # offset 0.1
+    assert lookup_labels(road, centres).tolist() == [4] * 9
+    assert lookup_labels(road, np.array([[5.0, 0.1, -0.1]])).tolist() == [255]

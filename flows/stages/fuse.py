@@ -28,7 +28,8 @@ from storage.occupancy_store import create_store, write_frames
 from tasks.occupancy.freespace import OccupancyMap
 from tasks.occupancy.fuse import CameraView, PedestrianMesh, fuse_frame
 from tasks.occupancy.grid import GridSpec
-from tasks.occupancy.static_map import StaticMap
+from tasks.conventions import UNLABELED
+from tasks.occupancy.static_map import StaticMap, lookup_labels
 
 
 def grid_spec(config: Config) -> GridSpec:
@@ -61,6 +62,29 @@ def _fit_people(model, bodies: dict, frame: int, T_base_from_lidar: np.ndarray) 
                            bodies["velocity_base"][r]) for k, r in enumerate(rows)]
 
 
+def static_in_grid(smap: StaticMap, spec: GridSpec, T_world_from_base: np.ndarray,
+                   reach_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """The static map as labelled points (world frame) that land one per cell of the local grid.
+
+    A map as coarse as the grid or coarser is resampled by the grid's cell centres (every cell
+    takes the label of the map voxel under its centre: no holes where the grids are offset); a
+    finer map is pushed as points filling each map voxel.
+    """
+    if smap.voxel_size_m < spec.voxel_size_m - 1e-9:
+        return smap.crop(T_world_from_base[:3, 3], reach_m).sample_points(spec.voxel_size_m)
+    pts, labels = [], []
+    axes = [spec.range_min[a] + (np.arange(n) + 0.5) * spec.voxel_size_m for a, n in enumerate(spec.shape)]
+    gy, gz = np.meshgrid(axes[1], axes[2], indexing="ij")
+    for x in axes[0]:  # one x slab of cell centres at a time bounds memory at fine resolutions
+        slab = np.stack([np.full(gy.size, x), gy.ravel(), gz.ravel()], axis=1)
+        world = _transform(T_world_from_base, slab).astype(np.float32)
+        lab = lookup_labels(smap, world)
+        hit = lab != UNLABELED
+        pts.append(world[hit])
+        labels.append(lab[hit])
+    return np.concatenate(pts), np.concatenate(labels)
+
+
 def fuse_chunk(config: Config, sequence: str, positions: list[int], store: Path,
                map_dir: Path, fit_dir: Path | None) -> list[dict]:
     seq = open_sequence(config, sequence)
@@ -85,8 +109,7 @@ def fuse_chunk(config: Config, sequence: str, positions: list[int], store: Path,
     for i in positions:
         frame = seq.frame(i)
         T_world_from_base = frame.T_world_from_lidar @ np.linalg.inv(T_base_from_lidar)
-        local = smap.crop(T_world_from_base[:3, 3], reach)
-        static_pts, static_labels = local.sample_points(spec.voxel_size_m)
+        static_pts, static_labels = static_in_grid(smap, spec, T_world_from_base, reach)
         if config.fuse.body_source == "ground-truth":
             people = _gt_people(seq.root, sequence, frame.index, faces, T_base_from_lidar,
                                 config.fuse.gt_min_points)

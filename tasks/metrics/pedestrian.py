@@ -128,3 +128,23 @@ def pedestrian_lidar_counts(pred: np.ndarray, gt_body: np.ndarray, region: np.nd
         near_gt = ndimage.binary_dilation(gt, structure=st, iterations=tolerance_voxels)
         near_ped = ndimage.binary_dilation(ped, structure=st, iterations=tolerance_voxels)
     return PRCounts(int(np.sum(ped & near_gt)), int(np.sum(ped)), int(np.sum(gt & near_ped)), int(np.sum(gt)))
+
+
+def person_point_counts(point_instance: np.ndarray, extracted: list[np.ndarray],
+                        gt_ids: np.ndarray) -> PRCounts:
+    """Person-point extraction against per-point ground-truth instances.
+
+    point_instance: (N,) int GT instance id of every point of the sweep. extracted: per tracked
+    person, the indices (into the same N points) the pipeline assigned to it. gt_ids: (P,) the GT
+    instance of each tracked person (rows < 0, false positives, count only in the precision).
+    precision = extracted points of the right person / extracted points; recall = the person's
+    points that were extracted / the person's points in the sweep.
+    """
+    inst = np.asarray(point_instance).reshape(-1)
+    counts = PRCounts()
+    for idx, gid in zip(extracted, np.asarray(gt_ids).reshape(-1)):
+        idx = np.asarray(idx, np.int64)
+        hit = int((inst[idx] == gid).sum()) if gid >= 0 else 0
+        truth = int((inst == gid).sum()) if gid >= 0 else 0
+        counts = counts + PRCounts(hit, len(idx), hit, truth)
+    return counts

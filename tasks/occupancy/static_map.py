@@ -363,3 +363,25 @@ def merge_static_maps(primary: StaticMap, secondary: StaticMap) -> StaticMap:
                      np.concatenate([primary.labels, secondary.labels[only_b]])[order],
                      np.concatenate([primary.counts, secondary.counts[only_b]])[order],
                      primary.ground_rejected + secondary.ground_rejected)
+
+
+def lookup_labels(static: StaticMap, points_world: np.ndarray) -> np.ndarray:
+    """Label of the map voxel containing each point, UNLABELED where the map has none.
+
+    points_world: (N, 3) float metres, world frame. Returns (N,) uint8. This is nearest-voxel
+    resampling: querying the centres of another grid gives every voxel of that grid the label of
+    the map voxel under its centre, with no holes where the two grids are offset (pushing the map's
+    voxel centres into an offset grid would leave every other cell empty).
+    """
+    p = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+    out = np.full(len(p), UNLABELED, dtype=np.uint8)
+    if len(static.keys) == 0 or len(p) == 0:
+        return out
+    table = pack_keys(static.keys)
+    order = np.argsort(table, kind="stable")
+    table = table[order]
+    query = pack_keys(np.floor(p / static.voxel_size_m).astype(np.int64))
+    at = np.clip(np.searchsorted(table, query), 0, len(table) - 1)
+    hit = table[at] == query
+    out[hit] = static.labels[order[at[hit]]]
+    return out
