@@ -163,7 +163,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     data = args.data or Path("demo-data")
     if not (data / "timestamps").is_dir():
         print(f"generating the synthetic demo dataset in {data} ...")
-        simulate(data, sequences=2, frames=args.frames, seed=0, crowd="crowded",
+        simulate(data, sequences=2, frames=args.frames, seed=0, pedestrians=8, crowd="crowded",
                  progress=not args.quiet)
     args.data = data
     status = _run(args, force=False)
@@ -245,7 +245,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="generate the synthetic demo data (if missing) and process it")
     _add_config_args(p)
-    p.add_argument("--frames", type=int, default=40, help="raw frames per demo sequence")
+    p.add_argument("--frames", type=int, default=30,
+                   help="raw 10 Hz frames per demo sequence (15 at 5 Hz)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_demo)
     return parser

@@ -22,11 +22,12 @@ import collections
 import copyreg
 import io
 import pickle
-import uuid
 from pathlib import Path
 
 import numpy as np
 import scipy.sparse
+
+from storage.manifest import atomic_write_bytes
 
 BODY_MODEL_KEYS = ("v_template", "f", "shapedirs", "posedirs", "weights", "kintree_table", "J_regressor")
 POSE_PRIOR_KEYS = ("means", "covars", "weights")
@@ -233,12 +234,9 @@ def save_body_model_npz(path, params: dict) -> None:
     missing = [k for k in BODY_MODEL_KEYS if k not in params]
     if missing:
         raise BodyFileError(f"{path}: refusing to write a body model without keys {missing}")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".tmp-{uuid.uuid4().hex[:8]}-{path.name}")  # unique: writers may race
-    if tmp.suffix != ".npz":
-        tmp = tmp.with_name(tmp.name + ".npz")
-    np.savez(tmp, **{k: np.asarray(v) for k, v in params.items()})
-    tmp.replace(path)
+    buffer = io.BytesIO()
+    np.savez(buffer, **{k: np.asarray(v) for k, v in params.items()})
+    atomic_write_bytes(path, buffer.getvalue())  # writers may race: each renames a whole file
 
 
 def _check_prior(path: Path, prior: dict) -> dict[str, np.ndarray]:
@@ -261,11 +259,7 @@ def save_pose_prior_pkl(path, prior: dict) -> None:
     """Write a pose prior dict (means, covars, weights) as a protocol-2 pickle (gmm_08 layout)."""
     path = Path(path)
     out = _check_prior(path, prior)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".tmp-{uuid.uuid4().hex[:8]}-{path.name}")  # unique: writers may race
-    with open(tmp, "wb") as fh:
-        pickle.dump(out, fh, protocol=2)
-    tmp.replace(path)
+    atomic_write_bytes(path, pickle.dumps(out, protocol=2))
 
 
 def load_pose_prior(path) -> dict[str, np.ndarray]:

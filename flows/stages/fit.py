@@ -43,19 +43,17 @@ PROCEDURAL_MODEL = "procedural_smpl_v1.npz"
 PROCEDURAL_PRIOR = "procedural_gmm_08_v1.pkl"
 
 
+def _procedural_file(config: Config, name: str, make, save) -> Path:
+    """OUT/.cache/<name>: our procedural stand-in, made and saved once per output store."""
+    path = Path(config.output.root) / ".cache" / name
+    if not path.exists():
+        save(path, make())
+    return path
+
+
 @functools.lru_cache(maxsize=4)
 def _load_model(path: str) -> BodyModel:
     return BodyModel(load_body_model(path))
-
-
-def body_model(config: Config) -> BodyModel:
-    """The user's SMPL file, or our procedural model (cached under OUT/.cache, made once)."""
-    path = config.fit.body_model_path
-    if path is None:
-        path = Path(config.output.root) / ".cache" / PROCEDURAL_MODEL
-        if not path.exists():
-            save_body_model_npz(path, generate_body_model())
-    return _load_model(str(path))
 
 
 @functools.lru_cache(maxsize=4)
@@ -64,13 +62,17 @@ def _load_prior(path: str) -> GMMPosePrior:
     return GMMPosePrior(p["means"], p["covars"], p["weights"])
 
 
+def body_model(config: Config) -> BodyModel:
+    """The user's SMPL file, or our procedural model in the same format."""
+    path = config.fit.body_model_path or _procedural_file(
+        config, PROCEDURAL_MODEL, generate_body_model, save_body_model_npz)
+    return _load_model(str(path))
+
+
 def pose_prior(config: Config) -> GMMPosePrior:
-    """The user's gmm_08.pkl, or our generated prior (cached under OUT/.cache, made once)."""
-    path = config.fit.pose_prior_path
-    if path is None:
-        path = Path(config.output.root) / ".cache" / PROCEDURAL_PRIOR
-        if not path.exists():
-            save_pose_prior_pkl(path, generate_pose_prior())
+    """The user's gmm_08.pkl, or our generated prior in the same format."""
+    path = config.fit.pose_prior_path or _procedural_file(
+        config, PROCEDURAL_PRIOR, generate_pose_prior, save_pose_prior_pkl)
     return _load_prior(str(path))
 
 
