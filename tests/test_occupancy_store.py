@@ -111,7 +111,7 @@ def test_fine_grid_uses_shards_and_optionally_skips_empty_chunks(tmp_path):
         sizes[skip] = (path / "semantics" / "c" / "1" / "0" / "0" / "0").stat().st_size
     assert sizes[True] < sizes[False] < 20_000
     occ.create_store(tmp_path / "default.zarr", 1, grid, 1, ATTRS)
-    assert occ.read_attrs(tmp_path / "default.zarr")["skip_empty_chunks"] is True  # fine default
+    assert occ.read_attrs(tmp_path / "default.zarr")["skip_empty_chunks"] is False  # measured default
 
 
 def test_chunk_choice():
