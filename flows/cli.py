@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import json
+import os
 import sys
 from pathlib import Path
 
@@ -62,6 +62,9 @@ def cmd_config(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace, force: bool) -> int:
+    # before prefect is imported: its settings are read once; per-task INFO lines would bury the
+    # progress bars and the summary (PREFECT_LOGGING_LEVEL=INFO brings them back)
+    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
     from flows.pipeline import rebuild_dataset, summary_table
     from flows.runtime import prefect_api
 
