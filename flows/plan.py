@@ -32,7 +32,7 @@ CODE_VERSIONS: dict[str, str] = {
     "fit": "1",
     "map": "1",
     "fuse": "1",
-    "export": "1",
+    "export": "2",  # 2: instances carry the fitted bodies, 3D boxes and velocities
 }
 
 

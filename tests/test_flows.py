@@ -13,6 +13,7 @@ from configs.schema import load_config
 from flows.pipeline import rebuild_dataset
 from flows.plan import STAGES
 from storage.manifest import Manifest, StoreLockedError, run_lock
+from storage.tables import read_table
 
 pytestmark = [pytest.mark.usefixtures("prefect_harness"), pytest.mark.xdist_group("prefect")]
 
@@ -44,6 +45,10 @@ def test_thread_runner_and_cache_consequences(dataset, tmp_path):
     assert all(o["status"] == "done" for o in first.outcomes.values())
     # every stage says plainly whether it computes its product yet
     assert all("implemented" in o["summary"] for o in first.outcomes.values())
+    # the published instances carry the fitted bodies (regression: the export left the 3D boxes
+    # empty, so the nuScenes export had no pedestrian annotations)
+    inst = read_table(out, "instances").to_pandas().dropna(subset=["box3d_center"])
+    assert len(inst) > 0 and all(1.0 < size[2] < 2.2 for size in inst["box3d_size"])
 
     # nothing changed -> nothing recomputed
     assert _ran(_run(cfg)) == set()

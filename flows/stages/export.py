@@ -11,13 +11,19 @@ from __future__ import annotations
 import os
 import shutil
 
+import numpy as np
+import torch
+
 from configs.schema import config_hash
 from flows.plan import CODE_VERSIONS
 from flows.stages.common import StageContext, is_night
+from flows.stages.fit import body_model
 from storage.intermediate import read_product
 from storage.manifest import FileHasher, sequence_fingerprint
 from storage.occupancy_store import sequence_writer
 from storage.tables import stage_table
+from tasks.fit.init_oracle import BodyParams
+from tasks.fit.reframe import reframe_params
 
 
 def _link_tree(src, dst) -> None:
@@ -29,15 +35,51 @@ def _link_tree(src, dst) -> None:
     shutil.copytree(src, dst, copy_function=link, dirs_exist_ok=True)
 
 
-def instance_rows(ctx: StageContext, frame_pos: dict[int, int]) -> list[dict]:
-    """One row per tracked person and frame; body fields stay null until the fit stage fills them."""
+def _box_from_vertices(vertices_base: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Upright box around a body (base frame): centre (3,), size (l, w, h) with l along the
+    footprint's major axis, yaw of that axis."""
+    xy = vertices_base[:, :2] - vertices_base[:, :2].mean(0)
+    _, vecs = np.linalg.eigh(xy.T @ xy)
+    major = vecs[:, 1]
+    yaw = float(np.arctan2(major[1], major[0]))
+    R = np.array([[np.cos(yaw), np.sin(yaw)], [-np.sin(yaw), np.cos(yaw)]])
+    local = vertices_base[:, :2] @ R.T
+    lo, hi = local.min(0), local.max(0)
+    z0, z1 = vertices_base[:, 2].min(), vertices_base[:, 2].max()
+    centre_xy = R.T @ ((lo + hi) / 2)
+    return (np.array([centre_xy[0], centre_xy[1], (z0 + z1) / 2]),
+            np.array([hi[0] - lo[0], hi[1] - lo[1], z1 - z0]), yaw)
+
+
+def instance_rows(ctx: StageContext, frame_pos: dict[int, int], T_base_from_lidar: np.ndarray) -> list[dict]:
+    """One row per tracked person and frame: 2D box and keypoints from track; body parameters,
+    3D box and velocity (base frame) from the fit where that person was fitted."""
     tracks = read_product(ctx.upstream["track"], "tracks")
+    fit_path = ctx.upstream.get("fit")
+    bodies = (read_product(fit_path, "bodies")
+              if fit_path is not None and (fit_path / "bodies.npz").exists() else None)
+    fitted: dict[tuple[int, int], int] = {}
+    if bodies is not None and len(bodies["frame"]):
+        fitted = {(int(f), int(d)): r for r, (f, d) in enumerate(zip(bodies["frame"], bodies["det_index"]))}
+        model = body_model(ctx.config)
+        lidar = BodyParams(bodies["betas"], bodies["global_orient"], bodies["body_pose"], bodies["transl"])
+        base = reframe_params(model, lidar, T_base_from_lidar)
+        with torch.no_grad():
+            verts = model(*(torch.as_tensor(a) for a in (base.betas, base.global_orient,
+                                                          base.body_pose, base.transl))).vertices.numpy()
     rows = []
     for r in range(len(tracks["track_id"])):
-        rows.append({
-            "track_id": int(tracks["track_id"][r]), "frame": frame_pos[int(tracks["frame"][r])],
-            "box2d_xyxy": tracks["boxes_xyxy"][r].tolist(),
-            "keypoints": tracks["keypoints"][r].reshape(-1).tolist()})
+        row = {"track_id": int(tracks["track_id"][r]), "frame": frame_pos[int(tracks["frame"][r])],
+               "box2d_xyxy": tracks["boxes_xyxy"][r].tolist(),
+               "keypoints": tracks["keypoints"][r].reshape(-1).tolist()}
+        b = fitted.get((int(tracks["frame"][r]), int(tracks["det_index"][r])))
+        if b is not None:
+            centre, size, yaw = _box_from_vertices(verts[b].astype(np.float64))
+            row.update({"box3d_center": centre.tolist(), "box3d_size": size.tolist(), "box3d_yaw": yaw,
+                        "betas": base.betas[b].tolist(), "global_orient": base.global_orient[b].tolist(),
+                        "body_pose": base.body_pose[b].tolist(), "transl": base.transl[b].tolist(),
+                        "vx": float(bodies["velocity_base"][b][0]), "vy": float(bodies["velocity_base"][b][1])})
+        rows.append(row)
     return rows
 
 
@@ -67,7 +109,8 @@ def run_export(ctx: StageContext) -> dict:
         "K": cam.K.reshape(-1).tolist(), "T_cam0_from_lidar": cam.T_cam_from_lidar.reshape(-1).tolist(),
         "T_base_from_lidar": calib.T_base_from_lidar.reshape(-1).tolist(),
         "image_width": cam.width, "image_height": cam.height}]
-    instances = instance_rows(ctx, {int(raw): k for k, raw in enumerate(fused["frame"].tolist())})
+    instances = instance_rows(ctx, {int(raw): k for k, raw in enumerate(fused["frame"].tolist())},
+                              calib.T_base_from_lidar)
     with sequence_writer(ctx.out_root, ctx.sequence, version) as staged:
         _link_tree(ctx.upstream["fuse"] / "occupancy.zarr", staged.store_path)
         stage_table(staged, "frames", frames)
