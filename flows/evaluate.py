@@ -79,19 +79,15 @@ def _gt_root(out: Path, manifest: Manifest, gt: Path | None) -> Path:
     return Path(root)
 
 
-def _transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    return np.asarray(points, np.float64) @ T[:3, :3].T + T[:3, 3]
-
-
 def _boxes_to_base(T_base_from_lidar: np.ndarray, centers, yaws) -> tuple[np.ndarray, np.ndarray]:
     """Box centres (B, 3) and yaws (B,) from the LiDAR frame to the base frame (rotation about z)."""
     R = T_base_from_lidar[:3, :3]
-    return _transform(T_base_from_lidar, centers), np.asarray(yaws, np.float64) + np.arctan2(R[1, 0], R[0, 0])
+    return C.transform_points(T_base_from_lidar, centers), np.asarray(yaws, np.float64) + np.arctan2(R[1, 0], R[0, 0])
 
 
 def _in_image(points_lidar: np.ndarray, cam) -> np.ndarray:
     """(N,) bool: the LiDAR-frame points that project into the camera image (in front of it)."""
-    pc = _transform(cam.T_cam_from_lidar, points_lidar)
+    pc = C.transform_points(cam.T_cam_from_lidar, points_lidar)
     z = pc[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         u = cam.K[0, 0] * pc[:, 0] / z + cam.K[0, 2]
@@ -103,7 +99,7 @@ def _frustum(shape, range_min, voxel_size_m: float, T_base_from_lidar, cam) -> n
     """(X, Y, Z) bool: voxels whose centre projects into the camera image."""
     idx = np.indices(shape).reshape(3, -1).T
     centres = np.asarray(range_min) + (idx + 0.5) * voxel_size_m
-    return _in_image(_transform(np.linalg.inv(T_base_from_lidar), centres), cam).reshape(shape)
+    return _in_image(C.transform_points(np.linalg.inv(T_base_from_lidar), centres), cam).reshape(shape)
 
 
 def _gt_persons(gtf) -> np.ndarray:
@@ -210,7 +206,7 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
         pinst = gtf.point_instance[sweep.index]
         is_ped = (pcls == C.PEDESTRIAN) | ((pinst >= 1) & (pinst < 1000))
         pcls[is_ped] = C.UNLABELED
-        pts_base = _transform(T_bl, sweep.points)
+        pts_base = C.transform_points(T_bl, sweep.points)
         st = st + static_counts(pred, range_min, vs, pts_base, pcls)
         # pedestrian vs boxes and vs LiDAR body points
         centers, yaws = _boxes_to_base(T_bl, gtf.box_center, gtf.box_yaw)

@@ -2,8 +2,8 @@
 
 Each stage function takes a :class:`StageContext` and writes its outputs into ``ctx.out_dir``
 (a hidden staging directory published by rename when the function returns) and returns a small
-JSON-able summary. ``implemented: False`` in a summary says plainly that the stage does not compute
-its product yet; nothing pretends.
+JSON-able summary (``implemented`` says whether the stage computes its product; every stage does
+now, the flag stays so a future placeholder says so plainly).
 """
 
 from __future__ import annotations
@@ -17,13 +17,6 @@ from flows.stages.fit import run_fit
 from flows.stages.fuse import run_fuse
 from flows.stages.map import run_map
 from flows.stages.track import run_track
-
-
-def _not_implemented(stage: str) -> Callable[[StageContext], dict]:
-    def run(ctx: StageContext) -> dict:
-        return {"implemented": False, "note": f"{stage} is not implemented yet: passes nothing through"}
-    run.__name__ = f"run_{stage}"
-    return run
 
 
 STAGE_FUNCTIONS: dict[str, Callable[[StageContext], dict]] = {

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,9 +21,6 @@ class StageContext:
     upstream: dict[str, Path] = field(default_factory=dict)
     #: the unit's stage key (names its output versions)
     key: str = ""
-
-    def upstream_summary(self, stage: str) -> dict:
-        return json.loads((self.upstream[stage] / "summary.json").read_text())
 
     def open(self) -> CodaSequence:
         return open_sequence(self.config, self.sequence)

@@ -28,7 +28,7 @@ from storage.occupancy_store import create_store, write_frames
 from tasks.occupancy.freespace import OccupancyMap
 from tasks.occupancy.fuse import CameraView, PedestrianMesh, fuse_frame
 from tasks.occupancy.grid import GridSpec
-from tasks.conventions import UNLABELED
+from tasks.conventions import UNLABELED, transform_points
 from tasks.occupancy.static_map import StaticMap, lookup_labels
 
 
@@ -37,16 +37,12 @@ def grid_spec(config: Config) -> GridSpec:
     return GridSpec(tuple(g.range_min), tuple(g.range_max), g.voxel_size_m)
 
 
-def _transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    return points.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
-
-
 def _gt_people(root: Path, sequence: str, frame: int, faces: np.ndarray,
                T_base_from_lidar: np.ndarray, min_points: int) -> list[PedestrianMesh]:
     gt = read_frame_gt(root, int(sequence), frame)
     returns = np.array([(gt.point_instance == t).sum() for t in gt.track_id], np.int64)
     observed = (returns >= min_points) & (gt.visible_fraction > 0) if min_points else returns >= 0
-    return [PedestrianMesh(int(tid), _transform(T_base_from_lidar, gt.vertices[k]), faces,
+    return [PedestrianMesh(int(tid), transform_points(T_base_from_lidar, gt.vertices[k]), faces,
                            gt.velocity_base[k]) for k, tid in enumerate(gt.track_id) if observed[k]]
 
 
@@ -58,7 +54,7 @@ def _fit_people(model, bodies: dict, frame: int, T_base_from_lidar: np.ndarray) 
     with torch.no_grad():
         vertices = model(t["betas"], t["global_orient"], t["body_pose"], t["transl"]).vertices.numpy()
     faces = np.asarray(model.faces)
-    return [PedestrianMesh(int(bodies["track_id"][r]), _transform(T_base_from_lidar, vertices[k]), faces,
+    return [PedestrianMesh(int(bodies["track_id"][r]), transform_points(T_base_from_lidar, vertices[k]), faces,
                            bodies["velocity_base"][r]) for k, r in enumerate(rows)]
 
 
@@ -77,7 +73,7 @@ def static_in_grid(smap: StaticMap, spec: GridSpec, T_world_from_base: np.ndarra
     gy, gz = np.meshgrid(axes[1], axes[2], indexing="ij")
     for x in axes[0]:  # one x slab of cell centres at a time bounds memory at fine resolutions
         slab = np.stack([np.full(gy.size, x), gy.ravel(), gz.ravel()], axis=1)
-        world = _transform(T_world_from_base, slab).astype(np.float32)
+        world = transform_points(T_world_from_base, slab).astype(np.float32)
         lab = lookup_labels(smap, world)
         hit = lab != UNLABELED
         pts.append(world[hit])
@@ -118,7 +114,7 @@ def fuse_chunk(config: Config, sequence: str, positions: list[int], store: Path,
                       if bodies is not None else [])
         grids = fuse_frame(spec, T_world_from_base, static_points_world=static_pts,
                            static_labels=static_labels, pedestrians=people, occupancy=occupancy,
-                           lidar_points_base=_transform(T_base_from_lidar, frame.points_lidar),
+                           lidar_points_base=transform_points(T_base_from_lidar, frame.points_lidar),
                            lidar_origin_base=T_base_from_lidar[:3, 3],
                            camera=camera if config.fuse.camera_mask else None,
                            pixel_stride=config.fuse.camera_pixel_stride,

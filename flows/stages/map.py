@@ -22,7 +22,7 @@ import numpy as np
 from configs.schema import Config
 from flows.stages.common import StageContext
 from storage.intermediate import read_product, write_product
-from tasks.conventions import PEDESTRIAN, UNLABELED
+from tasks.conventions import PEDESTRIAN, UNLABELED, transform_points
 from tasks.occupancy.freespace import OccupancyMap
 from tasks.occupancy.static_map import (StaticSemanticMap, lift_image_semantics,
                                         merge_static_maps, pedestrian_point_mask, project_points)
@@ -85,7 +85,7 @@ def run_map(ctx: StageContext) -> dict:
                                        box_margin_m=cfg.pedestrian_box_margin_m)
         keep = ~people & (labels != PEDESTRIAN)
         T = frame.T_world_from_lidar
-        world = (pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+        world = transform_points(T, pts).astype(np.float32)
         seen.add_sweep(world, labels, keep=keep & in_image)
         unseen.add_sweep(world, labels, keep=keep & ~in_image)
         occupancy.insert_scan(world[keep], T[:3, 3], max_range_m=cfg.freespace.max_range_m,
