@@ -96,13 +96,42 @@ def test_lidar_file_matches_ground_truth_labels(runs):
     assert np.all(gt.point_instance[~returned] == 0)
     seq = GT.read_sequence_gt(root, 0)
     assert seq.frames == (0, 1) and seq.grid_shape == (48, 48, 24)
-    # The written (noisy, 10 mm) points: ~99 % of those inside the grid lie in a voxel of their class
-    # (98.9-99.4 % over seeds: noise near voxel faces, ground returns in a foot's or wheel's voxel).
+
+
+def _point_voxel_agreement(root: Path, sequence: int, frame: int) -> tuple[int, int]:
+    """(agreeing, total) written LiDAR points inside the GT grid whose GT class is the class of the
+    GT occupancy voxel they fall in (the noisy points, floor rule)."""
+    seq = GT.read_sequence_gt(root, sequence)
+    data = W.read_lidar(root, sequence, frame)
+    gt = GT.read_frame_gt(root, sequence, frame)
+    returned = np.any(data[:, :3] != 0, axis=1)
     pb = transform_points(seq.T_base_from_lidar, data[returned, :3].astype(np.float64))
     q = np.floor((pb - seq.grid_range_min) / seq.grid_voxel_size_m).astype(int)
     inside = np.all((q >= 0) & (q < seq.grid_shape), axis=1)
     agree = gt.occupancy[tuple(q[inside].T)] == gt.point_class[returned][inside]
-    assert inside.sum() > 10000 and agree.mean() >= 0.985
+    return int(agree.sum()), int(inside.sum())
+
+
+@pytest.fixture(scope="module")
+def three_scenes(tmp_path_factory) -> Path:
+    """Three independent scenes (sequence seeds derived from SEED) of two frames, 5 people each."""
+    from flows.simulate import simulate
+
+    root = tmp_path_factory.mktemp("sim3")
+    simulate(root, sequences=3, frames=2, seed=SEED, pedestrians=5, progress=False)
+    return root
+
+
+def test_lidar_points_agree_with_their_ground_truth_voxel(three_scenes):
+    # The issue's criterion: >= 99 % of the (noisy, 10 mm) points lie in a GT voxel of their class,
+    # pooled over six frames of three scenes. What disagrees is physical, not a bug: a voxel holding
+    # a foot or a wheel on the road is labelled by the object, and ground returns that the noise
+    # lifts above the ground plane (a voxel face) land in it; an object face within a centimetre
+    # of a voxel face puts about half its returns in the free voxel beside it. Single frames range
+    # 96.6-99.9 % (seeds 3-7), six-frame pools 99.1-99.8 %, the 4-sequence benchmark 99.3 %.
+    counts = [_point_voxel_agreement(three_scenes, s, f) for s in range(3) for f in range(2)]
+    agree, total = np.sum(counts, axis=0)
+    assert total > 100000 and agree / total >= 0.99, counts
 
 
 def test_points_fall_in_voxels_of_their_class(clean_frame):
