@@ -150,3 +150,28 @@ def test_agreement_with_octomap(discretize):
         assert (a == b).mean() >= 0.99
         for state in (-1, 0, 1):  # every state is present, so agreement is not trivial
             assert (b == state).sum() > 500
+
+
+def test_threads_and_paths_give_identical_maps():
+    """Rays split over threads into private dense boxes, one thread, and the sparse in-pool path
+    (taken when the box is too big: a far point with no range limit) give the same log-odds."""
+    scans = _scans(2, 4, seed=3)
+    far = (np.array([[4000.0, 30.0, 2.0]]), None)  # 4 km away: the dense box would be ~10^9 blocks
+
+    def build(threads: int, force_sparse: bool) -> dict:
+        m = OccupancyMap(RES, threads=threads, initial_blocks=1)  # pool growth mid-apply too
+        dense, used = m._insert_dense, []
+        m._insert_dense = lambda *args: used.append(False if force_sparse else dense(*args)) or used[-1]
+        for k, (pts, origin) in enumerate(scans):
+            m.insert_scan(pts, origin, max_range_m=-1.0 if k else 8.0)
+        m.insert_scan(np.concatenate([scans[0][0], far[0]]), scans[0][1], max_range_m=-1.0)
+        assert used == ([False] * 3 if force_sparse else [True, True, False])
+        return _logodds(m)
+
+    reference = build(1, force_sparse=True)
+    assert len(reference) > 10000
+    assert build(1, force_sparse=False) == reference
+    assert build(2, force_sparse=False) == reference
+    assert build(3, force_sparse=False) == reference
+    with pytest.raises(OccupancyError, match="threads"):
+        OccupancyMap(RES, threads=0)

@@ -24,6 +24,8 @@ voxel (hit wins). Memory grows with the observed volume (about 2.2 KiB per touch
 from __future__ import annotations
 
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numba import njit
@@ -125,15 +127,31 @@ def _touch_block(hkeys, hvals, bkeys, nused, bstamp, touched, ntouched, bk, scan
     return b
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
+def _dense_row(kx, ky, kz, b0, nb):
+    """Row of voxel key (kx, ky, kz)'s block in a dense box of blocks, -1 outside it."""
+    bx = (kx >> 3) - b0[0]
+    by = (ky >> 3) - b0[1]
+    bz = (kz >> 3) - b0[2]
+    if bx < 0 or by < 0 or bz < 0 or bx >= nb[0] or by >= nb[1] or bz >= nb[2]:
+        return np.int64(-1)
+    return (bx * nb[1] + by) * nb[2] + bz
+
+
+@njit(cache=True, nogil=True)
 def _mark_scan(points, origin, max_range, res, scan_id, hkeys, hvals, bkeys, nused, bstamp,
-               touched, ntouched, fbits, hbits, phase0, ray0):
+               touched, ntouched, fbits, hbits, phase0, ray0, dense, b0, nb):
     """Mark one scan's voxels in per-block bitsets: fbits = on a ray, hbits = holds an endpoint.
 
     Phase 0 walks the rays, phase 1 marks the endpoints. Returns (phase, ray) where the block pool
     ran out, or (2, 0) when done; resuming a ray after the pool grew sets the same bits again.
     One 64-byte bitset per block keeps the marks of a scan in L1 cache: the walk runs close to the
     speed of the bare DDA.
+
+    dense: the bitsets are a private dense box of blocks instead of the map's pool: block
+    (bx, by, bz) is row ((bx - b0[0]) * nb[1] + by - b0[1]) * nb[2] + bz - b0[2]; the map is not
+    touched (so several threads can mark disjoint rays at once, nogil). Returns (3, ray) if a
+    voxel falls outside the box.
     """
     inv = 1.0 / res
     ox = origin[0]
@@ -206,7 +224,11 @@ def _mark_scan(points, origin, max_range, res, scan_id, hkeys, hvals, bkeys, nus
             bk = _block_key(cx, cy, cz)
             if bk != last_bk:
                 slot = ((cx >> 3) & 15) | (((cy >> 3) & 15) << 4) | (((cz >> 3) & 3) << 8)
-                if ckeys[slot] == bk:
+                if dense:
+                    b = _dense_row(cx, cy, cz, b0, nb)
+                    if b < 0:
+                        return 3, i
+                elif ckeys[slot] == bk:
                     b = crows[slot]
                 else:
                     b = _touch_block(hkeys, hvals, bkeys, nused, bstamp, touched, ntouched, bk,
@@ -250,7 +272,12 @@ def _mark_scan(points, origin, max_range, res, scan_id, hkeys, hvals, bkeys, nus
         kz = np.int64(math.floor(pz * inv))
         bk = _block_key(kx, ky, kz)
         if bk != last_bk:
-            b = _touch_block(hkeys, hvals, bkeys, nused, bstamp, touched, ntouched, bk, scan_id)
+            if dense:
+                b = _dense_row(kx, ky, kz, b0, nb)
+                if b < 0:
+                    return 3, i
+            else:
+                b = _touch_block(hkeys, hvals, bkeys, nused, bstamp, touched, ntouched, bk, scan_id)
             if b < 0:
                 return 1, i
             last_bk = bk
@@ -260,40 +287,80 @@ def _mark_scan(points, origin, max_range, res, scan_id, hkeys, hvals, bkeys, nus
     return 2, 0
 
 
+@njit(cache=True, inline="always")
+def _apply_word(logodds, b, w, hw, fw, hit, miss, lo_min, lo_max):
+    """Update the voxels of word w of pool block b: hits in hw, misses in fw (hit wins)."""
+    one = np.uint64(1)
+    fw = fw & ~hw
+    for j in range(64):
+        bit = one << np.uint64(j)
+        if hw & bit:
+            c = w * 64 + j
+            v = logodds[b, c]
+            if v != v:
+                v = np.float32(0.0)
+            v = v + hit
+            if v > lo_max:
+                v = lo_max
+            logodds[b, c] = v
+        elif fw & bit:
+            c = w * 64 + j
+            v = logodds[b, c]
+            if v != v:
+                v = np.float32(0.0)
+            v = v + miss
+            if v < lo_min:
+                v = lo_min
+            logodds[b, c] = v
+
+
 @njit(cache=True)
 def _apply_marks(touched, ntouched, fbits, hbits, logodds, hit, miss, lo_min, lo_max):
     """One update per marked voxel of the touched blocks (occupied wins), then clear the marks."""
-    one = np.uint64(1)
     for t in range(ntouched[0]):
         b = touched[t]
         for w in range(_BLOCK_CELLS // 64):
             hw = hbits[b, w]
-            fw = fbits[b, w] & ~hw
+            fw = fbits[b, w]
             hbits[b, w] = 0
             fbits[b, w] = 0
-            if hw == 0 and fw == 0:
-                continue
-            for j in range(64):
-                bit = one << np.uint64(j)
-                if hw & bit:
-                    c = w * 64 + j
-                    v = logodds[b, c]
-                    if v != v:
-                        v = np.float32(0.0)
-                    v = v + hit
-                    if v > lo_max:
-                        v = lo_max
-                    logodds[b, c] = v
-                elif fw & bit:
-                    c = w * 64 + j
-                    v = logodds[b, c]
-                    if v != v:
-                        v = np.float32(0.0)
-                    v = v + miss
-                    if v < lo_min:
-                        v = lo_min
-                    logodds[b, c] = v
+            if hw != 0 or fw != 0:
+                _apply_word(logodds, b, w, hw, fw, hit, miss, lo_min, lo_max)
     ntouched[0] = 0
+
+
+@njit(cache=True)
+def _apply_dense(fbits, hbits, b0, nb, row0, hkeys, hvals, bkeys, nused, logodds, hit, miss,
+                 lo_min, lo_max):
+    """Apply the union of per-thread dense marks (T, rows, 8) to the map, from box row ``row0``.
+
+    Returns the row where the block pool ran out (grow and resume there), or -1 when done.
+    """
+    nt = fbits.shape[0]
+    words = _BLOCK_CELLS // 64
+    for r in range(row0, fbits.shape[1]):
+        any_mark = False
+        for t in range(nt):
+            for w in range(words):
+                if fbits[t, r, w] != 0 or hbits[t, r, w] != 0:
+                    any_mark = True
+        if not any_mark:
+            continue
+        bz = r % nb[2] + b0[2]
+        by = (r // nb[2]) % nb[1] + b0[1]
+        bx = r // (nb[1] * nb[2]) + b0[0]
+        b = _find_or_add(hkeys, hvals, bkeys, nused, _block_key(bx << 3, by << 3, bz << 3))
+        if b < 0:
+            return r
+        for w in range(words):
+            hw = np.uint64(0)
+            fw = np.uint64(0)
+            for t in range(nt):
+                hw |= hbits[t, r, w]
+                fw |= fbits[t, r, w]
+            if hw != 0 or fw != 0:
+                _apply_word(logodds, b, w, hw, fw, hit, miss, lo_min, lo_max)
+    return -1
 
 
 @njit(cache=True, inline="always")
@@ -381,6 +448,48 @@ def _import(keys, vals, hkeys, hvals, bkeys, logodds, nused):
         logodds[b, _cell(kx, ky, kz)] = vals[i]
 
 
+_NO_BOX = np.zeros(3, dtype=np.int64)
+#: Dense marking boxes above this many blocks (x threads) use the sparse path: 2 bitsets of 64 B
+#: per block, so at most 32 MiB; a 20 m OS1-128 scan needs ~6,000 blocks at 0.2 m, ~300,000 at 0.05 m.
+_DENSE_MAX_BLOCKS = 1 << 18
+_MIN_RAYS_PER_THREAD = 4096
+_CHUNKS_PER_THREAD = 8
+_POOL: ThreadPoolExecutor | None = None
+
+
+def _executor() -> ThreadPoolExecutor:
+    global _POOL
+    if _POOL is None:
+        _POOL = ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1), thread_name_prefix="freespace")
+    return _POOL
+
+
+@njit(cache=True, nogil=True)
+def _scan_box(pts, origin, max_range_m, res):
+    """Blocks (b0 (3,) int64, nb (3,) int64) of a box holding every voxel the scan's rays can
+    touch: the origin and the (range-cut) endpoints, with one block of margin."""
+    lo = origin.copy()
+    hi = origin.copy()
+    for i in range(pts.shape[0]):
+        d0 = pts[i, 0] - origin[0]
+        d1 = pts[i, 1] - origin[1]
+        d2 = pts[i, 2] - origin[2]
+        length = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        s = 1.0
+        if max_range_m >= 0.0 and length > max_range_m:
+            s = max_range_m / length
+        e = (origin[0] + d0 * s, origin[1] + d1 * s, origin[2] + d2 * s)
+        for a in range(3):
+            lo[a] = min(lo[a], e[a])
+            hi[a] = max(hi[a], e[a])
+    b0 = np.empty(3, dtype=np.int64)
+    nb = np.empty(3, dtype=np.int64)
+    for a in range(3):
+        b0[a] = (np.int64(math.floor(lo[a] / res)) >> _BLOCK_SHIFT) - 1
+        nb[a] = (np.int64(math.floor(hi[a] / res)) >> _BLOCK_SHIFT) + 2 - b0[a]
+    return b0, nb
+
+
 class OccupancyMap:
     """A sparse occupancy map of one sequence in the world frame, fed scan by scan.
 
@@ -398,6 +507,7 @@ class OccupancyMap:
         clamp_max: float = 0.971,
         occupancy_threshold: float = 0.5,
         initial_blocks: int = 1024,
+        threads: int | None = None,
     ) -> None:
         if not voxel_size_m > 0:
             raise OccupancyError(f"voxel_size_m must be > 0, got {voxel_size_m}")
@@ -410,6 +520,10 @@ class OccupancyMap:
                 f"expected prob_miss < 0.5 < prob_hit and clamp_min < clamp_max, got "
                 f"{prob_miss}, {prob_hit}, {clamp_min}, {clamp_max}"
             )
+        if threads is not None and threads < 1:
+            raise OccupancyError(f"threads must be >= 1, got {threads}")
+        #: threads marking a scan's rays (None: one per core); results do not depend on it
+        self.threads = int(threads) if threads is not None else max(1, os.cpu_count() or 1)
         self.voxel_size_m = float(voxel_size_m)
         self.params = (prob_hit, prob_miss, clamp_min, clamp_max, occupancy_threshold)
         self._hit = np.float32(_logit(prob_hit))
@@ -488,20 +602,65 @@ class OccupancyMap:
             keys = np.stack([packed >> 42, (packed >> 21) & _KEY_MASK, packed & _KEY_MASK], axis=1)
             pts = (keys - _KEY_OFFSET + 0.5) * self.voxel_size_m
         pts = np.ascontiguousarray(pts)
+        if not (len(pts) and self._insert_dense(pts, origin, float(max_range_m))):
+            self._insert_sparse(pts, origin, float(max_range_m))
+        self.num_scans += 1
+
+    def _insert_sparse(self, pts: np.ndarray, origin: np.ndarray, max_range_m: float) -> None:
+        """One thread, marks straight in the map's block pool (any extent)."""
         scan_id = np.int32(self.num_scans % (2**31 - 1))
         phase, ray = 0, 0
         while True:
             phase, ray = _mark_scan(
-                pts, origin, float(max_range_m), self.voxel_size_m, scan_id, self._hkeys,
+                pts, origin, max_range_m, self.voxel_size_m, scan_id, self._hkeys,
                 self._hvals, self._bkeys, self._nused, self._bstamp, self._touched,
-                self._ntouched, self._fbits, self._hbits, phase, ray,
+                self._ntouched, self._fbits, self._hbits, phase, ray, False, _NO_BOX, _NO_BOX,
             )
             if phase == 2:
                 break
             self._grow()
         _apply_marks(self._touched, self._ntouched, self._fbits, self._hbits, self._logodds, self._hit,
                      self._miss, self._lo_min, self._lo_max)
-        self.num_scans += 1
+
+    def _insert_dense(self, pts: np.ndarray, origin: np.ndarray, max_range_m: float) -> bool:
+        """Rays split over threads, each marking a private dense box of blocks around the scan;
+        the union is then applied once. False (nothing changed) when the box would be too big."""
+        b0, nb = _scan_box(pts, origin, max_range_m, self.voxel_size_m)
+        threads = max(1, min(self.threads, len(pts) // _MIN_RAYS_PER_THREAD))
+        if int(np.prod(nb)) * threads > _DENSE_MAX_BLOCKS:
+            return False
+        words = _BLOCK_CELLS // 64
+        fbits = np.zeros((threads, int(np.prod(nb)), words), dtype=np.uint64)
+        hbits = np.zeros_like(fbits)
+        bounds = np.linspace(0, len(pts), threads * _CHUNKS_PER_THREAD + 1).astype(np.int64)
+        chunks = list(zip(bounds[:-1], bounds[1:]))
+        scan_id = np.int32(0)
+
+        def mark(t: int) -> bool:
+            for lo, hi in chunks[t::threads]:
+                phase, _ = _mark_scan(
+                    pts[lo:hi], origin, max_range_m, self.voxel_size_m, scan_id, self._hkeys,
+                    self._hvals, self._bkeys, self._nused, self._bstamp, self._touched,
+                    self._ntouched, fbits[t], hbits[t], 0, 0, True, b0, nb,
+                )
+                if phase != 2:
+                    return False
+            return True
+
+        if threads == 1:
+            inside = mark(0)
+        else:
+            inside = all(_executor().map(mark, range(threads)))
+        if not inside:  # a ray left the box (float corner cases): the sparse path is exact anyway
+            return False
+        row = 0
+        while True:
+            row = _apply_dense(fbits, hbits, b0, nb, row, self._hkeys, self._hvals, self._bkeys,
+                               self._nused, self._logodds, self._hit, self._miss, self._lo_min,
+                               self._lo_max)
+            if row < 0:
+                return True
+            self._grow()
 
     # -- queries -------------------------------------------------------------------------------
     def query(self, points_world: np.ndarray) -> np.ndarray:
