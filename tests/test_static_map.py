@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tasks.conventions import (CITYSCAPES_TO_CLASS, CITYSCAPES_TRAIN_IDS, OTHER_STRUCTURE,
+from tasks.conventions import (CAR, CITYSCAPES_TO_CLASS, CITYSCAPES_TRAIN_IDS, OTHER_STRUCTURE,
                                PEDESTRIAN, ROAD, TERRAIN, UNLABELED, VEGETATION)
 from tasks.occupancy.freespace import OccupancyMap
 from tasks.occupancy.static_map import (StaticMapError, StaticSemanticMap, lift_image_semantics,
-                                        pedestrian_point_mask, points_in_boxes)
+                                        pedestrian_point_mask, points_in_boxes, project_points)
 
 VS = 0.2
 
@@ -124,6 +124,30 @@ def test_lift_image_semantics_and_fallback():
     assert lab.tolist() == [OTHER_STRUCTURE, ROAD, UNLABELED, OTHER_STRUCTURE, OTHER_STRUCTURE]
     lab = lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS, fallback="unknown")
     assert lab.tolist() == [OTHER_STRUCTURE, ROAD, UNLABELED, UNLABELED, UNLABELED]
+
+
+def test_nearest_fallback_keeps_ground_and_objects_apart():
+    """Out of view, ground points take the nearest in-view ground label and raised points the
+    nearest in-view raised label, even where the nearest point overall is of the other level."""
+    K, T = _cam()
+    ground = np.stack(np.meshgrid(np.arange(-4.0, 10.0, 0.25), np.arange(-2.0, 3.01, 0.25), [-0.9],
+                                  indexing="ij"), -1).reshape(-1, 3)
+    car = np.stack(np.meshgrid(np.arange(-4.0, 6.0, 0.2), [-2.3], [-0.5, -0.3], indexing="ij"),
+                   -1).reshape(-1, 3)  # a car side 0.4-0.6 m above the ground, mostly beside the robot
+    pts = np.concatenate([ground, car])
+    pix, valid = project_points(pts, K, T, 40, 20)
+    img = np.full((20, 40), CITYSCAPES_TRAIN_IDS["road"], np.uint8)  # the view: road and the car's front
+    is_car = np.arange(len(pts)) >= len(ground)
+    img[pix[valid & is_car, 1], pix[valid & is_car, 0]] = CITYSCAPES_TRAIN_IDS["car"]
+    out = ~valid
+    assert out[is_car].sum() > 20 and valid[is_car].sum() > 5 and out[~is_car].sum() > 100
+    lab = lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS, fallback="nearest")
+    assert np.all(lab[valid & is_car] == CAR)
+    assert np.all(lab[out & is_car] == CAR)
+    assert np.all(lab[out & ~is_car] == ROAD)
+    # one level for all (the plain nearest neighbour) labels much of the car's side road
+    plain = lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS, fallback="nearest", ground_tol_m=1e3)
+    assert np.mean(plain[out & is_car] == ROAD) > 0.3
 
 
 def test_pedestrian_point_mask_instances_and_rotated_boxes():

@@ -19,6 +19,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from tasks.conventions import FREE, PEDESTRIAN, ROAD, TERRAIN, UNLABELED
+from tasks.perception.lidar_clusters import ground_height
 
 NUM_OCCUPIED_CLASSES = FREE  # classes 0..8 take votes; 9 (free) never does
 _OFF = 1 << 20  # 21 bits per axis in a packed key: +-2^20 voxels
@@ -68,14 +69,19 @@ def project_points(points_lidar: np.ndarray, K: np.ndarray, T_cam_from_lidar: np
 
 def lift_image_semantics(points_lidar: np.ndarray, semantic_image: np.ndarray, K: np.ndarray,
                          T_cam_from_lidar: np.ndarray, class_lut: np.ndarray,
-                         fallback: str = "nearest") -> np.ndarray:
+                         fallback: str = "nearest", ground_cell_m: float = 1.0,
+                         ground_tol_m: float = 0.3) -> np.ndarray:
     """Class of each LiDAR point from a semantic image.
 
     points_lidar: (N, 3) float metres, LiDAR frame. semantic_image: (H, W) uint8 Cityscapes train
     ids of a rectified image. K: (3, 3). T_cam_from_lidar: (4, 4). class_lut: (256,) uint8 train id
     -> our class (UNLABELED for none, e.g. :data:`tasks.conventions.CITYSCAPES_TO_CLASS`).
-    fallback for points not in the image: "nearest" (class of the nearest labelled point, 3D) or
-    "unknown" (UNLABELED). Returns (N,) uint8.
+    fallback for points not in the image: "nearest" (class of the nearest labelled point, 3D, at
+    the same level: a point less than ground_tol_m above the local ground (the lowest point of its
+    ground_cell_m cell's 3 x 3 neighbourhood) takes the label of the nearest such in-image point,
+    any other point that of the nearest other in-image point, so the side of a car beside the
+    robot is not labelled road and the road beside it not car) or "unknown" (UNLABELED).
+    Returns (N,) uint8.
     """
     if fallback not in ("nearest", "unknown"):
         raise StaticMapError(f"fallback must be 'nearest' or 'unknown', got {fallback!r}")
@@ -89,12 +95,16 @@ def lift_image_semantics(points_lidar: np.ndarray, semantic_image: np.ndarray, K
     pix, valid = project_points(p, K, T_cam_from_lidar, img.shape[1], img.shape[0])
     labels = np.full(len(p), UNLABELED, dtype=np.uint8)
     labels[valid] = lut[img[pix[valid, 1], pix[valid, 0]].astype(np.uint8)]
-    if fallback == "nearest":
-        src = valid & (labels != UNLABELED)
-        dst = ~valid
-        if src.any() and dst.any():
-            _, nn = cKDTree(p[src]).query(p[dst], k=1)
-            labels[dst] = labels[src][nn]
+    if fallback == "nearest" and not valid.all():
+        low = p[:, 2] - ground_height(p, ground_cell_m) < ground_tol_m
+        labelled = valid & (labels != UNLABELED)
+        for level in (low, ~low):
+            src, dst = labelled & level, ~valid & level
+            if not src.any():  # nothing of this level in view: any in-view label
+                src = labelled
+            if src.any() and dst.any():
+                _, nn = cKDTree(p[src]).query(p[dst], k=1)
+                labels[dst] = labels[src][nn]
     return labels
 
 
