@@ -257,6 +257,9 @@ class MapConfig(Strict):
     #: Cityscapes train id (0-18) -> class name; ids not listed are unlabelled (e.g. sky)
     cityscapes_to_class: dict[int, str] = Field(default_factory=dict)
     outside_image_fallback: Literal["nearest", "unknown"] = "nearest"
+    #: > 1: out-of-view ground points match in-view ground with the lateral axis stretched (ground
+    #: classes run in strips along the robot's path); 1 = plain nearest neighbour
+    fallback_ground_lateral_scale: float = Field(4.0, ge=1.0)
     pedestrian_box_margin_m: float = Field(0.15, ge=0)
     #: ground consistency: road / terrain votes farther than this from the local ground are rejected
     ground_max_deviation_m: float = Field(0.3, gt=0)

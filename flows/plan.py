@@ -30,7 +30,7 @@ CODE_VERSIONS: dict[str, str] = {
     "detect": "1",
     "track": "1",
     "fit": "1",
-    "map": "2",  # 2: the out-of-view fallback keeps ground and raised points apart
+    "map": "2",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path
     "fuse": "1",
     "export": "2",  # 2: instances carry the fitted bodies, 3D boxes and velocities
 }

@@ -150,6 +150,26 @@ def test_nearest_fallback_keeps_ground_and_objects_apart():
     assert np.mean(plain[out & is_car] == ROAD) > 0.3
 
 
+def test_lateral_scale_carries_ground_strips_along_the_path():
+    """A lawn strip (|y| >= 2 m) beside a road, seen by the camera only ahead: with the lateral
+    axis stretched, the out-of-view strip beside the robot is labelled terrain, not road."""
+    K, T = _cam()
+    ground = np.stack(np.meshgrid(np.arange(-4.0, 10.0, 0.25), np.arange(-3.0, 3.01, 0.25), [-0.9],
+                                  indexing="ij"), -1).reshape(-1, 3)
+    lawn = np.abs(ground[:, 1]) >= 2.0
+    pix, valid = project_points(ground, K, T, 40, 20)
+    img = np.full((20, 40), CITYSCAPES_TRAIN_IDS["road"], np.uint8)
+    img[pix[valid & lawn, 1], pix[valid & lawn, 0]] = CITYSCAPES_TRAIN_IDS["terrain"]
+    out = ~valid
+    assert (valid & lawn).sum() > 10 and (out & lawn).sum() > 50
+    truth = np.where(lawn, TERRAIN, ROAD)
+    plain = lift_image_semantics(ground, img, K, T, CITYSCAPES_TO_CLASS)
+    along = lift_image_semantics(ground, img, K, T, CITYSCAPES_TO_CLASS, ground_lateral_scale=4.0)
+    assert np.mean(plain[out & lawn] == TERRAIN) < 0.6
+    assert np.mean(along[out & lawn] == TERRAIN) > 0.9
+    assert np.mean(along[out] == truth[out]) > np.mean(plain[out] == truth[out])
+
+
 def test_pedestrian_point_mask_instances_and_rotated_boxes():
     K, T = _cam()
     inst = np.zeros((20, 40), np.int32)

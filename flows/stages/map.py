@@ -77,7 +77,8 @@ def run_map(ctx: StageContext) -> dict:
         det = read_product(ctx.upstream["detect"], f"frame_{frame.index}")
         labels = lift_image_semantics(pts, det["semantic"], cam.K, cam.T_cam_from_lidar, lut,
                                       fallback=cfg.outside_image_fallback, ground_cell_m=cfg.ground_cell_m,
-                                      ground_tol_m=cfg.ground_max_deviation_m)
+                                      ground_tol_m=cfg.ground_max_deviation_m,
+                                      ground_lateral_scale=cfg.fallback_ground_lateral_scale)
         _, in_image = project_points(pts, cam.K, cam.T_cam_from_lidar, cam.width, cam.height)
         boxes = pedestrian_boxes_for_masking(det, cam.K, cam.T_cam_from_lidar, cam.width, cam.height,
                                              ctx.config.track.person_points.assoc_min_iou)

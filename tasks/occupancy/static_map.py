@@ -70,7 +70,7 @@ def project_points(points_lidar: np.ndarray, K: np.ndarray, T_cam_from_lidar: np
 def lift_image_semantics(points_lidar: np.ndarray, semantic_image: np.ndarray, K: np.ndarray,
                          T_cam_from_lidar: np.ndarray, class_lut: np.ndarray,
                          fallback: str = "nearest", ground_cell_m: float = 1.0,
-                         ground_tol_m: float = 0.3) -> np.ndarray:
+                         ground_tol_m: float = 0.3, ground_lateral_scale: float = 1.0) -> np.ndarray:
     """Class of each LiDAR point from a semantic image.
 
     points_lidar: (N, 3) float metres, LiDAR frame. semantic_image: (H, W) uint8 Cityscapes train
@@ -81,7 +81,10 @@ def lift_image_semantics(points_lidar: np.ndarray, semantic_image: np.ndarray, K
     ground_cell_m cell's 3 x 3 neighbourhood) takes the label of the nearest such in-image point,
     any other point that of the nearest other in-image point, so the side of a car beside the
     robot is not labelled road and the road beside it not car) or "unknown" (UNLABELED).
-    Returns (N,) uint8.
+    ground_lateral_scale > 1 stretches the LiDAR y axis (across the direction of travel, LiDAR x
+    forward) when matching ground points: roads, sidewalks and lawn strips run along the robot's
+    path, so the ground beside the robot takes the label seen ahead at the same lateral offset
+    rather than that of the nearest in-view (mostly road) point. Returns (N,) uint8.
     """
     if fallback not in ("nearest", "unknown"):
         raise StaticMapError(f"fallback must be 'nearest' or 'unknown', got {fallback!r}")
@@ -98,12 +101,13 @@ def lift_image_semantics(points_lidar: np.ndarray, semantic_image: np.ndarray, K
     if fallback == "nearest" and not valid.all():
         low = p[:, 2] - ground_height(p, ground_cell_m) < ground_tol_m
         labelled = valid & (labels != UNLABELED)
-        for level in (low, ~low):
+        stretched = p * np.array([1.0, ground_lateral_scale, 1.0])
+        for level, q in ((low, stretched), (~low, p)):
             src, dst = labelled & level, ~valid & level
             if not src.any():  # nothing of this level in view: any in-view label
                 src = labelled
             if src.any() and dst.any():
-                _, nn = cKDTree(p[src]).query(p[dst], k=1)
+                _, nn = cKDTree(q[src]).query(q[dst], k=1)
                 labels[dst] = labels[src][nn]
     return labels
 
