@@ -220,40 +220,51 @@ def _mark_scan(points, origin, max_range, res, scan_id, hkeys, hvals, bkeys, nus
         cx = kox
         cy = koy
         cz = koz
+        # a step enters a new block when the stepped coordinate's low 3 bits wrap
+        wx = 0 if sx > 0 else 7
+        wy = 0 if sy > 0 else 7
+        wz = 0 if sz > 0 else 7
+        new_block = True
         while True:
-            bk = _block_key(cx, cy, cz)
-            if bk != last_bk:
-                slot = ((cx >> 3) & 15) | (((cy >> 3) & 15) << 4) | (((cz >> 3) & 3) << 8)
-                if dense:
-                    b = _dense_row(cx, cy, cz, b0, nb)
-                    if b < 0:
-                        return 3, i
-                elif ckeys[slot] == bk:
-                    b = crows[slot]
-                else:
-                    b = _touch_block(hkeys, hvals, bkeys, nused, bstamp, touched, ntouched, bk,
-                                     scan_id)
-                    if b < 0:
-                        return 0, i
-                    ckeys[slot] = bk
-                    crows[slot] = b
-                last_bk = bk
-                last_b = b
+            if new_block:
+                new_block = False
+                bk = _block_key(cx, cy, cz)
+                if bk != last_bk:
+                    slot = ((cx >> 3) & 15) | (((cy >> 3) & 15) << 4) | (((cz >> 3) & 3) << 8)
+                    if dense:
+                        b = _dense_row(cx, cy, cz, b0, nb)
+                        if b < 0:
+                            return 3, i
+                    elif ckeys[slot] == bk:
+                        b = crows[slot]
+                    else:
+                        b = _touch_block(hkeys, hvals, bkeys, nused, bstamp, touched, ntouched,
+                                         bk, scan_id)
+                        if b < 0:
+                            return 0, i
+                        ckeys[slot] = bk
+                        crows[slot] = b
+                    last_bk = bk
+                    last_b = b
             c = _cell(cx, cy, cz)
             fbits[last_b, c >> 6] |= np.uint64(1) << np.uint64(c & 63)
             if tmx < tmy:
                 if tmx < tmz:
                     cx += sx
                     tmx += tdx
+                    new_block = (cx & 7) == wx
                 else:
                     cz += sz
                     tmz += tdz
+                    new_block = (cz & 7) == wz
             elif tmy < tmz:
                 cy += sy
                 tmy += tdy
+                new_block = (cy & 7) == wy
             else:
                 cz += sz
                 tmz += tdz
+                new_block = (cz & 7) == wz
             if cx == kex and cy == key and cz == kez:
                 break
             if min(tmx, min(tmy, tmz)) > length:
