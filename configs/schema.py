@@ -164,8 +164,8 @@ class TrackConfig(Strict):
     """OC-SORT (Cao et al.) settings, offline refinement (tasks.track.offline), person points."""
 
     det_thresh: float = Field(0.6, ge=0, le=1)
-    #: frames at the stage's rate (5 Hz: 5 = 1 s, the reference's 30 frames at 30 fps)
-    max_age: int = Field(5, ge=1)
+    #: frames at the stage's rate (lost tracks kept this long)
+    max_age: int = Field(30, ge=1)
     min_hits: int = Field(3, ge=1)
     iou_threshold: float = Field(0.3, ge=0, le=1)
     delta_t: int = Field(3, ge=1)

@@ -16,6 +16,12 @@ steps use that (both standard in offline MOT post-processing):
   assignment (Hungarian, cost d) between track ends and track starts picks the joins. Joins chain
   (A -> B -> C); they never make a track hold two boxes in one frame.
 
+Measured on four synthetic crowded day sequences (calibrated oracle detections, 5 Hz, 30 frames each;
+IDF1 of all four together): online OC-SORT 82.4, stitching alone 83.9, back-fill 85.2, back-fill +
+stitching (gap 10, gate 0.5) 87.2; the gate is not sensitive (0.5 and 1.0 give the same).
+Shorter OC-SORT ``max_age`` (5 frames) helped the two tuning sequences and hurt the two held-out
+ones (86.4 together), so the reference 30 stays.
+
 Ids of the result are 1, 2, ... in order of first appearance (frame, then input row): deterministic
 for given input.
 """
