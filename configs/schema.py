@@ -93,9 +93,10 @@ class OracleNoise(Strict):
 
     day_recall: float = Field(0.99, ge=0, le=1)
     night_recall: float = Field(0.77, ge=0, le=1)
-    occlusion_miss: float = Field(0.6, ge=0, le=1)
+    occlusion_miss: float = Field(0.9, ge=0, le=1)
+    occlusion_power: float = Field(6.0, gt=0)
     min_visible_fraction: float = Field(0.05, ge=0, le=1)
-    distance_miss: float = Field(0.3, ge=0, le=1)
+    distance_miss: float = Field(0.1, ge=0, le=1)
     near_m: float = Field(10.0, gt=0)
     far_m: float = Field(40.0, gt=0)
     fp_per_frame: float = Field(0.02, ge=0)
@@ -160,9 +161,10 @@ class PersonPointsConfig(Strict):
 
 
 class TrackConfig(Strict):
-    """OC-SORT defaults (Cao et al.) and person-point extraction."""
+    """OC-SORT (Cao et al.) settings, offline refinement (tasks.track.offline), person points."""
 
     det_thresh: float = Field(0.6, ge=0, le=1)
+    #: frames at the stage's rate (lost tracks kept this long)
     max_age: int = Field(30, ge=1)
     min_hits: int = Field(3, ge=1)
     iou_threshold: float = Field(0.3, ge=0, le=1)
@@ -170,6 +172,14 @@ class TrackConfig(Strict):
     inertia: float = Field(0.2, ge=0, le=1)
     #: report a re-found confirmed track at once (False = reference OC-SORT output)
     keep_confirmed_ids: bool = True
+    #: offline: a confirmed track also gets its tentative first detections
+    backfill: bool = True
+    #: offline: join a track to one starting at most this many frames after it ends (0 = never)
+    stitch_max_gap: int = Field(10, ge=0)
+    #: join gate: mean constant-velocity extrapolation error, in box heights
+    stitch_max_distance: float = Field(0.5, gt=0)
+    #: join gate: largest height ratio of the two end boxes
+    stitch_max_scale: float = Field(1.5, ge=1)
     person_points: PersonPointsConfig = PersonPointsConfig()
 
 

@@ -28,7 +28,7 @@ STAGES: dict[str, tuple[str, ...]] = {
 #: (A key from code versions, not from source hashes: refactors do not invalidate datasets.)
 CODE_VERSIONS: dict[str, str] = {
     "detect": "1",
-    "track": "1",
+    "track": "2",  # 2: offline back-fill and fragment stitching (issue #5)
     "fit": "1",
     "map": "2",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path
     "fuse": "1",

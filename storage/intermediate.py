@@ -23,12 +23,16 @@ def write_product(folder: Path, name: str, arrays: dict[str, np.ndarray]) -> Pat
     return save_npz_deterministic(product_path(folder, name), compressed=True, **arrays)
 
 
-def read_product(folder: Path, name: str) -> dict[str, np.ndarray]:
+def read_product(folder: Path, name: str, keys: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
+    """A stage product's arrays; ``keys`` reads only those (the rest is not decompressed)."""
     path = product_path(folder, name)
     if not path.exists():
         raise FileNotFoundError(f"{path}: stage product is missing (was the stage output deleted?)")
     with np.load(path, allow_pickle=False) as z:
-        return {k: z[k] for k in z.files}
+        missing = sorted(set(keys or ()) - set(z.files))
+        if missing:
+            raise KeyError(f"{path}: no array(s) {missing} (has {sorted(z.files)})")
+        return {k: z[k] for k in (z.files if keys is None else keys)}
 
 
 def masks_to_labels(masks: np.ndarray) -> np.ndarray:

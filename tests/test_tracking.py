@@ -104,3 +104,118 @@ def test_bad_input():
         PedestrianTracker().update(np.zeros((2, 4)), np.ones(1))
     with pytest.raises(ValueError, match="NaN"):
         PedestrianTracker().update(np.full((1, 4), np.nan), np.ones(1))
+
+
+# ---- offline refinement (tasks/track/offline.py) ----------------------------------------------
+
+from tasks.track.offline import backfill_ids, stitch_ids, track_offline  # noqa: E402
+
+
+def _offline(frames, scores=None, **kw):
+    tracker_kw = {k: kw.pop(k) for k in list(kw) if k in ("max_age", "min_hits", "iou_threshold")}
+    s = [np.full(len(b), 0.9) if scores is None else np.asarray(scores[f]) for f, b in enumerate(frames)]
+    boxes = [np.asarray(b, np.float32).reshape(-1, 4) for b in frames]
+    return track_offline(boxes, s, PedestrianTracker(**tracker_kw), **kw)
+
+
+def test_backfill_gives_first_frames_and_frame_zero_their_id():
+    # A from frame 0; B appears at frame 5. Online, frame 0 and B's first two frames are tentative.
+    frames = [[_box(100 + 5 * f)] + ([_box(900 - 5 * f, cy=400)] if f >= 5 else []) for f in range(12)]
+    online = _run(PedestrianTracker(), frames)
+    assert online[0].tolist() == [-1] and online[5].tolist() == [1, -1] and online[6].tolist() == [1, -1]
+    ids = _offline(frames, backfill=True)
+    assert ids[0].tolist() == [1]
+    assert [row.tolist() for row in ids[5:]] == [[1, 2]] * 7
+    # without back-fill the tentative rows stay untracked
+    assert _offline(frames, backfill=False)[5].tolist() == [1, -1]
+
+
+def test_backfill_leaves_unconfirmed_tracklets_alone():
+    # a box seen twice (below min_hits = 3) is never confirmed: no id, even offline
+    frames = [[_box(100 + 5 * f)] + ([_box(700, cy=500)] if f in (6, 7) else []) for f in range(12)]
+    ids = _offline(frames, backfill=True)
+    assert ids[6].tolist() == [1, -1] and ids[7].tolist() == [1, -1]
+
+
+def test_tracklet_keys_follow_rows_and_skip_low_scores():
+    tracker = PedestrianTracker()
+    for f in range(4):
+        tracker.update(np.asarray([_box(100 + 5 * f), _box(600, cy=400)], np.float32), np.array([0.9, 0.3]))
+    assert [k.tolist() for k in tracker.tracklet_keys] == [[0, -1]] * 4
+    assert tracker.confirmed_ids == {0: 1}
+
+
+def test_stitching_joins_a_walker_hidden_longer_than_max_age():
+    # hidden for frames 10..17 (8 frames) with max_age 3: OC-SORT drops the track and starts anew
+    frames = [[_box(600, cy=300)] + ([] if 10 <= f < 18 else [_box(100 + 8 * f)]) for f in range(30)]
+    plain = _offline(frames, max_age=3, backfill=True, stitch_max_gap=0)
+    assert len(set(np.concatenate(plain).tolist()) - {-1}) == 3
+    ids = _offline(frames, max_age=3, backfill=True, stitch_max_gap=10, stitch_max_distance=0.5)
+    assert set(np.concatenate(ids).tolist()) == {1, 2}
+    walker = {row[1] for row in ids if len(row) == 2}
+    assert walker == {2}
+    # a gap longer than stitch_max_gap is not bridged
+    short = _offline(frames, max_age=3, backfill=True, stitch_max_gap=7, stitch_max_distance=0.5)
+    assert len(set(np.concatenate(short).tolist()) - {-1}) == 3
+
+
+def test_stitching_does_not_join_different_people():
+    # A walks right and leaves at frame 10 near x = 150; B appears at frame 14 at x = 800 walking
+    # left: the gap is short but neither extrapolation lands near the other
+    frames = [[_box(100 + 5 * f)] if f < 10 else ([_box(870 - 5 * f)] if f >= 14 else []) for f in range(25)]
+    ids = _offline(frames, backfill=True, stitch_max_gap=10, stitch_max_distance=0.5)
+    assert ids[0].tolist() == [1] and ids[14].tolist() == [2] and ids[24].tolist() == [2]
+
+
+def test_stitch_ids_chains_and_never_overlaps_in_time():
+    # three fragments of one walker (ids 7, 3, 9) and a fourth id that overlaps fragment 3 in time
+    walker = lambda f: _box(100 + 10 * f)  # noqa: E731
+    ids, boxes = [], []
+    for f in range(20):
+        rows, bx = [], []
+        if f < 5 or 7 <= f < 12 or f >= 14:
+            rows.append(7 if f < 5 else 3 if f < 12 else 9)
+            bx.append(walker(f))
+        if 8 <= f < 10:  # another person at the walker's extrapolated place, during fragment 3
+            rows.append(5)
+            bx.append(walker(f + 2))
+        ids.append(np.asarray(rows, np.int64))
+        boxes.append(np.asarray(bx, np.float64).reshape(-1, 4))
+    out = stitch_ids(ids, boxes, max_gap=5, max_distance=0.5)
+    walker_ids = {int(row[0]) for row in out if len(row)}
+    assert walker_ids == {1}  # renumbered from 1 by first appearance, one id over all fragments
+    assert out[8].tolist() == [1, 2]
+    # max_gap 0: no joins, ids only renumbered (7, 3, 5, 9 -> 1, 2, 3, 4)
+    assert stitch_ids(ids, boxes, max_gap=0, max_distance=0.5)[14].tolist() == [4]
+
+
+def test_offline_ids_are_deterministic():
+    rng = np.random.default_rng(3)
+    frames = [[_box(100 + 7 * f + rng.normal(0, 2), cy=200 + 40 * k) for k in range(4)
+               if rng.random() > 0.2] for f in range(40)]
+    first = _offline(frames, backfill=True, stitch_max_gap=10, stitch_max_distance=0.5)
+    second = _offline(frames, backfill=True, stitch_max_gap=10, stitch_max_distance=0.5)
+    assert [r.tolist() for r in first] == [r.tolist() for r in second]
+    seen = [i for row in first for i in row.tolist() if i > 0]
+    assert sorted(set(seen)) == list(range(1, len(set(seen)) + 1))
+    assert seen[0] == 1
+
+
+def test_backfill_ids_keeps_online_ids():
+    keys = [np.array([0, 1]), np.array([0, 1])]
+    online = [np.array([-1, -1]), np.array([4, -1])]
+    assert [r.tolist() for r in backfill_ids(keys, online, {0: 4})] == [[4, -1], [4, -1]]
+
+
+def test_read_product_reads_only_the_named_arrays(tmp_path):
+    """The track stage reads every frame's boxes and scores before it tracks (storage helper)."""
+    from storage.intermediate import read_product, write_product
+
+    write_product(tmp_path, "frame_0", {"boxes_xyxy": np.ones((2, 4), np.float32),
+                                         "scores": np.full(2, 0.5, np.float32),
+                                         "semantic": np.zeros((4, 5), np.uint8)})
+    got = read_product(tmp_path, "frame_0", keys=("boxes_xyxy", "scores"))
+    assert set(got) == {"boxes_xyxy", "scores"} and got["scores"].tolist() == [0.5, 0.5]
+    assert set(read_product(tmp_path, "frame_0")) == {"boxes_xyxy", "scores", "semantic"}
+    with pytest.raises(KeyError, match="no array"):
+        read_product(tmp_path, "frame_0", keys=("masks",))

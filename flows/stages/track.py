@@ -1,5 +1,8 @@
 """track: OC-SORT ids over a sequence's 2D detections, and each tracked person's LiDAR points.
 
+Ids come from tasks.track.offline.track_offline (OC-SORT, then back-fill and fragment stitching
+over the whole sequence, as the track config says).
+
 Product ``tracks.npz`` (one row per tracked detection, frames ascending): frame (R,) int64 raw frame
 number, det_index (R,) row in that frame's detect product, track_id (R,) int64 (>= 1),
 boxes_xyxy (R, 4), scores (R,), keypoints (R, 17, 3), lidar_box (R,) int64 matched LiDAR box row or
@@ -17,6 +20,7 @@ from flows.stages.common import StageContext
 from storage.intermediate import labels_to_masks, read_product, write_product
 from tasks.perception.person_points import associate_lidar_boxes, person_point_indices
 from tasks.track.ocsort import PedestrianTracker
+from tasks.track.offline import track_offline
 
 
 def run_track(ctx: StageContext) -> dict:
@@ -26,6 +30,11 @@ def run_track(ctx: StageContext) -> dict:
     tracker = PedestrianTracker(det_thresh=cfg.det_thresh, max_age=cfg.max_age, min_hits=cfg.min_hits,
                                 iou_threshold=cfg.iou_threshold, delta_t=cfg.delta_t,
                                 inertia=cfg.inertia, keep_confirmed_ids=cfg.keep_confirmed_ids)
+    # the log is recorded: track the whole sequence first (ids may be back-filled / stitched)
+    raw = [seq.info.frame_indices[i] for i in range(len(seq))]
+    dets = [read_product(ctx.upstream["detect"], f"frame_{r}", keys=("boxes_xyxy", "scores")) for r in raw]
+    all_ids = track_offline([d["boxes_xyxy"] for d in dets], [d["scores"] for d in dets], tracker,
+                            cfg.backfill, cfg.stitch_max_gap, cfg.stitch_max_distance, cfg.stitch_max_scale)
     pp = cfg.person_points.model_dump()
     min_iou = pp.pop("assoc_min_iou")
     rows: dict[str, list] = {k: [] for k in ("frame", "det_index", "track_id", "boxes_xyxy", "scores",
@@ -34,7 +43,7 @@ def run_track(ctx: StageContext) -> dict:
     for i in range(len(seq)):
         frame = seq.frame(i)
         det = read_product(ctx.upstream["detect"], f"frame_{frame.index}")
-        ids = tracker.update(det["boxes_xyxy"], det["scores"])
+        ids = all_ids[i]
         keep = np.flatnonzero(ids >= 0)
         if keep.size == 0:
             continue

@@ -18,6 +18,11 @@ After a miss, OC-SORT's hit streak restarts, and the reference hides a re-found 
 wrapper reports the id of an already confirmed track as soon as it is matched again (found as the
 tracklet whose last observation is exactly the input box), so a one-frame miss does not cost the
 later stages three frames of that person; ``keep_confirmed_ids=False`` gives the reference output.
+
+For offline use (whole logs, tasks/track/offline.py) the wrapper also records, per frame and input
+row, the key of the library tracklet that the row updated or started (``tracklet_keys``; keys
+0, 1, ... in order of creation, -1 for a row below ``det_thresh``), and which keys got an id
+(``confirmed_ids``): enough to give a confirmed track its tentative first frames back.
 """
 
 from __future__ import annotations
@@ -64,7 +69,18 @@ class PedestrianTracker:
         )
         self._keep_confirmed_ids = bool(keep_confirmed_ids)
         self._our_id: dict[int, int] = {}
+        # id(tracklet) -> (tracklet, key) for the library's live tracklets; holding the object keeps
+        # its id() from being reused by a new tracklet while the entry exists
+        self._live: dict[int, tuple[object, int]] = {}
+        self._next_key = 0
+        self._key_ids: dict[int, int] = {}
+        self.tracklet_keys: list[np.ndarray] = []
         self.frame_count = 0
+
+    @property
+    def confirmed_ids(self) -> dict[int, int]:
+        """Tracklet key -> the id it was reported under (keys that reached ``min_hits``)."""
+        return dict(self._key_ids)
 
     def update(self, boxes_xyxy: np.ndarray, scores: np.ndarray) -> np.ndarray:
         """Advance one frame.
@@ -101,8 +117,36 @@ class PedestrianTracker:
                 if library_id not in self._our_id:
                     self._our_id[int(library_id)] = len(self._our_id) + 1
                 track_ids[row] = self._our_id[int(library_id)]
+        self.tracklet_keys.append(self._record_keys(boxes))
         self.frame_count += 1
         return track_ids
+
+    def _record_keys(self, boxes: np.ndarray) -> np.ndarray:
+        """(D,) int64 key of the tracklet each input row updated or started this frame, -1 if none.
+
+        A row's tracklet is the live one updated this frame whose last observation is exactly the
+        row's box (the library stores the box it was given); identical boxes go in row order."""
+        live: dict[int, tuple[object, int]] = {}
+        by_box: dict[tuple[float, ...], list[int]] = {}
+        for tracklet in self._tracker.tracks:
+            entry = self._live.get(id(tracklet))
+            if entry is not None and entry[0] is tracklet:
+                key = entry[1]
+            else:
+                key, self._next_key = self._next_key, self._next_key + 1
+            live[id(tracklet)] = (tracklet, key)
+            if tracklet.tracker_id >= 0 and key not in self._key_ids and tracklet.tracker_id in self._our_id:
+                self._key_ids[key] = self._our_id[int(tracklet.tracker_id)]
+            if tracklet.time_since_update == 0:
+                obs = tuple(np.asarray(tracklet.last_observation, np.float64).tolist())
+                by_box.setdefault(obs, []).append(key)
+        self._live = live
+        keys = np.full(boxes.shape[0], -1, np.int64)
+        for row in range(boxes.shape[0]):
+            found = by_box.get(tuple(boxes[row].tolist()))
+            if found:
+                keys[row] = found.pop(0)
+        return keys
 
     def _recover_confirmed(self, boxes: np.ndarray, rows: np.ndarray, library_ids: np.ndarray) -> np.ndarray:
         """Library ids for rows matched this frame to a track that already has an id."""
