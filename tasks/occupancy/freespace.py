@@ -302,26 +302,18 @@ def _mark_scan(points, origin, max_range, res, scan_id, hkeys, hvals, bkeys, nus
 def _apply_word(logodds, b, w, hw, fw, hit, miss, lo_min, lo_max):
     """Update the voxels of word w of pool block b: hits in hw, misses in fw (hit wins)."""
     one = np.uint64(1)
-    fw = fw & ~hw
     for j in range(64):
         bit = one << np.uint64(j)
-        if hw & bit:
+        hit_here = (hw & bit) != 0
+        if hit_here or (fw & bit) != 0:
             c = w * 64 + j
             v = logodds[b, c]
-            if v != v:
+            if v != v:  # first update of an unknown voxel
                 v = np.float32(0.0)
-            v = v + hit
-            if v > lo_max:
-                v = lo_max
-            logodds[b, c] = v
-        elif fw & bit:
-            c = w * 64 + j
-            v = logodds[b, c]
-            if v != v:
-                v = np.float32(0.0)
-            v = v + miss
-            if v < lo_min:
-                v = lo_min
+            if hit_here:
+                v = min(v + hit, lo_max)
+            else:
+                v = max(v + miss, lo_min)
             logodds[b, c] = v
 
 
