@@ -123,7 +123,8 @@ def fit_batch(config: Config, sequence: str, rows: list[int], tracks: dict) -> d
     result = fit_persons(model, pose_prior(config), init, tracks["keypoints"][rows], cam.K, T_cam,
                          padded, mask, weights=fit_weights(config), iterations=config.fit.iterations,
                          lr=config.fit.learning_rate, device=_device(config), seed=config.fit.seed,
-                         nn_every=config.fit.nn_every)
+                         nn_every=config.fit.nn_every,
+                         chamfer_vertex_max_m=config.fit.chamfer_vertex_max_m)
     T_lidar_from_cam = np.linalg.inv(T_cam)
     lidar = reframe_params(model, result.params(), T_lidar_from_cam)
     pelvis = result.joints[:, 0].astype(np.float64) @ T_lidar_from_cam[:3, :3].T + T_lidar_from_cam[:3, 3]
