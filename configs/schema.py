@@ -206,7 +206,7 @@ class FitConfig(Strict):
     squared_weights: bool = True
     #: keypoint confidence power in L_J (SMPLify-X / SPIN use 2)
     confidence_power: float = Field(2.0, ge=0)
-    iterations: int = Field(150, ge=0)
+    iterations: int = Field(100, ge=0)
     learning_rate: float = Field(0.02, gt=0)
     #: recompute the Chamfer nearest pairs every this many steps (the k-d tree search dominates)
     nn_every: int = Field(5, ge=1)

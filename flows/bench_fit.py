@@ -33,7 +33,7 @@ def bench_fit(
     ablations: bool = True,
     device: str = "cpu",
     preset: str = "3dpw",
-    iterations: int = 150,
+    iterations: int = 100,
     lr: float = 0.02,
     chunk: int = 16,
     seed: int = 0,
@@ -213,7 +213,7 @@ def main(argv=None) -> None:
     ap.add_argument("--ablation-sensors", default=None,
                     help="comma-separated sensors that get the ablation rows (default: all)")
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--iterations", type=int, default=150)
+    ap.add_argument("--iterations", type=int, default=100)
     ap.add_argument("--chunk", type=int, default=16)
     ap.add_argument("--warm-start", action="store_true")
     ap.add_argument("--preset", default="3dpw")

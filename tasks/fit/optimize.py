@@ -82,7 +82,7 @@ def fit_persons(
     points,
     point_mask,
     weights: L.FitWeights = L.FIT_PRESETS["3dpw"],
-    iterations: int = 150,
+    iterations: int = 100,
     lr: float = 0.02,
     device: str = "cpu",
     seed: int = 0,
