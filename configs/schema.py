@@ -218,10 +218,18 @@ class FitConfig(Strict):
     device: Literal["cpu", "cuda", "auto"] = "auto"
     warm_start: bool = False
     init_provider: Literal["oracle", "precomputed"] = "oracle"
+    #: precomputed CLIFF estimates: <init_dir>/<sequence>/cliff.parquet (storage/PERCEPTION_FORMAT.md)
+    init_dir: Path | None = None
     #: user-supplied official model files; None = our procedural stand-ins
     body_model_path: Path | None = None
     pose_prior_path: Path | None = None
     seed: int = 0
+
+    @model_validator(mode="after")
+    def _precomputed_needs_dir(self) -> FitConfig:
+        if self.init_provider == "precomputed" and self.init_dir is None:
+            raise ValueError("fit.init_dir is required when fit.init_provider is 'precomputed'")
+        return self
 
     @model_validator(mode="after")
     def _preset_known(self) -> FitConfig:

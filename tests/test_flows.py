@@ -123,3 +123,52 @@ def test_dask_process_runner_matches_thread_runner(dataset, tmp_path):
         a = (tmp_path / "a" / rec.location / "summary.json").read_text()
         b = (tmp_path / "b" / mb.get(seq, stage).location / "summary.json").read_text()
         assert json.loads(a) == json.loads(b)
+
+
+def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle(dataset, tmp_path):
+    import numpy as np
+    import torch
+
+    from flows.stages.fit import oracle_estimates
+    from storage.cliff_files import cliff_path, write_cliff_estimates
+    from storage.intermediate import read_product
+    from tasks.body.rotations import axis_angle_to_matrix
+    from tasks.fit.init_oracle import params_to_cliff_camera
+
+    oracle_cfg = _config(dataset, tmp_path / "oracle", **{"fit.batch_persons": 2})
+    assert all(o["status"] == "done" for o in _run(oracle_cfg).outcomes.values())
+    init_dir = tmp_path / "cliff"
+    for seq in ("0", "1"):
+        (folder,) = (tmp_path / "oracle" / "stages" / "track" / seq).iterdir()
+        tracks = read_product(folder, "tracks")
+        rows = np.flatnonzero(tracks["gt_index"] >= 0)
+        batches = [rows[a:a + 2].tolist() for a in range(0, len(rows), 2)]  # the stage's batches
+        est = [oracle_estimates(oracle_cfg, seq, b, tracks) for b in batches]
+        go, bp, tr, betas = (np.concatenate([getattr(e, k) for e in est]) for k in
+                             ("global_orient", "body_pose", "transl", "betas"))
+        rot = axis_angle_to_matrix(torch.as_tensor(np.concatenate([go[:, None], bp.reshape(-1, 23, 3)], 1),
+                                                   dtype=torch.float64)).numpy()
+        box = tracks["boxes_xyxy"][rows].astype(np.float64)  # CLIFF's crop: the detection's box
+        center, size = (box[:, :2] + box[:, 2:]) / 2, (box[:, 2:] - box[:, :2]).max(1)
+        K = _camera_K(oracle_cfg, seq)
+        write_cliff_estimates(cliff_path(init_dir, seq), tracks["frame"][rows], tracks["det_index"][rows], rot,
+                              betas, params_to_cliff_camera(tr, center, size, K), center, size)
+    cliff_cfg = _config(dataset, tmp_path / "cliff-out", **{
+        "fit.batch_persons": 2, "fit.init_provider": "precomputed", "fit.init_dir": str(init_dir)})
+    report = _run(cliff_cfg)
+    assert all(o["status"] == "done" for o in report.outcomes.values())
+    for seq in ("0", "1"):
+        bodies = [read_product(next((tmp_path / out / "stages" / "fit" / seq).iterdir()), "bodies")
+                  for out in ("oracle", "cliff-out")]
+        assert len(bodies[0]["frame"]) > 0
+        for key in ("frame", "track_id", "det_index"):
+            assert np.array_equal(bodies[0][key], bodies[1][key])
+        for key in ("betas", "global_orient", "body_pose", "transl"):  # float32 storage of the file
+            np.testing.assert_allclose(bodies[0][key], bodies[1][key], atol=2e-3)
+        assert report.outcomes[(seq, "fit")]["summary"]["skipped_without_estimate"] == 0
+
+
+def _camera_K(cfg, seq):
+    from flows.plan import open_sequence
+
+    return open_sequence(cfg, seq).info.calibration.cameras[cfg.dataset.camera].K
