@@ -164,6 +164,44 @@ def fit_batch(config: Config, sequence: str, rows: list[int], tracks: dict, init
             "num_points": np.array([len(p) for p in points], np.int64)}
 
 
+def _fit_warm_started(cfg: Config, sequence: str, tracks: dict, rows: np.ndarray, est: BodyParams | None,
+                      info, resources) -> list[dict]:
+    """Fit frame by frame; a track fitted in the previous frame starts from that fit, moved into
+    this frame's camera frame by the ego-motion (beyond the paper: fit.warm_start), instead of
+    the provider's estimate (est: the precomputed estimates of ``rows``; None = the oracle)."""
+    model = body_model(cfg)
+    T_cam = info.calibration.cameras[cfg.dataset.camera].T_cam_from_lidar
+    pos = {raw: k for k, raw in enumerate(info.frame_indices)}
+    at_row = {int(r): k for k, r in enumerate(rows)}
+    last: dict[int, tuple[int, BodyParams]] = {}  # track -> (frame position, fit in its LiDAR frame)
+    parts: list[dict] = []
+    frames = tracks["frame"][rows]
+    for f in np.unique(frames):
+        p = pos[int(f)]
+        args = []
+        for a in range(0, int((frames == f).sum()), cfg.fit.batch_persons):
+            batch = rows[frames == f][a:a + cfg.fit.batch_persons].tolist()
+            init = (oracle_estimates(cfg, sequence, batch, tracks) if est is None
+                    else est.take([at_row[r] for r in batch]))
+            fields = {k: getattr(init, k).copy() for k in ("betas", "global_orient", "body_pose", "transl")}
+            for k, r in enumerate(batch):
+                prev = last.get(int(tracks["track_id"][r]))
+                if prev is None or prev[0] != p - 1:
+                    continue
+                T = T_cam @ np.linalg.inv(info.poses[p]) @ info.poses[prev[0]]  # cam(now) <- lidar(prev)
+                moved = reframe_params(model, prev[1], T)
+                for key in fields:
+                    fields[key][k] = getattr(moved, key)[0]
+            args.append((cfg, sequence, batch, tracks, BodyParams(**fields)))
+        for out in fan_out(fit_batch, args, resources):
+            parts.append(out)
+            for k, r in enumerate(out["rows"]):
+                last[int(tracks["track_id"][r])] = (p, BodyParams(
+                    out["betas"][k:k + 1], out["global_orient"][k:k + 1], out["body_pose"][k:k + 1],
+                    out["transl"][k:k + 1]))
+    return parts
+
+
 _FIELDS = {"rows": (0,), "betas": (0, 10), "global_orient": (0, 3), "body_pose": (0, 69),
            "transl": (0, 3), "pelvis_lidar": (0, 3), "loss_j": (0,), "loss_3d": (0,),
            "loss_total": (0,), "num_points": (0,)}
@@ -176,13 +214,17 @@ def run_fit(ctx: StageContext) -> dict:
     step = cfg.fit.batch_persons
     if cfg.fit.init_provider == "oracle":  # the oracle has no estimate for a false positive
         rows = rows[tracks["gt_index"] >= 0]
+        est = None
         inits = [None] * len(range(0, len(rows), step))
     else:
         rows, est = precomputed_estimates(cfg, ctx.sequence, tracks)
         inits = [est.take(slice(a, a + step)) for a in range(0, len(rows), step)]
     batches = [rows[a:a + step].tolist() for a in range(0, len(rows), step)]
     resources = {"GPU": 1} if cfg.dask.gpu_fit else None
-    parts = fan_out(fit_batch, [(cfg, ctx.sequence, b, tracks, i) for b, i in zip(batches, inits)], resources)
+    if cfg.fit.warm_start:
+        parts = _fit_warm_started(cfg, ctx.sequence, tracks, rows, est, ctx.open().info, resources)
+    else:
+        parts = fan_out(fit_batch, [(cfg, ctx.sequence, b, tracks, i) for b, i in zip(batches, inits)], resources)
     out = {k: (np.concatenate([p[k] for p in parts]) if parts else np.zeros(shape))
            for k, shape in _FIELDS.items()}
     r = out["rows"].astype(np.int64)
