@@ -216,6 +216,7 @@ class FitConfig(Strict):
     chamfer_vertex_max_m: float | None = Field(0.03, gt=0)
     batch_persons: int = Field(64, ge=1)
     device: Literal["cpu", "cuda", "auto"] = "auto"
+    #: start a track's fit from its previous frame's fit (beyond the paper; frames run in order)
     warm_start: bool = False
     init_provider: Literal["oracle", "precomputed"] = "oracle"
     #: precomputed CLIFF estimates: <init_dir>/<sequence>/cliff.parquet (storage/PERCEPTION_FORMAT.md)
