@@ -29,7 +29,7 @@ STAGES: dict[str, tuple[str, ...]] = {
 CODE_VERSIONS: dict[str, str] = {
     "detect": "1",
     "track": "1",
-    "fit": "2",  # 2: L_3D caps the vertex -> point distances (fit.chamfer_vertex_max_m)
+    "fit": "2",  # 2: L_3D caps the vertex -> point distances (fit.chamfer_vertex_max_m); 100 iterations
     "map": "1",
     "fuse": "1",
     "export": "2",  # 2: instances carry the fitted bodies, 3D boxes and velocities
