@@ -27,9 +27,9 @@ STAGES: dict[str, tuple[str, ...]] = {
 #: Explicit code versions: bump a stage's version when its output for the same input changes.
 #: (A key from code versions, not from source hashes: refactors do not invalidate datasets.)
 CODE_VERSIONS: dict[str, str] = {
-    "detect": "1",
+    "detect": "2",  # 2: the oracle's miss curve calibrated on the paper's detection table
     "track": "2",  # 2: offline back-fill and fragment stitching (issue #5)
-    "fit": "1",
+    "fit": "2",  # 2: L_3D caps the vertex -> point distances (fit.chamfer_vertex_max_m); 100 iterations
     "map": "2",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path
     "fuse": "1",
     "export": "2",  # 2: instances carry the fitted bodies, 3D boxes and velocities

@@ -50,6 +50,7 @@ def test_misspelled_nested_key_is_reported_with_its_path(tmp_path):
     ({"fuse.grid.voxel_size_m": 0.07}, "not a multiple of voxel_size_m"),
     ({"fit.preset": "nope"}, "preset 'nope' is not one of"),
     ({"detect.image_provider": "precomputed"}, "precomputed_dir is required"),
+    ({"fit.init_provider": "precomputed"}, "fit.init_dir is required"),
     ({"dataset.rate_hz": 3.0}, "must be a whole number"),
     ({"map.cityscapes_to_class": {10: "sky"}}, "is not an occupied class"),
 ])

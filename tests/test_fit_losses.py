@@ -55,6 +55,21 @@ def test_chamfer_known_value_masks_and_minimum():
     assert same.item() == 0.0
 
 
+def test_chamfer_vertex_cap_only_limits_the_vertex_to_point_direction():
+    # vertex 2 (an unobserved vertex, 1 m from every return) is capped at 0.2 m; the point at
+    # (0.5, 0, 0.1) is 0.5 m from every vertex and is never capped (every return lies on the body)
+    v = torch.tensor([[[0.0, 0, 0], [1.0, 0, 0], [0.0, 1, 0.1]]], requires_grad=True)
+    vm = torch.ones(1, 3, dtype=torch.bool)
+    p = torch.tensor([[[0.0, 0, 0.1], [1.0, 0, 0.1], [0.5, 0, 0.1]]])
+    pm = torch.ones(1, 3, dtype=torch.bool)
+    capped = L.chamfer_loss(v, vm, p, pm, vertex_max_m=0.2)
+    # v->p: (0.01 + 0.01 + 0.2^2) / 3; p->v: (0.01 + 0.01 + 0.25 + 0.01) / 3
+    assert capped.item() == pytest.approx((0.02 + 0.04) / 3 + 0.28 / 3, rel=1e-5)
+    assert L.chamfer_loss(v, vm, p, pm).item() == pytest.approx((0.02 + 1.0) / 3 + 0.28 / 3, rel=1e-5)
+    capped.sum().backward()
+    assert v.grad[0, 2].abs().max() == 0.0 and v.grad[0, 0].abs().max() > 0.0
+
+
 def test_chamfer_gradient_finite_at_zero_distance_and_empty_sets():
     v = torch.tensor([[[0.0, 0, 0], [1.0, 0, 0]]], requires_grad=True)
     p = torch.tensor([[[0.0, 0, 0], [1.0, 0, 0]]])

@@ -123,3 +123,114 @@ def test_dask_process_runner_matches_thread_runner(dataset, tmp_path):
         a = (tmp_path / "a" / rec.location / "summary.json").read_text()
         b = (tmp_path / "b" / mb.get(seq, stage).location / "summary.json").read_text()
         assert json.loads(a) == json.loads(b)
+
+
+def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle(dataset, tmp_path):
+    import numpy as np
+    import torch
+
+    from flows.stages.fit import oracle_estimates
+    from storage.cliff_files import cliff_path, write_cliff_estimates
+    from storage.intermediate import read_product
+    from tasks.body.rotations import axis_angle_to_matrix
+    from tasks.fit.init_oracle import params_to_cliff_camera
+
+    oracle_cfg = _config(dataset, tmp_path / "oracle", **{"fit.batch_persons": 2})
+    assert all(o["status"] == "done" for o in _run(oracle_cfg).outcomes.values())
+    init_dir = tmp_path / "cliff"
+    for seq in ("0", "1"):
+        (folder,) = (tmp_path / "oracle" / "stages" / "track" / seq).iterdir()
+        tracks = read_product(folder, "tracks")
+        rows = np.flatnonzero(tracks["gt_index"] >= 0)
+        batches = [rows[a:a + 2].tolist() for a in range(0, len(rows), 2)]  # the stage's batches
+        est = [oracle_estimates(oracle_cfg, seq, b, tracks) for b in batches]
+        go, bp, tr, betas = (np.concatenate([getattr(e, k) for e in est]) for k in
+                             ("global_orient", "body_pose", "transl", "betas"))
+        rot = axis_angle_to_matrix(torch.as_tensor(np.concatenate([go[:, None], bp.reshape(-1, 23, 3)], 1),
+                                                   dtype=torch.float64)).numpy()
+        box = tracks["boxes_xyxy"][rows].astype(np.float64)  # CLIFF's crop: the detection's box
+        center, size = (box[:, :2] + box[:, 2:]) / 2, (box[:, 2:] - box[:, :2]).max(1)
+        K = _camera_K(oracle_cfg, seq)
+        write_cliff_estimates(cliff_path(init_dir, seq), tracks["frame"][rows], tracks["det_index"][rows], rot,
+                              betas, params_to_cliff_camera(tr, center, size, K), center, size)
+    cliff_cfg = _config(dataset, tmp_path / "cliff-out", **{
+        "fit.batch_persons": 2, "fit.init_provider": "precomputed", "fit.init_dir": str(init_dir)})
+    report = _run(cliff_cfg)
+    assert all(o["status"] == "done" for o in report.outcomes.values())
+    for seq in ("0", "1"):
+        bodies = [read_product(next((tmp_path / out / "stages" / "fit" / seq).iterdir()), "bodies")
+                  for out in ("oracle", "cliff-out")]
+        assert len(bodies[0]["frame"]) > 0
+        for key in ("frame", "track_id", "det_index"):
+            assert np.array_equal(bodies[0][key], bodies[1][key])
+        for key in ("betas", "global_orient", "body_pose", "transl"):  # float32 storage of the file
+            np.testing.assert_allclose(bodies[0][key], bodies[1][key], atol=2e-3)
+        assert report.outcomes[(seq, "fit")]["summary"]["skipped_without_estimate"] == 0
+
+
+def _camera_K(cfg, seq):
+    from flows.plan import open_sequence
+
+    return open_sequence(cfg, seq).info.calibration.cameras[cfg.dataset.camera].K
+
+
+
+def test_warm_start_carries_a_tracks_fit_into_its_next_frame(tmp_path, monkeypatch):
+    """The fit stage's warm start with an identity 'fit' (its output is its start): a track fitted
+    in the previous frame starts from that body moved by the ego-motion, so in the world frame it
+    stays put exactly; a new track, or one with a frame gap, starts from the provider's estimate."""
+    from types import SimpleNamespace
+
+    import numpy as np
+    import torch
+
+    import flows.stages.fit as fit_stage
+    from tasks.body.rotations import axis_angle_to_matrix
+    from tasks.fit.init_oracle import BodyParams
+    from tasks.fit.reframe import reframe_params
+
+    cfg = load_config(overrides={"output.root": str(tmp_path), "fit.batch_persons": 2, "fit.warm_start": True})
+    model = fit_stage.body_model(cfg)
+    rng = np.random.default_rng(0)
+
+    def pose(yaw, x):
+        T = np.eye(4)
+        T[:3, :3] = axis_angle_to_matrix(torch.tensor([0.0, 0.0, yaw], dtype=torch.float64)).numpy()
+        T[:3, 3] = [x, 0.5 * x, 0.0]
+        return T
+
+    T_cam = np.eye(4)
+    T_cam[:3, :3] = [[0, -1, 0], [0, 0, -1], [1, 0, 0]]
+    info = SimpleNamespace(frame_indices=[10, 12, 14, 16], poses=np.stack([pose(0.1 * k, 0.7 * k) for k in range(4)]),
+                           calibration=SimpleNamespace(cameras={cfg.dataset.camera: SimpleNamespace(T_cam_from_lidar=T_cam)}))
+    # track 1 in frames 10, 12, 14; track 2 in 12; track 3 in 10 and 14 (a gap)
+    tracks = {"frame": np.array([10, 10, 12, 12, 14, 14]), "track_id": np.array([1, 3, 1, 2, 1, 3])}
+    n = len(tracks["frame"])
+    est = BodyParams(rng.normal(0, 0.5, (n, 10)).astype(np.float32), rng.normal(0, 0.3, (n, 3)).astype(np.float32),
+                     rng.normal(0, 0.2, (n, 69)).astype(np.float32),
+                     (rng.normal(0, 0.5, (n, 3)) + [0, 0, 6]).astype(np.float32))
+
+    def identity_fit(config, sequence, rows, tracks, init):
+        lidar = reframe_params(model, init, np.linalg.inv(T_cam))
+        return {"rows": np.asarray(rows), "betas": lidar.betas, "global_orient": lidar.global_orient,
+                "body_pose": lidar.body_pose, "transl": lidar.transl}
+
+    monkeypatch.setattr(fit_stage, "fit_batch", identity_fit)
+    parts = fit_stage._fit_warm_started(cfg, "0", tracks, np.arange(n), est, info, None)
+    out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    order = np.argsort(out["rows"])
+    world = {}
+    for k in order:
+        r = int(out["rows"][k])
+        p = info.frame_indices.index(int(tracks["frame"][r]))
+        body = BodyParams(*(out[f][k:k + 1] for f in ("betas", "global_orient", "body_pose", "transl")))
+        with torch.no_grad():
+            w = reframe_params(model, body, info.poses[p])
+            world[r] = model(*(torch.as_tensor(getattr(w, f)) for f in ("betas", "global_orient", "body_pose", "transl"))).vertices[0].numpy()
+    # track 1: frame 12 and 14 start from frame 10's body (same world pose, up to float32 round trips)
+    assert np.abs(world[2] - world[0]).max() < 1e-4 and np.abs(world[4] - world[0]).max() < 1e-4
+    # track 2 (new) and track 3 after a gap: their own estimates, not track 1's or their earlier body
+    for r in (3, 5):
+        k = int(np.flatnonzero(out["rows"] == r)[0])
+        np.testing.assert_array_equal(out["betas"][k], est.betas[r])
+    assert np.abs(world[5] - world[1]).max() > 0.05

@@ -3,7 +3,9 @@
 Rows of the track product are fitted in batches of ``fit.batch_persons`` (Adam over the paper's
 six-term objective, tasks/fit/optimize.py), fanned out to Dask (routed to ``GPU=1`` workers when
 ``dask.gpu_fit``). The initial estimate comes from the ``oracle`` (ground truth perturbed like a
-monocular regressor; synthetic data) or ``precomputed`` CLIFF outputs.
+monocular regressor; synthetic data) or ``precomputed`` CLIFF outputs
+(``<fit.init_dir>/<sequence>/cliff.parquet``, storage/PERCEPTION_FORMAT.md), keyed by (frame,
+det_index); a tracked detection without an estimate is not fitted (counted in the summary).
 
 Product ``bodies.npz`` (one row per fitted person-frame, LiDAR frame of that frame): frame (R,)
 int64 raw frame, track_id (R,) int64, det_index (R,), betas (R, 10), global_orient (R, 3),
@@ -24,6 +26,7 @@ from configs.schema import Config
 from flows.parallel import fan_out
 from flows.plan import open_sequence
 from flows.stages.common import StageContext, frame_rng
+from storage.cliff_files import cliff_path, read_cliff_estimates
 from storage.body_files import (load_body_model, load_pose_prior, save_body_model_npz,
                                 save_pose_prior_pkl)
 from storage.gt import read_frame_gt
@@ -31,7 +34,7 @@ from storage.intermediate import read_product, write_product
 from tasks.body.model import BodyModel
 from tasks.body.prior import GMMPosePrior, generate_pose_prior
 from tasks.body.procedural import generate_body_model
-from tasks.fit.init_oracle import BodyParams, oracle_initial_estimate
+from tasks.fit.init_oracle import BodyParams, cliff_to_params, oracle_initial_estimate
 from tasks.fit.losses import FitWeights
 from tasks.fit.optimize import fit_persons
 from tasks.fit.reframe import reframe_params
@@ -90,30 +93,54 @@ def _device(config: Config) -> str:
     return config.fit.device
 
 
-def fit_batch(config: Config, sequence: str, rows: list[int], tracks: dict) -> dict:
-    """Fit some rows of the track product; returns their parameters in the LiDAR frame."""
+def oracle_estimates(config: Config, sequence: str, rows: list[int], tracks: dict) -> BodyParams:
+    """The oracle's initial estimates (cam frame) of some rows of the track product: their
+    ground-truth bodies perturbed like a monocular regressor (one generator per batch)."""
+    seq = open_sequence(config, sequence)
+    T_cam = seq.info.calibration.cameras[config.dataset.camera].T_cam_from_lidar
+    truths = []
+    for r in rows:
+        gt = read_frame_gt(seq.root, int(sequence), int(tracks["frame"][r]))
+        g = [int(tracks["gt_index"][r])]
+        truths.append(BodyParams(gt.betas[g], gt.global_orient[g], gt.body_pose[g], gt.transl[g]))
+    truth = BodyParams(*(np.concatenate([getattr(t, f) for t in truths]) for f in
+                         ("betas", "global_orient", "body_pose", "transl")))
+    return oracle_initial_estimate(body_model(config), reframe_params(body_model(config), truth, T_cam),
+                                   frame_rng(config.fit.seed, sequence, rows[0], 3))
+
+
+def precomputed_estimates(config: Config, sequence: str, tracks: dict) -> tuple[np.ndarray, BodyParams]:
+    """Rows of the track product that have a precomputed CLIFF estimate, and those estimates
+    (cam frame, converted with the sequence's calibrated K)."""
+    K = open_sequence(config, sequence).info.calibration.cameras[config.dataset.camera].K
+    est = read_cliff_estimates(cliff_path(config.fit.init_dir, sequence))
+    where = {key: i for i, key in enumerate(zip(est["frame"].tolist(), est["det_index"].tolist()))}
+    keys = zip(tracks["frame"].tolist(), tracks["det_index"].tolist())
+    pairs = [(r, where[k]) for r, k in enumerate(keys) if k in where]
+    rows = np.array([r for r, _ in pairs], np.int64)
+    i = np.array([j for _, j in pairs], np.int64)
+    params = cliff_to_params(est["rotmats"][i].reshape(-1, 24, 3, 3), est["betas"][i].reshape(-1, 10),
+                             est["cam_crop"][i].reshape(-1, 3), est["bbox_center"][i].reshape(-1, 2),
+                             est["bbox_size"][i], K, est["transl"][i].reshape(-1, 3), est["has_transl"][i])
+    return rows, params
+
+
+def fit_batch(config: Config, sequence: str, rows: list[int], tracks: dict, init: BodyParams | None = None) -> dict:
+    """Fit some rows of the track product from ``init`` (cam frame; None = the oracle's
+    estimates); returns their parameters in the LiDAR frame."""
     seq = open_sequence(config, sequence)
     cam = seq.info.calibration.cameras[config.dataset.camera]
     model = body_model(config)
     T_cam = cam.T_cam_from_lidar
-    truths, points, sweeps = [], [], {}
+    points, sweeps = [], {}
     for r in rows:
         raw = int(tracks["frame"][r])
         if raw not in sweeps:
             sweeps[raw] = seq.frame(seq.info.frame_indices.index(raw)).points_lidar
         lo, hi = tracks["points_offsets"][r], tracks["points_offsets"][r + 1]
         points.append(sweeps[raw][tracks["points_index"][lo:hi]])
-        if config.fit.init_provider != "oracle":
-            raise NotImplementedError(
-                f"sequence {sequence}: fit.init_provider 'precomputed' (CLIFF outputs) has no file "
-                "reader yet; use 'oracle' on synthetic data")
-        gt = read_frame_gt(seq.root, int(sequence), raw)
-        g = [int(tracks["gt_index"][r])]
-        truths.append(BodyParams(gt.betas[g], gt.global_orient[g], gt.body_pose[g], gt.transl[g]))
-    truth = BodyParams(*(np.concatenate([getattr(t, f) for t in truths]) for f in
-                         ("betas", "global_orient", "body_pose", "transl")))
-    init = oracle_initial_estimate(model, reframe_params(model, truth, T_cam),
-                                   frame_rng(config.fit.seed, sequence, rows[0], 3))
+    if init is None:
+        init = oracle_estimates(config, sequence, rows, tracks)
     pmax = max(1, max(len(p) for p in points))
     padded = np.zeros((len(rows), pmax, 3), np.float32)
     mask = np.zeros((len(rows), pmax), bool)
@@ -123,7 +150,8 @@ def fit_batch(config: Config, sequence: str, rows: list[int], tracks: dict) -> d
     result = fit_persons(model, pose_prior(config), init, tracks["keypoints"][rows], cam.K, T_cam,
                          padded, mask, weights=fit_weights(config), iterations=config.fit.iterations,
                          lr=config.fit.learning_rate, device=_device(config), seed=config.fit.seed,
-                         nn_every=config.fit.nn_every)
+                         nn_every=config.fit.nn_every,
+                         chamfer_vertex_max_m=config.fit.chamfer_vertex_max_m)
     T_lidar_from_cam = np.linalg.inv(T_cam)
     lidar = reframe_params(model, result.params(), T_lidar_from_cam)
     pelvis = result.joints[:, 0].astype(np.float64) @ T_lidar_from_cam[:3, :3].T + T_lidar_from_cam[:3, 3]
@@ -136,6 +164,44 @@ def fit_batch(config: Config, sequence: str, rows: list[int], tracks: dict) -> d
             "num_points": np.array([len(p) for p in points], np.int64)}
 
 
+def _fit_warm_started(cfg: Config, sequence: str, tracks: dict, rows: np.ndarray, est: BodyParams | None,
+                      info, resources) -> list[dict]:
+    """Fit frame by frame; a track fitted in the previous frame starts from that fit, moved into
+    this frame's camera frame by the ego-motion (beyond the paper: fit.warm_start), instead of
+    the provider's estimate (est: the precomputed estimates of ``rows``; None = the oracle)."""
+    model = body_model(cfg)
+    T_cam = info.calibration.cameras[cfg.dataset.camera].T_cam_from_lidar
+    pos = {raw: k for k, raw in enumerate(info.frame_indices)}
+    at_row = {int(r): k for k, r in enumerate(rows)}
+    last: dict[int, tuple[int, BodyParams]] = {}  # track -> (frame position, fit in its LiDAR frame)
+    parts: list[dict] = []
+    frames = tracks["frame"][rows]
+    for f in np.unique(frames):
+        p = pos[int(f)]
+        args = []
+        for a in range(0, int((frames == f).sum()), cfg.fit.batch_persons):
+            batch = rows[frames == f][a:a + cfg.fit.batch_persons].tolist()
+            init = (oracle_estimates(cfg, sequence, batch, tracks) if est is None
+                    else est.take([at_row[r] for r in batch]))
+            fields = {k: getattr(init, k).copy() for k in ("betas", "global_orient", "body_pose", "transl")}
+            for k, r in enumerate(batch):
+                prev = last.get(int(tracks["track_id"][r]))
+                if prev is None or prev[0] != p - 1:
+                    continue
+                T = T_cam @ np.linalg.inv(info.poses[p]) @ info.poses[prev[0]]  # cam(now) <- lidar(prev)
+                moved = reframe_params(model, prev[1], T)
+                for key in fields:
+                    fields[key][k] = getattr(moved, key)[0]
+            args.append((cfg, sequence, batch, tracks, BodyParams(**fields)))
+        for out in fan_out(fit_batch, args, resources):
+            parts.append(out)
+            for k, r in enumerate(out["rows"]):
+                last[int(tracks["track_id"][r])] = (p, BodyParams(
+                    out["betas"][k:k + 1], out["global_orient"][k:k + 1], out["body_pose"][k:k + 1],
+                    out["transl"][k:k + 1]))
+    return parts
+
+
 _FIELDS = {"rows": (0,), "betas": (0, 10), "global_orient": (0, 3), "body_pose": (0, 69),
            "transl": (0, 3), "pelvis_lidar": (0, 3), "loss_j": (0,), "loss_3d": (0,),
            "loss_total": (0,), "num_points": (0,)}
@@ -145,12 +211,20 @@ def run_fit(ctx: StageContext) -> dict:
     cfg = ctx.config
     tracks = read_product(ctx.upstream["track"], "tracks")
     rows = np.arange(len(tracks["track_id"]))
+    step = cfg.fit.batch_persons
     if cfg.fit.init_provider == "oracle":  # the oracle has no estimate for a false positive
         rows = rows[tracks["gt_index"] >= 0]
-    step = cfg.fit.batch_persons
+        est = None
+        inits = [None] * len(range(0, len(rows), step))
+    else:
+        rows, est = precomputed_estimates(cfg, ctx.sequence, tracks)
+        inits = [est.take(slice(a, a + step)) for a in range(0, len(rows), step)]
     batches = [rows[a:a + step].tolist() for a in range(0, len(rows), step)]
     resources = {"GPU": 1} if cfg.dask.gpu_fit else None
-    parts = fan_out(fit_batch, [(cfg, ctx.sequence, b, tracks) for b in batches], resources)
+    if cfg.fit.warm_start:
+        parts = _fit_warm_started(cfg, ctx.sequence, tracks, rows, est, ctx.open().info, resources)
+    else:
+        parts = fan_out(fit_batch, [(cfg, ctx.sequence, b, tracks, i) for b, i in zip(batches, inits)], resources)
     out = {k: (np.concatenate([p[k] for p in parts]) if parts else np.zeros(shape))
            for k, shape in _FIELDS.items()}
     r = out["rows"].astype(np.int64)
@@ -171,5 +245,6 @@ def run_fit(ctx: StageContext) -> dict:
         "loss_j": out["loss_j"].astype(f32), "loss_3d": out["loss_3d"].astype(f32),
         "loss_total": out["loss_total"].astype(f32), "num_points": out["num_points"].astype(np.int64)})
     return {"implemented": True, "fitted": int(len(r)), "batches": len(batches),
-            "skipped_false_positives": int(len(tracks["track_id"]) - len(rows)),
+            # oracle: false positives (no ground truth); precomputed: detections without an estimate
+            "skipped_without_estimate": int(len(tracks["track_id"]) - len(rows)),
             "device": _device(cfg), "preset": cfg.fit.preset}

@@ -67,7 +67,7 @@ def oracle_initial_estimate(
     return BodyParams(betas.astype(f32), global_orient.astype(f32), body_pose.astype(f32), transl.astype(f32))
 
 
-def cliff_to_params(rotmats, betas, pred_cam_crop, bbox_center, bbox_size, K) -> BodyParams:
+def cliff_to_params(rotmats, betas, pred_cam_crop, bbox_center, bbox_size, K, transl=None, use_transl=None) -> BodyParams:
     """Convert CLIFF outputs of N persons to our parameters (pure function, no file reading).
 
     rotmats (N, 24, 3, 3) joint rotations (cam frame for the root); betas (N, 10);
@@ -75,24 +75,42 @@ def cliff_to_params(rotmats, betas, pred_cam_crop, bbox_center, bbox_size, K) ->
     bbox_size (N,) pixels (side of the square crop); K (3, 3) calibrated intrinsics. The
     full-image translation follows CLIFF's crop-to-full conversion with the true focal length
     and principal point: tz = 2 f / (s b), tx' = tx + 2 (cx - px) / (s b), ty' = ty + 2 (cy - py) / (s b).
+    transl (N, 3) m with use_transl (N,) bool: rows whose translation is given directly (cam
+    frame); their crop camera is ignored.
     """
     R = torch.as_tensor(np.asarray(rotmats, dtype=np.float64))
-    aa = matrix_to_axis_angle(R).numpy()
     cam = np.asarray(pred_cam_crop, dtype=np.float64)
     c = np.asarray(bbox_center, dtype=np.float64)
     b = np.asarray(bbox_size, dtype=np.float64)
     K = np.asarray(K, dtype=np.float64)
-    if R.shape[1:] != (24, 3, 3) or cam.shape != (R.shape[0], 3):
+    if R.dim() != 4 or R.shape[1:] != (24, 3, 3) or cam.shape != (R.shape[0], 3):
         raise ValueError(f"cliff_to_params: expected rotmats (N, 24, 3, 3) and cam (N, 3), got {tuple(R.shape)}, {cam.shape}")
+    aa = matrix_to_axis_angle(R).numpy()
     f = K[0, 0]
     sb = cam[:, 0] * b + 1e-9
     tz = 2.0 * f / sb
     tx = cam[:, 1] + 2.0 * (c[:, 0] - K[0, 2]) / sb
     ty = cam[:, 2] + 2.0 * (c[:, 1] - K[1, 2]) / sb
+    t = np.stack([tx, ty, tz], 1)
+    if transl is not None:
+        use = np.ones(len(t), bool) if use_transl is None else np.asarray(use_transl, bool)
+        t[use] = np.asarray(transl, dtype=np.float64)[use]
     f32 = np.float32
     return BodyParams(
         np.asarray(betas, dtype=f32),
         aa[:, 0].astype(f32),
         aa[:, 1:].reshape(-1, 69).astype(f32),
-        np.stack([tx, ty, tz], 1).astype(f32),
+        t.astype(f32),
     )
+
+
+def params_to_cliff_camera(transl, bbox_center, bbox_size, K) -> np.ndarray:
+    """Inverse of the camera part of :func:`cliff_to_params`: the crop camera (N, 3) = (s, tx, ty)
+    that places a body at transl (N, 3) m (cam frame, tz > 0) for crops bbox_center (N, 2) px,
+    bbox_size (N,) px, intrinsics K (3, 3). For writing estimates in CLIFF's native form."""
+    t = np.asarray(transl, dtype=np.float64)
+    c = np.asarray(bbox_center, dtype=np.float64)
+    b = np.asarray(bbox_size, dtype=np.float64)
+    K = np.asarray(K, dtype=np.float64)
+    sb = 2.0 * K[0, 0] / t[:, 2]
+    return np.stack([sb / b, t[:, 0] - 2.0 * (c[:, 0] - K[0, 2]) / sb, t[:, 1] - 2.0 * (c[:, 1] - K[1, 2]) / sb], 1)

@@ -82,7 +82,7 @@ def fit_persons(
     points,
     point_mask,
     weights: L.FitWeights = L.FIT_PRESETS["3dpw"],
-    iterations: int = 150,
+    iterations: int = 100,
     lr: float = 0.02,
     device: str = "cpu",
     seed: int = 0,
@@ -92,13 +92,16 @@ def fit_persons(
     icp_max_rotation_deg: float = 30.0,
     min_points: int = 10,
     nn_every: int = 1,
+    chamfer_vertex_max_m: float | None = None,
 ) -> FitResult:
     """Fit B persons jointly (batched Adam), returning cam-frame bodies.
 
     model: BodyModel; prior: callable body_pose (B, 69) -> (B,) neg. log-likelihood (the GMM);
     init: BodyParams (cam frame) of the initial estimate (oracle, CLIFF, or the track's previous
     frame for a warm start); nn_every: recompute the Chamfer nearest pairs every this many steps
-    (the k-d tree search dominates a CPU step; pairs change slowly); keypoints (B, 17, 3) COCO-17 (u, v, confidence), pixels;
+    (the k-d tree search dominates a CPU step; pairs change slowly); chamfer_vertex_max_m: cap of
+    the vertex -> point distances in L_3D (see :func:`tasks.fit.losses.chamfer_loss`; None = the
+    paper's uncapped Chamfer); keypoints (B, 17, 3) COCO-17 (u, v, confidence), pixels;
     K (B, 3, 3) or (3, 3); T_cam_from_lidar (4, 4) or (B, 4, 4) float64; points (B, P, 3) lidar
     frame (m), padded; point_mask (B, P) bool. Persons with fewer than ``min_points`` points skip
     ICP and L_3D. use_visibility=False uses every vertex and flags no joint occluded (ablation).
@@ -196,7 +199,8 @@ def fit_persons(
             model_keypoints(o.joints, o.vertices, model.keypoint_vertex_ids), kp, Kt,
             weights.rho_px, weights.conf_power, kw,
         )
-        t["L_3D"] = L.chamfer_loss(visible, vvalid, pts, pmask, indices=pairs)
+        t["L_3D"] = L.chamfer_loss(visible, vvalid, pts, pmask, indices=pairs,
+                                   vertex_max_m=chamfer_vertex_max_m)
         t["L_theta"] = prior(p_bp)
         t["L_a"] = L.hyperextension_loss(p_bp)
         t["L_beta"] = L.shape_loss(p_betas)
