@@ -224,6 +224,9 @@ class FitConfig(Strict):
     #: this close is treated as unobserved (null = the paper's uncapped Chamfer; the cap removed a
     #: ~30 mm pull towards the sensor on the synthetic benchmark)
     chamfer_vertex_max_m: float | None = Field(0.03, gt=0)
+    #: detections with fewer LiDAR points are not fitted: keypoints alone leave depth free (on the
+    #: benchmark such fits floated metres away); 0 fits every detection
+    min_points: int = Field(10, ge=0)
     batch_persons: int = Field(64, ge=1)
     device: Literal["cpu", "cuda", "auto"] = "auto"
     #: start a track's fit from its previous frame's fit (beyond the paper; frames run in order)

@@ -138,10 +138,13 @@ def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle
     oracle_cfg = _config(dataset, tmp_path / "oracle", **{"fit.batch_persons": 2})
     assert all(o["status"] == "done" for o in _run(oracle_cfg).outcomes.values())
     init_dir = tmp_path / "cliff"
+    few = {}
     for seq in ("0", "1"):
         (folder,) = (tmp_path / "oracle" / "stages" / "track" / seq).iterdir()
         tracks = read_product(folder, "tracks")
-        rows = np.flatnonzero(tracks["gt_index"] >= 0)
+        enough = np.diff(tracks["points_offsets"]) >= oracle_cfg.fit.min_points  # others are not fitted
+        rows = np.flatnonzero((tracks["gt_index"] >= 0) & enough)
+        few[seq] = int(((tracks["gt_index"] >= 0) & ~enough).sum())
         batches = [rows[a:a + 2].tolist() for a in range(0, len(rows), 2)]  # the stage's batches
         est = [oracle_estimates(oracle_cfg, seq, b, tracks) for b in batches]
         go, bp, tr, betas = (np.concatenate([getattr(e, k) for e in est]) for k in
@@ -166,6 +169,8 @@ def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle
         for key in ("betas", "global_orient", "body_pose", "transl"):  # float32 storage of the file
             np.testing.assert_allclose(bodies[0][key], bodies[1][key], atol=2e-3)
         assert report.outcomes[(seq, "fit")]["summary"]["skipped_without_estimate"] == 0
+        assert report.outcomes[(seq, "fit")]["summary"]["skipped_few_points"] == few[seq]
+        assert np.all(bodies[0]["num_points"] >= oracle_cfg.fit.min_points)
 
 
 def _camera_K(cfg, seq):

@@ -213,11 +213,15 @@ def run_fit(ctx: StageContext) -> dict:
     rows = np.arange(len(tracks["track_id"]))
     step = cfg.fit.batch_persons
     if cfg.fit.init_provider == "oracle":  # the oracle has no estimate for a false positive
-        rows = rows[tracks["gt_index"] >= 0]
-        est = None
-        inits = [None] * len(range(0, len(rows), step))
+        rows, est = rows[tracks["gt_index"] >= 0], None
     else:
         rows, est = precomputed_estimates(cfg, ctx.sequence, tracks)
+    few = np.diff(tracks["points_offsets"])[rows] < cfg.fit.min_points
+    rows = rows[~few]
+    if est is None:
+        inits = [None] * len(range(0, len(rows), step))
+    else:
+        est = est.take(np.flatnonzero(~few))
         inits = [est.take(slice(a, a + step)) for a in range(0, len(rows), step)]
     batches = [rows[a:a + step].tolist() for a in range(0, len(rows), step)]
     resources = {"GPU": 1} if cfg.dask.gpu_fit else None
@@ -246,5 +250,6 @@ def run_fit(ctx: StageContext) -> dict:
         "loss_total": out["loss_total"].astype(f32), "num_points": out["num_points"].astype(np.int64)})
     return {"implemented": True, "fitted": int(len(r)), "batches": len(batches),
             # oracle: false positives (no ground truth); precomputed: detections without an estimate
-            "skipped_without_estimate": int(len(tracks["track_id"]) - len(rows)),
+            "skipped_without_estimate": int(len(tracks["track_id"]) - len(rows) - int(few.sum())),
+            "skipped_few_points": int(few.sum()),
             "device": _device(cfg), "preset": cfg.fit.preset}
