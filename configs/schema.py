@@ -227,6 +227,9 @@ class FitConfig(Strict):
     #: detections with fewer LiDAR points are not fitted: keypoints alone leave depth free (on the
     #: benchmark such fits floated metres away); 0 fits every detection
     min_points: int = Field(10, ge=0)
+    #: fits whose root moved farther (m) from the initial estimate are dropped: they latched onto
+    #: someone else's points or floated off (null keeps every fit)
+    max_shift_m: float | None = Field(1.5, gt=0)
     batch_persons: int = Field(64, ge=1)
     device: Literal["cpu", "cuda", "auto"] = "auto"
     #: start a track's fit from its previous frame's fit (beyond the paper; frames run in order)

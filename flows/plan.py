@@ -30,7 +30,8 @@ CODE_VERSIONS: dict[str, str] = {
     "detect": "2",  # 2: the oracle's miss curve calibrated on the paper's detection table
     "track": "2",  # 2: offline back-fill and fragment stitching (issue #5)
     "fit": "3",  # 2: L_3D caps the vertex -> point distances (fit.chamfer_vertex_max_m); 100 iterations;
-    #             3: detections with fewer than fit.min_points LiDAR points are not fitted
+    #             3: detections with fewer than fit.min_points LiDAR points are not fitted, fits
+    #                that moved more than fit.max_shift_m from their estimate are dropped
     "map": "2",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path
     "fuse": "1",
     "export": "2",  # 2: instances carry the fitted bodies, 3D boxes and velocities

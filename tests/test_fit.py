@@ -146,3 +146,15 @@ def test_fit_rejects_mismatched_inputs(scene):
     model, prior, sp, _, init = scene
     with pytest.raises(ValueError, match="keypoints"):
         fit_persons(model, prior, init, sp.keypoints[:1], K, sp.T_cam_from_lidar, sp.points_lidar, sp.point_mask)
+
+
+def test_drop_far_fits_keeps_rows_aligned():
+    from flows.stages.fit import drop_far_fits
+
+    out = {"rows": np.array([4, 7, 9]), "transl": np.arange(9.0).reshape(3, 3),
+           "shift_m": np.array([0.2, 2.5, 1.5])}
+    kept, dropped = drop_far_fits(out, 1.5)
+    assert dropped == 1 and kept["rows"].tolist() == [4, 9]
+    assert kept["transl"].tolist() == [[0.0, 1.0, 2.0], [6.0, 7.0, 8.0]]
+    same, none = drop_far_fits(out, None)
+    assert none == 0 and same["rows"].tolist() == [4, 7, 9]

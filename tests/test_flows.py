@@ -171,6 +171,9 @@ def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle
         assert report.outcomes[(seq, "fit")]["summary"]["skipped_without_estimate"] == 0
         assert report.outcomes[(seq, "fit")]["summary"]["skipped_few_points"] == few[seq]
         assert np.all(bodies[0]["num_points"] >= oracle_cfg.fit.min_points)
+        summary = report.outcomes[(seq, "fit")]["summary"]
+        assert np.all(bodies[1]["shift_m"] <= cliff_cfg.fit.max_shift_m)
+        assert summary["fitted"] == len(bodies[1]["frame"]) and summary["dropped_far_from_estimate"] >= 0
 
 
 def _camera_K(cfg, seq):

@@ -5,13 +5,17 @@ six-term objective, tasks/fit/optimize.py), fanned out to Dask (routed to ``GPU=
 ``dask.gpu_fit``). The initial estimate comes from the ``oracle`` (ground truth perturbed like a
 monocular regressor; synthetic data) or ``precomputed`` CLIFF outputs
 (``<fit.init_dir>/<sequence>/cliff.parquet``, storage/PERCEPTION_FORMAT.md), keyed by (frame,
-det_index); a tracked detection without an estimate is not fitted (counted in the summary).
+det_index); a tracked detection without an estimate, or with fewer than ``fit.min_points`` LiDAR
+points, is not fitted, and a fit whose root moved more than ``fit.max_shift_m`` from its initial
+estimate is dropped (it latched onto someone else's points or floated off); all are counted in
+the summary.
 
 Product ``bodies.npz`` (one row per fitted person-frame, LiDAR frame of that frame): frame (R,)
 int64 raw frame, track_id (R,) int64, det_index (R,), betas (R, 10), global_orient (R, 3),
 body_pose (R, 69), transl (R, 3) float32, velocity_base (R, 2) float32 m/s (from the track's
 pelvis motion, base frame), loss_j / loss_3d / loss_total (R,) float32 final term values,
-num_points (R,) int64.
+num_points (R,) int64, shift_m (R,) float32 how far the fit moved the root from its initial
+estimate.
 """
 
 from __future__ import annotations
@@ -161,7 +165,9 @@ def fit_batch(config: Config, sequence: str, rows: list[int], tracks: dict, init
             "transl": lidar.transl, "pelvis_lidar": pelvis,
             "loss_j": np.asarray(res["L_J"], np.float32), "loss_3d": np.asarray(res["L_3D"], np.float32),
             "loss_total": np.asarray(res["total"], np.float32),
-            "num_points": np.array([len(p) for p in points], np.int64)}
+            "num_points": np.array([len(p) for p in points], np.int64),
+            "shift_m": np.linalg.norm(np.asarray(result.transl, np.float64) - np.asarray(init.transl, np.float64),
+                                      axis=1)}
 
 
 def _fit_warm_started(cfg: Config, sequence: str, tracks: dict, rows: np.ndarray, est: BodyParams | None,
@@ -204,7 +210,16 @@ def _fit_warm_started(cfg: Config, sequence: str, tracks: dict, rows: np.ndarray
 
 _FIELDS = {"rows": (0,), "betas": (0, 10), "global_orient": (0, 3), "body_pose": (0, 69),
            "transl": (0, 3), "pelvis_lidar": (0, 3), "loss_j": (0,), "loss_3d": (0,),
-           "loss_total": (0,), "num_points": (0,)}
+           "loss_total": (0,), "num_points": (0,), "shift_m": (0,)}
+
+
+def drop_far_fits(out: dict, max_shift_m: float | None) -> tuple[dict, int]:
+    """The fit arrays ``out`` (one row per fit) without the rows whose ``shift_m`` exceeds
+    ``max_shift_m`` (None keeps all), and how many were dropped."""
+    if max_shift_m is None:
+        return out, 0
+    keep = np.asarray(out["shift_m"]) <= max_shift_m
+    return {k: np.asarray(v)[keep] for k, v in out.items()}, int((~keep).sum())
 
 
 def run_fit(ctx: StageContext) -> dict:
@@ -231,6 +246,7 @@ def run_fit(ctx: StageContext) -> dict:
         parts = fan_out(fit_batch, [(cfg, ctx.sequence, b, tracks, i) for b, i in zip(batches, inits)], resources)
     out = {k: (np.concatenate([p[k] for p in parts]) if parts else np.zeros(shape))
            for k, shape in _FIELDS.items()}
+    out, far = drop_far_fits(out, cfg.fit.max_shift_m)
     r = out["rows"].astype(np.int64)
     info = ctx.open().info
     pos = {raw: k for k, raw in enumerate(info.frame_indices)}
@@ -247,9 +263,10 @@ def run_fit(ctx: StageContext) -> dict:
         "global_orient": out["global_orient"].astype(f32), "body_pose": out["body_pose"].astype(f32),
         "transl": out["transl"].astype(f32), "velocity_base": v_base.astype(f32),
         "loss_j": out["loss_j"].astype(f32), "loss_3d": out["loss_3d"].astype(f32),
-        "loss_total": out["loss_total"].astype(f32), "num_points": out["num_points"].astype(np.int64)})
+        "loss_total": out["loss_total"].astype(f32), "num_points": out["num_points"].astype(np.int64),
+        "shift_m": out["shift_m"].astype(f32)})
     return {"implemented": True, "fitted": int(len(r)), "batches": len(batches),
             # oracle: false positives (no ground truth); precomputed: detections without an estimate
             "skipped_without_estimate": int(len(tracks["track_id"]) - len(rows) - int(few.sum())),
-            "skipped_few_points": int(few.sum()),
+            "skipped_few_points": int(few.sum()), "dropped_far_from_estimate": far,
             "device": _device(cfg), "preset": cfg.fit.preset}
