@@ -148,7 +148,7 @@ def test_fuse_frame_states_and_masks():
                    camera=_camera(), pixel_stride=1)
     np.testing.assert_array_equal(g.occupancy_state, occ_map.query_grid(SPEC, np.eye(4)))
     assert (g.occupancy_state[20] == 1).all() and (g.semantics[20] == OTHER_STRUCTURE).all()
-    assert (g.occupancy_state[21:] == -1).all()  # behind the wall: unknown
+    assert (g.occupancy_state[21:] == -1).all()  # beyond the hit layer: never observed
     assert g.occupancy_state[10, 10, 10] == 0  # on the sensor's rays: free
     assert g.mask_lidar[20, 10, 10] == 1 and g.mask_lidar[21:].sum() == 0
     assert g.mask_camera[20, 10, 10] == 1 and g.mask_camera[21:].sum() == 0
