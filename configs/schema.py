@@ -160,6 +160,25 @@ class PersonPointsConfig(Strict):
     assoc_min_iou: float = Field(0.3, ge=0, le=1)
 
 
+class WorldCheckConfig(Strict):
+    """Offline identity check on world positions (tasks.track.offline.split_tracks / stitch_ids)."""
+
+    #: cut tracks at missed frames and 3D jumps, re-stitch on world positions (False = 2D only)
+    enabled: bool = True
+    #: persons with fewer LiDAR points have no position (the check skips them)
+    min_points: int = Field(5, ge=1)
+    max_speed_mps: float = Field(2.5, gt=0)
+    #: a position within tol_m + speed_sigma_mps * dt of the track's prediction is consistent
+    tol_m: float = Field(0.6, gt=0)
+    speed_sigma_mps: float = Field(0.5, ge=0)
+    #: positions per track end for the velocity fit
+    window: int = Field(5, ge=1)
+    #: gate factor for a join OC-SORT made itself (two cues agree)
+    continuation_gate_scale: float = Field(1.5, ge=1)
+    #: never-confirmed tracklets may join a confirmed track (kept only then)
+    tentative: bool = True
+
+
 class TrackConfig(Strict):
     """OC-SORT (Cao et al.) settings, offline refinement (tasks.track.offline), person points."""
 
@@ -180,6 +199,7 @@ class TrackConfig(Strict):
     stitch_max_distance: float = Field(0.5, gt=0)
     #: join gate: largest height ratio of the two end boxes
     stitch_max_scale: float = Field(1.5, ge=1)
+    world_check: WorldCheckConfig = WorldCheckConfig()
     person_points: PersonPointsConfig = PersonPointsConfig()
 
 

@@ -219,3 +219,114 @@ def test_read_product_reads_only_the_named_arrays(tmp_path):
     assert set(read_product(tmp_path, "frame_0")) == {"boxes_xyxy", "scores", "semantic"}
     with pytest.raises(KeyError, match="no array"):
         read_product(tmp_path, "frame_0", keys=("masks",))
+
+
+# ---- world-position check (split_tracks / stitch_ids with positions) ---------------------------
+
+from tasks.track.offline import WorldMotion, split_tracks  # noqa: E402
+
+_DT = 0.2  # 5 Hz
+
+
+def _walk(x0: float, y: float, vx: float, frames: range) -> dict[int, np.ndarray]:
+    return {f: np.array([x0 + vx * _DT * f, y]) for f in frames}
+
+
+def _refine(ids, boxes, positions, tentative=frozenset()):
+    times = np.arange(len(ids)) * _DT
+    split, clean, parent = split_tracks(ids, positions, times)
+    provisional = {frag for frag, p in parent.items() if p in tentative}
+    return stitch_ids(split, boxes, 10, 0.5, positions=clean, times_s=times, parent=parent,
+                      provisional=provisional)
+
+
+def test_world_positions_undo_a_swap_between_people_overlapping_in_the_image():
+    # B walks 1 m behind A in the same direction: their boxes nearly coincide, and the 2D tracker
+    # swapped their ids at frame 10 (row 0 is always A, row 1 always B)
+    a, b = _walk(8.0, 0.0, -1.4, range(20)), _walk(9.0, 0.1, -1.4, range(20))
+    ids = [np.array([1, 2]) if f < 10 else np.array([2, 1]) for f in range(20)]
+    boxes = [np.array([_box(300), _box(302)]) for _ in range(20)]
+    positions = [np.stack([a[f], b[f]]) for f in range(20)]
+    out = _refine(ids, boxes, positions)
+    assert {int(r[0]) for r in out} == {1} and {int(r[1]) for r in out} == {2}
+    # without positions the swap stays (nothing to see it by)
+    nan = [np.full((2, 2), np.nan) for _ in range(20)]
+    blind = _refine(ids, boxes, nan)
+    assert blind[0].tolist() == [1, 2] and blind[19].tolist() == [2, 1]
+
+
+def test_one_stray_position_is_an_outlier_not_a_cut():
+    a = _walk(8.0, 0.0, -1.4, range(15))
+    positions = [a[f][None] for f in range(15)]
+    positions[7] = positions[7] + np.array([[2.0, 0.0]])  # points of the person in front
+    ids = [np.array([1]) for _ in range(15)]
+    split, clean, parent = split_tracks(ids, positions, np.arange(15) * _DT)
+    assert {int(r[0]) for r in split} == {1} and parent == {1: 1}
+    assert np.isnan(clean[7]).all() and np.isfinite(clean[6]).all()
+    # two frames off in a row are another person: cut in and out again; stitching then joins
+    # the two ends of A around them
+    positions[8] = positions[8] + np.array([[2.0, 0.0]])
+    split, _, parent = split_tracks(ids, positions, np.arange(15) * _DT)
+    assert len({int(r[0]) for r in split}) == 3 and set(parent.values()) == {1}
+    out = _refine(ids, [np.array([_box(300)])] * 15, positions)
+    assert out[0].tolist() == out[14].tolist() == [1] and out[7].tolist() == out[8].tolist() == [2]
+
+
+def test_a_lost_person_rejoins_on_position_and_a_stranger_does_not():
+    # A hidden for frames 8..11; the robot turned meanwhile, so A's box reappears far away in the
+    # image. C appears at frame 12 right where A's box was extrapolated, but 3 m away in the world.
+    a, c = _walk(8.0, 0.0, -1.4, range(20)), _walk(11.0, 0.0, -1.4, range(20))
+    ids, boxes, positions = [], [], []
+    for f in range(20):
+        rows_id, rows_box, rows_xy = [], [], []
+        if f < 8 or f >= 12:
+            rows_id.append(1 if f < 8 else 2)
+            rows_box.append(_box(300 + 5 * f if f < 8 else 700))
+            rows_xy.append(a[f])
+        if f >= 12:
+            rows_id.append(3)
+            rows_box.append(_box(300 + 5 * f))
+            rows_xy.append(c[f])
+        ids.append(np.array(rows_id, np.int64))
+        boxes.append(np.array(rows_box, np.float64).reshape(-1, 4))
+        positions.append(np.array(rows_xy, np.float64).reshape(-1, 2))
+    out = _refine(ids, boxes, positions)
+    assert out[0].tolist() == [1] and out[12].tolist() == [1, 2] and out[19].tolist() == [1, 2]
+    # on pixels alone the stranger takes A's id
+    assert stitch_ids(ids, boxes, 10, 0.5)[12].tolist() == [2, 1]
+
+
+def test_the_trackers_own_continuation_stands_where_no_position_judges_it():
+    ids = [np.array([1]) for f in range(12) if f != 5]
+    boxes = [np.array([_box(100 + 40 * f)]) for f in range(12) if f != 5]  # fast: pixel gate fails
+    ids.insert(5, np.zeros(0, np.int64))
+    boxes.insert(5, np.zeros((0, 4)))
+    positions = [np.full((len(i), 2), np.nan) for i in ids]
+    out = _refine(ids, boxes, positions)
+    assert {int(r[0]) for r in out if len(r)} == {1}
+
+
+def test_tentative_fragments_join_a_confirmed_track_or_are_dropped():
+    a = _walk(8.0, 0.0, -1.4, range(14))
+    # A confirmed on frames 0..9, missed 10..11, seen again on 12..13 by a tracklet that never got
+    # min_hits (id 50, provisional); a lone provisional tracklet (id 51) elsewhere.
+    ids = [np.array([1]) if f < 10 else np.array([50, 51]) if f >= 12 else np.zeros(0, np.int64)
+           for f in range(14)]
+    boxes = [np.array([_box(300)]) if f < 10 else np.array([_box(600), _box(900)]) if f >= 12
+             else np.zeros((0, 4)) for f in range(14)]
+    positions = [np.array([a[f]]) if f < 10 else np.array([a[f], [20.0, 5.0]]) if f >= 12
+                 else np.zeros((0, 2)) for f in range(14)]
+    out = _refine(ids, boxes, positions, tentative={50, 51})
+    assert out[12].tolist() == [1, -1] and out[13].tolist() == [1, -1]
+
+
+def test_person_world_xy_is_the_median_point_in_the_world_and_needs_min_points():
+    from flows.stages.track import person_world_xy
+
+    points = np.array([[5.0, 1.0, 0.5], [5.2, 1.1, 1.0], [5.1, 0.9, 1.5], [30.0, 9.0, 1.0]], np.float32)
+    T = np.eye(4)
+    T[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]  # yaw 90 degrees
+    T[:3, 3] = [100.0, 50.0, 0.0]
+    xy = person_world_xy(points, [np.array([0, 1, 2]), np.array([3])], T, min_points=3)
+    assert np.allclose(xy[0], [100.0 - 1.0, 50.0 + 5.1])
+    assert np.isnan(xy[1]).all()

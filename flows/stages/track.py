@@ -1,7 +1,8 @@
 """track: OC-SORT ids over a sequence's 2D detections, and each tracked person's LiDAR points.
 
-Ids come from tasks.track.offline.track_offline (OC-SORT, then back-fill and fragment stitching
-over the whole sequence, as the track config says).
+Ids come from tasks.track.offline.track_offline (OC-SORT, then back-fill, and with
+``track.world_check`` the tracks cut and re-stitched on each person's world position, the median of
+its LiDAR points, over the whole sequence, as the track config says).
 
 Product ``tracks.npz`` (one row per tracked detection, frames ascending): frame (R,) int64 raw frame
 number, det_index (R,) row in that frame's detect product, track_id (R,) int64 (>= 1),
@@ -20,7 +21,7 @@ from flows.stages.common import StageContext
 from storage.intermediate import labels_to_masks, read_product, write_product
 from tasks.perception.person_points import associate_lidar_boxes, person_point_indices
 from tasks.track.ocsort import PedestrianTracker
-from tasks.track.offline import track_offline
+from tasks.track.offline import WorldMotion, track_offline
 
 
 def run_track(ctx: StageContext) -> dict:
@@ -30,52 +31,81 @@ def run_track(ctx: StageContext) -> dict:
     tracker = PedestrianTracker(det_thresh=cfg.det_thresh, max_age=cfg.max_age, min_hits=cfg.min_hits,
                                 iou_threshold=cfg.iou_threshold, delta_t=cfg.delta_t,
                                 inertia=cfg.inertia, keep_confirmed_ids=cfg.keep_confirmed_ids)
-    # the log is recorded: track the whole sequence first (ids may be back-filled / stitched)
-    raw = [seq.info.frame_indices[i] for i in range(len(seq))]
-    dets = [read_product(ctx.upstream["detect"], f"frame_{r}", keys=("boxes_xyxy", "scores")) for r in raw]
-    all_ids = track_offline([d["boxes_xyxy"] for d in dets], [d["scores"] for d in dets], tracker,
-                            cfg.backfill, cfg.stitch_max_gap, cfg.stitch_max_distance, cfg.stitch_max_scale)
     pp = cfg.person_points.model_dump()
     min_iou = pp.pop("assoc_min_iou")
-    rows: dict[str, list] = {k: [] for k in ("frame", "det_index", "track_id", "boxes_xyxy", "scores",
-                                             "keypoints", "lidar_box", "gt_index")}
-    point_sets: list[np.ndarray] = []
+    # every detection's person points first: their world positions let the offline refinement
+    # check the 2D tracker's identities (a person's points do not depend on its id)
+    per_frame = []
     for i in range(len(seq)):
         frame = seq.frame(i)
         det = read_product(ctx.upstream["detect"], f"frame_{frame.index}")
-        ids = all_ids[i]
-        keep = np.flatnonzero(ids >= 0)
-        if keep.size == 0:
-            continue
-        boxes = det["boxes_xyxy"][keep]
+        boxes = det["boxes_xyxy"]
         lidar_box = associate_lidar_boxes(boxes, det["lidar_centers"], det["lidar_sizes"],
                                           det["lidar_yaws"], cam.K, cam.T_cam_from_lidar, min_iou)
-        expected = np.full(keep.size, np.nan)
+        expected = np.full(len(boxes), np.nan)
         has = lidar_box >= 0
         if has.any():
             centers = det["lidar_centers"][lidar_box[has]].astype(np.float64)
             cam_xyz = centers @ cam.T_cam_from_lidar[:3, :3].T + cam.T_cam_from_lidar[:3, 3]
             expected[has] = np.linalg.norm(cam_xyz, axis=1)
-        masks = labels_to_masks(det["mask_labels"], len(det["scores"]))[keep]
-        point_sets += person_point_indices(frame.points_lidar, cam.K, cam.T_cam_from_lidar,
-                                           (cam.width, cam.height), boxes, masks, expected, **pp)
-        rows["frame"].append(np.full(keep.size, frame.index, np.int64))
+        masks = labels_to_masks(det["mask_labels"], len(det["scores"]))
+        point_sets = person_point_indices(frame.points_lidar, cam.K, cam.T_cam_from_lidar,
+                                          (cam.width, cam.height), boxes, masks, expected, **pp)
+        per_frame.append({
+            "index": frame.index, "stamp_s": frame.stamp_ns * 1e-9, "det": det,
+            "lidar_box": lidar_box, "point_sets": point_sets,
+            "xy": person_world_xy(frame.points_lidar, point_sets, frame.T_world_from_lidar,
+                                  cfg.world_check.min_points),
+        })
+    # the log is recorded: track the whole sequence first (ids back-filled, split, stitched)
+    check = cfg.world_check
+    all_ids = track_offline(
+        [f["det"]["boxes_xyxy"] for f in per_frame], [f["det"]["scores"] for f in per_frame], tracker,
+        cfg.backfill, cfg.stitch_max_gap, cfg.stitch_max_distance, cfg.stitch_max_scale,
+        positions=[f["xy"] for f in per_frame] if check.enabled else None,
+        times_s=np.array([f["stamp_s"] for f in per_frame]),
+        motion=WorldMotion(max_speed_mps=check.max_speed_mps, tol_m=check.tol_m,
+                           speed_sigma_mps=check.speed_sigma_mps, window=check.window,
+                           continuation_gate_scale=check.continuation_gate_scale),
+        tentative=check.tentative)
+    rows: dict[str, list] = {k: [] for k in ("frame", "det_index", "track_id", "boxes_xyxy", "scores",
+                                             "keypoints", "lidar_box", "gt_index")}
+    kept_sets: list[np.ndarray] = []
+    for f, ids in zip(per_frame, all_ids):
+        keep = np.flatnonzero(ids >= 0)
+        if keep.size == 0:
+            continue
+        det = f["det"]
+        kept_sets += [f["point_sets"][k] for k in keep]
+        rows["frame"].append(np.full(keep.size, f["index"], np.int64))
         rows["det_index"].append(keep.astype(np.int64))
         rows["track_id"].append(ids[keep].astype(np.int64))
-        rows["boxes_xyxy"].append(boxes.astype(np.float32))
+        rows["boxes_xyxy"].append(det["boxes_xyxy"][keep].astype(np.float32))
         rows["scores"].append(det["scores"][keep].astype(np.float32))
         rows["keypoints"].append(det["keypoints"][keep].astype(np.float32))
-        rows["lidar_box"].append(lidar_box.astype(np.int64))
+        rows["lidar_box"].append(f["lidar_box"][keep].astype(np.int64))
         rows["gt_index"].append(det["gt_index"][keep].astype(np.int64))
     empty = {"frame": (0,), "det_index": (0,), "track_id": (0,), "boxes_xyxy": (0, 4), "scores": (0,),
              "keypoints": (0, 17, 3), "lidar_box": (0,), "gt_index": (0,)}
     arrays = {k: np.concatenate(v) if v else np.zeros(empty[k], np.float32 if k in (
         "boxes_xyxy", "scores", "keypoints") else np.int64) for k, v in rows.items()}
-    sizes = np.array([len(p) for p in point_sets], np.int64)
+    sizes = np.array([len(p) for p in kept_sets], np.int64)
     arrays["points_offsets"] = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-    arrays["points_index"] = (np.concatenate(point_sets).astype(np.int64) if point_sets
+    arrays["points_index"] = (np.concatenate(kept_sets).astype(np.int64) if kept_sets
                               else np.zeros(0, np.int64))
     write_product(ctx.out_dir, "tracks", arrays)
     return {"implemented": True, "tracks": int(np.unique(arrays["track_id"]).size),
             "tracked_detections": int(arrays["track_id"].size),
             "mean_person_points": float(sizes.mean()) if sizes.size else 0.0}
+
+
+def person_world_xy(points_lidar: np.ndarray, point_sets: list[np.ndarray], T_world_from_lidar: np.ndarray,
+                    min_points: int) -> np.ndarray:
+    """(D, 2) world xy of each person: the median of its LiDAR points; NaN with fewer than
+    ``min_points`` (a few points of a mostly hidden person often belong to someone in front)."""
+    xy = np.full((len(point_sets), 2), np.nan)
+    for k, idx in enumerate(point_sets):
+        if len(idx) >= min_points:
+            centre = np.median(points_lidar[idx].astype(np.float64), axis=0)
+            xy[k] = (T_world_from_lidar[:3, :3] @ centre + T_world_from_lidar[:3, 3])[:2]
+    return xy
