@@ -330,3 +330,15 @@ def test_person_world_xy_is_the_median_point_in_the_world_and_needs_min_points()
     xy = person_world_xy(points, [np.array([0, 1, 2]), np.array([3])], T, min_points=3)
     assert np.allclose(xy[0], [100.0 - 1.0, 50.0 + 5.1])
     assert np.isnan(xy[1]).all()
+
+
+def test_an_outlier_just_before_a_missed_stretch_does_not_split_the_track():
+    # frame 7's points belong to someone in front, frames 8..10 are missed, A is seen again at 11
+    frames = [f for f in range(18) if not 8 <= f <= 10]
+    a = _walk(8.0, 0.0, -1.4, range(18))
+    ids = [np.array([1]) if f in frames else np.zeros(0, np.int64) for f in range(18)]
+    boxes = [np.array([_box(300 + 60 * f)]) if f in frames else np.zeros((0, 4)) for f in range(18)]
+    positions = [np.array([a[f]]) if f in frames else np.zeros((0, 2)) for f in range(18)]
+    positions[7] = np.array([[4.0, 0.5]])
+    out = _refine(ids, boxes, positions)
+    assert {int(r[0]) for r in out if len(r)} == {1}
