@@ -157,6 +157,10 @@ class PersonPointsConfig(Strict):
     ground_tol_m: float | None = 0.15
     ground_cell_m: float = Field(2.0, gt=0)
     feet_radius_m: float = Field(0.1, ge=0)
+    #: a person cut by the image's left / right border grows past it on LiDAR geometry (0 = off)
+    edge_grow_m: float = Field(0.25, ge=0)
+    edge_extent_m: float = Field(0.7, gt=0)
+    edge_margin_px: float = Field(20.0, ge=0)
     assoc_min_iou: float = Field(0.3, ge=0, le=1)
 
 

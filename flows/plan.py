@@ -28,7 +28,7 @@ STAGES: dict[str, tuple[str, ...]] = {
 #: (A key from code versions, not from source hashes: refactors do not invalidate datasets.)
 CODE_VERSIONS: dict[str, str] = {
     "detect": "2",  # 2: the oracle's miss curve calibrated on the paper's detection table
-    "track": "3",  # 2: offline back-fill and stitching; 3: world-position check (issue #5)
+    "track": "4",  # 2: offline back-fill and stitching; 3: world-position check; 4: person points past the image side
     "fit": "3",  # 2: L_3D caps the vertex -> point distances (fit.chamfer_vertex_max_m); 100 iterations;
     #             3: detections with fewer than fit.min_points LiDAR points are not fitted, fits
     #                that moved more than fit.max_shift_m from their estimate are dropped

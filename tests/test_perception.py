@@ -254,6 +254,28 @@ def test_person_points_expected_range_picks_the_right_layer():
     assert np.isin(backdrop, truth).mean() < 0.05
 
 
+def test_person_points_grow_past_the_image_side():
+    """A person half outside the image's right border: the points past it are found on LiDAR
+    geometry (step 4), a second person standing outside the image 1.5 m away is not."""
+    right_edge = -np.arctan2(W - K[0, 2], K[0, 0])  # LiDAR azimuth of the image's right border
+    cut = (5.0 * np.cos(right_edge), 5.0 * np.sin(right_edge), 0.25, 1.75)
+    beside = (cut[0] - 0.3, cut[1] - 1.5, 0.25, 1.75)
+    points, owner = _raycast_sweep([cut, beside])
+    uv, _ = project_points(points, K, T_CAM_FROM_LIDAR)
+    in_image = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+    truth = np.flatnonzero(owner == 0)
+    assert 0.3 < in_image[truth].mean() < 0.7 and not in_image[owner == 1].any()  # the scene is as meant
+    mask = _mask_of(points[truth[in_image[truth]]], K, T_CAM_FROM_LIDAR)
+    box = _box_of(mask)[None]
+    (found,) = person_point_indices(points, K, T_CAM_FROM_LIDAR, (W, H), box, mask[None])
+    recall, wrong = np.isin(truth, found).mean(), 1 - np.isin(found, truth).mean()
+    assert recall >= 0.95 and wrong <= 0.05, (recall, wrong)
+    assert not np.isin(found, np.flatnonzero(owner == 1)).any()
+    (image_only,) = person_point_indices(points, K, T_CAM_FROM_LIDAR, (W, H), box, mask[None], edge_grow_m=0)
+    assert np.isin(truth, image_only).mean() < 0.75
+    assert in_image[image_only].all()
+
+
 def test_person_points_empty_cases():
     points, _ = _scene()
     assert person_point_indices(points, K, T_CAM_FROM_LIDAR, (W, H), np.zeros((0, 4))) == []

@@ -16,6 +16,14 @@
    border), sigma = ``range_sigma_frac`` x expected, and centrality is the fraction of the
    segment's points whose pixel lies in the inner part of the box (the middle ``core_frac`` of
    its width).
+4. When the detection box reaches within ``edge_margin_px`` of the left or right image border (the
+   person is leaving or entering the camera's view; detector boxes stop a few pixels short or
+   past it), the image says nothing about the points past that border: the selection
+   grows into the non-ground points outside the image connected to it (through occupied voxels of
+   ``edge_grow_m / 2``, 26-neighbourhood: gaps up to about ``edge_grow_m`` are bridged), no
+   farther than ``edge_extent_m`` (horizontally) from the selection's median;
+   ground-band points outside the image within ``feet_radius_m`` of the result are its feet.
+   ``edge_grow_m = 0`` turns this off.
 
 LiDAR boxes are associated with image detections by the Hungarian method on the IoU between the
 detection box and the image rectangle of the projected 3D box (``min_iou``).
@@ -24,6 +32,7 @@ detection box and the image rectangle of the projected 3D box (``min_iou``).
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
@@ -125,6 +134,9 @@ def person_point_indices(
     ground_tol_m: float | None = 0.15,
     ground_cell_m: float = 2.0,
     feet_radius_m: float = 0.1,
+    edge_grow_m: float = 0.25,
+    edge_extent_m: float = 0.7,
+    edge_margin_px: float = 20.0,
 ) -> list[np.ndarray]:
     """LiDAR point indices of each detected person.
 
@@ -134,7 +146,7 @@ def person_point_indices(
     float metres from the camera centre (e.g. an associated LiDAR box), NaN = unknown, or None.
     ground_tol_m: height above the local ground (``ground_cell_m`` grid, LiDAR z up) below which
     points are ground, kept only within ``feet_radius_m`` (xy) of the person's other points; None
-    keeps all.
+    keeps all. edge_grow_m / edge_extent_m / edge_margin_px: step 4 of the module docstring (0 = off).
     Returns D int64 arrays of row indices into points_lidar (sorted; empty when nothing is found).
     """
     width, height = int(image_size[0]), int(image_size[1])
@@ -159,6 +171,22 @@ def person_point_indices(
     lidar_xyz = points[idx]
     if ground_tol_m is not None and idx.size:
         is_ground = lidar_xyz[:, 2] - ground_height(lidar_xyz, ground_cell_m) < ground_tol_m
+    side_cut = (boxes[:, 0] <= edge_margin_px) | (boxes[:, 2] >= width - edge_margin_px)
+    edge = None  # the points outside the image, gathered once if some box nears a side
+    if edge_grow_m > 0 and side_cut.any():
+        # only the points near the image's left / right side planes can join a cut person
+        Kf = np.asarray(K, np.float64)
+        x, z = cam_all[:, 0], cam_all[:, 2]
+        a_left, a_right = Kf[0, 2] / Kf[0, 0], (width - Kf[0, 2]) / Kf[0, 0]
+        band = edge_extent_m + edge_grow_m
+        near_side = (z > -band) & ((np.abs(x + a_left * z) <= band * np.hypot(1.0, a_left))
+                                   | (np.abs(x - a_right * z) <= band * np.hypot(1.0, a_right)))
+        near_side[idx] = False
+        out_idx = np.flatnonzero(near_side)
+        out_ground = np.zeros(out_idx.size, bool)
+        if ground_tol_m is not None and out_idx.size:
+            out_ground = points[out_idx, 2] - ground_height(points[out_idx], ground_cell_m) < ground_tol_m
+        edge = _OutsidePoints(points, out_idx[~out_ground], out_idx[out_ground])
     u, v = uv[:, 0], uv[:, 1]
     col, row = u.astype(np.int64), v.astype(np.int64)
     ranges_all = np.linalg.norm(cam, axis=1)
@@ -200,5 +228,44 @@ def person_point_indices(
             tree = cKDTree(lidar_xyz[best, :2])
             near, _ = tree.query(lidar_xyz[ground_sel, :2], distance_upper_bound=feet_radius_m)
             best = np.concatenate([best, ground_sel[np.isfinite(near)]])
-        result.append(np.sort(idx[best]))
+        chosen = idx[best]
+        if edge is not None and side_cut[d]:
+            chosen = edge.grow(chosen, edge_grow_m, edge_extent_m, feet_radius_m)
+        result.append(np.sort(chosen))
     return result
+
+
+class _OutsidePoints:
+    """The sweep's points outside the image (split into body and ground band) for step 4."""
+
+    def __init__(self, points: np.ndarray, body: np.ndarray, ground: np.ndarray):
+        self.points, self.body, self.ground = points, body, ground
+        self.body_xy, self.ground_xy = points[body, :2], points[ground, :2]
+
+    def grow(self, chosen: np.ndarray, step_m: float, extent_m: float, feet_radius_m: float) -> np.ndarray:
+        """``chosen`` (global point indices) plus the outside points connected to it."""
+        if chosen.size == 0:
+            return chosen
+        centre = np.median(self.points[chosen, :2], axis=0)
+        near = self.body[np.sum((self.body_xy - centre) ** 2, axis=1) <= extent_m ** 2]
+        if near.size == 0:
+            return chosen
+        # connectivity on a voxel grid (cells of step_m / 2, 26-neighbourhood): linear in the points,
+        # where ball queries from every point of a near person (thousands) cost much more
+        cloud = np.concatenate([self.points[chosen], self.points[near]])
+        cells = np.floor((cloud - cloud.min(axis=0)) / (step_m / 2)).astype(np.int64)
+        grid = np.zeros(tuple(cells.max(axis=0) + 1), bool)
+        grid[cells[:, 0], cells[:, 1], cells[:, 2]] = True
+        labels, _ = ndimage.label(grid, structure=np.ones((3, 3, 3), bool))
+        label = labels[cells[:, 0], cells[:, 1], cells[:, 2]]
+        taken = np.isin(label[chosen.size:], label[:chosen.size])
+        if not taken.any():
+            return chosen
+        grown = near[taken]
+        if feet_radius_m > 0 and self.ground.size:
+            cand = self.ground[np.sum((self.ground_xy - centre) ** 2, axis=1) <= (extent_m + feet_radius_m) ** 2]
+            if cand.size:
+                dist, _ = cKDTree(self.points[grown]).query(self.points[cand],
+                                                             distance_upper_bound=feet_radius_m)
+                grown = np.concatenate([grown, cand[np.isfinite(dist)]])
+        return np.concatenate([chosen, grown])
