@@ -142,7 +142,7 @@ def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle
     for seq in ("0", "1"):
         (folder,) = (tmp_path / "oracle" / "stages" / "track" / seq).iterdir()
         tracks = read_product(folder, "tracks")
-        enough = np.diff(tracks["points_offsets"]) >= oracle_cfg.fit.min_points  # others are not fitted
+        enough = tracks["points_in_image"] >= oracle_cfg.fit.min_points  # others are not fitted
         rows = np.flatnonzero((tracks["gt_index"] >= 0) & enough)
         few[seq] = int(((tracks["gt_index"] >= 0) & ~enough).sum())
         batches = [rows[a:a + 2].tolist() for a in range(0, len(rows), 2)]  # the stage's batches

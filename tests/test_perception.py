@@ -7,7 +7,8 @@ import pytest
 
 from tasks.perception.lidar_clusters import detect_pedestrians_lidar, ground_height
 from tasks.perception.oracle import OracleNoise, oracle_image_perception, oracle_lidar_detections
-from tasks.perception.person_points import associate_lidar_boxes, person_point_indices, project_points
+from tasks.perception.person_points import (associate_lidar_boxes, in_image_first, person_point_indices,
+                                            project_points)
 from tasks.perception.types import ImagePerception, LidarDetections, box_corners
 
 W, H = 640, 480
@@ -271,6 +272,9 @@ def test_person_points_grow_past_the_image_side():
     recall, wrong = np.isin(truth, found).mean(), 1 - np.isin(found, truth).mean()
     assert recall >= 0.95 and wrong <= 0.05, (recall, wrong)
     assert not np.isin(found, np.flatnonzero(owner == 1)).any()
+    (ordered,), count = in_image_first(points, [found], K, T_CAM_FROM_LIDAR, (W, H))
+    assert sorted(ordered.tolist()) == found.tolist() and 0 < count[0] < found.size
+    assert in_image[ordered[:count[0]]].all() and not in_image[ordered[count[0]:]].any()
     (image_only,) = person_point_indices(points, K, T_CAM_FROM_LIDAR, (W, H), box, mask[None], edge_grow_m=0)
     assert np.isin(truth, image_only).mean() < 0.75
     assert in_image[image_only].all()

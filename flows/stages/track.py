@@ -10,7 +10,9 @@ boxes_xyxy (R, 4), scores (R,), keypoints (R, 17, 3), lidar_box (R,) int64 match
 -1, gt_index (R,) int64 (the detection's ground-truth row with the oracle provider, else -2),
 points_offsets (R + 1,) int64 and points_index (sum,) int64: the person's points are
 ``points_index[points_offsets[r]:points_offsets[r + 1]]``, indices into the frame's
-``points_lidar`` as the reader returns it.
+``points_lidar`` as the reader returns it; points_in_image (R,) int64: the first
+``points_in_image[r]`` of them project into the image, the rest were found past its left / right
+side on LiDAR geometry (tasks.perception.person_points step 4; the body fit takes the first part).
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import numpy as np
 
 from flows.stages.common import StageContext
 from storage.intermediate import labels_to_masks, read_product, write_product
-from tasks.perception.person_points import associate_lidar_boxes, person_point_indices
+from tasks.perception.person_points import associate_lidar_boxes, in_image_first, person_point_indices
 from tasks.track.ocsort import PedestrianTracker
 from tasks.track.offline import WorldMotion, track_offline
 
@@ -51,9 +53,11 @@ def run_track(ctx: StageContext) -> dict:
         masks = labels_to_masks(det["mask_labels"], len(det["scores"]))
         point_sets = person_point_indices(frame.points_lidar, cam.K, cam.T_cam_from_lidar,
                                           (cam.width, cam.height), boxes, masks, expected, **pp)
+        point_sets, in_image = in_image_first(frame.points_lidar, point_sets, cam.K, cam.T_cam_from_lidar,
+                                              (cam.width, cam.height), pp["min_depth_m"])
         per_frame.append({
             "index": frame.index, "stamp_s": frame.stamp_ns * 1e-9, "det": det,
-            "lidar_box": lidar_box, "point_sets": point_sets,
+            "lidar_box": lidar_box, "point_sets": point_sets, "in_image": in_image,
             "xy": person_world_xy(frame.points_lidar, point_sets, frame.T_world_from_lidar,
                                   cfg.world_check.min_points),
         })
@@ -69,7 +73,7 @@ def run_track(ctx: StageContext) -> dict:
                            continuation_gate_scale=check.continuation_gate_scale),
         tentative=check.tentative)
     rows: dict[str, list] = {k: [] for k in ("frame", "det_index", "track_id", "boxes_xyxy", "scores",
-                                             "keypoints", "lidar_box", "gt_index")}
+                                             "keypoints", "lidar_box", "gt_index", "points_in_image")}
     kept_sets: list[np.ndarray] = []
     for f, ids in zip(per_frame, all_ids):
         keep = np.flatnonzero(ids >= 0)
@@ -85,8 +89,10 @@ def run_track(ctx: StageContext) -> dict:
         rows["keypoints"].append(det["keypoints"][keep].astype(np.float32))
         rows["lidar_box"].append(f["lidar_box"][keep].astype(np.int64))
         rows["gt_index"].append(det["gt_index"][keep].astype(np.int64))
+        rows["points_in_image"].append(f["in_image"][keep].astype(np.int64))
     empty = {"frame": (0,), "det_index": (0,), "track_id": (0,), "boxes_xyxy": (0, 4), "scores": (0,),
-             "keypoints": (0, 17, 3), "lidar_box": (0,), "gt_index": (0,)}
+             "keypoints": (0, 17, 3), "lidar_box": (0,), "gt_index": (0,),
+             "points_in_image": (0,)}
     arrays = {k: np.concatenate(v) if v else np.zeros(empty[k], np.float32 if k in (
         "boxes_xyxy", "scores", "keypoints") else np.int64) for k, v in rows.items()}
     sizes = np.array([len(p) for p in kept_sets], np.int64)

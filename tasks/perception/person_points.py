@@ -235,6 +235,26 @@ def person_point_indices(
     return result
 
 
+def in_image_first(
+    points_lidar: np.ndarray, point_sets: list[np.ndarray], K: np.ndarray, T_cam_from_lidar: np.ndarray,
+    image_size: tuple[int, int], min_depth_m: float = 0.5,
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """Each set reordered as its points inside the image (sorted) then those outside (sorted), and
+    (D,) int64 how many are inside: the camera-side consumers (the body fit, whose visibility
+    filter only knows what the image shows) take the leading part.
+    """
+    width, height = int(image_size[0]), int(image_size[1])
+    ordered, counts = [], np.zeros(len(point_sets), np.int64)
+    for d, idx in enumerate(point_sets):
+        idx = np.asarray(idx, np.int64)
+        uv, depth = project_points(np.asarray(points_lidar)[idx], K, T_cam_from_lidar, min_depth_m)
+        inside = ((depth > min_depth_m) & (uv[:, 0] >= 0) & (uv[:, 0] < width)
+                  & (uv[:, 1] >= 0) & (uv[:, 1] < height))
+        ordered.append(np.concatenate([np.sort(idx[inside]), np.sort(idx[~inside])]))
+        counts[d] = int(inside.sum())
+    return ordered, counts
+
+
 class _OutsidePoints:
     """The sweep's points outside the image (split into body and ground band) for step 4."""
 
