@@ -129,14 +129,6 @@ def precomputed_estimates(config: Config, sequence: str, tracks: dict) -> tuple[
     return rows, params
 
 
-def _image_points(tracks: dict) -> np.ndarray:
-    """(R,) how many of each row's person points lie in the image (all of them in a track product
-    written before ``points_in_image`` existed)."""
-    if "points_in_image" in tracks:
-        return np.asarray(tracks["points_in_image"], np.int64)
-    return np.diff(tracks["points_offsets"])
-
-
 def fit_batch(config: Config, sequence: str, rows: list[int], tracks: dict, init: BodyParams | None = None) -> dict:
     """Fit some rows of the track product from ``init`` (cam frame; None = the oracle's
     estimates); returns their parameters in the LiDAR frame."""
@@ -145,13 +137,14 @@ def fit_batch(config: Config, sequence: str, rows: list[int], tracks: dict, init
     model = body_model(config)
     T_cam = cam.T_cam_from_lidar
     points, sweeps = [], {}
+    # the points in the image only: the visibility filter knows only what the camera shows
+    in_image = tracks["points_in_image"]
     for r in rows:
         raw = int(tracks["frame"][r])
         if raw not in sweeps:
             sweeps[raw] = seq.frame(seq.info.frame_indices.index(raw)).points_lidar
         lo = tracks["points_offsets"][r]
-        # the points in the image: the visibility filter only knows what the camera shows
-        points.append(sweeps[raw][tracks["points_index"][lo:lo + _image_points(tracks)[r]]])
+        points.append(sweeps[raw][tracks["points_index"][lo:lo + in_image[r]]])
     if init is None:
         init = oracle_estimates(config, sequence, rows, tracks)
     pmax = max(1, max(len(p) for p in points))
@@ -240,7 +233,7 @@ def run_fit(ctx: StageContext) -> dict:
         rows, est = rows[tracks["gt_index"] >= 0], None
     else:
         rows, est = precomputed_estimates(cfg, ctx.sequence, tracks)
-    few = _image_points(tracks)[rows] < cfg.fit.min_points
+    few = tracks["points_in_image"][rows] < cfg.fit.min_points
     rows = rows[~few]
     if est is None:
         inits = [None] * len(range(0, len(rows), step))

@@ -21,6 +21,7 @@ import numpy as np
 
 from flows.stages.common import StageContext
 from storage.intermediate import labels_to_masks, read_product, write_product
+from tasks.conventions import transform_points
 from tasks.perception.person_points import associate_lidar_boxes, in_image_first, person_point_indices
 from tasks.track.ocsort import PedestrianTracker
 from tasks.track.offline import WorldMotion, track_offline
@@ -113,5 +114,5 @@ def person_world_xy(points_lidar: np.ndarray, point_sets: list[np.ndarray], T_wo
     for k, idx in enumerate(point_sets):
         if len(idx) >= min_points:
             centre = np.median(points_lidar[idx].astype(np.float64), axis=0)
-            xy[k] = (T_world_from_lidar[:3, :3] @ centre + T_world_from_lidar[:3, 3])[:2]
+            xy[k] = transform_points(T_world_from_lidar, centre[None])[0, :2]
     return xy

@@ -56,6 +56,11 @@ def _pixels(cam: np.ndarray, K: np.ndarray, min_depth_m: float) -> np.ndarray:
     return uv
 
 
+def _in_image(uv: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(N,) bool: pixel inside the image (NaN, i.e. behind the camera, is not)."""
+    return (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
+
+
 def project_points(
     points_lidar: np.ndarray, K: np.ndarray, T_cam_from_lidar: np.ndarray, min_depth_m: float = 0.1
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -164,7 +169,7 @@ def person_point_indices(
     cam_all = _rigid(points, np.asarray(T_cam_from_lidar, np.float64))
     front = np.flatnonzero(cam_all[:, 2] > min_depth_m)
     uv = _pixels(cam_all[front], np.asarray(K, np.float64), min_depth_m)
-    inside = (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
+    inside = _in_image(uv, width, height)
     idx = front[inside]
     uv, cam = uv[inside], cam_all[idx]
     is_ground = np.zeros(idx.size, bool)
@@ -248,8 +253,7 @@ def in_image_first(
     for d, idx in enumerate(point_sets):
         idx = np.asarray(idx, np.int64)
         uv, depth = project_points(np.asarray(points_lidar)[idx], K, T_cam_from_lidar, min_depth_m)
-        inside = ((depth > min_depth_m) & (uv[:, 0] >= 0) & (uv[:, 0] < width)
-                  & (uv[:, 1] >= 0) & (uv[:, 1] < height))
+        inside = (depth > min_depth_m) & _in_image(uv, width, height)
         ordered.append(np.concatenate([np.sort(idx[inside]), np.sort(idx[~inside])]))
         counts[d] = int(inside.sum())
     return ordered, counts
