@@ -65,8 +65,8 @@ def _run(args: argparse.Namespace, force: bool) -> int:
     # before prefect is imported: its settings are read once; per-task INFO lines would bury the
     # progress bars and the summary (PREFECT_LOGGING_LEVEL=INFO brings them back)
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
-    from flows.pipeline import rebuild_dataset, summary_table
-    from flows.runtime import prefect_api
+    from flows.pipeline.run import rebuild_dataset, summary_table
+    from flows.pipeline.runtime import prefect_api
 
     cfg = _config(args)
     with prefect_api():
@@ -86,7 +86,7 @@ def cmd_reprocess(args: argparse.Namespace) -> int:
 
 
 def _print_plan(args: argparse.Namespace, dry_run: bool) -> int:
-    from flows.plan import plan_run
+    from flows.pipeline.plan import plan_run
     from storage.manifest import FileHasher, Manifest
 
     cfg = _config(args)
@@ -118,7 +118,7 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from flows.pipeline import export_dataset
+    from flows.pipeline.run import export_dataset
 
     cfg = _config(args)
     target = export_dataset(cfg, args.format, args.to)
@@ -127,7 +127,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from flows.evaluate import evaluate
+    from flows.commands.evaluate import evaluate
 
     evaluate(args.dataset, args.gt, args.report)
     print(f"report: {args.report / 'report.md'} (figures in {args.report / 'figures'}, "
@@ -135,15 +135,37 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_bench(args: argparse.Namespace) -> int:
-    from flows.bench import bench
+#: `mobileocc bench [WHAT] ...`: the module whose ``main(argv)`` parses the rest of the line
+BENCHMARKS = {"pipeline": "flows.bench.pipeline", "fit": "flows.bench.fit",
+              "occupancy": "flows.bench.occupancy"}
 
-    bench(quick=args.quick, json_path=args.json, workers=args.workers)
-    return 0
+
+def run_bench(argv: list[str]) -> int:
+    import importlib
+
+    what = argv[0] if argv and argv[0] in BENCHMARKS else "pipeline"
+    rest = argv[1:] if argv and argv[0] in BENCHMARKS else argv
+    return importlib.import_module(BENCHMARKS[what]).main(rest) or 0
+
+
+def run_cluster(argv: list[str]) -> int:
+    from flows.deploy.clusters import main
+
+    return main(argv)
+
+
+def run_deploy(argv: list[str]) -> int:
+    from flows.deploy.prefect import main
+
+    return main(argv)
+
+
+#: subcommands that parse their own options (`mobileocc bench fit --help`)
+PASSTHROUGH = {"bench": run_bench, "cluster": run_cluster, "deploy": run_deploy}
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from flows.simulate import simulate
+    from flows.commands.simulate import simulate
 
     ids = simulate(args.out, sequences=args.sequences, frames=args.frames, seed=args.seed,
                    pedestrians=args.pedestrians, crowd=args.crowd, night=args.night,
@@ -153,7 +175,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_show(args: argparse.Namespace) -> int:
-    from flows.show import show
+    from flows.commands.show import show
 
     png = show(args.path, args.png, frame=args.frame)
     print(png)
@@ -161,7 +183,7 @@ def cmd_show(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from flows.simulate import simulate
+    from flows.commands.simulate import simulate
 
     data = args.data or Path("demo-data")
     if not (data / "timestamps").is_dir():
@@ -170,7 +192,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
                  progress=not args.quiet)
     args.data = data
     status = _run(args, force=False)
-    from flows.evaluate import evaluate
+    from flows.commands.evaluate import evaluate
 
     out = Path(_config(args).output.root)
     report = out / "report"
@@ -221,11 +243,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--report", type=Path, required=True, help="report folder")
     p.set_defaults(func=cmd_evaluate)
 
-    p = sub.add_parser("bench", help="measure stage speeds, memory and reference ratios in one run")
-    p.add_argument("--quick", action="store_true", help="small inputs, a few minutes")
-    p.add_argument("--json", type=Path, default=None, help="write the figures as JSON")
-    p.add_argument("--workers", type=int, default=2)
-    p.set_defaults(func=cmd_bench)
+    for name, text in (
+        ("bench", "measure speeds, memory and reference ratios in one run: `mobileocc bench "
+                  "[pipeline | fit | occupancy] [--help | options]` (default pipeline)"),
+        ("cluster", "render a Dask cluster spec: `mobileocc cluster render infra/slurm.yaml`"),
+        ("deploy", "Prefect deployments: `mobileocc deploy serve | apply | trigger [--config FILE]`"),
+    ):  # listed for --help; main() hands their arguments to the module's own parser
+        sub.add_parser(name, help=text, add_help=False)
 
     p = sub.add_parser("simulate", help="generate synthetic campus sequences (CODa layout + ground truth)")
     p.add_argument("--out", type=Path, required=True)
@@ -256,6 +280,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in PASSTHROUGH:
+        return PASSTHROUGH[argv[0]](argv[1:])
     parser = build_parser()
     args = parser.parse_args(argv)
     from configs.schema import ConfigError

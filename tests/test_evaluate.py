@@ -1,4 +1,4 @@
-"""flows/evaluate.py on a tiny simulated dataset run through the stages (no fit: GT bodies)."""
+"""flows/commands/evaluate.py on a tiny simulated dataset run through the stages (no fit: GT bodies)."""
 
 from __future__ import annotations
 
@@ -8,14 +8,14 @@ import shutil
 import numpy as np
 import pytest
 
-from flows.bench import make_config, run_local
-from flows.evaluate import _boxes_to_base, _condition, evaluate
+from flows.bench.pipeline import make_config, run_local
+from flows.commands.evaluate import _boxes_to_base, _condition, evaluate
 
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
     """1 sequence, 4 raw frames (2 at 5 Hz), detect / track / map / fuse (GT bodies) / export."""
-    from flows.simulate import simulate
+    from flows.commands.simulate import simulate
 
     root = tmp_path_factory.mktemp("evaluate")
     data, out = root / "data", root / "out"

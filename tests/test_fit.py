@@ -10,7 +10,14 @@ from tasks.body.poses import sample_plausible_poses
 from tasks.body.prior import GMMPosePrior, generate_pose_prior
 from tasks.body.procedural import default_body_model
 from tasks.fit.init_oracle import BodyParams, cliff_to_params, oracle_initial_estimate
-from tasks.fit.lidar_sim import R_CAM_FROM_LIDAR, SENSORS, LidarSpec, frustum_ray_directions, simulate_sweep, synthesize_persons
+from tasks.fit.lidar_sim import (
+    R_CAM_FROM_LIDAR,
+    SENSORS,
+    LidarSpec,
+    frustum_ray_directions,
+    simulate_sweep,
+    synthesize_persons,
+)
 from tasks.fit.metrics import mean_error_mm
 from tasks.fit.optimize import fit_persons
 

@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from configs.schema import load_config
-from flows.pipeline import rebuild_dataset
-from flows.plan import STAGES
+from flows.pipeline.plan import STAGES
+from flows.pipeline.run import rebuild_dataset
 from storage.manifest import Manifest, StoreLockedError, run_lock
 from storage.tables import read_table
 
@@ -177,7 +177,7 @@ def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle
 
 
 def _camera_K(cfg, seq):
-    from flows.plan import open_sequence
+    from flows.pipeline.plan import open_sequence
 
     return open_sequence(cfg, seq).info.calibration.cameras[cfg.dataset.camera].K
 

@@ -23,7 +23,7 @@ SEED = 3
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory) -> tuple[Path, Path]:
-    from flows.simulate import simulate
+    from flows.commands.simulate import simulate
 
     a, b = tmp_path_factory.mktemp("simA"), tmp_path_factory.mktemp("simB")
     assert simulate(a, sequences=1, frames=2, seed=SEED, pedestrians=5, progress=False) == [0]
@@ -115,7 +115,7 @@ def _point_voxel_agreement(root: Path, sequence: int, frame: int) -> tuple[int, 
 @pytest.fixture(scope="module")
 def three_scenes(tmp_path_factory) -> Path:
     """Three independent scenes (sequence seeds derived from SEED) of two frames, 5 people each."""
-    from flows.simulate import simulate
+    from flows.commands.simulate import simulate
 
     root = tmp_path_factory.mktemp("sim3")
     simulate(root, sequences=3, frames=2, seed=SEED, pedestrians=5, progress=False)
@@ -213,7 +213,7 @@ def test_bad_ground_truth_field_is_rejected(tmp_path):
 def test_show_renders_a_frame(runs, tmp_path):
     from PIL import Image
 
-    from flows.show import show
+    from flows.commands.show import show
 
     out = show(runs[0] / "gt" / "0", tmp_path / "frame.png", frame=1)
     im = np.asarray(Image.open(out))

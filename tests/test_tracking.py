@@ -223,7 +223,7 @@ def test_read_product_reads_only_the_named_arrays(tmp_path):
 
 # ---- world-position check (split_tracks / stitch_ids with positions) ---------------------------
 
-from tasks.track.offline import WorldMotion, split_tracks  # noqa: E402
+from tasks.track.offline import split_tracks  # noqa: E402
 
 _DT = 0.2  # 5 Hz
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from configs.schema import Config
-from flows.plan import open_sequence
+from flows.pipeline.plan import open_sequence
 from storage.coda import CodaSequence
 
 

@@ -14,14 +14,18 @@ from pathlib import Path
 import numpy as np
 
 from configs.schema import Config
-from flows.parallel import fan_out
-from flows.plan import open_sequence
+from flows.pipeline.parallel import fan_out
+from flows.pipeline.plan import open_sequence
 from flows.stages.common import StageContext, chunks, frame_rng, is_night
 from storage.gt import read_frame_gt
 from storage.intermediate import masks_to_labels, write_product
 from storage.perception_files import PrecomputedPerception
 from tasks.perception.lidar_clusters import detect_pedestrians_lidar
-from tasks.perception.oracle import OracleNoise, oracle_image_perception, oracle_lidar_detections
+from tasks.perception.oracle import (
+    OracleNoise,
+    oracle_image_perception,
+    oracle_lidar_detections,
+)
 from tasks.perception.types import ImagePerception, LidarDetections
 
 

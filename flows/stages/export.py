@@ -3,7 +3,7 @@
 The fused store is hard-linked (copied across file systems) from the fuse stage's key-named output
 into ``OUT/occupancy/<sequence>/<version>.zarr``; the three table partitions are written aside and
 published together (storage/occupancy_store.py, storage/tables.py). Dataset-level exports (Occ3D,
-nuScenes) run after all sequences (flows/pipeline.py, ``mobileocc export``).
+nuScenes) run after all sequences (flows/pipeline/run.py, ``mobileocc export``).
 """
 
 from __future__ import annotations
@@ -15,13 +15,12 @@ import numpy as np
 import torch
 
 from configs.schema import config_hash
-from flows.plan import CODE_VERSIONS
+from flows.pipeline.plan import CODE_VERSIONS
 from flows.stages.common import StageContext, is_night
 from flows.stages.fit import body_model
 from storage.intermediate import read_product
 from storage.manifest import FileHasher, sequence_fingerprint
-from storage.occupancy_store import sequence_writer
-from storage.tables import stage_table
+from storage.publish import sequence_writer, stage_table
 from tasks.fit.init_oracle import BodyParams
 from tasks.fit.reframe import reframe_params
 

@@ -27,12 +27,16 @@ import numpy as np
 import torch
 
 from configs.schema import Config
-from flows.parallel import fan_out
-from flows.plan import open_sequence
+from flows.pipeline.parallel import fan_out
+from flows.pipeline.plan import open_sequence
 from flows.stages.common import StageContext, frame_rng
+from storage.body_files import (
+    load_body_model,
+    load_pose_prior,
+    save_body_model_npz,
+    save_pose_prior_pkl,
+)
 from storage.cliff_files import cliff_path, read_cliff_estimates
-from storage.body_files import (load_body_model, load_pose_prior, save_body_model_npz,
-                                save_pose_prior_pkl)
 from storage.gt import read_frame_gt
 from storage.intermediate import read_product, write_product
 from tasks.body.model import BodyModel
@@ -43,7 +47,6 @@ from tasks.fit.losses import FitWeights
 from tasks.fit.optimize import fit_persons
 from tasks.fit.reframe import reframe_params
 from tasks.track.velocity import track_velocities
-
 
 #: our procedural stand-ins are generated once per output store and saved in the official formats
 PROCEDURAL_MODEL = "procedural_smpl_v1.npz"

@@ -17,18 +17,18 @@ import numpy as np
 import torch
 
 from configs.schema import Config, config_hash
-from flows.parallel import fan_out
-from flows.plan import CODE_VERSIONS, open_sequence
+from flows.pipeline.parallel import fan_out
+from flows.pipeline.plan import CODE_VERSIONS, open_sequence
 from flows.stages.common import StageContext
 from flows.stages.fit import body_model
 from flows.stages.map import occupancy_params
 from storage.gt import read_frame_gt, read_sequence_gt
 from storage.intermediate import read_product, write_product
 from storage.occupancy_store import create_store, write_frames
+from tasks.conventions import UNLABELED, transform_points
 from tasks.occupancy.freespace import OccupancyMap
 from tasks.occupancy.fuse import CameraView, PedestrianMesh, fuse_frame
 from tasks.occupancy.grid import GridSpec
-from tasks.conventions import UNLABELED, transform_points
 from tasks.occupancy.static_map import StaticMap, lookup_labels
 
 

@@ -24,8 +24,13 @@ from flows.stages.common import StageContext
 from storage.intermediate import read_product, write_product
 from tasks.conventions import PEDESTRIAN, UNLABELED, transform_points
 from tasks.occupancy.freespace import OccupancyMap
-from tasks.occupancy.static_map import (StaticSemanticMap, lift_image_semantics,
-                                        merge_static_maps, pedestrian_point_mask, project_points)
+from tasks.occupancy.static_map import (
+    StaticSemanticMap,
+    lift_image_semantics,
+    merge_static_maps,
+    pedestrian_point_mask,
+    project_points,
+)
 from tasks.perception.person_points import associate_lidar_boxes
 
 

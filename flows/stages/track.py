@@ -22,7 +22,11 @@ import numpy as np
 from flows.stages.common import StageContext
 from storage.intermediate import labels_to_masks, read_product, write_product
 from tasks.conventions import transform_points
-from tasks.perception.person_points import associate_lidar_boxes, in_image_first, person_point_indices
+from tasks.perception.person_points import (
+    associate_lidar_boxes,
+    in_image_first,
+    person_point_indices,
+)
 from tasks.track.ocsort import PedestrianTracker
 from tasks.track.offline import WorldMotion, track_offline
 

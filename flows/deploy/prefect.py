@@ -2,7 +2,7 @@
 
 Two ways to deploy (see infra/README.md):
 
-- ``python -m flows.deploy serve``: ``prefect.serve`` of both flows in this process (one machine;
+- ``mobileocc deploy serve``: ``prefect.serve`` of both flows in this process (one machine;
   the flow runs execute here). Needs ``PREFECT_API_URL`` of a running server.
 - ``prefect deploy --all`` with ``infra/prefect.yaml``: deployments on a work pool, executed by a
   worker (process, Docker or Kubernetes).
@@ -30,9 +30,9 @@ def deployments(tags: tuple[str, ...] = ("mobileocc",)) -> list:
     """RunnerDeployments of ``rebuild_dataset`` ("rebuild") and ``process_sequence`` ("sequence")."""
     from prefect.deployments.runner import EntrypointType
 
-    from flows.pipeline import process_sequence, rebuild_dataset
+    from flows.pipeline.run import process_sequence, rebuild_dataset
 
-    module = EntrypointType.MODULE_PATH  # "flows.pipeline:rebuild_dataset", as in infra/prefect.yaml
+    module = EntrypointType.MODULE_PATH  # "flows.pipeline.run:rebuild_dataset", as in infra/prefect.yaml
     return [
         rebuild_dataset.to_deployment(name="rebuild", tags=list(tags), entrypoint_type=module,
                                       parameters={"progress": False},
@@ -94,7 +94,7 @@ def trigger_sequence(config: Config, sequence: str, force: bool = False,
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m flows.deploy")
+    parser = argparse.ArgumentParser(prog="mobileocc deploy")
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("serve", help="serve both flows from this process (needs PREFECT_API_URL)")
     sub.add_parser("apply", help="register both deployments without serving them")
@@ -118,6 +118,3 @@ def main(argv: list[str] | None = None) -> int:
         print(f"flow run {run.id} ({run.state.name if run.state else 'unknown'}), key {key}")
     return 0
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -4,7 +4,7 @@
 products of the run that built it (stage folders named in ``OUT/manifest.json``) and the ground
 truth beside the raw data (``GT/gt/{SEQ}/``, storage/GT_FORMAT.md), hands arrays to the metric
 kernels of tasks/metrics and tasks/fit/metrics.py, and writes ``report.md``, ``results.json`` and
-figures through flows/report.py. A section whose inputs are absent (no fit product, no ground
+figures through flows/commands/report.py. A section whose inputs are absent (no fit product, no ground
 truth for a sequence, a grid that is not the ground truth's) is replaced by a note saying why.
 
 Definitions beyond the kernels' own (each kernel's docstring has the rest):
@@ -25,7 +25,6 @@ Definitions beyond the kernels' own (each kernel's docstring has the rest):
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -36,14 +35,22 @@ from storage.gt import gt_dir, read_frame_gt, read_sequence_gt
 from storage.intermediate import read_product
 from storage.manifest import Manifest
 from tasks import conventions as C
+from tasks.metrics._common import PRCounts
 from tasks.metrics.detection import DetectionCounts, detection_counts, match_boxes
 from tasks.metrics.occupancy import OccupancyMetric
-from tasks.metrics.pedestrian import (pedestrian_box_counts, pedestrian_lidar_counts,
-                                     person_point_counts, voxelize_points)
+from tasks.metrics.pedestrian import (
+    pedestrian_box_counts,
+    pedestrian_lidar_counts,
+    person_point_counts,
+    voxelize_points,
+)
 from tasks.metrics.static import StaticCounts, static_counts
 from tasks.metrics.tracking import tracking_scores
-from tasks.metrics._common import PRCounts
-from tasks.metrics.velocity import VelocityErrors, velocity_errors, voxel_velocity_errors
+from tasks.metrics.velocity import (
+    VelocityErrors,
+    velocity_errors,
+    voxel_velocity_errors,
+)
 
 #: a GT person counts as "visible" for detection when at least this fraction of its silhouette shows
 VISIBLE_FRACTION = 0.3
@@ -358,7 +365,7 @@ def evaluate(dataset: Path, gt: Path | None, report_dir: Path, sample_frames: in
     for key, label in (("PVE_mm", "PVE (mm) per fitted person"), ("MPJPE_mm", "MPJPE (mm) per fitted person")):
         if tot.hist[key]:
             hist[f"fit {key}"] = {"values": np.concatenate(tot.hist[key]), "xlabel": label}
-    from flows.report import to_jsonable, write_report
+    from flows.commands.report import to_jsonable, write_report
 
     write_report(report_dir, results, {"bev": tot.samples, "histograms": hist})
     return to_jsonable(results)
@@ -375,20 +382,3 @@ def _brief(row: dict) -> dict:
     """A per-sequence row: the summary numbers and per-class IoU."""
     return {k: v for k, v in row.items() if k not in ("num_points_ignored",)}
 
-
-def main(argv: list[str] | None = None) -> None:  # pragma: no cover - the CLI calls evaluate()
-    import argparse
-
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--dataset", type=Path, required=True)
-    p.add_argument("--gt", type=Path, default=None)
-    p.add_argument("--report", type=Path, required=True)
-    p.add_argument("--sample-frames", type=int, default=3)
-    a = p.parse_args(argv)
-    res = evaluate(a.dataset, a.gt, a.report, a.sample_frames)
-    print(json.dumps({k: res[k] for k in res if k not in ("meta",)}, indent=1)[:4000])
-    print(f"report: {a.report / 'report.md'}")
-
-
-if __name__ == "__main__":  # pragma: no cover
-    main()

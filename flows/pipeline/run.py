@@ -9,6 +9,7 @@ resumes where it stopped.
 from __future__ import annotations
 
 import contextlib
+import json
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -19,12 +20,18 @@ from prefect.cache_policies import NO_CACHE
 from prefect.futures import PrefectFuture, as_completed
 
 from configs.schema import Config, config_hash
-from flows.plan import STAGES, SequencePlan, UnitPlan, plan_run
+from flows.pipeline.plan import STAGES, SequencePlan, UnitPlan, plan_run
 from flows.stages import STAGE_FUNCTIONS, StageContext
-from storage.manifest import (FileHasher, Manifest, StageRecord, remove_stale_versions, run_lock,
-                              stage_dir, staged_output, sweep_temporaries)
-
-import json
+from storage.manifest import (
+    FileHasher,
+    Manifest,
+    StageRecord,
+    remove_stale_versions,
+    run_lock,
+    stage_dir,
+    staged_output,
+    sweep_temporaries,
+)
 
 
 def execute_unit(config: Config, unit: UnitPlan, out_root: Path, upstream: dict[str, dict]) -> dict:
@@ -194,7 +201,7 @@ def rebuild_dataset(config: Config, force: bool = False, sequences: list[str] | 
     The units run in a subflow on the task runner ``config.dask`` asks for (threads, a Dask
     LocalCluster, or ``dask.address``), however this flow was started (CLI, deployment, test).
     """
-    from flows.runtime import task_runner
+    from flows.pipeline.runtime import task_runner
 
     inner = _run_units_flow.with_options(task_runner=task_runner(config))
     report = inner(config, force, sequences, progress)

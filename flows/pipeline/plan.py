@@ -8,11 +8,16 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass, field
-from pathlib import Path
 
 from configs.schema import Config
 from storage.coda import CodaSequence, list_sequences
-from storage.manifest import FileHasher, Manifest, canonical_json, sequence_fingerprint, stage_key
+from storage.manifest import (
+    FileHasher,
+    Manifest,
+    canonical_json,
+    sequence_fingerprint,
+    stage_key,
+)
 
 #: The DAG of DESIGN.md: stage -> upstream stages. Order is a topological order.
 STAGES: dict[str, tuple[str, ...]] = {
