@@ -28,6 +28,7 @@ from tasks.conventions import COCO_TO_SMPL_JOINT
 from tasks.fit import losses as L
 from tasks.fit.icp import icp_align, rigid_update_params
 from tasks.fit.init_oracle import BodyParams
+from tasks.fit.settings import FitSettings
 from tasks.fit.visibility import Visibility, vertex_parts, visibility_masks
 
 _COCO_JOINT_IDX = [COCO_TO_SMPL_JOINT[i] for i in range(5, 17)]
@@ -82,7 +83,7 @@ def fit_persons(
     points,
     point_mask,
     weights: L.FitWeights = L.FIT_PRESETS["3dpw"],
-    iterations: int = 100,
+    iterations: int = FitSettings.iterations,
     lr: float = 0.02,
     device: str = "cpu",
     seed: int = 0,
