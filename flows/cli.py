@@ -72,7 +72,8 @@ def _run(args: argparse.Namespace, force: bool) -> int:
     with prefect_api():
         report = rebuild_dataset(cfg, force=force, progress=not args.quiet)
     print(summary_table(report))
-    return 1 if report.failed else 0
+    export_failed = any(v != "done" for v in report.dataset_exports.values())
+    return 1 if report.failed or export_failed else 0
 
 
 def cmd_rebuild(args: argparse.Namespace) -> int:
@@ -118,10 +119,11 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
+    from flows.pipeline.inputs import dataset_export_inputs
     from flows.pipeline.run import export_dataset
 
     cfg = _config(args)
-    target = export_dataset(cfg, args.format, args.to)
+    target = export_dataset(dataset_export_inputs(cfg), cfg.output.root, cfg.dataset.root, args.format, args.to)
     print(f"{args.format} export written to {target}")
     return 0
 

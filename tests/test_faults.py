@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 
 from configs.schema import load_config
-from flows.pipeline.plan import STAGES
+from flows.pipeline.dag import STAGES
 from flows.pipeline.run import rebuild_dataset
 from storage.manifest import Manifest
 

@@ -48,7 +48,9 @@ def run_local(config, stages=STAGE_ORDER, sequences: list[str] | None = None) ->
     are absent upstream (fuse with ``body_source: ground-truth`` needs no fit). Returns
     {(sequence, stage): outcome} with ``seconds`` per unit; raises on a failed unit."""
     from configs.schema import config_hash
-    from flows.pipeline.plan import STAGES, plan_run
+    from flows.pipeline.dag import STAGES
+    from flows.pipeline.inputs import runtime
+    from flows.pipeline.plan import plan_run
     from flows.pipeline.run import _record, execute_unit
     from storage.manifest import FileHasher, Manifest
 
@@ -65,7 +67,8 @@ def run_local(config, stages=STAGE_ORDER, sequences: list[str] | None = None) ->
             if stage not in stages:
                 continue
             ups = {u: done[u] for u in STAGES[stage] if u in done}
-            outcome = execute_unit(config, plan.units[stage], out, ups)
+            outcome = execute_unit(plan.units[stage], Path(config.dataset.root), out, ups,
+                                   plan.fingerprint, runtime(config))
             _record(manifest, outcome)
             if outcome["status"] != "done":
                 raise RuntimeError(f"sequence {plan.sequence} stage {stage} {outcome['status']}: "
@@ -146,11 +149,13 @@ def _fuse_fanout(data_root: str, out_root: str, overrides: dict, n_workers: int)
     """The fuse stage with its frame chunks on a LocalCluster of ``n_workers`` processes."""
     from distributed import Client, LocalCluster
 
+    from flows.pipeline.inputs import fuse_inputs
     from flows.stages.common import StageContext
     from flows.stages.fuse import run_fuse
     from storage.manifest import Manifest
 
     cfg = make_config(Path(data_root), Path(out_root), overrides)
+    inputs = fuse_inputs(cfg)
     man = Manifest.load(Path(out_root))
     seq = cfg.dataset.sequences[0] if isinstance(cfg.dataset.sequences, list) else "0"
     ups = {s: Path(out_root) / man.get(seq, s).location for s in ("map",)}
@@ -159,7 +164,7 @@ def _fuse_fanout(data_root: str, out_root: str, overrides: dict, n_workers: int)
         def unit():
             work = Path(tempfile.mkdtemp(dir=out_root))
             try:
-                run_fuse(StageContext(cfg, seq, Path(out_root), work, ups, key="bench"))
+                run_fuse(StageContext(seq, Path(data_root), inputs, Path(out_root), work, ups, key="bench"))
             finally:
                 shutil.rmtree(work, ignore_errors=True)
         client.run(lambda: __import__("flows.stages.fuse"))  # imports on every worker, outside the timing
@@ -174,20 +179,21 @@ def _fit_rate(data_root: str, out_root: str, overrides: dict, device: str) -> di
     """Person-fits/s of the fit kernel on the track product's rows (one batch, after a warm-up)."""
     import numpy as np
 
+    from flows.pipeline.inputs import fit_inputs
     from flows.stages.fit import fit_batch
-    from storage.intermediate import read_product
     from storage.manifest import Manifest
+    from storage.products import Tracks
 
     cfg = make_config(Path(data_root), Path(out_root), {**overrides, "fit.device": device})
-    man = Manifest.load(Path(out_root))
-    seq = "0"
-    tracks = read_product(Path(out_root) / man.get(seq, "track").location, "tracks")
-    rows = np.flatnonzero(tracks["gt_index"] >= 0).tolist()
+    inputs, man, seq = fit_inputs(cfg), Manifest.load(Path(out_root)), "0"
+    tracks_dir = Path(out_root) / man.get(seq, "track").location
+    rows = np.flatnonzero(Tracks.read(tracks_dir).gt_index >= 0).tolist()
     if not rows:
         return {"device": device, "persons": 0, "note": "no tracked person to fit"}
-    fit_batch(cfg, seq, rows[:1], tracks)  # warm-up
+    args = (Path(data_root), seq, inputs, Path(out_root), tracks_dir)
+    fit_batch(*args, rows[:1])  # warm-up
     t0 = time.perf_counter()
-    fit_batch(cfg, seq, rows, tracks)
+    fit_batch(*args, rows)
     wall = time.perf_counter() - t0
     return {"device": device, "persons": len(rows), "iterations": cfg.fit.iterations, "wall_s": wall,
             "fits_per_s": len(rows) / wall, "peak_rss_mb": _peak_rss_mb()}

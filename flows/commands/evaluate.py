@@ -32,7 +32,7 @@ import numpy as np
 from storage.coda import CodaSequence, read_lidar_bin
 from storage.dataset import open_dataset
 from storage.gt import gt_dir, read_frame_gt, read_sequence_gt
-from storage.intermediate import read_product
+from storage.products import Bodies, Detections, Tracks
 from storage.manifest import Manifest
 from tasks import conventions as C
 from tasks.metrics._common import PRCounts
@@ -186,8 +186,8 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
     detect_dir = _stage_folder(out, manifest, seq, "detect")
     track_dir = _stage_folder(out, manifest, seq, "track")
     fit_dir = _stage_folder(out, manifest, seq, "fit")
-    tracks = read_product(track_dir, "tracks") if track_dir is not None else None
-    bodies = (read_product(fit_dir, "bodies")
+    tracks = Tracks.read(track_dir).arrays() if track_dir is not None else None
+    bodies = (Bodies.read(fit_dir).arrays()
               if fit_dir is not None and (fit_dir / "bodies.npz").exists() else None)
     if detect_dir is None:
         tot.notes[f"detection {seq}"] = "no detect stage output: detection robustness skipped"
@@ -236,7 +236,7 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
         persons = _gt_persons(gtf)
         vis = gtf.visible_fraction[persons] >= VISIBLE_FRACTION
         if detect_dir is not None:
-            det = read_product(detect_dir, f"frame_{raw}")
+            det = Detections.read(detect_dir, Detections.file_name(raw)).arrays()
             tot.detection[condition] = tot.detection.get(condition, DetectionCounts()) + detection_counts(
                 gtf.box2d[persons], vis, det["boxes_xyxy"])
         if tracks is not None:
@@ -252,7 +252,7 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
         if bodies is not None and detect_dir is not None:
             rows = np.flatnonzero(bodies["frame"] == raw)
             if rows.size:
-                det = read_product(detect_dir, f"frame_{raw}")
+                det = Detections.read(detect_dir, Detections.file_name(raw)).arrays()
                 boxes = det["boxes_xyxy"][bodies["det_index"][rows]]
                 gi, fi = match_boxes(gtf.box2d[persons], boxes, FIT_MATCH_IOU)
                 if gi.size:

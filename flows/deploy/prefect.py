@@ -23,7 +23,6 @@ from configs.schema import Config, config_hash
 
 #: deployment names, as ``run_deployment`` takes them ("<flow name>/<deployment name>")
 REBUILD_DEPLOYMENT = "rebuild-dataset/rebuild"
-SEQUENCE_DEPLOYMENT = "process-sequence/sequence"
 
 
 def deployments(tags: tuple[str, ...] = ("mobileocc",)) -> list:
@@ -83,16 +82,6 @@ def trigger_rebuild(config: Config, force: bool = False, sequences: list[str] | 
                           idempotency_key=idempotency_key, **kwargs)
 
 
-def trigger_sequence(config: Config, sequence: str, force: bool = False,
-                     idempotency_key: str | None = None, timeout: float | None = 0, **kwargs: Any):
-    """Start (or find) a run of the one-sequence deployment; returns the FlowRun."""
-    from prefect.deployments import run_deployment
-
-    parameters = {"config": config.model_dump(mode="json"), "sequence": str(sequence), "force": force}
-    return run_deployment(SEQUENCE_DEPLOYMENT, parameters=parameters, timeout=timeout,
-                          idempotency_key=idempotency_key, **kwargs)
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="mobileocc deploy")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -117,4 +106,3 @@ def main(argv: list[str] | None = None) -> int:
         run = trigger_rebuild(cfg, force=args.force, idempotency_key=key)
         print(f"flow run {run.id} ({run.state.name if run.state else 'unknown'}), key {key}")
     return 0
-
