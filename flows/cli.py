@@ -121,8 +121,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     from flows.pipeline import export_dataset
 
     cfg = _config(args)
-    target = export_dataset(cfg, args.format, args.to)
-    print(f"{args.format} export written to {target}")
+    target = export_dataset(cfg, args.format, args.to, gt=args.gt)
+    print(f"{args.format} export{' of the ground truth' if args.gt else ''} written to {target}")
     return 0
 
 
@@ -212,6 +212,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_args(p, runtime=False)
     p.add_argument("--format", choices=["occ3d", "nuscenes"], required=True)
     p.add_argument("--to", type=Path, required=True, help="export folder")
+    p.add_argument("--gt", action="store_true",
+                   help="occ3d: labels from the synthetic ground truth under --data (dataset.root)")
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("evaluate", help="label quality against ground truth: Markdown report + JSON")

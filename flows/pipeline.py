@@ -164,19 +164,25 @@ def _progress_bars(report: RunReport, futures: list, progress: bool):
             for i, s in enumerate(STAGES)}
 
 
-def export_dataset(config: Config, fmt: str, target: Path | None = None) -> Path:
-    """Export the published dataset (every sequence) for occupancy trainers."""
+def export_dataset(config: Config, fmt: str, target: Path | None = None, gt: bool = False) -> Path:
+    """Export the published dataset (every sequence) for occupancy trainers; ``gt``: Occ3D labels
+    from the synthetic ground truth under ``dataset.root`` instead of the pipeline's."""
     from storage.export.nuscenes import export_nuscenes
     from storage.export.occ3d import export_occ3d
 
     out = Path(config.output.root)
     target = Path(target) if target is not None else out / "exports" / fmt
     ex = config.export
+    if gt and fmt != "occ3d":
+        raise ValueError(f"--gt exports Occ3D labels; it does not apply to --format {fmt}")
     if fmt == "occ3d":
-        export_occ3d(out, target, scene_prefix=ex.scene_prefix, val_sequences=tuple(ex.val_sequences))
+        export_occ3d(out, target, scene_prefix=ex.scene_prefix, val_sequences=tuple(ex.val_sequences),
+                     gt_root=Path(config.dataset.root) if gt else None)
     else:
         export_nuscenes(out, target, version=ex.nuscenes_version, scene_prefix=ex.scene_prefix,
-                        source_root=Path(config.dataset.root), min_range_m=config.dataset.min_range_m)
+                        source_root=Path(config.dataset.root), min_range_m=config.dataset.min_range_m,
+                        val_sequences=tuple(ex.val_sequences),
+                        **({"infos_data_root": ex.infos_data_root} if ex.infos_data_root else {}))
     return target
 
 

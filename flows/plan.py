@@ -33,8 +33,9 @@ CODE_VERSIONS: dict[str, str] = {
     #             3: detections with fewer than fit.min_points LiDAR points are not fitted, fits
     #                that moved more than fit.max_shift_m from their estimate are dropped
     "map": "2",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path
-    "fuse": "1",
-    "export": "2",  # 2: instances carry the fitted bodies, 3D boxes and velocities
+    "fuse": "2",  # 2: mask_camera is inside mask_lidar (Occ3D)
+    "export": "3",  # 2: instances carry the fitted bodies, 3D boxes and velocities; 3: source paths
+    #                 relative to the dataset root, box yaw from the body's forward axis, no NaN velocity
 }
 
 

@@ -18,10 +18,12 @@ from configs.schema import config_hash
 from flows.plan import CODE_VERSIONS
 from flows.stages.common import StageContext, is_night
 from flows.stages.fit import body_model
+from storage.export.common import source_relative
 from storage.intermediate import read_product
 from storage.manifest import FileHasher, sequence_fingerprint
 from storage.occupancy_store import sequence_writer
 from storage.tables import stage_table
+from tasks.body.boxes import upright_box
 from tasks.fit.init_oracle import BodyParams
 from tasks.fit.reframe import reframe_params
 
@@ -33,22 +35,6 @@ def _link_tree(src, dst) -> None:
         except OSError:
             shutil.copy2(a, b)
     shutil.copytree(src, dst, copy_function=link, dirs_exist_ok=True)
-
-
-def _box_from_vertices(vertices_base: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """Upright box around a body (base frame): centre (3,), size (l, w, h) with l along the
-    footprint's major axis, yaw of that axis."""
-    xy = vertices_base[:, :2] - vertices_base[:, :2].mean(0)
-    _, vecs = np.linalg.eigh(xy.T @ xy)
-    major = vecs[:, 1]
-    yaw = float(np.arctan2(major[1], major[0]))
-    R = np.array([[np.cos(yaw), np.sin(yaw)], [-np.sin(yaw), np.cos(yaw)]])
-    local = vertices_base[:, :2] @ R.T
-    lo, hi = local.min(0), local.max(0)
-    z0, z1 = vertices_base[:, 2].min(), vertices_base[:, 2].max()
-    centre_xy = R.T @ ((lo + hi) / 2)
-    return (np.array([centre_xy[0], centre_xy[1], (z0 + z1) / 2]),
-            np.array([hi[0] - lo[0], hi[1] - lo[1], z1 - z0]), yaw)
 
 
 def instance_rows(ctx: StageContext, frame_pos: dict[int, int], T_base_from_lidar: np.ndarray) -> list[dict]:
@@ -74,11 +60,13 @@ def instance_rows(ctx: StageContext, frame_pos: dict[int, int], T_base_from_lida
                "keypoints": tracks["keypoints"][r].reshape(-1).tolist()}
         b = fitted.get((int(tracks["frame"][r]), int(tracks["det_index"][r])))
         if b is not None:
-            centre, size, yaw = _box_from_vertices(verts[b].astype(np.float64))
-            row.update({"box3d_center": centre.tolist(), "box3d_size": size.tolist(), "box3d_yaw": yaw,
+            vel = np.asarray(bodies["velocity_base"][b], np.float64)
+            known = bool(np.all(np.isfinite(vel)))  # unknown (e.g. across a track gap): null, never NaN
+            box = upright_box(verts[b], base.global_orient[b], vel if known else None)
+            row.update({"box3d_center": box.center.tolist(), "box3d_size": box.size.tolist(), "box3d_yaw": box.yaw,
                         "betas": base.betas[b].tolist(), "global_orient": base.global_orient[b].tolist(),
                         "body_pose": base.body_pose[b].tolist(), "transl": base.transl[b].tolist(),
-                        "vx": float(bodies["velocity_base"][b][0]), "vy": float(bodies["velocity_base"][b][1])})
+                        "vx": float(vel[0]) if known else None, "vy": float(vel[1]) if known else None})
         rows.append(row)
     return rows
 
@@ -93,14 +81,15 @@ def run_export(ctx: StageContext) -> dict:
     version = ctx.key
     frames = []
     for k, raw in enumerate(fused["frame"].tolist()):
-        frame_paths = {c: seq.image_path(c, raw) for c in calib.cameras}
+        # source paths relative to the dataset root (SCHEMA.md): the export joins its source root
+        frame_paths = {c: source_relative(seq.image_path(c, raw), seq.root) for c in calib.cameras}
         frames.append({
             "frame": k, "raw_frame": raw, "stamp_ns": int(fused["stamp_ns"][k]),
             "T_world_from_lidar": info.poses[k].reshape(-1).tolist(),
             "T_world_from_base": fused["T_world_from_base"][k].reshape(-1).tolist(),
-            "lidar_path": str(seq.path(seq.lidar_source, "os1", raw, ".bin")),
-            "cam0_path": str(frame_paths.get("cam0", "")),
-            "cam1_path": str(frame_paths["cam1"]) if "cam1" in frame_paths else None,
+            "lidar_path": source_relative(seq.path(seq.lidar_source, "os1", raw, ".bin"), seq.root),
+            "cam0_path": frame_paths.get("cam0", ""),
+            "cam1_path": frame_paths.get("cam1"),
             "class_counts": fused["class_counts"][k].tolist(), "is_night": night})
     sequences = [{
         "fingerprint": sequence_fingerprint(info.root, info.files, FileHasher(None)),

@@ -7,6 +7,7 @@ T_world_from_base (F, 4, 4).
 
 mask_lidar is the union of this frame's LiDAR rays (traversed or hit voxels) and the voxels the
 sequence's occupancy map has observed (known free or occupied), so "unknown" means never observed.
+mask_camera is cam0's visibility restricted to mask_lidar, as in Occ3D (storage/SCHEMA.md, "Masks").
 """
 
 from __future__ import annotations
@@ -120,8 +121,9 @@ def fuse_chunk(config: Config, sequence: str, positions: list[int], store: Path,
                            pixel_stride=config.fuse.camera_pixel_stride,
                            camera_method=config.fuse.camera_method)
         mask_lidar = (grids.mask_lidar.astype(bool) | (grids.occupancy_state >= 0)).astype(np.uint8)
+        mask_camera = grids.mask_camera & mask_lidar  # Occ3D: camera-visible = seen by cam0 AND observed by LiDAR
         for name, value in (("semantics", grids.semantics), ("instances", grids.instances),
-                            ("mask_lidar", mask_lidar), ("mask_camera", grids.mask_camera),
+                            ("mask_lidar", mask_lidar), ("mask_camera", mask_camera),
                             ("velocity", grids.velocity.astype(np.float16))):
             stacks[name].append(value)
         rows.append({"frame": frame.index, "stamp_ns": frame.stamp_ns,
