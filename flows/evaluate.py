@@ -20,7 +20,9 @@ Definitions beyond the kernels' own (each kernel's docstring has the rest):
 - tracking: the same GT persons, ids = GT track ids, against the track product's rows;
 - fit: each fitted row's detection box matched (IoU >= 0.5, Hungarian) to the GT persons' box2d
   of its frame; vertices / joints from the configured body model;
-- velocity: GT velocity grid = velocity_base of the person on each of its occupancy_instance voxels.
+- velocity: GT velocity grid = velocity_base of the person on each of its occupancy_instance voxels;
+- box heading: the published box yaw (instances table) of each matched fitted row vs the GT
+  person's heading (box_yaw), both about base z (tasks/metrics/heading.py).
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from storage.gt import gt_dir, read_frame_gt, read_sequence_gt
 from storage.intermediate import read_product
 from storage.manifest import Manifest
 from tasks import conventions as C
+from tasks.metrics.heading import heading_errors_deg, heading_summary
 from tasks.metrics.detection import DetectionCounts, detection_counts, match_boxes
 from tasks.metrics.occupancy import OccupancyMetric
 from tasks.metrics.pedestrian import (pedestrian_box_counts, pedestrian_lidar_counts,
@@ -193,7 +196,9 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
 
     occ = tot.occ.setdefault(seq, OccupancyMetric())
     st, bx, li, ve, pp = StaticCounts(), PRCounts(), PRCounts(), VelocityErrors(), PRCounts()
-    track_frames, fit_rows = [], {k: [] for k in ("pve", "mpjpe", "pa_mpjpe", "mpere")}
+    track_frames, fit_rows = [], {k: [] for k in ("pve", "mpjpe", "pa_mpjpe", "mpere", "heading")}
+    box_yaw = {(int(r["track_id"]), int(r["frame"])): r["box3d_yaw"] for r in ds.table("instances", seq).to_pylist()
+               if r["box3d_yaw"] is not None}
     for k, raw in enumerate(raw_frames):
         gtf = read_frame_gt(gt_root, int(seq), raw)
         pred = np.asarray(arrays["semantics"][k])
@@ -253,8 +258,12 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
                     from tasks.fit.metrics import fit_metrics
 
                     m = fit_metrics(pv, pj, gtf.vertices[persons[gi]], gtf.joints[persons[gi]], gseq.person_faces)
-                    for key in fit_rows:
+                    for key in ("pve", "mpjpe", "pa_mpjpe", "mpere"):
                         fit_rows[key].append(np.asarray(m[key], np.float64))
+                    _, gt_yaw = _boxes_to_base(T_bl, gtf.box_center[persons[gi]], gtf.box_yaw[persons[gi]])
+                    pub = [box_yaw.get((int(bodies["track_id"][b]), k)) for b in rows[fi]]
+                    fit_rows["heading"].append(heading_errors_deg(
+                        [y for y in pub if y is not None], [g for y, g in zip(pub, gt_yaw) if y is not None]))
     tot.static[seq], tot.boxes[seq], tot.lidar[seq], tot.velocity[seq] = st, bx, li, ve
     if pp.pred_total:
         tot.person_points[seq] = pp
@@ -346,6 +355,7 @@ def evaluate(dataset: Path, gt: Path | None, report_dir: Path, sample_frames: in
     if tot.fit:
         allfit = {k: np.concatenate([v[k] for v in tot.fit.values()]) for k in ("pve", "mpjpe", "pa_mpjpe", "mpere")}
         results["fit"] = {**{s: _fit_row(v) for s, v in tot.fit.items()}, "all": _fit_row(allfit)}
+        results["box_heading"] = heading_summary(np.concatenate([v["heading"] for v in tot.fit.values()]))
     if tot.velocity:
         results["velocity"] = {**{s: v.as_dict() for s, v in tot.velocity.items()},
                                "all": _sum(tot.velocity.values()).as_dict()}
