@@ -51,7 +51,7 @@ from storage.export.common import (
 )
 from storage.occupancy_store import open_layout, read_frames
 from storage.plain_pickle import dumps_plain
-from tasks.conventions import CLASS_NAMES, FREE, PEDESTRIAN
+from tasks.conventions import CLASS_NAMES, FREE, PEDESTRIAN, ROAD, TERRAIN
 from tasks.occupancy.instance_visibility import visible_fractions
 
 TABLES = (
@@ -76,6 +76,8 @@ VISIBILITY_LEVELS = (("1", "v0-40", 0.0), ("2", "v40-60", 0.4), ("3", "v60-80", 
 #: where FlashOcc's configs keep the nuScenes data (``data_root``), relative to its checkout
 INFOS_DATA_ROOT = "./data/nuscenes"
 INFOS_PREFIX = "mobileocc"
+#: classes that never occlude a person in the visible fraction (flat ground under them)
+FLAT_GROUND = (ROAD, TERRAIN)
 #: grid spec, class names, free id, splits, infos files (beside the Occ3D export's own, same folder)
 METADATA_FILE = "nuscenes_metadata.json"
 
@@ -153,8 +155,12 @@ def _visible_fractions(ds, seq: str, info, rows: list[dict]) -> dict[tuple[int, 
         grids = read_frames(store, slice(start, stop), ("semantics", "instances"))
         for f in wanted:
             ids = by_frame[f]
+            sem = grids["semantics"][f - start]
+            # flat ground (road, terrain) lies under people: its voxels stand for a surface at z ~ 0
+            # and would hide their feet; it does not occlude them
+            occluders = ~np.isin(sem, (FREE, *FLAT_GROUND))
             frac = visible_fractions(attrs["range_min"], float(attrs["voxel_size_m"]),
-                                     grids["semantics"][f - start] != FREE, grids["instances"][f - start], ids,
+                                     occluders, grids["instances"][f - start], ids,
                                      info.K, info.width, info.height, info.T_base_from_cam0)
             out.update({(f, i): float(v) for i, v in zip(ids, frac)})
     return out
