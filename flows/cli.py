@@ -120,6 +120,9 @@ def cmd_status(args: argparse.Namespace) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     from flows.pipeline import export_dataset
 
+    if args.gt and args.format != "occ3d":
+        print(f"--gt exports Occ3D labels; it does not apply to --format {args.format}", file=sys.stderr)
+        return 2
     cfg = _config(args)
     target = export_dataset(cfg, args.format, args.to, gt=args.gt)
     print(f"{args.format} export{' of the ground truth' if args.gt else ''} written to {target}")

@@ -259,3 +259,4 @@ def test_gt_export_holds_exact_labels_with_the_dataset_masks(demo):
             np.testing.assert_array_equal(gt["mask_camera"], ours["mask_camera"])
             np.testing.assert_array_equal(gt["mask_lidar"], ours["mask_lidar"])
     assert json.loads((work / "gt-occ3d" / "occ3d_metadata.json").read_text())["labels"] == "ground-truth"
+    assert main(["export", "--out", str(work / "demo-out"), "--format", "nuscenes", "--gt", "--to", "x"]) == 2
