@@ -77,3 +77,13 @@ def test_procedural_body_facing_a_direction_gets_that_heading():
         assert abs(np.angle(np.exp(1j * (box.yaw - yaw)))) < 1e-6
         l, w, h = box.size
         assert l < w and 1.5 < h < 2.0  # depth along the heading, arms (T-pose) across
+
+
+def test_heading_errors_wrap_and_summary():
+    from tasks.metrics.heading import heading_errors_deg, heading_summary
+
+    e = heading_errors_deg([np.pi - 0.1, 0.0, np.pi / 2], [-np.pi + 0.1, np.pi, 0.0])
+    np.testing.assert_allclose(e, [np.degrees(0.2), 180.0, 90.0], atol=1e-9)
+    s = heading_summary(e)
+    assert s["boxes"] == 3 and s["median_deg"] == pytest.approx(90.0) and s["axis_off_45_share"] == pytest.approx(1 / 3)
+    assert heading_summary([])["boxes"] == 0
