@@ -1,7 +1,8 @@
 """Pickles of plain data that old and new numpy alike can read (training infos, SMPL model files).
 
-numpy 2 pickles an array through ``numpy._core.multiarray._reconstruct``, a module numpy 1.x does
-not have, so trainers pinned to numpy 1.x (mmdet3d 1.0 / FlashOcc / smplx setups) fail on them.
+numpy 2 pickles an array through ``numpy._core.multiarray._reconstruct``, a module numpy < 1.26
+does not have (tried: numpy 1.23.5 raises "No module named 'numpy._core'"; 1.26.4 reads it), so
+trainers pinned to old numpy (mmdet3d 1.0 / FlashOcc setups) fail on them.
 :func:`dumps_plain` writes every array as ``numpy.ndarray(shape, dtype_str, bytearray(data))``
 (globals ``numpy.ndarray`` and ``builtins.bytearray`` only, present in every numpy and Python 3),
 which unpickles to an ordinary writable array. Allowed inside: dict, list, tuple, str, bytes,
