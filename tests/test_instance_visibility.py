@@ -67,3 +67,17 @@ def test_shape_mismatch_is_an_error():
     occ, inst = _grids()
     with pytest.raises(ValueError, match="same"):
         visible_fractions(LO, VS, occ[:-1], inst, [1], K, W, H, T_BASE_FROM_CAM)
+
+
+def test_a_person_beyond_the_grid_is_drawn_from_its_box():
+    from tasks.occupancy.instance_visibility import box_lattice
+
+    pts = box_lattice([12.0, 0.0, 0.0], [0.4, 0.6, 1.8], 0.3, VS)
+    assert pts.shape == (2 * 3 * 9, 3)
+    np.testing.assert_allclose(pts.mean(0), [12.0, 0.0, 0.0], atol=1e-12)
+    occ, inst = _grids()
+    assert visible_fractions(LO, VS, occ, inst, [5], K, W, H, T_BASE_FROM_CAM, outside={5: pts})[0] == 1.0
+    occ[45, 15:25, 10:30] = True  # a wall at the grid's far end hides it
+    assert visible_fractions(LO, VS, occ, inst, [5], K, W, H, T_BASE_FROM_CAM, outside={5: pts})[0] == 0.0
+    inst[25, 18:22, 15:25] = 5  # with voxels in the grid, its box points are not used
+    assert visible_fractions(LO, VS, occ, inst, [5], K, W, H, T_BASE_FROM_CAM, outside={5: pts})[0] == 1.0

@@ -52,7 +52,7 @@ from storage.export.common import (
 from storage.occupancy_store import open_layout, read_frames
 from storage.plain_pickle import dumps_plain
 from tasks.conventions import CLASS_NAMES, FREE, PEDESTRIAN, ROAD, TERRAIN
-from tasks.occupancy.instance_visibility import visible_fractions
+from tasks.occupancy.instance_visibility import box_lattice, visible_fractions
 
 TABLES = (
     "category", "attribute", "visibility", "instance", "sensor", "calibrated_sensor", "ego_pose",
@@ -141,12 +141,14 @@ def _static_tables(log_tokens: list[str], map_token: str) -> dict[str, list]:
 
 
 def _visible_fractions(ds, seq: str, info, rows: list[dict]) -> dict[tuple[int, int], float]:
-    """(frame, track_id) -> visible fraction in cam0 of that person, from the published grids."""
+    """(frame, track_id) -> visible fraction in cam0 of that person, from the published grids (a
+    person with no voxel in the grid is drawn as the voxel centres of its box)."""
     store = ds.store_path(seq)
     attrs = ds.attrs(seq)
-    by_frame: dict[int, list[int]] = {}
+    vs = float(attrs["voxel_size_m"])
+    by_frame: dict[int, list[dict]] = {}
     for r in rows:
-        by_frame.setdefault(int(r["frame"]), []).append(int(r["track_id"]))
+        by_frame.setdefault(int(r["frame"]), []).append(r)
     out: dict[tuple[int, int], float] = {}
     for start, stop in open_layout(store).write_units():
         wanted = [f for f in range(start, stop) if f in by_frame]
@@ -154,14 +156,16 @@ def _visible_fractions(ds, seq: str, info, rows: list[dict]) -> dict[tuple[int, 
             continue
         grids = read_frames(store, slice(start, stop), ("semantics", "instances"))
         for f in wanted:
-            ids = by_frame[f]
-            sem = grids["semantics"][f - start]
+            sem, inst = grids["semantics"][f - start], grids["instances"][f - start]
+            ids = [int(r["track_id"]) for r in by_frame[f]]
+            present = set(np.unique(inst).tolist())
+            outside = {int(r["track_id"]): box_lattice(r["box3d_center"], r["box3d_size"], float(r["box3d_yaw"] or 0.0), vs)
+                       for r in by_frame[f] if int(r["track_id"]) not in present}
             # flat ground (road, terrain) lies under people: its voxels stand for a surface at z ~ 0
             # and would hide their feet; it does not occlude them
             occluders = ~np.isin(sem, (FREE, *FLAT_GROUND))
-            frac = visible_fractions(attrs["range_min"], float(attrs["voxel_size_m"]),
-                                     occluders, grids["instances"][f - start], ids,
-                                     info.K, info.width, info.height, info.T_base_from_cam0)
+            frac = visible_fractions(attrs["range_min"], vs, occluders, inst, ids, info.K, info.width, info.height,
+                                     info.T_base_from_cam0, outside=outside)
             out.update({(f, i): float(v) for i, v in zip(ids, frac)})
     return out
 
