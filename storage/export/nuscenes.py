@@ -140,9 +140,10 @@ def _static_tables(log_tokens: list[str], map_token: str) -> dict[str, list]:
     return {"category": category, "attribute": attribute, "visibility": visibility, "sensor": sensor, "map": maps}
 
 
-def _visible_fractions(ds, seq: str, info, rows: list[dict]) -> dict[tuple[int, int], float]:
-    """(frame, track_id) -> visible fraction in cam0 of that person, from the published grids (a
-    person with no voxel in the grid is drawn as the voxel centres of its box)."""
+def visible_fractions_of_boxes(ds, seq: str, info, rows: list[dict]) -> dict[tuple[int, int], float]:
+    """(frame, track_id) -> visible fraction in cam0 of each instances-table row with a box
+    (``rows``), from the published grids of ``seq`` (``info``: its :func:`sequence_info`); a person
+    with no voxel in the grid is drawn as the voxel centres of its box."""
     store = ds.store_path(seq)
     attrs = ds.attrs(seq)
     vs = float(attrs["voxel_size_m"])
@@ -276,7 +277,7 @@ def export_nuscenes(
         })
         rows = [r for r in ds.table("instances", seq).to_pylist()
                 if r["box3d_center"] is not None and r["box3d_size"] is not None and r["frame"] in base_by_frame]
-        visible = _visible_fractions(ds, seq, info, rows)
+        visible = visible_fractions_of_boxes(ds, seq, info, rows)
         boxes = _annotations(t, rows, seq, base_by_frame, points_by_frame, visible, ped_category,
                              attr_moving, attr_standing, moving_speed_mps)
         split = "val" if seq in val else "train"
