@@ -297,6 +297,9 @@ class ExportConfig(Strict):
     nuscenes_version: Literal["v1.0-trainval", "v1.0-mini", "v1.0-test"] = "v1.0-trainval"
     scene_prefix: str = "coda"
     val_sequences: list[str] = Field(default_factory=list)
+    #: prefix of the file paths in the nuScenes export's training infos: where the trainer finds
+    #: the export folder; null: FlashOcc's data_root (storage.export.nuscenes.INFOS_DATA_ROOT)
+    infos_data_root: str | None = None
 
 
 class OutputConfig(Strict):

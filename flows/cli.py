@@ -122,9 +122,13 @@ def cmd_export(args: argparse.Namespace) -> int:
     from flows.pipeline.inputs import dataset_export_inputs
     from flows.pipeline.run import export_dataset
 
+    if args.gt and args.format != "occ3d":
+        print(f"--gt exports Occ3D labels; it does not apply to --format {args.format}", file=sys.stderr)
+        return 2
     cfg = _config(args)
-    target = export_dataset(dataset_export_inputs(cfg), cfg.output.root, cfg.dataset.root, args.format, args.to)
-    print(f"{args.format} export written to {target}")
+    target = export_dataset(dataset_export_inputs(cfg), cfg.output.root, cfg.dataset.root, args.format, args.to,
+                            gt=args.gt)
+    print(f"{args.format} export{' of the ground truth' if args.gt else ''} written to {target}")
     return 0
 
 
@@ -236,6 +240,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_args(p, runtime=False)
     p.add_argument("--format", choices=["occ3d", "nuscenes"], required=True)
     p.add_argument("--to", type=Path, required=True, help="export folder")
+    p.add_argument("--gt", action="store_true",
+                   help="occ3d: labels from the synthetic ground truth under --data (dataset.root)")
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("evaluate", help="label quality against ground truth: Markdown report + JSON")

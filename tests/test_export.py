@@ -199,3 +199,27 @@ def test_nuscenes_export_names_missing_source(tiny, tmp_path):
     root, base = tiny
     with pytest.raises(FileNotFoundError, match=r"frame 0: cam0 image file"):
         export_nuscenes(root, tmp_path / "out", source_root=tmp_path / "nowhere")
+
+
+def test_plain_pickle_holds_only_numpy_ndarray_and_bytearray():
+    """Training infos must load under numpy 1.x: no numpy._core globals (numpy 2's default)."""
+    import pickle
+
+    from storage.plain_pickle import dumps_plain, pickle_globals
+
+    obj = {"infos": [{"a": np.arange(6, dtype=np.float32).reshape(2, 3), "names": np.array(["pedestrian"]),
+                      "empty": np.zeros((0, 9)), "flag": np.array([True, False]), "t": (1, 2.5, "x", None)}],
+           "view": np.eye(4)[:, ::2]}
+    data = dumps_plain(obj)
+    assert pickle_globals(data) == {("numpy", "ndarray"), ("builtins", "bytearray")}
+    assert ("numpy._core.multiarray", "_reconstruct") in pickle_globals(pickle.dumps(np.zeros(2)))  # the trap
+    back = pickle.loads(data)
+    for k in ("a", "names", "empty", "flag"):
+        np.testing.assert_array_equal(back["infos"][0][k], obj["infos"][0][k])
+        assert back["infos"][0][k].dtype == obj["infos"][0][k].dtype
+    np.testing.assert_array_equal(back["view"], obj["view"])
+    assert back["infos"][0]["a"].flags.writeable and back["infos"][0]["t"] == (1, 2.5, "x", None)
+    assert dumps_plain(obj) == data
+    for bad in ({"x": np.float64(1.0)}, {"x": np.array([object()])}, {"x": {1.5: 1}}):
+        with pytest.raises(TypeError, match="object"):
+            dumps_plain(bad)

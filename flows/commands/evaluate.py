@@ -20,7 +20,11 @@ Definitions beyond the kernels' own (each kernel's docstring has the rest):
 - tracking: the same GT persons, ids = GT track ids, against the track product's rows;
 - fit: each fitted row's detection box matched (IoU >= 0.5, Hungarian) to the GT persons' box2d
   of its frame; vertices / joints from the configured body model;
-- velocity: GT velocity grid = velocity_base of the person on each of its occupancy_instance voxels.
+- velocity: GT velocity grid = velocity_base of the person on each of its occupancy_instance voxels;
+- box heading: the published box yaw (instances table) of each matched fitted row vs the GT
+  person's heading (box_yaw), both about base z (tasks/metrics/heading.py);
+- box visibility: the nuScenes export's visible fraction of each matched fitted row's box vs the
+  GT person's visible_fraction, and their nuScenes visibility bins.
 """
 
 from __future__ import annotations
@@ -35,6 +39,9 @@ from storage.gt import gt_dir, read_frame_gt, read_sequence_gt
 from storage.products import Bodies, Detections, Tracks
 from storage.manifest import Manifest
 from tasks import conventions as C
+from storage.export.common import sequence_info
+from storage.export.nuscenes import visibility_token, visible_fractions_of_boxes
+from tasks.metrics.heading import heading_errors_deg, heading_summary
 from tasks.metrics._common import PRCounts
 from tasks.metrics.detection import DetectionCounts, detection_counts, match_boxes
 from tasks.metrics.occupancy import OccupancyMetric
@@ -200,7 +207,11 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
 
     occ = tot.occ.setdefault(seq, OccupancyMetric())
     st, bx, li, ve, pp = StaticCounts(), PRCounts(), PRCounts(), VelocityErrors(), PRCounts()
-    track_frames, fit_rows = [], {k: [] for k in ("pve", "mpjpe", "pa_mpjpe", "mpere")}
+    track_frames, fit_rows = [], {k: [] for k in ("pve", "mpjpe", "pa_mpjpe", "mpere", "heading", "visible",
+                                                   "visible_gt")}
+    boxed = [r for r in ds.table("instances", seq).to_pylist() if r["box3d_center"] is not None]
+    box_yaw = {(int(r["track_id"]), int(r["frame"])): r["box3d_yaw"] for r in boxed}
+    visible = visible_fractions_of_boxes(ds, seq, sequence_info(ds, seq), boxed)  # the nuScenes export's
     for k, raw in enumerate(raw_frames):
         gtf = read_frame_gt(gt_root, int(seq), raw)
         pred = np.asarray(arrays["semantics"][k])
@@ -260,8 +271,15 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
                     from tasks.fit.metrics import fit_metrics
 
                     m = fit_metrics(pv, pj, gtf.vertices[persons[gi]], gtf.joints[persons[gi]], gseq.person_faces)
-                    for key in fit_rows:
+                    for key in ("pve", "mpjpe", "pa_mpjpe", "mpere"):
                         fit_rows[key].append(np.asarray(m[key], np.float64))
+                    _, gt_yaw = _boxes_to_base(T_bl, gtf.box_center[persons[gi]], gtf.box_yaw[persons[gi]])
+                    pub = [box_yaw.get((int(bodies["track_id"][b]), k)) for b in rows[fi]]
+                    fit_rows["heading"].append(heading_errors_deg(
+                        [y for y in pub if y is not None], [g for y, g in zip(pub, gt_yaw) if y is not None]))
+                    keys = [(k, int(bodies["track_id"][b])) for b in rows[fi]]  # (frame, track id)
+                    fit_rows["visible"].append(np.array([visible.get(key, np.nan) for key in keys]))
+                    fit_rows["visible_gt"].append(gtf.visible_fraction[persons[gi]].astype(np.float64))
     tot.static[seq], tot.boxes[seq], tot.lidar[seq], tot.velocity[seq] = st, bx, li, ve
     if pp.pred_total:
         tot.person_points[seq] = pp
@@ -285,6 +303,19 @@ def _sum(values):
     for v in it:
         total = total + v
     return total
+
+
+def visibility_agreement(ours, gt) -> dict:
+    """Visible fractions (N,) of the export vs the ground truth's: same / within-one nuScenes bin
+    shares, share binned lower than the truth, median |difference|."""
+    ok = np.isfinite(ours) & np.isfinite(gt)
+    ours, gt = np.asarray(ours)[ok], np.asarray(gt)[ok]
+    if ours.size == 0:
+        return {"boxes": 0}
+    b = np.array([int(visibility_token(v)) for v in ours]) - np.array([int(visibility_token(v)) for v in gt])
+    return {"boxes": int(ours.size), "same_bin_share": float(np.mean(b == 0)),
+            "within_one_bin_share": float(np.mean(np.abs(b) <= 1)), "lower_bin_share": float(np.mean(b < 0)),
+            "median_abs_difference": float(np.median(np.abs(ours - gt)))}
 
 
 def _fit_row(v: dict) -> dict:
@@ -353,6 +384,9 @@ def evaluate(dataset: Path, gt: Path | None, report_dir: Path, sample_frames: in
     if tot.fit:
         allfit = {k: np.concatenate([v[k] for v in tot.fit.values()]) for k in ("pve", "mpjpe", "pa_mpjpe", "mpere")}
         results["fit"] = {**{s: _fit_row(v) for s, v in tot.fit.items()}, "all": _fit_row(allfit)}
+        results["box_heading"] = heading_summary(np.concatenate([v["heading"] for v in tot.fit.values()]))
+        results["box_visibility"] = visibility_agreement(*(np.concatenate([v[k] for v in tot.fit.values()])
+                                                           for k in ("visible", "visible_gt")))
     if tot.velocity:
         results["velocity"] = {**{s: v.as_dict() for s, v in tot.velocity.items()},
                                "all": _sum(tot.velocity.values()).as_dict()}

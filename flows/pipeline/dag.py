@@ -22,9 +22,9 @@ CODE_VERSIONS: dict[str, str] = {
     #                that moved more than fit.max_shift_m from their estimate are dropped;
     #             4: bodies carry chamfer_m and reproj_px (typed products)
     "map": "2",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path
-    "fuse": "2",  # 2: class_counts among voxels with mask_lidar = 1 (as documented); store attrs
-    #               carry the stage key instead of a hash of the whole config
+    "fuse": "2",  # 2: mask_camera is inside mask_lidar (Occ3D); class_counts among voxels with
+    #               mask_lidar = 1 (as documented); store attrs carry the stage key, not a config hash
     "export": "3",  # 2: instances carry the fitted bodies, 3D boxes and velocities; 3: source paths
-    #                 relative to the dataset root, chamfer_m / reproj_px written, config_hash of the
-    #                 stage inputs
+    #                 relative to the dataset root, box yaw from the body's forward axis, no NaN
+    #                 velocity, chamfer_m / reproj_px written, config_hash of the stage inputs
 }

@@ -227,6 +227,7 @@ class DatasetExportInputs:
     scene_prefix: str
     val_sequences: tuple[str, ...]
     min_range_m: float
+    infos_data_root: str | None
 
 
 def _provider(name: str, config: Config, seed: int) -> Any:
@@ -290,7 +291,7 @@ def export_inputs(config: Config) -> ExportInputs:
 def dataset_export_inputs(config: Config) -> DatasetExportInputs:
     ex = config.export
     return DatasetExportInputs(tuple(ex.formats), ex.nuscenes_version, ex.scene_prefix,
-                               tuple(ex.val_sequences), config.dataset.min_range_m)
+                               tuple(ex.val_sequences), config.dataset.min_range_m, ex.infos_data_root)
 
 
 #: stage -> the function making its inputs object

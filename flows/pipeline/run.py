@@ -201,17 +201,22 @@ def _progress_bars(report: RunReport, futures: list, progress: bool):
 
 
 def export_dataset(ex: DatasetExportInputs, out_root: Path, data_root: Path, fmt: str,
-                   target: Path | None = None) -> Path:
-    """Export the published dataset (every sequence) for occupancy trainers."""
+                   target: Path | None = None, gt: bool = False) -> Path:
+    """Export the published dataset (every sequence) for occupancy trainers; ``gt``: Occ3D labels
+    from the synthetic ground truth under ``data_root`` instead of the pipeline's."""
     from storage.export.nuscenes import export_nuscenes
     from storage.export.occ3d import export_occ3d
 
     target = Path(target) if target is not None else Path(out_root) / "exports" / fmt
+    if gt and fmt != "occ3d":
+        raise ValueError(f"--gt exports Occ3D labels; it does not apply to --format {fmt}")
     if fmt == "occ3d":
-        export_occ3d(out_root, target, scene_prefix=ex.scene_prefix, val_sequences=ex.val_sequences)
+        export_occ3d(out_root, target, scene_prefix=ex.scene_prefix, val_sequences=ex.val_sequences,
+                     gt_root=Path(data_root) if gt else None)
     else:
         export_nuscenes(out_root, target, version=ex.nuscenes_version, scene_prefix=ex.scene_prefix,
-                        source_root=Path(data_root), min_range_m=ex.min_range_m)
+                        source_root=Path(data_root), min_range_m=ex.min_range_m, val_sequences=ex.val_sequences,
+                        **({"infos_data_root": ex.infos_data_root} if ex.infos_data_root else {}))
     return target
 
 

@@ -14,6 +14,7 @@ import shutil
 import numpy as np
 
 from flows.stages.common import StageContext, body_model, is_night
+from storage.export.common import source_relative
 from storage.products import Bodies, FusedFrames, Tracks
 from storage.publish import sequence_writer, stage_table
 from tasks.body.boxes import upright_box
@@ -47,12 +48,14 @@ def instance_rows(ctx: StageContext, frame_pos: dict[int, int], T_base_from_lida
                "box2d_xyxy": tracks.boxes_xyxy[r].tolist(), "keypoints": tracks.keypoints[r].reshape(-1).tolist()}
         b = fitted.get((int(tracks.frame[r]), int(tracks.det_index[r])))
         if b is not None:
-            centre, size, yaw = upright_box(verts[b])
-            row.update({"box3d_center": centre.tolist(), "box3d_size": size.tolist(), "box3d_yaw": yaw,
+            vel = np.asarray(bodies.velocity_base[b], np.float64)
+            known = bool(np.all(np.isfinite(vel)))  # unknown (e.g. across a track gap): null, never NaN
+            box = upright_box(verts[b], base.global_orient[b], vel if known else None)
+            row.update({"box3d_center": box.center.tolist(), "box3d_size": box.size.tolist(), "box3d_yaw": box.yaw,
                         "betas": base.betas[b].tolist(), "global_orient": base.global_orient[b].tolist(),
                         "body_pose": base.body_pose[b].tolist(), "transl": base.transl[b].tolist(),
                         "chamfer_m": float(bodies.chamfer_m[b]), "reproj_px": float(bodies.reproj_px[b]),
-                        "vx": float(bodies.velocity_base[b][0]), "vy": float(bodies.velocity_base[b][1])})
+                        "vx": float(vel[0]) if known else None, "vy": float(vel[1]) if known else None})
         rows.append(row)
     return rows
 
@@ -62,7 +65,7 @@ def frame_rows(ctx: StageContext, seq, fused: FusedFrames) -> list[dict]:
     night, cams = is_night(seq), seq.info.calibration.cameras
 
     def rel(path):
-        return str(path.relative_to(seq.root))
+        return source_relative(path, seq.root)
 
     return [{"frame": k, "raw_frame": raw, "stamp_ns": int(fused.stamp_ns[k]),
              "T_world_from_lidar": seq.info.poses[k].reshape(-1).tolist(),

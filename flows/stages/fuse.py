@@ -5,6 +5,7 @@ Frames fan out in chunks aligned to the Zarr store's write units (one writer per
 :class:`storage.products.FusedFrames`. mask_lidar is the union of this frame's LiDAR rays
 (traversed or hit voxels) and the voxels the sequence's occupancy map has observed (known free or
 occupied), so "unknown" means never observed.
+mask_camera is cam0's visibility restricted to mask_lidar, as in Occ3D (storage/SCHEMA.md, "Masks").
 """
 
 from __future__ import annotations

@@ -19,7 +19,9 @@ def local_grids(spec: GridSpec, T_world_from_base: np.ndarray, static: StaticMap
 
     mask_lidar is the union of this frame's LiDAR rays (traversed or hit voxels) and the voxels
     the sequence's occupancy map has observed (known free or occupied), so "unknown" means never
-    observed. class_counts (10,) int64: voxels per class among those with mask_lidar = 1.
+    observed; mask_camera is cam0's visibility restricted to mask_lidar (Occ3D: camera-visible =
+    seen by the camera and observed by the LiDAR, so no voxel is called free without LiDAR
+    evidence). class_counts (10,) int64: voxels per class among those with mask_lidar = 1.
     points_lidar: (N, 3) float32 this frame's sweep, LiDAR frame; the rest as
     :func:`tasks.occupancy.fuse.fuse_frame`.
     """
@@ -32,5 +34,5 @@ def local_grids(spec: GridSpec, T_world_from_base: np.ndarray, static: StaticMap
     mask_lidar = grids.mask_lidar.astype(bool) | (grids.occupancy_state >= 0)
     counts = np.bincount(grids.semantics[mask_lidar], minlength=FREE + 1).astype(np.int64)
     return {"semantics": grids.semantics, "instances": grids.instances,
-            "mask_lidar": mask_lidar.astype(np.uint8), "mask_camera": grids.mask_camera,
+            "mask_lidar": mask_lidar.astype(np.uint8), "mask_camera": grids.mask_camera & mask_lidar,
             "velocity": grids.velocity.astype(np.float16)}, counts
