@@ -233,4 +233,5 @@ def summary_table(report: RunReport) -> str:
         lines.append(f"not implemented yet (placeholders): {', '.join(not_impl)}")
     for o in report.failed:
         lines.append(f"FAILED {o['sequence']}/{o['stage']}: {o['error']}")
+    lines += [f"WARNING {p.sequence}: {w}" for p in report.plans for w in p.warnings]
     return "\n".join(lines)

@@ -54,6 +54,7 @@ class SequencePlan:
     fingerprint: str = ""
     num_frames: int = 0
     error: str = ""  # the sequence could not even be opened
+    warnings: tuple[str, ...] = ()  # the reader's (defaults used, values ignored)
     units: dict[str, UnitPlan] = field(default_factory=dict)
 
     @property
@@ -65,7 +66,8 @@ def open_sequence(config: Config, sequence: str) -> CodaSequence:
     ds = config.dataset
     return CodaSequence(ds.root, sequence, frame_stride=ds.frame_stride,
                         lidar_source=ds.lidar_source, image_source=ds.image_source,
-                        min_range_m=ds.min_range_m, max_range_m=ds.max_range_m)
+                        min_range_m=ds.min_range_m, max_range_m=ds.max_range_m, frames=ds.frames,
+                        lighting=ds.lighting.get(str(sequence)), lidar_height_m=ds.lidar_height_m)
 
 
 def selected_sequences(config: Config) -> list[str]:
@@ -90,6 +92,7 @@ def plan_run(config: Config, manifest: Manifest, hasher: FileHasher, force: bool
             info = open_sequence(config, seq).info
             plan.fingerprint = sequence_fingerprint(config.dataset.root, info.files, hasher)
             plan.num_frames = info.num_frames
+            plan.warnings = info.warnings
         except (ValueError, OSError) as exc:
             plan.error = str(exc)
             continue

@@ -32,8 +32,8 @@ def chunks(n: int, size: int) -> list[list[int]]:
 
 
 def is_night(seq: CodaSequence) -> bool:
-    lighting = str(seq.info.metadata.get("lighting", "day")).lower()
-    return lighting in ("night", "dark")
+    """dataset.lighting of the sequence, else its metadata's lighting (storage.coda)."""
+    return seq.info.is_night
 
 
 def frame_rng(seed: int, sequence: str, frame: int, salt: int) -> np.random.Generator:
