@@ -54,7 +54,7 @@ def test_thread_runner_and_cache_consequences(dataset, tmp_path):
     assert _ran(_run(cfg)) == set()
 
     # one sequence's files edited -> only that sequence runs
-    bin_path = dataset / "3d_raw/os1/1/3d_raw_os1_1_2.bin"
+    bin_path = dataset / "3d_comp/os1/1/3d_comp_os1_1_2.bin"
     raw = bytearray(bin_path.read_bytes())
     raw[-8:-4] = bytes([0, 0, 192, 63])  # one intensity value becomes 1.5
     bin_path.write_bytes(bytes(raw))
@@ -70,7 +70,7 @@ def test_thread_runner_and_cache_consequences(dataset, tmp_path):
     assert _ran(_run(finer)) == {("0", "map"), ("0", "fuse"), ("0", "export")}
 
     # a sequence added -> only it runs
-    for sub in ("3d_raw/os1", "2d_rect/cam0", "2d_rect/cam1", "3d_bbox/os1", "calibrations", "gt"):
+    for sub in ("3d_comp/os1", "2d_rect/cam0", "2d_rect/cam1", "3d_bbox/os1", "3d_semantic/os1", "calibrations", "gt"):
         src = dataset / sub / "1"
         dst = dataset / sub / "2"
         shutil.copytree(src, dst)
@@ -83,12 +83,12 @@ def test_thread_runner_and_cache_consequences(dataset, tmp_path):
 
 def test_bad_sequence_fails_alone(dataset, tmp_path):
     out = tmp_path / "out"
-    path = dataset / "3d_raw/os1/0/3d_raw_os1_0_2.bin"
+    path = dataset / "3d_comp/os1/0/3d_comp_os1_0_2.bin"
     path.write_bytes(path.read_bytes()[:1000])
     report = _run(_config(dataset, out))
     failed = report.failed
     assert [(o["sequence"], o["stage"]) for o in failed] == [("0", "detect")]
-    assert "3d_raw_os1_0_2.bin (frame 2)" in failed[0]["error"] and "truncated" in failed[0]["error"]
+    assert "3d_comp_os1_0_2.bin (frame 2)" in failed[0]["error"] and "truncated" in failed[0]["error"]
     assert all(report.outcomes[("1", st)]["status"] == "done" for st in STAGES)
     assert report.outcomes[("0", "fuse")]["status"] == "skipped"
     manifest = Manifest.load(out)

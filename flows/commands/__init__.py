@@ -1,0 +1,1 @@
+"""Command implementations of the ``mobileocc`` CLI that are more than a call into a flow."""
