@@ -135,6 +135,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_check_data(args: argparse.Namespace) -> int:
+    from flows.commands.check_data import check_data
+
+    code, text = check_data(_config(args), deep=args.deep)
+    print(text)
+    return code
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from flows.bench import bench
 
@@ -224,6 +232,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="synthetic: the simulator's exact ground truth (gt/); coda: CODa's own "
                         "3d_semantic and 3d_bbox labels")
     p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("check-data", help="check a CODa-layout download before a run: a table per sequence, "
+                                          "exit 1 on blocking problems")
+    _add_config_args(p, runtime=False)
+    p.add_argument("--deep", action="store_true", help="read every file (default: sizes and a few samples)")
+    p.set_defaults(func=cmd_check_data)
 
     p = sub.add_parser("bench", help="measure stage speeds, memory and reference ratios in one run")
     p.add_argument("--quick", action="store_true", help="small inputs, a few minutes")

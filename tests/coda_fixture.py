@@ -106,9 +106,10 @@ def make_coda(root: Path, seq: int = 0, frames: int = 4, channels: int = 5,
               image_ext: str = ".jpg", pose_folder: str = "dense_global",
               lidar_source: str = "3d_comp", present=None, base_file: bool = True,
               boxes: list[dict] | None = None, intensity_zero: bool = False,
-              metadata: dict | None = None) -> Path:
+              metadata: dict | None = None, image_size: tuple[int, int] | None = None) -> Path:
     """Write a sequence of ``frames`` raw frames (timestamps and poses for all of them; sweeps,
-    images, boxes and terrain labels for the frames in ``present``, default all) under root."""
+    images, boxes and terrain labels for the frames in ``present``, default all) under root.
+    image_size: (width, height) of real (black) images; None writes placeholder bytes."""
     rng = np.random.default_rng(seq)
     s = str(seq)
     present = list(range(frames)) if present is None else sorted(present)
@@ -119,6 +120,7 @@ def make_coda(root: Path, seq: int = 0, frames: int = 4, channels: int = 5,
         pts[idx, 0] = rng.uniform(2, 20, n)
         pts[idx, 1] = rng.uniform(-5, 5, n)
         pts[idx, 2] = rng.uniform(-1, 2, n)
+        pts[idx[: n // 2], 2] = -0.9  # half the returns on the ground, 0.9 m below the sensor
         pts[idx, 3] = 0.0 if intensity_zero else rng.uniform(1, 255, n)
         if channels == 5:  # nanoseconds since the first column, as the devkit's decoder writes
             pts[:, 4] = np.tile(np.arange(1024) * 97_656.25, 128)
@@ -128,7 +130,12 @@ def make_coda(root: Path, seq: int = 0, frames: int = 4, channels: int = 5,
         for cam in ("cam0", "cam1"):
             img = root / "2d_rect" / cam / s / f"2d_rect_{cam}_{s}_{f}{image_ext}"
             img.parent.mkdir(parents=True, exist_ok=True)
-            img.write_bytes(b"not-a-real-image")
+            if image_size is None:
+                img.write_bytes(b"not-a-real-image")
+            else:
+                from PIL import Image
+
+                Image.new("RGB", image_size).save(img)
         bp = root / "3d_bbox" / "os1" / s / f"3d_bbox_os1_{s}_{f}.json"
         bp.parent.mkdir(parents=True, exist_ok=True)
         bp.write_text(json.dumps({"3dbbox": boxes if boxes is not None else [pedestrian_box()]}))
