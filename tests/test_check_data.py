@@ -96,3 +96,17 @@ def test_wrong_lidar_source_names_the_fix(tmp_path, lidar):
     code, text = _check(tmp_path)
     assert code == 1 and "set dataset.lidar_source: 3d_raw" in text
     assert _check(tmp_path, **{"dataset.lidar_source": lidar})[0] == 0
+
+
+def test_reader_warnings_reach_the_run_summary(tmp_path):
+    # a missing calib_os1_to_base.yaml is allowed (dataset.lidar_height_m) but said after the run
+    from flows.pipeline import RunReport, summary_table
+    from flows.plan import plan_run
+    from storage.manifest import FileHasher, Manifest
+
+    make_coda(tmp_path / "data", seq=0, frames=2, base_file=False)
+    cfg = load_config(overrides={"dataset.root": str(tmp_path / "data"), "output.root": str(tmp_path / "out")})
+    plans = plan_run(cfg, Manifest.load(tmp_path / "out"), FileHasher(None))
+    assert not plans[0].error and len(plans[0].warnings) == 1
+    text = summary_table(RunReport(tmp_path / "out", plans))
+    assert "WARNING 0: " in text and "calib_os1_to_base.yaml is missing" in text and "0.9 m above the ground" in text
