@@ -110,3 +110,16 @@ def test_reader_warnings_reach_the_run_summary(tmp_path):
     assert not plans[0].error and len(plans[0].warnings) == 1
     text = summary_table(RunReport(tmp_path / "out", plans))
     assert "WARNING 0: " in text and "calib_os1_to_base.yaml is missing" in text and "0.9 m above the ground" in text
+
+
+def test_config_lighting_per_sequence_overrides_the_metadata(tmp_path):
+    from flows.plan import open_sequence
+
+    make_coda(tmp_path, seq=2, frames=2, metadata={"lighting": "normal"})
+    make_coda(tmp_path, seq=3, frames=2, metadata={"lighting": "dark"})
+    cfg = load_config(overrides={"dataset.root": str(tmp_path), "dataset.lighting": {2: "night"}})
+    assert cfg.dataset.lighting == {"2": "night"}  # YAML's integer keys become sequence ids
+    two, three = open_sequence(cfg, "2").info, open_sequence(cfg, "3").info
+    assert (two.lighting, two.lighting_source) == ("night", "config")
+    assert (three.lighting, three.lighting_source) == ("night", "metadata")
+    assert "night (config)" in _row(check_data(cfg)[1], "2")
