@@ -30,6 +30,8 @@ MAX_PROJECTION_DIFF_PX = 2.0
 MAX_GROUND_OFFSET_M = 0.3
 MIN_IN_IMAGE = 0.02
 MAX_EXTRINSIC_MISMATCH_M = 0.01
+#: points the figures use (of the ~3 x 100k sampled returns)
+MAX_FIGURE_POINTS = 30000
 
 
 def _figures(facts: SequenceFacts, camera: str) -> dict:
@@ -37,6 +39,7 @@ def _figures(facts: SequenceFacts, camera: str) -> dict:
     seq = facts.seq
     calib = seq.info.calibration
     pts = np.concatenate(facts.sample_points) if facts.sample_points else np.zeros((0, 3), np.float32)
+    pts = pts[:: max(1, len(pts) // MAX_FIGURE_POINTS)]  # evenly spread over the sampled sweeps
     out: dict = {}
     cams = calib.cameras
     view = lambda c: (c.K, c.T_cam_from_lidar, c.width, c.height)  # noqa: E731
