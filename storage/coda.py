@@ -42,8 +42,14 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from storage.model import (Box3D, Calibration, CameraCalibration, Frame, RawCameraCalibration,
-                           SequenceInfo)
+from storage.model import (
+    Box3D,
+    Calibration,
+    CameraCalibration,
+    Frame,
+    RawCameraCalibration,
+    SequenceInfo,
+)
 
 #: points per organised OS1-128 sweep (128 beams x 1024 columns), no-returns included
 POINTS_PER_SWEEP = 128 * 1024

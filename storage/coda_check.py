@@ -19,8 +19,17 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.coda import (IMAGE_EXTENSIONS, POINTS_PER_SWEEP, CodaFormatError, CodaSequence, frame_number,
-                          read_boxes, read_lidar_raw, read_pose_stamps, read_semantic)
+from storage.coda import (
+    IMAGE_EXTENSIONS,
+    POINTS_PER_SWEEP,
+    CodaFormatError,
+    CodaSequence,
+    frame_number,
+    read_boxes,
+    read_lidar_raw,
+    read_pose_stamps,
+    read_semantic,
+)
 
 #: sampled sweeps in the fast mode
 SAMPLES = 3
@@ -156,7 +165,7 @@ def inspect_sequence(open_sequence, sequence: str, deep: bool = False) -> Sequen
             try:
                 with Image.open(path) as im:
                     size = im.size
-            except Exception as exc:  # noqa: BLE001 - PIL raises several types for a bad image
+            except Exception as exc:
                 facts.problem(True, f"{path} (frame {f}): not a readable image ({type(exc).__name__}: {exc})")
                 break
             facts.image_sizes.setdefault(cam, size)

@@ -5,8 +5,14 @@ from __future__ import annotations
 import numpy as np
 
 from tasks import conventions as C
-from tasks.metrics.coda_labels import (CODA_BOX_CLASS_TO_CLASS, CODA_SEMANTIC_IDS, CODA_SEMANTIC_NAMES, box_class,
-                                       points_in_boxes, semantic_to_classes)
+from tasks.metrics.coda_labels import (
+    CODA_BOX_CLASS_TO_CLASS,
+    CODA_SEMANTIC_IDS,
+    CODA_SEMANTIC_NAMES,
+    box_class,
+    points_in_boxes,
+    semantic_to_classes,
+)
 
 
 def test_semantic_table():

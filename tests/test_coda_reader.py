@@ -8,9 +8,25 @@ import numpy as np
 import pytest
 import yaml
 
-from storage.coda import (CodaFormatError, CodaFrameError, CodaSequence, list_sequences, points_in_box,
-                          read_boxes, read_extrinsic, read_lidar_bin, stride_frames)
-from tests.coda_fixture import K_RECT, POINTS, T_CAM0_FROM_OS1, make_coda, pedestrian_box, stereo_calibration
+from storage.coda import (
+    CodaFormatError,
+    CodaFrameError,
+    CodaSequence,
+    list_sequences,
+    points_in_box,
+    read_boxes,
+    read_extrinsic,
+    read_lidar_bin,
+    stride_frames,
+)
+from tests.coda_fixture import (
+    K_RECT,
+    POINTS,
+    T_CAM0_FROM_OS1,
+    make_coda,
+    pedestrian_box,
+    stereo_calibration,
+)
 
 
 def test_reads_frames_at_5hz(tmp_path):

@@ -22,7 +22,12 @@ import numpy as np
 
 from configs.schema import Config
 from storage.coda_check import SequenceFacts, inspect_sequence
-from tasks.metrics.calibration import ground_height_m, in_image_fraction, projection_difference_px, stereo_row_error_px
+from tasks.metrics.calibration import (
+    ground_height_m,
+    in_image_fraction,
+    projection_difference_px,
+    stereo_row_error_px,
+)
 
 #: thresholds above which a figure becomes a warning
 MAX_ROW_ERROR_PX = 1.0

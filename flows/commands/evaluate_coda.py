@@ -28,10 +28,14 @@ import numpy as np
 from storage.dataset import open_dataset
 from storage.manifest import Manifest
 from tasks import conventions as C
-from tasks.metrics.coda_labels import box_class, points_in_boxes, semantic_to_classes
-from tasks.metrics.pedestrian import pedestrian_box_counts, pedestrian_lidar_counts, voxelize_points
-from tasks.metrics.static import StaticCounts, static_counts
 from tasks.metrics._common import PRCounts
+from tasks.metrics.coda_labels import box_class, points_in_boxes, semantic_to_classes
+from tasks.metrics.pedestrian import (
+    pedestrian_box_counts,
+    pedestrian_lidar_counts,
+    voxelize_points,
+)
+from tasks.metrics.static import StaticCounts, static_counts
 
 #: the bottom of each pedestrian box left out (the paper: "exclude the bottom 0.1 m")
 BOTTOM_EXCLUDE_M = 0.1
@@ -59,7 +63,13 @@ def evaluate_coda(dataset: Path, data: Path | None, report_dir: Path, sample_fra
     """Evaluate the dataset at ``dataset`` (OUT) against the CODa labels of the raw data at
     ``data`` (None: the recorded dataset.root). Writes report.md and results.json under
     ``report_dir``; returns the results dict."""
-    from flows.evaluate import EvaluateError, _boxes_to_base, _frustum, _gt_root, _in_image
+    from flows.evaluate import (
+        EvaluateError,
+        _boxes_to_base,
+        _frustum,
+        _gt_root,
+        _in_image,
+    )
     from flows.report import to_jsonable, write_report
 
     out = Path(dataset)
