@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator, model_validator
 
 from tasks.conventions import CITYSCAPES_TO_CLASS, CLASS_NAMES, FREE, UNLABELED
 from tasks.fit.losses import FIT_PRESETS, FitWeights
@@ -120,15 +120,26 @@ class DatasetConfig(Strict):
 
     root: Path = Path("demo-data")
     sequences: list[str] | Literal["all"] = "all"
-    lidar_source: Literal["3d_comp", "3d_raw"] = "3d_raw"
+    lidar_source: Literal["3d_comp", "3d_raw"] = "3d_comp"
     image_source: Literal["2d_rect", "2d_raw"] = "2d_rect"
     camera: Literal["cam0", "cam1"] = "cam0"
+    #: which raw frames a sequence has: those with a sweep file, or those the metadata lists name
+    frames: Literal["files", "metadata"] = "files"
+    #: day / night per sequence id; a sequence not listed takes its metadata's "lighting"
+    lighting: dict[str, Literal["day", "night"]] = Field(default_factory=dict)
+    #: LiDAR height above the ground, used only where calib_os1_to_base.yaml is missing
+    lidar_height_m: float = Field(0.9, gt=0)
     #: raw sensors run at 10 Hz; MobileOcc keeps every 2nd frame (5 Hz)
     rate_hz: float = Field(5.0, gt=0)
     sensor_rate_hz: float = Field(10.0, gt=0)
     #: drops no-return points (zeros) and returns off the robot body
     min_range_m: float = Field(0.5, ge=0)
     max_range_m: float = Field(120.0, gt=0)
+
+    @field_validator("lighting", mode="before")
+    @classmethod
+    def _sequence_ids_as_text(cls, value):
+        return {str(k): v for k, v in value.items()} if isinstance(value, dict) else value
 
     @model_validator(mode="after")
     def _stride_integral(self) -> DatasetConfig:

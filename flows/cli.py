@@ -135,10 +135,18 @@ def cmd_export(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from flows.commands.evaluate import evaluate
 
-    evaluate(args.dataset, args.gt, args.report)
+    evaluate(args.dataset, args.gt, args.report, labels=args.labels)
     print(f"report: {args.report / 'report.md'} (figures in {args.report / 'figures'}, "
           f"numbers in {args.report / 'results.json'})")
     return 0
+
+
+def cmd_check_data(args: argparse.Namespace) -> int:
+    from flows.commands.check_data import check_data
+
+    code, text = check_data(_config(args), deep=args.deep)
+    print(text)
+    return code
 
 
 #: `mobileocc bench [WHAT] ...`: the module whose ``main(argv)`` parses the rest of the line
@@ -175,7 +183,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     ids = simulate(args.out, sequences=args.sequences, frames=args.frames, seed=args.seed,
                    pedestrians=args.pedestrians, crowd=args.crowd, night=args.night,
-                   progress=not args.quiet, first_id=args.first_id)
+                   progress=not args.quiet, first_id=args.first_id, image_ext=f".{args.image_format}",
+                   split_style=args.split_style)
     print(f"wrote sequence(s) {', '.join(map(str, ids))} to {args.out}")
     return 0
 
@@ -249,7 +258,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gt", type=Path, default=None,
                    help="ground-truth root (default: the dataset root recorded in OUT)")
     p.add_argument("--report", type=Path, required=True, help="report folder")
+    p.add_argument("--labels", choices=["synthetic", "coda"], default="synthetic",
+                   help="synthetic: the simulator's exact ground truth (gt/); coda: CODa's own "
+                        "3d_semantic and 3d_bbox labels")
     p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("check-data", help="check a CODa-layout download before a run: a table per sequence, "
+                                          "exit 1 on blocking problems")
+    _add_config_args(p, runtime=False)
+    p.add_argument("--deep", action="store_true", help="read every file (default: sizes and a few samples)")
+    p.set_defaults(func=cmd_check_data)
 
     for name, text in (
         ("bench", "measure speeds, memory and reference ratios in one run: `mobileocc bench "
@@ -269,6 +287,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--night", action="store_true")
     p.add_argument("--first-id", type=int, default=0,
                    help="id of the first sequence (add sequences of another condition beside others)")
+    p.add_argument("--image-format", choices=["jpg", "png"], default="jpg",
+                   help="2d_rect images as CODa's downloads (jpg) or the devkit's tools (png) write them")
+    p.add_argument("--split-style", action="store_true",
+                   help="files only for blocks of frames, as CODa's split downloads (timestamps, poses: all)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_simulate)
 

@@ -60,7 +60,7 @@ def test_thread_runner_and_cache_consequences(dataset, tmp_path):
     assert _ran(_run(cfg)) == set()
 
     # one sequence's files edited -> only that sequence runs
-    bin_path = dataset / "3d_raw/os1/1/3d_raw_os1_1_2.bin"
+    bin_path = dataset / "3d_comp/os1/1/3d_comp_os1_1_2.bin"
     raw = bytearray(bin_path.read_bytes())
     raw[-8:-4] = bytes([0, 0, 192, 63])  # one intensity value becomes 1.5
     bin_path.write_bytes(bytes(raw))
@@ -76,7 +76,7 @@ def test_thread_runner_and_cache_consequences(dataset, tmp_path):
     assert _ran(_run(finer)) == {("0", "map"), ("0", "fuse"), ("0", "export")}
 
     # a sequence added -> only it runs
-    for sub in ("3d_raw/os1", "2d_rect/cam0", "2d_rect/cam1", "3d_bbox/os1", "calibrations", "gt"):
+    for sub in ("3d_comp/os1", "2d_rect/cam0", "2d_rect/cam1", "3d_bbox/os1", "3d_semantic/os1", "calibrations", "gt"):
         src = dataset / sub / "1"
         dst = dataset / sub / "2"
         shutil.copytree(src, dst)
@@ -89,12 +89,12 @@ def test_thread_runner_and_cache_consequences(dataset, tmp_path):
 
 def test_bad_sequence_fails_alone(dataset, tmp_path):
     out = tmp_path / "out"
-    path = dataset / "3d_raw/os1/0/3d_raw_os1_0_2.bin"
+    path = dataset / "3d_comp/os1/0/3d_comp_os1_0_2.bin"
     path.write_bytes(path.read_bytes()[:1000])
     report = _run(_config(dataset, out))
     failed = report.failed
     assert [(o["sequence"], o["stage"]) for o in failed] == [("0", "detect")]
-    assert "3d_raw_os1_0_2.bin (frame 2)" in failed[0]["error"] and "truncated" in failed[0]["error"]
+    assert "3d_comp_os1_0_2.bin (frame 2)" in failed[0]["error"] and "truncated" in failed[0]["error"]
     assert all(report.outcomes[("1", st)]["status"] == "done" for st in STAGES)
     assert report.outcomes[("0", "fuse")]["status"] == "skipped"
     manifest = Manifest.load(out)
@@ -135,7 +135,7 @@ def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle
     import numpy as np
     import torch
 
-    from flows.pipeline.inputs import fit_inputs, source
+    from flows.pipeline.inputs import fit_inputs, sequence_ref, source
     from flows.stages.common import body_model
     from flows.stages.providers import init_provider
     from storage.cliff_files import cliff_path, write_cliff_estimates
@@ -155,7 +155,7 @@ def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle
         rows = np.flatnonzero((tracks["gt_index"] >= 0) & enough)
         few[seq] = int(((tracks["gt_index"] >= 0) & ~enough).sum())
         batches = [rows[a:a + 2] for a in range(0, len(rows), 2)]  # the stage's batches
-        opened = source(oracle_cfg).open(oracle_cfg.dataset.root, seq)
+        opened = source(oracle_cfg).open(sequence_ref(oracle_cfg, seq))
         provider = init_provider(fit_inputs(oracle_cfg).init, opened,
                                  body_model(fit_inputs(oracle_cfg).body, tmp_path / "oracle"),
                                  opened.info.calibration.cameras[oracle_cfg.dataset.camera])
@@ -190,9 +190,9 @@ def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle
 
 
 def _camera_K(cfg, seq):
-    from flows.pipeline.inputs import source
+    from flows.pipeline.inputs import sequence_ref, source
 
-    return source(cfg).open(cfg.dataset.root, seq).info.calibration.cameras[cfg.dataset.camera].K
+    return source(cfg).open(sequence_ref(cfg, seq)).info.calibration.cameras[cfg.dataset.camera].K
 
 
 
@@ -234,7 +234,7 @@ def test_warm_start_carries_a_tracks_fit_into_its_next_frame(tmp_path, monkeypat
                      rng.normal(0, 0.2, (n, 69)).astype(np.float32),
                      (rng.normal(0, 0.5, (n, 3)) + [0, 0, 6]).astype(np.float32))
 
-    def identity_fit(root, sequence, inputs, out_root, tracks_dir, rows, init):
+    def identity_fit(ref, inputs, out_root, tracks_dir, rows, init):
         lidar = reframe_params(model, init, np.linalg.inv(T_cam))
         return {"rows": np.asarray(rows), "betas": lidar.betas, "global_orient": lidar.global_orient,
                 "body_pose": lidar.body_pose, "transl": lidar.transl}
@@ -242,7 +242,7 @@ def test_warm_start_carries_a_tracks_fit_into_its_next_frame(tmp_path, monkeypat
     provider = SimpleNamespace(estimates=lambda tracks, rows: est.take(np.asarray(rows)))
     monkeypatch.setattr(fit_stage, "fit_batch", identity_fit)
     monkeypatch.setattr(fit_stage, "init_provider", lambda *a: provider)
-    ctx = SimpleNamespace(inputs=inputs, out_root=tmp_path, data_root=tmp_path, sequence="0",
+    ctx = SimpleNamespace(inputs=inputs, out_root=tmp_path, ref=None, sequence="0",
                           upstream={"track": tmp_path})
     parts = fit_stage._warm_started(ctx, SimpleNamespace(info=info), tracks, np.arange(n), None)
     out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}

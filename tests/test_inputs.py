@@ -16,7 +16,8 @@ import pytest
 
 from configs.schema import ConfigError, load_config
 from flows.pipeline.dag import STAGES
-from flows.pipeline.inputs import RUNTIME_KEYS, dataset_export_inputs, inputs_hash, stage_inputs
+from flows.pipeline.inputs import (PER_SEQUENCE_KEYS, RUNTIME_KEYS, dataset_export_inputs, inputs_hash,
+                                   sequence_ref, stage_inputs)
 from flows.pipeline.plan import unit_keys
 
 #: leaves only read when a provider the default config does not choose is chosen (each checked
@@ -52,7 +53,7 @@ def _candidates(value: Any) -> list[Any]:
     if isinstance(value, float):
         return [round(value * 1.1 + 0.01, 6), round(value * 0.9, 6), value + 1.0, round(value / 2, 6)]
     if isinstance(value, str):
-        return ["3d_comp", "3d_raw", "2d_raw", "cam1", "unknown", "rays", "zbuffer", "ground-truth",
+        return ["3d_comp", "3d_raw", "2d_raw", "cam1", "unknown", "metadata", "rays", "zbuffer", "ground-truth",
                 "oracle", "none", "precomputed", "lidar-clusters", "cpu", "cuda", "v1.0-mini", "3dpw",
                 "thread", "dask", value + "x"]
     if value is None:
@@ -104,6 +105,8 @@ def test_every_leaf_changes_exactly_the_keys_of_the_stages_that_read_it():
     base = _leaves(base_cfg.model_dump(mode="json"))
     unread, untested = [], []
     for key in sorted(base):
+        if key.startswith(tuple(PER_SEQUENCE_KEYS)):
+            continue  # in the sequence's fingerprint: test_a_sequences_own_settings_rerun_it_alone
         if key.startswith(tuple(RUNTIME_KEYS)):
             mutated = _mutate(base, key)
             if mutated is not None:
@@ -155,3 +158,13 @@ def test_provider_settings_only_count_for_the_chosen_provider():
 def test_inputs_objects_are_hashable_and_distinct_per_stage(stage_a, stage_b):
     inputs = stage_inputs(load_config())
     assert inputs_hash(inputs[stage_a]) != inputs_hash(inputs[stage_b])
+
+
+def test_a_sequences_own_settings_rerun_it_alone():
+    """dataset.lighting names sequences: it enters their fingerprints, not every stage's inputs."""
+    a = load_config()
+    b = load_config(overrides={"dataset.lighting": {"7": "night"}})
+    assert _state(a) == _state(b)
+    files = "files-fingerprint"
+    assert sequence_ref(b, "7").fingerprint(files) != sequence_ref(a, "7").fingerprint(files)
+    assert sequence_ref(b, "8").fingerprint(files) == sequence_ref(a, "8").fingerprint(files) == files

@@ -67,8 +67,7 @@ def run_local(config, stages=STAGE_ORDER, sequences: list[str] | None = None) ->
             if stage not in stages:
                 continue
             ups = {u: done[u] for u in STAGES[stage] if u in done}
-            outcome = execute_unit(plan.units[stage], Path(config.dataset.root), out, ups,
-                                   plan.fingerprint, runtime(config))
+            outcome = execute_unit(plan.units[stage], out, ups, plan.fingerprint, runtime(config))
             _record(manifest, outcome)
             if outcome["status"] != "done":
                 raise RuntimeError(f"sequence {plan.sequence} stage {stage} {outcome['status']}: "
@@ -149,7 +148,7 @@ def _fuse_fanout(data_root: str, out_root: str, overrides: dict, n_workers: int)
     """The fuse stage with its frame chunks on a LocalCluster of ``n_workers`` processes."""
     from distributed import Client, LocalCluster
 
-    from flows.pipeline.inputs import fuse_inputs
+    from flows.pipeline.inputs import fuse_inputs, sequence_ref
     from flows.stages.common import StageContext
     from flows.stages.fuse import run_fuse
     from storage.manifest import Manifest
@@ -164,7 +163,7 @@ def _fuse_fanout(data_root: str, out_root: str, overrides: dict, n_workers: int)
         def unit():
             work = Path(tempfile.mkdtemp(dir=out_root))
             try:
-                run_fuse(StageContext(seq, Path(data_root), inputs, Path(out_root), work, ups, key="bench"))
+                run_fuse(StageContext(sequence_ref(cfg, seq), inputs, Path(out_root), work, ups, key="bench"))
             finally:
                 shutil.rmtree(work, ignore_errors=True)
         client.run(lambda: __import__("flows.stages.fuse"))  # imports on every worker, outside the timing
@@ -179,7 +178,7 @@ def _fit_rate(data_root: str, out_root: str, overrides: dict, device: str) -> di
     """Person-fits/s of the fit kernel on the track product's rows (one batch, after a warm-up)."""
     import numpy as np
 
-    from flows.pipeline.inputs import fit_inputs
+    from flows.pipeline.inputs import fit_inputs, sequence_ref
     from flows.stages.fit import fit_batch
     from storage.manifest import Manifest
     from storage.products import Tracks
@@ -190,7 +189,7 @@ def _fit_rate(data_root: str, out_root: str, overrides: dict, device: str) -> di
     rows = np.flatnonzero(Tracks.read(tracks_dir).gt_index >= 0).tolist()
     if not rows:
         return {"device": device, "persons": 0, "note": "no tracked person to fit"}
-    args = (Path(data_root), seq, inputs, Path(out_root), tracks_dir)
+    args = (sequence_ref(cfg, seq), inputs, Path(out_root), tracks_dir)
     fit_batch(*args, rows[:1])  # warm-up
     t0 = time.perf_counter()
     fit_batch(*args, rows)

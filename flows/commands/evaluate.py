@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.coda import CodaSequence, read_lidar_bin
+from storage.coda import read_lidar_bin
 from storage.dataset import open_dataset
 from storage.gt import gt_dir, read_frame_gt, read_sequence_gt
 from storage.products import Bodies, Detections, Tracks
@@ -176,7 +176,9 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
         tot.notes[f"sequence {seq}"] = f"no ground truth under {gt_root}/gt/{seq}: not evaluated"
         return
     gseq = read_sequence_gt(gt_root, int(seq))
-    coda = CodaSequence(gt_root, seq)
+    from flows.commands.evaluate_coda import open_recorded_sequence
+
+    coda = open_recorded_sequence(config, gt_root, seq)
     cam = coda.info.calibration.cameras[((config.get("dataset") or {}).get("camera")) or "cam0"]
     T_bl = np.asarray(gseq.T_base_from_lidar, np.float64)
     shape = tuple(arrays["semantics"].shape[1:4])
@@ -186,7 +188,7 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
         tot.notes[f"occupancy {seq}"] = (f"grid {shape} at {vs} m differs from the ground truth's "
                                          f"{tuple(gseq.grid_shape)} at {gseq.grid_voxel_size_m} m: occupancy, "
                                          "velocity and BEV comparisons skipped")
-    condition = _condition(coda.info.metadata)
+    condition = "night" if coda.info.is_night else _condition(coda.info.metadata)
     min_range = float((config.get("dataset") or {}).get("min_range_m", coda.min_range_m))
     frustum = _frustum(shape, range_min, vs, T_bl, cam)
 
@@ -337,10 +339,19 @@ def _sample_positions(ds, sample_frames: int) -> set:
     return {pairs[i] for i in pick}
 
 
-def evaluate(dataset: Path, gt: Path | None, report_dir: Path, sample_frames: int = 3) -> dict:
+def evaluate(dataset: Path, gt: Path | None, report_dir: Path, sample_frames: int = 3,
+             labels: str = "synthetic") -> dict:
     """Evaluate the dataset at ``dataset`` (OUT) against the ground truth under ``gt`` (the raw data
     root holding ``gt/``; None = the ``dataset.root`` recorded in OUT/manifest.json). Writes
-    report.md, results.json and figures/ under ``report_dir``; returns the results dict."""
+    report.md, results.json and figures/ under ``report_dir``; returns the results dict.
+    labels: "synthetic" (the simulator's exact ground truth, gt/) or "coda" (CODa's own 3d_semantic
+    and 3d_bbox labels beside the raw data: flows/commands/evaluate_coda.py)."""
+    if labels == "coda":
+        from flows.commands.evaluate_coda import evaluate_coda
+
+        return evaluate_coda(dataset, gt, report_dir, sample_frames)
+    if labels != "synthetic":
+        raise EvaluateError(f"labels {labels!r}: expected 'synthetic' or 'coda'")
     out = Path(dataset)
     manifest = Manifest.load(out)
     config = manifest.meta.get("config") or {}

@@ -38,6 +38,8 @@ from tasks.track.offline import OfflineParams, WorldCheck
 
 #: config keys that only say where things are or how many workers run (no stage reads them)
 RUNTIME_KEYS = ("dataset.root", "dataset.sequences", "output.root", "dask")
+#: config keys about one sequence each: in its fingerprint (SequenceRef), not in stage inputs
+PER_SEQUENCE_KEYS = ("dataset.lighting",)
 
 
 def to_jsonable(value: Any) -> Any:
@@ -67,6 +69,32 @@ def inputs_hash(inputs: Any) -> str:
 
 
 @dataclass(frozen=True)
+class SequenceRef:
+    """One sequence: where it lives and what the config says about it alone (its entry in
+    ``dataset.lighting``). In no stage's inputs: the plan folds the lighting into the sequence's
+    fingerprint, so changing one sequence's lighting reruns that sequence only."""
+
+    root: Path
+    sequence: str
+    lighting: str | None = None
+
+    def fingerprint(self, files_fingerprint: str) -> str:
+        if self.lighting is None:
+            return files_fingerprint
+        return hashlib.sha256(f"{files_fingerprint}/lighting={self.lighting}".encode()).hexdigest()[:32]
+
+
+def sequence_ref(config: Config, sequence: str) -> SequenceRef:
+    return SequenceRef(Path(config.dataset.root), str(sequence), config.dataset.lighting.get(str(sequence)))
+
+
+def open_sequence(config: Config, sequence: str) -> CodaSequence:
+    """The reader of one sequence as the config says to read it (for commands; stages get their
+    :class:`Source` and :class:`SequenceRef`)."""
+    return source(config).open(sequence_ref(config, sequence))
+
+
+@dataclass(frozen=True)
 class Source:
     """How a sequence's raw files are read (the dataset root is not part of it: the input
     fingerprint covers the files' content wherever they are)."""
@@ -77,12 +105,17 @@ class Source:
     frame_stride: int
     min_range_m: float
     max_range_m: float
+    #: which raw frames a sequence has: those with a sweep file, or those the metadata lists
+    frames: str
+    #: LiDAR height above the ground where calib_os1_to_base.yaml is missing
+    lidar_height_m: float
 
-    def open(self, root: Path, sequence: str) -> CodaSequence:
-        """The sequence ``sequence`` of the CODa-layout folder ``root``, read this way."""
-        return CodaSequence(root, sequence, frame_stride=self.frame_stride,
+    def open(self, ref: SequenceRef) -> CodaSequence:
+        """The sequence ``ref``, read this way."""
+        return CodaSequence(ref.root, ref.sequence, frame_stride=self.frame_stride,
                             lidar_source=self.lidar_source, image_source=self.image_source,
-                            min_range_m=self.min_range_m, max_range_m=self.max_range_m)
+                            min_range_m=self.min_range_m, max_range_m=self.max_range_m,
+                            frames=self.frames, lighting=ref.lighting, lidar_height_m=self.lidar_height_m)
 
 
 @dataclass(frozen=True)
@@ -100,7 +133,7 @@ def runtime(config: Config) -> Runtime:
 def source(config: Config) -> Source:
     ds = config.dataset
     return Source(ds.lidar_source, ds.image_source, ds.camera, ds.frame_stride, ds.min_range_m,
-                  ds.max_range_m)
+                  ds.max_range_m, ds.frames, ds.lidar_height_m)
 
 
 # ---- providers, each with only its own settings ---------------------------------------------------

@@ -12,7 +12,7 @@ from typing import Any
 
 from configs.schema import Config
 from flows.pipeline.dag import CODE_VERSIONS, STAGES
-from flows.pipeline.inputs import inputs_hash, source, stage_inputs, to_jsonable
+from flows.pipeline.inputs import SequenceRef, inputs_hash, sequence_ref, source, stage_inputs, to_jsonable
 from storage.coda import list_sequences
 from storage.manifest import FileHasher, Manifest, sequence_fingerprint, stage_key
 
@@ -27,6 +27,8 @@ class UnitPlan:
     reason: str  # why it runs ("" when fresh)
     #: the stage's inputs object (the only settings the stage reads)
     inputs: Any = None
+    #: the sequence: where it is, what the config says about it alone
+    ref: SequenceRef | None = None
 
 
 @dataclass
@@ -35,6 +37,7 @@ class SequencePlan:
     fingerprint: str = ""
     num_frames: int = 0
     error: str = ""  # the sequence could not even be opened
+    warnings: tuple[str, ...] = ()  # the reader's (defaults used, values ignored)
     units: dict[str, UnitPlan] = field(default_factory=dict)
 
 
@@ -65,10 +68,12 @@ def plan_run(config: Config, manifest: Manifest, hasher: FileHasher, force: bool
     for seq in sequences if sequences is not None else selected_sequences(config):
         plan = SequencePlan(seq)
         plans.append(plan)
+        ref = sequence_ref(config, seq)
         try:
-            info = source(config).open(config.dataset.root, seq).info
-            plan.fingerprint = sequence_fingerprint(config.dataset.root, info.files, hasher)
+            info = source(config).open(ref).info
+            plan.fingerprint = ref.fingerprint(sequence_fingerprint(config.dataset.root, info.files, hasher))
             plan.num_frames = info.num_frames
+            plan.warnings = info.warnings
         except (ValueError, OSError) as exc:
             plan.error = str(exc)
             continue
@@ -78,7 +83,7 @@ def plan_run(config: Config, manifest: Manifest, hasher: FileHasher, force: bool
             if reason:
                 runs.add(stage)
             plan.units[stage] = UnitPlan(seq, stage, key, parts, fresh=not reason, reason=reason,
-                                         inputs=inputs[stage])
+                                         inputs=inputs[stage], ref=ref)
     return plans
 
 

@@ -36,7 +36,7 @@ from storage.manifest import (
 )
 
 
-def execute_unit(unit: UnitPlan, data_root: Path, out_root: Path, upstream: dict[str, dict],
+def execute_unit(unit: UnitPlan, out_root: Path, upstream: dict[str, dict],
                  fingerprint: str = "", runtime: Runtime = Runtime()) -> dict:
     """Run one (sequence, stage): returns an outcome dict; never raises for a stage error."""
     base = {"sequence": unit.sequence, "stage": unit.stage, "key": unit.key, "parts": unit.parts}
@@ -51,7 +51,7 @@ def execute_unit(unit: UnitPlan, data_root: Path, out_root: Path, upstream: dict
     started = time.perf_counter()
     try:
         with staged_output(final) as tmp:
-            ctx = StageContext(unit.sequence, Path(data_root), unit.inputs, Path(out_root), tmp,
+            ctx = StageContext(unit.ref, unit.inputs, Path(out_root), tmp,
                                {s: Path(out_root) / o["location"] for s, o in upstream.items()},
                                key=unit.key, fingerprint=fingerprint, runtime=runtime)
             summary = STAGE_FUNCTIONS[unit.stage](ctx)
@@ -65,9 +65,9 @@ def execute_unit(unit: UnitPlan, data_root: Path, out_root: Path, upstream: dict
 
 
 @task(name="stage", cache_policy=NO_CACHE, task_run_name="{unit.stage}-{unit.sequence}")
-def stage_task(unit: UnitPlan, data_root: Path, out_root: Path, upstream: dict[str, dict],
-               fingerprint: str, runtime: Runtime) -> dict:
-    return execute_unit(unit, data_root, out_root, upstream, fingerprint, runtime)
+def stage_task(unit: UnitPlan, out_root: Path, upstream: dict[str, dict], fingerprint: str,
+               runtime: Runtime) -> dict:
+    return execute_unit(unit, out_root, upstream, fingerprint, runtime)
 
 
 @dataclass
@@ -151,8 +151,8 @@ def run_units(config: Config, force: bool = False, sequences: list[str] | None =
                     mine[stage] = outcome
                     continue
                 with _gpu_annotation(config, stage):
-                    fut = stage_task.submit(unit, Path(config.dataset.root), out_root,
-                                            {u: mine[u] for u in upstream}, plan.fingerprint, runtime(config))
+                    fut = stage_task.submit(unit, out_root, {u: mine[u] for u in upstream}, plan.fingerprint,
+                                            runtime(config))
                 futures.append(fut)
                 mine[stage] = fut
         bars = _progress_bars(report, futures, progress)
@@ -271,4 +271,5 @@ def summary_table(report: RunReport) -> str:
         lines.append(f"FAILED {o['sequence']}/{o['stage']}: {o['error']}")
     for fmt, state in sorted(report.dataset_exports.items()):
         lines.append(f"{fmt} export: {state}")
+    lines += [f"WARNING {p.sequence}: {w}" for p in report.plans for w in p.warnings]
     return "\n".join(lines)

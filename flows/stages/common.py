@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from flows.pipeline.inputs import BodyModelFiles, Runtime
+from flows.pipeline.inputs import BodyModelFiles, Runtime, SequenceRef
 from storage.body_files import load_body_model, load_pose_prior, save_body_model_npz, save_pose_prior_pkl
 from storage.coda import CodaSequence
 from tasks.body.model import BodyModel
@@ -20,12 +20,11 @@ from tasks.body.procedural import generate_body_model
 
 @dataclass(frozen=True)
 class StageContext:
-    """One (sequence, stage) unit: its inputs object (the only settings it reads), where the
-    sequence lives, where its upstream products are and where it writes (a hidden staging folder
+    """One (sequence, stage) unit: its inputs object (the only settings it reads), the sequence
+    (where it lives, what the config says about it alone), where its upstream products are and where it writes (a hidden staging folder
     published by rename when the stage returns)."""
 
-    sequence: str
-    data_root: Path
+    ref: SequenceRef
     inputs: Any
     out_root: Path
     out_dir: Path
@@ -37,7 +36,11 @@ class StageContext:
     runtime: Runtime = Runtime()
 
     def open(self) -> CodaSequence:
-        return self.inputs.source.open(self.data_root, self.sequence)
+        return self.inputs.source.open(self.ref)
+
+    @property
+    def sequence(self) -> str:
+        return self.ref.sequence
 
 
 def chunks(n: int, size: int) -> list[list[int]]:
@@ -46,8 +49,8 @@ def chunks(n: int, size: int) -> list[list[int]]:
 
 
 def is_night(seq: CodaSequence) -> bool:
-    lighting = str(seq.info.metadata.get("lighting", "day")).lower()
-    return lighting in ("night", "dark")
+    """dataset.lighting of the sequence, else its metadata's lighting (storage.coda)."""
+    return seq.info.is_night
 
 
 def frame_rng(seed: int, sequence: str, frame: int, salt: int) -> np.random.Generator:

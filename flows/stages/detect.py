@@ -10,17 +10,16 @@ from pathlib import Path
 
 import numpy as np
 
-from flows.pipeline.inputs import DetectInputs
+from flows.pipeline.inputs import DetectInputs, SequenceRef
 from flows.pipeline.parallel import fan_out
 from flows.stages.common import StageContext, chunks
 from flows.stages.providers import image_provider, lidar_provider
 from storage.products import Detections, masks_to_labels
 
 
-def detect_frames(root: Path, sequence: str, inputs: DetectInputs, positions: list[int],
-                  out_dir: Path) -> list[dict]:
+def detect_frames(ref: SequenceRef, inputs: DetectInputs, positions: list[int], out_dir: Path) -> list[dict]:
     """Run the providers on some frames (positions in the sequence); one product per frame."""
-    seq = inputs.source.open(root, sequence)
+    seq = inputs.source.open(ref)
     cam = seq.info.calibration.cameras[inputs.source.camera]
     images, lidars = image_provider(inputs.image, seq), lidar_provider(inputs.lidar, seq)
     rows = []
@@ -29,7 +28,7 @@ def detect_frames(root: Path, sequence: str, inputs: DetectInputs, positions: li
         image, gt_index = images.image(frame)
         lidar = lidars.lidar(frame)
         if image.image_size != (cam.width, cam.height):
-            raise ValueError(f"sequence {sequence} frame {frame.index}: perception image size "
+            raise ValueError(f"sequence {ref.sequence} frame {frame.index}: perception image size "
                              f"{image.image_size} != camera {(cam.width, cam.height)}")
         Detections(image.boxes_xyxy, image.scores, image.keypoints, masks_to_labels(image.masks),
                    image.semantic, lidar.centers, lidar.sizes, lidar.yaws, lidar.scores,
@@ -41,7 +40,7 @@ def detect_frames(root: Path, sequence: str, inputs: DetectInputs, positions: li
 
 def run_detect(ctx: StageContext) -> dict:
     n = len(ctx.open())
-    rows = [r for part in fan_out(detect_frames, [(ctx.data_root, ctx.sequence, ctx.inputs, c, ctx.out_dir)
+    rows = [r for part in fan_out(detect_frames, [(ctx.ref, ctx.inputs, c, ctx.out_dir)
                                                   for c in chunks(n, 4)]) for r in part]
     return {"implemented": True, "frames": [r["frame"] for r in rows],
             "image_provider": type(ctx.inputs.image).__name__,

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from flows.pipeline.inputs import FitInputs
+from flows.pipeline.inputs import FitInputs, SequenceRef
 from flows.pipeline.parallel import fan_out
 from flows.stages.common import StageContext, body_model, pose_prior
 from flows.stages.providers import init_provider
@@ -38,11 +38,11 @@ def device(name: str) -> str:
     return ("cuda" if torch.cuda.is_available() else "cpu") if name == "auto" else name
 
 
-def fit_batch(root: Path, sequence: str, inputs: FitInputs, out_root: Path, tracks_dir: Path,
+def fit_batch(ref: SequenceRef, inputs: FitInputs, out_root: Path, tracks_dir: Path,
               rows: list[int], init: BodyParams | None = None) -> dict:
     """Fit some rows of the track product from ``init`` (cam frame; None: the provider's
     estimates); returns their rows (tasks.fit.batch.fit_rows) in the LiDAR frame."""
-    seq, s, tracks = inputs.source.open(root, sequence), inputs.settings, _tracks(str(tracks_dir))
+    seq, s, tracks = inputs.source.open(ref), inputs.settings, _tracks(str(tracks_dir))
     cam = seq.info.calibration.cameras[inputs.source.camera]
     model, at = body_model(inputs.body, out_root), {raw: i for i, raw in enumerate(seq.info.frame_indices)}
     sweeps = {raw: seq.frame(at[raw]).points_lidar for raw in np.unique(tracks.frame[rows]).tolist()}
@@ -75,7 +75,7 @@ def _warm_started(ctx: StageContext, seq, tracks: Tracks, rows: np.ndarray, reso
             prev = [q[1] if q is not None and q[0] == p - 1 else None for q in prev]
             init = warm_started(model, provider.estimates(tracks, batch), prev, cam.T_cam_from_lidar,
                                 seq.info.poses[p], seq.info.poses[p - 1] if p else seq.info.poses[p])
-            args.append((ctx.data_root, ctx.sequence, inp, ctx.out_root, ctx.upstream["track"], batch.tolist(), init))
+            args.append((ctx.ref, inp, ctx.out_root, ctx.upstream["track"], batch.tolist(), init))
         for out in fan_out(fit_batch, args, resources):
             parts.append(out)
             for k, r in enumerate(out["rows"]):
@@ -106,7 +106,7 @@ def run_fit(ctx: StageContext) -> dict:
     if s.warm_start:
         parts = _warm_started(ctx, seq, tracks, rows, resources)
     else:
-        parts = fan_out(fit_batch, [(ctx.data_root, ctx.sequence, inp, ctx.out_root, ctx.upstream["track"],
+        parts = fan_out(fit_batch, [(ctx.ref, inp, ctx.out_root, ctx.upstream["track"],
                                      rows[a:a + s.batch_persons].tolist())
                                     for a in range(0, len(rows), s.batch_persons)], resources)
     out, far = (drop_far_fits({k: np.concatenate([p[k] for p in parts]) for k in parts[0]}, s.max_shift_m)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flows.pipeline.inputs import FuseInputs
+from flows.pipeline.inputs import FuseInputs, SequenceRef
 from flows.pipeline.parallel import fan_out
 from flows.stages.common import StageContext, body_model
 from storage.gt import read_frame_gt, read_sequence_gt
@@ -56,10 +56,10 @@ class _People:
                 for t, v, w in zip(ids, verts, vel)]
 
 
-def fuse_chunk(root: Path, sequence: str, inputs: FuseInputs, out_root: Path, positions: list[int],
+def fuse_chunk(ref: SequenceRef, inputs: FuseInputs, out_root: Path, positions: list[int],
                store: Path, map_dir: Path, fit_dir: Path | None) -> list[dict]:
     """Fuse some frames (one write unit of the store) and write them."""
-    seq = inputs.source.open(root, sequence)
+    seq = inputs.source.open(ref)
     calib = seq.info.calibration
     cam, T_base_from_lidar = calib.cameras[inputs.source.camera], calib.T_base_from_lidar
     s, o = StaticMapProduct.read(map_dir), OccupancyMapProduct.read(map_dir)
@@ -91,7 +91,7 @@ def run_fuse(ctx: StageContext) -> dict:
         "range_min": list(spec.range_min), "range_max": list(spec.range_max),
         "voxel_size_m": spec.voxel_size_m, "stage_key": ctx.key, "sequence": ctx.sequence,
         "body_source": inp.body_source})
-    parts = fan_out(fuse_chunk, [(ctx.data_root, ctx.sequence, inp, ctx.out_root, list(range(a, b)), store,
+    parts = fan_out(fuse_chunk, [(ctx.ref, inp, ctx.out_root, list(range(a, b)), store,
                                   ctx.upstream["map"], fit_dir) for a, b in layout.write_units()])
     rows = [r for part in parts for r in part]
     FusedFrames(np.array([r["frame"] for r in rows], np.int64), np.array([r["stamp_ns"] for r in rows], np.int64),
