@@ -129,12 +129,88 @@ class LidarClustersConfig(Strict):
     max_range_m: float = Field(40.0, gt=0)
 
 
+class DetectorModelConfig(Strict):
+    """Person boxes of image_provider 'models' (tasks/perception/models/detector.py)."""
+
+    #: lidar (the LiDAR pedestrian boxes projected into the camera) | yolox | decoded-boxes
+    #: (an export with dets + labels outputs)
+    kind: Literal["lidar", "yolox", "decoded-boxes"] = "lidar"
+    path: Path | None = None
+    #: yolox: exported with --decode_in_inference
+    decoded: bool = False
+    person_class: int = Field(0, ge=0)
+    score_threshold: float = Field(0.3, ge=0, le=1)
+    nms_iou: float = Field(0.45, gt=0, le=1)
+
+
+class KeypointModelConfig(Strict):
+    """Top-down COCO-17 keypoints (tasks/perception/models/keypoints.py, blazepose.py)."""
+
+    kind: Literal["blazepose", "vitpose", "rtmpose", "none"] = "blazepose"
+    path: Path | None = None
+    #: vitpose: the UDP codec ViTPose is trained with (false: classic heatmaps)
+    udp: bool = True
+    batch_size: int = Field(16, ge=1)
+
+
+class MaskModelConfig(Strict):
+    """Person instance masks (tasks/perception/models/segmentation.py, blazepose.py)."""
+
+    #: blazepose | mask2former | semantic (the semantic model's person pixels in each box) | none
+    kind: Literal["blazepose", "mask2former", "semantic", "none"] = "blazepose"
+    path: Path | None = None
+    #: mask2former: the export's person class and the query score threshold
+    person_class: int = Field(0, ge=0)
+    score_threshold: float = Field(0.5, ge=0, le=1)
+
+
+class SemanticModelConfig(Strict):
+    #: oracle (synthetic data only: the oracle's semantics) | onnx (a Cityscapes export) | none (255)
+    kind: Literal["oracle", "onnx", "none"] = "oracle"
+    path: Path | None = None
+    #: (height, width) for an export with a dynamic input size
+    input_size: tuple[int, int] | None = None
+
+
+class ModelsConfig(Strict):
+    """image_provider 'models': real networks from local files; the defaults are the bundled
+    BlazePose setup that needs no download (README, "Real perception models")."""
+
+    device: Literal["cpu", "cuda", "auto"] = "auto"
+    #: the bundled BlazePose .tflite files, extracted by `make setup` from the mediapipe wheel
+    bundled_dir: Path = Path(".cache/models/mediapipe-0.10.21")
+    detector: DetectorModelConfig = DetectorModelConfig()
+    keypoints: KeypointModelConfig = KeypointModelConfig()
+    masks: MaskModelConfig = MaskModelConfig()
+    semantic: SemanticModelConfig = SemanticModelConfig()
+    #: blazepose: a box whose region the landmark model finds no person in (pose flag) drops;
+    #: the others' scores are multiplied by their flag
+    min_pose_flag: float = Field(0.5, ge=0, le=1)
+    #: blazepose: the square region around a box is max(w, h) x box_scale
+    box_scale: float = Field(1.25, gt=0)
+
+    @model_validator(mode="after")
+    def _kinds_and_paths(self) -> ModelsConfig:
+        if self.masks.kind == "blazepose" and self.keypoints.kind != "blazepose":
+            raise ValueError("masks.kind 'blazepose' comes with keypoints.kind 'blazepose' (one model run)")
+        if self.masks.kind == "semantic" and self.semantic.kind == "none":
+            raise ValueError("masks.kind 'semantic' needs a semantic model (semantic.kind onnx or oracle)")
+        for name, part, needs in (("detector", self.detector, self.detector.kind != "lidar"),
+                                  ("keypoints", self.keypoints, self.keypoints.kind in ("vitpose", "rtmpose")),
+                                  ("masks", self.masks, self.masks.kind == "mask2former"),
+                                  ("semantic", self.semantic, self.semantic.kind == "onnx")):
+            if needs and part.path is None:
+                raise ValueError(f"{name}.path is required for {name}.kind {part.kind!r} (an ONNX file)")
+        return self
+
+
 class DetectConfig(Strict):
-    image_provider: Literal["oracle", "precomputed"] = "oracle"
+    image_provider: Literal["oracle", "precomputed", "models"] = "oracle"
     lidar_provider: Literal["lidar-clusters", "oracle", "precomputed", "none"] = "lidar-clusters"
     precomputed_dir: Path | None = None
     oracle: OracleNoise = OracleNoise()
     lidar_clusters: LidarClustersConfig = LidarClustersConfig()
+    models: ModelsConfig = ModelsConfig()
     seed: int = 0
 
     @model_validator(mode="after")
@@ -142,6 +218,9 @@ class DetectConfig(Strict):
         uses = "precomputed" in (self.image_provider, self.lidar_provider)
         if uses and self.precomputed_dir is None:
             raise ValueError("precomputed_dir is required when a provider is 'precomputed'")
+        if (self.image_provider == "models" and self.models.detector.kind == "lidar"
+                and self.lidar_provider == "none"):
+            raise ValueError("models.detector.kind 'lidar' needs a lidar_provider (not 'none')")
         return self
 
 
@@ -258,7 +337,10 @@ class FitConfig(Strict):
     device: Literal["cpu", "cuda", "auto"] = "auto"
     #: start a track's fit from its previous frame's fit (beyond the paper; frames run in order)
     warm_start: bool = False
-    init_provider: Literal["oracle", "precomputed"] = "oracle"
+    init_provider: Literal["oracle", "precomputed", "cliff"] = "oracle"
+    #: cliff: a CLIFF ONNX export run on each tracked box (tasks/perception/models/cliff.py), on
+    #: fit.device
+    cliff_path: Path | None = None
     #: precomputed CLIFF estimates: <init_dir>/<sequence>/cliff.parquet (storage/PERCEPTION_FORMAT.md)
     init_dir: Path | None = None
     #: user-supplied official model files; None = our procedural stand-ins
@@ -270,6 +352,8 @@ class FitConfig(Strict):
     def _precomputed_needs_dir(self) -> FitConfig:
         if self.init_provider == "precomputed" and self.init_dir is None:
             raise ValueError("fit.init_dir is required when fit.init_provider is 'precomputed'")
+        if self.init_provider == "cliff" and self.cliff_path is None:
+            raise ValueError("fit.cliff_path is required when fit.init_provider is 'cliff'")
         return self
 
     @model_validator(mode="after")

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from configs.schema import Config
+from flows.model_providers import gt_index_by_boxes, models_image_perception, uses_oracle_semantic
 from flows.parallel import fan_out
 from flows.plan import open_sequence
 from flows.stages.common import StageContext, chunks, frame_rng, is_night
@@ -41,14 +42,14 @@ def detect_frames(config: Config, sequence: str, positions: list[int], out_dir: 
     for i in positions:
         frame = seq.frame(i)
         gt = read_frame_gt(seq.root, int(sequence), frame.index) if "oracle" in (
-            det.image_provider, det.lidar_provider) else None
+            det.image_provider, det.lidar_provider) or uses_oracle_semantic(config) else None
         gt_index = None
-        if det.image_provider == "oracle":
+        if det.image_provider == "oracle" or uses_oracle_semantic(config):
             image, gt_index = oracle_image_perception(
                 gt.box2d, gt.keypoints, gt.visible_fraction, np.linalg.norm(gt.box_center, axis=1),
                 gt.track_id, gt.cam0_instance, gt.cam0_semantic,
                 frame_rng(det.seed, sequence, frame.index, 1), night=night, noise=_oracle_noise(config))
-        else:
+        elif det.image_provider == "precomputed":
             image = ImagePerception(**precomputed.image(frame.index))
         if det.lidar_provider == "lidar-clusters":
             lidar = detect_pedestrians_lidar(frame.points_lidar, **det.lidar_clusters.model_dump())
@@ -61,6 +62,10 @@ def detect_frames(config: Config, sequence: str, positions: list[int], out_dir: 
             lidar = LidarDetections(**precomputed.lidar(frame.index))
         else:
             lidar = LidarDetections.empty()
+        if det.image_provider == "models":  # real networks on the frame's image (flows/model_providers.py)
+            image = models_image_perception(config, frame, cam, lidar,
+                                            image.semantic if uses_oracle_semantic(config) else None)
+            gt_index = None if gt is None else gt_index_by_boxes(image.boxes_xyxy, gt.box2d)
         if image.image_size != (cam.width, cam.height):
             raise ValueError(f"sequence {sequence} frame {frame.index}: perception image size "
                              f"{image.image_size} != camera {(cam.width, cam.height)}")
