@@ -40,9 +40,9 @@ class CliffEstimator:
     def __init__(self, runner: ModelRunner, rescale: float = CLIFF_RESCALE, batch_size: int = 16):
         ins = list(runner.input_shapes.items())
         outs = dict(runner.output_shapes)
-        ranks = sorted(len(s) for s in outs.values())
-        if (len(ins) != 2 or sorted(len(s) for _, s in ins) != [2, 4] or ranks != [2, 2, 4]
-                or not any(s[1:] == (24, 3, 3) for s in outs.values())):
+        rot = [s for s in outs.values() if len(s) == 4]
+        if (len(ins) != 2 or sorted(len(s) for _, s in ins) != [2, 4] or sorted(len(s) for s in outs.values()) != [2, 2, 4]
+                or any(d not in (None, w) for d, w in zip(rot[0][1:], (24, 3, 3)))):
             raise ValueError(f"{runner.source}: not a CLIFF export: inputs {dict(runner.input_shapes)}, outputs "
                              f"{outs}; expected inputs image (N, 3, h, w) and bbox_info (N, 3), outputs "
                              "rotations (N, 24, 3, 3), betas (N, 10), crop camera (N, 3)")
@@ -68,7 +68,7 @@ class CliffEstimator:
         x = normalize(warp_crops(image, A, (self.height, self.width)), IMAGENET_MEAN, IMAGENET_STD)
         out = run_batched(self.runner, {self.image_input: x, self.info_input: cliff_bbox_info(center, size, K)},
                           self.batch_size)
-        rot = next(v for v in out.values() if v.shape[1:] == (24, 3, 3))
+        rot = next(v for v in out.values() if v.ndim == 4).reshape(-1, 24, 3, 3)
         flat = [v for v in out.values() if v.ndim == 2]
         betas = next(v for v in flat if v.shape[1] == 10)
         cam = next(v for v in flat if v.shape[1] == 3)
