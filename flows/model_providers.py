@@ -9,8 +9,11 @@ from pathlib import Path
 import numpy as np
 
 from configs.schema import Config, ModelsConfig
+from flows.parallel import fan_out
+from flows.plan import open_sequence
 from storage.images import read_rgb
 from storage.model_files import bundled_model, open_onnx, open_tflite
+from tasks.fit.init_oracle import BodyParams
 from tasks.metrics.detection import match_boxes
 from tasks.perception.models.blazepose import BlazePoseLandmarks
 from tasks.perception.models.cliff import CliffEstimator
@@ -100,5 +103,30 @@ def _cliff(path: str, device: str) -> CliffEstimator:
 
 
 def cliff_estimator(config: Config) -> CliffEstimator:
-    device = "auto" if config.fit.device == "auto" else config.fit.device
-    return _cliff(str(Path(config.fit.cliff_path)), device)
+    return _cliff(str(Path(config.fit.cliff_path)), config.fit.device)
+
+
+def _cliff_frame(config: Config, sequence: str, raw: int, rows: list[int], boxes: np.ndarray) -> BodyParams:
+    seq = open_sequence(config, sequence)
+    cam = seq.info.calibration.cameras[config.dataset.camera]
+    frame = seq.frame(seq.info.frame_indices.index(raw))
+    image = read_rgb(frame.image_paths[config.dataset.camera], (cam.width, cam.height))
+    return cliff_estimator(config)(image, boxes, cam.K)
+
+
+def cliff_estimates(config: Config, sequence: str, tracks: dict) -> tuple[np.ndarray, BodyParams]:
+    """Every row of the track product and its CLIFF estimate (cam frame), one image read per
+    frame, frames fanned out like the detect stage."""
+    frames = tracks["frame"].astype(np.int64)
+    order = np.argsort(frames, kind="stable")
+    args = [(config, sequence, int(f), order[frames[order] == f].tolist(), tracks["boxes_xyxy"][order[frames[order] == f]])
+            for f in np.unique(frames)]
+    parts = fan_out(_cliff_frame, args)
+    rows = np.concatenate([np.asarray(a[3], np.int64) for a in args]) if args else np.zeros(0, np.int64)
+    if not parts:
+        z = lambda *s: np.zeros(s, np.float32)
+        return rows, BodyParams(z(0, 10), z(0, 3), z(0, 69), z(0, 3))
+    est = BodyParams(*(np.concatenate([getattr(p, k) for p in parts])
+                       for k in ("betas", "global_orient", "body_pose", "transl")))
+    back = np.argsort(rows, kind="stable")
+    return rows[back], est.take(back)

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from configs.schema import Config
+from flows.model_providers import cliff_estimates
 from flows.parallel import fan_out
 from flows.plan import open_sequence
 from flows.stages.common import StageContext, frame_rng
@@ -231,6 +232,8 @@ def run_fit(ctx: StageContext) -> dict:
     step = cfg.fit.batch_persons
     if cfg.fit.init_provider == "oracle":  # the oracle has no estimate for a false positive
         rows, est = rows[tracks["gt_index"] >= 0], None
+    elif cfg.fit.init_provider == "cliff":  # a CLIFF export on each tracked box (flows/model_providers.py)
+        rows, est = cliff_estimates(cfg, ctx.sequence, tracks)
     else:
         rows, est = precomputed_estimates(cfg, ctx.sequence, tracks)
     few = tracks["points_in_image"][rows] < cfg.fit.min_points
