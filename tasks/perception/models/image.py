@@ -126,12 +126,24 @@ def apply_affine(A: np.ndarray, xy: np.ndarray) -> np.ndarray:
 
 
 def _sample(source: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor, border: float) -> torch.Tensor:
-    """Bilinear samples of source (1, C, H, W) at pixel coordinates xs, ys (h', w')."""
+    """Bilinear samples of source (1, C, H, W) float32 at pixel coordinates xs, ys (h', w')."""
     H, W = source.shape[-2:]
-    grid = torch.stack([2 * xs / max(W - 1, 1) - 1, 2 * ys / max(H - 1, 1) - 1], dim=-1)[None]
-    out = F.grid_sample(source - border, grid.to(source.dtype), mode="bilinear", padding_mode="zeros",
-                        align_corners=True)
-    return out[0] + border
+    grid = torch.stack([xs.float() * (2.0 / max(W - 1, 1)) - 1, ys.float() * (2.0 / max(H - 1, 1)) - 1], dim=-1)[None]
+    if border:
+        source = source - border
+    out = F.grid_sample(source, grid, mode="bilinear", padding_mode="zeros", align_corners=True)[0]
+    return out + border if border else out
+
+
+def _grid(inv: np.ndarray, v0: int, v1: int, u0: int, u1: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Source coordinates (n, rows, cols) float32 of the pixels [v0, v1) x [u0, u1) through the
+    maps ``inv`` (n, 2, 3) (destination -> source)."""
+    inv = torch.as_tensor(np.asarray(inv, np.float64), dtype=torch.float32)
+    gy, gx = torch.meshgrid(torch.arange(v0, v1, dtype=torch.float32), torch.arange(u0, u1, dtype=torch.float32),
+                            indexing="ij")
+    xs = inv[:, 0, 0, None, None] * gx + inv[:, 0, 1, None, None] * gy + inv[:, 0, 2, None, None]
+    ys = inv[:, 1, 0, None, None] * gx + inv[:, 1, 1, None, None] * gy + inv[:, 1, 2, None, None]
+    return xs, ys
 
 
 def warp_crops(image: np.ndarray, A: np.ndarray, out_hw: tuple[int, int], border: float = 0.0) -> np.ndarray:
@@ -142,14 +154,9 @@ def warp_crops(image: np.ndarray, A: np.ndarray, out_hw: tuple[int, int], border
     n = len(A)
     if n == 0:
         return np.zeros((0, h, w, 3), np.float32)
-    inv = invert_affine(A)
-    gy, gx = np.mgrid[0:h, 0:w].astype(np.float64)
-    pts = np.stack([gx.ravel(), gy.ravel()], 1)
-    src = apply_affine(inv, np.broadcast_to(pts, (n,) + pts.shape))  # (N, h*w, 2)
-    xs = torch.as_tensor(src[..., 0].reshape(n * h, w))
-    ys = torch.as_tensor(src[..., 1].reshape(n * h, w))
+    xs, ys = _grid(invert_affine(A), 0, h, 0, w)
     img = torch.from_numpy(image.astype(np.float32)).permute(2, 0, 1)[None]
-    out = _sample(img, xs, ys, border)  # (3, N*h, w)
+    out = _sample(img, xs.reshape(n * h, w), ys.reshape(n * h, w), border)  # (3, N*h, w)
     return out.reshape(3, n, h, w).permute(1, 2, 3, 0).numpy()
 
 
@@ -169,10 +176,8 @@ def paste_back(crop_values: np.ndarray, A: np.ndarray, height: int, width: int,
             u1, v1 = min(int(np.ceil(r[2])) + 1, width), min(int(np.ceil(r[3])) + 1, height)
         if u1 <= u0 or v1 <= v0:
             continue
-        gy, gx = np.mgrid[v0:v1, u0:u1].astype(np.float64)
-        src = apply_affine(A[i:i + 1], np.stack([gx.ravel(), gy.ravel()], 1)[None])[0]
-        vals = _sample(torch.as_tensor(crop_values[i], dtype=torch.float32)[None, None],
-                       torch.as_tensor(src[:, 0].reshape(gx.shape)), torch.as_tensor(src[:, 1].reshape(gx.shape)), 0.0)
+        xs, ys = _grid(A[i:i + 1], v0, v1, u0, u1)
+        vals = _sample(torch.as_tensor(crop_values[i], dtype=torch.float32)[None, None], xs[0], ys[0], 0.0)
         out[i, v0:v1, u0:u1] = vals[0].numpy()
     return out
 
