@@ -429,3 +429,38 @@ def test_bundled_extraction_checks_the_wheel(tmp_path):
     with pytest.raises(ModelFileError, match="has sha256"):
         extract_bundled_models(wheel, tmp_path / "cache")
     assert not (tmp_path / "cache" / "pose_detection.tflite").exists()
+
+
+def test_blazepose_detector_regions_in_image_pixels():
+    """A detection whose mid-hip is the letterboxed input's centre and whose size point lies 56
+    input px above it: the region is centred on the image, side 2 x 112 image px x 1.25, upright."""
+    from tasks.perception.models.blazepose import BlazePoseDetector
+
+    anchors = ssd_anchors()
+
+    class Fake:
+        source = "fake-detector"
+        input_shapes = {"input_1": (1, 224, 224, 3)}
+        output_shapes = {"Identity": (1, 2254, 12), "Identity_1": (1, 2254, 1)}
+
+        def __call__(self, feeds):
+            raw = np.zeros((1, 2254, 12), np.float32)
+            scores = np.full((1, 2254, 1), -20.0, np.float32)
+            i = 1000
+            a = anchors[i] * 224
+            raw[0, i, :4] = [*(np.array([112, 80]) - a), 20, 20]
+            raw[0, i, 4:6] = np.array([112, 112]) - a
+            raw[0, i, 6:8] = np.array([112, 56]) - a
+            scores[0, i] = 3.0
+            return {"Identity": raw, "Identity_1": scores}
+
+    det = BlazePoseDetector(Fake())
+    out = det(image(224, 448))
+    reg = det.last_regions
+    # letterbox: scale 0.5, 56 px of padding above; input corner coords -> image OpenCV pixels
+    np.testing.assert_allclose(reg.center, [[223.5, 111.5]], atol=1e-6)
+    np.testing.assert_allclose(reg.side, [2 * 112 * 1.25], atol=1e-6)
+    np.testing.assert_allclose(reg.rotation, [0.0], atol=1e-9)
+    # box: the region's edges (centre -+ 140), clipped to the image's rows 0..223
+    np.testing.assert_allclose(out.boxes_xyxy, [[83.5, 0, 363.5, 223]], atol=1e-3)
+    np.testing.assert_allclose(out.scores, [1 / (1 + np.exp(-3.0))], atol=1e-6)
