@@ -32,7 +32,7 @@ class ModelPerception:
     masks: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
     semantic: Callable[[np.ndarray], np.ndarray] | None = None
     blazepose: BlazePoseLandmarks | None = None
-    min_pose_flag: float = 0.5
+    min_pose_flag: float = 0.3
     #: where masks come from: "masks" (the mask model), "blazepose", "semantic" (person pixels
     #: in the box), "none", or "auto" (the first of those three that the setup has)
     mask_source: str = "auto"
