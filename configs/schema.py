@@ -443,6 +443,8 @@ class DaskConfig(Strict):
     memory_limit: str = "4GiB"
     #: route the fit stage to workers started with `--resources GPU=1`
     gpu_fit: bool = False
+    #: route the detect stage's frame chunks to those workers (image_provider 'models' on CUDA)
+    gpu_detect: bool = False
 
 
 class Config(Strict):

@@ -84,7 +84,8 @@ def detect_frames(config: Config, sequence: str, positions: list[int], out_dir: 
 
 def run_detect(ctx: StageContext) -> dict:
     n = len(ctx.open())
-    parts = fan_out(detect_frames, [(ctx.config, ctx.sequence, c, ctx.out_dir) for c in chunks(n, 4)])
+    parts = fan_out(detect_frames, [(ctx.config, ctx.sequence, c, ctx.out_dir) for c in chunks(n, 4)],
+                    {"GPU": 1} if ctx.config.dask.gpu_detect else None)
     rows = [r for part in parts for r in part]
     return {"implemented": True, "frames": [r["frame"] for r in rows],
             "image_provider": ctx.config.detect.image_provider,
