@@ -464,3 +464,13 @@ def test_blazepose_detector_regions_in_image_pixels():
     # box: the region's edges (centre -+ 140), clipped to the image's rows 0..223
     np.testing.assert_allclose(out.boxes_xyxy, [[83.5, 0, 363.5, 223]], atol=1e-3)
     np.testing.assert_allclose(out.scores, [1 / (1 + np.exp(-3.0))], atol=1e-6)
+
+
+def test_model_detections_take_ground_truth_identities_by_box():
+    """Synthetic data: a model detection starts its fit from the oracle's body of the person its
+    box matches (IoU >= 0.5); unmatched detections and persons out of view take none."""
+    from flows.model_providers import gt_index_by_boxes
+
+    gt = np.array([[0, 0, 10, 20], [np.nan] * 4, [30, 0, 40, 20]], np.float32)
+    det = np.array([[31, 0, 41, 20], [100, 100, 110, 120], [0, 1, 10, 21]], np.float32)
+    assert gt_index_by_boxes(det, gt).tolist() == [2, -1, 0]

@@ -37,8 +37,8 @@ def normalize(pixels: np.ndarray, mean, std, bgr: bool = False) -> np.ndarray:
 
 
 def resize(array: np.ndarray, height: int, width: int) -> np.ndarray:
-    """Bilinear resize (half-pixel centres, no antialias: cv2.INTER_LINEAR) of (C, H, W) or
-    (H, W, C) float arrays; ``channels_last`` is inferred from a trailing axis of 3 for images."""
+    """Bilinear resize (half-pixel centres, no antialias: cv2.INTER_LINEAR) of a (C, H, W) array
+    to (C, height, width) float32."""
     t = torch.as_tensor(np.ascontiguousarray(array, np.float32))
     return F.interpolate(t[None], size=(height, width), mode="bilinear", align_corners=False)[0].numpy()
 
