@@ -3,8 +3,8 @@
 Product per frame ``frame_<raw>.npz``: boxes_xyxy (D, 4) float32 px, scores (D,), keypoints
 (D, 17, 3) (u, v, confidence), mask_labels (H, W) uint16 (detection k has label k + 1), semantic
 (H, W) uint8 Cityscapes train ids, lidar_centers / lidar_sizes (M, 3) (l, w, h) / lidar_yaws /
-lidar_scores (M,) in the LiDAR frame, gt_index (D,) int64 (oracle only: matched ground-truth row,
--1 false positive; -2 where unknown).
+lidar_scores (M,) in the LiDAR frame, gt_index (D,) int64 (synthetic data, oracle or models: the
+matched ground-truth row, -1 false positive; -2 where unknown).
 """
 
 from __future__ import annotations
