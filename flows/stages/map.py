@@ -24,9 +24,9 @@ from flows.stages.common import StageContext
 from storage.intermediate import read_product, write_product
 from tasks.conventions import PEDESTRIAN, UNLABELED, transform_points
 from tasks.occupancy.freespace import OccupancyMap
-from tasks.occupancy.static_map import (StaticSemanticMap, lift_image_semantics,
-                                        merge_static_maps, pedestrian_point_mask, project_points)
-from tasks.perception.person_points import associate_lidar_boxes
+from tasks.occupancy.static_map import (StaticSemanticMap, lift_image_semantics, merge_static_maps,
+                                        pedestrian_boxes_for_masking, pedestrian_point_mask,
+                                        project_points)
 
 
 def class_lut(config: Config) -> np.ndarray:
@@ -43,25 +43,6 @@ def occupancy_params(config: Config) -> dict:
             "clamp_max": fs.clamp_max, "occupancy_threshold": fs.occupancy_threshold}
 
 
-def pedestrian_boxes_for_masking(det: dict, K: np.ndarray, T_cam_from_lidar: np.ndarray,
-                                 width: int, height: int, min_iou: float) -> np.ndarray:
-    """(M', 7) LiDAR pedestrian boxes [cx, cy, cz, l, w, h, yaw] used to remove people's points.
-
-    Inside the camera view the image decides (instance masks are sharper and a geometric LiDAR
-    detector fires on trunks and posts): a box there counts only if an image detection confirms
-    it. Outside the view the LiDAR boxes are all there is, so they all count.
-    """
-    boxes = np.column_stack([det["lidar_centers"], det["lidar_sizes"], det["lidar_yaws"]])
-    if len(boxes) == 0:
-        return boxes.reshape(0, 7)
-    _, in_view = project_points(det["lidar_centers"], K, T_cam_from_lidar, width, height)
-    matched = associate_lidar_boxes(det["boxes_xyxy"], det["lidar_centers"], det["lidar_sizes"],
-                                    det["lidar_yaws"], K, T_cam_from_lidar, min_iou)
-    confirmed = np.zeros(len(boxes), bool)
-    confirmed[matched[matched >= 0]] = True
-    return boxes[~in_view | confirmed]
-
-
 def run_map(ctx: StageContext) -> dict:
     cfg = ctx.config.map
     seq = ctx.open()
@@ -75,16 +56,18 @@ def run_map(ctx: StageContext) -> dict:
         frame = seq.frame(i)
         pts = frame.points_lidar
         det = read_product(ctx.upstream["detect"], f"frame_{frame.index}")
+        projection = project_points(pts, cam.K, cam.T_cam_from_lidar, cam.width, cam.height)
+        in_image = projection[1]
         labels = lift_image_semantics(pts, det["semantic"], cam.K, cam.T_cam_from_lidar, lut,
                                       fallback=cfg.outside_image_fallback, ground_cell_m=cfg.ground_cell_m,
                                       ground_tol_m=cfg.ground_max_deviation_m,
-                                      ground_lateral_scale=cfg.fallback_ground_lateral_scale)
-        _, in_image = project_points(pts, cam.K, cam.T_cam_from_lidar, cam.width, cam.height)
-        boxes = pedestrian_boxes_for_masking(det, cam.K, cam.T_cam_from_lidar, cam.width, cam.height,
-                                             ctx.config.track.person_points.assoc_min_iou)
-        people = pedestrian_point_mask(pts, K=cam.K, T_cam_from_lidar=cam.T_cam_from_lidar,
-                                       instance_image=det["mask_labels"], boxes_lidar=boxes,
-                                       box_margin_m=cfg.pedestrian_box_margin_m)
+                                      ground_lateral_scale=cfg.fallback_ground_lateral_scale,
+                                      projection=projection)
+        boxes = pedestrian_boxes_for_masking(
+            det["boxes_xyxy"], det["lidar_centers"], det["lidar_sizes"], det["lidar_yaws"], cam.K,
+            cam.T_cam_from_lidar, cam.width, cam.height, ctx.config.track.person_points.assoc_min_iou)
+        people = pedestrian_point_mask(pts, instance_image=det["mask_labels"], boxes_lidar=boxes,
+                                       box_margin_m=cfg.pedestrian_box_margin_m, projection=projection)
         keep = ~people & (labels != PEDESTRIAN)
         T = frame.T_world_from_lidar
         world = transform_points(T, pts).astype(np.float32)
