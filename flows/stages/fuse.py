@@ -28,8 +28,9 @@ from storage.occupancy_store import create_store, write_frames
 from tasks.occupancy.freespace import OccupancyMap
 from tasks.occupancy.fuse import CameraView, PedestrianMesh, fuse_frame
 from tasks.occupancy.grid import GridSpec
-from tasks.conventions import UNLABELED, transform_points
-from tasks.occupancy.static_map import StaticMap, lookup_labels
+from tasks.conventions import transform_points
+from tasks.occupancy.resample import static_in_grid
+from tasks.occupancy.static_map import StaticMap
 
 
 def grid_spec(config: Config) -> GridSpec:
@@ -56,29 +57,6 @@ def _fit_people(model, bodies: dict, frame: int, T_base_from_lidar: np.ndarray) 
     faces = np.asarray(model.faces)
     return [PedestrianMesh(int(bodies["track_id"][r]), transform_points(T_base_from_lidar, vertices[k]), faces,
                            bodies["velocity_base"][r]) for k, r in enumerate(rows)]
-
-
-def static_in_grid(smap: StaticMap, spec: GridSpec, T_world_from_base: np.ndarray,
-                   reach_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """The static map as labelled points (world frame) that land one per cell of the local grid.
-
-    A map as coarse as the grid or coarser is resampled by the grid's cell centres (every cell
-    takes the label of the map voxel under its centre: no holes where the grids are offset); a
-    finer map is pushed as points filling each map voxel.
-    """
-    if smap.voxel_size_m < spec.voxel_size_m - 1e-9:
-        return smap.crop(T_world_from_base[:3, 3], reach_m).sample_points(spec.voxel_size_m)
-    pts, labels = [], []
-    axes = [spec.range_min[a] + (np.arange(n) + 0.5) * spec.voxel_size_m for a, n in enumerate(spec.shape)]
-    gy, gz = np.meshgrid(axes[1], axes[2], indexing="ij")
-    for x in axes[0]:  # one x slab of cell centres at a time bounds memory at fine resolutions
-        slab = np.stack([np.full(gy.size, x), gy.ravel(), gz.ravel()], axis=1)
-        world = transform_points(T_world_from_base, slab).astype(np.float32)
-        lab = lookup_labels(smap, world)
-        hit = lab != UNLABELED
-        pts.append(world[hit])
-        labels.append(lab[hit])
-    return np.concatenate(pts), np.concatenate(labels)
 
 
 def fuse_chunk(config: Config, sequence: str, positions: list[int], store: Path,

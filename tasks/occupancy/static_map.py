@@ -471,6 +471,35 @@ def merge_static_maps(primary: StaticMap, secondary: StaticMap) -> StaticMap:
                      primary.ground_rejected + secondary.ground_rejected)
 
 
+def sorted_table(static: StaticMap) -> tuple[np.ndarray, np.ndarray]:
+    """(packed keys (K,) int64 ascending, labels (K,) uint8 in that order) of a map, for
+    :func:`lookup_packed`. Maps written by the map stage are already in this order (no sort)."""
+    table = pack_keys(static.keys)
+    if len(table) > 1 and not np.all(table[1:] > table[:-1]):
+        order = np.argsort(table, kind="stable")
+        return table[order], static.labels[order]
+    return table, np.asarray(static.labels)
+
+
+@njit(cache=True, inline="always")
+def lookup_packed(table, labels, kx, ky, kz):
+    """Label of map voxel key (kx, ky, kz) in a :func:`sorted_table`, UNLABELED if absent."""
+    if not (-_OFF <= kx <= _MASK - _OFF and -_OFF <= ky <= _MASK - _OFF and -_OFF <= kz <= _MASK - _OFF):
+        return np.uint8(UNLABELED)
+    q = ((kx + _OFF) << 42) | ((ky + _OFF) << 21) | (kz + _OFF)
+    at = np.searchsorted(table, q)
+    if at < table.shape[0] and table[at] == q:
+        return labels[at]
+    return np.uint8(UNLABELED)
+
+
+@njit(cache=True)
+def _lookup_points(p, vs, table, labels, out):
+    for i in range(p.shape[0]):
+        out[i] = lookup_packed(table, labels, np.int64(np.floor(p[i, 0] / vs)),
+                               np.int64(np.floor(p[i, 1] / vs)), np.int64(np.floor(p[i, 2] / vs)))
+
+
 def lookup_labels(static: StaticMap, points_world: np.ndarray) -> np.ndarray:
     """Label of the map voxel containing each point, UNLABELED where the map has none.
 
@@ -479,15 +508,10 @@ def lookup_labels(static: StaticMap, points_world: np.ndarray) -> np.ndarray:
     the map voxel under its centre, with no holes where the two grids are offset (pushing the map's
     voxel centres into an offset grid would leave every other cell empty).
     """
-    p = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+    p = np.ascontiguousarray(np.asarray(points_world, dtype=np.float64).reshape(-1, 3))
     out = np.full(len(p), UNLABELED, dtype=np.uint8)
     if len(static.keys) == 0 or len(p) == 0:
         return out
-    table = pack_keys(static.keys)
-    order = np.argsort(table, kind="stable")
-    table = table[order]
-    query = pack_keys(np.floor(p / static.voxel_size_m).astype(np.int64))
-    at = np.clip(np.searchsorted(table, query), 0, len(table) - 1)
-    hit = table[at] == query
-    out[hit] = static.labels[order[at[hit]]]
+    table, labels = sorted_table(static)
+    _lookup_points(p, static.voxel_size_m, table, labels, out)
     return out
