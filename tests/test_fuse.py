@@ -211,3 +211,20 @@ def test_fuse_frame_states_and_masks():
     assert g.mask_lidar[20, 10, 10] == 1 and g.mask_lidar[21:].sum() == 0
     assert g.mask_camera[20, 10, 10] == 1 and g.mask_camera[21:].sum() == 0
     assert g.velocity.dtype == np.float16 and g.velocity.shape == (*SPEC.shape, 2)
+
+
+def test_visibility_masks_do_not_depend_on_threads():
+    """Rays split over threads share the output (every write stores 1): same masks."""
+    rng = np.random.default_rng(5)
+    occ = rng.random(SPEC.shape) < 0.03
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R_BASE_FROM_CAM, (-0.5, 0.05, 1.05)
+    K = np.array([[300.0, 0, 199.5], [0, 300.0, 149.5], [0, 0, 1]])  # 400 x 300: 120k rays
+    one = camera_mask(SPEC, occ, K, 400, 300, T, 1, "rays", threads=1)
+    assert 0 < one.sum() < SPEC.num_voxels
+    np.testing.assert_array_equal(camera_mask(SPEC, occ, K, 400, 300, T, 1, "rays", threads=3), one)
+    ends = rng.uniform((-1.0, -1.0, 0.5), (1.5, 1.0, 1.5), (30000, 3))
+    origin = np.array([-0.5, 0.05, 1.05])
+    lid = lidar_mask(SPEC, ends, origin, threads=1)
+    assert 0 < lid.sum() < SPEC.num_voxels
+    np.testing.assert_array_equal(lidar_mask(SPEC, ends, origin, threads=3), lid)

@@ -123,7 +123,7 @@ def _query(points, perm, start, end, left, right, bmin, bmax, queries, out):
         prev = arg
 
 
-def nearest_indices(sources: np.ndarray, queries: np.ndarray, threads: int | None = 1,
+def nearest_indices(sources: np.ndarray, queries: np.ndarray, threads: int | None = None,
                     leaf_size: int = LEAF_SIZE) -> np.ndarray:
     """Index of the nearest source of every query.
 

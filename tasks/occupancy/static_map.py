@@ -108,7 +108,7 @@ def lift_image_semantics(points_lidar: np.ndarray, semantic_image: np.ndarray, K
                          fallback: str = "nearest", ground_cell_m: float = 1.0,
                          ground_tol_m: float = 0.3, ground_lateral_scale: float = 1.0,
                          projection: tuple[np.ndarray, np.ndarray] | None = None,
-                         threads: int | None = 1) -> np.ndarray:
+                         threads: int | None = None) -> np.ndarray:
     """Class of each LiDAR point from a semantic image.
 
     points_lidar: (N, 3) float metres, LiDAR frame. semantic_image: (H, W) uint8 Cityscapes train
