@@ -39,10 +39,10 @@ def _peak_rss_mb() -> float:
 
 
 def octomap_seconds_per_scan(scans: list[tuple[np.ndarray, np.ndarray]], voxel_size_m: float = 0.2,
-                             max_range_m: float = 20.0, repeats: int = 2) -> float:
+                             max_range_m: float = 20.0, repeats: int = 2) -> dict:
     """octomap-python's ``insertPointCloud`` over a sequence of scans into one tree (as a map
-    grows): wall seconds per scan, the best of ``repeats`` passes. scans: (points_world (N, 3),
-    origin_world (3,)) pairs."""
+    grows): seconds per scan, the best of ``repeats`` passes, wall ("wall_s") and process CPU
+    ("cpu_s"). scans: (points_world (N, 3), origin_world (3,)) pairs."""
     import octomap
 
     def run():
@@ -51,7 +51,8 @@ def octomap_seconds_per_scan(scans: list[tuple[np.ndarray, np.ndarray]], voxel_s
             tree.insertPointCloud(np.asarray(pts, np.float64), np.asarray(origin, np.float64),
                                   maxrange=max_range_m)
 
-    return _best(run, repeats, time.perf_counter) / max(1, len(scans))
+    n = max(1, len(scans))
+    return {"wall_s": _best(run, repeats, time.perf_counter) / n, "cpu_s": _best(run, repeats) / n}
 
 
 def bench_freespace(quick: bool = False, voxel_size_m: float = 0.2, max_range_m: float = 20.0,
