@@ -15,10 +15,11 @@ from numba import njit
 from tasks.occupancy.threads import executor, resolve_threads
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _walk(o0, o1, o2, e0, e1, e2, shape, occupied, out, stop_at_occupied):
-    """Mark voxels of out (X, Y, Z) uint8 crossed by the segment o -> e (grid units: the voxel
-    [i, i + 1) per axis). With stop_at_occupied, stop after the first voxel with occupied != 0."""
+    """Mark voxels of out crossed by the segment o -> e (grid units: the voxel [i, i + 1) per
+    axis). out, occupied: the (X, Y, Z) grids flattened in C order (uint8). With
+    stop_at_occupied, stop after the first voxel with occupied != 0."""
     dx = e0 - o0
     dy = e1 - o1
     dz = e2 - o2
@@ -65,9 +66,13 @@ def _walk(o0, o1, o2, e0, e1, e2, shape, occupied, out, stop_at_occupied):
         sz, tmz, tdz = -1, (cz - o2) / dz, -1.0 / dz
     else:
         sz, tmz, tdz = 0, big, big
+    # flat C-order index, stepped with the axis; only the stepped axis can leave the box
+    s1 = shape[2]
+    s0 = shape[1] * s1
+    flat = (cx * shape[1] + cy) * s1 + cz
     while True:
-        out[cx, cy, cz] = 1
-        if stop_at_occupied and occupied[cx, cy, cz] != 0:
+        out[flat] = 1
+        if stop_at_occupied and occupied[flat] != 0:
             return
         if tmx < tmy:
             if tmx < tmz:
@@ -75,23 +80,33 @@ def _walk(o0, o1, o2, e0, e1, e2, shape, occupied, out, stop_at_occupied):
                     return
                 cx += sx
                 tmx += tdx
+                if cx < 0 or cx >= shape[0]:
+                    return
+                flat += sx * s0
             else:
                 if tmz > t1:
                     return
                 cz += sz
                 tmz += tdz
+                if cz < 0 or cz >= shape[2]:
+                    return
+                flat += sz
         elif tmy < tmz:
             if tmy > t1:
                 return
             cy += sy
             tmy += tdy
+            if cy < 0 or cy >= shape[1]:
+                return
+            flat += sy * s1
         else:
             if tmz > t1:
                 return
             cz += sz
             tmz += tdz
-        if cx < 0 or cy < 0 or cz < 0 or cx >= shape[0] or cy >= shape[1] or cz >= shape[2]:
-            return
+            if cz < 0 or cz >= shape[2]:
+                return
+            flat += sz
 
 
 @njit(cache=True, nogil=True)
@@ -153,7 +168,8 @@ def lidar_mask(spec, points_base: np.ndarray, origin_base: np.ndarray,
     if len(p):
         g = np.ascontiguousarray((p - spec.origin) / spec.voxel_size_m)
         o = (np.asarray(origin_base, dtype=np.float64) - spec.origin) / spec.voxel_size_m
-        _split_rays(lambda r0, r1: _walk_all(o, g, shape, out, out, False, r0, r1), len(g), threads)
+        flat = out.reshape(-1)
+        _split_rays(lambda r0, r1: _walk_all(o, g, shape, flat, flat, False, r0, r1), len(g), threads)
     return out
 
 
@@ -263,6 +279,7 @@ def camera_mask(spec, occupied: np.ndarray, K: np.ndarray, width: int, height: i
     vs = np.arange(stride / 2 - 0.5, height - 0.5, stride)
     occ = np.ascontiguousarray(occupied.astype(np.uint8, copy=False))
     Kinv, R, shape = np.linalg.inv(K), np.ascontiguousarray(T[:3, :3]), np.asarray(spec.shape, dtype=np.int64)
-    _split_rays(lambda r0, r1: _walk_camera(o, Kinv, R, us, vs, far, shape, occ, out, r0, r1),
+    occ_flat, out_flat = occ.reshape(-1), out.reshape(-1)
+    _split_rays(lambda r0, r1: _walk_camera(o, Kinv, R, us, vs, far, shape, occ_flat, out_flat, r0, r1),
                 len(us) * len(vs), threads)
     return out
