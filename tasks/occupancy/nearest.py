@@ -25,6 +25,30 @@ LEAF_SIZE = 32
 _STACK = 256  # pending nodes of one search: at most one per tree level plus one
 
 
+@njit(cache=True, inline="always")
+def _select(points, perm, lo, hi, k, dim):
+    """Reorder perm[lo..hi] so that perm[k] holds the point of rank k - lo along dim, those
+    before it are not greater and those after it not smaller (Hoare's quickselect)."""
+    while lo < hi:
+        pivot = points[perm[(lo + hi) // 2], dim]
+        i, j = lo, hi
+        while i <= j:
+            while points[perm[i], dim] < pivot:
+                i += 1
+            while points[perm[j], dim] > pivot:
+                j -= 1
+            if i <= j:
+                perm[i], perm[j] = perm[j], perm[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            return
+
+
 @njit(cache=True)
 def _build(points, leaf_size):
     """Tree over points (N, 3) float64: (perm, start, end, left, right, bmin, bmax); leaves hold
@@ -59,9 +83,8 @@ def _build(points, leaf_size):
         for a in range(1, 3):
             if bmax[node, a] - bmin[node, a] > bmax[node, dim] - bmin[node, dim]:
                 dim = a
-        seg = perm[s:e].copy()
-        perm[s:e] = seg[np.argsort(points[seg, dim], kind="mergesort")]
         mid = s + (e - s) // 2
+        _select(points, perm, s, e - 1, mid, dim)
         lc, rc = used, used + 1
         used += 2
         start[lc], end[lc], start[rc], end[rc] = s, mid, mid, e
