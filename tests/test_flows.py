@@ -206,7 +206,7 @@ def test_warm_start_carries_a_tracks_fit_into_its_next_frame(tmp_path, monkeypat
     import torch
 
     import flows.stages.fit as fit_stage
-    from flows.pipeline.inputs import fit_inputs
+    from flows.pipeline.inputs import Runtime, fit_inputs
     from tasks.body.rotations import axis_angle_to_matrix
     from tasks.fit.init_oracle import BodyParams
     from tasks.fit.reframe import reframe_params
@@ -242,7 +242,7 @@ def test_warm_start_carries_a_tracks_fit_into_its_next_frame(tmp_path, monkeypat
     provider = SimpleNamespace(estimates=lambda tracks, rows: est.take(np.asarray(rows)))
     monkeypatch.setattr(fit_stage, "fit_batch", identity_fit)
     monkeypatch.setattr(fit_stage, "init_provider", lambda *a: provider)
-    ctx = SimpleNamespace(inputs=inputs, out_root=tmp_path, ref=None, sequence="0",
+    ctx = SimpleNamespace(inputs=inputs, out_root=tmp_path, ref=None, sequence="0", runtime=Runtime(),
                           upstream={"track": tmp_path})
     parts = fit_stage._warm_started(ctx, SimpleNamespace(info=info), tracks, np.arange(n), None)
     out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}

@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -126,10 +127,21 @@ class Runtime:
     gpu_fit: bool = False
     #: route the detect stage's frame chunks there too (image_provider 'models' on CUDA)
     gpu_detect: bool = False
+    #: threads one unit's kernels may use (the occupancy kernels' pools, BLAS / OpenMP); torch
+    #: always runs one thread (its results depend on its thread count: parallelism comes from the
+    #: workers, and the bytes stay the same for any number of them)
+    threads: int = 1
 
 
 def runtime(config: Config) -> Runtime:
-    return Runtime(gpu_fit=config.dask.gpu_fit, gpu_detect=config.dask.gpu_detect)
+    """A unit's share of its machine: ``dask.threads_per_worker`` on Dask workers; with the thread
+    runner, the cores divided among the ``dask.workers`` units running at once."""
+    d = config.dask
+    if d.runner == "dask" or d.address:
+        threads = d.threads_per_worker
+    else:
+        threads = max(1, (os.cpu_count() or 1) // max(1, d.workers))
+    return Runtime(gpu_fit=d.gpu_fit, gpu_detect=d.gpu_detect, threads=threads)
 
 
 def source(config: Config) -> Source:

@@ -23,15 +23,35 @@ def _on_dask_worker() -> bool:
     return True
 
 
-def fan_out(fn: Callable[..., Any], args: Sequence[tuple], resources: dict | None = None) -> list:
+def limit_threads(threads: int) -> None:
+    """Size this process's kernel thread pools for a unit that owns ``threads`` cores: BLAS /
+    OpenMP pools to ``threads``; torch to one thread always (its results depend on its thread count,
+    so outputs stay byte-identical whatever the workers' allotment; the parallelism comes from the
+    workers). The occupancy kernels take their count as an argument (Runtime.threads)."""
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    if torch.get_num_threads() != 1:
+        torch.set_num_threads(1)
+    threadpool_limits(limits=threads)
+
+
+def _limited(fn: Callable[..., Any], threads: int, *args: Any) -> Any:
+    limit_threads(threads)
+    return fn(*args)
+
+
+def fan_out(fn: Callable[..., Any], args: Sequence[tuple], resources: dict | None = None,
+            threads: int = 1) -> list:
     """Call ``fn(*a)`` for every ``a`` in ``args``; results in the order of ``args``.
 
-    On a Dask worker the calls are submitted to the cluster; elsewhere they run here, in order.
+    On a Dask worker the calls are submitted to the cluster (each sized to ``threads`` threads:
+    :func:`limit_threads`); elsewhere they run here, in order.
     """
     if len(args) > 1 and _on_dask_worker():
         from distributed import worker_client
 
         with worker_client() as client:
-            futures = [client.submit(fn, *a, pure=False, resources=resources) for a in args]
+            futures = [client.submit(_limited, fn, threads, *a, pure=False, resources=resources) for a in args]
             return client.gather(futures)
     return [fn(*a) for a in args]

@@ -22,6 +22,7 @@ from prefect.futures import PrefectFuture, as_completed
 from configs.schema import Config, config_hash
 from flows.pipeline.dag import STAGES
 from flows.pipeline.inputs import DatasetExportInputs, Runtime, dataset_export_inputs, inputs_hash, runtime
+from flows.pipeline.parallel import limit_threads
 from flows.pipeline.plan import SequencePlan, UnitPlan, plan_run
 from flows.stages import STAGE_FUNCTIONS, StageContext
 from storage.manifest import (
@@ -49,6 +50,7 @@ def execute_unit(unit: UnitPlan, out_root: Path, upstream: dict[str, dict],
         summary = json.loads((final / "summary.json").read_text())
         return {**base, "status": "done", "location": location, "summary": summary, "seconds": 0.0}
     started = time.perf_counter()
+    limit_threads(runtime.threads)
     try:
         with staged_output(final) as tmp:
             ctx = StageContext(unit.ref, unit.inputs, Path(out_root), tmp,

@@ -42,7 +42,7 @@ def run_detect(ctx: StageContext) -> dict:
     n = len(ctx.open())
     resources = {"GPU": 1} if ctx.runtime.gpu_detect else None
     rows = [r for part in fan_out(detect_frames, [(ctx.ref, ctx.inputs, c, ctx.out_dir) for c in chunks(n, 4)],
-                                  resources) for r in part]
+                                  resources, ctx.runtime.threads) for r in part]
     return {"implemented": True, "frames": [r["frame"] for r in rows],
             "image_provider": ctx.inputs.image.NAME, "lidar_provider": ctx.inputs.lidar.NAME,
             "detections": sum(r["detections"] for r in rows),

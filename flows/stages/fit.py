@@ -76,7 +76,7 @@ def _warm_started(ctx: StageContext, seq, tracks: Tracks, rows: np.ndarray, reso
             init = warm_started(model, provider.estimates(tracks, batch), prev, cam.T_cam_from_lidar,
                                 seq.info.poses[p], seq.info.poses[p - 1] if p else seq.info.poses[p])
             args.append((ctx.ref, inp, ctx.out_root, ctx.upstream["track"], batch.tolist(), init))
-        for out in fan_out(fit_batch, args, resources):
+        for out in fan_out(fit_batch, args, resources, ctx.runtime.threads):
             parts.append(out)
             for k, r in enumerate(out["rows"]):
                 last[int(tracks.track_id[r])] = (p, BodyParams(*(out[n][k:k + 1] for n in (
@@ -108,7 +108,7 @@ def run_fit(ctx: StageContext) -> dict:
     else:
         parts = fan_out(fit_batch, [(ctx.ref, inp, ctx.out_root, ctx.upstream["track"],
                                      rows[a:a + s.batch_persons].tolist())
-                                    for a in range(0, len(rows), s.batch_persons)], resources)
+                                    for a in range(0, len(rows), s.batch_persons)], resources, ctx.runtime.threads)
     out, far = (drop_far_fits({k: np.concatenate([p[k] for p in parts]) for k in parts[0]}, s.max_shift_m)
                 if parts else ({}, 0))
     bodies = _bodies(seq, tracks, out)

@@ -57,7 +57,7 @@ class _People:
 
 
 def fuse_chunk(ref: SequenceRef, inputs: FuseInputs, out_root: Path, positions: list[int],
-               store: Path, map_dir: Path, fit_dir: Path | None) -> list[dict]:
+               store: Path, map_dir: Path, fit_dir: Path | None, threads: int) -> list[dict]:
     """Fuse some frames (one write unit of the store) and write them."""
     seq = inputs.source.open(ref)
     calib = seq.info.calibration
@@ -74,7 +74,7 @@ def fuse_chunk(ref: SequenceRef, inputs: FuseInputs, out_root: Path, positions: 
         persons = people(frame.index)
         grids, counts = local_grids(inputs.grid, T_world_from_base, smap, occupancy, persons, frame.points_lidar,
                                     T_base_from_lidar, camera, inputs.fusion.camera_pixel_stride,
-                                    inputs.fusion.camera_method)
+                                    inputs.fusion.camera_method, threads)
         for name, value in grids.items():
             stacks.setdefault(name, []).append(value)
         rows.append({"frame": frame.index, "stamp_ns": frame.stamp_ns, "people": len(persons), "counts": counts,
@@ -91,8 +91,9 @@ def run_fuse(ctx: StageContext) -> dict:
         "range_min": list(spec.range_min), "range_max": list(spec.range_max),
         "voxel_size_m": spec.voxel_size_m, "stage_key": ctx.key, "sequence": ctx.sequence,
         "body_source": inp.body_source})
-    parts = fan_out(fuse_chunk, [(ctx.ref, inp, ctx.out_root, list(range(a, b)), store,
-                                  ctx.upstream["map"], fit_dir) for a, b in layout.write_units()])
+    parts = fan_out(fuse_chunk, [(ctx.ref, inp, ctx.out_root, list(range(a, b)), store, ctx.upstream["map"],
+                                  fit_dir, ctx.runtime.threads) for a, b in layout.write_units()],
+                    threads=ctx.runtime.threads)
     rows = [r for part in parts for r in part]
     FusedFrames(np.array([r["frame"] for r in rows], np.int64), np.array([r["stamp_ns"] for r in rows], np.int64),
                 np.array([r["counts"] for r in rows], np.int64).reshape(-1, FREE + 1),

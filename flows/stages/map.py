@@ -20,7 +20,7 @@ def run_map(ctx: StageContext) -> dict:
     lut = np.full(256, UNLABELED, np.uint8)
     lut[[k for k, _ in inp.class_lut]] = [v for _, v in inp.class_lut]
     mapper = SequenceMapper(inp.settings, inp.freespace, lut, cam.K, cam.T_cam_from_lidar, cam.width,
-                            cam.height, inp.assoc_min_iou)
+                            cam.height, inp.assoc_min_iou, threads=ctx.runtime.threads)
     for i in range(len(seq)):
         frame = seq.frame(i)
         d = Detections.read(ctx.upstream["detect"], Detections.file_name(frame.index))
