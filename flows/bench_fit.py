@@ -61,7 +61,7 @@ def bench_fit(
     from tasks.fit.lidar_sim import SENSORS, synthesize_persons
     from tasks.fit.losses import FIT_PRESETS
     from tasks.fit.metrics import fit_metrics
-    from tasks.fit.optimize import fit_persons
+    from tasks.fit.optimize import fit_persons, ragged_points
 
     model = default_body_model()
     g = generate_pose_prior()
@@ -81,7 +81,7 @@ def bench_fit(
             t0 = time.perf_counter()
             r = fit_persons(
                 model, prior, init.take(idx), sp.keypoints[idx], sp.K, sp.T_cam_from_lidar,
-                sp.points_lidar[idx], sp.point_mask[idx], w, iterations=its, lr=lr,
+                *ragged_points(sp.points_lidar[idx], sp.point_mask[idx]), w, iterations=its, lr=lr,
                 device=device, seed=seed, nn_every=nn_every,
                 chamfer_vertex_max_m=chamfer_vertex_max_m, **extra,
             )
