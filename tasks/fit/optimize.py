@@ -12,7 +12,8 @@ Steps for a batch of B persons (:func:`fit_persons`):
 3. visibility again on the aligned mesh, then Adam on (beta, theta, t) minimising
    L_J + l_3D L_3D + l_theta L_theta + l_a L_a + l_beta L_beta + l_occ L_theta,occ.
    Each step poses only the vertices the loss reads (the visible set, fixed after step 3, and
-   the face keypoints); the Chamfer pairs are refreshed every ``nn_every`` steps, and a person
+   the face keypoints); the Chamfer pairs and the pose blend shapes (no gradient through them
+   in between) are refreshed every ``nn_every`` steps, and a person
    whose objective improved by less than ``converge_rtol`` (relative) between two refreshes
    stops there and leaves the batch.
 Persons do not interact: every term is per person, the batch loss is their sum, and a person's
@@ -111,8 +112,8 @@ def fit_persons(
     K (B, 3, 3) or (3, 3); T_cam_from_lidar (4, 4) or (B, 4, 4) float64; points (P, 3) lidar
     frame (m), the persons' points one after another, counts (B,) how many belong to each
     (:func:`ragged_points` converts padded sets). Persons with fewer than ``min_points`` points
-    skip ICP and L_3D. nn_every: recompute the Chamfer nearest pairs every this many steps
-    (pairs change slowly); chamfer_vertex_max_m: cap of the vertex -> point distances in L_3D
+    skip ICP and L_3D. nn_every: recompute the Chamfer nearest pairs and the pose blend shapes
+    every this many steps (both change slowly; 1 = the exact gradient); chamfer_vertex_max_m: cap of the vertex -> point distances in L_3D
     (see :func:`tasks.fit.losses.chamfer_loss`; None = the paper's uncapped Chamfer);
     converge_rtol: a person stops when its objective fell by less than this fraction between
     two pair refreshes (None: always ``iterations`` steps). use_visibility=False uses every
@@ -241,6 +242,7 @@ class _Problem:
         self.subset, self.occluded, self.R0, self.kp, self.Kt, self.kw = subset, occluded, R0, kp, Kt, kw
         self.pts, self.vertex_mask = pts, vertex_mask
         self.targets: L.ChamferTargets | None = None
+        self.offsets: torch.Tensor | None = None  # pose blend shapes, (k, V, 3)
         self.visible_count = vertex_mask.sum(1)
 
     @staticmethod
@@ -274,13 +276,20 @@ class _Problem:
                        self.occluded[rows], self.R0[rows], self.kp[rows], self.Kt[rows], self.kw,
                        _PersonPoints(p.xyz[on], new_index[p.person[on]], p.has[rows]), self.vertex_mask[rows])
         out.targets = None if self.targets is None else self.targets.take(rows)
+        out.offsets = None if self.offsets is None else self.offsets[rows]
         return out
 
     def objective(self, x: torch.Tensor, refresh: bool) -> tuple:
-        """Pose the vertex subset for parameter rows x (k, 85) and evaluate every term (k,);
-        refresh: recompute the Chamfer targets from the current vertices first."""
+        """Pose the vertex subset for parameter rows x (k, 85) and evaluate every term (k,).
+        refresh: first recompute the pose blend shapes from this pose and, from the posed
+        vertices, the Chamfer targets; in between both are held fixed (no gradient flows
+        through the pose blend shapes then: a second-order term, and the (k, 207) x (207, 3V)
+        product it needs is the largest of a step)."""
         w = self.weights
-        o = _posed(self.model, x, self.subset)
+        if refresh or self.offsets is None:
+            with torch.no_grad():
+                self.offsets = self.model.pose_offsets(x[:, _SLICES["global_orient"]], x[:, _SLICES["body_pose"]])
+        o = self.model(*(x[:, s] for s in _SLICES.values()), vertex_subset=self.subset, pose_offsets=self.offsets)
         if refresh or self.targets is None:
             self.targets = L.chamfer_targets(o.vertices.detach(), self.vertex_mask, self.pts.xyz,
                                              self.pts.person)
