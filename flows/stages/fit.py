@@ -147,14 +147,9 @@ def fit_batch(config: Config, sequence: str, rows: list[int], tracks: dict, init
         points.append(sweeps[raw][tracks["points_index"][lo:lo + in_image[r]]])
     if init is None:
         init = oracle_estimates(config, sequence, rows, tracks)
-    pmax = max(1, max(len(p) for p in points))
-    padded = np.zeros((len(rows), pmax, 3), np.float32)
-    mask = np.zeros((len(rows), pmax), bool)
-    for k, p in enumerate(points):
-        padded[k, :len(p)] = p
-        mask[k, :len(p)] = True
     result = fit_persons(model, pose_prior(config), init, tracks["keypoints"][rows], cam.K, T_cam,
-                         padded, mask, weights=fit_weights(config), iterations=config.fit.iterations,
+                         np.concatenate(points), [len(p) for p in points], weights=fit_weights(config),
+                         iterations=config.fit.iterations,
                          lr=config.fit.learning_rate, device=_device(config), seed=config.fit.seed,
                          nn_every=config.fit.nn_every,
                          chamfer_vertex_max_m=config.fit.chamfer_vertex_max_m)

@@ -83,8 +83,10 @@ def _box_d2(q, lo, cell, x, y, z):
 
 
 @njit(cache=True, nogil=True)
-def _nearest_one(q, data, lo, cell, dims, start, order):
-    """Index of the point of data nearest to q (3,) (exact), and its squared distance."""
+def _nearest_one(q, data, lo, cell, dims, start, order, max_d2=np.inf):
+    """Index of the point of data nearest to q (3,) (exact), and its squared distance; with a
+    finite max_d2 the search may stop once nothing within it can be found (then the returned
+    point, if any, is farther than sqrt(max_d2) or the index is -1)."""
     c0 = np.empty(3, np.int64)
     for a in range(3):
         c0[a] = min(max(int(np.floor((q[a] - lo[a]) / cell)), 0), dims[a] - 1)
@@ -108,7 +110,7 @@ def _nearest_one(q, data, lo, cell, dims, start, order):
                     dz = dz + 1 if edge or r == 0 else dz + 2 * r
         if best_i >= 0 and best <= (r * cell) ** 2:
             return best_i, best
-        if r >= dims.max():  # every cell scanned
+        if r >= dims.max() or (r * cell) ** 2 >= max_d2:  # every cell scanned / nothing closer
             return best_i, best
     for i in range(data.shape[0]):  # far from every data point: scan them all
         d = (data[i, 0] - q[0]) ** 2 + (data[i, 1] - q[1]) ** 2 + (data[i, 2] - q[2]) ** 2
@@ -166,3 +168,28 @@ def chamfer_pairs(vertices, vertex_mask, points, bounds):
             n = ids[j[s]]
             rest[k] += (pk[s, 0] - mean[k, n, 0]) ** 2 + (pk[s, 1] - mean[k, n, 1]) ** 2 + (pk[s, 2] - mean[k, n, 2]) ** 2
     return target, count, mean, rest
+
+
+@njit(cache=True, nogil=True)
+def pairs_within(queries, query_mask, points, bounds, max_m):
+    """For K persons: the nearest point of each masked query within max_m (metres).
+
+    queries (K, N, 3) float64, query_mask (K, N) bool, points (P, 3) float64 grouped by person
+    (rows bounds[k]:bounds[k + 1]). Returns index (K, N) int64 into points (-1: none within
+    max_m, or not masked) and squared distance (K, N) float64 (inf where none)."""
+    K, N = query_mask.shape
+    index = np.full((K, N), -1, np.int64)
+    d2 = np.full((K, N), np.inf)
+    lim = max_m * max_m
+    for k in range(K):
+        if bounds[k + 1] == bounds[k]:
+            continue
+        pk = points[bounds[k]:bounds[k + 1]]
+        lo, cell, dims, start, order = _build_grid(pk)
+        for n in range(N):
+            if query_mask[k, n]:
+                i, d = _nearest_one(queries[k, n], pk, lo, cell, dims, start, order, lim)
+                if i >= 0 and d <= lim:
+                    index[k, n] = bounds[k] + i
+                    d2[k, n] = d
+    return index, d2

@@ -211,24 +211,29 @@ def _align_rigidly(model, x: torch.Tensor, vis: Visibility, pts: _PersonPoints, 
                    min_points: int) -> tuple[torch.Tensor, np.ndarray]:
     """Steps 1-2: ICP of each person's visible vertices onto its points; returns the packed rows
     with global_orient and transl moved by the rigid motion, and the ICP fitness (B,)."""
-    B = x.shape[0]
     with torch.no_grad():
-        verts = _posed(model, x).vertices.cpu().numpy()
-        j0 = model.rest_joints(x[:, _SLICES["betas"]])[:, 0].cpu().numpy()
-    vmask = vis.vertex_mask.cpu().numpy()
+        verts = _posed(model, x).vertices
+        j0 = model.rest_joints(x[:, _SLICES["betas"]])[:, 0]
+    idx, valid = _visible_index(vis.vertex_mask & pts.has[:, None])
+    res = icp_align(torch.gather(verts, 1, idx[..., None].expand(-1, -1, 3)), valid, pts.xyz, pts.person,
+                    max_rotation_deg=max_rotation_deg, min_points=min_points)
     Rg = axis_angle_to_matrix(x[:, _SLICES["global_orient"]].double()).cpu().numpy()
     tr = x[:, _SLICES["transl"]].double().cpu().numpy()
-    fitness = np.zeros(B)
-    has = pts.has.cpu().numpy()
-    for b in np.flatnonzero(has):
-        res = icp_align(verts[b][vmask[b]], pts.person_xyz(b), max_rotation_deg=max_rotation_deg,
-                        min_points=min_points)
-        fitness[b] = res.fitness
-        Rg[b], tr[b] = rigid_update_params(Rg[b], tr[b], j0[b], res.T[:3, :3], res.T[:3, 3])
+    Rg, tr = rigid_update_params(Rg, tr, j0.double().cpu().numpy(), res.T[:, :3, :3], res.T[:, :3, 3])
     x = x.clone()
     x[:, _SLICES["global_orient"]] = matrix_to_axis_angle(torch.as_tensor(Rg)).to(x)
     x[:, _SLICES["transl"]] = torch.as_tensor(tr).to(x)
-    return x, fitness
+    return x, res.fitness
+
+
+def _visible_index(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Padded indices (B, n) of the True entries of mask (B, V) (ascending), and their validity
+    (B, n); padding points at index 0."""
+    counts = mask.sum(1)
+    n = int(counts.max().item()) if mask.shape[0] else 0
+    order = torch.argsort((~mask).to(torch.int8), dim=1, stable=True)[:, :n]
+    valid = torch.arange(n, device=mask.device)[None, :] < counts[:, None]
+    return torch.where(valid, order, torch.zeros_like(order)), valid
 
 
 class _Problem:
@@ -252,14 +257,10 @@ class _Problem:
         with torch.no_grad():
             vis = vis_fn(_posed(model, x).vertices)
             R0 = axis_angle_to_matrix(x[:, 10:82].reshape(B, 24, 3))
-        visible = vis.vertex_mask & pts.has[:, None]  # no points: no L_3D, no visible set needed
-        counts = visible.sum(1)
-        n = int(counts.max().item()) if B else 0
-        # visible vertex ids first (stable: ascending id), padded with id 0
-        order = torch.argsort((~visible).to(torch.int8), dim=1, stable=True)[:, :n]
-        valid = torch.arange(n, device=dev)[None, :] < counts[:, None]
+        # no points: no L_3D, no visible set needed
+        order, valid = _visible_index(vis.vertex_mask & pts.has[:, None])
         kp_ids = torch.as_tensor(np.asarray(model.keypoint_vertex_ids), device=dev).expand(B, -1)
-        ids = torch.cat([kp_ids, torch.where(valid, order, torch.zeros_like(order))], 1)
+        ids = torch.cat([kp_ids, order], 1)
         vertex_mask = torch.cat([torch.zeros_like(kp_ids, dtype=torch.bool), valid], 1)
         problem = _Problem(model, prior, weights, cap, model.select_vertices(ids), vis.occluded_joints, R0,
                            kp, Kt, kw, pts, vertex_mask)
