@@ -242,8 +242,12 @@ class FitConfig(Strict):
     confidence_power: float = Field(2.0, ge=0)
     iterations: int = Field(100, ge=0)
     learning_rate: float = Field(0.02, gt=0)
-    #: recompute the Chamfer nearest pairs every this many steps (the k-d tree search dominates)
+    #: recompute the Chamfer nearest pairs and the pose blend shapes every this many steps (no
+    #: gradient flows through the blend shapes in between; 1 = the exact gradient every step)
     nn_every: int = Field(5, ge=1)
+    #: a person stops when its objective fell by less than this fraction between two pair
+    #: refreshes (null: always ``iterations`` steps)
+    converge_rtol: float | None = Field(None, gt=0)
     #: cap (m) of the vertex -> point distances in L_3D: a visible vertex with no LiDAR return
     #: this close is treated as unobserved (null = the paper's uncapped Chamfer; the cap removed a
     #: ~30 mm pull towards the sensor on the synthetic benchmark)

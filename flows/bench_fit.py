@@ -136,7 +136,7 @@ def _warm_start_rows(model, prior, sp, truth, init, weights, rng, run_fits, fit_
     import torch
 
     from tasks.fit.init_oracle import BodyParams, oracle_initial_estimate
-    from tasks.fit.lidar_sim import SENSORS, synthesize_persons  # noqa: F401
+    from tasks.fit.lidar_sim import SENSORS, synthesize_persons
 
     B = len(truth)
     _, _, first = run_fits(sp, init, weights, {"count": False})
@@ -170,7 +170,12 @@ def _resimulate(model, sp, verts, joints, sensor, rng):
     import numpy as np
     import torch
 
-    from tasks.fit.lidar_sim import R_CAM_FROM_LIDAR, SENSORS, frustum_ray_directions, simulate_sweep
+    from tasks.fit.lidar_sim import (
+        R_CAM_FROM_LIDAR,
+        SENSORS,
+        frustum_ray_directions,
+        simulate_sweep,
+    )
     from tasks.fit.optimize import model_keypoints
 
     B, P = sp.point_mask.shape
@@ -231,8 +236,8 @@ def bench_throughput(persons: int = 1024, device: str = "cuda", iterations: int 
     rep = np.arange(persons) % n
     init = init0.take(rep)
     pts, counts = ragged_points(sp.points_lidar[rep], sp.point_mask[rep])
-    args = dict(weights=FIT_PRESETS[preset], iterations=iterations, device=device, nn_every=nn_every,
-                chamfer_vertex_max_m=chamfer_vertex_max_m)
+    args = {"weights": FIT_PRESETS[preset], "iterations": iterations, "device": device, "nn_every": nn_every,
+            "chamfer_vertex_max_m": chamfer_vertex_max_m}
     w = min(4, persons)
     warm_pts, warm_counts = ragged_points(sp.points_lidar[rep[:w]], sp.point_mask[rep[:w]])
     fit_persons(model, prior, init.take(slice(0, w)), sp.keypoints[rep[:w]], sp.K, sp.T_cam_from_lidar,

@@ -12,7 +12,14 @@ from tasks.body.poses import sample_plausible_poses
 from tasks.body.prior import GMMPosePrior, generate_pose_prior
 from tasks.body.procedural import default_body_model
 from tasks.fit.init_oracle import BodyParams, cliff_to_params, oracle_initial_estimate
-from tasks.fit.lidar_sim import R_CAM_FROM_LIDAR, SENSORS, LidarSpec, frustum_ray_directions, simulate_sweep, synthesize_persons
+from tasks.fit.lidar_sim import (
+    R_CAM_FROM_LIDAR,
+    SENSORS,
+    LidarSpec,
+    frustum_ray_directions,
+    simulate_sweep,
+    synthesize_persons,
+)
 from tasks.fit.metrics import mean_error_mm
 from tasks.fit.optimize import fit_persons, ragged_points
 
@@ -154,7 +161,7 @@ def test_cpu_and_gpu_fits_agree(scene):
     # search vs the GPU's distance matrices, cuBLAS vs MKL sums), so nearest pairs can differ
     # where two points are near-equidistant and the paths part by rounding; after 30 steps the
     # meshes agree to 2 mm (a tenth of the benchmark's 20 mm MPJPE), the steps taken exactly
-    kw = dict(iterations=30, nn_every=5, chamfer_vertex_max_m=0.03)
+    kw = {"iterations": 30, "nn_every": 5, "chamfer_vertex_max_m": 0.03}
     a = _fit(scene, **kw)
     b = _fit(scene, device="cuda", **kw)
     assert np.abs(a.vertices - b.vertices).max() < 2e-3

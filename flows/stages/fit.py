@@ -151,7 +151,7 @@ def fit_batch(config: Config, sequence: str, rows: list[int], tracks: dict, init
                          np.concatenate(points), [len(p) for p in points], weights=fit_weights(config),
                          iterations=config.fit.iterations,
                          lr=config.fit.learning_rate, device=_device(config), seed=config.fit.seed,
-                         nn_every=config.fit.nn_every,
+                         nn_every=config.fit.nn_every, converge_rtol=config.fit.converge_rtol,
                          chamfer_vertex_max_m=config.fit.chamfer_vertex_max_m)
     T_lidar_from_cam = np.linalg.inv(T_cam)
     lidar = reframe_params(model, result.params(), T_lidar_from_cam)

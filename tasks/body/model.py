@@ -153,7 +153,7 @@ class BodyModel(torch.nn.Module):
         return self.J_template.to(betas)[None] + torch.einsum(
             "jcl,bl->bjc", self.J_shapedirs[:, :, :L].to(betas), betas)
 
-    def select_vertices(self, vertex_ids: Tensor) -> "VertexSubset":
+    def select_vertices(self, vertex_ids: Tensor) -> VertexSubset:
         """The model's per-vertex data at vertex_ids (B, N) long (a different subset per person),
         for :meth:`forward` with ``vertex_subset``: evaluating only the vertices a loss needs."""
         ids = vertex_ids.to(self.v_template.device).long()
@@ -166,7 +166,7 @@ class BodyModel(torch.nn.Module):
         body_pose: Tensor,
         transl: Tensor,
         pose2rot: bool = True,
-        vertex_subset: "VertexSubset | None" = None,
+        vertex_subset: VertexSubset | None = None,
         pose_offsets: Tensor | None = None,
     ) -> BodyOutput:
         """Pose and shape the body.
@@ -273,7 +273,7 @@ class VertexSubset:
     ids: Tensor
     weights: Tensor
 
-    def take(self, rows: Tensor) -> "VertexSubset":
+    def take(self, rows: Tensor) -> VertexSubset:
         """The subset of some persons, rows (K,) int64."""
         return VertexSubset(self.ids[rows], self.weights[rows])
 

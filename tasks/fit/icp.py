@@ -72,7 +72,7 @@ def icp_align(
     nothing, the translation-only start is kept. Nearest points: an exact grid search on the CPU
     (:mod:`tasks.fit.nearest`), distance matrices elsewhere; no per-person Python loop.
     """
-    B, N = vertex_mask.shape
+    B = vertex_mask.shape[0]
     dev = vertices.device
     f64 = torch.float64
     V = vertices.detach().to(f64)
@@ -158,7 +158,6 @@ def _pairs_brute(src, mask, points, person, radius, chunk_elements: int = 2**27)
 def _icp_stage(V, vm, P, pairs, T, radius, max_iterations, relative_change):
     """One correspondence radius of ICP for every person (open3d's loop: estimate from the
     current correspondences, move, re-evaluate, stop when fitness and RMSE settle)."""
-    B = V.shape[0]
     n_src = vm.sum(1).clamp(min=1).to(V.dtype)
 
     def evaluate(T, active):

@@ -49,7 +49,7 @@ class FitWeights:
         value = float(getattr(self, f"lambda_{name}"))
         return value * value if self.square_lambdas else value
 
-    def with_(self, **changes) -> "FitWeights":
+    def with_(self, **changes) -> FitWeights:
         """A copy with some fields changed (ablations: ``weights.with_(lambda_3d=0.0)``)."""
         return replace(self, **changes)
 
@@ -131,7 +131,7 @@ class ChamferTargets:
     point_rest: torch.Tensor
     num_points: torch.Tensor
 
-    def take(self, rows: torch.Tensor) -> "ChamferTargets":
+    def take(self, rows: torch.Tensor) -> ChamferTargets:
         """The targets of some persons, rows (k,) int64."""
         return ChamferTargets(self.vertex_mask[rows], self.vertex_target[rows], self.point_count[rows],
                               self.point_mean[rows], self.point_rest[rows], self.num_points[rows])
@@ -154,7 +154,7 @@ def chamfer_targets(
     numba, float64: :mod:`tasks.fit.nearest`), 'brute' (distance matrices for chunks of persons of at most
     ``chunk_elements`` entries; used on GPUs) or 'auto' (grid on the CPU).
     """
-    K, N = vertex_mask.shape
+    K = vertex_mask.shape[0]
     dev = vertices.device
     num_points = torch.bincount(point_person, minlength=K)[:K]
     active = (vertex_mask.sum(1) > 0) & (num_points > 0)

@@ -20,8 +20,10 @@ Persons do not interact: every term is per person, the batch loss is their sum, 
 stop depends on its own objective only, so a person's fit does not depend on which batch it was
 in (up to float rounding of batched matrix products).
 
-Threads: the kernel never changes torch's global thread setting; its k-d tree queries use
-``torch.get_num_threads()`` workers, so the caller sizes both with ``torch.set_num_threads``.
+Threads: the kernel never changes a global thread setting. Its torch operations use torch's
+intra-op pool, which the caller sizes (``torch.set_num_threads``; a Dask worker should size it to
+its own allotment, as torch defaults to every core); its nearest-pair searches (numba) run on the
+calling thread.
 """
 
 from __future__ import annotations
@@ -126,6 +128,9 @@ def fit_persons(
     dev = torch.device(device)
     if model.v_template.device != dev:
         model = copy.deepcopy(model).to(dev)  # never move a shared (memoised) model in place
+    buffers = list(prior.buffers()) if isinstance(prior, torch.nn.Module) else []
+    if buffers and buffers[0].device != dev:
+        prior = copy.deepcopy(prior).to(dev)  # not one host-to-device copy per step
     pts = _PersonPoints.build(pts_l, counts, T_cam_from_lidar, min_points, dev)
     f32 = torch.float32
     kp = torch.as_tensor(kp_np, dtype=f32, device=dev)
@@ -144,7 +149,7 @@ def fit_persons(
 
     with torch.no_grad():
         full = _posed(model, x)
-        out, terms = problem.objective(x, refresh=True)
+        _, terms = problem.objective(x, refresh=True)
     residuals = {k: v.double().cpu().numpy() for k, v in terms.items()}
     residuals["icp_fitness"] = icp_fitness
     residuals["visible_vertices"] = problem.visible_count.cpu().numpy().astype(np.float64)
@@ -179,7 +184,7 @@ class _PersonPoints:
     has: torch.Tensor
 
     @staticmethod
-    def build(points_lidar: np.ndarray, counts: np.ndarray, T_cam_from_lidar, min_points: int, dev) -> "_PersonPoints":
+    def build(points_lidar: np.ndarray, counts: np.ndarray, T_cam_from_lidar, min_points: int, dev) -> _PersonPoints:
         B = len(counts)
         person = np.repeat(np.arange(B), counts)
         T = np.broadcast_to(np.asarray(T_cam_from_lidar, dtype=np.float64), (B, 4, 4))[person]
@@ -188,9 +193,6 @@ class _PersonPoints:
         keep = has[person]
         return _PersonPoints(torch.as_tensor(cam[keep], dtype=torch.float32, device=dev),
                              torch.as_tensor(person[keep], device=dev), torch.as_tensor(has, device=dev))
-
-    def person_xyz(self, b: int) -> np.ndarray:
-        return self.xyz[self.person == b].double().cpu().numpy()
 
 
 def _visibility_fn(model, conf: torch.Tensor, weights: L.FitWeights, use_visibility: bool):
@@ -251,7 +253,7 @@ class _Problem:
         self.visible_count = vertex_mask.sum(1)
 
     @staticmethod
-    def build(model, prior, x, vis_fn, pts: _PersonPoints, kp, Kt, kw, weights, cap) -> "_Problem":
+    def build(model, prior, x, vis_fn, pts: _PersonPoints, kp, Kt, kw, weights, cap) -> _Problem:
         B = x.shape[0]
         dev = x.device
         with torch.no_grad():
@@ -267,7 +269,7 @@ class _Problem:
         problem.visible_count = vis.vertex_mask.sum(1)
         return problem
 
-    def take(self, rows: torch.Tensor) -> "_Problem":
+    def take(self, rows: torch.Tensor) -> _Problem:
         """The problem of persons rows (k,) int64 only (in the current numbering)."""
         new_index = torch.full((self.kp.shape[0],), -1, dtype=torch.long, device=rows.device)
         new_index[rows] = torch.arange(len(rows), device=rows.device)
