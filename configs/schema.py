@@ -1,20 +1,38 @@
 """The configuration tree: every YAML in configs/ validates into :class:`Config`.
 
 Every model forbids unknown keys (a misspelled key is an error, never ignored) and is frozen. Only
-flows/ read a Config; they hand kernels plain values. A config file may start with
-``extends: other.yaml`` (relative to itself): the other file is loaded first and this one is
-deep-merged over it.
+flows/ read a Config; they hand kernels plain values (flows/pipeline/inputs.py). A config file may
+start with ``extends: other.yaml`` (relative to itself): the other file is loaded first and this
+one is deep-merged over it.
+
+One home per default: a section that configures a kernel is made from the kernel's parameter
+dataclass (:func:`kernel_fields`): the defaults are the dataclass's, this module adds only the
+checks. YAML files set only what differs from those defaults; ``mobileocc config show`` prints
+everything resolved.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
+import typing
 from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator, model_validator
+
+from tasks.conventions import CITYSCAPES_TO_CLASS, CLASS_NAMES, FREE, UNLABELED
+from tasks.fit.losses import FIT_PRESETS, FitWeights
+from tasks.fit.settings import FitSettings
+from tasks.occupancy.grid import GridSpec
+from tasks.occupancy.settings import FreeSpaceParams, FuseSettings, MapParams
+from tasks.perception.lidar_clusters import LidarClusterParams
+from tasks.perception.oracle import OracleNoise
+from tasks.perception.person_points import PersonPointParams
+from tasks.track.ocsort import TrackerParams
+from tasks.track.offline import OfflineParams, WorldCheck
 
 CONFIG_DIR = Path(__file__).resolve().parent
 DEFAULT_CONFIG = CONFIG_DIR / "default.yaml"
@@ -23,12 +41,52 @@ DEFAULT_CONFIG = CONFIG_DIR / "default.yaml"
 class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
+    def to(self, kernel: type, rename: dict[str, str] | None = None, **values: Any) -> Any:
+        """The kernel dataclass ``kernel`` made of this section's fields of the same names
+        (``rename``: dataclass field -> config key, where they differ) and ``values``."""
+        rename = rename or {}
+        for f in dataclasses.fields(kernel):
+            key = rename.get(f.name, f.name)
+            if f.name not in values and key in type(self).model_fields:
+                values[f.name] = getattr(self, key)
+        return kernel(**values)
+
+
+def kernel_fields(kernel: type, constraints: dict[str, dict] | None = None, *, exclude: tuple[str, ...] = (),
+                  rename: dict[str, str] | None = None) -> dict[str, Any]:
+    """pydantic field definitions with the types and defaults of a kernel dataclass's fields: the
+    kernel's defaults are the only ones (one home per default); the schema adds only the checks
+    (``constraints``: config key -> Field keyword arguments such as ``gt=0``)."""
+    hints, constraints, rename = typing.get_type_hints(kernel), constraints or {}, rename or {}
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(kernel):
+        if f.name in exclude:
+            continue
+        name = rename.get(f.name, f.name)
+        default = f.default if f.default is not dataclasses.MISSING else ...
+        out[name] = (hints[f.name], Field(default, **constraints.get(name, {})))
+    return out
+
+
+def section(name: str, doc: str, *parts: dict[str, Any], __base__: type[Strict] = Strict,
+            **more: Any) -> type[Strict]:
+    """A strict, frozen config section made of kernel fields (:func:`kernel_fields`) and more."""
+    fields: dict[str, Any] = {}
+    for part in (*parts, more):
+        fields.update(part)
+    model = create_model(name, __base__=__base__, **fields)
+    model.__doc__ = doc
+    return model
+
 
 Vec3 = tuple[float, float, float]
+_PROB = {"ge": 0, "le": 1}
+_POS = {"gt": 0}
+_NONNEG = {"ge": 0}
 
 
 class GridConfig(Strict):
-    """A robot-local voxel grid in the base frame, [x, y, z] order."""
+    """A robot-local voxel grid in the base frame, [x, y, z] order (default: the benchmark grid)."""
 
     range_min: Vec3 = (0.4, -4.8, -1.0)
     range_max: Vec3 = (10.0, 4.8, 3.8)
@@ -53,11 +111,8 @@ class GridConfig(Strict):
             int(round((hi - lo) / self.voxel_size_m)) for lo, hi in zip(self.range_min, self.range_max)
         )
 
-
-class ClassEntry(Strict):
-    id: int = Field(ge=0, le=254)
-    name: str
-    color: tuple[int, int, int]
+    def spec(self) -> GridSpec:
+        return GridSpec(tuple(self.range_min), tuple(self.range_max), self.voxel_size_m)
 
 
 class DatasetConfig(Strict):
@@ -65,14 +120,26 @@ class DatasetConfig(Strict):
 
     root: Path = Path("demo-data")
     sequences: list[str] | Literal["all"] = "all"
-    lidar_source: Literal["3d_comp", "3d_raw"] = "3d_raw"
+    lidar_source: Literal["3d_comp", "3d_raw"] = "3d_comp"
     image_source: Literal["2d_rect", "2d_raw"] = "2d_rect"
     camera: Literal["cam0", "cam1"] = "cam0"
+    #: which raw frames a sequence has: those with a sweep file, or those the metadata lists name
+    frames: Literal["files", "metadata"] = "files"
+    #: day / night per sequence id; a sequence not listed takes its metadata's "lighting"
+    lighting: dict[str, Literal["day", "night"]] = Field(default_factory=dict)
+    #: LiDAR height above the ground, used only where calib_os1_to_base.yaml is missing
+    lidar_height_m: float = Field(0.9, gt=0)
     #: raw sensors run at 10 Hz; MobileOcc keeps every 2nd frame (5 Hz)
     rate_hz: float = Field(5.0, gt=0)
     sensor_rate_hz: float = Field(10.0, gt=0)
+    #: drops no-return points (zeros) and returns off the robot body
     min_range_m: float = Field(0.5, ge=0)
     max_range_m: float = Field(120.0, gt=0)
+
+    @field_validator("lighting", mode="before")
+    @classmethod
+    def _sequence_ids_as_text(cls, value):
+        return {str(k): v for k, v in value.items()} if isinstance(value, dict) else value
 
     @model_validator(mode="after")
     def _stride_integral(self) -> DatasetConfig:
@@ -88,52 +155,29 @@ class DatasetConfig(Strict):
         return int(round(self.sensor_rate_hz / self.rate_hz))
 
 
-class OracleNoise(Strict):
-    """Noise of the `oracle` perception provider (synthetic data only); see tasks.perception.oracle."""
+OracleNoiseConfig = section(
+    "OracleNoiseConfig", "Noise of the `oracle` provider (synthetic data only): tasks.perception.oracle.",
+    kernel_fields(OracleNoise, {
+        **{k: _PROB for k in ("day_recall", "night_recall", "occlusion_miss", "min_visible_fraction",
+                              "distance_miss", "mask_flip_prob", "lidar_recall")},
+        **{k: _POS for k in ("occlusion_power", "near_m", "far_m", "lidar_far_m")},
+        **{k: _NONNEG for k in ("fp_per_frame", "box_jitter", "keypoint_sigma", "semantic_patches",
+                                "night_noise_scale", "lidar_center_sigma_m", "lidar_size_sigma_m",
+                                "lidar_yaw_sigma_rad")}}))
 
-    day_recall: float = Field(0.99, ge=0, le=1)
-    night_recall: float = Field(0.77, ge=0, le=1)
-    occlusion_miss: float = Field(0.9, ge=0, le=1)
-    occlusion_power: float = Field(6.0, gt=0)
-    min_visible_fraction: float = Field(0.05, ge=0, le=1)
-    distance_miss: float = Field(0.1, ge=0, le=1)
-    near_m: float = Field(10.0, gt=0)
-    far_m: float = Field(40.0, gt=0)
-    fp_per_frame: float = Field(0.02, ge=0)
-    fp_score_range: tuple[float, float] = (0.3, 0.75)
-    box_jitter: float = Field(0.03, ge=0)
-    keypoint_sigma: float = Field(0.01, ge=0)
-    mask_flip_prob: float = Field(0.3, ge=0, le=1)
-    semantic_patches: float = Field(3.0, ge=0)
-    semantic_patch_px: tuple[int, int] = (8, 48)
-    night_noise_scale: float = Field(2.0, ge=0)
-    lidar_recall: float = Field(0.97, ge=0, le=1)
-    lidar_far_m: float = Field(40.0, gt=0)
-    lidar_center_sigma_m: float = Field(0.05, ge=0)
-    lidar_size_sigma_m: float = Field(0.05, ge=0)
-    lidar_yaw_sigma_rad: float = Field(0.1, ge=0)
-
-
-class LidarClustersConfig(Strict):
-    """The weight-free LiDAR pedestrian detector (tasks.perception.lidar_clusters)."""
-
-    ground_cell_m: float = Field(2.0, gt=0)
-    ground_tol_m: float = Field(0.2, ge=0)
-    ceiling_m: float = Field(2.4, gt=0)
-    voxel_m: float = Field(0.1, gt=0)
-    cluster_tol_m: float = Field(0.3, gt=0)
-    min_points: int = Field(10, ge=1)
-    min_height_m: float = Field(1.0, gt=0)
-    max_height_m: float = Field(2.1, gt=0)
-    max_footprint_m: float = Field(1.2, gt=0)
-    max_range_m: float = Field(40.0, gt=0)
+LidarClustersConfig = section(
+    "LidarClustersConfig", "The weight-free LiDAR pedestrian detector: tasks.perception.lidar_clusters.",
+    kernel_fields(LidarClusterParams, {
+        **{k: _POS for k in ("ground_cell_m", "ceiling_m", "voxel_m", "cluster_tol_m", "min_height_m",
+                             "max_height_m", "max_footprint_m", "max_range_m")},
+        "ground_tol_m": _NONNEG, "min_points": {"ge": 1}}))
 
 
 class DetectConfig(Strict):
     image_provider: Literal["oracle", "precomputed"] = "oracle"
     lidar_provider: Literal["lidar-clusters", "oracle", "precomputed", "none"] = "lidar-clusters"
     precomputed_dir: Path | None = None
-    oracle: OracleNoise = OracleNoise()
+    oracle: OracleNoiseConfig = OracleNoiseConfig()
     lidar_clusters: LidarClustersConfig = LidarClustersConfig()
     seed: int = 0
 
@@ -145,199 +189,118 @@ class DetectConfig(Strict):
         return self
 
 
-class PersonPointsConfig(Strict):
-    """Separating a person's LiDAR points (tasks.perception.person_points)."""
+PersonPointsConfig = section(
+    "PersonPointsConfig", "Separating a person's LiDAR points: tasks.perception.person_points.",
+    kernel_fields(PersonPointParams, {
+        **{k: _POS for k in ("gap_m", "person_height_m", "range_sigma_frac", "ground_cell_m",
+                             "edge_extent_m")},
+        **{k: _NONNEG for k in ("min_depth_m", "feet_radius_m", "edge_grow_m", "edge_margin_px")},
+        "min_points": {"ge": 1}, "core_frac": {"gt": 0, "le": 1}, "assoc_min_iou": _PROB}))
 
-    gap_m: float = Field(0.3, gt=0)
-    min_points: int = Field(3, ge=1)
-    person_height_m: float = Field(1.7, gt=0)
-    range_sigma_frac: float = Field(0.25, gt=0)
-    core_frac: float = Field(0.5, gt=0, le=1)
-    min_depth_m: float = Field(0.5, ge=0)
-    ground_tol_m: float | None = 0.15
-    ground_cell_m: float = Field(2.0, gt=0)
-    feet_radius_m: float = Field(0.1, ge=0)
-    #: a person cut by the image's left / right border grows past it on LiDAR geometry (0 = off)
-    edge_grow_m: float = Field(0.25, ge=0)
-    edge_extent_m: float = Field(0.7, gt=0)
-    edge_margin_px: float = Field(20.0, ge=0)
-    assoc_min_iou: float = Field(0.3, ge=0, le=1)
+WorldCheckConfig = section(
+    "WorldCheckConfig", "Offline identity check on world positions: tasks.track.offline.WorldCheck.",
+    kernel_fields(WorldCheck, {"min_points": {"ge": 1}, "max_speed_mps": _POS, "tol_m": _POS,
+                               "speed_sigma_mps": _NONNEG, "window": {"ge": 1},
+                               "continuation_gate_scale": {"ge": 1}}))
 
+TrackConfig = section(
+    "TrackConfig", "OC-SORT (tasks.track.ocsort.TrackerParams), the offline refinement "
+                   "(tasks.track.offline.OfflineParams, WorldCheck) and person points.",
+    kernel_fields(TrackerParams, {"det_thresh": _PROB, "max_age": {"ge": 1}, "min_hits": {"ge": 1},
+                                  "iou_threshold": _PROB, "delta_t": {"ge": 1}, "inertia": _PROB}),
+    kernel_fields(OfflineParams, {"stitch_max_gap": _NONNEG, "stitch_max_distance": _POS,
+                                  "stitch_max_scale": {"ge": 1}}),
+    world_check=(WorldCheckConfig, WorldCheckConfig()), person_points=(PersonPointsConfig, PersonPointsConfig()))
 
-class WorldCheckConfig(Strict):
-    """Offline identity check on world positions (tasks.track.offline.split_tracks / stitch_ids)."""
+#: FitWeights fields named differently in the config (paper's symbols)
+FIT_WEIGHT_NAMES = {"rho_px": "rho"}
+#: the objective's global settings, FitWeights field -> config key under ``fit``
+FIT_OBJECTIVE_NAMES = {"conf_power": "confidence_power", "square_lambdas": "squared_weights"}
 
-    #: cut tracks at missed frames and 3D jumps, re-stitch on world positions (False = 2D only)
-    enabled: bool = True
-    #: persons with fewer LiDAR points have no position (the check skips them)
-    min_points: int = Field(5, ge=1)
-    max_speed_mps: float = Field(2.5, gt=0)
-    #: a position within tol_m + speed_sigma_mps * dt of the track's prediction is consistent
-    tol_m: float = Field(0.6, gt=0)
-    speed_sigma_mps: float = Field(0.5, ge=0)
-    #: positions per track end for the velocity fit
-    window: int = Field(5, ge=1)
-    #: gate factor for a join OC-SORT made itself (two cues agree)
-    continuation_gate_scale: float = Field(1.5, ge=1)
-    #: never-confirmed tracklets may join a confirmed track (kept only then)
-    tentative: bool = True
+LossWeights = section(
+    "LossWeights", "Scalar weights and thresholds of the fitting objective (paper, appendix table).",
+    kernel_fields(FitWeights, {"rho": _POS, **{k: _NONNEG for k in ("lambda_theta", "lambda_a", "lambda_beta",
+                                                                     "lambda_3d", "lambda_occ")},
+                               "w": {"ge": -1, "le": 1}, "j_conf": _PROB},
+                  exclude=tuple(FIT_OBJECTIVE_NAMES), rename=FIT_WEIGHT_NAMES))
 
 
-class TrackConfig(Strict):
-    """OC-SORT (Cao et al.) settings, offline refinement (tasks.track.offline), person points."""
-
-    det_thresh: float = Field(0.6, ge=0, le=1)
-    #: frames at the stage's rate (lost tracks kept this long)
-    max_age: int = Field(30, ge=1)
-    min_hits: int = Field(3, ge=1)
-    iou_threshold: float = Field(0.3, ge=0, le=1)
-    delta_t: int = Field(3, ge=1)
-    inertia: float = Field(0.2, ge=0, le=1)
-    #: report a re-found confirmed track at once (False = reference OC-SORT output)
-    keep_confirmed_ids: bool = True
-    #: offline: a confirmed track also gets its tentative first detections
-    backfill: bool = True
-    #: offline: join a track to one starting at most this many frames after it ends (0 = never)
-    stitch_max_gap: int = Field(10, ge=0)
-    #: join gate: mean constant-velocity extrapolation error, in box heights
-    stitch_max_distance: float = Field(0.5, gt=0)
-    #: join gate: largest height ratio of the two end boxes
-    stitch_max_scale: float = Field(1.5, ge=1)
-    world_check: WorldCheckConfig = WorldCheckConfig()
-    person_points: PersonPointsConfig = PersonPointsConfig()
-
-
-class LossWeights(Strict):
-    """Scalar weights and thresholds of the fitting objective (paper, appendix table)."""
-
-    rho: float = Field(gt=0, description="Geman-McClure scale, pixels")
-    lambda_theta: float = Field(ge=0)
-    lambda_a: float = Field(ge=0)
-    lambda_beta: float = Field(ge=0)
-    lambda_3d: float = Field(ge=0)
-    lambda_occ: float = Field(ge=0)
-    w: float = Field(ge=-1, le=1, description="backface culling threshold")
-    j_conf: float = Field(ge=0, le=1, description="keypoint confidence threshold")
-
-
-PAPER_PRESETS: dict[str, LossWeights] = {
-    "3dpw": LossWeights(rho=100, lambda_theta=2.2, lambda_a=11.0, lambda_beta=5.0, lambda_3d=800,
-                        lambda_occ=35, w=0.2, j_conf=0.6),
-    "sloper4d": LossWeights(rho=100, lambda_theta=0.75, lambda_a=8.5, lambda_beta=1.0,
-                            lambda_3d=500, lambda_occ=55, w=0.2, j_conf=0.7),
-    "humanm3": LossWeights(rho=100, lambda_theta=1.0, lambda_a=3.0, lambda_beta=17.5,
-                           lambda_3d=600, lambda_occ=135, w=-1.0, j_conf=0.6),
-    "ut_campus": LossWeights(rho=100, lambda_theta=1.4, lambda_a=10.0, lambda_beta=10.0,
-                             lambda_3d=300, lambda_occ=50, w=0.2, j_conf=0.7),
-}
-
-
-class FitConfig(Strict):
+class _FitBase(Strict):
     preset: str = "ut_campus"
-    #: named loss-weight presets; the paper's four are always available, YAML may add more
+    #: named loss-weight presets beside the paper's four (tasks.fit.losses.FIT_PRESETS)
     presets: dict[str, LossWeights] = Field(default_factory=dict)
-    #: the paper does not say whether lambdas multiply squared; squared measured better here
-    squared_weights: bool = True
-    #: keypoint confidence power in L_J (SMPLify-X / SPIN use 2)
-    confidence_power: float = Field(2.0, ge=0)
-    iterations: int = Field(100, ge=0)
-    learning_rate: float = Field(0.02, gt=0)
-    #: recompute the Chamfer nearest pairs and the pose blend shapes every this many steps (no
-    #: gradient flows through the blend shapes in between; 1 = the exact gradient every step)
-    nn_every: int = Field(5, ge=1)
-    #: a person stops when its objective fell by less than this fraction between two pair
-    #: refreshes (null: always ``iterations`` steps)
-    converge_rtol: float | None = Field(None, gt=0)
-    #: cap (m) of the vertex -> point distances in L_3D: a visible vertex with no LiDAR return
-    #: this close is treated as unobserved (null = the paper's uncapped Chamfer; the cap removed a
-    #: ~30 mm pull towards the sensor on the synthetic benchmark)
-    chamfer_vertex_max_m: float | None = Field(0.03, gt=0)
-    #: detections with fewer LiDAR points are not fitted: keypoints alone leave depth free (on the
-    #: benchmark such fits floated metres away); 0 fits every detection
-    min_points: int = Field(10, ge=0)
-    #: fits whose root moved farther (m) from the initial estimate are dropped: they latched onto
-    #: someone else's points or floated off (null keeps every fit)
-    max_shift_m: float | None = Field(1.5, gt=0)
-    batch_persons: int = Field(64, ge=1)
-    device: Literal["cpu", "cuda", "auto"] = "auto"
-    #: start a track's fit from its previous frame's fit (beyond the paper; frames run in order)
-    warm_start: bool = False
     init_provider: Literal["oracle", "precomputed"] = "oracle"
     #: precomputed CLIFF estimates: <init_dir>/<sequence>/cliff.parquet (storage/PERCEPTION_FORMAT.md)
     init_dir: Path | None = None
     #: user-supplied official model files; None = our procedural stand-ins
     body_model_path: Path | None = None
     pose_prior_path: Path | None = None
-    seed: int = 0
 
     @model_validator(mode="after")
-    def _precomputed_needs_dir(self) -> FitConfig:
+    def _precomputed_needs_dir(self):
         if self.init_provider == "precomputed" and self.init_dir is None:
             raise ValueError("fit.init_dir is required when fit.init_provider is 'precomputed'")
         return self
 
     @model_validator(mode="after")
-    def _preset_known(self) -> FitConfig:
-        if self.preset not in self.all_presets:
-            raise ValueError(
-                f"preset {self.preset!r} is not one of {sorted(self.all_presets)}"
-            )
+    def _preset_known(self):
+        known = sorted(set(FIT_PRESETS) | set(self.presets))
+        if self.preset not in known:
+            raise ValueError(f"preset {self.preset!r} is not one of {known}")
         return self
 
     @property
-    def all_presets(self) -> dict[str, LossWeights]:
-        return {**PAPER_PRESETS, **self.presets}
-
-    @property
-    def weights(self) -> LossWeights:
-        return self.all_presets[self.preset]
-
-
-class FreeSpaceConfig(Strict):
-    """OctoMap sensor model (defaults are OctoMap's) of the free / unknown map."""
-
-    #: its own resolution: memory grows with the volume the rays cross (keep 0.1-0.2 m; the fused
-    #: grid may still be finer)
-    voxel_size_m: float = Field(0.2, ge=0.02, le=1.0)
-    prob_hit: float = Field(0.7, gt=0.5, lt=1)
-    prob_miss: float = Field(0.4, gt=0, lt=0.5)
-    clamp_min: float = Field(0.1192, gt=0, lt=0.5)
-    clamp_max: float = Field(0.971, gt=0.5, lt=1)
-    occupancy_threshold: float = Field(0.5, gt=0, lt=1)
-    max_range_m: float = Field(20.0, gt=0)
-    #: OctoMap's `discretize`: one ray per distinct endpoint voxel
-    discretize: bool = False
+    def weights(self) -> FitWeights:
+        """The chosen preset's weights with the objective's global settings."""
+        objective = {f: getattr(self, key) for f, key in FIT_OBJECTIVE_NAMES.items()}
+        if self.preset in self.presets:
+            return self.presets[self.preset].to(FitWeights, FIT_WEIGHT_NAMES, **objective)
+        return dataclasses.replace(FIT_PRESETS[self.preset], **objective)
 
 
-class MapConfig(Strict):
-    voxel_size_m: float = Field(0.2, ge=0.02, le=1.0)
-    #: Cityscapes train id (0-18) -> class name; ids not listed are unlabelled (e.g. sky)
-    cityscapes_to_class: dict[int, str] = Field(default_factory=dict)
-    outside_image_fallback: Literal["nearest", "unknown"] = "nearest"
-    #: > 1: out-of-view ground points match in-view ground with the lateral axis stretched (ground
-    #: classes run in strips along the robot's path); 1 = plain nearest neighbour
-    fallback_ground_lateral_scale: float = Field(4.0, ge=1.0)
-    pedestrian_box_margin_m: float = Field(0.15, ge=0)
-    #: ground consistency: road / terrain votes farther than this from the local ground are rejected
-    ground_max_deviation_m: float = Field(0.3, gt=0)
-    ground_cell_m: float = Field(1.0, gt=0)
-    ground_neighbourhood_cells: int = Field(1, ge=0)
-    ground_quantile: float = Field(0.5, ge=0, le=1)
-    ground_classes: list[str] = ["road", "terrain"]
-    min_votes: int = Field(1, ge=1)
-    freespace: FreeSpaceConfig = FreeSpaceConfig()
+FitConfig = section(
+    "FitConfig", "The body fit: tasks.fit.settings.FitSettings, the objective's preset and options.",
+    kernel_fields(FitSettings, {"iterations": _NONNEG, "learning_rate": _POS, "nn_every": {"ge": 1},
+                                "converge_rtol": _POS, "chamfer_vertex_max_m": _POS, "min_points": _NONNEG, "max_shift_m": _POS,
+                                "batch_persons": {"ge": 1}}),
+    {key: (typing.get_type_hints(FitWeights)[f], Field(next(x.default for x in dataclasses.fields(FitWeights)
+                                                            if x.name == f)))
+     for f, key in FIT_OBJECTIVE_NAMES.items()},
+    __base__=_FitBase)
+
+FreeSpaceConfig = section(
+    "FreeSpaceConfig", "OctoMap sensor model of the free / unknown map: tasks.occupancy.mapping.FreeSpaceParams.",
+    kernel_fields(FreeSpaceParams, {"voxel_size_m": {"ge": 0.02, "le": 1.0}, "prob_hit": {"gt": 0.5, "lt": 1},
+                                    "prob_miss": {"gt": 0, "lt": 0.5}, "clamp_min": {"gt": 0, "lt": 0.5},
+                                    "clamp_max": {"gt": 0.5, "lt": 1}, "occupancy_threshold": {"gt": 0, "lt": 1},
+                                    "max_range_m": _POS}))
+
+#: Cityscapes train id -> class name, the default mapping (tasks.conventions.CITYSCAPES_TO_CLASS)
+DEFAULT_CITYSCAPES_TO_CLASS = {cs: CLASS_NAMES[int(CITYSCAPES_TO_CLASS[cs])] for cs in range(19)
+                               if CITYSCAPES_TO_CLASS[cs] != UNLABELED}
+
+MapConfig = section(
+    "MapConfig", "The static semantic map: tasks.occupancy.mapping.MapParams.",
+    kernel_fields(MapParams, {"voxel_size_m": {"ge": 0.02, "le": 1.0}, "fallback_ground_lateral_scale": {"ge": 1},
+                              "pedestrian_box_margin_m": _NONNEG, "ground_max_deviation_m": _POS,
+                              "ground_cell_m": _POS, "ground_neighbourhood_cells": _NONNEG,
+                              "ground_quantile": _PROB, "min_votes": {"ge": 1}}),
+    cityscapes_to_class=(dict[int, str], Field(default_factory=lambda: dict(DEFAULT_CITYSCAPES_TO_CLASS))),
+    ground_classes=(list[str], ["road", "terrain"]),
+    freespace=(FreeSpaceConfig, FreeSpaceConfig()))
 
 
-class FuseConfig(Strict):
+class _FuseBase(Strict):
     grid: GridConfig = GridConfig()
     body_source: Literal["fit", "ground-truth"] = "fit"
     #: ground-truth bodies: fuse only people the sensors observe (>= this many LiDAR returns and
     #: some pixels in cam0), the people a real pipeline can annotate; 0 = every simulated person
     gt_min_points: int = Field(10, ge=0)
-    camera_mask: bool = True
-    #: exact per-pixel ray walks or a depth buffer (auto: rays for voxels >= 0.1 m)
-    camera_method: Literal["auto", "rays", "zbuffer"] = "auto"
-    camera_pixel_stride: int | None = Field(None, ge=1)
+
+
+FuseConfig = section("FuseConfig", "The per-frame fusion: the grid, the bodies, and "
+                                   "tasks.occupancy.settings.FuseSettings.",
+                     kernel_fields(FuseSettings, {"camera_pixel_stride": {"ge": 1}}), __base__=_FuseBase)
 
 
 class ExportConfig(Strict):
@@ -345,6 +308,9 @@ class ExportConfig(Strict):
     nuscenes_version: Literal["v1.0-trainval", "v1.0-mini", "v1.0-test"] = "v1.0-trainval"
     scene_prefix: str = "coda"
     val_sequences: list[str] = Field(default_factory=list)
+    #: prefix of the file paths in the nuScenes export's training infos: where the trainer finds
+    #: the export folder; null: FlashOcc's data_root (storage.export.nuscenes.INFOS_DATA_ROOT)
+    infos_data_root: str | None = None
 
 
 class OutputConfig(Strict):
@@ -364,7 +330,6 @@ class DaskConfig(Strict):
 
 class Config(Strict):
     dataset: DatasetConfig = DatasetConfig()
-    classes: list[ClassEntry]
     detect: DetectConfig = DetectConfig()
     track: TrackConfig = TrackConfig()
     fit: FitConfig = FitConfig()
@@ -374,77 +339,26 @@ class Config(Strict):
     output: OutputConfig = OutputConfig()
     dask: DaskConfig = DaskConfig()
 
-    @field_validator("classes")
-    @classmethod
-    def _classes_contiguous_free_last(cls, classes: list[ClassEntry]) -> list[ClassEntry]:
-        ids = [c.id for c in classes]
-        if ids != list(range(len(classes))):
-            raise ValueError(f"class ids must be 0..{len(classes) - 1} in order, got {ids}")
-        names = [c.name for c in classes]
-        if len(set(names)) != len(names):
-            raise ValueError(f"class names must be unique, got {names}")
-        if names[-1] != "free":
-            raise ValueError(f"the last class must be 'free' (Occ3D convention), got {names[-1]!r}")
-        if "pedestrian" not in names:
-            raise ValueError("a 'pedestrian' class is required")
-        return classes
-
     @model_validator(mode="after")
     def _mapping_targets_known(self) -> Config:
-        names = {c.name for c in self.classes} - {"free"}
+        occupied = CLASS_NAMES[:FREE]
         for name in self.map.ground_classes:
-            if name not in names:
-                raise ValueError(f"map.ground_classes: {name!r} is not an occupied class")
+            if name not in occupied:
+                raise ValueError(f"map.ground_classes: {name!r} is not an occupied class {occupied}")
         for cs_id, name in self.map.cityscapes_to_class.items():
             if not 0 <= cs_id <= 18:
                 raise ValueError(f"map.cityscapes_to_class: Cityscapes train id {cs_id} not in 0..18")
-            if name not in names:
+            if name not in occupied:
                 raise ValueError(
-                    f"map.cityscapes_to_class[{cs_id}] = {name!r} is not an occupied class"
+                    f"map.cityscapes_to_class[{cs_id}] = {name!r} is not an occupied class {occupied}"
                 )
         return self
 
-    def class_id(self, name: str) -> int:
-        for c in self.classes:
-            if c.name == name:
-                return c.id
-        raise KeyError(name)
 
-    def stage_slice(self, stage: str) -> dict[str, Any]:
-        """The part of the config a stage reads: the input of its cache key."""
-        dump = self.model_dump(mode="json")
-        slices = {
-            "detect": ("dataset", "detect"),
-            "track": ("track",),
-            "fit": ("fit",),
-            "map": ("map", "classes"),
-            "fuse": ("fuse", "classes", "output.frames_per_chunk"),
-            "export": ("export",),
-        }
-        out: dict[str, Any] = {}
-        for key in slices[stage]:
-            head, _, tail = key.partition(".")
-            out[key] = dump[head][tail] if tail else dump[head]
-        if stage == "detect":  # where the data lives is not what it is: the fingerprint covers it
-            out["dataset"] = {k: v for k, v in out["dataset"].items() if k not in ("root", "sequences")}
-        if stage == "fit":
-            out["weights"] = self.fit.weights.model_dump(mode="json")
-        return out
-
-
-def config_hash(config: Config, content_only: bool = False) -> str:
-    """sha256 (first 16 hex) of the canonical JSON of the resolved config.
-
-    content_only: leave out what does not change a single output byte (where the data and the
-    output store live, which sequences are selected, how many workers run). This is the hash
-    written beside the data, so the same inputs give byte-identical outputs whatever the runner.
-    """
+def config_hash(config: Config) -> str:
+    """sha256 (first 16 hex) of the canonical JSON of the resolved config (what a run was asked
+    to do; the published data carry the hash of the stage inputs instead, flows/pipeline/inputs.py)."""
     dump = config.model_dump(mode="json")
-    if content_only:
-        dump.pop("dask")
-        dump["output"].pop("root")
-        for key in ("root", "sequences"):
-            dump["dataset"].pop(key)
     blob = json.dumps(dump, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 

@@ -65,14 +65,15 @@ def _run(args: argparse.Namespace, force: bool) -> int:
     # before prefect is imported: its settings are read once; per-task INFO lines would bury the
     # progress bars and the summary (PREFECT_LOGGING_LEVEL=INFO brings them back)
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
-    from flows.pipeline import rebuild_dataset, summary_table
-    from flows.runtime import prefect_api
+    from flows.pipeline.run import rebuild_dataset, summary_table
+    from flows.pipeline.runtime import prefect_api
 
     cfg = _config(args)
     with prefect_api():
         report = rebuild_dataset(cfg, force=force, progress=not args.quiet)
     print(summary_table(report))
-    return 1 if report.failed else 0
+    export_failed = any(v != "done" for v in report.dataset_exports.values())
+    return 1 if report.failed or export_failed else 0
 
 
 def cmd_rebuild(args: argparse.Namespace) -> int:
@@ -86,7 +87,7 @@ def cmd_reprocess(args: argparse.Namespace) -> int:
 
 
 def _print_plan(args: argparse.Namespace, dry_run: bool) -> int:
-    from flows.plan import plan_run
+    from flows.pipeline.plan import plan_run
     from storage.manifest import FileHasher, Manifest
 
     cfg = _config(args)
@@ -118,42 +119,78 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from flows.pipeline import export_dataset
+    from flows.pipeline.inputs import dataset_export_inputs
+    from flows.pipeline.run import export_dataset
 
+    if args.gt and args.format != "occ3d":
+        print(f"--gt exports Occ3D labels; it does not apply to --format {args.format}", file=sys.stderr)
+        return 2
     cfg = _config(args)
-    target = export_dataset(cfg, args.format, args.to)
-    print(f"{args.format} export written to {target}")
+    target = export_dataset(dataset_export_inputs(cfg), cfg.output.root, cfg.dataset.root, args.format, args.to,
+                            gt=args.gt)
+    print(f"{args.format} export{' of the ground truth' if args.gt else ''} written to {target}")
     return 0
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from flows.evaluate import evaluate
+    from flows.commands.evaluate import evaluate
 
-    evaluate(args.dataset, args.gt, args.report)
+    evaluate(args.dataset, args.gt, args.report, labels=args.labels)
     print(f"report: {args.report / 'report.md'} (figures in {args.report / 'figures'}, "
           f"numbers in {args.report / 'results.json'})")
     return 0
 
 
-def cmd_bench(args: argparse.Namespace) -> int:
-    from flows.bench import bench
+def cmd_check_data(args: argparse.Namespace) -> int:
+    from flows.commands.check_data import check_data
 
-    bench(quick=args.quick, json_path=args.json, workers=args.workers)
-    return 0
+    code, text = check_data(_config(args), deep=args.deep)
+    print(text)
+    return code
+
+
+#: `mobileocc bench [WHAT] ...`: the module whose ``main(argv)`` parses the rest of the line
+BENCHMARKS = {"pipeline": "flows.bench.pipeline", "fit": "flows.bench.fit",
+              "occupancy": "flows.bench.occupancy"}
+
+
+def run_bench(argv: list[str]) -> int:
+    import importlib
+
+    what = argv[0] if argv and argv[0] in BENCHMARKS else "pipeline"
+    rest = argv[1:] if argv and argv[0] in BENCHMARKS else argv
+    return importlib.import_module(BENCHMARKS[what]).main(rest) or 0
+
+
+def run_cluster(argv: list[str]) -> int:
+    from flows.deploy.clusters import main
+
+    return main(argv)
+
+
+def run_deploy(argv: list[str]) -> int:
+    from flows.deploy.prefect import main
+
+    return main(argv)
+
+
+#: subcommands that parse their own options (`mobileocc bench fit --help`)
+PASSTHROUGH = {"bench": run_bench, "cluster": run_cluster, "deploy": run_deploy}
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from flows.simulate import simulate
+    from flows.commands.simulate import simulate
 
     ids = simulate(args.out, sequences=args.sequences, frames=args.frames, seed=args.seed,
                    pedestrians=args.pedestrians, crowd=args.crowd, night=args.night,
-                   progress=not args.quiet, first_id=args.first_id)
+                   progress=not args.quiet, first_id=args.first_id, image_ext=f".{args.image_format}",
+                   split_style=args.split_style)
     print(f"wrote sequence(s) {', '.join(map(str, ids))} to {args.out}")
     return 0
 
 
 def cmd_show(args: argparse.Namespace) -> int:
-    from flows.show import show
+    from flows.commands.show import show
 
     png = show(args.path, args.png, frame=args.frame)
     print(png)
@@ -161,7 +198,7 @@ def cmd_show(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from flows.simulate import simulate
+    from flows.commands.simulate import simulate
 
     data = args.data or Path("demo-data")
     if not (data / "timestamps").is_dir():
@@ -170,7 +207,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
                  progress=not args.quiet)
     args.data = data
     status = _run(args, force=False)
-    from flows.evaluate import evaluate
+    from flows.commands.evaluate import evaluate
 
     out = Path(_config(args).output.root)
     report = out / "report"
@@ -212,6 +249,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_args(p, runtime=False)
     p.add_argument("--format", choices=["occ3d", "nuscenes"], required=True)
     p.add_argument("--to", type=Path, required=True, help="export folder")
+    p.add_argument("--gt", action="store_true",
+                   help="occ3d: labels from the synthetic ground truth under --data (dataset.root)")
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("evaluate", help="label quality against ground truth: Markdown report + JSON")
@@ -219,13 +258,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gt", type=Path, default=None,
                    help="ground-truth root (default: the dataset root recorded in OUT)")
     p.add_argument("--report", type=Path, required=True, help="report folder")
+    p.add_argument("--labels", choices=["synthetic", "coda"], default="synthetic",
+                   help="synthetic: the simulator's exact ground truth (gt/); coda: CODa's own "
+                        "3d_semantic and 3d_bbox labels")
     p.set_defaults(func=cmd_evaluate)
 
-    p = sub.add_parser("bench", help="measure stage speeds, memory and reference ratios in one run")
-    p.add_argument("--quick", action="store_true", help="small inputs, a few minutes")
-    p.add_argument("--json", type=Path, default=None, help="write the figures as JSON")
-    p.add_argument("--workers", type=int, default=2)
-    p.set_defaults(func=cmd_bench)
+    p = sub.add_parser("check-data", help="check a CODa-layout download before a run: a table per sequence, "
+                                          "exit 1 on blocking problems")
+    _add_config_args(p, runtime=False)
+    p.add_argument("--deep", action="store_true", help="read every file (default: sizes and a few samples)")
+    p.set_defaults(func=cmd_check_data)
+
+    for name, text in (
+        ("bench", "measure speeds, memory and reference ratios in one run: `mobileocc bench "
+                  "[pipeline | fit | occupancy] [--help | options]` (default pipeline)"),
+        ("cluster", "render a Dask cluster spec: `mobileocc cluster render infra/slurm.yaml`"),
+        ("deploy", "Prefect deployments: `mobileocc deploy serve | apply | trigger [--config FILE]`"),
+    ):  # listed for --help; main() hands their arguments to the module's own parser
+        sub.add_parser(name, help=text, add_help=False)
 
     p = sub.add_parser("simulate", help="generate synthetic campus sequences (CODa layout + ground truth)")
     p.add_argument("--out", type=Path, required=True)
@@ -237,6 +287,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--night", action="store_true")
     p.add_argument("--first-id", type=int, default=0,
                    help="id of the first sequence (add sequences of another condition beside others)")
+    p.add_argument("--image-format", choices=["jpg", "png"], default="jpg",
+                   help="2d_rect images as CODa's downloads (jpg) or the devkit's tools (png) write them")
+    p.add_argument("--split-style", action="store_true",
+                   help="files only for blocks of frames, as CODa's split downloads (timestamps, poses: all)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_simulate)
 
@@ -256,6 +310,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in PASSTHROUGH:
+        return PASSTHROUGH[argv[0]](argv[1:])
     parser = build_parser()
     args = parser.parse_args(argv)
     from configs.schema import ConfigError

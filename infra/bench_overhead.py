@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def _measure(cfg_for, data: Path, work: Path, name: str, sequences: int) -> dict:
-    from flows.pipeline import rebuild_dataset
+    from flows.pipeline.run import rebuild_dataset
 
     def run(out: Path, seqs: list[str]):
         cfg = cfg_for(data, out, seqs)
@@ -48,8 +48,8 @@ def main(argv: list[str] | None = None) -> int:
     from distributed import LocalCluster
 
     from configs.schema import load_config
-    from flows.runtime import prefect_api
-    from flows.simulate import simulate
+    from flows.pipeline.runtime import prefect_api
+    from flows.commands.simulate import simulate
 
     work = Path(tempfile.mkdtemp(prefix="mobileocc-bench-overhead-"))
     data = work / "data"

@@ -7,6 +7,10 @@ Formats (field by field):
   (V, 3, B); ``posedirs`` (V, 3, 207); ``weights`` (V, 24); ``kintree_table`` (2, 24) (row 0
   parents, root parent 2**32 - 1; row 1 joint ids); ``J_regressor`` (24, V) (scipy.sparse in the
   official pkl, returned dense); optional ``coco_vertex_ids`` (5,) and any other array keys.
+- Body model as a plain-numpy SMPL pickle (:func:`save_body_model_pkl`): the official keys as
+  numpy arrays (J_regressor dense), written with storage/plain_pickle.py (globals numpy.ndarray
+  and builtins.bytearray only), so ``smplx.SMPL(model_path=...)`` (which reads SMPL only from a
+  pickle) and numpy 1.x read it, and :func:`load_body_model` too.
 - Pose prior (``gmm_08.pkl``, a Python-2 pickle, encoding latin1): a dict with ``means``
   (K, 69), ``covars`` (K, 69, 69), ``weights`` (K,), float64.
 
@@ -237,6 +241,29 @@ def save_body_model_npz(path, params: dict) -> None:
     buffer = io.BytesIO()
     np.savez(buffer, **{k: np.asarray(v) for k, v in params.items()})
     atomic_write_bytes(path, buffer.getvalue())  # writers may race: each renames a whole file
+
+
+def save_body_model_pkl(path, params: dict) -> None:
+    """Write body model parameters as a plain-numpy SMPL pickle (official keys; extra array keys
+    such as ``coco_vertex_ids`` kept). Deterministic for equal parameters."""
+    from storage.plain_pickle import dumps_plain
+
+    path = Path(path)
+    missing = [k for k in BODY_MODEL_KEYS if k not in params]
+    if missing:
+        raise BodyFileError(f"{path}: refusing to write a body model without keys {missing}")
+    atomic_write_bytes(path, dumps_plain({k: np.array(params[k]) for k in sorted(params)}))
+
+
+def smplx_vertex_ids(params: dict) -> dict[str, int]:
+    """The ``vertex_ids`` to pass to ``smplx.SMPL`` for a model other than the official SMPL
+    (smplx's default indices are SMPL's 6,890-vertex ids): its face keypoints from
+    ``coco_vertex_ids`` (nose, l_eye, r_eye, l_ear, r_ear). Pass ``use_hands=False,
+    use_feet_keypoints=False`` with it (no finger-tip / toe ids on the stand-in)."""
+    if "coco_vertex_ids" not in params:
+        raise BodyFileError("body model has no coco_vertex_ids: cannot name its face keypoint vertices")
+    nose, leye, reye, lear, rear = (int(i) for i in np.asarray(params["coco_vertex_ids"]).reshape(5))
+    return {"nose": nose, "leye": leye, "reye": reye, "lear": lear, "rear": rear}
 
 
 def _check_prior(path: Path, prior: dict) -> dict[str, np.ndarray]:

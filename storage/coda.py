@@ -1,47 +1,101 @@
 """Reader for the CODa raw layout (UT Campus Object Dataset), real or synthetic.
 
-Layout (see ../shared/reference/coda-and-formats.md)::
+Layout (ut-amrl/coda-devkit, docs/DATA_REPORT.md)::
 
     {root}/{modality}/{sensor}/{SEQ}/{modality}_{sensor}_{SEQ}_{FRAME}.{ext}
     {root}/calibrations/{SEQ}/calib_*.yaml
     {root}/poses/dense_global/{SEQ}.txt   (fallback: poses/dense/{SEQ}.txt)
     {root}/timestamps/{SEQ}.txt           {root}/metadata/{SEQ}.json
 
-Every error names the file, the frame where there is one, the value and what was expected; the
-errors are :class:`CodaFormatError` (a ValueError) so a flow can fail one sequence and go on.
+Frames. A raw frame number is a line of the timestamps file (and of the dense poses file, one
+pose per os1 frame). The per-sequence downloads hold a sweep for every line; the split downloads
+(tiny / small / medium / full) hold only the annotated frames. So the frames of a sequence are the
+ones whose LiDAR file exists (``frames="files"``) or the ones the metadata's ObjectTracking /
+SemanticSegmentation lists name (``frames="metadata"``), matched to timestamps and poses by number;
+of those, a frame is kept when it lies at least ``frame_stride`` raw frames after the last kept one
+(every 2nd frame of a full sequence, 5 Hz; gaps of a split are taken as they come).
+
+LiDAR ``.bin``: float32, 128 x 1024 organised points, 4 channels (x y z intensity) or 5 (x y z
+intensity t, t = nanoseconds since the sweep's first column as the devkit's decoder writes it);
+``3d_comp`` sweeps of the devkit hold x y z only (intensity and t are zeros).
+
+Cameras. ``2d_rect`` images are made by the devkit with ``cv2.initUndistortRectifyMap(K, D, R, P)``,
+whose map uses ``P[:, :3] @ R`` (the 4th column of P is not read), so a LiDAR point x lands on the
+rectified pixel ``P[:, :3] @ R @ T_cam_from_lidar @ x``. Each camera is therefore exposed as the
+pinhole (``K = P[:, :3]``, ``T_cam_from_lidar = [[R, 0], [0, 1]] @ T_cam_from_lidar``) of its
+rectified frame (storage.model.CameraCalibration); the files' values stay on ``.raw``.
+
+Every error names the file, the frame where there is one, the value and what was expected. All are
+:class:`CodaFormatError` (a ValueError); those of one frame's files are :class:`CodaFrameError`,
+which carries the path and the frame, so a caller can fail that frame and go on. A malformed or
+degenerate box does not fail its frame: it is skipped and reported in ``Frame.box_problems``.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import yaml
 
-from storage.model import Box3D, Calibration, CameraCalibration, Frame, SequenceInfo
+from storage.model import (
+    Box3D,
+    Calibration,
+    CameraCalibration,
+    Frame,
+    RawCameraCalibration,
+    SequenceInfo,
+)
 
 #: points per organised OS1-128 sweep (128 beams x 1024 columns), no-returns included
 POINTS_PER_SWEEP = 128 * 1024
 COLUMNS_PER_BEAM = 1024
+LIDAR_SOURCES = ("3d_comp", "3d_raw")
+IMAGE_SOURCES = ("2d_rect", "2d_raw")
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
 OCCLUSION_LEVELS = ("None", "Light", "Medium", "Heavy", "Full", "Unknown")
+FRAME_SELECTIONS = ("files", "metadata")
+#: the metadata lists that name annotated frames (coda-devkit helpers/metadata.py)
+METADATA_TASKS = ("ObjectTracking", "SemanticSegmentation")
+#: metadata ``lighting`` values that mean night (the devkit's METALighting.DARK is "dark")
+NIGHT_WORDS = ("night", "dark")
+NS_PER_S = 1_000_000_000
 
 
 class CodaFormatError(ValueError):
     """Bad or missing input in a CODa-layout dataset."""
 
 
+class CodaFrameError(CodaFormatError):
+    """One frame's file is missing or unreadable: ``path`` and ``frame`` (raw number) say which.
+
+    The sequence and its other frames may still be fine; a stage can fail this frame alone.
+    """
+
+    def __init__(self, message: str, path: Path, frame: int | None, sequence: str | None = None):
+        super().__init__(message)
+        self.path = Path(path)
+        self.frame = frame
+        self.sequence = sequence
+
+
+def _where(path: Path, frame: int | None) -> str:
+    return f"{path}" + (f" (frame {frame})" if frame is not None else "")
+
+
 @dataclass(frozen=True)
 class LidarSweep:
     """One decoded sweep, no-return points removed.
 
-    points: (N, 3) float32 LiDAR frame, metres. intensity: (N,) float32. time_s: (N,) float32
-    per-point time offset or None (4-channel files). ring: (N,) uint8 beam index (0 = top row of the
-    organised scan). index: (N,) int64 position in the organised 131,072-point scan (to align
-    per-point label files).
+    points: (N, 3) float32 LiDAR frame, metres. intensity: (N,) float32; intensity_present: False
+    when every return has intensity 0 (not a measurement). time_s: (N,) float32 seconds since the
+    sweep's first column (from the 5th channel's nanoseconds) or None (4-channel files). ring: (N,)
+    uint8 beam index (0 = top row of the organised scan). index: (N,) int64 position in the
+    organised 131,072-point scan (to align per-point label files). channels: 4 or 5.
     """
 
     points: np.ndarray
@@ -49,47 +103,64 @@ class LidarSweep:
     time_s: np.ndarray | None
     ring: np.ndarray
     index: np.ndarray
+    intensity_present: bool = True
+    channels: int = 5
+
+
+def lidar_channels(path: Path, frame: int | None = None) -> int:
+    """Channels (4 or 5) of an organised OS1-128 ``.bin`` from its size alone (no read)."""
+    path = Path(path)
+    where = _where(path, frame)
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        raise CodaFrameError(f"{where}: LiDAR file is missing", path, frame) from None
+    per_channel = POINTS_PER_SWEEP * 4
+    if size == 0 or size % per_channel:
+        raise CodaFrameError(
+            f"{where}: {size} bytes is not a whole organised 128x1024 sweep "
+            f"(expected 4 or 5 float32 channels = {4 * per_channel} or {5 * per_channel} bytes); "
+            "the file is truncated or not an OS1-128 sweep", path, frame)
+    channels = size // per_channel
+    if channels not in (4, 5):
+        raise CodaFrameError(
+            f"{where}: {channels} channels inferred from {size} bytes; expected 4 (x y z intensity) "
+            "or 5 (x y z intensity time)", path, frame)
+    return int(channels)
+
+
+def read_lidar_raw(path: Path, frame: int | None = None) -> np.ndarray:
+    """(131072, C) float32 organised sweep as stored (C = 4 or 5), finite values checked."""
+    path = Path(path)
+    channels = lidar_channels(path, frame)
+    raw = np.fromfile(path, dtype="<f4").reshape(POINTS_PER_SWEEP, channels)
+    bad = ~np.isfinite(raw).all(axis=1)
+    if bad.any():
+        first = int(np.flatnonzero(bad)[0])
+        raise CodaFrameError(
+            f"{_where(path, frame)}: {int(bad.sum())} points have NaN or inf values (first at point "
+            f"{first}: {raw[first].tolist()}); expected finite floats (no-returns are zeros)", path, frame)
+    return raw
 
 
 def read_lidar_bin(path: Path, min_range_m: float = 0.0, max_range_m: float = math.inf,
                    frame: int | None = None) -> LidarSweep:
     """Decode an organised OS1-128 ``.bin`` (float32 LE, 4 or 5 channels inferred from size)."""
-    path = Path(path)
-    where = f"{path}" + (f" (frame {frame})" if frame is not None else "")
-    try:
-        size = path.stat().st_size
-    except FileNotFoundError:
-        raise CodaFormatError(f"{where}: LiDAR file is missing") from None
-    per_channel = POINTS_PER_SWEEP * 4
-    if size == 0 or size % per_channel:
-        raise CodaFormatError(
-            f"{where}: {size} bytes is not a whole organised 128x1024 sweep "
-            f"(expected 4 or 5 float32 channels = {4 * per_channel} or {5 * per_channel} bytes); "
-            "the file is truncated or not an OS1-128 sweep"
-        )
-    channels = size // per_channel
-    if channels not in (4, 5):
-        raise CodaFormatError(
-            f"{where}: {channels} channels inferred from {size} bytes; expected 4 (x y z intensity) "
-            "or 5 (x y z intensity time)"
-        )
-    raw = np.fromfile(path, dtype="<f4").reshape(POINTS_PER_SWEEP, channels)
-    bad = ~np.isfinite(raw).all(axis=1)
-    if bad.any():
-        first = int(np.flatnonzero(bad)[0])
-        raise CodaFormatError(
-            f"{where}: {int(bad.sum())} points have NaN or inf values (first at point {first}: "
-            f"{raw[first].tolist()}); expected finite floats (no-returns are zeros)"
-        )
+    raw = read_lidar_raw(path, frame)
+    channels = raw.shape[1]
     rng = np.linalg.norm(raw[:, :3], axis=1)
     keep = (rng > max(min_range_m, 1e-6)) & (rng <= max_range_m)
     index = np.flatnonzero(keep)
+    intensity = np.ascontiguousarray(raw[index, 3])
+    time_s = (raw[index, 4].astype(np.float64) / NS_PER_S).astype(np.float32) if channels == 5 else None
     return LidarSweep(
         points=np.ascontiguousarray(raw[index, :3]),
-        intensity=np.ascontiguousarray(raw[index, 3]),
-        time_s=np.ascontiguousarray(raw[index, 4]) if channels == 5 else None,
+        intensity=intensity,
+        time_s=time_s,
         ring=(index // COLUMNS_PER_BEAM).astype(np.uint8),
         index=index.astype(np.int64),
+        intensity_present=bool(index.size == 0 or np.any(intensity != 0)),
+        channels=int(channels),
     )
 
 
@@ -120,23 +191,66 @@ def points_in_box(points: np.ndarray, box: Box3D, margin_m: float = 0.0) -> np.n
     return np.all(np.abs(local) <= half, axis=1)
 
 
-class CodaSequence:
-    """One sequence of a CODa-layout root. Cheap to build; frames are read on demand.
+def rectified_camera(R_rect: np.ndarray, P_rect: np.ndarray,
+                     T_cam_from_lidar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pinhole of a rectified image: (K (3, 3), T_rect_from_lidar (4, 4)) float64.
 
-    ``frame_stride`` keeps every k-th raw frame (2 for 5 Hz). ``lidar_source`` is ``3d_raw`` or
-    ``3d_comp``; ``image_source`` ``2d_rect`` or ``2d_raw``.
+    R_rect (3, 3) rectification_matrix, P_rect (3, 4) projection_matrix, T_cam_from_lidar (4, 4)
+    the raw camera's extrinsic. ``initUndistortRectifyMap(K, D, R, P)`` maps the rectified pixel
+    (u, v) through ``(P[:, :3] @ R)^-1``, so K = P[:, :3] and T_rect_from_lidar = [[R, 0], [0, 1]]
+    @ T_cam_from_lidar; P's 4th column (-fx * baseline on the right camera of a stereo pair)
+    belongs to projecting points given in the *left* rectified frame and is not used here.
+    """
+    K = np.array(P_rect, dtype=np.float64)[:, :3].copy()
+    R4 = np.eye(4)
+    R4[:3, :3] = R_rect
+    return K, R4 @ np.asarray(T_cam_from_lidar, dtype=np.float64)
+
+
+_FRAME_NAME = re.compile(r"_(\d+)$")
+
+
+def frame_number(path: Path) -> int | None:
+    """The FRAME of ``{modality}_{sensor}_{SEQ}_{FRAME}.{ext}``, None if the name has none."""
+    m = _FRAME_NAME.search(Path(path).name.split(".", 1)[0])
+    return int(m.group(1)) if m else None
+
+
+def stride_frames(candidates, stride: int) -> tuple[int, ...]:
+    """Ascending raw frames, keeping one when it is >= ``stride`` raw frames after the last kept."""
+    kept: list[int] = []
+    for f in sorted(set(int(c) for c in candidates)):
+        if not kept or f - kept[-1] >= stride:
+            kept.append(f)
+    return tuple(kept)
+
+
+class CodaSequence:
+    """One sequence of a CODa-layout root. Cheap to build (no sweep is read); frames on demand.
+
+    frame_stride: keep a frame every k raw frames (2 for 5 Hz). lidar_source: ``3d_comp`` (what
+    the downloads ship for os1) or ``3d_raw``; image_source: ``2d_rect`` or ``2d_raw``. frames:
+    ``files`` (frames whose sweep exists) or ``metadata`` (frames named by the metadata lists).
+    lighting: "day" / "night" for this sequence (the config's), None = the metadata's ``lighting``.
+    lidar_height_m: used where ``calib_os1_to_base.yaml`` is missing (T_base_from_lidar = a pure
+    lift of that height, with a warning in ``info.warnings``); None = that file is required.
     """
 
     def __init__(self, root: Path, sequence: str | int, *, frame_stride: int = 2,
-                 lidar_source: str = "3d_raw", image_source: str = "2d_rect",
+                 lidar_source: str = "3d_comp", image_source: str = "2d_rect",
                  min_range_m: float = 0.5, max_range_m: float = math.inf,
-                 cameras: tuple[str, ...] = ("cam0", "cam1")):
+                 cameras: tuple[str, ...] = ("cam0", "cam1"), frames: str = "files",
+                 lighting: str | None = None, lidar_height_m: float | None = None):
         self.root = Path(root)
         self.sequence = str(sequence)
-        if lidar_source not in ("3d_raw", "3d_comp"):
-            raise CodaFormatError(f"lidar_source {lidar_source!r}: expected 3d_raw or 3d_comp")
-        if image_source not in ("2d_rect", "2d_raw"):
-            raise CodaFormatError(f"image_source {image_source!r}: expected 2d_rect or 2d_raw")
+        if lidar_source not in LIDAR_SOURCES:
+            raise CodaFormatError(f"lidar_source {lidar_source!r}: expected one of {LIDAR_SOURCES}")
+        if image_source not in IMAGE_SOURCES:
+            raise CodaFormatError(f"image_source {image_source!r}: expected one of {IMAGE_SOURCES}")
+        if frames not in FRAME_SELECTIONS:
+            raise CodaFormatError(f"frames {frames!r}: expected one of {FRAME_SELECTIONS}")
+        if lighting not in (None, "day", "night"):
+            raise CodaFormatError(f"lighting {lighting!r} for sequence {self.sequence}: expected day or night")
         if frame_stride < 1:
             raise CodaFormatError(f"frame_stride {frame_stride}: expected >= 1")
         self.frame_stride = frame_stride
@@ -145,6 +259,9 @@ class CodaSequence:
         self.min_range_m = min_range_m
         self.max_range_m = max_range_m
         self.cameras = cameras
+        self.frame_selection = frames
+        self.lidar_height_m = lidar_height_m
+        self._lighting = lighting
         if self.sequence not in list_sequences(self.root):
             raise CodaFormatError(
                 f"unknown sequence id {self.sequence!r} in {self.root}: no "
@@ -157,18 +274,21 @@ class CodaSequence:
         seq = self.sequence
         return self.root / modality / sensor / seq / f"{modality}_{sensor}_{seq}_{frame}{ext}"
 
+    def lidar_path(self, frame: int) -> Path:
+        return self.path(self.lidar_source, "os1", frame, ".bin")
+
     def image_path(self, camera: str, frame: int) -> Path:
-        """The image of ``camera`` at raw frame ``frame`` (.png or .jpg; rectified falls back to raw)."""
-        sources = [self.image_source] + [s for s in ("2d_rect", "2d_raw") if s != self.image_source]
-        for source in sources:
-            for ext in IMAGE_EXTENSIONS:
-                candidate = self.path(source, camera, frame, ext)
-                if candidate.exists():
-                    return candidate
-        raise CodaFormatError(
-            f"{self.path(self.image_source, camera, frame, '.png')} (frame {frame}): image is "
-            f"missing (looked for {', '.join(IMAGE_EXTENSIONS)} in {', '.join(sources)})"
-        )
+        """The ``image_source`` image of ``camera`` at raw frame ``frame`` (.png, .jpg or .jpeg).
+
+        No fallback to the other image source: its pixels belong to another camera model."""
+        for ext in IMAGE_EXTENSIONS:
+            candidate = self.path(self.image_source, camera, frame, ext)
+            if candidate.exists():
+                return candidate
+        missing = self.path(self.image_source, camera, frame, ".png")
+        raise CodaFrameError(
+            f"{missing} (frame {frame}): image is missing (looked for {', '.join(IMAGE_EXTENSIONS)} "
+            f"in {self.image_source})", missing, frame, self.sequence)
 
     # -- sequence level ---------------------------------------------------------------------
     def _read_info(self) -> SequenceInfo:
@@ -178,10 +298,14 @@ class CodaSequence:
         if not pose_path.exists():  # sequences 8, 14, 15 of CODa have no dense_global poses
             pose_path = self.root / "poses" / "dense" / f"{self.sequence}.txt"
         poses = _read_poses(pose_path, expected=len(stamps_s), stamps_path=stamps_path)
-        calibration = self._read_calibration()
-        frames = tuple(range(0, len(stamps_s), self.frame_stride))
         metadata_path = self.root / "metadata" / f"{self.sequence}.json"
         metadata = _read_json(metadata_path) if metadata_path.exists() else {}
+        if not isinstance(metadata, dict):
+            raise CodaFormatError(f"{metadata_path}: expected a JSON object")
+        warnings: list[str] = []
+        calibration = self._read_calibration(warnings)
+        frames, selection = self._select_frames(len(stamps_s), metadata, metadata_path)
+        lighting, source = self._resolve_lighting(metadata)
         idx = np.asarray(frames, dtype=np.int64)
         return SequenceInfo(
             sequence=self.sequence,
@@ -192,26 +316,119 @@ class CodaSequence:
             calibration=calibration,
             metadata=metadata,
             files=tuple(self._input_files(frames, pose_path, stamps_path, metadata_path)),
+            selection=selection,
+            num_stamps=len(stamps_s),
+            lighting=lighting,
+            lighting_source=source,
+            warnings=tuple(warnings),
         )
 
-    def _read_calibration(self) -> Calibration:
+    def lidar_frames_on_disk(self) -> list[int]:
+        """Raw frame numbers that have a ``lidar_source`` sweep file (a directory listing)."""
+        folder = self.root / self.lidar_source / "os1" / self.sequence
+        if not folder.is_dir():
+            return []
+        prefix = f"{self.lidar_source}_os1_{self.sequence}_"
+        found = []
+        for p in folder.iterdir():
+            if p.name.startswith(prefix) and p.suffix == ".bin":
+                n = frame_number(p)
+                if n is not None:
+                    found.append(n)
+        return sorted(found)
+
+    def metadata_frames(self, metadata: dict | None = None) -> list[int]:
+        """Raw frames named by the metadata's ObjectTracking / SemanticSegmentation lists."""
+        metadata = self.info.metadata if metadata is None else metadata
+        found = set()
+        for task in METADATA_TASKS:
+            for files in (metadata.get(task) or {}).values():
+                for rel in files or ():
+                    n = frame_number(Path(str(rel)))
+                    if n is not None:
+                        found.add(n)
+        return sorted(found)
+
+    def _select_frames(self, num_stamps: int, metadata: dict, metadata_path: Path):
+        folder = self.root / self.lidar_source / "os1" / self.sequence
+        if self.frame_selection == "metadata":
+            candidates = self.metadata_frames(metadata)
+            if not candidates:
+                raise CodaFormatError(
+                    f"{metadata_path}: no frames listed under {' / '.join(METADATA_TASKS)} "
+                    "(dataset.frames: metadata needs them; use dataset.frames: files)")
+            how = f"metadata: {len(candidates)} annotated frames listed"
+        else:
+            candidates = self.lidar_frames_on_disk()
+            if not candidates:
+                other = [s for s in LIDAR_SOURCES if s != self.lidar_source
+                         and (self.root / s / "os1" / self.sequence).is_dir()]
+                hint = f"; found {other[0]}/os1/{self.sequence}: set dataset.lidar_source: {other[0]}" if other else ""
+                raise CodaFormatError(f"{folder}: no {self.lidar_source} sweeps for sequence "
+                                      f"{self.sequence}{hint}")
+            kind = "all frames" if len(candidates) == num_stamps else "split-style subset"
+            how = f"files: {len(candidates)} of {num_stamps} frames have a {self.lidar_source} sweep ({kind})"
+        beyond = [f for f in candidates if f >= num_stamps]
+        if beyond:
+            raise CodaFormatError(
+                f"{self.lidar_path(beyond[0])} (frame {beyond[0]}): frame number beyond the "
+                f"{num_stamps} lines of timestamps/{self.sequence}.txt ({len(beyond)} such frames)")
+        frames = stride_frames(candidates, self.frame_stride)
+        if self.frame_stride > 1:
+            how += f"; {len(frames)} kept at >= {self.frame_stride} raw frames apart"
+        return frames, how
+
+    def _resolve_lighting(self, metadata: dict) -> tuple[str, str]:
+        if self._lighting is not None:
+            return self._lighting, "config"
+        value = metadata.get("lighting")
+        if value is None:
+            return "day", "default"
+        return ("night" if str(value).lower() in NIGHT_WORDS else "day"), "metadata"
+
+    def _read_calibration(self, warnings: list[str]) -> Calibration:
         folder = self.root / "calibrations" / self.sequence
+        c01_path = folder / "calib_cam0_to_cam1.yaml"
+        T_cam1_from_cam0 = read_extrinsic(c01_path)[0] if c01_path.exists() else None
         cameras = {}
         for cam in self.cameras:
             intr_path = folder / f"calib_{cam}_intrinsics.yaml"
             ext_path = folder / f"calib_os1_to_{cam}.yaml"
-            if cam != "cam0" and not intr_path.exists() and not ext_path.exists():
+            if cam != "cam0" and not intr_path.exists():
                 continue  # only cam0 is required
-            intr = _read_yaml(intr_path)
-            K = _yaml_matrix(intr, "camera_matrix", (3, 3), intr_path)
-            dist = _yaml_matrix(intr, "distortion_coefficients", None, intr_path).reshape(-1)
-            width = _yaml_key(intr, "image_width", intr_path)
-            height = _yaml_key(intr, "image_height", intr_path)
-            T = _yaml_matrix(_read_yaml(ext_path), "extrinsic_matrix", (4, 4), ext_path)
-            cameras[cam] = CameraCalibration(cam, K, dist, int(width), int(height), T)
+            intr = read_intrinsics(intr_path)
+            if ext_path.exists():
+                T, P_l2r = read_extrinsic(ext_path)
+            elif cam == "cam1" and T_cam1_from_cam0 is not None and "cam0" in cameras:
+                # as the devkit's gen_calibrations.py: T_os1_to_cam1 = T_cam0_to_cam1 @ T_os1_to_cam0
+                T, P_l2r = T_cam1_from_cam0 @ cameras["cam0"].raw.T_cam_from_lidar, None
+            else:
+                T, P_l2r = read_extrinsic(ext_path)  # raises: file is missing
+            raw = RawCameraCalibration(intr["K"], intr["distortion"], intr["R"], intr["P"], T, P_l2r)
+            if self.image_source == "2d_rect":
+                if not intr["has_rect"]:
+                    warnings.append(f"{intr_path}: no rectification_matrix / projection_matrix; 2d_rect "
+                                    "images are projected with camera_matrix and the raw extrinsic")
+                K, T_cam = rectified_camera(intr["R"], intr["P"], T)
+                cameras[cam] = CameraCalibration(cam, K, np.zeros(5), intr["width"], intr["height"], T_cam,
+                                                 raw, rectified=True)
+            else:
+                if np.any(intr["distortion"] != 0):
+                    warnings.append(f"{cam}: 2d_raw images are distorted ({intr_path.name} k1={intr['distortion'][0]:.4g}) "
+                                    "and the pipeline projects with a pinhole; use 2d_rect")
+                cameras[cam] = CameraCalibration(cam, intr["K"], intr["distortion"], intr["width"],
+                                                 intr["height"], T, raw, rectified=False)
         base_path = folder / "calib_os1_to_base.yaml"
-        T_base = _yaml_matrix(_read_yaml(base_path), "extrinsic_matrix", (4, 4), base_path)
-        return Calibration(cameras=cameras, T_base_from_lidar=T_base)
+        if base_path.exists() or self.lidar_height_m is None:
+            T_base, base_default = read_extrinsic(base_path)[0], False
+        else:
+            T_base, base_default = np.eye(4), True
+            T_base[2, 3] = float(self.lidar_height_m)
+            warnings.append(f"{base_path} is missing: T_base_from_lidar = the LiDAR "
+                            f"{self.lidar_height_m:g} m above the ground, axes aligned "
+                            "(dataset.lidar_height_m)")
+        return Calibration(cameras=cameras, T_base_from_lidar=T_base, base_is_default=base_default,
+                           T_cam1_from_cam0=T_cam1_from_cam0)
 
     def _input_files(self, frames, *extra: Path) -> list[Path]:
         """Every file the selected frames read, for the content fingerprint."""
@@ -219,14 +436,14 @@ class CodaSequence:
         files += sorted((self.root / "calibrations" / self.sequence).glob("*.yaml"))
         wanted = set(frames)
         patterns = [(self.lidar_source, "os1"), ("3d_bbox", "os1"), ("3d_semantic", "os1")]
-        patterns += [(src, cam) for src in ("2d_rect", "2d_raw") for cam in self.cameras]
+        patterns += [(self.image_source, cam) for cam in self.cameras]
         for modality, sensor in patterns:
             folder = self.root / modality / sensor / self.sequence
             if not folder.is_dir():
                 continue
             for p in sorted(folder.iterdir()):
-                stem = p.stem.rsplit("_", 1)[-1]
-                if stem.isdigit() and int(stem) in wanted:
+                n = frame_number(p)
+                if n is not None and n in wanted:
                     files.append(p)
         gt = self.root / "gt" / self.sequence
         if gt.is_dir():
@@ -237,24 +454,32 @@ class CodaSequence:
     def __len__(self) -> int:
         return self.info.num_frames
 
+    def position(self, raw_frame: int) -> int:
+        """The position in ``info.frame_indices`` of a raw frame number (ValueError if not selected)."""
+        try:
+            return self.info.frame_indices.index(int(raw_frame))
+        except ValueError:
+            raise ValueError(f"sequence {self.sequence}: raw frame {raw_frame} is not a selected frame") from None
+
     def frame(self, i: int) -> Frame:
-        """The i-th selected frame (i indexes ``info.frame_indices``)."""
+        """The i-th selected frame (i indexes ``info.frame_indices``); CodaFrameError if its files
+        are missing or unreadable."""
         if not 0 <= i < len(self):
             raise IndexError(f"sequence {self.sequence}: frame position {i} not in 0..{len(self) - 1}")
         raw = self.info.frame_indices[i]
-        lidar_path = self.path(self.lidar_source, "os1", raw, ".bin")
+        try:
+            return self._frame(i, raw)
+        except CodaFrameError as exc:
+            exc.sequence = self.sequence
+            raise
+
+    def _frame(self, i: int, raw: int) -> Frame:
+        lidar_path = self.lidar_path(raw)
         sweep = read_lidar_bin(lidar_path, self.min_range_m, self.max_range_m, frame=raw)
-        semantic = None
         sem_path = self.path("3d_semantic", "os1", raw, ".bin")
-        if sem_path.exists():
-            labels = np.fromfile(sem_path, dtype=np.uint8)
-            if labels.size != POINTS_PER_SWEEP:
-                raise CodaFormatError(
-                    f"{sem_path} (frame {raw}): {labels.size} labels, expected {POINTS_PER_SWEEP}"
-                )
-            semantic = labels[sweep.index]
+        semantic = read_semantic(sem_path, raw)[sweep.index] if sem_path.exists() else None
         box_path = self.path("3d_bbox", "os1", raw, ".json")
-        boxes = read_boxes(box_path, frame=raw) if box_path.exists() else ()
+        boxes, problems = read_boxes(box_path, frame=raw) if box_path.exists() else ((), ())
         images = {cam: self.image_path(cam, raw) for cam in self.info.calibration.cameras}
         return Frame(
             sequence=self.sequence,
@@ -268,6 +493,8 @@ class CodaSequence:
             point_time_s=sweep.time_s,
             semantic_labels=semantic,
             boxes=boxes,
+            box_problems=problems,
+            intensity_present=sweep.intensity_present,
         )
 
     def frames(self):
@@ -284,28 +511,117 @@ def list_sequences(root: Path) -> list[str]:
     return sorted(ids, key=lambda s: (not s.isdigit(), int(s) if s.isdigit() else 0, s))
 
 
-def read_boxes(path: Path, frame: int | None = None) -> tuple[Box3D, ...]:
-    """Parse a CODa ``3d_bbox`` JSON file into boxes in the os1 frame."""
-    where = f"{path}" + (f" (frame {frame})" if frame is not None else "")
-    data = _read_json(path, where)
+def read_semantic(path: Path, frame: int | None = None) -> np.ndarray:
+    """(131072,) uint8 CODa 3d_semantic ids of an organised sweep (one byte per point)."""
+    labels = np.fromfile(path, dtype=np.uint8)
+    if labels.size != POINTS_PER_SWEEP:
+        raise CodaFrameError(f"{_where(path, frame)}: {labels.size} labels, expected {POINTS_PER_SWEEP} "
+                             "(one byte per point of the organised sweep)", path, frame)
+    return labels
+
+
+_BOX_KEYS = ("cX", "cY", "cZ", "l", "w", "h", "r", "p", "y")
+
+
+def read_boxes(path: Path, frame: int | None = None) -> tuple[tuple[Box3D, ...], tuple[str, ...]]:
+    """A CODa ``3d_bbox`` JSON file -> (valid boxes in the os1 frame, one message per skipped box).
+
+    Skipped: a box that is not an object with classId and finite numbers cX cY cZ l w h r p y, a
+    size that is not positive, an instanceId without an integer id after its last ':' (a track id
+    is needed). A file that is not JSON or has no '3dbbox' list raises CodaFrameError.
+    """
+    path = Path(path)
+    where = _where(path, frame)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise CodaFrameError(f"{where}: file is missing", path, frame) from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise CodaFrameError(f"{where}: invalid JSON ({exc})", path, frame) from None
     if not isinstance(data, dict) or not isinstance(data.get("3dbbox"), list):
-        raise CodaFormatError(f"{where}: expected an object with a '3dbbox' list")
-    boxes = []
+        raise CodaFrameError(f"{where}: expected an object with a '3dbbox' list", path, frame)
+    boxes, problems = [], []
     for k, entry in enumerate(data["3dbbox"]):
         try:
-            values = [float(entry[key]) for key in ("cX", "cY", "cZ", "l", "w", "h", "r", "p", "y")]
+            values = [float(entry[key]) for key in _BOX_KEYS]
             class_name = str(entry["classId"])
-            instance_id = str(entry.get("instanceId", f"{class_name}:{k}"))
         except (KeyError, TypeError, ValueError) as exc:
-            raise CodaFormatError(f"{where}: box {k} is malformed ({exc!r}); expected classId, "
-                                  "cX cY cZ l w h r p y") from None
-        if not all(math.isfinite(v) for v in values) or min(values[3:6]) <= 0:
-            raise CodaFormatError(f"{where}: box {k} ({instance_id}) has non-finite values or a "
-                                  f"non-positive size: {values}")
-        occlusion = str((entry.get("labelAttributes") or {}).get("isOccluded", "Unknown"))
-        boxes.append(Box3D(instance_id, class_name, np.array(values[0:3]), np.array(values[3:6]),
-                           np.array(values[6:9]), occlusion))
-    return tuple(boxes)
+            problems.append(f"box {k}: malformed ({exc!r}); expected classId and {' '.join(_BOX_KEYS)}")
+            continue
+        instance_id = str(entry.get("instanceId") or "")
+        if not all(math.isfinite(v) for v in values):
+            problems.append(f"box {k} ({instance_id or class_name}): non-finite values {values}")
+            continue
+        if min(values[3:6]) <= 0:
+            problems.append(f"box {k} ({instance_id or class_name}): non-positive size l w h = {values[3:6]}")
+            continue
+        box = Box3D(instance_id, class_name, np.array(values[0:3]), np.array(values[3:6]),
+                    np.array(values[6:9]),
+                    str((entry.get("labelAttributes") or {}).get("isOccluded", "Unknown")))
+        if box.track_id < 0:
+            problems.append(f"box {k} ({class_name}): instanceId {instance_id!r} has no integer id "
+                            "after ':' (expected e.g. 'Pedestrian:12')")
+            continue
+        boxes.append(box)
+    return tuple(boxes), tuple(problems)
+
+
+# -- calibration files ------------------------------------------------------------------------
+def read_intrinsics(path: Path) -> dict:
+    """A ``calib_{cam}_intrinsics.yaml`` -> dict(width, height, K (3, 3), distortion (5,), R (3, 3),
+    P (3, 4), has_rect). R defaults to identity and P to [K | 0] where the file lacks them
+    (has_rect False)."""
+    data = _read_yaml(path)
+    K = _yaml_matrix(data, "camera_matrix", (3, 3), path)
+    dist = _yaml_matrix(data, "distortion_coefficients", None, path).reshape(-1)
+    if dist.size not in (4, 5, 8):
+        raise CodaFormatError(f"{path}: distortion_coefficients has {dist.size} values, expected 5 "
+                              "(plumb_bob k1 k2 p1 p2 k3)")
+    if np.any(dist[5:] != 0):
+        raise CodaFormatError(f"{path}: distortion_coefficients {dist.tolist()}: only plumb_bob "
+                              "(k1 k2 p1 p2 k3) is supported")
+    dist = np.pad(dist[:5], (0, 5 - min(dist.size, 5)))
+    width = _positive_int(data, "image_width", path)
+    height = _positive_int(data, "image_height", path)
+    has_rect = "rectification_matrix" in data and "projection_matrix" in data
+    R = _yaml_matrix(data, "rectification_matrix", (3, 3), path) if "rectification_matrix" in data else np.eye(3)
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4):
+        raise CodaFormatError(f"{path}: rectification_matrix is not a rotation (R R^T != I): {R.tolist()}")
+    P = _yaml_matrix(data, "projection_matrix", (3, 4), path) if "projection_matrix" in data \
+        else np.hstack([K, np.zeros((3, 1))])
+    for name, M in (("camera_matrix", K), ("projection_matrix", P)):
+        if not (M[0, 0] > 0 and M[1, 1] > 0 and np.allclose(M[2, :3], [0, 0, 1])):
+            raise CodaFormatError(f"{path}: {name} {M.tolist()} is not a camera matrix "
+                                  "(expected fx, fy > 0 and a last row 0 0 1)")
+    return {"width": width, "height": height, "K": K, "distortion": dist, "R": R, "P": P,
+            "has_rect": has_rect}
+
+
+def read_extrinsic(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """An extrinsic YAML -> (T_target_from_source (4, 4) float64, projection_matrix (3, 4) or None).
+
+    ``extrinsic_matrix`` is either ``{rows: 4, cols: 4, data: [16]}`` (row-major; 3 x 4 accepted)
+    or, as CODa's ``calib_cam0_to_cam1.yaml``, ``{R: {rows: 3, cols: 3, data: [9]}, T: [3]}``.
+    A top-level ``projection_matrix`` (3 x 4, the devkit's P R T) is returned when present.
+    """
+    data = _read_yaml(path)
+    node = _yaml_key(data, "extrinsic_matrix", path)
+    T = np.eye(4)
+    if isinstance(node, dict) and "R" in node and "T" in node:
+        T[:3, :3] = _yaml_matrix(node, "R", (3, 3), path, "extrinsic_matrix.R")
+        T[:3, 3] = _yaml_matrix(node, "T", (3, 1), path, "extrinsic_matrix.T").reshape(3)
+    else:
+        values = _yaml_matrix(data, "extrinsic_matrix", None, path).reshape(-1)
+        if values.size not in (12, 16):
+            raise CodaFormatError(f"{path}: extrinsic_matrix has {values.size} values, expected 4x4 "
+                                  "(rows/cols/data) or {R: 3x3, T: [3]}")
+        T[:3] = values[:12].reshape(3, 4)
+        if values.size == 16 and not np.allclose(values[12:], [0, 0, 0, 1], atol=1e-9):
+            raise CodaFormatError(f"{path}: extrinsic_matrix last row {values[12:].tolist()}, expected 0 0 0 1")
+    if not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-3):
+        raise CodaFormatError(f"{path}: extrinsic_matrix rotation is not orthonormal: {T[:3, :3].tolist()}")
+    P = _yaml_matrix(data, "projection_matrix", (3, 4), path) if "projection_matrix" in data else None
+    return T, P
 
 
 # -- small parsers ----------------------------------------------------------------------------
@@ -330,6 +646,12 @@ def _read_timestamps(path: Path) -> np.ndarray:
             f"after line {k + 1} ({stamps[k]:.6f}) (frame {k + 1})"
         )
     return stamps
+
+
+def read_pose_stamps(path: Path) -> np.ndarray:
+    """(F,) float64 first column (Unix seconds) of a dense pose file."""
+    rows = [line.split() for line in Path(path).read_text().splitlines() if line.strip()]
+    return np.array([float(r[0]) for r in rows], dtype=np.float64)
 
 
 def _read_poses(path: Path, expected: int, stamps_path: Path) -> np.ndarray:
@@ -378,27 +700,36 @@ def _read_yaml(path: Path) -> dict:
     return data
 
 
-def _yaml_key(data: dict, key: str, path: Path):
+def _yaml_key(data: dict, key: str, path: Path, name: str | None = None):
     if key not in data:
-        raise CodaFormatError(f"{path}: calibration key {key!r} is missing")
+        raise CodaFormatError(f"{path}: calibration key {name or key!r} is missing")
     return data[key]
 
 
-def _yaml_matrix(data: dict, key: str, shape: tuple[int, int] | None, path: Path) -> np.ndarray:
-    node = _yaml_key(data, key, path)
+def _positive_int(data: dict, key: str, path: Path) -> int:
+    value = _yaml_key(data, key, path)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or value <= 0 or value != int(value):
+        raise CodaFormatError(f"{path}: {key} is {value!r}, expected a positive whole number of pixels")
+    return int(value)
+
+
+def _yaml_matrix(data: dict, key: str, shape: tuple[int, int] | None, path: Path,
+                 name: str | None = None) -> np.ndarray:
+    name = name or key
+    node = _yaml_key(data, key, path, name)
     values = node.get("data") if isinstance(node, dict) else node
     try:
         arr = np.asarray(values, dtype=np.float64).reshape(-1)
     except (TypeError, ValueError):
-        raise CodaFormatError(f"{path}: {key} is not a list of numbers") from None
+        raise CodaFormatError(f"{path}: {name} is not a list of numbers") from None
     if shape is not None:
         if arr.size != shape[0] * shape[1]:
             raise CodaFormatError(
-                f"{path}: {key} has {arr.size} values, expected {shape[0]}x{shape[1]}"
+                f"{path}: {name} has {arr.size} values, expected {shape[0]}x{shape[1]}"
             )
         arr = arr.reshape(shape)
     if not np.isfinite(arr).all():
-        raise CodaFormatError(f"{path}: {key} has non-finite values")
+        raise CodaFormatError(f"{path}: {name} has non-finite values")
     return arr
 
 

@@ -18,7 +18,8 @@ import pyarrow as pa
 import zarr
 
 from storage import tables
-from storage.occupancy_store import ARRAYS, CURRENT_FILE, OCCUPANCY_DIR, StoreError, read_attrs, store_path
+from storage.layout import CURRENT_FILE, OCCUPANCY_DIR, StoreError
+from storage.occupancy_store import ARRAYS, read_attrs, store_path
 
 
 @dataclass(frozen=True)

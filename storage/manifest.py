@@ -105,10 +105,23 @@ def sequence_fingerprint(root: Path, files: Iterable[Path], hasher: FileHasher) 
     return _hash_bytes(canonical_json(entries))[:32]
 
 
-def stage_key(stage: str, code_version: str, config_slice: Any, inputs: dict[str, str]) -> str:
-    """Key of one (sequence, stage): what must change for the stage to run again."""
-    return _hash_bytes(stage.encode(), code_version.encode(), canonical_json(config_slice),
-                       canonical_json(inputs))[:24]
+def stage_key(stage: str, code_version: str, inputs_hash: str, upstream: dict[str, str]) -> str:
+    """Key of one (sequence, stage): what must change for the stage to run again (its code
+    version, the hash of its inputs object, the fingerprint or its upstream keys)."""
+    return _hash_bytes(stage.encode(), code_version.encode(), inputs_hash.encode(),
+                       canonical_json(upstream))[:24]
+
+
+def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(value, dict):
+        out: dict[str, Any] = {}
+        for k, v in value.items():
+            if k != "type" or not isinstance(v, str):
+                out.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+            else:
+                out[f"{prefix}.type" if prefix else "type"] = v
+        return out
+    return {prefix: value}
 
 
 @dataclass
@@ -122,7 +135,8 @@ class StageRecord:
     seconds: float = 0.0
     finished_at: float = 0.0
     summary: dict = field(default_factory=dict)
-    #: the key's ingredients (code version, config-slice hash, inputs) to explain staleness
+    #: the key's ingredients (code version, inputs hash, fingerprint / upstream keys) to explain
+    #: staleness
     parts: dict = field(default_factory=dict)
 
 
@@ -159,6 +173,11 @@ class Manifest:
         self.rows[(record.sequence, record.stage)] = record
 
     def save(self) -> None:
+        used = {(r.stage, (r.parts or {}).get("config")) for r in self.rows.values()}
+        for stage, table in self.meta.get("inputs", {}).items():
+            keep = {h for s, h in used if s == stage} | set(list(table)[-1:])
+            for digest in [h for h in table if h not in keep]:
+                del table[digest]
         rows = [asdict(self.rows[k]) for k in sorted(self.rows)]
         atomic_write_bytes(self.root / MANIFEST, json.dumps(
             {"version": MANIFEST_VERSION, "meta": self.meta, "rows": rows}, indent=1,
@@ -166,6 +185,23 @@ class Manifest:
 
     def output_exists(self, record: StageRecord) -> bool:
         return bool(record.location) and (self.root / record.location).exists()
+
+    def remember_inputs(self, inputs: dict[str, tuple[str, Any]]) -> None:
+        """Keep each stage's inputs (hash -> JSON) so a later plan can say which setting changed;
+        kept for the hashes some row still refers to (pruned on save)."""
+        table = self.meta.setdefault("inputs", {})
+        for stage, (digest, value) in inputs.items():
+            table.setdefault(stage, {})[digest] = value
+
+    def inputs_diff(self, stage: str, old: str | None, new: str, limit: int = 3) -> str:
+        """The settings that differ between two inputs hashes of a stage ("" if unknown)."""
+        table = self.meta.get("inputs", {}).get(stage, {})
+        if old not in table or new not in table:
+            return ""
+        a, b = _flatten(table[old]), _flatten(table[new])
+        diffs = [f"{k} {a.get(k)!r} -> {b.get(k)!r}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+        more = f" (+{len(diffs) - limit} more)" if len(diffs) > limit else ""
+        return ", ".join(diffs[:limit]) + more
 
 
 def stage_dir(root: Path, stage: str, sequence: str, key: str) -> Path:

@@ -15,22 +15,16 @@ to the fill value (all free / all unknown) are not stored either (``skip_empty_c
 write units: zarr loses data when two processes write parts of one chunk or shard
 (zarr-python#3682), so :func:`write_frames` refuses misaligned regions.
 
-Publication: a sequence is written into a hidden staging directory (``OUT/.tmp-*``) and made
-visible by renames (:func:`stage_sequence`, :func:`publish_sequence`, :func:`discard`, or the
-context manager :func:`sequence_writer`). Readers find the published version through
-``occupancy/<sequence>/current.json``, replaced atomically.
+Publication (staging directory, renames, ``current.json``) is :mod:`storage.publish`.
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import os
-import shutil
-import uuid
-from collections.abc import Iterator, Mapping
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -38,13 +32,10 @@ import numpy as np
 import zarr
 from zarr.codecs import ZstdCodec
 
+from storage.layout import CURRENT_FILE, OCCUPANCY_DIR, StoreError
 from tasks.conventions import CLASS_NAMES, FREE
 
 STORE_FORMAT_VERSION = 1
-OCCUPANCY_DIR = "occupancy"
-TABLES_DIR = "tables"
-CURRENT_FILE = "current.json"
-TMP_PREFIX = ".tmp-"
 
 #: a frame (one uint8 grid) above this many bytes is "fine": spatial chunks inside shards.
 FINE_FRAME_BYTES = 1 << 20
@@ -77,10 +68,6 @@ ARRAYS: dict[str, ArraySpec] = {
         np.dtype(np.float16), 0.0, (2,), ("component",), "pedestrian (vx, vy), m/s, base frame"
     ),
 }
-
-
-class StoreError(ValueError):
-    """Bad input to the store: wrong shape, dtype, misaligned region, missing store."""
 
 
 @dataclass(frozen=True)
@@ -282,52 +269,6 @@ def read_attrs(path: str | os.PathLike) -> dict[str, Any]:
     return dict(_open_group(path, "r").attrs)
 
 
-# --------------------------------------------------------------------------------------------
-# Publication: write aside, rename into place.
-
-
-@dataclass(frozen=True)
-class StagedSequence:
-    """A sequence being written: everything lives under ``staging_dir`` until published.
-
-    store_path: the Zarr store workers write to. tables_dir: staged Parquet files
-    (``<table>.parquet``), see storage.tables.stage_table.
-    """
-
-    root: Path
-    sequence: str
-    version: str
-    staging_dir: Path
-    store_path: Path = field(init=False)
-    tables_dir: Path = field(init=False)
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "store_path", self.staging_dir / "occupancy.zarr")
-        object.__setattr__(self, "tables_dir", self.staging_dir / "tables")
-
-
-def _check_name(kind: str, value: str) -> None:
-    if not value or value.startswith((".", "_")) or "/" in value or "\\" in value or "=" in value:
-        raise StoreError(f"invalid {kind} {value!r}: must be non-empty, no '/', '=', leading '.' or '_'")
-
-
-def stage_sequence(root: str | os.PathLike, sequence: str, version: str) -> StagedSequence:
-    """Make a hidden staging directory ``root/.tmp-<sequence>-<version>-<uuid>`` for one write."""
-    _check_name("sequence", sequence)
-    _check_name("version", version)
-    root = Path(root)
-    staging = root / f"{TMP_PREFIX}{sequence}-{version}-{uuid.uuid4().hex[:12]}"
-    staging.mkdir(parents=True)
-    (staging / "tables").mkdir()
-    return StagedSequence(root, sequence, version, staging)
-
-
-def _write_json_atomic(path: Path, obj: Any) -> None:
-    tmp = path.with_name(f"{TMP_PREFIX}{path.name}-{uuid.uuid4().hex[:8]}")
-    tmp.write_text(json.dumps(obj, indent=1, sort_keys=True))
-    os.replace(tmp, path)
-
-
 def store_path(root: str | os.PathLike, sequence: str, version: str | None = None) -> Path:
     """Path of a published store; ``version=None``: the current one (StoreError if none)."""
     seq_dir = Path(root) / OCCUPANCY_DIR / sequence
@@ -337,67 +278,3 @@ def store_path(root: str | os.PathLike, sequence: str, version: str | None = Non
             raise StoreError(f"sequence {sequence!r} has no published occupancy ({current} missing)")
         version = json.loads(current.read_text())["version"]
     return seq_dir / f"{version}.zarr"
-
-
-def publish_sequence(staged: StagedSequence, keep_old_versions: bool = False) -> Path:
-    """Make a staged sequence visible; returns the published store path.
-
-    Order: the store directory is renamed to ``occupancy/<seq>/<version>.zarr``; each staged
-    table file replaces its partition file (one atomic rename each); finally ``current.json``
-    is replaced to point at the new version. Until that last rename, readers keep seeing the
-    previous version's arrays. Older versions are removed unless ``keep_old_versions``.
-    """
-    from storage import tables  # late: tables imports this module's constants
-
-    if not staged.staging_dir.is_dir():
-        raise StoreError(f"publish_sequence: staging dir {staged.staging_dir} is gone")
-    seq_dir = staged.root / OCCUPANCY_DIR / staged.sequence
-    seq_dir.mkdir(parents=True, exist_ok=True)
-    target = seq_dir / f"{staged.version}.zarr"
-    if staged.store_path.exists():
-        if target.exists():
-            # same version published before: move it aside first (hidden), never mix the two
-            aside = seq_dir / f"{TMP_PREFIX}old-{staged.version}-{uuid.uuid4().hex[:8]}"
-            os.replace(target, aside)
-            os.replace(staged.store_path, target)
-            shutil.rmtree(aside, ignore_errors=True)
-        else:
-            os.replace(staged.store_path, target)
-    for staged_file in sorted(staged.tables_dir.glob("*.parquet")):
-        tables.publish_partition(staged.root, staged_file.stem, staged.sequence, staged_file)
-    if target.exists():
-        _write_json_atomic(seq_dir / CURRENT_FILE, {"version": staged.version})
-    if not keep_old_versions:
-        for old in seq_dir.glob("*.zarr"):
-            if old != target and target.exists():
-                shutil.rmtree(old, ignore_errors=True)
-    shutil.rmtree(staged.staging_dir, ignore_errors=True)
-    return target
-
-
-def discard(staged: StagedSequence | str | os.PathLike) -> None:
-    """Remove a staging directory (a failed or abandoned write); published data is untouched."""
-    path = staged.staging_dir if isinstance(staged, StagedSequence) else Path(staged)
-    if not path.name.startswith(TMP_PREFIX):
-        raise StoreError(f"discard: {path} is not a staging directory (name must start {TMP_PREFIX!r})")
-    shutil.rmtree(path, ignore_errors=True)
-
-
-def discard_stale(root: str | os.PathLike) -> list[Path]:
-    """Remove every staging directory left under ``root`` by killed runs; returns them."""
-    stale = sorted(p for p in Path(root).glob(f"{TMP_PREFIX}*") if p.is_dir())
-    for path in stale:
-        shutil.rmtree(path, ignore_errors=True)
-    return stale
-
-
-@contextlib.contextmanager
-def sequence_writer(root: str | os.PathLike, sequence: str, version: str) -> Iterator[StagedSequence]:
-    """``with sequence_writer(out, seq, key) as staged: ...`` publishes on success, discards on error."""
-    staged = stage_sequence(root, sequence, version)
-    try:
-        yield staged
-    except BaseException:
-        discard(staged)
-        raise
-    publish_sequence(staged)

@@ -19,7 +19,7 @@ import pyarrow as pa
 import pyarrow.dataset as pads
 import pyarrow.parquet as pq
 
-from storage.occupancy_store import TABLES_DIR, TMP_PREFIX, StagedSequence, StoreError, _check_name
+from storage.layout import TABLES_DIR, TMP_PREFIX, StoreError, check_name
 from storage.schemas import PARTITION_FIELD, TABLE_NAMES, dataset_schema, file_schema
 
 PARTITION_FILE = "data.parquet"
@@ -66,21 +66,21 @@ def to_table(name: str, data: pa.Table | Mapping[str, Any] | Sequence[Mapping[st
     return pa.Table.from_arrays(arrays, schema=schema)
 
 
-def _write_file(table: pa.Table, path: Path) -> None:
+def write_table_file(table: pa.Table, path: Path) -> None:
     # fixed writer settings: same rows -> same bytes (no created_by timestamps in Parquet)
     pq.write_table(table, path, compression="zstd", compression_level=1, write_statistics=True)
 
 
-def _partition_dir(root: str | os.PathLike, name: str, sequence: str) -> Path:
+def partition_dir(root: str | os.PathLike, name: str, sequence: str) -> Path:
     if name not in TABLE_NAMES:
         raise StoreError(f"unknown table {name!r}, expected one of {TABLE_NAMES}")
-    _check_name("sequence", sequence)
+    check_name("sequence", sequence)
     return Path(root) / TABLES_DIR / name / f"sequence={sequence}"
 
 
 def publish_partition(root: str | os.PathLike, name: str, sequence: str, source: str | os.PathLike) -> Path:
     """Move a written Parquet file onto the partition ``name/sequence=<seq>`` atomically."""
-    part = _partition_dir(root, name, sequence)
+    part = partition_dir(root, name, sequence)
     part.mkdir(parents=True, exist_ok=True)
     target = part / PARTITION_FILE
     hidden = part / f"{TMP_PREFIX}{uuid.uuid4().hex[:12]}.parquet"
@@ -91,24 +91,17 @@ def publish_partition(root: str | os.PathLike, name: str, sequence: str, source:
 
 def write_partition(root: str | os.PathLike, name: str, sequence: str, data: Any) -> Path:
     """Write one sequence's partition of table ``name`` now, atomically replacing any old one."""
-    part = _partition_dir(root, name, sequence)
+    part = partition_dir(root, name, sequence)
     part.mkdir(parents=True, exist_ok=True)
     hidden = part / f"{TMP_PREFIX}{uuid.uuid4().hex[:12]}.parquet"
     try:
-        _write_file(to_table(name, data), hidden)
+        write_table_file(to_table(name, data), hidden)
         os.replace(hidden, part / PARTITION_FILE)
     finally:
         if hidden.exists():
             hidden.unlink()
     return part / PARTITION_FILE
 
-
-def stage_table(staged: StagedSequence, name: str, data: Any) -> Path:
-    """Write a table partition into a staged sequence; it goes live with publish_sequence."""
-    _partition_dir(staged.root, name, staged.sequence)  # validates the name
-    path = staged.tables_dir / f"{name}.parquet"
-    _write_file(to_table(name, data), path)
-    return path
 
 
 def read_table(root: str | os.PathLike, name: str, sequence: str | Sequence[str] | None = None) -> pa.Table:

@@ -25,7 +25,7 @@ def synthetic_root(tmp_path_factory):
     """Two tiny synthetic sequences (4 raw frames = 2 frames at 5 Hz each), made once per session.
 
     Tests that edit files copy it first (``copy_dataset``)."""
-    from flows.simulate import simulate
+    from flows.commands.simulate import simulate
 
     root = tmp_path_factory.mktemp("synthetic")
     simulate(root, sequences=2, frames=4, seed=7, pedestrians=3, crowd="uncrowded", progress=False)

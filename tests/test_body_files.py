@@ -164,3 +164,50 @@ def test_generated_model_loads_into_body_model(tmp_path):
     z = torch.zeros(1, 3)
     out = model(torch.zeros(1, 10), z, torch.zeros(1, 69), z)
     np.testing.assert_allclose(out.vertices[0].numpy(), params["v_template"], atol=1e-5)
+
+
+def test_plain_numpy_smpl_pickle_of_the_procedural_model(tmp_path):
+    """The procedural stand-in as an SMPL pickle: official keys, plain numpy inside (issue 19)."""
+    from storage.body_files import BODY_MODEL_KEYS, save_body_model_pkl
+    from storage.plain_pickle import pickle_globals
+    from tasks.body.procedural import default_body_params
+
+    params = default_body_params()
+    path = tmp_path / "procedural_smpl.pkl"
+    save_body_model_pkl(path, params)
+    assert pickle_globals(path.read_bytes()) == {("numpy", "ndarray"), ("builtins", "bytearray")}
+    with open(path, "rb") as f:  # how smplx reads it
+        raw = pickle.load(f, encoding="latin1")
+    assert set(BODY_MODEL_KEYS) <= set(raw) and raw["v_template"].shape == (6470, 3)
+    loaded = load_body_model(path)  # and our restricted reader
+    for k in params:
+        np.testing.assert_array_equal(loaded[k], params[k])
+    save_body_model_pkl(tmp_path / "again.pkl", params)
+    assert (tmp_path / "again.pkl").read_bytes() == path.read_bytes()
+
+
+def test_smplx_poses_our_bodies_like_our_model(tmp_path):
+    """Document-as-test: a fitted body's (betas, global_orient, body_pose, transl) posed with
+    smplx.SMPL on the procedural pickle gives our model's vertices and joints."""
+    smplx = pytest.importorskip("smplx")
+    import torch
+
+    from storage.body_files import save_body_model_pkl, smplx_vertex_ids
+    from tasks.body.model import BodyModel
+    from tasks.body.procedural import default_body_params
+
+    params = default_body_params()
+    path = tmp_path / "procedural_smpl.pkl"
+    save_body_model_pkl(path, params)
+    model = smplx.SMPL(model_path=str(path), vertex_ids=smplx_vertex_ids(params), use_hands=False,
+                       use_feet_keypoints=False, dtype=torch.float64)
+    rng = np.random.default_rng(0)
+    betas, go, pose, transl = (torch.as_tensor(rng.normal(0, s, (2, n))) for s, n in
+                               ((0.8, 10), (0.5, 3), (0.2, 69), (1.0, 3)))
+    out = model(betas=betas, global_orient=go, body_pose=pose, transl=transl)
+    ours = BodyModel(params).double()(betas, go, pose, transl)
+    assert out.vertices.shape == (2, 6470, 3)
+    np.testing.assert_allclose(out.vertices.detach().numpy(), ours.vertices.numpy(), atol=1e-9)
+    np.testing.assert_allclose(out.joints[:, :24].detach().numpy(), ours.joints.numpy(), atol=1e-9)
+    np.testing.assert_array_equal(out.joints[:, 24:29].detach().numpy(),
+                                  out.vertices[:, params["coco_vertex_ids"][[0, 2, 1, 4, 3]]].detach().numpy())

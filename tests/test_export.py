@@ -11,7 +11,7 @@ import pytest
 from PIL import Image
 
 from storage import occupancy_store as occ
-from storage import tables
+from storage import publish as pub
 from storage.export import export_nuscenes, export_occ3d
 from storage.export.common import quat_wxyz_from_matrix, sample_token
 from tasks.conventions import FREE, PEDESTRIAN, ROAD
@@ -59,7 +59,7 @@ def write_sweep(path: Path, frame: int) -> None:
 def build_tiny_dataset(root: Path, src: Path) -> Path:
     """2 sequences x 4 frames of 48x48x24, fake CODa .bin / .png sources under ``src``."""
     for si, seq in enumerate(SEQS):
-        with occ.sequence_writer(root, seq, "k1") as staged:
+        with pub.sequence_writer(root, seq, "k1") as staged:
             layout = occ.create_store(staged.store_path, NF, GRID, 2, {"voxel_size_m": 0.2,
                                       "range_min": [0.4, -4.8, -1.0], "range_max": [10.0, 4.8, 3.8]})
             sem = np.full((NF, *GRID), FREE, np.uint8)
@@ -83,11 +83,11 @@ def build_tiny_dataset(root: Path, src: Path) -> Path:
                 rows.append({"frame": f, "raw_frame": raw, "stamp_ns": 1_675_000_000_000_000_000 + si * 10**12 + f * 200_000_000,
                              "T_world_from_lidar": (Twb @ T_BASE_FROM_LIDAR).ravel(), "T_world_from_base": Twb.ravel(),
                              "lidar_path": lidar, "cam0_path": cam, "class_counts": [0] * 10, "is_night": False})
-            tables.stage_table(staged, "frames", rows)
-            tables.stage_table(staged, "instances", [
+            pub.stage_table(staged, "frames", rows)
+            pub.stage_table(staged, "instances", [
                 {"track_id": 7, "frame": f, "box3d_center": BOX_CENTER_BASE, "box3d_size": BOX_SIZE_LWH,
                  "box3d_yaw": BOX_YAW, "vx": 1.0 if f % 2 else 0.0, "vy": 0.0} for f in range(NF)])
-            tables.stage_table(staged, "sequences", [{
+            pub.stage_table(staged, "sequences", [{
                 "fingerprint": f"fp{si}", "config_hash": "c", "code_version": "0.1.0", "status": "ok",
                 "num_frames": NF, "occupancy_version": "k1", "K": K.ravel(), "T_cam0_from_lidar": T_CAM0_FROM_LIDAR.ravel(),
                 "T_base_from_lidar": T_BASE_FROM_LIDAR.ravel(), "image_width": W, "image_height": H}])
@@ -199,3 +199,27 @@ def test_nuscenes_export_names_missing_source(tiny, tmp_path):
     root, base = tiny
     with pytest.raises(FileNotFoundError, match=r"frame 0: cam0 image file"):
         export_nuscenes(root, tmp_path / "out", source_root=tmp_path / "nowhere")
+
+
+def test_plain_pickle_holds_only_numpy_ndarray_and_bytearray():
+    """Training infos must load under numpy 1.x: no numpy._core globals (numpy 2's default)."""
+    import pickle
+
+    from storage.plain_pickle import dumps_plain, pickle_globals
+
+    obj = {"infos": [{"a": np.arange(6, dtype=np.float32).reshape(2, 3), "names": np.array(["pedestrian"]),
+                      "empty": np.zeros((0, 9)), "flag": np.array([True, False]), "t": (1, 2.5, "x", None)}],
+           "view": np.eye(4)[:, ::2]}
+    data = dumps_plain(obj)
+    assert pickle_globals(data) == {("numpy", "ndarray"), ("builtins", "bytearray")}
+    assert ("numpy._core.multiarray", "_reconstruct") in pickle_globals(pickle.dumps(np.zeros(2)))  # the trap
+    back = pickle.loads(data)
+    for k in ("a", "names", "empty", "flag"):
+        np.testing.assert_array_equal(back["infos"][0][k], obj["infos"][0][k])
+        assert back["infos"][0][k].dtype == obj["infos"][0][k].dtype
+    np.testing.assert_array_equal(back["view"], obj["view"])
+    assert back["infos"][0]["a"].flags.writeable and back["infos"][0]["t"] == (1, 2.5, "x", None)
+    assert dumps_plain(obj) == data
+    for bad in ({"x": np.float64(1.0)}, {"x": np.array([object()])}, {"x": {1.5: 1}}):
+        with pytest.raises(TypeError, match="object"):
+            dumps_plain(bad)

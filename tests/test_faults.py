@@ -20,8 +20,8 @@ from pathlib import Path
 import pytest
 
 from configs.schema import load_config
-from flows.pipeline import rebuild_dataset
-from flows.plan import STAGES
+from flows.pipeline.dag import STAGES
+from flows.pipeline.run import rebuild_dataset
 from storage.manifest import Manifest
 
 pytestmark = [pytest.mark.usefixtures("prefect_harness"), pytest.mark.xdist_group("prefect"),
@@ -149,7 +149,7 @@ def cluster(api_url, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-    from flows.simulate import simulate
+    from flows.commands.simulate import simulate
 
     root = tmp_path_factory.mktemp("data")
     simulate(root, sequences=len(SEQUENCES), frames=2, seed=7, pedestrians=3, crowd="uncrowded",

@@ -181,7 +181,7 @@ def test_fit_rejects_mismatched_inputs(scene):
 
 
 def test_drop_far_fits_keeps_rows_aligned():
-    from flows.stages.fit import drop_far_fits
+    from tasks.fit.batch import drop_far_fits
 
     out = {"rows": np.array([4, 7, 9]), "transl": np.arange(9.0).reshape(3, 3),
            "shift_m": np.array([0.2, 2.5, 1.5])}

@@ -10,9 +10,10 @@ from pathlib import Path
 import pytest
 
 from configs.schema import load_config
-from flows.pipeline import rebuild_dataset
-from flows.plan import STAGES
+from flows.pipeline.dag import STAGES
+from flows.pipeline.run import rebuild_dataset
 from storage.manifest import Manifest, StoreLockedError, run_lock
+from storage.schemas import TABLE_NAMES
 from storage.tables import read_table
 
 pytestmark = [pytest.mark.usefixtures("prefect_harness"), pytest.mark.xdist_group("prefect")]
@@ -49,12 +50,17 @@ def test_thread_runner_and_cache_consequences(dataset, tmp_path):
     # empty, so the nuScenes export had no pedestrian annotations)
     inst = read_table(out, "instances").to_pandas().dropna(subset=["box3d_center"])
     assert len(inst) > 0 and all(1.0 < size[2] < 2.2 for size in inst["box3d_size"])
+    # every declared column is written by the pipeline (the error column: only for a failure)
+    for name in TABLE_NAMES:
+        table = read_table(out, name)
+        never = [c for c in table.column_names if table[c].null_count == len(table)]
+        assert never == (["error"] if name == "sequences" else []), (name, never)
 
     # nothing changed -> nothing recomputed
     assert _ran(_run(cfg)) == set()
 
     # one sequence's files edited -> only that sequence runs
-    bin_path = dataset / "3d_raw/os1/1/3d_raw_os1_1_2.bin"
+    bin_path = dataset / "3d_comp/os1/1/3d_comp_os1_1_2.bin"
     raw = bytearray(bin_path.read_bytes())
     raw[-8:-4] = bytes([0, 0, 192, 63])  # one intensity value becomes 1.5
     bin_path.write_bytes(bytes(raw))
@@ -70,7 +76,7 @@ def test_thread_runner_and_cache_consequences(dataset, tmp_path):
     assert _ran(_run(finer)) == {("0", "map"), ("0", "fuse"), ("0", "export")}
 
     # a sequence added -> only it runs
-    for sub in ("3d_raw/os1", "2d_rect/cam0", "2d_rect/cam1", "3d_bbox/os1", "calibrations", "gt"):
+    for sub in ("3d_comp/os1", "2d_rect/cam0", "2d_rect/cam1", "3d_bbox/os1", "3d_semantic/os1", "calibrations", "gt"):
         src = dataset / sub / "1"
         dst = dataset / sub / "2"
         shutil.copytree(src, dst)
@@ -83,12 +89,12 @@ def test_thread_runner_and_cache_consequences(dataset, tmp_path):
 
 def test_bad_sequence_fails_alone(dataset, tmp_path):
     out = tmp_path / "out"
-    path = dataset / "3d_raw/os1/0/3d_raw_os1_0_2.bin"
+    path = dataset / "3d_comp/os1/0/3d_comp_os1_0_2.bin"
     path.write_bytes(path.read_bytes()[:1000])
     report = _run(_config(dataset, out))
     failed = report.failed
     assert [(o["sequence"], o["stage"]) for o in failed] == [("0", "detect")]
-    assert "3d_raw_os1_0_2.bin (frame 2)" in failed[0]["error"] and "truncated" in failed[0]["error"]
+    assert "3d_comp_os1_0_2.bin (frame 2)" in failed[0]["error"] and "truncated" in failed[0]["error"]
     assert all(report.outcomes[("1", st)]["status"] == "done" for st in STAGES)
     assert report.outcomes[("0", "fuse")]["status"] == "skipped"
     manifest = Manifest.load(out)
@@ -129,9 +135,11 @@ def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle
     import numpy as np
     import torch
 
-    from flows.stages.fit import oracle_estimates
+    from flows.pipeline.inputs import fit_inputs, sequence_ref, source
+    from flows.stages.common import body_model
+    from flows.stages.providers import init_provider
     from storage.cliff_files import cliff_path, write_cliff_estimates
-    from storage.intermediate import read_product
+    from storage.products import Bodies, Tracks
     from tasks.body.rotations import axis_angle_to_matrix
     from tasks.fit.init_oracle import params_to_cliff_camera
 
@@ -141,12 +149,17 @@ def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle
     few = {}
     for seq in ("0", "1"):
         (folder,) = (tmp_path / "oracle" / "stages" / "track" / seq).iterdir()
-        tracks = read_product(folder, "tracks")
+        typed = Tracks.read(folder)
+        tracks = typed.arrays()
         enough = tracks["points_in_image"] >= oracle_cfg.fit.min_points  # others are not fitted
         rows = np.flatnonzero((tracks["gt_index"] >= 0) & enough)
         few[seq] = int(((tracks["gt_index"] >= 0) & ~enough).sum())
-        batches = [rows[a:a + 2].tolist() for a in range(0, len(rows), 2)]  # the stage's batches
-        est = [oracle_estimates(oracle_cfg, seq, b, tracks) for b in batches]
+        batches = [rows[a:a + 2] for a in range(0, len(rows), 2)]  # the stage's batches
+        opened = source(oracle_cfg).open(sequence_ref(oracle_cfg, seq))
+        provider = init_provider(fit_inputs(oracle_cfg).init, opened,
+                                 body_model(fit_inputs(oracle_cfg).body, tmp_path / "oracle"),
+                                 opened.info.calibration.cameras[oracle_cfg.dataset.camera])
+        est = [provider.estimates(typed, b) for b in batches]
         go, bp, tr, betas = (np.concatenate([getattr(e, k) for e in est]) for k in
                              ("global_orient", "body_pose", "transl", "betas"))
         rot = axis_angle_to_matrix(torch.as_tensor(np.concatenate([go[:, None], bp.reshape(-1, 23, 3)], 1),
@@ -161,7 +174,7 @@ def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle
     report = _run(cliff_cfg)
     assert all(o["status"] == "done" for o in report.outcomes.values())
     for seq in ("0", "1"):
-        bodies = [read_product(next((tmp_path / out / "stages" / "fit" / seq).iterdir()), "bodies")
+        bodies = [Bodies.read(next((tmp_path / out / "stages" / "fit" / seq).iterdir())).arrays()
                   for out in ("oracle", "cliff-out")]
         assert len(bodies[0]["frame"]) > 0
         for key in ("frame", "track_id", "det_index"):
@@ -177,9 +190,9 @@ def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle
 
 
 def _camera_K(cfg, seq):
-    from flows.plan import open_sequence
+    from flows.pipeline.inputs import sequence_ref, source
 
-    return open_sequence(cfg, seq).info.calibration.cameras[cfg.dataset.camera].K
+    return source(cfg).open(sequence_ref(cfg, seq)).info.calibration.cameras[cfg.dataset.camera].K
 
 
 
@@ -193,12 +206,14 @@ def test_warm_start_carries_a_tracks_fit_into_its_next_frame(tmp_path, monkeypat
     import torch
 
     import flows.stages.fit as fit_stage
+    from flows.pipeline.inputs import fit_inputs
     from tasks.body.rotations import axis_angle_to_matrix
     from tasks.fit.init_oracle import BodyParams
     from tasks.fit.reframe import reframe_params
 
     cfg = load_config(overrides={"output.root": str(tmp_path), "fit.batch_persons": 2, "fit.warm_start": True})
-    model = fit_stage.body_model(cfg)
+    inputs = fit_inputs(cfg)
+    model = fit_stage.body_model(inputs.body, tmp_path)
     rng = np.random.default_rng(0)
 
     def pose(yaw, x):
@@ -209,28 +224,33 @@ def test_warm_start_carries_a_tracks_fit_into_its_next_frame(tmp_path, monkeypat
 
     T_cam = np.eye(4)
     T_cam[:3, :3] = [[0, -1, 0], [0, 0, -1], [1, 0, 0]]
+    camera = SimpleNamespace(T_cam_from_lidar=T_cam, K=np.eye(3))
     info = SimpleNamespace(frame_indices=[10, 12, 14, 16], poses=np.stack([pose(0.1 * k, 0.7 * k) for k in range(4)]),
-                           calibration=SimpleNamespace(cameras={cfg.dataset.camera: SimpleNamespace(T_cam_from_lidar=T_cam)}))
+                           calibration=SimpleNamespace(cameras={cfg.dataset.camera: camera}))
     # track 1 in frames 10, 12, 14; track 2 in 12; track 3 in 10 and 14 (a gap)
-    tracks = {"frame": np.array([10, 10, 12, 12, 14, 14]), "track_id": np.array([1, 3, 1, 2, 1, 3])}
-    n = len(tracks["frame"])
+    tracks = SimpleNamespace(frame=np.array([10, 10, 12, 12, 14, 14]), track_id=np.array([1, 3, 1, 2, 1, 3]))
+    n = len(tracks.frame)
     est = BodyParams(rng.normal(0, 0.5, (n, 10)).astype(np.float32), rng.normal(0, 0.3, (n, 3)).astype(np.float32),
                      rng.normal(0, 0.2, (n, 69)).astype(np.float32),
                      (rng.normal(0, 0.5, (n, 3)) + [0, 0, 6]).astype(np.float32))
 
-    def identity_fit(config, sequence, rows, tracks, init):
+    def identity_fit(ref, inputs, out_root, tracks_dir, rows, init):
         lidar = reframe_params(model, init, np.linalg.inv(T_cam))
         return {"rows": np.asarray(rows), "betas": lidar.betas, "global_orient": lidar.global_orient,
                 "body_pose": lidar.body_pose, "transl": lidar.transl}
 
+    provider = SimpleNamespace(estimates=lambda tracks, rows: est.take(np.asarray(rows)))
     monkeypatch.setattr(fit_stage, "fit_batch", identity_fit)
-    parts = fit_stage._fit_warm_started(cfg, "0", tracks, np.arange(n), est, info, None)
+    monkeypatch.setattr(fit_stage, "init_provider", lambda *a: provider)
+    ctx = SimpleNamespace(inputs=inputs, out_root=tmp_path, ref=None, sequence="0",
+                          upstream={"track": tmp_path})
+    parts = fit_stage._warm_started(ctx, SimpleNamespace(info=info), tracks, np.arange(n), None)
     out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     order = np.argsort(out["rows"])
     world = {}
     for k in order:
         r = int(out["rows"][k])
-        p = info.frame_indices.index(int(tracks["frame"][r]))
+        p = info.frame_indices.index(int(tracks.frame[r]))
         body = BodyParams(*(out[f][k:k + 1] for f in ("betas", "global_orient", "body_pose", "transl")))
         with torch.no_grad():
             w = reframe_params(model, body, info.poses[p])

@@ -9,9 +9,14 @@ import pytest
 import yaml
 
 from configs.schema import load_config
-from flows.clusters import (ClusterSpecError, cluster_spec_from_dict, load_cluster_spec,
-                            render_kubernetes_cluster, render_kubernetes_yaml,
-                            render_slurm_job_script)
+from flows.deploy.clusters import (
+    ClusterSpecError,
+    cluster_spec_from_dict,
+    load_cluster_spec,
+    render_kubernetes_cluster,
+    render_kubernetes_yaml,
+    render_slurm_job_script,
+)
 
 INFRA = Path(__file__).resolve().parents[1] / "infra"
 
@@ -99,8 +104,8 @@ def test_prefect_yaml_entrypoints_import():
 
     data = yaml.safe_load((INFRA / "prefect.yaml").read_text())
     entry = {d["name"]: d["entrypoint"] for d in data["deployments"]}
-    assert entry == {"rebuild": "flows.pipeline:rebuild_dataset",
-                     "sequence": "flows.pipeline:process_sequence"}
+    assert entry == {"rebuild": "flows.pipeline.run:rebuild_dataset",
+                     "sequence": "flows.pipeline.run:process_sequence"}
     assert load_flow_from_entrypoint(entry["rebuild"]).name == "rebuild-dataset"
     assert load_flow_from_entrypoint(entry["sequence"]).name == "process-sequence"
     # the file also validates against the schema `prefect deploy` uses (a private module: optional)
@@ -116,7 +121,12 @@ def test_prefect_yaml_entrypoints_import():
 def test_duplicate_trigger_returns_the_same_flow_run(tmp_path):
     from prefect.client.orchestration import get_client
 
-    from flows.deploy import REBUILD_DEPLOYMENT, apply_deployments, default_idempotency_key, trigger_rebuild
+    from flows.deploy.prefect import (
+        REBUILD_DEPLOYMENT,
+        apply_deployments,
+        default_idempotency_key,
+        trigger_rebuild,
+    )
 
     ids = apply_deployments(tags=("mobileocc", "test"))
     assert len(set(ids)) == 2
@@ -132,7 +142,7 @@ def test_duplicate_trigger_returns_the_same_flow_run(tmp_path):
 
     with get_client(sync_client=True) as client:
         dep = client.read_deployment_by_name(REBUILD_DEPLOYMENT)
-        assert dep.entrypoint == "flows.pipeline.rebuild_dataset"  # Prefect's module-path form
+        assert dep.entrypoint == "flows.pipeline.run.rebuild_dataset"  # Prefect's module-path form
         from prefect.client.schemas.filters import DeploymentFilter, DeploymentFilterId
         from prefect.client.schemas.sorting import FlowRunSort
 
@@ -146,7 +156,7 @@ def test_duplicate_trigger_returns_the_same_flow_run(tmp_path):
 def test_local_cluster_from_spec_has_a_gpu_pool():
     from distributed import Client
 
-    from flows.clusters import build_cluster
+    from flows.deploy.clusters import build_cluster
 
     spec = cluster_spec_from_dict({"kind": "local", "cpu": {"jobs": 1, "cores": 1, "memory": "1GiB"},
                                    "gpu": {"jobs": 1, "cores": 1, "gpus": 1, "memory": "1GiB"}})
@@ -187,7 +197,7 @@ def test_slurm_cluster_from_spec_with_a_stand_in_sbatch(tmp_path, monkeypatch):
 
     from distributed import Client
 
-    from flows.clusters import build_cluster
+    from flows.deploy.clusters import build_cluster
 
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir()

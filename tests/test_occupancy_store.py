@@ -13,6 +13,7 @@ import pytest
 import zarr
 
 from storage import occupancy_store as occ
+from storage import publish as pub
 from storage.dataset import open_dataset
 from storage.npzio import save_npz_deterministic
 from tasks.conventions import FREE
@@ -147,7 +148,7 @@ def test_concurrent_process_writers_equal_one_writer(tmp_path):
 
 
 def _publish(root, seq, version, value, n=4):
-    with occ.sequence_writer(root, seq, version) as staged:
+    with pub.sequence_writer(root, seq, version) as staged:
         occ.create_store(staged.store_path, n, GRID, 2, ATTRS)
         sem = np.full((n, *GRID), value, np.uint8)
         occ.write_frames(staged.store_path, 0, {"semantics": sem})
@@ -155,7 +156,7 @@ def _publish(root, seq, version, value, n=4):
 
 def test_interrupted_write_leaves_previous_version_readable(tmp_path):
     _publish(tmp_path, "seq0", "v1", 3)
-    staged = occ.stage_sequence(tmp_path, "seq0", "v2")
+    staged = pub.stage_sequence(tmp_path, "seq0", "v2")
     occ.create_store(staged.store_path, 4, GRID, 2, ATTRS)
     occ.write_frames(staged.store_path, 0, {"semantics": np.full((2, *GRID), 7, np.uint8)})
     # "crash" here: no publish. Readers still see v1 only, and the staging dir is invisible.
@@ -164,10 +165,10 @@ def test_interrupted_write_leaves_previous_version_readable(tmp_path):
     assert ds.store_path("seq0").name == "v1.zarr"
     assert (ds.arrays("seq0", lazy="zarr")["semantics"][:] == 3).all()
     assert (ds.arrays("seq0")["semantics"].compute() == 3).all()
-    assert occ.discard_stale(tmp_path) == [staged.staging_dir]
+    assert pub.discard_stale(tmp_path) == [staged.staging_dir]
     # a write that raises inside the context manager is discarded, v1 stays
     with pytest.raises(RuntimeError):
-        with occ.sequence_writer(tmp_path, "seq0", "v3") as staged3:
+        with pub.sequence_writer(tmp_path, "seq0", "v3") as staged3:
             occ.create_store(staged3.store_path, 4, GRID, 2, ATTRS)
             raise RuntimeError("worker died")
     assert not staged3.staging_dir.exists()
@@ -187,9 +188,9 @@ def test_interrupted_write_leaves_previous_version_readable(tmp_path):
 def test_bad_names_refused(tmp_path):
     for bad in ("", ".x", "a/b", "a=b"):
         with pytest.raises(occ.StoreError):
-            occ.stage_sequence(tmp_path, bad, "v1")
+            pub.stage_sequence(tmp_path, bad, "v1")
     with pytest.raises(occ.StoreError, match="not a staging"):
-        occ.discard(tmp_path / "occupancy")
+        pub.discard(tmp_path / "occupancy")
 
 
 def test_npz_deterministic_and_loadable(tmp_path):

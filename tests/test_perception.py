@@ -7,7 +7,7 @@ import pytest
 
 from tasks.perception.lidar_clusters import detect_pedestrians_lidar, ground_height
 from tasks.perception.oracle import OracleNoise, oracle_image_perception, oracle_lidar_detections
-from tasks.perception.person_points import (associate_lidar_boxes, in_image_first, person_point_indices,
+from tasks.perception.person_points import (PersonPointParams, associate_lidar_boxes, in_image_first, person_point_indices,
                                             project_points)
 from tasks.perception.types import ImagePerception, LidarDetections, box_corners
 
@@ -251,7 +251,8 @@ def test_person_points_expected_range_picks_the_right_layer():
     (found,) = person_point_indices(points, K, T_CAM_FROM_LIDAR, (W, H), box, mask[None], np.array([6.0]))
     assert np.isin(found, truth).mean() >= 0.95
     # told the person stands at the wall, it returns the wall layer instead: the prior matters
-    (backdrop,) = person_point_indices(points, K, T_CAM_FROM_LIDAR, (W, H), box, mask[None], np.array([7.0]), range_sigma_frac=0.02)
+    (backdrop,) = person_point_indices(points, K, T_CAM_FROM_LIDAR, (W, H), box, mask[None], np.array([7.0]),
+                                        params=PersonPointParams(range_sigma_frac=0.02))
     assert np.isin(backdrop, truth).mean() < 0.05
 
 
@@ -272,10 +273,11 @@ def test_person_points_grow_past_the_image_side():
     recall, wrong = np.isin(truth, found).mean(), 1 - np.isin(found, truth).mean()
     assert recall >= 0.95 and wrong <= 0.05, (recall, wrong)
     assert not np.isin(found, np.flatnonzero(owner == 1)).any()
-    (ordered,), count = in_image_first(points, [found], K, T_CAM_FROM_LIDAR, (W, H))
+    (ordered,), count = in_image_first(points, [found], K, T_CAM_FROM_LIDAR, (W, H), 0.5)
     assert sorted(ordered.tolist()) == found.tolist() and 0 < count[0] < found.size
     assert in_image[ordered[:count[0]]].all() and not in_image[ordered[count[0]:]].any()
-    (image_only,) = person_point_indices(points, K, T_CAM_FROM_LIDAR, (W, H), box, mask[None], edge_grow_m=0)
+    (image_only,) = person_point_indices(points, K, T_CAM_FROM_LIDAR, (W, H), box, mask[None],
+                                          params=PersonPointParams(edge_grow_m=0))
     assert np.isin(truth, image_only).mean() < 0.75
     assert in_image[image_only].all()
 
@@ -292,9 +294,9 @@ def test_associate_lidar_boxes():
     box = _box_of(_mask_of(points[truth], K, T_CAM_FROM_LIDAR))
     centers = np.array([[12.0, -3, -0.6], [6.0, 0.5, GROUND_Z + 0.875], [-5.0, 0, 0]])
     sizes = np.tile([0.45, 0.45, 1.75], (3, 1))
-    matched = associate_lidar_boxes(np.stack([box, [0, 0, 5, 5]]), centers, sizes, np.zeros(3), K, T_CAM_FROM_LIDAR)
+    matched = associate_lidar_boxes(np.stack([box, [0, 0, 5, 5]]), centers, sizes, np.zeros(3), K, T_CAM_FROM_LIDAR, 0.3)
     assert matched.tolist() == [1, -1]
-    assert associate_lidar_boxes(np.zeros((0, 4)), centers, sizes, np.zeros(3), K, T_CAM_FROM_LIDAR).shape == (0,)
+    assert associate_lidar_boxes(np.zeros((0, 4)), centers, sizes, np.zeros(3), K, T_CAM_FROM_LIDAR, 0.3).shape == (0,)
 
 
 # --- benchmark (not a test: run it by hand, see the function's docstring) -------------------------

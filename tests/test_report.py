@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from flows.report import ReportError, to_jsonable, write_report
+from flows.commands.report import ReportError, to_jsonable, write_report
 from tasks import conventions as C
 from tasks.metrics._common import PRCounts
 from tasks.metrics.detection import DetectionCounts

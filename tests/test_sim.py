@@ -23,7 +23,7 @@ SEED = 3
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory) -> tuple[Path, Path]:
-    from flows.simulate import simulate
+    from flows.commands.simulate import simulate
 
     a, b = tmp_path_factory.mktemp("simA"), tmp_path_factory.mktemp("simB")
     assert simulate(a, sequences=1, frames=2, seed=SEED, pedestrians=5, progress=False) == [0]
@@ -53,11 +53,12 @@ def test_written_layout_is_coda(runs):
     root = runs[0]
     names = set(_files(root))
     for f in range(2):
-        for name in (f"3d_raw/os1/0/3d_raw_os1_0_{f}.bin", f"2d_rect/cam0/0/2d_rect_cam0_0_{f}.png",
-                     f"2d_rect/cam1/0/2d_rect_cam1_0_{f}.png", f"3d_bbox/os1/0/3d_bbox_os1_0_{f}.json",
-                     f"gt/0/gt_0_{f}.npz"):
+        for name in (f"3d_comp/os1/0/3d_comp_os1_0_{f}.bin", f"2d_rect/cam0/0/2d_rect_cam0_0_{f}.jpg",
+                     f"2d_rect/cam1/0/2d_rect_cam1_0_{f}.jpg", f"3d_bbox/os1/0/3d_bbox_os1_0_{f}.json",
+                     f"3d_semantic/os1/0/3d_semantic_os1_0_{f}.bin", f"gt/0/gt_0_{f}.npz"):
             assert name in names
-        assert (root / f"3d_raw/os1/0/3d_raw_os1_0_{f}.bin").stat().st_size == 131072 * 5 * 4
+        assert (root / f"3d_comp/os1/0/3d_comp_os1_0_{f}.bin").stat().st_size == 131072 * 5 * 4
+        assert (root / f"3d_semantic/os1/0/3d_semantic_os1_0_{f}.bin").stat().st_size == 131072
     calib = root / "calibrations/0"
     for cam in ("cam0", "cam1"):
         intr = yaml.safe_load((calib / f"calib_{cam}_intrinsics.yaml").read_text())
@@ -66,9 +67,16 @@ def test_written_layout_is_coda(runs):
         assert (intr["image_width"], intr["image_height"]) == (1224, 1024)
         assert intr["distortion_model"] == "plumb_bob"
         assert intr["distortion_coefficients"]["rows"] == 1 and intr["distortion_coefficients"]["cols"] == 5
-        assert len(intr["projection_matrix"]["data"]) == 12
+        # CODa-faithful: a real rectification (R != I), a projection matrix of its own (P != [K | 0])
+        R = np.asarray(intr["rectification_matrix"]["data"]).reshape(3, 3)
+        P = np.asarray(intr["projection_matrix"]["data"]).reshape(3, 4)
+        K = np.asarray(intr["camera_matrix"]["data"]).reshape(3, 3)
+        assert 0.005 < np.abs(R - np.eye(3)).max() < 0.05 and np.abs(P[:, :3] - K).max() > 1.0
+        assert np.any(np.asarray(intr["distortion_coefficients"]["data"]) != 0)
         ext = yaml.safe_load((calib / f"calib_os1_to_{cam}.yaml").read_text())["extrinsic_matrix"]
         assert (ext["rows"], ext["cols"], len(ext["data"])) == (4, 4, 16)
+    c01 = yaml.safe_load((calib / "calib_cam0_to_cam1.yaml").read_text())["extrinsic_matrix"]
+    assert set(c01) == {"R", "T"} and len(c01["T"]) == 3  # CODa's documented form
     base = yaml.safe_load((calib / "calib_os1_to_base.yaml").read_text())["extrinsic_matrix"]
     assert 0.8 <= np.asarray(base["data"]).reshape(4, 4)[2, 3] <= 1.0
     stamps = (root / "timestamps/0.txt").read_text().splitlines()
@@ -78,12 +86,62 @@ def test_written_layout_is_coda(runs):
     meta = json.loads((root / "metadata/0.json").read_text())
     assert meta["synthetic"] is True and meta["lighting"] == "day" and meta["frames"] == 2
     assert meta["sensor"] == "os1-128" and meta["crowd"] == "uncrowded" and "seed" in meta
+    assert meta["ObjectTracking"]["training"] == ["3d_bbox/os1/0/3d_bbox_os1_0_0.json",
+                                                  "3d_bbox/os1/0/3d_bbox_os1_0_1.json"]
     boxes = json.loads((root / "3d_bbox/os1/0/3d_bbox_os1_0_0.json").read_text())["3dbbox"]
     peds = [b for b in boxes if b["classId"] == "Pedestrian"]
     assert peds and all(b["instanceId"].startswith("Pedestrian:") for b in peds)
     for b in boxes:
         assert {"cX", "cY", "cZ", "l", "w", "h", "r", "p", "y", "instanceId", "labelAttributes"} <= set(b)
         assert b["labelAttributes"]["isOccluded"] in {"None", "Light", "Medium", "Heavy", "Full", "Unknown"}
+
+
+def test_reader_recovers_the_rendering_camera(runs):
+    # The images are rendered with the rectified pinhole; the files hold the raw camera, its
+    # rectification and projection (as CODa's). The reader must give back the rendering camera.
+    from storage.coda import CodaSequence
+    from tasks.sim.sensors import make_rig
+
+    seq = CodaSequence(runs[0], 0, frame_stride=1)
+    for c in make_rig().cameras:
+        cam = seq.info.calibration.cameras[c.name]
+        np.testing.assert_allclose(cam.K, c.K, atol=1e-9)
+        np.testing.assert_allclose(cam.T_cam_from_lidar, c.T_cam_from_lidar, atol=1e-9)
+        assert not np.allclose(cam.raw.T_cam_from_lidar, c.T_cam_from_lidar, atol=1e-3)
+    frame = seq.frame(1)
+    assert 0.09 < frame.point_time_s.max() < 0.1  # the time channel is in nanoseconds
+    assert frame.intensity_present and frame.box_problems == ()
+
+
+def test_semantic_files_hold_coda_terrain_ids(runs):
+    from tasks.metrics.coda_labels import semantic_to_classes
+
+    root = runs[0]
+    ids = np.fromfile(root / "3d_semantic/os1/0/3d_semantic_os1_0_1.bin", np.uint8)
+    gt = GT.read_frame_gt(root, 0, 1)
+    assert set(np.unique(ids)) <= {0, 1, 2}
+    ground = (gt.point_class == C.ROAD) | (gt.point_class == C.TERRAIN)
+    assert ground.sum() > 10000
+    assert np.array_equal(semantic_to_classes(ids[ground]), gt.point_class[ground])
+    assert np.all(ids[~ground] == 0)
+
+
+def test_split_style_writes_blocks_of_frames(tmp_path, monkeypatch):
+    import flows.commands.simulate as S
+    from storage.coda import CodaSequence
+
+    assert S.split_style_frames(25) == [*range(10), *range(20, 25)]
+    monkeypatch.setattr(S, "SPLIT_BLOCK_FRAMES", 2)  # blocks of 2 keep the test small
+    S.simulate(tmp_path, sequences=1, frames=5, seed=SEED, pedestrians=0, progress=False, split_style=True,
+               image_ext=".png")
+    sweeps = sorted(p.name for p in (tmp_path / "3d_comp/os1/0").iterdir())
+    assert sweeps == [f"3d_comp_os1_0_{f}.bin" for f in (0, 1, 4)]
+    assert len((tmp_path / "timestamps/0.txt").read_text().splitlines()) == 5
+    assert len((tmp_path / "poses/dense_global/0.txt").read_text().splitlines()) == 5
+    seq = CodaSequence(tmp_path, 0)
+    assert seq.info.frame_indices == (0, 4) and "split-style" in seq.info.selection
+    assert seq.frame(1).image_paths["cam0"].suffix == ".png"
+    assert CodaSequence(tmp_path, 0, frames="metadata").info.frame_indices == (0, 4)
 
 
 def test_lidar_file_matches_ground_truth_labels(runs):
@@ -115,7 +173,7 @@ def _point_voxel_agreement(root: Path, sequence: int, frame: int) -> tuple[int, 
 @pytest.fixture(scope="module")
 def three_scenes(tmp_path_factory) -> Path:
     """Three independent scenes (sequence seeds derived from SEED) of two frames, 5 people each."""
-    from flows.simulate import simulate
+    from flows.commands.simulate import simulate
 
     root = tmp_path_factory.mktemp("sim3")
     simulate(root, sequences=3, frames=2, seed=SEED, pedestrians=5, progress=False)
@@ -213,7 +271,7 @@ def test_bad_ground_truth_field_is_rejected(tmp_path):
 def test_show_renders_a_frame(runs, tmp_path):
     from PIL import Image
 
-    from flows.show import show
+    from flows.commands.show import show
 
     out = show(runs[0] / "gt" / "0", tmp_path / "frame.png", frame=1)
     im = np.asarray(Image.open(out))

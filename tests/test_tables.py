@@ -9,6 +9,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from storage import occupancy_store as occ
+from storage import publish as pub
 from storage import schemas, tables
 
 
@@ -78,11 +79,11 @@ def test_hidden_temp_files_are_invisible(tmp_path):
     # a crashed writer's leftovers: a hidden file in the partition and a hidden staging dir
     part = tmp_path / "tables" / "frames" / "sequence=a"
     pq.write_table(tables.to_table("frames", frame_rows(5)), part / ".tmp-crashed.parquet")
-    staged = occ.stage_sequence(tmp_path, "a", "v9")
-    tables.stage_table(staged, "frames", frame_rows(4))
+    staged = pub.stage_sequence(tmp_path, "a", "v9")
+    pub.stage_table(staged, "frames", frame_rows(4))
     assert tables.read_table(tmp_path, "frames").num_rows == 2
     assert len(pd.read_parquet(tmp_path / "tables" / "frames")) == 2
-    occ.publish_sequence(staged)
+    pub.publish_sequence(staged)
     assert tables.read_table(tmp_path, "frames", "a").num_rows == 4
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tasks.track.ocsort import PedestrianTracker
+from tasks.track.ocsort import PedestrianTracker, TrackerParams
 
 
 def _box(cx: float, cy: float = 200.0, w: float = 40.0, h: float = 100.0) -> list[float]:
@@ -49,7 +49,7 @@ def test_occluded_for_ten_frames_is_refound_with_same_id():
 def test_reference_mode_reconfirms_after_a_miss():
     # keep_confirmed_ids=False: OC-SORT reference output, id hidden while the streak rebuilds
     frames = [[_box(100 + 5 * f)] if f != 5 else [] for f in range(10)]
-    ids = _run(PedestrianTracker(keep_confirmed_ids=False), frames)
+    ids = _run(PedestrianTracker(TrackerParams(keep_confirmed_ids=False)), frames)
     assert [row.tolist() for row in ids] == [[-1], [1], [1], [1], [1], [], [-1], [-1], [1], [1]]
 
 
@@ -108,14 +108,16 @@ def test_bad_input():
 
 # ---- offline refinement (tasks/track/offline.py) ----------------------------------------------
 
-from tasks.track.offline import backfill_ids, stitch_ids, track_offline  # noqa: E402
+from tasks.track.offline import OfflineParams, backfill_ids, stitch_ids, track_offline  # noqa: E402
 
 
-def _offline(frames, scores=None, **kw):
+def _offline(frames, scores=None, backfill=True, stitch_max_gap=0, stitch_max_distance=0.5, **kw):
     tracker_kw = {k: kw.pop(k) for k in list(kw) if k in ("max_age", "min_hits", "iou_threshold")}
     s = [np.full(len(b), 0.9) if scores is None else np.asarray(scores[f]) for f, b in enumerate(frames)]
     boxes = [np.asarray(b, np.float32).reshape(-1, 4) for b in frames]
-    return track_offline(boxes, s, PedestrianTracker(**tracker_kw), **kw)
+    offline = OfflineParams(backfill=backfill, stitch_max_gap=stitch_max_gap,
+                            stitch_max_distance=stitch_max_distance)
+    return track_offline(boxes, s, PedestrianTracker(TrackerParams(**tracker_kw)), offline, **kw)
 
 
 def test_backfill_gives_first_frames_and_frame_zero_their_id():
@@ -181,12 +183,12 @@ def test_stitch_ids_chains_and_never_overlaps_in_time():
             bx.append(walker(f + 2))
         ids.append(np.asarray(rows, np.int64))
         boxes.append(np.asarray(bx, np.float64).reshape(-1, 4))
-    out = stitch_ids(ids, boxes, max_gap=5, max_distance=0.5)
+    out = stitch_ids(ids, boxes, max_gap=5, max_distance=0.5, max_scale=1.5)
     walker_ids = {int(row[0]) for row in out if len(row)}
     assert walker_ids == {1}  # renumbered from 1 by first appearance, one id over all fragments
     assert out[8].tolist() == [1, 2]
     # max_gap 0: no joins, ids only renumbered (7, 3, 5, 9 -> 1, 2, 3, 4)
-    assert stitch_ids(ids, boxes, max_gap=0, max_distance=0.5)[14].tolist() == [4]
+    assert stitch_ids(ids, boxes, max_gap=0, max_distance=0.5, max_scale=1.5)[14].tolist() == [4]
 
 
 def test_offline_ids_are_deterministic():
@@ -207,23 +209,9 @@ def test_backfill_ids_keeps_online_ids():
     assert [r.tolist() for r in backfill_ids(keys, online, {0: 4})] == [[4, -1], [4, -1]]
 
 
-def test_read_product_reads_only_the_named_arrays(tmp_path):
-    """The track stage reads every frame's boxes and scores before it tracks (storage helper)."""
-    from storage.intermediate import read_product, write_product
-
-    write_product(tmp_path, "frame_0", {"boxes_xyxy": np.ones((2, 4), np.float32),
-                                         "scores": np.full(2, 0.5, np.float32),
-                                         "semantic": np.zeros((4, 5), np.uint8)})
-    got = read_product(tmp_path, "frame_0", keys=("boxes_xyxy", "scores"))
-    assert set(got) == {"boxes_xyxy", "scores"} and got["scores"].tolist() == [0.5, 0.5]
-    assert set(read_product(tmp_path, "frame_0")) == {"boxes_xyxy", "scores", "semantic"}
-    with pytest.raises(KeyError, match="no array"):
-        read_product(tmp_path, "frame_0", keys=("masks",))
-
-
 # ---- world-position check (split_tracks / stitch_ids with positions) ---------------------------
 
-from tasks.track.offline import WorldMotion, split_tracks  # noqa: E402
+from tasks.track.offline import split_tracks  # noqa: E402
 
 _DT = 0.2  # 5 Hz
 
@@ -236,7 +224,7 @@ def _refine(ids, boxes, positions, tentative=frozenset()):
     times = np.arange(len(ids)) * _DT
     split, clean, parent = split_tracks(ids, positions, times)
     provisional = {frag for frag, p in parent.items() if p in tentative}
-    return stitch_ids(split, boxes, 10, 0.5, positions=clean, times_s=times, parent=parent,
+    return stitch_ids(split, boxes, 10, 0.5, 1.5, positions=clean, times_s=times, parent=parent,
                       provisional=provisional)
 
 
@@ -293,7 +281,7 @@ def test_a_lost_person_rejoins_on_position_and_a_stranger_does_not():
     out = _refine(ids, boxes, positions)
     assert out[0].tolist() == [1] and out[12].tolist() == [1, 2] and out[19].tolist() == [1, 2]
     # on pixels alone the stranger takes A's id
-    assert stitch_ids(ids, boxes, 10, 0.5)[12].tolist() == [2, 1]
+    assert stitch_ids(ids, boxes, 10, 0.5, 1.5)[12].tolist() == [2, 1]
 
 
 def test_the_trackers_own_continuation_stands_where_no_position_judges_it():
@@ -321,7 +309,7 @@ def test_tentative_fragments_join_a_confirmed_track_or_are_dropped():
 
 
 def test_person_world_xy_is_the_median_point_in_the_world_and_needs_min_points():
-    from flows.stages.track import person_world_xy
+    from tasks.track.product import person_world_xy
 
     points = np.array([[5.0, 1.0, 0.5], [5.2, 1.1, 1.0], [5.1, 0.9, 1.5], [30.0, 9.0, 1.0]], np.float32)
     T = np.eye(4)

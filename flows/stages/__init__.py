@@ -18,7 +18,6 @@ from flows.stages.fuse import run_fuse
 from flows.stages.map import run_map
 from flows.stages.track import run_track
 
-
 STAGE_FUNCTIONS: dict[str, Callable[[StageContext], dict]] = {
     "detect": run_detect,
     "track": run_track,

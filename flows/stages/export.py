@@ -2,8 +2,8 @@
 
 The fused store is hard-linked (copied across file systems) from the fuse stage's key-named output
 into ``OUT/occupancy/<sequence>/<version>.zarr``; the three table partitions are written aside and
-published together (storage/occupancy_store.py, storage/tables.py). Dataset-level exports (Occ3D,
-nuScenes) run after all sequences (flows/pipeline.py, ``mobileocc export``).
+published together (storage/publish.py). Dataset-level exports (Occ3D, nuScenes) run after all
+sequences (flows/pipeline/run.py, ``mobileocc export``).
 """
 
 from __future__ import annotations
@@ -12,16 +12,13 @@ import os
 import shutil
 
 import numpy as np
-import torch
 
-from configs.schema import config_hash
-from flows.plan import CODE_VERSIONS
-from flows.stages.common import StageContext, is_night
-from flows.stages.fit import body_model
-from storage.intermediate import read_product
-from storage.manifest import FileHasher, sequence_fingerprint
-from storage.occupancy_store import sequence_writer
-from storage.tables import stage_table
+from flows.stages.common import StageContext, body_model, is_night
+from storage.export.common import source_relative
+from storage.products import Bodies, FusedFrames, Tracks
+from storage.publish import sequence_writer, stage_table
+from tasks.body.boxes import upright_box
+from tasks.body.posing import posed_vertices
 from tasks.fit.init_oracle import BodyParams
 from tasks.fit.reframe import reframe_params
 
@@ -35,86 +32,70 @@ def _link_tree(src, dst) -> None:
     shutil.copytree(src, dst, copy_function=link, dirs_exist_ok=True)
 
 
-def _box_from_vertices(vertices_base: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """Upright box around a body (base frame): centre (3,), size (l, w, h) with l along the
-    footprint's major axis, yaw of that axis."""
-    xy = vertices_base[:, :2] - vertices_base[:, :2].mean(0)
-    _, vecs = np.linalg.eigh(xy.T @ xy)
-    major = vecs[:, 1]
-    yaw = float(np.arctan2(major[1], major[0]))
-    R = np.array([[np.cos(yaw), np.sin(yaw)], [-np.sin(yaw), np.cos(yaw)]])
-    local = vertices_base[:, :2] @ R.T
-    lo, hi = local.min(0), local.max(0)
-    z0, z1 = vertices_base[:, 2].min(), vertices_base[:, 2].max()
-    centre_xy = R.T @ ((lo + hi) / 2)
-    return (np.array([centre_xy[0], centre_xy[1], (z0 + z1) / 2]),
-            np.array([hi[0] - lo[0], hi[1] - lo[1], z1 - z0]), yaw)
-
-
 def instance_rows(ctx: StageContext, frame_pos: dict[int, int], T_base_from_lidar: np.ndarray) -> list[dict]:
     """One row per tracked person and frame: 2D box and keypoints from track; body parameters,
     3D box and velocity (base frame) from the fit where that person was fitted."""
-    tracks = read_product(ctx.upstream["track"], "tracks")
-    fit_path = ctx.upstream.get("fit")
-    bodies = (read_product(fit_path, "bodies")
-              if fit_path is not None and (fit_path / "bodies.npz").exists() else None)
-    fitted: dict[tuple[int, int], int] = {}
-    if bodies is not None and len(bodies["frame"]):
-        fitted = {(int(f), int(d)): r for r, (f, d) in enumerate(zip(bodies["frame"], bodies["det_index"]))}
-        model = body_model(ctx.config)
-        lidar = BodyParams(bodies["betas"], bodies["global_orient"], bodies["body_pose"], bodies["transl"])
-        base = reframe_params(model, lidar, T_base_from_lidar)
-        with torch.no_grad():
-            verts = model(*(torch.as_tensor(a) for a in (base.betas, base.global_orient,
-                                                          base.body_pose, base.transl))).vertices.numpy()
+    tracks = Tracks.read(ctx.upstream["track"])
+    bodies = Bodies.read(ctx.upstream["fit"]) if "fit" in ctx.upstream else Bodies.empty()
+    fitted = {(int(f), int(d)): r for r, (f, d) in enumerate(zip(bodies.frame, bodies.det_index))}
+    base = reframe_params(body_model(ctx.inputs.body, ctx.out_root), BodyParams(
+        bodies.betas, bodies.global_orient, bodies.body_pose, bodies.transl), T_base_from_lidar)
+    verts = posed_vertices(body_model(ctx.inputs.body, ctx.out_root), base.betas, base.global_orient,
+                           base.body_pose, base.transl)
     rows = []
-    for r in range(len(tracks["track_id"])):
-        row = {"track_id": int(tracks["track_id"][r]), "frame": frame_pos[int(tracks["frame"][r])],
-               "box2d_xyxy": tracks["boxes_xyxy"][r].tolist(),
-               "keypoints": tracks["keypoints"][r].reshape(-1).tolist()}
-        b = fitted.get((int(tracks["frame"][r]), int(tracks["det_index"][r])))
+    for r in range(len(tracks.track_id)):
+        row = {"track_id": int(tracks.track_id[r]), "frame": frame_pos[int(tracks.frame[r])],
+               "box2d_xyxy": tracks.boxes_xyxy[r].tolist(), "keypoints": tracks.keypoints[r].reshape(-1).tolist()}
+        b = fitted.get((int(tracks.frame[r]), int(tracks.det_index[r])))
         if b is not None:
-            centre, size, yaw = _box_from_vertices(verts[b].astype(np.float64))
-            row.update({"box3d_center": centre.tolist(), "box3d_size": size.tolist(), "box3d_yaw": yaw,
+            vel = np.asarray(bodies.velocity_base[b], np.float64)
+            known = bool(np.all(np.isfinite(vel)))  # unknown (e.g. across a track gap): null, never NaN
+            box = upright_box(verts[b], base.global_orient[b], vel if known else None)
+            row.update({"box3d_center": box.center.tolist(), "box3d_size": box.size.tolist(), "box3d_yaw": box.yaw,
                         "betas": base.betas[b].tolist(), "global_orient": base.global_orient[b].tolist(),
                         "body_pose": base.body_pose[b].tolist(), "transl": base.transl[b].tolist(),
-                        "vx": float(bodies["velocity_base"][b][0]), "vy": float(bodies["velocity_base"][b][1])})
+                        "chamfer_m": float(bodies.chamfer_m[b]), "reproj_px": float(bodies.reproj_px[b]),
+                        "vx": float(vel[0]) if known else None, "vy": float(vel[1]) if known else None})
         rows.append(row)
     return rows
 
 
+def frame_rows(ctx: StageContext, seq, fused: FusedFrames) -> list[dict]:
+    """One row per frame; source paths relative to the dataset root."""
+    night, cams = is_night(seq), seq.info.calibration.cameras
+
+    def rel(path):
+        return source_relative(path, seq.root)
+
+    return [{"frame": k, "raw_frame": raw, "stamp_ns": int(fused.stamp_ns[k]),
+             "T_world_from_lidar": seq.info.poses[k].reshape(-1).tolist(),
+             "T_world_from_base": fused.T_world_from_base[k].reshape(-1).tolist(),
+             "lidar_path": rel(seq.path(seq.lidar_source, "os1", raw, ".bin")),
+             "cam0_path": rel(seq.image_path("cam0", raw)) if "cam0" in cams else "",
+             "cam1_path": rel(seq.image_path("cam1", raw)) if "cam1" in cams else None,
+             "class_counts": fused.class_counts[k].tolist(), "is_night": night}
+            for k, raw in enumerate(fused.frame.tolist())]
+
+
 def run_export(ctx: StageContext) -> dict:
     seq = ctx.open()
-    info = seq.info
-    calib = info.calibration
-    cam = calib.cameras[ctx.config.dataset.camera]
-    fused = read_product(ctx.upstream["fuse"], "frames")
-    night = is_night(seq)
-    version = ctx.key
-    frames = []
-    for k, raw in enumerate(fused["frame"].tolist()):
-        frame_paths = {c: seq.image_path(c, raw) for c in calib.cameras}
-        frames.append({
-            "frame": k, "raw_frame": raw, "stamp_ns": int(fused["stamp_ns"][k]),
-            "T_world_from_lidar": info.poses[k].reshape(-1).tolist(),
-            "T_world_from_base": fused["T_world_from_base"][k].reshape(-1).tolist(),
-            "lidar_path": str(seq.path(seq.lidar_source, "os1", raw, ".bin")),
-            "cam0_path": str(frame_paths.get("cam0", "")),
-            "cam1_path": str(frame_paths["cam1"]) if "cam1" in frame_paths else None,
-            "class_counts": fused["class_counts"][k].tolist(), "is_night": night})
+    calib = seq.info.calibration
+    cam = calib.cameras[ctx.inputs.source.camera]
+    fused = FusedFrames.read(ctx.upstream["fuse"])
+    frames = frame_rows(ctx, seq, fused)
     sequences = [{
-        "fingerprint": sequence_fingerprint(info.root, info.files, FileHasher(None)),
-        "config_hash": config_hash(ctx.config, content_only=True), "code_version": CODE_VERSIONS["export"],
-        "status": "ok", "error": None, "num_frames": len(frames), "occupancy_version": version,
-        "K": cam.K.reshape(-1).tolist(), "T_cam0_from_lidar": cam.T_cam_from_lidar.reshape(-1).tolist(),
+        "fingerprint": ctx.fingerprint, "config_hash": ctx.inputs.content_hash,
+        "code_version": ctx.inputs.code_version, "status": "ok", "error": None, "num_frames": len(frames),
+        "occupancy_version": ctx.key, "K": cam.K.reshape(-1).tolist(),
+        "T_cam0_from_lidar": cam.T_cam_from_lidar.reshape(-1).tolist(),
         "T_base_from_lidar": calib.T_base_from_lidar.reshape(-1).tolist(),
         "image_width": cam.width, "image_height": cam.height}]
-    instances = instance_rows(ctx, {int(raw): k for k, raw in enumerate(fused["frame"].tolist())},
+    instances = instance_rows(ctx, {int(raw): k for k, raw in enumerate(fused.frame.tolist())},
                               calib.T_base_from_lidar)
-    with sequence_writer(ctx.out_root, ctx.sequence, version) as staged:
+    with sequence_writer(ctx.out_root, ctx.sequence, ctx.key) as staged:
         _link_tree(ctx.upstream["fuse"] / "occupancy.zarr", staged.store_path)
         stage_table(staged, "frames", frames)
         stage_table(staged, "sequences", sequences)
         stage_table(staged, "instances", instances)
     return {"implemented": True, "frames": len(frames), "instances": len(instances),
-            "occupancy_version": version}
+            "occupancy_version": ctx.key}

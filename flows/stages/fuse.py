@@ -1,12 +1,11 @@
 """fuse: per frame, the robot-local grid: pedestrians over static, free / unknown, masks, velocity.
 
 Frames fan out in chunks aligned to the Zarr store's write units (one writer per chunk). Output:
-``occupancy.zarr`` (storage/occupancy_store.py, documented in storage/SCHEMA.md) and product
-``frames.npz``: frame (F,) int64 raw frame numbers, stamp_ns (F,), class_counts (F, 10) int64,
-T_world_from_base (F, 4, 4).
-
-mask_lidar is the union of this frame's LiDAR rays (traversed or hit voxels) and the voxels the
-sequence's occupancy map has observed (known free or occupied), so "unknown" means never observed.
+``occupancy.zarr`` (storage/occupancy_store.py, documented in storage/SCHEMA.md) and
+:class:`storage.products.FusedFrames`. mask_lidar is the union of this frame's LiDAR rays
+(traversed or hit voxels) and the voxels the sequence's occupancy map has observed (known free or
+occupied), so "unknown" means never observed.
+mask_camera is cam0's visibility restricted to mask_lidar, as in Occ3D (storage/SCHEMA.md, "Masks").
 """
 
 from __future__ import annotations
@@ -14,147 +13,90 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from configs.schema import Config, config_hash
-from flows.parallel import fan_out
-from flows.plan import CODE_VERSIONS, open_sequence
-from flows.stages.common import StageContext
-from flows.stages.fit import body_model
-from flows.stages.map import occupancy_params
+from flows.pipeline.inputs import FuseInputs, SequenceRef
+from flows.pipeline.parallel import fan_out
+from flows.stages.common import StageContext, body_model
 from storage.gt import read_frame_gt, read_sequence_gt
-from storage.intermediate import read_product, write_product
 from storage.occupancy_store import create_store, write_frames
-from tasks.occupancy.freespace import OccupancyMap
-from tasks.occupancy.fuse import CameraView, PedestrianMesh, fuse_frame
-from tasks.occupancy.grid import GridSpec
-from tasks.conventions import UNLABELED, transform_points
-from tasks.occupancy.static_map import StaticMap, lookup_labels
+from storage.products import Bodies, FusedFrames, OccupancyMapProduct, StaticMapProduct
+from tasks.body.posing import posed_vertices
+from tasks.conventions import FREE, transform_points
+from tasks.occupancy.frame import local_grids
+from tasks.occupancy.fuse import CameraView, PedestrianMesh
+from tasks.occupancy.mapping import load_occupancy_map
+from tasks.occupancy.static_map import StaticMap
 
 
-def grid_spec(config: Config) -> GridSpec:
-    g = config.fuse.grid
-    return GridSpec(tuple(g.range_min), tuple(g.range_max), g.voxel_size_m)
+class _People:
+    """The pedestrians of a frame as meshes in the base frame: fitted bodies, or the simulator's."""
+
+    def __init__(self, inputs: FuseInputs, seq, out_root: Path, fit_dir: Path | None):
+        self.inputs, self.seq = inputs, seq
+        self.T = seq.info.calibration.T_base_from_lidar
+        if inputs.body_source == "ground-truth":
+            self.faces = read_sequence_gt(seq.root, int(seq.sequence)).person_faces
+        else:
+            self.model = body_model(inputs.body, out_root)
+            self.faces = np.asarray(self.model.faces)
+            self.bodies = Bodies.read(fit_dir) if fit_dir is not None else Bodies.empty()
+
+    def __call__(self, frame: int) -> list[PedestrianMesh]:
+        if self.inputs.body_source == "ground-truth":
+            gt = read_frame_gt(self.seq.root, int(self.seq.sequence), frame)
+            returns = np.array([(gt.point_instance == t).sum() for t in gt.track_id], np.int64)
+            n = self.inputs.gt_min_points
+            observed = (returns >= n) & (gt.visible_fraction > 0) if n else returns >= 0
+            ids, verts, vel = gt.track_id[observed], gt.vertices[observed], gt.velocity_base[observed]
+        else:
+            b = self.bodies.take(np.flatnonzero(self.bodies.frame == frame))
+            ids, vel = b.track_id, b.velocity_base
+            verts = posed_vertices(self.model, b.betas, b.global_orient, b.body_pose, b.transl)
+        return [PedestrianMesh(int(t), transform_points(self.T, v), self.faces, w)
+                for t, v, w in zip(ids, verts, vel)]
 
 
-def _gt_people(root: Path, sequence: str, frame: int, faces: np.ndarray,
-               T_base_from_lidar: np.ndarray, min_points: int) -> list[PedestrianMesh]:
-    gt = read_frame_gt(root, int(sequence), frame)
-    returns = np.array([(gt.point_instance == t).sum() for t in gt.track_id], np.int64)
-    observed = (returns >= min_points) & (gt.visible_fraction > 0) if min_points else returns >= 0
-    return [PedestrianMesh(int(tid), transform_points(T_base_from_lidar, gt.vertices[k]), faces,
-                           gt.velocity_base[k]) for k, tid in enumerate(gt.track_id) if observed[k]]
-
-
-def _fit_people(model, bodies: dict, frame: int, T_base_from_lidar: np.ndarray) -> list[PedestrianMesh]:
-    rows = np.flatnonzero(bodies["frame"] == frame)
-    if rows.size == 0:
-        return []
-    t = {k: torch.as_tensor(bodies[k][rows]) for k in ("betas", "global_orient", "body_pose", "transl")}
-    with torch.no_grad():
-        vertices = model(t["betas"], t["global_orient"], t["body_pose"], t["transl"]).vertices.numpy()
-    faces = np.asarray(model.faces)
-    return [PedestrianMesh(int(bodies["track_id"][r]), transform_points(T_base_from_lidar, vertices[k]), faces,
-                           bodies["velocity_base"][r]) for k, r in enumerate(rows)]
-
-
-def static_in_grid(smap: StaticMap, spec: GridSpec, T_world_from_base: np.ndarray,
-                   reach_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """The static map as labelled points (world frame) that land one per cell of the local grid.
-
-    A map as coarse as the grid or coarser is resampled by the grid's cell centres (every cell
-    takes the label of the map voxel under its centre: no holes where the grids are offset); a
-    finer map is pushed as points filling each map voxel.
-    """
-    if smap.voxel_size_m < spec.voxel_size_m - 1e-9:
-        return smap.crop(T_world_from_base[:3, 3], reach_m).sample_points(spec.voxel_size_m)
-    pts, labels = [], []
-    axes = [spec.range_min[a] + (np.arange(n) + 0.5) * spec.voxel_size_m for a, n in enumerate(spec.shape)]
-    gy, gz = np.meshgrid(axes[1], axes[2], indexing="ij")
-    for x in axes[0]:  # one x slab of cell centres at a time bounds memory at fine resolutions
-        slab = np.stack([np.full(gy.size, x), gy.ravel(), gz.ravel()], axis=1)
-        world = transform_points(T_world_from_base, slab).astype(np.float32)
-        lab = lookup_labels(smap, world)
-        hit = lab != UNLABELED
-        pts.append(world[hit])
-        labels.append(lab[hit])
-    return np.concatenate(pts), np.concatenate(labels)
-
-
-def fuse_chunk(config: Config, sequence: str, positions: list[int], store: Path,
-               map_dir: Path, fit_dir: Path | None) -> list[dict]:
-    seq = open_sequence(config, sequence)
+def fuse_chunk(ref: SequenceRef, inputs: FuseInputs, out_root: Path, positions: list[int],
+               store: Path, map_dir: Path, fit_dir: Path | None) -> list[dict]:
+    """Fuse some frames (one write unit of the store) and write them."""
+    seq = inputs.source.open(ref)
     calib = seq.info.calibration
-    cam = calib.cameras[config.dataset.camera]
-    T_base_from_lidar = calib.T_base_from_lidar
-    spec = grid_spec(config)
-    static = read_product(map_dir, "static_map")
-    smap = StaticMap(float(static["voxel_size_m"]), static["keys"], static["labels"], static["counts"], 0)
-    occ = read_product(map_dir, "occupancy")
-    occupancy = OccupancyMap.from_arrays(float(occ["voxel_size_m"]), occ["keys"], occ["logodds"],
-                                         **occupancy_params(config))
-    camera = CameraView(cam.K, cam.width, cam.height, T_base_from_lidar @ np.linalg.inv(cam.T_cam_from_lidar))
-    if config.fuse.body_source == "ground-truth":
-        faces = read_sequence_gt(seq.root, int(sequence)).person_faces
-    else:
-        bodies = read_product(fit_dir, "bodies") if fit_dir is not None else None
-        model = body_model(config)
-    reach = float(np.linalg.norm(np.abs(np.array([spec.range_min, spec.range_max])).max(axis=0)[:2])) + 1.0
-    stacks: dict[str, list] = {k: [] for k in ("semantics", "instances", "mask_lidar", "mask_camera", "velocity")}
-    rows = []
+    cam, T_base_from_lidar = calib.cameras[inputs.source.camera], calib.T_base_from_lidar
+    s, o = StaticMapProduct.read(map_dir), OccupancyMapProduct.read(map_dir)
+    smap = StaticMap(float(s.voxel_size_m), s.keys, s.labels, s.counts, 0)
+    occupancy, people = load_occupancy_map(inputs.freespace, o.keys, o.logodds), _People(inputs, seq, out_root, fit_dir)
+    camera = (CameraView(cam.K, cam.width, cam.height, T_base_from_lidar @ np.linalg.inv(cam.T_cam_from_lidar))
+              if inputs.fusion.camera_mask else None)
+    stacks, rows = {}, []
     for i in positions:
         frame = seq.frame(i)
         T_world_from_base = frame.T_world_from_lidar @ np.linalg.inv(T_base_from_lidar)
-        static_pts, static_labels = static_in_grid(smap, spec, T_world_from_base, reach)
-        if config.fuse.body_source == "ground-truth":
-            people = _gt_people(seq.root, sequence, frame.index, faces, T_base_from_lidar,
-                                config.fuse.gt_min_points)
-        else:
-            people = (_fit_people(model, bodies, frame.index, T_base_from_lidar)
-                      if bodies is not None else [])
-        grids = fuse_frame(spec, T_world_from_base, static_points_world=static_pts,
-                           static_labels=static_labels, pedestrians=people, occupancy=occupancy,
-                           lidar_points_base=transform_points(T_base_from_lidar, frame.points_lidar),
-                           lidar_origin_base=T_base_from_lidar[:3, 3],
-                           camera=camera if config.fuse.camera_mask else None,
-                           pixel_stride=config.fuse.camera_pixel_stride,
-                           camera_method=config.fuse.camera_method)
-        mask_lidar = (grids.mask_lidar.astype(bool) | (grids.occupancy_state >= 0)).astype(np.uint8)
-        for name, value in (("semantics", grids.semantics), ("instances", grids.instances),
-                            ("mask_lidar", mask_lidar), ("mask_camera", grids.mask_camera),
-                            ("velocity", grids.velocity.astype(np.float16))):
-            stacks[name].append(value)
-        rows.append({"frame": frame.index, "stamp_ns": frame.stamp_ns,
-                     "counts": np.bincount(grids.semantics.reshape(-1), minlength=10).tolist(),
-                     "T_world_from_base": T_world_from_base.tolist(), "people": len(people)})
+        persons = people(frame.index)
+        grids, counts = local_grids(inputs.grid, T_world_from_base, smap, occupancy, persons, frame.points_lidar,
+                                    T_base_from_lidar, camera, inputs.fusion.camera_pixel_stride,
+                                    inputs.fusion.camera_method)
+        for name, value in grids.items():
+            stacks.setdefault(name, []).append(value)
+        rows.append({"frame": frame.index, "stamp_ns": frame.stamp_ns, "people": len(persons), "counts": counts,
+                     "T_world_from_base": T_world_from_base})
     write_frames(store, positions[0], {k: np.stack(v) for k, v in stacks.items()})
     return rows
 
 
 def run_fuse(ctx: StageContext) -> dict:
-    cfg = ctx.config
-    n = len(ctx.open())
-    spec = grid_spec(cfg)
-    fit_dir = ctx.upstream.get("fit")
-    fit_ready = fit_dir is not None and (fit_dir / "bodies.npz").exists()
+    inp, spec = ctx.inputs, ctx.inputs.grid
+    fit_dir = ctx.upstream.get("fit") if inp.body_source == "fit" else None
     store = ctx.out_dir / "occupancy.zarr"
-    layout = create_store(store, n, spec.shape, cfg.output.frames_per_chunk, {
+    layout = create_store(store, len(ctx.open()), spec.shape, inp.frames_per_chunk, {
         "range_min": list(spec.range_min), "range_max": list(spec.range_max),
-        "voxel_size_m": spec.voxel_size_m, "config_hash": config_hash(cfg, content_only=True),
-        "code_version": CODE_VERSIONS["fuse"], "sequence": ctx.sequence,
-        "body_source": cfg.fuse.body_source})
-    units = [list(range(a, b)) for a, b in layout.write_units()]
-    parts = fan_out(fuse_chunk, [(cfg, ctx.sequence, u, store, ctx.upstream["map"],
-                                  fit_dir if fit_ready else None) for u in units])
+        "voxel_size_m": spec.voxel_size_m, "stage_key": ctx.key, "sequence": ctx.sequence,
+        "body_source": inp.body_source})
+    parts = fan_out(fuse_chunk, [(ctx.ref, inp, ctx.out_root, list(range(a, b)), store,
+                                  ctx.upstream["map"], fit_dir) for a, b in layout.write_units()])
     rows = [r for part in parts for r in part]
-    write_product(ctx.out_dir, "frames", {
-        "frame": np.array([r["frame"] for r in rows], np.int64),
-        "stamp_ns": np.array([r["stamp_ns"] for r in rows], np.int64),
-        "class_counts": np.array([r["counts"] for r in rows], np.int64),
-        "T_world_from_base": np.array([r["T_world_from_base"] for r in rows], np.float64)})
-    summary = {"implemented": True, "frames": len(rows), "grid_shape": list(spec.shape),
-               "voxel_size_m": spec.voxel_size_m, "body_source": cfg.fuse.body_source,
-               "pedestrian_meshes": sum(r["people"] for r in rows)}
-    if cfg.fuse.body_source == "fit" and not fit_ready:
-        summary["note"] = "no pedestrian bodies: the fit stage produced none"
-    return summary
+    FusedFrames(np.array([r["frame"] for r in rows], np.int64), np.array([r["stamp_ns"] for r in rows], np.int64),
+                np.array([r["counts"] for r in rows], np.int64).reshape(-1, FREE + 1),
+                np.array([r["T_world_from_base"] for r in rows], np.float64).reshape(-1, 4, 4)).write(ctx.out_dir)
+    return {"implemented": True, "frames": len(rows), "grid_shape": list(spec.shape),
+            "voxel_size_m": spec.voxel_size_m, "body_source": inp.body_source,
+            "pedestrian_meshes": sum(r["people"] for r in rows)}

@@ -104,15 +104,30 @@ def sequence_info(ds: Dataset, sequence: str) -> SequenceExportInfo:
     )
 
 
+def source_relative(path: str | os.PathLike, source_root: str | os.PathLike) -> str:
+    """``path`` (a source file under ``source_root``) as a POSIX path relative to ``source_root``:
+    what the frames table stores, so the dataset reads the same wherever the raw data is mounted."""
+    p, root = Path(path), Path(source_root)
+    try:
+        return p.relative_to(root).as_posix()
+    except ValueError:
+        try:
+            return p.resolve().relative_to(root.resolve()).as_posix()
+        except ValueError:
+            raise ValueError(f"source file {p} is not under the dataset root {root}") from None
+
+
 def resolve(path: str | None, source_root: Path | None, what: str, sequence: str, frame: int) -> Path:
-    """A source path from the frames table, made absolute against ``source_root``."""
+    """A source path from the frames table (relative to the raw data root), made absolute against
+    ``source_root``; an absolute path (tables written by other tools) is taken as it is."""
     if not path:
         raise ValueError(f"sequence {sequence!r} frame {frame}: no {what} path in the frames table")
     p = Path(path)
     if not p.is_absolute() and source_root is not None:
         p = Path(source_root) / p
     if not p.is_file():
-        raise FileNotFoundError(f"sequence {sequence!r} frame {frame}: {what} file {p} does not exist")
+        raise FileNotFoundError(f"sequence {sequence!r} frame {frame}: {what} file {p} does not exist "
+                                f"(frames table path {path!r}, source root {source_root})")
     return p
 
 
@@ -127,3 +142,79 @@ def link_or_copy(src: Path, dst: Path) -> None:
         os.link(src, dst)
     except OSError:
         shutil.copyfile(src, dst)
+
+
+def recorded_source_root(dataset_root: str | os.PathLike) -> Path | None:
+    """The raw data root the dataset was built from (``dataset.root`` recorded in OUT/manifest.json;
+    a relative root is relative to the directory the pipeline ran in), or None."""
+    from storage.manifest import Manifest
+
+    try:
+        meta = Manifest.load(Path(dataset_root)).meta
+    except (OSError, ValueError):
+        return None
+    root = ((meta.get("config") or {}).get("dataset") or {}).get("root")
+    return Path(root) if root else None
+
+
+#: FlashOcc / BEVDet's nuScenes detection classes (their configs' ``class_names``): the label
+#: index of a box in the training infos' ``ann_infos`` is its position here
+DETECTION_CLASSES = ("car", "truck", "construction_vehicle", "bus", "trailer", "barrier", "motorcycle",
+                     "bicycle", "pedestrian", "traffic_cone")
+
+
+def grid_metadata(ds: Dataset, sequences: list[str]) -> dict:
+    """What a trainer needs to know about the label grids, from the stores' attributes: frame,
+    range, voxel size, shape, class names, free id; and the matching FlashOcc settings.
+
+    All ``sequences`` must share one grid and class table (ValueError naming the two that differ).
+    """
+    if not sequences:
+        raise ValueError(f"dataset {ds.root}: no sequences to export")
+    first = None
+    for seq in sequences:
+        a = ds.attrs(seq)
+        shape = [int(n) for n in ds.arrays(seq, lazy="zarr")["semantics"].shape[1:4]]
+        grid = {"range_min": [float(v) for v in a["range_min"]], "range_max": [float(v) for v in a["range_max"]],
+                "voxel_size_m": float(a["voxel_size_m"]), "shape": shape,
+                "class_names": list(a["class_names"]), "free_class": int(a["free_class"])}
+        if first is None:
+            first = (seq, grid)
+        elif grid != first[1]:
+            raise ValueError(f"dataset {ds.root}: sequences {first[0]!r} and {seq!r} have different grids or "
+                             f"class tables ({first[1]} vs {grid}); export them separately")
+    g = first[1]
+    lo, hi, vs = g["range_min"], g["range_max"], g["voxel_size_m"]
+    return {
+        "grid": {"frame": "base (the robot base on the ground, = the nuScenes ego frame)",
+                 "axis_order": ["x", "y", "z"], "range_min": lo, "range_max": hi, "voxel_size_m": vs,
+                 "shape": g["shape"], "index": "floor((p - range_min) / voxel_size_m)"},
+        "class_names": g["class_names"],
+        "num_classes": len(g["class_names"]),
+        "free_class": g["free_class"],
+        "unknown": "not a class: voxels with mask_camera == 0 (camera view) or mask_lidar == 0 (LiDAR) "
+                   "are unknown; semantics holds the free id there",
+        "flashocc": {
+            "grid_config": {"x": [lo[0], hi[0], vs], "y": [lo[1], hi[1], vs], "z": [lo[2], hi[2], hi[2] - lo[2]]},
+            "Dz": g["shape"][2], "num_classes": len(g["class_names"]), "free_index": g["free_class"],
+            "cams": [CAM_CHANNEL], "detection_classes": list(DETECTION_CLASSES),
+        },
+    }
+
+
+def write_json(path: Path, obj) -> None:
+    """Write JSON (sorted keys, NaN refused) through a hidden file and a rename."""
+    import json
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".tmp-{path.name}")
+    tmp.write_text(json.dumps(obj, indent=1, sort_keys=True, allow_nan=False))
+    os.replace(tmp, path)
+
+
+def write_bytes(path: Path, data: bytes) -> None:
+    """Write bytes through a hidden file and a rename."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".tmp-{path.name}")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)

@@ -1,4 +1,5 @@
-"""nuScenes export: ``<out>/<version>/<table>.json`` (all 13 tables), sweeps, images, a map mask.
+"""nuScenes export: ``<out>/<version>/<table>.json`` (all 13 tables), sweeps, images, a map mask,
+training infos for FlashOcc / BEVDet and ``nuscenes_metadata.json``.
 
 - One nuScenes scene and log per sequence, one sample per frame (every frame is a key frame).
 - ``sample_data``: CAM_FRONT (the cam0 image, hard-linked or copied under ``samples/CAM_FRONT/``)
@@ -6,8 +7,14 @@
   no-return points dropped; ring = beam row of the organised scan).
 - ``calibrated_sensor`` relative to the ego (= our ``base`` frame); ``ego_pose`` = T_world_from_base.
 - ``sample_annotation``: pedestrians of the instances table with a 3D box; translation and rotation
-  (w, x, y, z) in the world frame, size (w, l, h); an extra ``velocity`` field [vx, vy, 0] in m/s,
-  world frame (the devkit ignores extra fields); attribute pedestrian.moving / .standing.
+  (w, x, y, z) in the world frame, size (w, l, h) with l along the heading; an extra ``velocity``
+  field [vx, vy, 0] in m/s, world frame, null where unknown (the devkit ignores extra fields);
+  attribute pedestrian.moving / .standing (standing where the velocity is unknown);
+  ``visibility_token`` from the visible fraction of the person in cam0
+  (:mod:`tasks.occupancy.instance_visibility`) in nuScenes' bins.
+- ``<infos_prefix>_infos_{train,val}.pkl``: one record per sample in the layout mmdet3d's nuScenes
+  converter + BEVDet's ``add_ann_adj_info`` write, which FlashOcc / BEVDet datasets read, split by
+  ``val_sequences`` (storage/SCHEMA.md lists every field). Plain pickles (storage/plain_pickle.py).
 - Timestamps in integer microseconds. Tokens are sha1-derived (storage.export.common.token):
   identical across runs.
 """
@@ -25,19 +32,27 @@ from PIL import Image
 from storage.dataset import open_dataset
 from storage.export.common import (
     CAM_CHANNEL,
+    DETECTION_CLASSES,
     LIDAR_CHANNEL,
+    grid_metadata,
     link_or_copy,
     mat4,
     pose_record,
     quat_wxyz_from_matrix,
+    recorded_source_root,
     resolve,
     sample_file_name,
     sample_token,
     scene_name,
     sequence_info,
     token,
+    write_bytes,
+    write_json,
 )
-from tasks.conventions import CLASS_NAMES, PEDESTRIAN
+from storage.occupancy_store import open_layout, read_frames
+from storage.plain_pickle import dumps_plain
+from tasks.conventions import CLASS_NAMES, FREE, PEDESTRIAN, ROAD, TERRAIN
+from tasks.occupancy.instance_visibility import box_lattice, visible_fractions
 
 TABLES = (
     "category", "attribute", "visibility", "instance", "sensor", "calibrated_sensor", "ego_pose",
@@ -56,6 +71,25 @@ CATEGORY_NAMES = (
     "static.vegetation",
 )
 VERSIONS = ("v1.0-trainval", "v1.0-mini", "v1.0-test")
+#: nuScenes visibility levels: (token, level, lower bound of the visible fraction)
+VISIBILITY_LEVELS = (("1", "v0-40", 0.0), ("2", "v40-60", 0.4), ("3", "v60-80", 0.6), ("4", "v80-100", 0.8))
+#: where FlashOcc's configs keep the nuScenes data (``data_root``), relative to its checkout
+INFOS_DATA_ROOT = "./data/nuscenes"
+INFOS_PREFIX = "mobileocc"
+#: classes that never occlude a person in the visible fraction (flat ground under them)
+FLAT_GROUND = (ROAD, TERRAIN)
+#: grid spec, class names, free id, splits, infos files (beside the Occ3D export's own, same folder)
+METADATA_FILE = "nuscenes_metadata.json"
+
+
+def visibility_token(fraction: float) -> str:
+    """The nuScenes visibility token of a visible fraction in [0, 1] (bins 0-40, 40-60, 60-80,
+    80-100 %; a bound belongs to the bin above it)."""
+    tok = VISIBILITY_LEVELS[0][0]
+    for t, _, lower in VISIBILITY_LEVELS:
+        if fraction >= lower:
+            tok = t
+    return tok
 
 
 def _rot_z(yaw: float) -> np.ndarray:
@@ -90,12 +124,13 @@ def _static_tables(log_tokens: list[str], map_token: str) -> dict[str, list]:
         {"token": token("attribute", name), "name": name, "description": desc}
         for name, desc in (
             ("pedestrian.moving", "speed above the moving threshold"),
-            ("pedestrian.standing", "speed at or below the moving threshold"),
+            ("pedestrian.standing", "speed at or below the moving threshold, or unknown"),
         )
     ]
     visibility = [
-        {"token": str(i + 1), "level": level, "description": f"visibility of the instance is {level}"}
-        for i, level in enumerate(("v0-40", "v40-60", "v60-80", "v80-100"))
+        {"token": tok, "level": level,
+         "description": f"visibility of the instance is {level} % (visible fraction of its cam0 silhouette)"}
+        for tok, level, _ in VISIBILITY_LEVELS
     ]
     sensor = [
         {"token": token("sensor", CAM_CHANNEL), "channel": CAM_CHANNEL, "modality": "camera"},
@@ -103,6 +138,37 @@ def _static_tables(log_tokens: list[str], map_token: str) -> dict[str, list]:
     ]
     maps = [{"token": map_token, "category": "semantic_prior", "filename": f"maps/{map_token}.png", "log_tokens": log_tokens}]
     return {"category": category, "attribute": attribute, "visibility": visibility, "sensor": sensor, "map": maps}
+
+
+def visible_fractions_of_boxes(ds, seq: str, info, rows: list[dict]) -> dict[tuple[int, int], float]:
+    """(frame, track_id) -> visible fraction in cam0 of each instances-table row with a box
+    (``rows``), from the published grids of ``seq`` (``info``: its :func:`sequence_info`); a person
+    with no voxel in the grid is drawn as the voxel centres of its box."""
+    store = ds.store_path(seq)
+    attrs = ds.attrs(seq)
+    vs = float(attrs["voxel_size_m"])
+    by_frame: dict[int, list[dict]] = {}
+    for r in rows:
+        by_frame.setdefault(int(r["frame"]), []).append(r)
+    out: dict[tuple[int, int], float] = {}
+    for start, stop in open_layout(store).write_units():
+        wanted = [f for f in range(start, stop) if f in by_frame]
+        if not wanted:
+            continue
+        grids = read_frames(store, slice(start, stop), ("semantics", "instances"))
+        for f in wanted:
+            sem, inst = grids["semantics"][f - start], grids["instances"][f - start]
+            ids = [int(r["track_id"]) for r in by_frame[f]]
+            present = set(np.unique(inst).tolist())
+            outside = {int(r["track_id"]): box_lattice(r["box3d_center"], r["box3d_size"], float(r["box3d_yaw"] or 0.0), vs)
+                       for r in by_frame[f] if int(r["track_id"]) not in present}
+            # flat ground (road, terrain) lies under people: its voxels stand for a surface at z ~ 0
+            # and would hide their feet; it does not occlude them
+            occluders = ~np.isin(sem, (FREE, *FLAT_GROUND))
+            frac = visible_fractions(attrs["range_min"], vs, occluders, inst, ids, info.K, info.width, info.height,
+                                     info.T_base_from_cam0, outside=outside)
+            out.update({(f, i): float(v) for i, v in zip(ids, frac)})
+    return out
 
 
 def export_nuscenes(
@@ -114,26 +180,41 @@ def export_nuscenes(
     sequences: Iterable[str] | None = None,
     min_range_m: float = 0.1,
     moving_speed_mps: float = 0.2,
+    val_sequences: Iterable[str] = (),
+    infos_data_root: str = INFOS_DATA_ROOT,
 ) -> Path:
     """Export the published dataset at ``dataset_root`` as a nuScenes ``version`` under ``out_dir``.
 
-    source_root: base of relative source paths in the frames table (default ``dataset_root``).
+    source_root: the raw data root the frames table's paths are relative to (default: the one
+    recorded in the dataset's manifest, else ``dataset_root``).
     min_range_m: LiDAR points closer than this are no-returns and dropped from the sweeps.
     moving_speed_mps: pedestrians faster than this get the attribute pedestrian.moving.
+    val_sequences: sequences of the val infos (the rest are train).
+    infos_data_root: prefix of the file paths in the training infos (where the trainer finds
+    ``out_dir``; FlashOcc's configs use ``./data/nuscenes``).
     Returns the table directory ``out_dir/version``.
     """
     if version not in VERSIONS and not version.startswith("v1.0-"):
         raise ValueError(f"export_nuscenes: version {version!r} must look like v1.0-<name>, e.g. one of {VERSIONS}")
     ds = open_dataset(dataset_root)
     out = Path(out_dir)
-    src_root = Path(source_root) if source_root is not None else Path(dataset_root)
+    if source_root is None:
+        source_root = recorded_source_root(dataset_root) or dataset_root
+    src_root = Path(source_root)
     chosen = list(ds.sequences if sequences is None else sequences)
+    val = set(val_sequences)
+    if val - set(chosen):
+        raise ValueError(f"export_nuscenes: val_sequences {sorted(val - set(chosen))} are not among the "
+                         f"exported sequences {chosen}")
+    metadata = grid_metadata(ds, chosen)
     map_token = token("map", scene_prefix)
     log_tokens = [token("log", seq) for seq in chosen]
     t = {name: [] for name in TABLES}
     t.update(_static_tables(log_tokens, map_token))
     ped_category = token("category", CATEGORY_NAMES[PEDESTRIAN])
     attr_moving, attr_standing = token("attribute", "pedestrian.moving"), token("attribute", "pedestrian.standing")
+    infos: dict[str, list] = {"train": [], "val": []}
+    prefix = infos_data_root.rstrip("/")
 
     for seq, log_tok in zip(chosen, log_tokens):
         info = sequence_info(ds, seq)
@@ -156,6 +237,7 @@ def export_nuscenes(
         sd_lidar = [token("sample_data", seq, r["frame"], LIDAR_CHANNEL) for r in frames]
         base_by_frame: dict[int, np.ndarray] = {}
         points_by_frame: dict[int, np.ndarray] = {}
+        files_by_frame: dict[int, tuple[str, str]] = {}
         for i, row in enumerate(frames):
             f = int(row["frame"])
             stamp_us = int(row["stamp_ns"]) // 1000
@@ -175,6 +257,7 @@ def export_nuscenes(
             lidar_rel = sample_file_name(scene, LIDAR_CHANNEL, stamp_us, ".pcd.bin")
             (out / lidar_rel).parent.mkdir(parents=True, exist_ok=True)
             sweep.tofile(out / lidar_rel)
+            files_by_frame[f] = (img_rel, lidar_rel)
             pts_h = np.c_[sweep[:, :3].astype(np.float64), np.ones(len(sweep))]
             points_by_frame[f] = (pts_h @ info.T_base_from_lidar.T)[:, :3]
             for sd_list, channel, cs, rel, fmt, w, h in (
@@ -192,8 +275,15 @@ def export_nuscenes(
             "first_sample_token": samples[0] if samples else "", "last_sample_token": samples[-1] if samples else "",
             "name": scene, "description": f"mobileocc sequence {seq}",
         })
-        _annotations(t, ds.table("instances", seq).to_pylist(), seq, base_by_frame, points_by_frame,
-                     ped_category, attr_moving, attr_standing, moving_speed_mps)
+        rows = [r for r in ds.table("instances", seq).to_pylist()
+                if r["box3d_center"] is not None and r["box3d_size"] is not None and r["frame"] in base_by_frame]
+        visible = visible_fractions_of_boxes(ds, seq, info, rows)
+        boxes = _annotations(t, rows, seq, base_by_frame, points_by_frame, visible, ped_category,
+                             attr_moving, attr_standing, moving_speed_mps)
+        split = "val" if seq in val else "train"
+        for i, row in enumerate(frames):
+            f = int(row["frame"])
+            infos[split].append(_info(info, scene, seq, row, sd_cam[i], files_by_frame[f], boxes.get(f, []), prefix))
 
     # a tiny all-zero semantic prior: the devkit needs the file, nothing reads its content here
     mask = out / t["map"][0]["filename"]
@@ -203,18 +293,27 @@ def export_nuscenes(
     table_dir.mkdir(parents=True, exist_ok=True)
     for name in TABLES:
         tmp = table_dir / f".tmp-{name}.json"
-        tmp.write_text(json.dumps(t[name], indent=0, sort_keys=True))
+        tmp.write_text(json.dumps(t[name], indent=0, sort_keys=True, allow_nan=False))
         os.replace(tmp, table_dir / f"{name}.json")
+    meta = {**metadata, "version": version, "scene_prefix": scene_prefix,
+            "train_scenes": [scene_name(scene_prefix, s) for s in chosen if s not in val],
+            "val_scenes": [scene_name(scene_prefix, s) for s in chosen if s in val],
+            "infos": {split: f"{INFOS_PREFIX}_infos_{split}.pkl" for split in infos},
+            "infos_data_root": prefix}
+    for split, records in infos.items():
+        write_bytes(out / meta["infos"][split], dumps_plain({"infos": records, "metadata": meta}))
+    write_json(out / METADATA_FILE, meta)
     return table_dir
 
 
-def _annotations(t, rows, seq, base_by_frame, points_by_frame, ped_category, attr_moving, attr_standing,
-                 moving_speed_mps) -> None:
+def _annotations(t, rows, seq, base_by_frame, points_by_frame, visible, ped_category, attr_moving,
+                 attr_standing, moving_speed_mps) -> dict[int, list[dict]]:
+    """Append instance / sample_annotation records; returns per frame the boxes in the base frame
+    (for the training infos)."""
     tracks: dict[int, list[dict]] = {}
     for r in rows:
-        if r["box3d_center"] is None or r["box3d_size"] is None or r["frame"] not in base_by_frame:
-            continue
         tracks.setdefault(int(r["track_id"]), []).append(r)
+    boxes: dict[int, list[dict]] = {}
     for track_id in sorted(tracks):
         track = sorted(tracks[track_id], key=lambda r: r["frame"])
         inst = token("instance", seq, track_id)
@@ -222,18 +321,82 @@ def _annotations(t, rows, seq, base_by_frame, points_by_frame, ped_category, att
         t["instance"].append({"token": inst, "category_token": ped_category, "nbr_annotations": len(anns),
                               "first_annotation_token": anns[0], "last_annotation_token": anns[-1]})
         for k, r in enumerate(track):
-            T_wb = base_by_frame[r["frame"]]
+            f = int(r["frame"])
+            T_wb = base_by_frame[f]
             yaw = float(r["box3d_yaw"] or 0.0)
             center_w = T_wb[:3, :3] @ np.asarray(r["box3d_center"]) + T_wb[:3, 3]
             R_w = T_wb[:3, :3] @ _rot_z(yaw)
             l, w, h = (float(v) for v in r["box3d_size"])
-            vx, vy = float(r["vx"] or 0.0), float(r["vy"] or 0.0)
-            v_w = T_wb[:3, :3] @ np.array([vx, vy, 0.0])
-            n_pts = _points_in_box(points_by_frame[r["frame"]], r["box3d_center"], (l, w, h), yaw)
+            v_base = None
+            if r["vx"] is not None and r["vy"] is not None and np.isfinite([r["vx"], r["vy"]]).all():
+                v_base = np.array([float(r["vx"]), float(r["vy"]), 0.0])
+            moving = v_base is not None and np.hypot(v_base[0], v_base[1]) > moving_speed_mps
+            n_pts = _points_in_box(points_by_frame[f], r["box3d_center"], (l, w, h), yaw)
+            fraction = visible.get((f, track_id), 0.0)
             t["sample_annotation"].append({
-                "token": anns[k], "sample_token": sample_token(seq, r["frame"]), "instance_token": inst,
-                "visibility_token": "4", "attribute_tokens": [attr_moving if np.hypot(vx, vy) > moving_speed_mps else attr_standing],
+                "token": anns[k], "sample_token": sample_token(seq, f), "instance_token": inst,
+                "visibility_token": visibility_token(fraction),
+                "attribute_tokens": [attr_moving if moving else attr_standing],
                 "translation": [float(v) for v in center_w], "size": [w, l, h], "rotation": quat_wxyz_from_matrix(R_w),
                 "prev": anns[k - 1] if k else "", "next": anns[k + 1] if k + 1 < len(anns) else "",
-                "num_lidar_pts": n_pts, "num_radar_pts": 0, "velocity": [float(v) for v in v_w],
+                "num_lidar_pts": n_pts, "num_radar_pts": 0,
+                "velocity": None if v_base is None else [float(v) for v in T_wb[:3, :3] @ v_base],
             })
+            boxes.setdefault(f, []).append({"center": np.asarray(r["box3d_center"], np.float64), "lwh": (l, w, h),
+                                            "yaw": yaw, "velocity": v_base, "num_lidar_pts": n_pts})
+    return boxes
+
+
+def _info(info, scene: str, seq: str, row: dict, cam_sd_token: str, files: tuple[str, str],
+          boxes: list[dict], prefix: str) -> dict:
+    """One training-info record (mmdet3d nuScenes converter + BEVDet's ann_infos / occ_path)."""
+    img_rel, lidar_rel = files
+    T_wb = mat4(row["T_world_from_base"])
+    T_bl = info.T_base_from_lidar
+    T_lidar_from_cam = np.linalg.inv(T_bl) @ info.T_base_from_cam0
+    R_lb = T_bl[:3, :3].T  # lidar from base
+    stamp_us = int(row["stamp_ns"]) // 1000
+    ego, lidar2ego, cam2ego = pose_record(T_wb), pose_record(T_bl), pose_record(info.T_base_from_cam0)
+    n = len(boxes)
+    gt_boxes = np.zeros((n, 7))
+    gt_velocity = np.zeros((n, 2))
+    ann_boxes, ann_labels = [], []
+    num_pts = np.zeros(n, np.int64)
+    for k, b in enumerate(boxes):
+        c_lidar = R_lb @ (b["center"] - T_bl[:3, 3])
+        R = R_lb @ _rot_z(b["yaw"])
+        v = b["velocity"] if b["velocity"] is not None else np.zeros(3)  # unknown: 0, as the loaders make NaN
+        gt_boxes[k] = [*c_lidar, *b["lwh"], np.arctan2(R[1, 0], R[0, 0])]
+        gt_velocity[k] = (R_lb @ v)[:2]
+        num_pts[k] = b["num_lidar_pts"]
+        if b["num_lidar_pts"] > 0:  # BEVDet's get_gt keeps boxes with points
+            ann_boxes.append(np.array([*b["center"], *b["lwh"], b["yaw"], v[0], v[1]], np.float64))
+            ann_labels.append(DETECTION_CLASSES.index("pedestrian"))
+    token_ = sample_token(seq, row["frame"])
+    return {
+        "token": token_,
+        "timestamp": stamp_us,
+        "lidar_path": f"{prefix}/{lidar_rel}",
+        "sweeps": [],
+        "lidar2ego_translation": lidar2ego["translation"], "lidar2ego_rotation": lidar2ego["rotation"],
+        "ego2global_translation": ego["translation"], "ego2global_rotation": ego["rotation"],
+        "cams": {CAM_CHANNEL: {
+            "data_path": f"{prefix}/{img_rel}", "type": CAM_CHANNEL, "sample_data_token": cam_sd_token,
+            "sensor2ego_translation": cam2ego["translation"], "sensor2ego_rotation": cam2ego["rotation"],
+            "ego2global_translation": ego["translation"], "ego2global_rotation": ego["rotation"],
+            "timestamp": stamp_us,
+            "sensor2lidar_rotation": np.ascontiguousarray(T_lidar_from_cam[:3, :3]),
+            "sensor2lidar_translation": T_lidar_from_cam[:3, 3].copy(),
+            "cam_intrinsic": info.K.copy(),
+        }},
+        "gt_boxes": gt_boxes,
+        "gt_names": np.array(["pedestrian"] * n, dtype="<U10"),
+        "gt_velocity": gt_velocity,
+        "num_lidar_pts": num_pts,
+        "num_radar_pts": np.zeros(n, np.int64),
+        "valid_flag": num_pts > 0,
+        "ann_infos": (ann_boxes, ann_labels),
+        "scene_token": token("scene", seq),
+        "scene_name": scene,
+        "occ_path": f"{prefix}/gts/{scene}/{token_}",
+    }

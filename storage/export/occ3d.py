@@ -1,9 +1,12 @@
-"""Occ3D export: ``gts/<scene>/<sample_token>/labels.npz`` and ``annotations.json``.
+"""Occ3D export: ``gts/<scene>/<sample_token>/labels.npz``, ``annotations.json``, ``occ3d_metadata.json``.
 
 labels.npz (written deterministically, np.load reads it): ``semantics``, ``mask_lidar``,
 ``mask_camera``, uint8, shape (X, Y, Z) in [x, y, z] order, free = 9 (last class); masks 0/1.
 Scene names and sample tokens equal those of the nuScenes export, so trainers that look labels up
-by nuScenes sample token (BEVDet, FlashOcc) find them.
+by nuScenes sample token (BEVDet, FlashOcc) find them. ``occ3d_metadata.json``: grid spec, class names,
+free id (storage/SCHEMA.md). With ``gt_root`` (synthetic data) ``semantics`` is the exact
+ground-truth occupancy of the frame instead of the pipeline's labels, masks unchanged, so a
+network is scored against exact labels on the same voxels.
 """
 
 from __future__ import annotations
@@ -18,17 +21,21 @@ import numpy as np
 from storage.dataset import open_dataset
 from storage.export.common import (
     CAM_CHANNEL,
-    pose_record,
+    grid_metadata,
     mat4,
+    pose_record,
     sample_file_name,
     sample_token,
     scene_name,
     sequence_info,
+    write_json,
 )
 from storage.npzio import save_npz_deterministic
 from storage.occupancy_store import open_layout, read_frames
 
 LABEL_KEYS = ("semantics", "mask_lidar", "mask_camera")
+#: grid spec, class names, free id, which labels (beside the nuScenes export's own, same folder)
+METADATA_FILE = "occ3d_metadata.json"
 
 
 def export_occ3d(
@@ -37,11 +44,14 @@ def export_occ3d(
     scene_prefix: str = "coda",
     val_sequences: Iterable[str] = (),
     sequences: Iterable[str] | None = None,
+    gt_root: str | os.PathLike | None = None,
 ) -> Path:
     """Export the published dataset at ``dataset_root`` to Occ3D format under ``out_dir``.
 
     val_sequences: sequences listed in ``val_split`` (the rest go to ``train_split``).
-    sequences: restrict to these (default: all published). Returns the annotations.json path.
+    sequences: restrict to these (default: all published).
+    gt_root: the raw data root holding synthetic ground truth (``gt/<seq>/``): export its exact
+    occupancy as ``semantics`` (the grids must be the same). Returns the annotations.json path.
     """
     ds = open_dataset(dataset_root)
     out = Path(out_dir)
@@ -50,6 +60,7 @@ def export_occ3d(
     if unknown:
         raise ValueError(f"export_occ3d: val_sequences {sorted(unknown)} are not in the dataset {list(ds.sequences)}")
     chosen = list(ds.sequences if sequences is None else sequences)
+    metadata = grid_metadata(ds, chosen)
     scene_infos: dict[str, dict] = {}
     for seq in chosen:
         info = sequence_info(ds, seq)
@@ -61,6 +72,7 @@ def export_occ3d(
                 f"export_occ3d: sequence {seq!r} has {len(info.frames)} frame rows but "
                 f"{layout.num_frames} frames in {store}"
             )
+        gt_semantics = _gt_reader(gt_root, seq, metadata["grid"]) if gt_root is not None else None
         tokens = [sample_token(seq, row["frame"]) for row in info.frames]
         cam = pose_record(info.T_base_from_cam0)
         samples: dict[str, dict] = {}
@@ -70,9 +82,10 @@ def export_occ3d(
                 row = info.frames[i]
                 tok = tokens[i]
                 gt_rel = f"gts/{scene}/{tok}/labels.npz"
-                save_npz_deterministic(
-                    out / gt_rel, compressed=True, **{k: np.ascontiguousarray(grids[k][i - start]) for k in LABEL_KEYS}
-                )
+                labels = {k: np.ascontiguousarray(grids[k][i - start]) for k in LABEL_KEYS}
+                if gt_semantics is not None:
+                    labels["semantics"] = gt_semantics(int(row["raw_frame"]))
+                save_npz_deterministic(out / gt_rel, compressed=True, **labels)
                 stamp_us = int(row["stamp_ns"]) // 1000
                 ego = pose_record(mat4(row["T_world_from_base"]))
                 ext = Path(row["cam0_path"]).suffix if row["cam0_path"] else ".png"
@@ -102,4 +115,31 @@ def export_occ3d(
     tmp = path.with_name(".tmp-annotations.json")
     tmp.write_text(json.dumps(annotations, indent=1, sort_keys=True))
     os.replace(tmp, path)
+    write_json(out / METADATA_FILE, {**metadata, "scene_prefix": scene_prefix,
+                                     "train_split": annotations["train_split"], "val_split": annotations["val_split"],
+                                     "labels": "ground-truth" if gt_root is not None else "pipeline"})
     return path
+
+
+def _gt_reader(gt_root, sequence: str, grid: dict):
+    """raw frame -> (X, Y, Z) uint8 ground-truth occupancy of ``sequence``, checked against the
+    exported grid (ValueError naming the ground-truth file when it differs)."""
+    from storage.gt import gt_dir, read_frame_gt, read_sequence_gt
+
+    if not sequence.isdigit():
+        raise ValueError(f"export_occ3d: sequence {sequence!r} has no synthetic ground truth (ids are integers)")
+    seq_id = int(sequence)
+    gseq = read_sequence_gt(Path(gt_root), seq_id)
+    same = (list(gseq.grid_shape) == grid["shape"] and abs(gseq.grid_voxel_size_m - grid["voxel_size_m"]) < 1e-9
+            and np.allclose(gseq.grid_range_min, grid["range_min"]))
+    if not same:
+        raise ValueError(
+            f"export_occ3d: ground truth {gt_dir(Path(gt_root), seq_id) / 'sequence.npz'} has grid "
+            f"{tuple(gseq.grid_shape)} at {gseq.grid_voxel_size_m} m from {gseq.grid_range_min.tolist()}, the dataset "
+            f"{tuple(grid['shape'])} at {grid['voxel_size_m']} m from {grid['range_min']}: rebuild with the ground "
+            "truth's grid to export it")
+
+    def semantics(raw_frame: int) -> np.ndarray:
+        return np.ascontiguousarray(read_frame_gt(Path(gt_root), seq_id, raw_frame).occupancy, dtype=np.uint8)
+
+    return semantics

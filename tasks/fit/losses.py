@@ -33,14 +33,14 @@ class FitWeights:
     leaves L_3D too weak.
     """
 
-    rho_px: float = 100.0
-    lambda_theta: float = 2.2
-    lambda_a: float = 11.0
-    lambda_beta: float = 5.0
-    lambda_3d: float = 800.0
-    lambda_occ: float = 35.0
-    w: float = 0.2
-    j_conf: float = 0.6
+    rho_px: float
+    lambda_theta: float
+    lambda_a: float
+    lambda_beta: float
+    lambda_3d: float
+    lambda_occ: float
+    w: float
+    j_conf: float
     conf_power: float = 2.0
     square_lambdas: bool = True
 
@@ -55,12 +55,13 @@ class FitWeights:
 
 
 #: Presets from the paper's appendix table (rho, lambda_theta, lambda_a, lambda_beta,
-#: lambda_3D, lambda_occ, w, J_conf).
+#: lambda_3D, lambda_occ, w, J_conf), one per dataset; the config chooses one by name
+#: (``fit.preset``) and may add its own (``fit.presets``).
 FIT_PRESETS: dict[str, FitWeights] = {
     "3dpw": FitWeights(100.0, 2.2, 11.0, 5.0, 800.0, 35.0, 0.2, 0.6),
     "sloper4d": FitWeights(100.0, 0.75, 8.5, 1.0, 500.0, 55.0, 0.2, 0.7),
     "humanm3": FitWeights(100.0, 1.0, 3.0, 17.5, 600.0, 135.0, -1.0, 0.6),
-    "utcampus": FitWeights(100.0, 1.4, 10.0, 10.0, 300.0, 50.0, 0.2, 0.7),
+    "ut_campus": FitWeights(100.0, 1.4, 10.0, 10.0, 300.0, 50.0, 0.2, 0.7),
 }
 
 

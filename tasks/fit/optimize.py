@@ -40,6 +40,7 @@ from tasks.conventions import COCO_TO_SMPL_JOINT
 from tasks.fit import losses as L
 from tasks.fit.icp import icp_align, rigid_update_params
 from tasks.fit.init_oracle import BodyParams
+from tasks.fit.settings import FitSettings
 from tasks.fit.visibility import Visibility, vertex_parts, visibility_masks
 
 _COCO_JOINT_IDX = [COCO_TO_SMPL_JOINT[i] for i in range(5, 17)]
@@ -93,7 +94,7 @@ def fit_persons(
     points,
     counts,
     weights: L.FitWeights = L.FIT_PRESETS["3dpw"],
-    iterations: int = 100,
+    iterations: int = FitSettings.iterations,
     lr: float = 0.02,
     device: str = "cpu",
     seed: int = 0,
@@ -104,7 +105,7 @@ def fit_persons(
     min_points: int = 10,
     nn_every: int = 1,
     chamfer_vertex_max_m: float | None = None,
-    converge_rtol: float | None = None,
+    converge_rtol: float | None = FitSettings.converge_rtol,
 ) -> FitResult:
     """Fit B persons jointly (batched Adam), returning cam-frame bodies.
 

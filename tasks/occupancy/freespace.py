@@ -30,6 +30,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from numba import njit
 
+from tasks.occupancy.settings import FreeSpaceParams
+
 _BLOCK_SHIFT = 3
 _BLOCK_CELLS = 1 << (3 * _BLOCK_SHIFT)  # 512
 # Block keys pack 21 bits per axis with an offset of 2^20 blocks: +-8.4 M voxels per axis.
@@ -504,11 +506,11 @@ class OccupancyMap:
     def __init__(
         self,
         voxel_size_m: float,
-        prob_hit: float = 0.7,
-        prob_miss: float = 0.4,
-        clamp_min: float = 0.1192,
-        clamp_max: float = 0.971,
-        occupancy_threshold: float = 0.5,
+        prob_hit: float = FreeSpaceParams.prob_hit,
+        prob_miss: float = FreeSpaceParams.prob_miss,
+        clamp_min: float = FreeSpaceParams.clamp_min,
+        clamp_max: float = FreeSpaceParams.clamp_max,
+        occupancy_threshold: float = FreeSpaceParams.occupancy_threshold,
         initial_blocks: int = 1024,
         threads: int | None = None,
     ) -> None:
@@ -578,7 +580,7 @@ class OccupancyMap:
         points_world: np.ndarray,
         origin_world: np.ndarray,
         max_range_m: float = -1.0,
-        discretize: bool = False,
+        discretize: bool = FreeSpaceParams.discretize,
     ) -> None:
         """Insert one scan (OctoMap ``insertPointCloud``).
 

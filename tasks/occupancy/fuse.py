@@ -16,6 +16,7 @@ import open3d as o3d
 
 from tasks.conventions import FREE, PEDESTRIAN
 from tasks.occupancy.grid import GridSpec
+from tasks.occupancy.settings import FuseSettings
 from tasks.occupancy.visibility import camera_mask, lidar_mask
 
 
@@ -141,7 +142,7 @@ def fuse_frame(
     lidar_origin_base: np.ndarray | None = None,
     camera: CameraView | None = None,
     pixel_stride: int | None = None,
-    camera_method: str = "auto",
+    camera_method: str = FuseSettings.camera_method,
     velocity_dtype=np.float16,
 ) -> FrameGrids:
     """Fuse one frame into the robot-local grid.

@@ -19,6 +19,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from tasks.conventions import FREE, PEDESTRIAN, ROAD, TERRAIN, UNLABELED
+from tasks.occupancy.settings import MapParams
 from tasks.perception.lidar_clusters import ground_height
 
 NUM_OCCUPIED_CLASSES = FREE  # classes 0..8 take votes; 9 (free) never does
@@ -69,8 +70,10 @@ def project_points(points_lidar: np.ndarray, K: np.ndarray, T_cam_from_lidar: np
 
 def lift_image_semantics(points_lidar: np.ndarray, semantic_image: np.ndarray, K: np.ndarray,
                          T_cam_from_lidar: np.ndarray, class_lut: np.ndarray,
-                         fallback: str = "nearest", ground_cell_m: float = 1.0,
-                         ground_tol_m: float = 0.3, ground_lateral_scale: float = 1.0) -> np.ndarray:
+                         fallback: str = MapParams.outside_image_fallback,
+                         ground_cell_m: float = MapParams.ground_cell_m,
+                         ground_tol_m: float = MapParams.ground_max_deviation_m,
+                         ground_lateral_scale: float = 1.0) -> np.ndarray:
     """Class of each LiDAR point from a semantic image.
 
     points_lidar: (N, 3) float metres, LiDAR frame. semantic_image: (H, W) uint8 Cityscapes train
@@ -288,9 +291,12 @@ class StaticSemanticMap:
         return unpack_keys(self._keys), self._counts.copy()
 
     def finalize(self, ground_classes: tuple[int, ...] = (ROAD, TERRAIN),
-                 ground_tolerance_m: float = 0.3, ground_cell_m: float = 1.0,
-                 ground_neighbourhood: int = 1, ground_quantile: float = 0.5,
-                 ignore_classes: tuple[int, ...] = (PEDESTRIAN,), min_votes: int = 1) -> StaticMap:
+                 ground_tolerance_m: float = MapParams.ground_max_deviation_m,
+                 ground_cell_m: float = MapParams.ground_cell_m,
+                 ground_neighbourhood: int = MapParams.ground_neighbourhood_cells,
+                 ground_quantile: float = MapParams.ground_quantile,
+                 ignore_classes: tuple[int, ...] = (PEDESTRIAN,),
+                 min_votes: int = MapParams.min_votes) -> StaticMap:
         """Ground check, then max voting.
 
         Ground check: per xy cell of ground_cell_m, the local ground height is the vote-weighted

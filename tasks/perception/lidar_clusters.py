@@ -15,6 +15,8 @@ missed; LiDAR boxes only complement the image detections (people outside the cam
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy import ndimage
 from scipy.sparse import coo_matrix
@@ -24,7 +26,25 @@ from scipy.spatial import cKDTree
 from tasks.perception.types import LidarDetections
 
 
-def ground_height(points_lidar: np.ndarray, cell_m: float = 2.0) -> np.ndarray:
+@dataclass(frozen=True)
+class LidarClusterParams:
+    """Settings of :func:`detect_pedestrians_lidar` (steps and gates: the module docstring).
+    Lengths in metres, heights above the local ground."""
+
+    ground_cell_m: float = 2.0
+    ground_tol_m: float = 0.2
+    ceiling_m: float = 2.4
+    voxel_m: float = 0.1
+    cluster_tol_m: float = 0.3
+    min_points: int = 10
+    min_height_m: float = 1.0
+    max_height_m: float = 2.1
+    max_footprint_m: float = 1.2
+    #: points farther (horizontally) from the sensor are not clustered
+    max_range_m: float = 40.0
+
+
+def ground_height(points_lidar: np.ndarray, cell_m: float) -> np.ndarray:
     """Local ground height under each point.
 
     points_lidar: (N, 3) float32 metres, LiDAR frame (z up). Returns (N,) float64 metres, the lowest
@@ -43,7 +63,7 @@ def ground_height(points_lidar: np.ndarray, cell_m: float = 2.0) -> np.ndarray:
     return grid[cells[:, 0], cells[:, 1]]
 
 
-def cluster_points(points: np.ndarray, voxel_m: float = 0.1, cluster_tol_m: float = 0.3) -> np.ndarray:
+def cluster_points(points: np.ndarray, voxel_m: float, cluster_tol_m: float) -> np.ndarray:
     """Euclidean cluster labels.
 
     points: (N, 3) float metres. Returns (N,) int64 labels 0..C-1, numbered by each cluster's first
@@ -61,44 +81,34 @@ def cluster_points(points: np.ndarray, voxel_m: float = 0.1, cluster_tol_m: floa
     return voxel_labels[inverse.reshape(-1)].astype(np.int64)
 
 
-def detect_pedestrians_lidar(
-    points_lidar: np.ndarray,
-    ground_cell_m: float = 2.0,
-    ground_tol_m: float = 0.2,
-    ceiling_m: float = 2.4,
-    voxel_m: float = 0.1,
-    cluster_tol_m: float = 0.3,
-    min_points: int = 10,
-    min_height_m: float = 1.0,
-    max_height_m: float = 2.1,
-    max_footprint_m: float = 1.2,
-    max_range_m: float = 40.0,
-) -> LidarDetections:
+def detect_pedestrians_lidar(points_lidar: np.ndarray,
+                             params: LidarClusterParams = LidarClusterParams()) -> LidarDetections:
     """Pedestrian-like clusters of one sweep as 3D boxes.
 
     points_lidar: (N, 3) float32 metres, LiDAR frame, z up. Returns LidarDetections in the LiDAR
     frame: box bottom on the local ground, (l, w) the oriented footprint (l >= w), yaw of l's axis,
     score = min(1, points / (5 * min_points)) * 0.5 + 0.5.
     """
+    p = params
     points = np.asarray(points_lidar, np.float64).reshape(-1, 3)
-    points = points[np.linalg.norm(points[:, :2], axis=1) <= max_range_m]
-    ground = ground_height(points, ground_cell_m)
+    points = points[np.linalg.norm(points[:, :2], axis=1) <= p.max_range_m]
+    ground = ground_height(points, p.ground_cell_m)
     height = points[:, 2] - ground
-    keep = (height >= ground_tol_m) & (height <= ceiling_m)
+    keep = (height >= p.ground_tol_m) & (height <= p.ceiling_m)
     objects, object_ground = points[keep], ground[keep]
-    labels = cluster_points(objects, voxel_m, cluster_tol_m)
+    labels = cluster_points(objects, p.voxel_m, p.cluster_tol_m)
     if labels.size == 0:
         return LidarDetections.empty()
     order = np.argsort(labels, kind="stable")
     starts = np.flatnonzero(np.r_[True, np.diff(labels[order]) != 0])
     centers, sizes, yaws, scores = [], [], [], []
     for members in np.split(order, starts[1:]):
-        if members.size < min_points:
+        if members.size < p.min_points:
             continue
         cluster = objects[members]
         base = float(np.min(object_ground[members]))
         top = float(cluster[:, 2].max())
-        if not (min_height_m <= top - base <= max_height_m):
+        if not (p.min_height_m <= top - base <= p.max_height_m):
             continue
         xy = cluster[:, :2]
         mean = xy.mean(axis=0)
@@ -109,13 +119,13 @@ def detect_pedestrians_lidar(
         local = (xy - mean) @ rot.T
         lo, hi = local.min(axis=0), local.max(axis=0)
         length, width = hi - lo
-        if max(length, width) > max_footprint_m:
+        if max(length, width) > p.max_footprint_m:
             continue
         centre_xy = mean + ((lo + hi) / 2) @ rot
         centers.append([centre_xy[0], centre_xy[1], (base + top) / 2])
         sizes.append([max(length, 0.05), max(width, 0.05), top - base])
         yaws.append(yaw)
-        scores.append(0.5 + 0.5 * min(1.0, members.size / (5.0 * min_points)))
+        scores.append(0.5 + 0.5 * min(1.0, members.size / (5.0 * p.min_points)))
     if not centers:
         return LidarDetections.empty()
     return LidarDetections(

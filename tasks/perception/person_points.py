@@ -31,6 +31,8 @@ detection box and the image rectangle of the projected 3D box (``min_iou``).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy import ndimage
 from scipy.optimize import linear_sum_assignment
@@ -38,6 +40,33 @@ from scipy.spatial import cKDTree
 
 from tasks.perception.lidar_clusters import ground_height
 from tasks.perception.types import box_corners
+
+
+@dataclass(frozen=True)
+class PersonPointParams:
+    """Settings of :func:`person_point_indices` (the steps of the module docstring). Lengths in
+    metres, LiDAR z up."""
+
+    #: step 3: split the range-sorted points at gaps larger than this
+    gap_m: float = 0.3
+    #: step 3: a segment needs this many points
+    min_points: int = 3
+    #: step 3: expected range from the box's pixel height for a person this tall
+    person_height_m: float = 1.7
+    range_sigma_frac: float = 0.25
+    core_frac: float = 0.5
+    #: step 1: points at camera depth z <= this are not projected
+    min_depth_m: float = 0.5
+    #: step 1: points less than this above the local ground are ground (None keeps all)
+    ground_tol_m: float | None = 0.15
+    ground_cell_m: float = 2.0
+    feet_radius_m: float = 0.1
+    #: step 4 (0 = off)
+    edge_grow_m: float = 0.25
+    edge_extent_m: float = 0.7
+    edge_margin_px: float = 20.0
+    #: LiDAR boxes match image detections at this IoU or more (:func:`associate_lidar_boxes`)
+    assoc_min_iou: float = 0.3
 
 
 def _rigid(points: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -82,7 +111,7 @@ def associate_lidar_boxes(
     yaws: np.ndarray,
     K: np.ndarray,
     T_cam_from_lidar: np.ndarray,
-    min_iou: float = 0.3,
+    min_iou: float,
 ) -> np.ndarray:
     """Match image detections to LiDAR pedestrian boxes.
 
@@ -130,18 +159,7 @@ def person_point_indices(
     boxes_xyxy: np.ndarray,
     masks: np.ndarray | None = None,
     expected_range_m: np.ndarray | None = None,
-    gap_m: float = 0.3,
-    min_points: int = 3,
-    person_height_m: float = 1.7,
-    range_sigma_frac: float = 0.25,
-    core_frac: float = 0.5,
-    min_depth_m: float = 0.5,
-    ground_tol_m: float | None = 0.15,
-    ground_cell_m: float = 2.0,
-    feet_radius_m: float = 0.1,
-    edge_grow_m: float = 0.25,
-    edge_extent_m: float = 0.7,
-    edge_margin_px: float = 20.0,
+    params: PersonPointParams = PersonPointParams(),
 ) -> list[np.ndarray]:
     """LiDAR point indices of each detected person.
 
@@ -149,11 +167,10 @@ def person_point_indices(
     float64; image_size: (width, height) pixels. boxes_xyxy: (D, 4) float pixels. masks: (D, H, W)
     bool instance masks or None (an all-False mask falls back to its box). expected_range_m: (D,)
     float metres from the camera centre (e.g. an associated LiDAR box), NaN = unknown, or None.
-    ground_tol_m: height above the local ground (``ground_cell_m`` grid, LiDAR z up) below which
-    points are ground, kept only within ``feet_radius_m`` (xy) of the person's other points; None
-    keeps all. edge_grow_m / edge_extent_m / edge_margin_px: step 4 of the module docstring (0 = off).
+    params: the steps' settings (:class:`PersonPointParams`, the module docstring).
     Returns D int64 arrays of row indices into points_lidar (sorted; empty when nothing is found).
     """
+    p = params
     width, height = int(image_size[0]), int(image_size[1])
     boxes = np.asarray(boxes_xyxy, np.float64).reshape(-1, 4)
     count = boxes.shape[0]
@@ -167,30 +184,30 @@ def person_point_indices(
 
     points = np.asarray(points_lidar, np.float64).reshape(-1, 3)
     cam_all = _rigid(points, np.asarray(T_cam_from_lidar, np.float64))
-    front = np.flatnonzero(cam_all[:, 2] > min_depth_m)
-    uv = _pixels(cam_all[front], np.asarray(K, np.float64), min_depth_m)
+    front = np.flatnonzero(cam_all[:, 2] > p.min_depth_m)
+    uv = _pixels(cam_all[front], np.asarray(K, np.float64), p.min_depth_m)
     inside = _in_image(uv, width, height)
     idx = front[inside]
     uv, cam = uv[inside], cam_all[idx]
     is_ground = np.zeros(idx.size, bool)
     lidar_xyz = points[idx]
-    if ground_tol_m is not None and idx.size:
-        is_ground = lidar_xyz[:, 2] - ground_height(lidar_xyz, ground_cell_m) < ground_tol_m
-    side_cut = (boxes[:, 0] <= edge_margin_px) | (boxes[:, 2] >= width - edge_margin_px)
+    if p.ground_tol_m is not None and idx.size:
+        is_ground = lidar_xyz[:, 2] - ground_height(lidar_xyz, p.ground_cell_m) < p.ground_tol_m
+    side_cut = (boxes[:, 0] <= p.edge_margin_px) | (boxes[:, 2] >= width - p.edge_margin_px)
     edge = None  # the points outside the image, gathered once if some box nears a side
-    if edge_grow_m > 0 and side_cut.any():
+    if p.edge_grow_m > 0 and side_cut.any():
         # only the points near the image's left / right side planes can join a cut person
         Kf = np.asarray(K, np.float64)
         x, z = cam_all[:, 0], cam_all[:, 2]
         a_left, a_right = Kf[0, 2] / Kf[0, 0], (width - Kf[0, 2]) / Kf[0, 0]
-        band = edge_extent_m + edge_grow_m
+        band = p.edge_extent_m + p.edge_grow_m
         near_side = (z > -band) & ((np.abs(x + a_left * z) <= band * np.hypot(1.0, a_left))
                                    | (np.abs(x - a_right * z) <= band * np.hypot(1.0, a_right)))
         near_side[idx] = False
         out_idx = np.flatnonzero(near_side)
         out_ground = np.zeros(out_idx.size, bool)
-        if ground_tol_m is not None and out_idx.size:
-            out_ground = points[out_idx, 2] - ground_height(points[out_idx], ground_cell_m) < ground_tol_m
+        if p.ground_tol_m is not None and out_idx.size:
+            out_ground = points[out_idx, 2] - ground_height(points[out_idx], p.ground_cell_m) < p.ground_tol_m
         edge = _OutsidePoints(points, out_idx[~out_ground], out_idx[out_ground])
     u, v = uv[:, 0], uv[:, 1]
     col, row = u.astype(np.int64), v.astype(np.int64)
@@ -213,16 +230,16 @@ def person_point_indices(
         exp_range = expected[d]
         cut = v0 <= 1 or v1 >= height - 1
         if not np.isfinite(exp_range) and not cut and v1 - v0 > 1:
-            exp_range = fy * person_height_m / (v1 - v0)
-        centre, half = (u0 + u1) / 2, core_frac * (u1 - u0) / 2
+            exp_range = fy * p.person_height_m / (v1 - v0)
+        centre, half = (u0 + u1) / 2, p.core_frac * (u1 - u0) / 2
         best, best_score = None, -np.inf
-        for segment in _split_by_range(ranges_all[sel], gap_m):
-            if segment.size < min_points:
+        for segment in _split_by_range(ranges_all[sel], p.gap_m):
+            if segment.size < p.min_points:
                 continue
             members = sel[segment]
             score = segment.size * max(np.mean(np.abs(u[members] - centre) <= half), 0.05)
             if np.isfinite(exp_range):
-                z = (np.median(ranges_all[members]) - exp_range) / (range_sigma_frac * exp_range)
+                z = (np.median(ranges_all[members]) - exp_range) / (p.range_sigma_frac * exp_range)
                 score *= np.exp(-0.5 * z * z)
             if score > best_score:
                 best, best_score = members, score
@@ -231,18 +248,18 @@ def person_point_indices(
             continue
         if ground_sel.size:
             tree = cKDTree(lidar_xyz[best, :2])
-            near, _ = tree.query(lidar_xyz[ground_sel, :2], distance_upper_bound=feet_radius_m)
+            near, _ = tree.query(lidar_xyz[ground_sel, :2], distance_upper_bound=p.feet_radius_m)
             best = np.concatenate([best, ground_sel[np.isfinite(near)]])
         chosen = idx[best]
         if edge is not None and side_cut[d]:
-            chosen = edge.grow(chosen, edge_grow_m, edge_extent_m, feet_radius_m)
+            chosen = edge.grow(chosen, p.edge_grow_m, p.edge_extent_m, p.feet_radius_m)
         result.append(np.sort(chosen))
     return result
 
 
 def in_image_first(
     points_lidar: np.ndarray, point_sets: list[np.ndarray], K: np.ndarray, T_cam_from_lidar: np.ndarray,
-    image_size: tuple[int, int], min_depth_m: float = 0.5,
+    image_size: tuple[int, int], min_depth_m: float,
 ) -> tuple[list[np.ndarray], np.ndarray]:
     """Each set reordered as its points inside the image (sorted) then those outside (sorted), and
     (D,) int64 how many are inside: the camera-side consumers (the body fit, whose visibility

@@ -348,10 +348,3 @@ class Simulator:
             return 0.0
         seen = render.instance[vs, us] == track_id
         return float(np.count_nonzero(seen & full) / np.count_nonzero(full))
-
-
-def simulate_sequence_frames(options: SimOptions, body_model=None):
-    """Yield the SimFrames of a sequence in order (convenience for small runs)."""
-    sim = Simulator(options, body_model)
-    for i in range(options.frames):
-        yield sim.frame(i)

@@ -132,15 +132,6 @@ def rotation_to_axis_angle(R: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(R).as_rotvec()
 
 
-def rotation_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
-    """(4,) quaternion (w, x, y, z) of a (3, 3) rotation, w >= 0."""
-    from scipy.spatial.transform import Rotation
-
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
-    q = np.array([w, x, y, z])
-    return q if w >= 0 else -q
-
-
 def sample_triangles(vertices: np.ndarray, faces: np.ndarray, spacing_m: float) -> np.ndarray:
     """Points covering every triangle with gaps below ``spacing_m``.
 

@@ -49,13 +49,23 @@ class LidarNoise:
 
 @dataclass(frozen=True)
 class CameraModel:
-    """A rectified pinhole camera: K (3, 3) float64 px, width, height, T_cam_from_lidar (4, 4)."""
+    """A rectified pinhole camera: K (3, 3) float64 px, width, height, T_cam_from_lidar (4, 4) of
+    the rectified frame; images are rendered with these.
+
+    The physical (raw) camera behind it, as a stereo calibration describes it: K_raw (3, 3) px,
+    distortion (5,) plumb-bob, R_rect (3, 3) raw camera frame -> rectified frame. The raw camera's
+    extrinsic is ``[[R_rect^T, 0], [0, 1]] @ T_cam_from_lidar`` and the projection matrix
+    ``[K | p4]`` (p4 = -fx * baseline on the right camera). None: the camera is its own raw camera.
+    """
 
     name: str
     K: np.ndarray
     width: int
     height: int
     T_cam_from_lidar: np.ndarray
+    K_raw: np.ndarray | None = None
+    distortion: np.ndarray | None = None
+    R_rect: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -71,11 +81,28 @@ class SensorRig:
         return next(c for c in self.cameras if c.name == name)
 
 
+#: The raw cameras behind the rectified pair, CODa-like (its documented cam0 intrinsics are
+#: fx 730.3, fy 729.7, cx 610.9, cy 537.7, k1..k3 -0.056 0.124 .. -0.064, a rectification of ~1
+#: deg): raw intrinsics (fx, fy, cx, cy), plumb-bob distortion, and the rectification rotation
+#: as a rotation vector (rad) per camera. They only reach the calibration files: the images are
+#: rendered with the rectified pinhole, as a rectified download holds them.
+RAW_CAMERAS = {
+    "cam0": ((730.27, 729.71, 610.90, 537.72), (-0.0560, 0.1238, 0.00115, -0.00367, -0.0636),
+             (0.0122, 0.0148, 0.0151)),
+    "cam1": ((731.64, 731.02, 614.21, 530.35), (-0.0532, 0.1181, 0.00092, 0.00121, -0.0597),
+             (0.0105, 0.0137, 0.0083)),
+}
+
+
 def make_rig(sensor: str = "os1-128", lidar_height_m: float = 0.9, width: int = 1224,
              height: int = 1024, focal_px: float = 730.0, baseline_m: float = 0.12,
-             noise: LidarNoise = LidarNoise()) -> SensorRig:
+             noise: LidarNoise = LidarNoise(), raw_cameras: bool = True) -> SensorRig:
     """The default rig: LiDAR ``lidar_height_m`` above the base origin, cameras 0.15 m below and
-    0.08 m ahead of it, cam0 left of centre by half the baseline, cam1 right, both looking forward."""
+    0.08 m ahead of it, cam0 left of centre by half the baseline, cam1 right, both looking forward
+    (these are the rectified frames). raw_cameras: attach the raw cameras of ``RAW_CAMERAS``
+    (distorted, rotated by their rectification), else each camera is its own raw camera."""
+    from scipy.spatial.transform import Rotation
+
     if sensor not in ROW_STRIDE:
         raise ValueError(f"sensor must be one of {tuple(ROW_STRIDE)}, got {sensor!r}")
     T_base_from_lidar = make_transform(np.eye(3), [0.0, 0.0, lidar_height_m])
@@ -84,9 +111,26 @@ def make_rig(sensor: str = "os1-128", lidar_height_m: float = 0.9, width: int = 
     cams = []
     for name, y in (("cam0", baseline_m / 2), ("cam1", -baseline_m / 2)):
         centre_lidar = np.array([0.08, y, -0.15])
+        raw = {}
+        if raw_cameras:
+            (fx, fy, cx, cy), dist, rotvec = RAW_CAMERAS[name]
+            raw = {"K_raw": np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]),
+                   "distortion": np.array(dist, dtype=np.float64),
+                   "R_rect": Rotation.from_rotvec(rotvec).as_matrix()}
         cams.append(CameraModel(name, K, width, height,
-                                make_transform(R_cam_from_lidar, -R_cam_from_lidar @ centre_lidar)))
+                                make_transform(R_cam_from_lidar, -R_cam_from_lidar @ centre_lidar), **raw))
     return SensorRig(sensor, T_base_from_lidar, tuple(cams), noise)
+
+
+def coda_semantic_ids(point_class: np.ndarray) -> np.ndarray:
+    """(N,) uint8 our class ids of a sweep -> (N,) uint8 CODa 3d_semantic ids, as CODa annotates:
+    terrain only (the walkway Concrete, the lawn Grass), every other point Unlabeled (0)."""
+    from tasks.metrics.coda_labels import CODA_SEMANTIC_IDS
+
+    table = np.zeros(256, dtype=np.uint8)
+    table[C.ROAD] = CODA_SEMANTIC_IDS["Concrete"]
+    table[C.TERRAIN] = CODA_SEMANTIC_IDS["Grass"]
+    return table[np.asarray(point_class, dtype=np.uint8)]
 
 
 def lidar_directions() -> np.ndarray:

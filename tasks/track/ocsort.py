@@ -27,31 +27,42 @@ row, the key of the library tracklet that the row updated or started (``tracklet
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import supervision as sv
 from trackers import OCSORTTracker
 
 
-class PedestrianTracker:
-    """OC-SORT over one sequence's 2D pedestrian boxes; call ``update`` once per frame, in order.
+@dataclass(frozen=True)
+class TrackerParams:
+    """OC-SORT's settings (Cao et al.; defaults are OC-SORT's), frames at the tracker's rate.
 
     det_thresh: detections scoring below it never start or update a track (id -1).
     max_age: frames a lost track survives without a detection. min_hits: consecutive hits before a
     track gets an id. iou_threshold: minimum IoU to associate. delta_t: frames back used for the
     motion direction. inertia: weight of the direction-consistency term in the association cost.
-    keep_confirmed_ids: report a confirmed track's id again on its first re-match after a miss.
+    keep_confirmed_ids: report a confirmed track's id again on its first re-match after a miss
+    (False = reference OC-SORT output).
     """
 
-    def __init__(
-        self,
-        det_thresh: float = 0.6,
-        max_age: int = 30,
-        min_hits: int = 3,
-        iou_threshold: float = 0.3,
-        delta_t: int = 3,
-        inertia: float = 0.2,
-        keep_confirmed_ids: bool = True,
-    ) -> None:
+    det_thresh: float = 0.6
+    max_age: int = 30
+    min_hits: int = 3
+    iou_threshold: float = 0.3
+    delta_t: int = 3
+    inertia: float = 0.2
+    keep_confirmed_ids: bool = True
+
+
+class PedestrianTracker:
+    """OC-SORT over one sequence's 2D pedestrian boxes; call ``update`` once per frame, in order
+    (settings: :class:`TrackerParams`)."""
+
+    def __init__(self, params: TrackerParams = TrackerParams()) -> None:
+        det_thresh, max_age, min_hits = params.det_thresh, params.max_age, params.min_hits
+        iou_threshold, delta_t, inertia = params.iou_threshold, params.delta_t, params.inertia
+        keep_confirmed_ids = params.keep_confirmed_ids
         if max_age < 0 or min_hits < 1 or delta_t < 1:
             raise ValueError(
                 f"PedestrianTracker: need max_age >= 0, min_hits >= 1, delta_t >= 1; got "

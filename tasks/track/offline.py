@@ -10,13 +10,13 @@ steps use that (the first and last are standard in offline MOT post-processing):
   LiDAR person points): a 2D box tracker's identity errors are of two kinds, a lost track re-found
   on someone else, and two people overlapping in the image swapping boxes. Both are plain in the
   world, where people do not overlap. Tracks are cut after every missed frame and wherever the
-  position leaves the constant-velocity prediction (``WorldMotion``); the stitcher then re-joins the
+  position leaves the constant-velocity prediction (``WorldCheck``); the stitcher then re-joins the
   fragments. Tracklets OC-SORT never confirmed may join too (``tentative``), and are kept only if
   they do.
 - stitching: a track B that starts at most ``max_gap`` frames after track A ends is joined to A
   when constant-velocity extrapolation of each towards the other lands near the other. On world
   positions (both ends have some): error = mean of |A's last position carried to B's first - B's|
-  and the reverse, candidates within ``WorldMotion.gate`` of the time between them. Otherwise on
+  and the reverse, candidates within ``WorldCheck.gate`` of the time between them. Otherwise on
   pixels: ``d = mean(|c_A(t_B) - c_B(t_B)|, |c_B(t_A) - c_A(t_A)|) / h``, box centres c, h the
   mean height of the two end boxes, candidates with ``d <= max_distance`` and a height ratio within
   ``max_scale``; consecutive fragments of one OC-SORT track that no position can judge stay joined.
@@ -75,23 +75,43 @@ def _end_motion(frames: np.ndarray, centres: np.ndarray, at: float) -> tuple[np.
 
 
 @dataclass(frozen=True)
-class WorldMotion:
-    """How far a pedestrian can plausibly move, for checks on world positions (metres, seconds).
+class OfflineParams:
+    """Back-fill and pixel stitching (the module docstring). stitch_max_gap: join fragments at most
+    this many frames apart (0 = never); stitch_max_distance: extrapolation error gate, in box
+    heights; stitch_max_scale: largest height ratio of the two end boxes."""
 
+    backfill: bool = True
+    stitch_max_gap: int = 10
+    stitch_max_distance: float = 0.5
+    stitch_max_scale: float = 1.5
+
+
+@dataclass(frozen=True)
+class WorldCheck:
+    """The world-position check: whether it runs, and how far a pedestrian can plausibly move
+    (metres, seconds).
+
+    enabled: cut tracks at missed frames and 3D jumps, re-stitch on world positions (False: 2D
+    only). min_points: a detection with fewer LiDAR person points has no position (the check skips
+    it; a few points of a mostly hidden person often belong to someone in front).
     max_speed_mps caps the velocity used for prediction; a position is consistent with a track
     when it lies within ``tol_m + speed_sigma_mps * dt`` of the constant-velocity prediction from
     the track's last ``window`` trusted positions (dt: time since the last of them). tol_m covers
     the position noise (median of a person's LiDAR points: ~0.15 m typical, 0.3 m p99 on the
     synthetic benchmark) plus a change of pace over one frame; speed_sigma_mps the change of
     velocity over a gap. continuation_gate_scale widens the gate for a join the 2D tracker made
-    itself (consecutive fragments of one OC-SORT track): two cues agree there.
+    itself (consecutive fragments of one OC-SORT track): two cues agree there. tentative:
+    tracklets OC-SORT never confirmed may join a confirmed track (kept only then).
     """
 
+    enabled: bool = True
+    min_points: int = 5
     max_speed_mps: float = 2.5
     tol_m: float = 0.6
     speed_sigma_mps: float = 0.5
     window: int = 5
     continuation_gate_scale: float = 1.5
+    tentative: bool = True
 
     def predict(self, times: np.ndarray, xy: np.ndarray, at: float) -> np.ndarray:
         """Constant-velocity prediction at time ``at`` from the last ``window`` (time, xy)."""
@@ -117,13 +137,13 @@ def _observations(ids: list[np.ndarray]) -> dict[int, list[tuple[int, int]]]:
 
 
 def split_tracks(ids: list[np.ndarray], positions: list[np.ndarray], times_s: np.ndarray,
-                 motion: WorldMotion = WorldMotion()
+                 motion: WorldCheck = WorldCheck()
                  ) -> tuple[list[np.ndarray], list[np.ndarray], dict[int, int]]:
     """Cut tracks into fragments wherever the 2D tracker's decision is open to doubt.
 
     A track is cut (a) after every missed frame: a lost and re-found track may have been re-found on
     someone else, and (b) where its world position leaves the constant-velocity prediction
-    (``WorldMotion``): two people overlapping in the image swap boxes, their positions do not. One
+    (``WorldCheck``): two people overlapping in the image swap boxes, their positions do not. One
     position off the prediction is an outlier, not a cut, when the next position is back on it and
     closer to it than to the outlier (person points of a mostly hidden person can come from the
     person in front); outliers are set to NaN in the returned positions.
@@ -191,9 +211,9 @@ def split_tracks(ids: list[np.ndarray], positions: list[np.ndarray], times_s: np
 
 
 def stitch_ids(ids: list[np.ndarray], boxes_xyxy: list[np.ndarray], max_gap: int,
-               max_distance: float, max_scale: float = 1.5, window: int = 5,
+               max_distance: float, max_scale: float, window: int = 5,
                positions: list[np.ndarray] | None = None, times_s: np.ndarray | None = None,
-               motion: WorldMotion = WorldMotion(), parent: dict[int, int] | None = None,
+               motion: WorldCheck = WorldCheck(), parent: dict[int, int] | None = None,
                provisional: frozenset[int] | set[int] = frozenset()) -> list[np.ndarray]:
     """Join track fragments across gaps (see the module docstring); ids renumbered 1, 2, ...
 
@@ -225,7 +245,7 @@ def stitch_ids(ids: list[np.ndarray], boxes_xyxy: list[np.ndarray], max_gap: int
                 known = np.isfinite(xy).all(axis=1)
                 if known.any():
                     # (times, xy) of the known positions; the start's reversed so that its
-                    # first position is last, as WorldMotion.predict extrapolates from the last
+                    # first position is last, as WorldCheck.predict extrapolates from the last
                     t = np.asarray(times_s, np.float64)[fr.astype(np.int64)][known]
                     end["xy"], start["xy"] = (t, xy[known]), (t[::-1], xy[known][::-1])
             ends[tid], starts[tid] = end, start
@@ -301,31 +321,33 @@ def _between(order, tracks, parent, a, b) -> bool:
 
 
 def track_offline(boxes_xyxy: list[np.ndarray], scores: list[np.ndarray], tracker,
-                  backfill: bool = True, stitch_max_gap: int = 0, stitch_max_distance: float = 0.5,
-                  stitch_max_scale: float = 1.5, positions: list[np.ndarray] | None = None,
-                  times_s: np.ndarray | None = None, motion: WorldMotion = WorldMotion(),
-                  tentative: bool = False) -> list[np.ndarray]:
+                  offline: OfflineParams = OfflineParams(), positions: list[np.ndarray] | None = None,
+                  times_s: np.ndarray | None = None, check: WorldCheck = WorldCheck()) -> list[np.ndarray]:
     """Track a whole sequence: ``tracker.update`` per frame, then back-fill, splitting, stitching.
 
     boxes_xyxy: per frame (D_f, 4) float pixels; scores: per frame (D_f,) float. tracker: a fresh
     ``PedestrianTracker`` (one per sequence). positions (optional): per frame (D_f, 2) world xy of
-    each detection, metres, NaN = unknown, with times_s (F,) seconds: tracks are then split
-    (``split_tracks``) and re-stitched on positions where they exist. Returns per frame (D_f,) int64 ids aligned with the
-    input rows, 1, 2, ... by first appearance; -1 = untracked.
+    each detection, metres, NaN = unknown, with times_s (F,) seconds: with ``check.enabled`` tracks
+    are then split (``split_tracks``) and re-stitched on positions where they exist. Returns per
+    frame (D_f,) int64 ids aligned with the input rows, 1, 2, ... by first appearance; -1 =
+    untracked.
     """
     online = [tracker.update(b, s) for b, s in zip(boxes_xyxy, scores)]
-    ids = backfill_ids(tracker.tracklet_keys, online, tracker.confirmed_ids) if backfill else online
+    ids = (backfill_ids(tracker.tracklet_keys, online, tracker.confirmed_ids) if offline.backfill
+           else online)
     parent, provisional = None, set()
-    if positions is not None:
+    if positions is not None and check.enabled:
         if times_s is None:
             raise ValueError("track_offline: positions need times_s")
-        if tentative:
+        if check.tentative:
             ids, provisional = _with_tentative(ids, tracker.tracklet_keys, tracker.confirmed_ids)
-        ids, positions, parent = split_tracks(ids, positions, times_s, motion)
+        ids, positions, parent = split_tracks(ids, positions, times_s, check)
         provisional = {f for f, p in parent.items() if p in provisional}
-    return stitch_ids(ids, boxes_xyxy, stitch_max_gap, stitch_max_distance, stitch_max_scale,
-                      positions=positions, times_s=times_s, motion=motion, parent=parent,
-                      provisional=provisional)
+    else:
+        positions = None
+    return stitch_ids(ids, boxes_xyxy, offline.stitch_max_gap, offline.stitch_max_distance,
+                      offline.stitch_max_scale, positions=positions, times_s=times_s, motion=check,
+                      parent=parent, provisional=provisional)
 
 
 def _with_tentative(ids, tracklet_keys, confirmed_ids):

@@ -32,3 +32,20 @@ def track_velocities(track_ids: np.ndarray, stamps_s: np.ndarray, positions: np.
         v[ok] = (pp[nxt[ok]] - pp[prev[ok]]) / dt[ok, None]
         out[rows] = v
     return out
+
+
+def velocities_in_base(track_ids: np.ndarray, stamps_s: np.ndarray, positions_lidar: np.ndarray,
+                       T_world_from_lidar: np.ndarray, T_base_from_lidar: np.ndarray) -> np.ndarray:
+    """Ground-plane velocity of every row in the robot's base frame at that row's frame.
+
+    positions_lidar: (R, 3) float metres, each in the LiDAR frame of its own frame, whose pose is
+    T_world_from_lidar (R, 4, 4) float64. Velocities come from :func:`track_velocities` on the
+    world positions (robot motion removed), then rotated into the base frame of the row's frame.
+    Returns (R, 2) float64 (vx, vy) m/s.
+    """
+    T = np.asarray(T_world_from_lidar, np.float64).reshape(-1, 4, 4)
+    p = np.asarray(positions_lidar, np.float64).reshape(-1, 3)
+    world = np.einsum("rij,rj->ri", T[:, :3, :3], p) + T[:, :3, 3]
+    v_world = track_velocities(track_ids, stamps_s, world)
+    R_base_from_world = np.asarray(T_base_from_lidar, np.float64)[:3, :3] @ np.transpose(T[:, :3, :3], (0, 2, 1))
+    return np.einsum("rij,rj->ri", R_base_from_world, v_world)[:, :2]

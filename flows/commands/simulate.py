@@ -1,8 +1,13 @@
 """``mobileocc simulate``: write synthetic campus sequences in the CODa layout with ground truth.
 
 Sequence ``i`` of a run is generated with the seed derived from ``(seed, i)``; its frames are made
-by :class:`tasks.sim.Simulator` and written through :mod:`storage.coda_writer` (raw data, as CODa)
-and :mod:`storage.gt` (``gt/{SEQ}/``, exact ground truth). Same arguments -> byte-identical files.
+by :class:`tasks.sim.Simulator` and written through :mod:`storage.coda_writer` (raw data, as a
+CODa download holds them: ``3d_comp`` sweeps with nanosecond times, ``2d_rect`` JPEG images of a
+stereo pair with a non-identity rectification and its own projection matrix, 3d_bbox boxes and
+3d_semantic terrain labels in CODa's ids) and :mod:`storage.gt` (``gt/{SEQ}/``, exact ground
+truth). ``split_style`` writes only blocks of frames (as CODa's split downloads hold only the
+annotated frames) while timestamps and poses cover every frame. Same arguments -> byte-identical
+files.
 """
 
 from __future__ import annotations
@@ -13,6 +18,8 @@ import numpy as np
 
 FRAME_PERIOD_NS = 100_000_000  # 10 Hz
 START_UNIX_S = 1_700_000_000
+#: split-style sequences hold blocks of this many raw frames, every other block (1 s on, 1 s off)
+SPLIT_BLOCK_FRAMES = 10
 
 
 def sequence_seed(seed: int, index: int) -> int:
@@ -20,11 +27,26 @@ def sequence_seed(seed: int, index: int) -> int:
     return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1)[0])
 
 
-def _calibration(rig):
-    from storage.model import Calibration, CameraCalibration
+def split_style_frames(frames: int) -> list[int]:
+    """The raw frames a split-style sequence of ``frames`` frames holds files for."""
+    return [i for i in range(frames) if (i // SPLIT_BLOCK_FRAMES) % 2 == 0]
 
-    cams = {c.name: CameraCalibration(c.name, c.K, np.zeros(5), c.width, c.height, c.T_cam_from_lidar)
-            for c in rig.cameras}
+
+def _calibration(rig):
+    """The rig as a storage Calibration: the rectified cameras with their raw cameras attached."""
+    from storage.model import Calibration, CameraCalibration, RawCameraCalibration
+
+    T0 = rig.camera("cam0").T_cam_from_lidar
+    cams = {}
+    for c in rig.cameras:
+        raw = None
+        if c.R_rect is not None:
+            R4 = np.eye(4)
+            R4[:3, :3] = c.R_rect.T
+            P = np.hstack([c.K, np.zeros((3, 1))])
+            P[0, 3] = c.K[0, 0] * (c.T_cam_from_lidar @ np.linalg.inv(T0))[0, 3]  # -fx * baseline
+            raw = RawCameraCalibration(c.K_raw, c.distortion, c.R_rect, P, R4 @ c.T_cam_from_lidar)
+        cams[c.name] = CameraCalibration(c.name, c.K, np.zeros(5), c.width, c.height, c.T_cam_from_lidar, raw)
     return Calibration(cams, rig.T_base_from_lidar)
 
 
@@ -44,16 +66,18 @@ def _boxes(frame) -> list:
     return out
 
 
-def write_frame(out: Path, seq: int, frame, stamp_ns: int) -> None:
-    """Write one SimFrame: LiDAR, both images, boxes, ground truth."""
+def write_frame(out: Path, seq: int, frame, stamp_ns: int, image_ext: str = ".jpg") -> None:
+    """Write one SimFrame: LiDAR, both images, boxes, CODa terrain labels, ground truth."""
     from storage import coda_writer as W
     from storage import gt as GT
+    from tasks.sim.sensors import coda_semantic_ids
 
     s = frame.sweep
     W.write_lidar(out, seq, frame.index, s.points, s.intensity, s.time_s)
-    W.write_image(out, seq, "cam0", frame.index, frame.cam0.rgb)
-    W.write_image(out, seq, "cam1", frame.index, frame.cam1.rgb)
+    W.write_image(out, seq, "cam0", frame.index, frame.cam0.rgb, image_ext)
+    W.write_image(out, seq, "cam1", frame.index, frame.cam1.rgb, image_ext)
     W.write_boxes(out, seq, frame.index, _boxes(frame))
+    W.write_semantic(out, seq, frame.index, coda_semantic_ids(s.point_class))
     p = frame.people
     GT.write_frame_gt(out, seq, frame.index, {
         "occupancy": frame.occupancy, "occupancy_instance": frame.occupancy_instance,
@@ -70,11 +94,14 @@ def write_frame(out: Path, seq: int, frame, stamp_ns: int) -> None:
 
 def simulate(out: Path, sequences: int, frames: int, seed: int, pedestrians: int | None = None,
              crowd: str = "uncrowded", night: bool = False, sensor: str = "os1-128",
-             progress: bool = True, first_id: int = 0) -> list[int]:
+             progress: bool = True, first_id: int = 0, image_ext: str = ".jpg",
+             split_style: bool = False) -> list[int]:
     """Write ``sequences`` synthetic sequences (ids first_id..first_id+sequences-1) of ``frames``
     raw 10 Hz frames under ``out`` in the CODa layout plus ``gt/``. Returns the sequence ids
     written. Sequence ``s`` is seeded from (seed, s), so a benchmark can add sequences of another
-    condition (``--night``, ``--crowd``) beside existing ones with a different ``first_id``."""
+    condition (``--night``, ``--crowd``) beside existing ones with a different ``first_id``.
+    image_ext: ".jpg" (CODa's downloads) or ".png" (the devkit's own rectification tool).
+    split_style: files only for :func:`split_style_frames` (timestamps, poses: every frame)."""
     from tqdm import tqdm
 
     from storage import coda_writer as W
@@ -85,7 +112,8 @@ def simulate(out: Path, sequences: int, frames: int, seed: int, pedestrians: int
         raise ValueError(f"sequences must be >= 0, got {sequences}")
     out = Path(out)
     written = []
-    bar = tqdm(total=sequences * frames, desc="simulate", unit="frame", disable=not progress)
+    written_frames = split_style_frames(frames) if split_style else list(range(frames))
+    bar = tqdm(total=sequences * len(written_frames), desc="simulate", unit="frame", disable=not progress)
     if first_id < 0:
         raise ValueError(f"first_id must be >= 0, got {first_id}")
     for seq in range(first_id, first_id + sequences):
@@ -94,12 +122,10 @@ def simulate(out: Path, sequences: int, frames: int, seed: int, pedestrians: int
         sim = Simulator(opts)
         start_ns = (START_UNIX_S + 3600 * seq) * 1_000_000_000
         stamps = start_ns + FRAME_PERIOD_NS * np.arange(frames, dtype=np.int64)
-        poses = []
-        for i in range(frames):
-            f = sim.frame(i)
-            write_frame(out, seq, f, int(stamps[i]))
-            poses.append(f.T_world_from_lidar)
+        for i in written_frames:
+            write_frame(out, seq, sim.frame(i), int(stamps[i]), image_ext)
             bar.update(1)
+        poses = [sim.robot_pose(i)[1] for i in range(frames)]
         W.write_calibration(out, seq, _calibration(sim.rig))
         W.write_timestamps(out, seq, stamps)
         W.write_poses(out, seq, stamps, np.asarray(poses))
@@ -116,6 +142,7 @@ def simulate(out: Path, sequences: int, frames: int, seed: int, pedestrians: int
             "synthetic": True, "lighting": "night" if night else "day", "crowd": crowd,
             "seed": opts.seed, "run_seed": int(seed), "frames": frames, "sensor": sensor,
             "pedestrians": opts.num_pedestrians, "frame_rate_hz": 10.0, "generator": "mobileocc.tasks.sim",
+            "trajectory": seq, **W.annotation_lists(seq, written_frames, written_frames),
         })
         written.append(seq)
     bar.close()

@@ -4,7 +4,7 @@
 products of the run that built it (stage folders named in ``OUT/manifest.json``) and the ground
 truth beside the raw data (``GT/gt/{SEQ}/``, storage/GT_FORMAT.md), hands arrays to the metric
 kernels of tasks/metrics and tasks/fit/metrics.py, and writes ``report.md``, ``results.json`` and
-figures through flows/report.py. A section whose inputs are absent (no fit product, no ground
+figures through flows/commands/report.py. A section whose inputs are absent (no fit product, no ground
 truth for a sequence, a grid that is not the ground truth's) is replaced by a note saying why.
 
 Definitions beyond the kernels' own (each kernel's docstring has the rest):
@@ -20,30 +20,44 @@ Definitions beyond the kernels' own (each kernel's docstring has the rest):
 - tracking: the same GT persons, ids = GT track ids, against the track product's rows;
 - fit: each fitted row's detection box matched (IoU >= 0.5, Hungarian) to the GT persons' box2d
   of its frame; vertices / joints from the configured body model;
-- velocity: GT velocity grid = velocity_base of the person on each of its occupancy_instance voxels.
+- velocity: GT velocity grid = velocity_base of the person on each of its occupancy_instance voxels;
+- box heading: the published box yaw (instances table) of each matched fitted row vs the GT
+  person's heading (box_yaw), both about base z (tasks/metrics/heading.py);
+- box visibility: the nuScenes export's visible fraction of each matched fitted row's box vs the
+  GT person's visible_fraction, and their nuScenes visibility bins.
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
-from storage.coda import CodaSequence, read_lidar_bin
+from storage.coda import read_lidar_bin
 from storage.dataset import open_dataset
 from storage.gt import gt_dir, read_frame_gt, read_sequence_gt
-from storage.intermediate import read_product
+from storage.products import Bodies, Detections, Tracks
 from storage.manifest import Manifest
 from tasks import conventions as C
+from storage.export.common import sequence_info
+from storage.export.nuscenes import visibility_token, visible_fractions_of_boxes
+from tasks.metrics.heading import heading_errors_deg, heading_summary
+from tasks.metrics._common import PRCounts
 from tasks.metrics.detection import DetectionCounts, detection_counts, match_boxes
 from tasks.metrics.occupancy import OccupancyMetric
-from tasks.metrics.pedestrian import (pedestrian_box_counts, pedestrian_lidar_counts,
-                                     person_point_counts, voxelize_points)
+from tasks.metrics.pedestrian import (
+    pedestrian_box_counts,
+    pedestrian_lidar_counts,
+    person_point_counts,
+    voxelize_points,
+)
 from tasks.metrics.static import StaticCounts, static_counts
 from tasks.metrics.tracking import tracking_scores
-from tasks.metrics._common import PRCounts
-from tasks.metrics.velocity import VelocityErrors, velocity_errors, voxel_velocity_errors
+from tasks.metrics.velocity import (
+    VelocityErrors,
+    velocity_errors,
+    voxel_velocity_errors,
+)
 
 #: a GT person counts as "visible" for detection when at least this fraction of its silhouette shows
 VISIBLE_FRACTION = 0.3
@@ -162,7 +176,9 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
         tot.notes[f"sequence {seq}"] = f"no ground truth under {gt_root}/gt/{seq}: not evaluated"
         return
     gseq = read_sequence_gt(gt_root, int(seq))
-    coda = CodaSequence(gt_root, seq)
+    from flows.commands.evaluate_coda import open_recorded_sequence
+
+    coda = open_recorded_sequence(config, gt_root, seq)
     cam = coda.info.calibration.cameras[((config.get("dataset") or {}).get("camera")) or "cam0"]
     T_bl = np.asarray(gseq.T_base_from_lidar, np.float64)
     shape = tuple(arrays["semantics"].shape[1:4])
@@ -172,15 +188,15 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
         tot.notes[f"occupancy {seq}"] = (f"grid {shape} at {vs} m differs from the ground truth's "
                                          f"{tuple(gseq.grid_shape)} at {gseq.grid_voxel_size_m} m: occupancy, "
                                          "velocity and BEV comparisons skipped")
-    condition = _condition(coda.info.metadata)
+    condition = "night" if coda.info.is_night else _condition(coda.info.metadata)
     min_range = float((config.get("dataset") or {}).get("min_range_m", coda.min_range_m))
     frustum = _frustum(shape, range_min, vs, T_bl, cam)
 
     detect_dir = _stage_folder(out, manifest, seq, "detect")
     track_dir = _stage_folder(out, manifest, seq, "track")
     fit_dir = _stage_folder(out, manifest, seq, "fit")
-    tracks = read_product(track_dir, "tracks") if track_dir is not None else None
-    bodies = (read_product(fit_dir, "bodies")
+    tracks = Tracks.read(track_dir).arrays() if track_dir is not None else None
+    bodies = (Bodies.read(fit_dir).arrays()
               if fit_dir is not None and (fit_dir / "bodies.npz").exists() else None)
     if detect_dir is None:
         tot.notes[f"detection {seq}"] = "no detect stage output: detection robustness skipped"
@@ -193,7 +209,11 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
 
     occ = tot.occ.setdefault(seq, OccupancyMetric())
     st, bx, li, ve, pp = StaticCounts(), PRCounts(), PRCounts(), VelocityErrors(), PRCounts()
-    track_frames, fit_rows = [], {k: [] for k in ("pve", "mpjpe", "pa_mpjpe", "mpere")}
+    track_frames, fit_rows = [], {k: [] for k in ("pve", "mpjpe", "pa_mpjpe", "mpere", "heading", "visible",
+                                                   "visible_gt")}
+    boxed = [r for r in ds.table("instances", seq).to_pylist() if r["box3d_center"] is not None]
+    box_yaw = {(int(r["track_id"]), int(r["frame"])): r["box3d_yaw"] for r in boxed}
+    visible = visible_fractions_of_boxes(ds, seq, sequence_info(ds, seq), boxed)  # the nuScenes export's
     for k, raw in enumerate(raw_frames):
         gtf = read_frame_gt(gt_root, int(seq), raw)
         pred = np.asarray(arrays["semantics"][k])
@@ -229,7 +249,7 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
         persons = _gt_persons(gtf)
         vis = gtf.visible_fraction[persons] >= VISIBLE_FRACTION
         if detect_dir is not None:
-            det = read_product(detect_dir, f"frame_{raw}")
+            det = Detections.read(detect_dir, Detections.file_name(raw)).arrays()
             tot.detection[condition] = tot.detection.get(condition, DetectionCounts()) + detection_counts(
                 gtf.box2d[persons], vis, det["boxes_xyxy"])
         if tracks is not None:
@@ -245,7 +265,7 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
         if bodies is not None and detect_dir is not None:
             rows = np.flatnonzero(bodies["frame"] == raw)
             if rows.size:
-                det = read_product(detect_dir, f"frame_{raw}")
+                det = Detections.read(detect_dir, Detections.file_name(raw)).arrays()
                 boxes = det["boxes_xyxy"][bodies["det_index"][rows]]
                 gi, fi = match_boxes(gtf.box2d[persons], boxes, FIT_MATCH_IOU)
                 if gi.size:
@@ -253,8 +273,15 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
                     from tasks.fit.metrics import fit_metrics
 
                     m = fit_metrics(pv, pj, gtf.vertices[persons[gi]], gtf.joints[persons[gi]], gseq.person_faces)
-                    for key in fit_rows:
+                    for key in ("pve", "mpjpe", "pa_mpjpe", "mpere"):
                         fit_rows[key].append(np.asarray(m[key], np.float64))
+                    _, gt_yaw = _boxes_to_base(T_bl, gtf.box_center[persons[gi]], gtf.box_yaw[persons[gi]])
+                    pub = [box_yaw.get((int(bodies["track_id"][b]), k)) for b in rows[fi]]
+                    fit_rows["heading"].append(heading_errors_deg(
+                        [y for y in pub if y is not None], [g for y, g in zip(pub, gt_yaw) if y is not None]))
+                    keys = [(k, int(bodies["track_id"][b])) for b in rows[fi]]  # (frame, track id)
+                    fit_rows["visible"].append(np.array([visible.get(key, np.nan) for key in keys]))
+                    fit_rows["visible_gt"].append(gtf.visible_fraction[persons[gi]].astype(np.float64))
     tot.static[seq], tot.boxes[seq], tot.lidar[seq], tot.velocity[seq] = st, bx, li, ve
     if pp.pred_total:
         tot.person_points[seq] = pp
@@ -280,6 +307,19 @@ def _sum(values):
     return total
 
 
+def visibility_agreement(ours, gt) -> dict:
+    """Visible fractions (N,) of the export vs the ground truth's: same / within-one nuScenes bin
+    shares, share binned lower than the truth, median |difference|."""
+    ok = np.isfinite(ours) & np.isfinite(gt)
+    ours, gt = np.asarray(ours)[ok], np.asarray(gt)[ok]
+    if ours.size == 0:
+        return {"boxes": 0}
+    b = np.array([int(visibility_token(v)) for v in ours]) - np.array([int(visibility_token(v)) for v in gt])
+    return {"boxes": int(ours.size), "same_bin_share": float(np.mean(b == 0)),
+            "within_one_bin_share": float(np.mean(np.abs(b) <= 1)), "lower_bin_share": float(np.mean(b < 0)),
+            "median_abs_difference": float(np.median(np.abs(ours - gt)))}
+
+
 def _fit_row(v: dict) -> dict:
     n = len(v["pve"])
     mean = (lambda a: float(np.mean(a)) if n else float("nan"))
@@ -299,10 +339,19 @@ def _sample_positions(ds, sample_frames: int) -> set:
     return {pairs[i] for i in pick}
 
 
-def evaluate(dataset: Path, gt: Path | None, report_dir: Path, sample_frames: int = 3) -> dict:
+def evaluate(dataset: Path, gt: Path | None, report_dir: Path, sample_frames: int = 3,
+             labels: str = "synthetic") -> dict:
     """Evaluate the dataset at ``dataset`` (OUT) against the ground truth under ``gt`` (the raw data
     root holding ``gt/``; None = the ``dataset.root`` recorded in OUT/manifest.json). Writes
-    report.md, results.json and figures/ under ``report_dir``; returns the results dict."""
+    report.md, results.json and figures/ under ``report_dir``; returns the results dict.
+    labels: "synthetic" (the simulator's exact ground truth, gt/) or "coda" (CODa's own 3d_semantic
+    and 3d_bbox labels beside the raw data: flows/commands/evaluate_coda.py)."""
+    if labels == "coda":
+        from flows.commands.evaluate_coda import evaluate_coda
+
+        return evaluate_coda(dataset, gt, report_dir, sample_frames)
+    if labels != "synthetic":
+        raise EvaluateError(f"labels {labels!r}: expected 'synthetic' or 'coda'")
     out = Path(dataset)
     manifest = Manifest.load(out)
     config = manifest.meta.get("config") or {}
@@ -346,6 +395,9 @@ def evaluate(dataset: Path, gt: Path | None, report_dir: Path, sample_frames: in
     if tot.fit:
         allfit = {k: np.concatenate([v[k] for v in tot.fit.values()]) for k in ("pve", "mpjpe", "pa_mpjpe", "mpere")}
         results["fit"] = {**{s: _fit_row(v) for s, v in tot.fit.items()}, "all": _fit_row(allfit)}
+        results["box_heading"] = heading_summary(np.concatenate([v["heading"] for v in tot.fit.values()]))
+        results["box_visibility"] = visibility_agreement(*(np.concatenate([v[k] for v in tot.fit.values()])
+                                                           for k in ("visible", "visible_gt")))
     if tot.velocity:
         results["velocity"] = {**{s: v.as_dict() for s, v in tot.velocity.items()},
                                "all": _sum(tot.velocity.values()).as_dict()}
@@ -358,7 +410,7 @@ def evaluate(dataset: Path, gt: Path | None, report_dir: Path, sample_frames: in
     for key, label in (("PVE_mm", "PVE (mm) per fitted person"), ("MPJPE_mm", "MPJPE (mm) per fitted person")):
         if tot.hist[key]:
             hist[f"fit {key}"] = {"values": np.concatenate(tot.hist[key]), "xlabel": label}
-    from flows.report import to_jsonable, write_report
+    from flows.commands.report import to_jsonable, write_report
 
     write_report(report_dir, results, {"bev": tot.samples, "histograms": hist})
     return to_jsonable(results)
@@ -375,20 +427,3 @@ def _brief(row: dict) -> dict:
     """A per-sequence row: the summary numbers and per-class IoU."""
     return {k: v for k, v in row.items() if k not in ("num_points_ignored",)}
 
-
-def main(argv: list[str] | None = None) -> None:  # pragma: no cover - the CLI calls evaluate()
-    import argparse
-
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--dataset", type=Path, required=True)
-    p.add_argument("--gt", type=Path, default=None)
-    p.add_argument("--report", type=Path, required=True)
-    p.add_argument("--sample-frames", type=int, default=3)
-    a = p.parse_args(argv)
-    res = evaluate(a.dataset, a.gt, a.report, a.sample_frames)
-    print(json.dumps({k: res[k] for k in res if k not in ("meta",)}, indent=1)[:4000])
-    print(f"report: {a.report / 'report.md'}")
-
-
-if __name__ == "__main__":  # pragma: no cover
-    main()

@@ -2,7 +2,7 @@
 
 Two ways to deploy (see infra/README.md):
 
-- ``python -m flows.deploy serve``: ``prefect.serve`` of both flows in this process (one machine;
+- ``mobileocc deploy serve``: ``prefect.serve`` of both flows in this process (one machine;
   the flow runs execute here). Needs ``PREFECT_API_URL`` of a running server.
 - ``prefect deploy --all`` with ``infra/prefect.yaml``: deployments on a work pool, executed by a
   worker (process, Docker or Kubernetes).
@@ -23,16 +23,15 @@ from configs.schema import Config, config_hash
 
 #: deployment names, as ``run_deployment`` takes them ("<flow name>/<deployment name>")
 REBUILD_DEPLOYMENT = "rebuild-dataset/rebuild"
-SEQUENCE_DEPLOYMENT = "process-sequence/sequence"
 
 
 def deployments(tags: tuple[str, ...] = ("mobileocc",)) -> list:
     """RunnerDeployments of ``rebuild_dataset`` ("rebuild") and ``process_sequence`` ("sequence")."""
     from prefect.deployments.runner import EntrypointType
 
-    from flows.pipeline import process_sequence, rebuild_dataset
+    from flows.pipeline.run import process_sequence, rebuild_dataset
 
-    module = EntrypointType.MODULE_PATH  # "flows.pipeline:rebuild_dataset", as in infra/prefect.yaml
+    module = EntrypointType.MODULE_PATH  # "flows.pipeline.run:rebuild_dataset", as in infra/prefect.yaml
     return [
         rebuild_dataset.to_deployment(name="rebuild", tags=list(tags), entrypoint_type=module,
                                       parameters={"progress": False},
@@ -83,18 +82,8 @@ def trigger_rebuild(config: Config, force: bool = False, sequences: list[str] | 
                           idempotency_key=idempotency_key, **kwargs)
 
 
-def trigger_sequence(config: Config, sequence: str, force: bool = False,
-                     idempotency_key: str | None = None, timeout: float | None = 0, **kwargs: Any):
-    """Start (or find) a run of the one-sequence deployment; returns the FlowRun."""
-    from prefect.deployments import run_deployment
-
-    parameters = {"config": config.model_dump(mode="json"), "sequence": str(sequence), "force": force}
-    return run_deployment(SEQUENCE_DEPLOYMENT, parameters=parameters, timeout=timeout,
-                          idempotency_key=idempotency_key, **kwargs)
-
-
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m flows.deploy")
+    parser = argparse.ArgumentParser(prog="mobileocc deploy")
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("serve", help="serve both flows from this process (needs PREFECT_API_URL)")
     sub.add_parser("apply", help="register both deployments without serving them")
@@ -117,7 +106,3 @@ def main(argv: list[str] | None = None) -> int:
         run = trigger_rebuild(cfg, force=args.force, idempotency_key=key)
         print(f"flow run {run.id} ({run.state.name if run.state else 'unknown'}), key {key}")
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -6,10 +6,11 @@ fits them, and prints a paper-style table: full method, without L_3D, without L_
 without the visibility filter, and the initial estimate; plus person-fits per second (full
 method, wall clock of ``fit_persons`` including ICP). No prefect: a plain function / CLI.
 
-    nice .venv/bin/python -m flows.bench_fit --persons 64 --sensors ouster-128
+    nice .venv/bin/mobileocc bench fit --persons 64 --sensors ouster-128
 
 ``--throughput`` measures only speed: person-fits/s of one large batch on ``--device`` (e.g.
-``--device cuda --throughput --persons 1024``) after a warm-up, printed as one JSON line.
+``mobileocc bench fit --device cuda --throughput --persons 1024``) after a warm-up, printed as one
+JSON line.
 """
 
 from __future__ import annotations
@@ -294,7 +295,7 @@ def _print_table(sensor: str, table: dict, persons: int, occluded: int) -> None:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="mobileocc bench fit", description=__doc__.splitlines()[0])
     ap.add_argument("--persons", type=int, default=32)
     ap.add_argument("--sensors", default="ouster-32,ouster-64,ouster-128")
     ap.add_argument("--no-ablations", action="store_true")
@@ -332,6 +333,3 @@ def main(argv=None) -> None:
 
         Path(a.json).write_text(json.dumps({"argv": argv if argv is not None else sys.argv[1:], **results}, indent=1))
 
-
-if __name__ == "__main__":
-    main()

@@ -6,7 +6,7 @@ of the voxel states on the benchmark grid. Ours is timed on one thread and on on
 wall-clock seconds give the speed ratio (what a user waits for; octomap-python is one thread), and
 process CPU seconds are reported beside them (they count less of other load on the machine). ``bench_map_fuse``: static-map accumulation and per-frame fusion in frames per second.
 
-Run: ``.venv/bin/python -m flows.bench_occupancy [--quick]`` (prints JSON).
+Run: ``mobileocc bench occupancy [--quick]`` (prints JSON).
 """
 
 from __future__ import annotations
@@ -116,13 +116,18 @@ def bench_map_fuse(quick: bool = False, voxel_size_m: float = 0.2, map_voxel_siz
     Returns frames per second of each stage (process CPU time), map sizes and the peak RSS of this
     process. Run one resolution per process to read its own peak.
     """
+    import open3d as o3d
+
     from tasks.occupancy.freespace import OccupancyMap
     from tasks.occupancy.fuse import CameraView, PedestrianMesh, fuse_frame
     from tasks.occupancy.grid import GridSpec
     from tasks.occupancy.static_map import StaticSemanticMap, pedestrian_point_mask
-    from tasks.occupancy.synthetic import box_mesh, campus_scene, os1_directions, raycast
-
-    import open3d as o3d
+    from tasks.occupancy.synthetic import (
+        box_mesh,
+        campus_scene,
+        os1_directions,
+        raycast,
+    )
 
     map_vs = voxel_size_m if map_voxel_size_m is None else map_voxel_size_m
     n_frames = 3 if quick else 10
@@ -218,6 +223,3 @@ def main(argv: list[str] | None = None) -> None:
                                                map_voxel_size_m=max(vs, 0.05))
     print(json.dumps(out, indent=2))
 
-
-if __name__ == "__main__":
-    main()

@@ -69,6 +69,12 @@ _HOW_TO_READ = {
                  "(n/a: class in neither grid, left out of the mean), IoU (geom.) = occupied vs free.",
     "fit": "Body fit errors: PVE / MPJPE in mm (lower is better), PA-MPJPE after similarity alignment, "
            "MPERE relative edge-length error (unitless).",
+    "box_heading": "Published pedestrian box yaw of each fitted person matched to a GT person vs the GT heading, "
+                   "degrees (lower is better); axis off 45 share: boxes whose axis is more than 45 deg off "
+                   "modulo 180 (l and w swapped).",
+    "box_visibility": "Visible fraction of each matched fitted person's box in cam0 as the nuScenes export "
+                      "computes it (from the voxel grid) vs the GT visible fraction (mesh silhouette pixels); "
+                      "shares of boxes in the same / a neighbouring nuScenes visibility bin, binned lower.",
     "tracking": "MOTA = 1 - (misses + false positives + id switches) / GT boxes; IDF1 = identity F1; "
                 "HOTA = sqrt(DetA x AssA) averaged over IoU thresholds 0.05..0.95. Higher is better.",
     "velocity": "Absolute velocity error of pedestrian voxels (m/s, lower is better): AVE-O over voxels pedestrian "
@@ -78,7 +84,8 @@ _TITLES = {"static": "Static semantic voxels (vs GT LiDAR points)",
            "pedestrian_boxes": "Pedestrian voxels (vs GT 3D boxes)",
            "pedestrian_lidar": "Pedestrian voxels (vs LiDAR body GT)",
            "detection": "Detection robustness", "occupancy": "Semantic occupancy (Occ3D metric)",
-           "fit": "Body fit accuracy", "tracking": "Tracking", "velocity": "Pedestrian velocity (AVE)"}
+           "fit": "Body fit accuracy", "box_heading": "Pedestrian box heading (vs GT)",
+           "box_visibility": "Pedestrian box visibility (vs GT)", "tracking": "Tracking", "velocity": "Pedestrian velocity (AVE)"}
 _COLUMNS = {
     "pedestrian_boxes": ["precision", "recall", "f1", "pred_total", "ref_total"],
     "pedestrian_lidar": ["precision", "recall", "f1", "pred_total", "ref_total"],

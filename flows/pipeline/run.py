@@ -9,6 +9,7 @@ resumes where it stopped.
 from __future__ import annotations
 
 import contextlib
+import json
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -19,15 +20,24 @@ from prefect.cache_policies import NO_CACHE
 from prefect.futures import PrefectFuture, as_completed
 
 from configs.schema import Config, config_hash
-from flows.plan import STAGES, SequencePlan, UnitPlan, plan_run
+from flows.pipeline.dag import STAGES
+from flows.pipeline.inputs import DatasetExportInputs, Runtime, dataset_export_inputs, inputs_hash, runtime
+from flows.pipeline.plan import SequencePlan, UnitPlan, plan_run
 from flows.stages import STAGE_FUNCTIONS, StageContext
-from storage.manifest import (FileHasher, Manifest, StageRecord, remove_stale_versions, run_lock,
-                              stage_dir, staged_output, sweep_temporaries)
+from storage.manifest import (
+    FileHasher,
+    Manifest,
+    StageRecord,
+    remove_stale_versions,
+    run_lock,
+    stage_dir,
+    staged_output,
+    sweep_temporaries,
+)
 
-import json
 
-
-def execute_unit(config: Config, unit: UnitPlan, out_root: Path, upstream: dict[str, dict]) -> dict:
+def execute_unit(unit: UnitPlan, out_root: Path, upstream: dict[str, dict],
+                 fingerprint: str = "", runtime: Runtime = Runtime()) -> dict:
     """Run one (sequence, stage): returns an outcome dict; never raises for a stage error."""
     base = {"sequence": unit.sequence, "stage": unit.stage, "key": unit.key, "parts": unit.parts}
     blocked = [s for s, o in upstream.items() if o["status"] not in ("done", "cached")]
@@ -41,9 +51,9 @@ def execute_unit(config: Config, unit: UnitPlan, out_root: Path, upstream: dict[
     started = time.perf_counter()
     try:
         with staged_output(final) as tmp:
-            ctx = StageContext(config, unit.sequence, Path(out_root), tmp,
+            ctx = StageContext(unit.ref, unit.inputs, Path(out_root), tmp,
                                {s: Path(out_root) / o["location"] for s, o in upstream.items()},
-                               key=unit.key)
+                               key=unit.key, fingerprint=fingerprint, runtime=runtime)
             summary = STAGE_FUNCTIONS[unit.stage](ctx)
             (tmp / "summary.json").write_text(json.dumps(summary, sort_keys=True, indent=1))
     except Exception as exc:  # noqa: BLE001 - one bad sequence fails alone, with its error
@@ -55,8 +65,9 @@ def execute_unit(config: Config, unit: UnitPlan, out_root: Path, upstream: dict[
 
 
 @task(name="stage", cache_policy=NO_CACHE, task_run_name="{unit.stage}-{unit.sequence}")
-def stage_task(config: Config, unit: UnitPlan, out_root: Path, upstream: dict[str, dict]) -> dict:
-    return execute_unit(config, unit, out_root, upstream)
+def stage_task(unit: UnitPlan, out_root: Path, upstream: dict[str, dict], fingerprint: str,
+               runtime: Runtime) -> dict:
+    return execute_unit(unit, out_root, upstream, fingerprint, runtime)
 
 
 @dataclass
@@ -65,6 +76,8 @@ class RunReport:
     plans: list[SequencePlan]
     outcomes: dict[tuple[str, str], dict] = field(default_factory=dict)
     seconds: float = 0.0
+    #: format -> "done" or "failed: <error>" for the dataset-level exports made in this run
+    dataset_exports: dict[str, str] = field(default_factory=dict)
 
     @property
     def failed(self) -> list[dict]:
@@ -138,7 +151,8 @@ def run_units(config: Config, force: bool = False, sequences: list[str] | None =
                     mine[stage] = outcome
                     continue
                 with _gpu_annotation(config, stage):
-                    fut = stage_task.submit(config, unit, out_root, {u: mine[u] for u in upstream})
+                    fut = stage_task.submit(unit, out_root, {u: mine[u] for u in upstream}, plan.fingerprint,
+                                            runtime(config))
                 futures.append(fut)
                 mine[stage] = fut
         bars = _progress_bars(report, futures, progress)
@@ -150,8 +164,30 @@ def run_units(config: Config, force: bool = False, sequences: list[str] | None =
                 bars[outcome["stage"]].update(1)
         for bar in (bars or {}).values():
             bar.close()
+        _dataset_exports(config, manifest, report)
     report.seconds = time.perf_counter() - started
     return report
+
+
+def _dataset_exports(config: Config, manifest: Manifest, report: RunReport) -> None:
+    """The Occ3D / nuScenes exports of the whole dataset (``export.formats``), made again when a
+    sequence was (re)published or their settings changed. A failure is reported, not raised: the
+    sequences are published."""
+    ex = dataset_export_inputs(config)
+    published = any(st == "export" and o["status"] == "done" and o.get("ran", True)
+                    for (_, st), o in report.outcomes.items())
+    key, done = inputs_hash(ex), manifest.meta.setdefault("dataset_exports", {})
+    for fmt in ex.formats:
+        if not (published or done.get(fmt) != key):
+            continue
+        try:
+            export_dataset(ex, Path(config.output.root), Path(config.dataset.root), fmt)
+            done[fmt] = key
+            report.dataset_exports[fmt] = "done"
+        except Exception as exc:  # noqa: BLE001 - the sequences stay published
+            done.pop(fmt, None)
+            report.dataset_exports[fmt] = f"failed: {type(exc).__name__}: {exc}"
+    manifest.save()
 
 
 def _progress_bars(report: RunReport, futures: list, progress: bool):
@@ -164,19 +200,23 @@ def _progress_bars(report: RunReport, futures: list, progress: bool):
             for i, s in enumerate(STAGES)}
 
 
-def export_dataset(config: Config, fmt: str, target: Path | None = None) -> Path:
-    """Export the published dataset (every sequence) for occupancy trainers."""
+def export_dataset(ex: DatasetExportInputs, out_root: Path, data_root: Path, fmt: str,
+                   target: Path | None = None, gt: bool = False) -> Path:
+    """Export the published dataset (every sequence) for occupancy trainers; ``gt``: Occ3D labels
+    from the synthetic ground truth under ``data_root`` instead of the pipeline's."""
     from storage.export.nuscenes import export_nuscenes
     from storage.export.occ3d import export_occ3d
 
-    out = Path(config.output.root)
-    target = Path(target) if target is not None else out / "exports" / fmt
-    ex = config.export
+    target = Path(target) if target is not None else Path(out_root) / "exports" / fmt
+    if gt and fmt != "occ3d":
+        raise ValueError(f"--gt exports Occ3D labels; it does not apply to --format {fmt}")
     if fmt == "occ3d":
-        export_occ3d(out, target, scene_prefix=ex.scene_prefix, val_sequences=tuple(ex.val_sequences))
+        export_occ3d(out_root, target, scene_prefix=ex.scene_prefix, val_sequences=ex.val_sequences,
+                     gt_root=Path(data_root) if gt else None)
     else:
-        export_nuscenes(out, target, version=ex.nuscenes_version, scene_prefix=ex.scene_prefix,
-                        source_root=Path(config.dataset.root), min_range_m=config.dataset.min_range_m)
+        export_nuscenes(out_root, target, version=ex.nuscenes_version, scene_prefix=ex.scene_prefix,
+                        source_root=Path(data_root), min_range_m=ex.min_range_m, val_sequences=ex.val_sequences,
+                        **({"infos_data_root": ex.infos_data_root} if ex.infos_data_root else {}))
     return target
 
 
@@ -189,20 +229,16 @@ def _run_units_flow(config: Config, force: bool, sequences: list[str] | None, pr
 def rebuild_dataset(config: Config, force: bool = False, sequences: list[str] | None = None,
                     progress: bool = True) -> RunReport:
     """Every selected sequence through detect -> track -> fit / map -> fuse -> export, then the
-    dataset-level exports of ``export.formats`` when any sequence was (re)published.
+    dataset-level exports of ``export.formats`` when any sequence was (re)published or their
+    settings changed.
 
     The units run in a subflow on the task runner ``config.dask`` asks for (threads, a Dask
     LocalCluster, or ``dask.address``), however this flow was started (CLI, deployment, test).
     """
-    from flows.runtime import task_runner
+    from flows.pipeline.runtime import task_runner
 
     inner = _run_units_flow.with_options(task_runner=task_runner(config))
-    report = inner(config, force, sequences, progress)
-    published = [o for (s, st), o in report.outcomes.items() if st == "export" and o["status"] == "done"]
-    if published:  # the sequences that failed stay out; the others are exported
-        for fmt in config.export.formats:
-            export_dataset(config, fmt)
-    return report
+    return inner(config, force, sequences, progress)
 
 
 @flow(name="process-sequence", log_prints=True)
@@ -233,4 +269,7 @@ def summary_table(report: RunReport) -> str:
         lines.append(f"not implemented yet (placeholders): {', '.join(not_impl)}")
     for o in report.failed:
         lines.append(f"FAILED {o['sequence']}/{o['stage']}: {o['error']}")
+    for fmt, state in sorted(report.dataset_exports.items()):
+        lines.append(f"{fmt} export: {state}")
+    lines += [f"WARNING {p.sequence}: {w}" for p in report.plans for w in p.warnings]
     return "\n".join(lines)

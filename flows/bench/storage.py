@@ -17,8 +17,16 @@ from pathlib import Path
 import numpy as np
 
 from storage import occupancy_store as occ
-from storage import tables
-from tasks.conventions import CAR, FREE, OTHER_STRUCTURE, PEDESTRIAN, POLE, ROAD, TERRAIN
+from storage import publish as pub
+from tasks.conventions import (
+    CAR,
+    FREE,
+    OTHER_STRUCTURE,
+    PEDESTRIAN,
+    POLE,
+    ROAD,
+    TERRAIN,
+)
 
 RANGE_MIN = np.array([0.4, -4.8, -1.0])
 RANGE_MAX = np.array([10.0, 4.8, 3.8])
@@ -115,13 +123,14 @@ def _bench_grid(work: Path, voxel_size_m: float, n: int, fpc: int, repeats: int,
 
 
 def _bench_export(work: Path, n: int) -> dict:
-    from storage.export import export_nuscenes, export_occ3d
     from PIL import Image
+
+    from storage.export import export_nuscenes, export_occ3d
 
     root = work / "ds"
     frames = synthetic_frames(n, 0.2)
     eye = np.eye(4)
-    with occ.sequence_writer(root, "s0", "k") as staged:
+    with pub.sequence_writer(root, "s0", "k") as staged:
         layout = occ.create_store(staged.store_path, n, frames["semantics"].shape[1:], 50, {"voxel_size_m": 0.2})
         for start, stop in layout.write_units():
             occ.write_frames(staged.store_path, start, {k: v[start:stop] for k, v in frames.items()})
@@ -135,10 +144,10 @@ def _bench_export(work: Path, n: int) -> dict:
             rows.append({"frame": f, "raw_frame": 2 * f, "stamp_ns": 10**18 + f * 2 * 10**8,
                          "T_world_from_lidar": eye.ravel(), "T_world_from_base": eye.ravel(),
                          "lidar_path": f"src/{f}.bin", "cam0_path": f"src/{f}.png"})
-        tables.stage_table(staged, "frames", rows)
-        tables.stage_table(staged, "instances", [{"track_id": 1, "frame": f, "box3d_center": [3, 0, 0.9],
+        pub.stage_table(staged, "frames", rows)
+        pub.stage_table(staged, "instances", [{"track_id": 1, "frame": f, "box3d_center": [3, 0, 0.9],
                            "box3d_size": [0.6, 0.5, 1.8], "box3d_yaw": 0.0} for f in range(n)])
-        tables.stage_table(staged, "sequences", [{"fingerprint": "x", "config_hash": "c", "code_version": "0",
+        pub.stage_table(staged, "sequences", [{"fingerprint": "x", "config_hash": "c", "code_version": "0",
                            "status": "ok", "num_frames": n, "K": np.eye(3).ravel(), "T_cam0_from_lidar": eye.ravel(),
                            "T_base_from_lidar": eye.ravel(), "image_width": 1224, "image_height": 1024}])
     t0 = time.perf_counter()

@@ -1,7 +1,7 @@
 """Where flows run: the Prefect API they report to and the task runner (threads or Dask).
 
 Without ``PREFECT_API_URL`` Prefect starts a temporary server per process, and Dask worker
-processes would each start their own (../shared/reference/orchestration.md). So when no API is
+processes would each start their own (measured with prefect 3.8). So when no API is
 configured we start one temporary server here and export its address, which the Dask worker
 processes inherit.
 """

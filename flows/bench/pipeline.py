@@ -1,7 +1,7 @@
 """``mobileocc bench``: what a (re)build costs on this machine, measured in one run.
 
-``bench(quick, json_path, workers)`` makes a small synthetic dataset (flows/simulate.py), runs the
-six stages through ``flows.pipeline.execute_unit`` without Prefect (``run_local``) and times each
+``bench(quick, json_path, workers)`` makes a small synthetic dataset (flows/commands/simulate.py), runs the
+six stages through ``flows.pipeline.run.execute_unit`` without Prefect (``run_local``) and times each
 stage, then calls the other benchmark functions of the project in the same run:
 
 - frames/s per stage and end to end (simulation excluded), at 0.2 m and, for fuse, at 0.05 m;
@@ -9,13 +9,13 @@ stage, then calls the other benchmark functions of the project in the same run:
   stage run (stage runs each in their own process, so a peak is that stage's own, not the parent's);
   the fan-out figures also report ``RUSAGE_CHILDREN`` of the Dask worker processes' parent;
 - person-fits/s of the fit stage (CPU; and CUDA when ``torch.cuda.is_available()``);
-- free-space insertion vs octomap-python (flows/bench_occupancy.py ``bench_freespace``);
-- store throughput vs raw numpy writes (flows/bench_storage.py ``bench_store``);
+- free-space insertion vs octomap-python (flows/bench/occupancy.py ``bench_freespace``);
+- store throughput vs raw numpy writes (flows/bench/storage.py ``bench_store``);
 - the fuse stage's frame fan-out on a Dask LocalCluster with 1 vs ``workers`` worker processes
   (same frames, same output), speed-up computed here.
 
 Ratios are computed inside the run. CPU counts, model name, memory and library versions go in the
-JSON's ``machine``. Run: ``.venv/bin/python -m flows.bench [--quick] [--json FILE]``.
+JSON's ``machine``. Run: ``mobileocc bench [--quick] [--json FILE]``.
 """
 
 from __future__ import annotations
@@ -25,7 +25,6 @@ import os
 import platform
 import resource
 import shutil
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -49,8 +48,10 @@ def run_local(config, stages=STAGE_ORDER, sequences: list[str] | None = None) ->
     are absent upstream (fuse with ``body_source: ground-truth`` needs no fit). Returns
     {(sequence, stage): outcome} with ``seconds`` per unit; raises on a failed unit."""
     from configs.schema import config_hash
-    from flows.pipeline import _record, execute_unit
-    from flows.plan import STAGES, plan_run
+    from flows.pipeline.dag import STAGES
+    from flows.pipeline.inputs import runtime
+    from flows.pipeline.plan import plan_run
+    from flows.pipeline.run import _record, execute_unit
     from storage.manifest import FileHasher, Manifest
 
     out = Path(config.output.root)
@@ -66,7 +67,7 @@ def run_local(config, stages=STAGE_ORDER, sequences: list[str] | None = None) ->
             if stage not in stages:
                 continue
             ups = {u: done[u] for u in STAGES[stage] if u in done}
-            outcome = execute_unit(config, plan.units[stage], out, ups)
+            outcome = execute_unit(plan.units[stage], out, ups, plan.fingerprint, runtime(config))
             _record(manifest, outcome)
             if outcome["status"] != "done":
                 raise RuntimeError(f"sequence {plan.sequence} stage {stage} {outcome['status']}: "
@@ -147,11 +148,13 @@ def _fuse_fanout(data_root: str, out_root: str, overrides: dict, n_workers: int)
     """The fuse stage with its frame chunks on a LocalCluster of ``n_workers`` processes."""
     from distributed import Client, LocalCluster
 
+    from flows.pipeline.inputs import fuse_inputs, sequence_ref
     from flows.stages.common import StageContext
     from flows.stages.fuse import run_fuse
     from storage.manifest import Manifest
 
     cfg = make_config(Path(data_root), Path(out_root), overrides)
+    inputs = fuse_inputs(cfg)
     man = Manifest.load(Path(out_root))
     seq = cfg.dataset.sequences[0] if isinstance(cfg.dataset.sequences, list) else "0"
     ups = {s: Path(out_root) / man.get(seq, s).location for s in ("map",)}
@@ -160,7 +163,7 @@ def _fuse_fanout(data_root: str, out_root: str, overrides: dict, n_workers: int)
         def unit():
             work = Path(tempfile.mkdtemp(dir=out_root))
             try:
-                run_fuse(StageContext(cfg, seq, Path(out_root), work, ups, key="bench"))
+                run_fuse(StageContext(sequence_ref(cfg, seq), inputs, Path(out_root), work, ups, key="bench"))
             finally:
                 shutil.rmtree(work, ignore_errors=True)
         client.run(lambda: __import__("flows.stages.fuse"))  # imports on every worker, outside the timing
@@ -175,20 +178,21 @@ def _fit_rate(data_root: str, out_root: str, overrides: dict, device: str) -> di
     """Person-fits/s of the fit kernel on the track product's rows (one batch, after a warm-up)."""
     import numpy as np
 
+    from flows.pipeline.inputs import fit_inputs, sequence_ref
     from flows.stages.fit import fit_batch
-    from storage.intermediate import read_product
     from storage.manifest import Manifest
+    from storage.products import Tracks
 
     cfg = make_config(Path(data_root), Path(out_root), {**overrides, "fit.device": device})
-    man = Manifest.load(Path(out_root))
-    seq = "0"
-    tracks = read_product(Path(out_root) / man.get(seq, "track").location, "tracks")
-    rows = np.flatnonzero(tracks["gt_index"] >= 0).tolist()
+    inputs, man, seq = fit_inputs(cfg), Manifest.load(Path(out_root)), "0"
+    tracks_dir = Path(out_root) / man.get(seq, "track").location
+    rows = np.flatnonzero(Tracks.read(tracks_dir).gt_index >= 0).tolist()
     if not rows:
         return {"device": device, "persons": 0, "note": "no tracked person to fit"}
-    fit_batch(cfg, seq, rows[:1], tracks)  # warm-up
+    args = (sequence_ref(cfg, seq), inputs, Path(out_root), tracks_dir)
+    fit_batch(*args, rows[:1])  # warm-up
     t0 = time.perf_counter()
-    fit_batch(cfg, seq, rows, tracks)
+    fit_batch(*args, rows)
     wall = time.perf_counter() - t0
     return {"device": device, "persons": len(rows), "iterations": cfg.fit.iterations, "wall_s": wall,
             "fits_per_s": len(rows) / wall, "peak_rss_mb": _peak_rss_mb()}
@@ -199,9 +203,9 @@ def bench(quick: bool, json_path: Path | None, workers: int = 2, work_dir: Path 
     ``quick``: 1 sequence of 12 raw frames (6 at 5 Hz), few fit iterations; else 1 x 40 frames."""
     import torch
 
-    from flows.bench_occupancy import bench_freespace
-    from flows.bench_storage import bench_store
-    from flows.simulate import simulate
+    from flows.bench.occupancy import bench_freespace
+    from flows.bench.storage import bench_store
+    from flows.commands.simulate import simulate
 
     raw_frames = 12 if quick else 40
     fit_iters = 30 if quick else 150
@@ -260,7 +264,7 @@ def bench(quick: bool, json_path: Path | None, workers: int = 2, work_dir: Path 
     result["bench_wall_s"] = time.perf_counter() - started
     print(format_table(result))
     if json_path is not None:
-        from flows.report import to_jsonable
+        from flows.commands.report import to_jsonable
 
         Path(json_path).parent.mkdir(parents=True, exist_ok=True)
         Path(json_path).write_text(json.dumps(to_jsonable(result), indent=1) + "\n")
@@ -308,13 +312,10 @@ def format_table(r: dict) -> str:
 def main(argv: list[str] | None = None) -> None:  # pragma: no cover - the CLI calls bench()
     import argparse
 
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="mobileocc bench", description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true")
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--workers", type=int, default=2)
     a = p.parse_args(argv)
     bench(a.quick, a.json, a.workers)
 
-
-if __name__ == "__main__":  # pragma: no cover
-    main(sys.argv[1:])

@@ -15,8 +15,8 @@ scheduler: the flow connects to it with ``dask.address``.
 The ``render_*`` functions are pure: they need neither SLURM nor a Kubernetes API, and tests call
 them. ``build_cluster`` starts real resources.
 
-    python -m flows.clusters render infra/slurm.yaml        # the job script of each pool
-    python -m flows.clusters render infra/kubernetes.yaml   # the resources, for kubectl apply -f -
+    mobileocc cluster render infra/slurm.yaml        # the job script of each pool
+    mobileocc cluster render infra/kubernetes.yaml   # the resources, for kubectl apply -f -
 """
 
 from __future__ import annotations
@@ -343,7 +343,7 @@ def _build_kubernetes(spec: ClusterSpec) -> ClusterHandle:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m flows.clusters")
+    parser = argparse.ArgumentParser(prog="mobileocc cluster")
     sub = parser.add_subparsers(dest="command", required=True)
     r = sub.add_parser("render", help="print the SLURM job scripts or the Kubernetes resources")
     r.add_argument("spec", type=Path)
@@ -365,6 +365,3 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     return 0
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())

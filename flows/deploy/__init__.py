@@ -1,0 +1,1 @@
+"""Deployment: Prefect deployments and triggers (``prefect``), Dask cluster specs (``clusters``)."""

@@ -1,0 +1,34 @@
+"""The DAG of a sequence's stages and their code versions."""
+
+from __future__ import annotations
+
+#: stage -> upstream stages (DESIGN.md). Order is a topological order.
+STAGES: dict[str, tuple[str, ...]] = {
+    "detect": (),
+    "track": ("detect",),
+    "fit": ("track",),
+    "map": ("detect",),
+    "fuse": ("fit", "map"),
+    "export": ("fuse", "track", "fit"),  # tables take tracks and body fits too
+}
+
+#: Explicit code versions: bump a stage's version when its output for the same input changes.
+#: (A key from code versions, not from source hashes: refactors do not invalidate datasets.)
+CODE_VERSIONS: dict[str, str] = {
+    "detect": "2",  # 2: the oracle's miss curve calibrated on the paper's detection table
+    "track": "5",  # 2: offline back-fill and stitching; 3: world-position check; 4: person points past the
+    #               image side; 5: 2d_rect cameras read as the rectified pinhole (real CODa calibration)
+    "fit": "4",  # 2: L_3D caps the vertex -> point distances (fit.chamfer_vertex_max_m); 100 iterations;
+    #             3: detections with fewer than fit.min_points LiDAR points are not fitted, fits
+    #                that moved more than fit.max_shift_m from their estimate are dropped;
+    #             4: bodies carry chamfer_m and reproj_px (typed products); the rectified camera
+    "map": "3",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path;
+    #             3: 2d_rect cameras read as the rectified pinhole (real CODa calibration)
+    "fuse": "2",  # 2: mask_camera is inside mask_lidar (Occ3D); class_counts among voxels with
+    #               mask_lidar = 1 (as documented); store attrs carry the stage key, not a config hash;
+    #               the rectified camera
+    "export": "3",  # 2: instances carry the fitted bodies, 3D boxes and velocities; 3: source paths
+    #                 relative to the dataset root, box yaw from the body's forward axis, no NaN
+    #                 velocity, chamfer_m / reproj_px written, config_hash of the stage inputs; the
+    #                 rectified camera's K and T in the sequences table
+}

@@ -1,0 +1,337 @@
+"""Stage inputs: everything a stage reads from the config, and so everything its cache key covers.
+
+One frozen object per stage, made from the resolved config by one function per stage (the
+``INPUTS`` table). A stage function receives its inputs object, its upstream products and where
+the sequence lives, never the config, so it cannot depend on a setting its key does not cover:
+
+    key(sequence, stage) = H(stage, code version, canonical JSON of the inputs object,
+                             fingerprint of the input files (detect) / upstream keys (the others))
+
+Settings in no stage's inputs change no output byte: where the data and the output store live,
+which sequences are selected, how many workers run (``RUNTIME_KEYS``). Where a provider is chosen
+by name, the inputs hold only the chosen provider's settings (changing the oracle's noise does not
+rerun a detect stage that reads precomputed files).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from configs.schema import Config
+from flows.pipeline.dag import CODE_VERSIONS, STAGES
+from storage.coda import CodaSequence
+from tasks.conventions import CLASS_NAMES
+from tasks.fit.losses import FitWeights
+from tasks.fit.settings import FitSettings
+from tasks.occupancy.grid import GridSpec
+from tasks.occupancy.settings import FreeSpaceParams, FuseSettings, MapParams
+from tasks.perception.lidar_clusters import LidarClusterParams
+from tasks.perception.oracle import OracleNoise
+from tasks.perception.person_points import PersonPointParams
+from tasks.track.ocsort import TrackerParams
+from tasks.track.offline import OfflineParams, WorldCheck
+
+#: config keys that only say where things are or how many workers run (no stage reads them)
+RUNTIME_KEYS = ("dataset.root", "dataset.sequences", "output.root", "dask")
+#: config keys about one sequence each: in its fingerprint (SequenceRef), not in stage inputs
+PER_SEQUENCE_KEYS = ("dataset.lighting",)
+
+
+def to_jsonable(value: Any) -> Any:
+    """Plain JSON of an inputs object: dataclasses (tagged with their type, so two providers with
+    the same fields differ), pydantic models, tuples, paths."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {"type": type(value).__name__,
+                **{f.name: to_jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}}
+    if hasattr(value, "model_dump"):
+        return value.model_dump(mode="json")
+    if isinstance(value, dict):
+        return {str(k): to_jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [to_jsonable(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def inputs_hash(inputs: Any) -> str:
+    """sha256 (first 16 hex) of the canonical JSON of an inputs object."""
+    blob = json.dumps(to_jsonable(inputs), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+# ---- what every stage reads: the sequence ----------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SequenceRef:
+    """One sequence: where it lives and what the config says about it alone (its entry in
+    ``dataset.lighting``). In no stage's inputs: the plan folds the lighting into the sequence's
+    fingerprint, so changing one sequence's lighting reruns that sequence only."""
+
+    root: Path
+    sequence: str
+    lighting: str | None = None
+
+    def fingerprint(self, files_fingerprint: str) -> str:
+        if self.lighting is None:
+            return files_fingerprint
+        return hashlib.sha256(f"{files_fingerprint}/lighting={self.lighting}".encode()).hexdigest()[:32]
+
+
+def sequence_ref(config: Config, sequence: str) -> SequenceRef:
+    return SequenceRef(Path(config.dataset.root), str(sequence), config.dataset.lighting.get(str(sequence)))
+
+
+def open_sequence(config: Config, sequence: str) -> CodaSequence:
+    """The reader of one sequence as the config says to read it (for commands; stages get their
+    :class:`Source` and :class:`SequenceRef`)."""
+    return source(config).open(sequence_ref(config, sequence))
+
+
+@dataclass(frozen=True)
+class Source:
+    """How a sequence's raw files are read (the dataset root is not part of it: the input
+    fingerprint covers the files' content wherever they are)."""
+
+    lidar_source: str
+    image_source: str
+    camera: str
+    frame_stride: int
+    min_range_m: float
+    max_range_m: float
+    #: which raw frames a sequence has: those with a sweep file, or those the metadata lists
+    frames: str
+    #: LiDAR height above the ground where calib_os1_to_base.yaml is missing
+    lidar_height_m: float
+
+    def open(self, ref: SequenceRef) -> CodaSequence:
+        """The sequence ``ref``, read this way."""
+        return CodaSequence(ref.root, ref.sequence, frame_stride=self.frame_stride,
+                            lidar_source=self.lidar_source, image_source=self.image_source,
+                            min_range_m=self.min_range_m, max_range_m=self.max_range_m,
+                            frames=self.frames, lighting=ref.lighting, lidar_height_m=self.lidar_height_m)
+
+
+@dataclass(frozen=True)
+class Runtime:
+    """How a stage runs, not what it computes (in no key): GPU routing, thread counts."""
+
+    #: route the fit's batches to workers started with ``--resources GPU=1``
+    gpu_fit: bool = False
+
+
+def runtime(config: Config) -> Runtime:
+    return Runtime(gpu_fit=config.dask.gpu_fit)
+
+
+def source(config: Config) -> Source:
+    ds = config.dataset
+    return Source(ds.lidar_source, ds.image_source, ds.camera, ds.frame_stride, ds.min_range_m,
+                  ds.max_range_m, ds.frames, ds.lidar_height_m)
+
+
+# ---- providers, each with only its own settings ---------------------------------------------------
+
+
+@dataclass(frozen=True)
+class OracleProvider:
+    """Detections from the synthetic ground truth with the oracle's noise model."""
+
+    noise: OracleNoise
+    seed: int
+
+
+@dataclass(frozen=True)
+class PrecomputedProvider:
+    """Model outputs read from files (storage/PERCEPTION_FORMAT.md) under ``directory``."""
+
+    directory: str
+
+
+@dataclass(frozen=True)
+class LidarClustersProvider:
+    """The weight-free LiDAR pedestrian detector."""
+
+    params: LidarClusterParams
+
+
+@dataclass(frozen=True)
+class OracleInitProvider:
+    """Initial body estimates from the synthetic ground truth, perturbed like a monocular
+    regressor (tasks.fit.init_oracle)."""
+
+    seed: int
+
+
+@dataclass(frozen=True)
+class NoProvider:
+    """No detections of this kind."""
+
+
+@dataclass(frozen=True)
+class BodyModelFiles:
+    """The body model and pose prior: the user's official files, or (None) our procedural
+    stand-ins in the same formats (made once per output store)."""
+
+    body_model_path: str | None
+    pose_prior_path: str | None
+
+
+# ---- the stages ------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class DetectInputs:
+    source: Source
+    image: OracleProvider | PrecomputedProvider
+    lidar: LidarClustersProvider | OracleProvider | PrecomputedProvider | NoProvider
+
+
+@dataclass(frozen=True)
+class TrackInputs:
+    source: Source
+    tracker: TrackerParams
+    offline: OfflineParams
+    world_check: WorldCheck
+    person_points: PersonPointParams
+
+
+@dataclass(frozen=True)
+class FitInputs:
+    source: Source
+    #: initial estimates: the oracle (perturbed ground truth) or precomputed CLIFF files
+    init: OracleInitProvider | PrecomputedProvider
+    body: BodyModelFiles
+    #: the loss weights of the chosen preset (its name, and the weights resolved)
+    preset: str
+    weights: FitWeights
+    settings: FitSettings
+
+
+@dataclass(frozen=True)
+class MapInputs:
+    source: Source
+    #: Cityscapes train id -> our class id, sorted pairs
+    class_lut: tuple[tuple[int, int], ...]
+    #: ground classes as class ids
+    ground_class_ids: tuple[int, ...]
+    settings: MapParams
+    freespace: FreeSpaceParams
+    #: LiDAR boxes confirmed by an image detection at this IoU remove points in the camera view
+    assoc_min_iou: float
+
+
+@dataclass(frozen=True)
+class FuseInputs:
+    source: Source
+    grid: GridSpec
+    body_source: str
+    #: ground-truth bodies: people with fewer LiDAR returns are not fused
+    gt_min_points: int
+    fusion: FuseSettings
+    frames_per_chunk: int
+    #: the occupancy map's sensor model (its state queries need the threshold)
+    freespace: FreeSpaceParams
+    body: BodyModelFiles
+
+
+@dataclass(frozen=True)
+class ExportInputs:
+    source: Source
+    body: BodyModelFiles
+    #: what the published bytes were made from: a hash of every stage's inputs and code version
+    #: (written as the sequences table's ``config_hash``)
+    content_hash: str
+    code_version: str
+
+
+@dataclass(frozen=True)
+class DatasetExportInputs:
+    """The dataset-level exports (Occ3D / nuScenes) made after every sequence is published."""
+
+    formats: tuple[str, ...]
+    nuscenes_version: str
+    scene_prefix: str
+    val_sequences: tuple[str, ...]
+    min_range_m: float
+    infos_data_root: str | None
+
+
+def _provider(name: str, config: Config, seed: int) -> Any:
+    det = config.detect
+    if name == "oracle":
+        return OracleProvider(det.oracle.to(OracleNoise), seed)
+    if name == "precomputed":
+        return PrecomputedProvider(str(det.precomputed_dir))
+    if name == "lidar-clusters":
+        return LidarClustersProvider(det.lidar_clusters.to(LidarClusterParams))
+    if name == "none":
+        return NoProvider()
+    raise ValueError(f"unknown provider {name!r}")  # the schema's Literal types prevent this
+
+
+def _body(config: Config) -> BodyModelFiles:
+    f = config.fit
+    return BodyModelFiles(None if f.body_model_path is None else str(f.body_model_path),
+                          None if f.pose_prior_path is None else str(f.pose_prior_path))
+
+
+def detect_inputs(config: Config) -> DetectInputs:
+    det = config.detect
+    return DetectInputs(source(config), _provider(det.image_provider, config, det.seed),
+                        _provider(det.lidar_provider, config, det.seed))
+
+
+def track_inputs(config: Config) -> TrackInputs:
+    t = config.track
+    return TrackInputs(source(config), t.to(TrackerParams), t.to(OfflineParams), t.world_check.to(WorldCheck),
+                       t.person_points.to(PersonPointParams))
+
+
+def fit_inputs(config: Config) -> FitInputs:
+    f = config.fit
+    init = (OracleInitProvider(f.seed) if f.init_provider == "oracle"
+            else PrecomputedProvider(str(f.init_dir)))
+    return FitInputs(source(config), init, _body(config), f.preset, f.weights, f.to(FitSettings))
+
+
+def map_inputs(config: Config) -> MapInputs:
+    m = config.map
+    lut = tuple(sorted((int(k), CLASS_NAMES.index(v)) for k, v in m.cityscapes_to_class.items()))
+    return MapInputs(source(config), lut, tuple(CLASS_NAMES.index(c) for c in m.ground_classes),
+                     m.to(MapParams), m.freespace.to(FreeSpaceParams), config.track.person_points.assoc_min_iou)
+
+
+def fuse_inputs(config: Config) -> FuseInputs:
+    fu = config.fuse
+    return FuseInputs(source(config), fu.grid.spec(), fu.body_source, fu.gt_min_points, fu.to(FuseSettings),
+                      config.output.frames_per_chunk,
+                      config.map.freespace.to(FreeSpaceParams), _body(config))
+
+
+def export_inputs(config: Config) -> ExportInputs:
+    upstream = {stage: INPUTS[stage](config) for stage in STAGES if stage != "export"}
+    return ExportInputs(source(config), _body(config), inputs_hash([upstream, CODE_VERSIONS]),
+                        CODE_VERSIONS["export"])
+
+
+def dataset_export_inputs(config: Config) -> DatasetExportInputs:
+    ex = config.export
+    return DatasetExportInputs(tuple(ex.formats), ex.nuscenes_version, ex.scene_prefix,
+                               tuple(ex.val_sequences), config.dataset.min_range_m, ex.infos_data_root)
+
+
+#: stage -> the function making its inputs object
+INPUTS = {"detect": detect_inputs, "track": track_inputs, "fit": fit_inputs, "map": map_inputs,
+          "fuse": fuse_inputs, "export": export_inputs}
+
+
+def stage_inputs(config: Config) -> dict[str, Any]:
+    """Every stage's inputs object."""
+    return {stage: make(config) for stage, make in INPUTS.items()}

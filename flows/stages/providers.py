@@ -1,0 +1,163 @@
+"""Providers: objects built from a stage's inputs, one class per kind of model output.
+
+Perception (detect): a provider answers for one sequence, frame by frame: ``image(frame)`` gives the
+frame's 2D perception (and, for the oracle, which ground-truth person each detection is),
+``lidar(frame)`` its LiDAR pedestrian boxes; ``frame`` is the reader's :class:`storage.model.Frame`.
+Initial body estimates (fit): ``available(tracks)`` says which rows of the track product have an
+estimate, ``estimates(tracks, rows)`` gives them (cam frame).
+
+A new model adapter is a new spec class in flows/pipeline/inputs.py (its settings, hence its cache
+key) and a new provider class here, registered in the table of its kind.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from flows.pipeline.inputs import (LidarClustersProvider, NoProvider, OracleInitProvider,
+                                   OracleProvider, PrecomputedProvider)
+from flows.stages.common import frame_rng, is_night
+from storage.cliff_files import cliff_path, read_cliff_estimates
+from storage.coda import CodaSequence
+from storage.gt import read_frame_gt
+from storage.model import Frame
+from storage.perception_files import PrecomputedPerception
+from storage.products import Tracks
+from tasks.fit.init_oracle import BodyParams, cliff_to_params, oracle_initial_estimate
+from tasks.fit.reframe import reframe_params
+from tasks.perception.lidar_clusters import detect_pedestrians_lidar
+from tasks.perception.oracle import oracle_image_perception, oracle_lidar_detections
+from tasks.perception.types import ImagePerception, LidarDetections
+
+
+class ImageProvider(Protocol):
+    def image(self, frame: Frame) -> tuple[ImagePerception, np.ndarray | None]:
+        """The frame's 2D perception, and (D,) int64 ground-truth rows (oracle) or None."""
+
+
+class LidarProvider(Protocol):
+    def lidar(self, frame: Frame) -> LidarDetections: ...
+
+
+class OracleImage:
+    """Ground truth + the oracle's noise model (synthetic data only)."""
+
+    def __init__(self, spec: OracleProvider, seq: CodaSequence):
+        self.spec, self.seq, self.night = spec, seq, is_night(seq)
+
+    def image(self, frame: Frame) -> tuple[ImagePerception, np.ndarray]:
+        gt = read_frame_gt(self.seq.root, int(self.seq.sequence), frame.index)
+        rng = frame_rng(self.spec.seed, self.seq.sequence, frame.index, 1)
+        return oracle_image_perception(
+            gt.box2d, gt.keypoints, gt.visible_fraction, np.linalg.norm(gt.box_center, axis=1),
+            gt.track_id, gt.cam0_instance, gt.cam0_semantic, rng, night=self.night, noise=self.spec.noise)
+
+
+class OracleLidar(OracleImage):
+    def lidar(self, frame: Frame) -> LidarDetections:
+        gt = read_frame_gt(self.seq.root, int(self.seq.sequence), frame.index)
+        counts = np.array([(gt.point_instance == t).sum() for t in gt.track_id], np.int64)
+        rng = frame_rng(self.spec.seed, self.seq.sequence, frame.index, 2)
+        return oracle_lidar_detections(gt.box_center, gt.box_size, gt.box_yaw, counts, rng,
+                                       noise=self.spec.noise)[0]
+
+
+class PrecomputedFiles:
+    """A model's outputs read from files (storage/PERCEPTION_FORMAT.md), keyed by raw frame."""
+
+    def __init__(self, spec: PrecomputedProvider, seq: CodaSequence):
+        self.files = PrecomputedPerception(Path(spec.directory) / seq.sequence)
+
+    def image(self, frame: Frame) -> tuple[ImagePerception, None]:
+        return ImagePerception(**self.files.image(frame.index)), None
+
+    def lidar(self, frame: Frame) -> LidarDetections:
+        return LidarDetections(**self.files.lidar(frame.index))
+
+
+class LidarClusters:
+    """The weight-free LiDAR detector on the frame's sweep."""
+
+    def __init__(self, spec: LidarClustersProvider, seq: CodaSequence):
+        self.params = spec.params
+
+    def lidar(self, frame: Frame) -> LidarDetections:
+        return detect_pedestrians_lidar(frame.points_lidar, self.params)
+
+
+class NoLidar:
+    def __init__(self, spec: NoProvider, seq: CodaSequence):
+        pass
+
+    def lidar(self, frame: Frame) -> LidarDetections:
+        return LidarDetections.empty()
+
+
+IMAGE_PROVIDERS = {OracleProvider: OracleImage, PrecomputedProvider: PrecomputedFiles}
+LIDAR_PROVIDERS = {OracleProvider: OracleLidar, PrecomputedProvider: PrecomputedFiles,
+                   LidarClustersProvider: LidarClusters, NoProvider: NoLidar}
+
+
+def image_provider(spec, seq: CodaSequence) -> ImageProvider:
+    return IMAGE_PROVIDERS[type(spec)](spec, seq)
+
+
+def lidar_provider(spec, seq: CodaSequence) -> LidarProvider:
+    return LIDAR_PROVIDERS[type(spec)](spec, seq)
+
+
+class OracleInit:
+    """The oracle's initial estimates (synthetic data): the ground-truth bodies perturbed like a
+    monocular regressor; a false positive has none. One generator per batch of rows."""
+
+    def __init__(self, spec: OracleInitProvider, seq: CodaSequence, model, camera):
+        self.spec, self.seq, self.model, self.camera = spec, seq, model, camera
+
+    def available(self, tracks: Tracks) -> np.ndarray:
+        return np.flatnonzero(tracks.gt_index >= 0)
+
+    def estimates(self, tracks: Tracks, rows: np.ndarray) -> BodyParams:
+        truths = []
+        for r in rows:
+            gt = read_frame_gt(self.seq.root, int(self.seq.sequence), int(tracks.frame[r]))
+            g = [int(tracks.gt_index[r])]
+            truths.append(BodyParams(gt.betas[g], gt.global_orient[g], gt.body_pose[g], gt.transl[g]))
+        truth = BodyParams(*(np.concatenate([getattr(t, f) for t in truths]) for f in
+                             ("betas", "global_orient", "body_pose", "transl")))
+        rng = frame_rng(self.spec.seed, self.seq.sequence, int(rows[0]), 3)
+        return oracle_initial_estimate(self.model, reframe_params(self.model, truth, self.camera.T_cam_from_lidar), rng)
+
+
+class PrecomputedCliff:
+    """CLIFF outputs precomputed by the user (``<directory>/<sequence>/cliff.parquet``), keyed by
+    (frame, det_index), converted with the sequence's calibrated intrinsics."""
+
+    def __init__(self, spec: PrecomputedProvider, seq: CodaSequence, model, camera):
+        self.est = read_cliff_estimates(cliff_path(spec.directory, seq.sequence))
+        self.K = camera.K
+        self.where = {key: i for i, key in enumerate(zip(self.est["frame"].tolist(),
+                                                         self.est["det_index"].tolist()))}
+
+    def _index(self, tracks: Tracks, rows) -> list[int | None]:
+        return [self.where.get((int(tracks.frame[r]), int(tracks.det_index[r]))) for r in rows]
+
+    def available(self, tracks: Tracks) -> np.ndarray:
+        rows = np.arange(len(tracks.track_id))
+        return rows[[i is not None for i in self._index(tracks, rows)]].astype(np.int64)
+
+    def estimates(self, tracks: Tracks, rows: np.ndarray) -> BodyParams:
+        i = np.array(self._index(tracks, rows), np.int64)
+        e = self.est
+        return cliff_to_params(e["rotmats"][i].reshape(-1, 24, 3, 3), e["betas"][i].reshape(-1, 10),
+                               e["cam_crop"][i].reshape(-1, 3), e["bbox_center"][i].reshape(-1, 2),
+                               e["bbox_size"][i], self.K, e["transl"][i].reshape(-1, 3), e["has_transl"][i])
+
+
+INIT_PROVIDERS = {OracleInitProvider: OracleInit, PrecomputedProvider: PrecomputedCliff}
+
+
+def init_provider(spec, seq: CodaSequence, model, camera):
+    return INIT_PROVIDERS[type(spec)](spec, seq, model, camera)

@@ -1,0 +1,271 @@
+"""Intermediate stage products: typed bundles of arrays, checked on write and on read.
+
+A stage's key-named output folder holds its products as ``<name>.npz`` files (deterministic zip:
+the same arrays give the same bytes) and a ``summary.json``. Each product is a frozen dataclass
+whose fields are numpy arrays; every field declares its dtype and its shape, with symbolic
+dimensions shared between fields (``("R", 4)``: as many rows as every other ``R`` field;
+``("R+1",)``: one more). :meth:`Product.write` and :meth:`Product.read` check every field and
+fail with :class:`ProductError` naming the file, the field, what was expected and what was found.
+Fields are documented in storage/SCHEMA.md ("Stage products"), which a test keeps in agreement
+with the declarations below. These products are internal to the pipeline; the published dataset is
+the Zarr store and the Parquet tables.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import zipfile
+from pathlib import Path
+from typing import Any, ClassVar, TypeVar
+
+import numpy as np
+
+from storage.npzio import save_npz_deterministic
+
+P = TypeVar("P", bound="Product")
+
+
+class ProductError(ValueError):
+    """A stage product is missing, or a field has the wrong dtype or shape."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ArraySpec:
+    dtype: np.dtype
+    shape: tuple[int | str, ...]
+    doc: str
+
+
+def array(dtype: Any, shape: tuple[int | str, ...], doc: str) -> Any:
+    """Declare a product field: its dtype, its (symbolic) shape and one line of documentation."""
+    return dataclasses.field(metadata={"spec": ArraySpec(np.dtype(dtype), tuple(shape), doc)})
+
+
+def _dim(symbol: int | str, sizes: dict[str, int]) -> tuple[str, int] | None:
+    """(base symbol, offset) of a symbolic dimension, e.g. "R+1" -> ("R", 1); None for a literal."""
+    if isinstance(symbol, int):
+        return None
+    base, _, plus = symbol.partition("+")
+    return base, int(plus or 0)
+
+
+def check_arrays(kind: str, where: str, arrays: dict[str, np.ndarray],
+                 specs: dict[str, ArraySpec]) -> dict[str, int]:
+    """Check ``arrays`` against ``specs`` (all present, dtype, ndim, consistent symbolic sizes).
+
+    Returns the sizes found for each symbol; raises ProductError naming ``where`` and the field.
+    """
+    missing = sorted(set(specs) - set(arrays))
+    extra = sorted(set(arrays) - set(specs))
+    if missing or extra:
+        raise ProductError(f"{where}: {kind} has missing field(s) {missing} / unknown field(s) {extra}")
+    sizes: dict[str, int] = {}
+    for name, spec in specs.items():
+        a = arrays[name]
+        if not isinstance(a, np.ndarray) or a.dtype != spec.dtype:
+            raise ProductError(f"{where}: {kind}.{name} must be a {spec.dtype} array, got "
+                               f"{getattr(a, 'dtype', type(a).__name__)}")
+        if a.ndim != len(spec.shape):
+            raise ProductError(f"{where}: {kind}.{name} must have shape {spec.shape}, got {a.shape}")
+        for axis, (symbol, size) in enumerate(zip(spec.shape, a.shape)):
+            dim = _dim(symbol, sizes)
+            if dim is None:
+                if size != symbol:
+                    raise ProductError(f"{where}: {kind}.{name} must have shape {spec.shape}, "
+                                       f"got {a.shape} (axis {axis})")
+                continue
+            base, offset = dim
+            if base not in sizes:
+                sizes[base] = size - offset
+            elif sizes[base] + offset != size:
+                raise ProductError(f"{where}: {kind}.{name} has {size} along axis {axis}, expected "
+                                   f"{symbol} = {sizes[base] + offset} as in the other fields")
+    return sizes
+
+
+@dataclasses.dataclass(frozen=True)
+class Product:
+    """Base of every stage product (subclasses add array fields made with :func:`array`)."""
+
+    #: file name without ``.npz`` (per-frame products take theirs at write / read time)
+    NAME: ClassVar[str] = ""
+
+    def __post_init__(self) -> None:
+        check_arrays(type(self).__name__, "new product", self.arrays(), self.specs())
+
+    @classmethod
+    def specs(cls) -> dict[str, ArraySpec]:
+        return {f.name: f.metadata["spec"] for f in dataclasses.fields(cls)}
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+    @classmethod
+    def empty(cls: type[P], **sizes: int) -> P:
+        """A product whose row dimensions are 0 (other symbols from ``sizes``, e.g. H=480)."""
+        def size(symbol):
+            if isinstance(symbol, int):
+                return symbol
+            base, offset = _dim(symbol, {})
+            return sizes.get(base, 0) + offset
+        return cls(**{name: np.zeros(tuple(size(s) for s in spec.shape), spec.dtype)
+                      for name, spec in cls.specs().items()})
+
+    @classmethod
+    def concat(cls: type[P], parts: list[P]) -> P:
+        """Rows of several products of a row-indexed kind (every field's first axis is the row)."""
+        if not parts:
+            return cls.empty()
+        return cls(**{name: np.concatenate([getattr(p, name) for p in parts])
+                      for name in cls.specs()})
+
+    def take(self: P, rows: np.ndarray) -> P:
+        """The given rows of a row-indexed product."""
+        return type(self)(**{name: value[rows] for name, value in self.arrays().items()})
+
+    def write(self, folder: Path, name: str | None = None) -> Path:
+        """Store as ``folder/<name>.npz`` (written aside and renamed: never half a file)."""
+        return save_npz_deterministic(product_path(folder, name or self.NAME), compressed=True,
+                                      **self.arrays())
+
+    @classmethod
+    def read(cls: type[P], folder: Path, name: str | None = None) -> P:
+        path = product_path(folder, name or cls.NAME)
+        if not path.exists():
+            raise ProductError(f"{path}: stage product is missing (was the stage output deleted?)")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in z.files}
+        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+            raise ProductError(f"{path}: cannot read stage product ({exc})") from None
+        check_arrays(cls.__name__, str(path), arrays, cls.specs())
+        return cls(**arrays)
+
+
+def product_path(folder: Path, name: str) -> Path:
+    return Path(folder) / f"{name}.npz"
+
+
+# ---- the products, stage by stage -----------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Detections(Product):
+    """detect, one per frame (``frame_<raw frame>.npz``): the perception of one frame. D image
+    detections, M LiDAR boxes, H x W the camera image."""
+
+    boxes_xyxy: np.ndarray = array(np.float32, ("D", 4), "2D person boxes (u0, v0, u1, v1), pixels")
+    scores: np.ndarray = array(np.float32, ("D",), "detection scores in [0, 1]")
+    keypoints: np.ndarray = array(np.float32, ("D", 17, 3), "COCO-17 (u, v) pixels and confidence")
+    mask_labels: np.ndarray = array(np.uint16, ("H", "W"), "instance masks: detection k is label k + 1, 0 none")
+    semantic: np.ndarray = array(np.uint8, ("H", "W"), "Cityscapes train ids, 255 ignore")
+    lidar_centers: np.ndarray = array(np.float32, ("M", 3), "LiDAR pedestrian box centres, LiDAR frame, m")
+    lidar_sizes: np.ndarray = array(np.float32, ("M", 3), "box (l, w, h), l along the box x axis, m")
+    lidar_yaws: np.ndarray = array(np.float32, ("M",), "box yaw about LiDAR z, rad")
+    lidar_scores: np.ndarray = array(np.float32, ("M",), "LiDAR box scores")
+    gt_index: np.ndarray = array(np.int64, ("D",), "oracle only: ground-truth row, -1 false positive; -2 unknown")
+
+    @staticmethod
+    def file_name(raw_frame: int) -> str:
+        return f"frame_{int(raw_frame)}"
+
+
+@dataclasses.dataclass(frozen=True)
+class Tracks(Product):
+    """track: one row per tracked detection, frames ascending. A person's LiDAR points are
+    ``points_index[points_offsets[r]:points_offsets[r + 1]]`` (indices into the frame's
+    ``points_lidar`` as the reader returns it); the first ``points_in_image[r]`` of them project
+    into the image, the rest were found past its left / right side on LiDAR geometry."""
+
+    NAME: ClassVar[str] = "tracks"
+    frame: np.ndarray = array(np.int64, ("R",), "raw frame number")
+    det_index: np.ndarray = array(np.int64, ("R",), "row in that frame's Detections")
+    track_id: np.ndarray = array(np.int64, ("R",), "track id (>= 1)")
+    boxes_xyxy: np.ndarray = array(np.float32, ("R", 4), "2D box, pixels")
+    scores: np.ndarray = array(np.float32, ("R",), "detection score")
+    keypoints: np.ndarray = array(np.float32, ("R", 17, 3), "COCO-17 (u, v, confidence)")
+    lidar_box: np.ndarray = array(np.int64, ("R",), "matched LiDAR box row of the frame, -1 none")
+    gt_index: np.ndarray = array(np.int64, ("R",), "the detection's gt_index")
+    points_in_image: np.ndarray = array(np.int64, ("R",), "how many of the person's points are in the image")
+    points_offsets: np.ndarray = array(np.int64, ("R+1",), "row r's points start at points_offsets[r]")
+    points_index: np.ndarray = array(np.int64, ("P",), "point indices into the frame's sweep")
+
+    def points_of(self, row: int, in_image_only: bool = False) -> np.ndarray:
+        """Indices of row ``row``'s points in its frame's sweep."""
+        lo = int(self.points_offsets[row])
+        hi = lo + int(self.points_in_image[row]) if in_image_only else int(self.points_offsets[row + 1])
+        return self.points_index[lo:hi]
+
+
+@dataclasses.dataclass(frozen=True)
+class Bodies(Product):
+    """fit: one row per fitted person and frame; body parameters in the LiDAR frame of the frame."""
+
+    NAME: ClassVar[str] = "bodies"
+    frame: np.ndarray = array(np.int64, ("R",), "raw frame number")
+    track_id: np.ndarray = array(np.int64, ("R",), "track id")
+    det_index: np.ndarray = array(np.int64, ("R",), "row in that frame's Detections")
+    betas: np.ndarray = array(np.float32, ("R", 10), "SMPL shape")
+    global_orient: np.ndarray = array(np.float32, ("R", 3), "root axis-angle, LiDAR frame, rad")
+    body_pose: np.ndarray = array(np.float32, ("R", 69), "23 joint axis-angles, rad")
+    transl: np.ndarray = array(np.float32, ("R", 3), "SMPL translation, LiDAR frame, m")
+    velocity_base: np.ndarray = array(np.float32, ("R", 2), "pelvis velocity (vx, vy), base frame, m/s")
+    loss_j: np.ndarray = array(np.float32, ("R",), "final L_J")
+    loss_3d: np.ndarray = array(np.float32, ("R",), "final L_3D")
+    loss_total: np.ndarray = array(np.float32, ("R",), "final objective")
+    chamfer_m: np.ndarray = array(np.float32, ("R",), "mean distance of the person's points to the fitted mesh's vertices, m")
+    reproj_px: np.ndarray = array(np.float32, ("R",), "mean reprojection error of the confident keypoints, px (NaN: none)")
+    num_points: np.ndarray = array(np.int64, ("R",), "LiDAR points the fit used")
+    shift_m: np.ndarray = array(np.float32, ("R",), "how far the fit moved the root from its initial estimate, m")
+
+
+@dataclasses.dataclass(frozen=True)
+class StaticMapProduct(Product):
+    """map: the human-free static semantic map (world frame). Voxel k covers
+    ``[keys[k], keys[k] + 1) * voxel_size_m``."""
+
+    NAME: ClassVar[str] = "static_map"
+    voxel_size_m: np.ndarray = array(np.float64, (), "voxel edge, m")
+    keys: np.ndarray = array(np.int64, ("K", 3), "integer voxel keys")
+    labels: np.ndarray = array(np.uint8, ("K",), "class id (max voting)")
+    counts: np.ndarray = array(np.uint16, ("K", 9), "votes per occupied class 0..8")
+
+
+@dataclasses.dataclass(frozen=True)
+class OccupancyMapProduct(Product):
+    """map: the free / unknown map (OctoMap semantics, world frame); unknown voxels are absent."""
+
+    NAME: ClassVar[str] = "occupancy"
+    voxel_size_m: np.ndarray = array(np.float64, (), "voxel edge, m")
+    keys: np.ndarray = array(np.int64, ("M", 3), "integer voxel keys")
+    logodds: np.ndarray = array(np.float32, ("M",), "OctoMap log-odds")
+
+
+@dataclasses.dataclass(frozen=True)
+class FusedFrames(Product):
+    """fuse: per-frame facts beside the fused Zarr store ``occupancy.zarr``."""
+
+    NAME: ClassVar[str] = "frames"
+    frame: np.ndarray = array(np.int64, ("F",), "raw frame number")
+    stamp_ns: np.ndarray = array(np.int64, ("F",), "Unix time of the sweep, ns")
+    class_counts: np.ndarray = array(np.int64, ("F", 10), "voxels per class id among voxels with mask_lidar = 1")
+    T_world_from_base: np.ndarray = array(np.float64, ("F", 4, 4), "robot pose, m")
+
+
+#: every product type, for the schema documentation test
+PRODUCTS: tuple[type[Product], ...] = (Detections, Tracks, Bodies, StaticMapProduct,
+                                       OccupancyMapProduct, FusedFrames)
+
+
+def masks_to_labels(masks: np.ndarray) -> np.ndarray:
+    """(D, H, W) bool instance masks -> (H, W) uint16 label image (1..D, later masks win overlaps)."""
+    d = masks.shape[0]
+    labels = np.zeros(masks.shape[1:], np.uint16)
+    for k in range(d):
+        labels[masks[k]] = k + 1
+    return labels
+
+
+def labels_to_masks(labels: np.ndarray, count: int) -> np.ndarray:
+    """(H, W) uint16 label image -> (count, H, W) bool masks."""
+    return labels[None, :, :] == np.arange(1, count + 1, dtype=np.uint16)[:, None, None]

@@ -1,0 +1,65 @@
+"""Settings of the occupancy kernels (map and fuse stages): one home for their defaults."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+
+@dataclass(frozen=True)
+class FreeSpaceParams:
+    """The free / unknown map's sensor model (OctoMap's defaults) and resolution.
+
+    voxel_size_m: its own resolution (memory grows with the volume the rays cross: keep 0.1-0.2
+    m; the fused grid may still be finer). max_range_m: rays are cut here (OctoMap's maxrange).
+    discretize: OctoMap's ``discretize``, one ray per distinct endpoint voxel.
+    """
+
+    voxel_size_m: float = 0.2
+    prob_hit: float = 0.7
+    prob_miss: float = 0.4
+    clamp_min: float = 0.1192
+    clamp_max: float = 0.971
+    occupancy_threshold: float = 0.5
+    max_range_m: float = 20.0
+    discretize: bool = False
+
+
+@dataclass(frozen=True)
+class MapParams:
+    """The static semantic map's settings.
+
+    outside_image_fallback: label of points outside the image ("nearest" in-view label at the same
+    level, see :func:`lift_image_semantics`, or "unknown"); fallback_ground_lateral_scale > 1:
+    out-of-view ground points match in-view ground with the lateral axis stretched (ground classes
+    run in strips along the robot's path), 1 = plain nearest neighbour. pedestrian_box_margin_m
+    grows the LiDAR pedestrian boxes whose points are removed. Ground consistency: road / terrain
+    votes farther than ground_max_deviation_m from the local ground height (per ground_cell_m cell,
+    pooled over ground_neighbourhood_cells neighbouring cells, vote-weighted ground_quantile) are
+    rejected; a voxel needs min_votes votes.
+    """
+
+    voxel_size_m: float = 0.2
+    outside_image_fallback: Literal["nearest", "unknown"] = "nearest"
+    fallback_ground_lateral_scale: float = 4.0
+    pedestrian_box_margin_m: float = 0.15
+    ground_max_deviation_m: float = 0.3
+    ground_cell_m: float = 1.0
+    ground_neighbourhood_cells: int = 1
+    ground_quantile: float = 0.5
+    min_votes: int = 1
+
+
+@dataclass(frozen=True)
+class FuseSettings:
+    """How the fuse stage makes its masks (:func:`tasks.occupancy.fuse.fuse_frame`).
+
+    camera_mask: make mask_camera (False: all 0). camera_method: exact per-pixel ray walks
+    ("rays"), a depth buffer ("zbuffer"), or "auto" (rays for voxels >= 0.1 m). camera_pixel_stride:
+    rays every this many pixels (None: from the voxel size, 13 px at 0.2 m, which misses grazing
+    ground voxels; they project to ~2 px at 10 m).
+    """
+
+    camera_mask: bool = True
+    camera_method: Literal["auto", "rays", "zbuffer"] = "auto"
+    camera_pixel_stride: int | None = 2
