@@ -315,7 +315,14 @@ def main(argv=None) -> None:
     ap.add_argument("--throughput", action="store_true",
                     help="only speed: fits/s of one batch of --persons on --device, one JSON line")
     ap.add_argument("--pool", type=int, default=64, help="--throughput: distinct simulated persons")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="torch intra-op threads (default: torch's, every core); on a shared CPU 1 per "
+                         "process avoids OpenMP spin-waiting")
     a = ap.parse_args(argv)
+    if a.threads:
+        import torch
+
+        torch.set_num_threads(a.threads)
     if a.throughput:
         import json
 
