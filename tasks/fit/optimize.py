@@ -116,8 +116,9 @@ def fit_persons(
     frame (m), the persons' points one after another, counts (B,) how many belong to each
     (:func:`ragged_points` converts padded sets). Persons with fewer than ``min_points`` points
     skip ICP and L_3D. nn_every: recompute the Chamfer nearest pairs and the pose blend shapes
-    every this many steps (both change slowly; 1 = the exact gradient); chamfer_vertex_max_m: cap of the vertex -> point distances in L_3D
-    (see :func:`tasks.fit.losses.chamfer_loss`; None = the paper's uncapped Chamfer);
+    every this many steps (both change slowly; 1 = the exact gradient); chamfer_vertex_max_m:
+    cap of the vertex -> point distances in L_3D (see :func:`tasks.fit.losses.chamfer_loss`;
+    None = the paper's uncapped Chamfer);
     converge_rtol: a person stops when its objective fell by less than this fraction between
     two pair refreshes (None: always ``iterations`` steps). use_visibility=False uses every
     vertex and flags no joint occluded (ablation). Deterministic for a fixed seed on a device.
@@ -281,6 +282,7 @@ class _Problem:
                        _PersonPoints(p.xyz[on], new_index[p.person[on]], p.has[rows]), self.vertex_mask[rows])
         out.targets = None if self.targets is None else self.targets.take(rows)
         out.offsets = None if self.offsets is None else self.offsets[rows]
+        out.visible_count = self.visible_count[rows]
         return out
 
     def objective(self, x: torch.Tensor, refresh: bool) -> tuple:
