@@ -9,8 +9,10 @@ SETUP_STAMP := $(VENV)/.setup-$(shell cat pyproject.toml Makefile | sha1sum | cu
 DEMO_DATA ?= demo-data
 DEMO_OUT ?= demo-out
 WORKERS ?= 2
+MEDIAPIPE_VERSION := 0.10.21
+MODELS_DIR := .cache/models/mediapipe-$(MEDIAPIPE_VERSION)
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo demo-bundled test bench clean
 
 setup: $(SETUP_STAMP)
 
@@ -26,13 +28,27 @@ $(SETUP_STAMP): pyproject.toml Makefile
 	$(PIP) install -q --upgrade pip
 	@# torch first: the CPU build of 2.13.0; anything else would pull GBs of CUDA wheels.
 	$(PIP) install -q torch==2.13.0
-	$(PIP) install -q -e '.[dev,cluster]'
+	$(PIP) install -q -e '.[dev,cluster,models]'
 	@# nuscenes-devkit pins numpy<2: test dependency, installed without its pins.
 	$(PIP) install -q --no-deps nuscenes-devkit==1.2.0
+	@# the bundled BlazePose models (Apache-2.0): the mediapipe wheel is fetched once (not
+	@# installed: it pins numpy<2) and only its .tflite files kept, checked by sha256
+	@if [ ! -f $(MODELS_DIR)/pose_landmark_full.tflite ] || [ ! -f $(MODELS_DIR)/pose_detection.tflite ]; then \
+	  tmp=$$(mktemp -d) && \
+	  $(PIP) download -q --no-deps --only-binary=:all: --python-version 3.11 --platform manylinux_2_28_x86_64 \
+	    -d $$tmp mediapipe==$(MEDIAPIPE_VERSION) && \
+	  $(PY) -m storage.model_files --wheel $$tmp/mediapipe-$(MEDIAPIPE_VERSION)-*.whl --cache $(MODELS_DIR) && \
+	  rm -rf $$tmp; \
+	fi
 	@rm -f $(VENV)/.setup-*; touch $@
 
 demo: setup
 	$(VENV)/bin/mobileocc demo --data $(DEMO_DATA) --out $(DEMO_OUT) --workers $(WORKERS)
+
+# the demo with real networks: LiDAR boxes + the bundled BlazePose keypoints and masks
+demo-bundled: setup
+	$(VENV)/bin/mobileocc demo --config configs/bundled-models.yaml --data $(DEMO_DATA) \
+	  --out $(DEMO_OUT)-bundled --workers $(WORKERS)
 
 test: setup
 	$(PY) -m pytest -q -n 2 --dist loadgroup

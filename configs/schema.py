@@ -29,6 +29,8 @@ from tasks.fit.settings import FitSettings
 from tasks.occupancy.grid import GridSpec
 from tasks.occupancy.settings import FreeSpaceParams, FuseSettings, MapParams
 from tasks.perception.lidar_clusters import LidarClusterParams
+from tasks.perception.models.settings import (BlazePoseSettings, DetectorSettings, KeypointSettings,
+                                              MaskSettings, SemanticSettings)
 from tasks.perception.oracle import OracleNoise
 from tasks.perception.person_points import PersonPointParams
 from tasks.track.ocsort import TrackerParams
@@ -173,12 +175,59 @@ LidarClustersConfig = section(
         "ground_tol_m": _NONNEG, "min_points": {"ge": 1}}))
 
 
+DetectorModelConfig = section(
+    "DetectorModelConfig", "Person boxes of image_provider 'models': tasks/perception/models/settings.py.",
+    kernel_fields(DetectorSettings, {"person_class": _NONNEG, "score_threshold": _PROB,
+                                     "nms_iou": {"gt": 0, "le": 1}}))
+KeypointModelConfig = section(
+    "KeypointModelConfig", "Top-down COCO-17 keypoints: tasks/perception/models/settings.py.",
+    kernel_fields(KeypointSettings, {"batch_size": {"ge": 1}}))
+MaskModelConfig = section(
+    "MaskModelConfig", "Person instance masks: tasks/perception/models/settings.py.",
+    kernel_fields(MaskSettings, {"person_class": _NONNEG, "score_threshold": _PROB}))
+SemanticModelConfig = section(
+    "SemanticModelConfig", "Image semantics of image_provider 'models'.", kernel_fields(SemanticSettings))
+
+
+class _ModelsBase(Strict):
+    """image_provider 'models': real networks from local files; the defaults are the bundled
+    BlazePose setup that needs no download (README, "Real perception models")."""
+
+    device: Literal["cpu", "cuda", "auto"] = "auto"
+    #: the bundled BlazePose .tflite files, extracted by `make setup` from the mediapipe wheel
+    bundled_dir: Path = Path(".cache/models/mediapipe-0.10.21")
+    detector: DetectorModelConfig = DetectorModelConfig()
+    keypoints: KeypointModelConfig = KeypointModelConfig()
+    masks: MaskModelConfig = MaskModelConfig()
+    semantic: SemanticModelConfig = SemanticModelConfig()
+
+    @model_validator(mode="after")
+    def _kinds_and_paths(self):
+        if self.masks.kind == "blazepose" and self.keypoints.kind != "blazepose":
+            raise ValueError("masks.kind 'blazepose' comes with keypoints.kind 'blazepose' (one model run)")
+        if self.masks.kind == "semantic" and self.semantic.kind == "none":
+            raise ValueError("masks.kind 'semantic' needs a semantic model (semantic.kind onnx or oracle)")
+        for name, part, needs in (("detector", self.detector, self.detector.kind != "lidar"),
+                                  ("keypoints", self.keypoints, self.keypoints.kind in ("vitpose", "rtmpose")),
+                                  ("masks", self.masks, self.masks.kind == "mask2former"),
+                                  ("semantic", self.semantic, self.semantic.kind == "onnx")):
+            if needs and part.path is None:
+                raise ValueError(f"{name}.path is required for {name}.kind {part.kind!r} (an ONNX file)")
+        return self
+
+
+ModelsConfig = section(
+    "ModelsConfig", _ModelsBase.__doc__,
+    kernel_fields(BlazePoseSettings, {"min_pose_flag": _PROB, "box_scale": _POS}), __base__=_ModelsBase)
+
+
 class DetectConfig(Strict):
-    image_provider: Literal["oracle", "precomputed"] = "oracle"
+    image_provider: Literal["oracle", "precomputed", "models"] = "oracle"
     lidar_provider: Literal["lidar-clusters", "oracle", "precomputed", "none"] = "lidar-clusters"
     precomputed_dir: Path | None = None
     oracle: OracleNoiseConfig = OracleNoiseConfig()
     lidar_clusters: LidarClustersConfig = LidarClustersConfig()
+    models: ModelsConfig = ModelsConfig()
     seed: int = 0
 
     @model_validator(mode="after")
@@ -186,6 +235,9 @@ class DetectConfig(Strict):
         uses = "precomputed" in (self.image_provider, self.lidar_provider)
         if uses and self.precomputed_dir is None:
             raise ValueError("precomputed_dir is required when a provider is 'precomputed'")
+        if (self.image_provider == "models" and self.models.detector.kind == "lidar"
+                and self.lidar_provider == "none"):
+            raise ValueError("models.detector.kind 'lidar' needs a lidar_provider (not 'none')")
         return self
 
 
@@ -229,7 +281,10 @@ class _FitBase(Strict):
     preset: str = "ut_campus"
     #: named loss-weight presets beside the paper's four (tasks.fit.losses.FIT_PRESETS)
     presets: dict[str, LossWeights] = Field(default_factory=dict)
-    init_provider: Literal["oracle", "precomputed"] = "oracle"
+    init_provider: Literal["oracle", "precomputed", "cliff"] = "oracle"
+    #: cliff: a CLIFF ONNX export run on each tracked box (tasks/perception/models/cliff.py), on
+    #: fit.device
+    cliff_path: Path | None = None
     #: precomputed CLIFF estimates: <init_dir>/<sequence>/cliff.parquet (storage/PERCEPTION_FORMAT.md)
     init_dir: Path | None = None
     #: user-supplied official model files; None = our procedural stand-ins
@@ -240,6 +295,8 @@ class _FitBase(Strict):
     def _precomputed_needs_dir(self):
         if self.init_provider == "precomputed" and self.init_dir is None:
             raise ValueError("fit.init_dir is required when fit.init_provider is 'precomputed'")
+        if self.init_provider == "cliff" and self.cliff_path is None:
+            raise ValueError("fit.cliff_path is required when fit.init_provider is 'cliff'")
         return self
 
     @model_validator(mode="after")
@@ -326,6 +383,8 @@ class DaskConfig(Strict):
     memory_limit: str = "4GiB"
     #: route the fit stage to workers started with `--resources GPU=1`
     gpu_fit: bool = False
+    #: route the detect stage's frame chunks to those workers (image_provider 'models' on CUDA)
+    gpu_detect: bool = False
 
 
 class Config(Strict):

@@ -89,6 +89,12 @@ def test_negative_coordinates_and_persistence_roundtrip():
     np.testing.assert_array_equal(m.query(q), m2.query(q))
     m3 = pickle.loads(pickle.dumps(m))
     np.testing.assert_array_equal(m.query(q), m3.query(q))
+    # voxels in any order (the pool grows while loading); the export is the same set
+    order = rng.permutation(len(keys))
+    m4 = OccupancyMap.from_arrays(0.05, keys[order], vals[order], threads=1)
+    assert m4.threads == 1
+    k4, v4 = m4.to_arrays()
+    assert sorted(zip(map(tuple, k4), v4)) == sorted(zip(map(tuple, keys), vals))
 
 
 def test_query_grid_matches_point_query():

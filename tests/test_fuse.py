@@ -91,6 +91,64 @@ def test_pedestrian_volume_filled_and_over_static():
     assert not g.velocity[g.semantics != PEDESTRIAN].any()
 
 
+def _reference_voxels(spec, v, f):
+    """The definition, computed the slow way: voxels of surface_points at half-voxel spacing, plus
+    voxels whose centre open3d finds inside (3 rays, majority: one ray can graze an edge)."""
+    import open3d as o3d
+
+    surf = spec.index_of(surface_points(v, f, 0.5 * spec.voxel_size_m))
+    idx = np.argwhere(np.ones(spec.shape, bool))
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
+    occ = scene.compute_occupancy(o3d.core.Tensor(spec.center_of(idx).astype(np.float32)), nsamples=3)
+    return {tuple(i) for i in surf[spec.in_bounds(surf)]} | {tuple(i) for i in idx[occ.numpy() > 0.5]}
+
+
+@pytest.mark.parametrize("shape", ["sphere", "torus", "yawed_box"])
+def test_voxelize_mesh_equals_surface_plus_inside_centres(shape):
+    """Column parity fill == open3d's inside test at voxel centres (plus the surface lattice), on
+    a convex, a non-convex (4 crossings per column) and a rotated mesh, cut by the grid's side."""
+    import open3d as o3d
+
+    if shape == "sphere":
+        m = o3d.geometry.TriangleMesh.create_sphere(radius=0.55, resolution=24).translate((1.3, 0.1, 1.0))
+    elif shape == "torus":
+        m = o3d.geometry.TriangleMesh.create_torus(torus_radius=0.5, tube_radius=0.2).translate((1.5, -0.05, 1.0))
+        m.rotate(o3d.geometry.get_rotation_matrix_from_xyz((0.3, 0.2, 0.0)), center=(1.5, -0.05, 1.0))
+    else:
+        m = box_mesh((2.8, 0.7, 0.9), (0.5, 0.9, 1.2), yaw=0.5)  # crosses the grid's x and y ends
+    v, f = np.asarray(m.vertices), np.asarray(m.triangles)
+    for spec in (SPEC, GridSpec((0.0, -1.0, 0.0), (3.0, 1.0, 2.0), 0.05)):
+        idx = voxelize_mesh(spec, v, f)
+        assert idx.dtype == np.int64 and spec.in_bounds(idx).all()
+        assert np.array_equal(idx, np.unique(idx, axis=0))  # unique rows, lexicographic order
+        assert {tuple(i) for i in idx} == _reference_voxels(spec, v, f)
+
+
+def test_voxelize_mesh_column_through_a_shared_edge():
+    """A vertical line through the diagonal shared by a box's two top faces (and the two bottom
+    faces) crosses the surface once there, not 0 or 2 times: the columns on the diagonal are
+    filled like their neighbours. Coordinates are exact binary fractions, so the lines pass
+    exactly through the edge."""
+    spec = GridSpec((0.0, 0.0, 0.0), (4.0, 4.0, 4.0), 0.25)
+    c = lambda i: (i + 0.5) * 0.25  # noqa: E731 - voxel centres
+    lo, hi = (c(2), c(2), 0.3), (c(12), c(12), 2.7)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    # 12 outward faces; the top (z = hi) and bottom faces are split along the xy diagonal
+    faces = np.array([[0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3], [0, 1, 3], [0, 3, 2],
+                      [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6]])
+    got = {tuple(i) for i in voxelize_mesh(spec, corners, faces)}
+    inside = _idx_box((3, 3, 2), (11, 11, 9))  # centres strictly inside: z 0.375 .. 2.375
+    assert inside <= got
+    assert all((i, i, k) in got for i in range(3, 12) for k in range(4, 8))  # the diagonal columns
+    assert not any(k > 10 for _, _, k in got)
+
+
+def test_voxelize_mesh_bad_faces():
+    with pytest.raises(Exception, match="faces index"):
+        voxelize_mesh(SPEC, np.zeros((3, 3)), np.array([[0, 1, 3]]))
+
+
 def test_surface_points_cover_triangle():
     v = np.array([[0, 0, 0], [1.0, 0, 0], [0, 1.0, 0]])
     p = surface_points(v, np.array([[0, 1, 2]]), 0.1)
@@ -153,3 +211,20 @@ def test_fuse_frame_states_and_masks():
     assert g.mask_lidar[20, 10, 10] == 1 and g.mask_lidar[21:].sum() == 0
     assert g.mask_camera[20, 10, 10] == 1 and g.mask_camera[21:].sum() == 0
     assert g.velocity.dtype == np.float16 and g.velocity.shape == (*SPEC.shape, 2)
+
+
+def test_visibility_masks_do_not_depend_on_threads():
+    """Rays split over threads share the output (every write stores 1): same masks."""
+    rng = np.random.default_rng(5)
+    occ = rng.random(SPEC.shape) < 0.03
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R_BASE_FROM_CAM, (-0.5, 0.05, 1.05)
+    K = np.array([[300.0, 0, 199.5], [0, 300.0, 149.5], [0, 0, 1]])  # 400 x 300: 120k rays
+    one = camera_mask(SPEC, occ, K, 400, 300, T, 1, "rays", threads=1)
+    assert 0 < one.sum() < SPEC.num_voxels
+    np.testing.assert_array_equal(camera_mask(SPEC, occ, K, 400, 300, T, 1, "rays", threads=3), one)
+    ends = rng.uniform((-1.0, -1.0, 0.5), (1.5, 1.0, 1.5), (30000, 3))
+    origin = np.array([-0.5, 0.05, 1.05])
+    lid = lidar_mask(SPEC, ends, origin, threads=1)
+    assert 0 < lid.sum() < SPEC.num_voxels
+    np.testing.assert_array_equal(lidar_mask(SPEC, ends, origin, threads=3), lid)

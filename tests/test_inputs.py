@@ -26,10 +26,17 @@ PROVIDER_ONLY = {
     "detect.precomputed_dir": {"detect.image_provider": "precomputed", "detect.precomputed_dir": "/p"},
     "fit.init_dir": {"fit.init_provider": "precomputed", "fit.init_dir": "/c"},
     "fuse.gt_min_points": {"fuse.body_source": "ground-truth"},
-    # choosing the provider needs its directory
+    "fit.cliff_path": {"fit.init_provider": "cliff", "fit.cliff_path": "/m.onnx"},
+    # choosing the provider needs its directory or file
     "detect.image_provider": {"detect.precomputed_dir": "/p"},
-    "fit.init_provider": {"fit.init_dir": "/c"},
+    "fit.init_provider": {"fit.init_dir": "/c", "fit.cliff_path": "/m.onnx"},
+    # a model kind that needs a file, or masks that do not come with BlazePose's keypoints
+    "detect.models.detector.kind": {"detect.image_provider": "models", "detect.models.detector.path": "/d.onnx"},
+    "detect.models.keypoints.kind": {"detect.image_provider": "models", "detect.models.masks.kind": "none",
+                                     "detect.models.keypoints.path": "/k.onnx"},
 }
+#: every leaf under these prefixes is read only with the provider chosen
+PROVIDER_PREFIXES = {"detect.models.": {"detect.image_provider": "models"}}
 #: leaves read only in part: of ``fit.presets`` only the preset ``fit.preset`` names counts
 #: (test_a_chosen_custom_preset_is_in_the_fit_key)
 READ_IN_PART = {"fit.presets"}
@@ -55,9 +62,9 @@ def _candidates(value: Any) -> list[Any]:
     if isinstance(value, str):
         return ["3d_comp", "3d_raw", "2d_raw", "cam1", "unknown", "metadata", "rays", "zbuffer", "ground-truth",
                 "oracle", "none", "precomputed", "lidar-clusters", "cpu", "cuda", "v1.0-mini", "3dpw",
-                "thread", "dask", value + "x"]
+                "thread", "dask", "yolox", value + "x"]
     if value is None:
-        return ["/x", 0.05, 2, 0.5]
+        return ["/x", 0.05, 2, 0.5, [256, 512]]
     if isinstance(value, list):
         if value and all(isinstance(v, int) and not isinstance(v, bool) for v in value):
             return [[value[0] + 1, *value[1:]], [*value[:-1], value[-1] + 1]]
@@ -112,7 +119,7 @@ def test_every_leaf_changes_exactly_the_keys_of_the_stages_that_read_it():
             if mutated is not None:
                 assert _state(mutated) == _state(base_cfg), f"runtime setting {key} changed a key"
             continue
-        extra = PROVIDER_ONLY.get(key)
+        extra = PROVIDER_ONLY.get(key) or next((v for k, v in PROVIDER_PREFIXES.items() if key.startswith(k)), None)
         cfg = load_config(overrides=extra) if extra else base_cfg
         leaves = _leaves(cfg.model_dump(mode="json"))
         mutated = _mutate(leaves, key, extra)

@@ -14,7 +14,9 @@ ROOT = Path(__file__).resolve().parents[1]
 FORBIDDEN = {
     # layer: (module prefixes it must never import, why)
     "tasks": ("prefect", "dask.distributed", "distributed", "zarr", "pyarrow", "fsspec",
-              "storage", "flows", "configs"),
+              "storage", "flows", "configs",
+              # model files open in storage/model_files.py; adapters take runners
+              "onnxruntime", "ai_edge_litert"),
     "storage": ("flows", "prefect", "distributed", "dask.distributed"),
     "configs": ("flows", "storage", "prefect"),
 }

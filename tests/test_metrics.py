@@ -278,3 +278,19 @@ def test_person_point_counts_hand_made():
                             np.array([7, 9, -1]))
     assert (c.pred_matched, c.pred_total, c.ref_matched, c.ref_total) == (5, 7, 5, 6)
     assert c.precision == pytest.approx(5 / 7) and c.recall == pytest.approx(5 / 6)
+
+
+def test_pck_and_mask_iou():
+    from tasks.metrics.keypoints import mask_iou, pck_counts
+
+    gt = np.zeros((1, 17, 3))
+    gt[0, :, 2] = 2
+    gt[0, 0, 2] = 1  # occluded: not counted
+    pred = np.zeros((1, 17, 3))
+    pred[0, 1:9, 0] = 9.9    # within 0.1 x 100 px
+    pred[0, 9:, 0] = 10.1    # outside
+    assert pck_counts(pred, gt, np.array([100.0])) == (8, 16)
+    a = np.zeros((2, 4, 4), bool)
+    b = np.zeros((2, 4, 4), bool)
+    a[0, :2], b[0, 1:3] = True, True  # 4 shared of 12
+    np.testing.assert_allclose(mask_iou(a, b), [4 / 12, 0.0])

@@ -10,7 +10,8 @@ from tasks.conventions import (CAR, CITYSCAPES_TO_CLASS, CITYSCAPES_TRAIN_IDS, O
                                PEDESTRIAN, ROAD, TERRAIN, UNLABELED, VEGETATION)
 from tasks.occupancy.freespace import OccupancyMap
 from tasks.occupancy.static_map import (StaticMapError, StaticSemanticMap, lift_image_semantics,
-                                        pedestrian_point_mask, points_in_boxes, project_points)
+                                        pedestrian_boxes_for_masking, pedestrian_point_mask,
+                                        points_in_boxes, project_points)
 
 VS = 0.2
 
@@ -187,6 +188,59 @@ def test_pedestrian_point_mask_instances_and_rotated_boxes():
     assert points_in_boxes(pts, box_diag, 0.0).tolist() == [False] * 5
     # margin 0.25: half sizes 0.75 x 0.35; (0, 0.45) -> (0.32, 0.32) inside, (0.55, 0) -> (0.39, -0.39) not
     assert points_in_boxes(pts, box_diag, 0.25).tolist() == [False, False, False, True, True]
+
+
+def test_one_projection_serves_every_per_sweep_kernel():
+    """The map stage projects a sweep once: labels and the pedestrian mask from that projection
+    equal those computed from K and T; a projection made for another image size is refused."""
+    K, T = _cam()
+    rng = np.random.default_rng(1)
+    pts = rng.uniform([-8, -6, -1], [12, 6, 2], (400, 3))
+    img = rng.integers(0, 19, (20, 40)).astype(np.uint8)
+    inst = np.zeros((20, 40), np.int32)
+    inst[5:15, 10:20] = 1
+    proj = project_points(pts, K, T, 40, 20)
+    assert 50 < proj[1].sum() < 350
+    np.testing.assert_array_equal(
+        lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS, projection=proj),
+        lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS))
+    np.testing.assert_array_equal(
+        pedestrian_point_mask(pts, instance_image=inst, projection=proj),
+        pedestrian_point_mask(pts, K=K, T_cam_from_lidar=T, instance_image=inst))
+    wide = project_points(pts, K * [[2], [2], [1]], T, 80, 40)
+    with pytest.raises(StaticMapError, match="80 x 40|40 x 20"):
+        lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS, projection=wide)
+    with pytest.raises(StaticMapError, match="shapes"):
+        pedestrian_point_mask(pts[:10], instance_image=inst, projection=proj)
+
+
+def test_project_points_pixel_centres_and_depth():
+    K, T = _cam()
+    # u = 19.5 - 20 y / x, v = 9.5 - 20 z / x; pixel c spans [c - 0.5, c + 0.5)
+    pts = np.array([[10, 0.0, 0], [10, 0.026, 0], [10, 9.76, 0], [10, 10.26, 0], [0.05, 0, 0],
+                    [-5, 0, 0], [10, 0, -0.26]])
+    pix, valid = project_points(pts, K, T, 40, 20)
+    assert valid.tolist() == [True, True, True, False, False, False, True]
+    assert pix.tolist() == [[20, 10], [19, 10], [0, 10], [0, 0], [0, 0], [0, 0], [20, 10]]
+    assert project_points(pts[:1], K, T, 40, 20, min_depth_m=20.0)[1].tolist() == [False]
+
+
+def test_pedestrian_boxes_for_masking_image_confirms_in_view():
+    """In view a LiDAR box counts only when an image detection overlaps its projection; out of
+    view every LiDAR box counts."""
+    K, T = _cam()
+    centers = np.array([[5.0, 0.0, 0.0], [5.0, -1.5, 0.0], [-5.0, 0.0, 0.0]], np.float32)
+    sizes = np.tile(np.array([[0.5, 0.5, 1.7]], np.float32), (3, 1))
+    yaws = np.zeros(3, np.float32)
+    # the projected corners of box 0: u in [18.45, 20.55], v in [5.9, 13.1]
+    det = np.array([[18.4, 5.9, 20.6, 13.1]], np.float32)
+    out = pedestrian_boxes_for_masking(det, centers, sizes, yaws, K, T, 40, 20, 0.5)
+    assert out.shape == (2, 7)
+    np.testing.assert_array_equal(out[:, :3], centers[[0, 2]])
+    none = pedestrian_boxes_for_masking(np.zeros((0, 4)), centers, sizes, yaws, K, T, 40, 20, 0.5)
+    np.testing.assert_array_equal(none[:, :3], centers[[2]])
+    assert pedestrian_boxes_for_masking(det, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), K, T,
+                                        40, 20, 0.5).shape == (0, 7)
 
 
 def test_ghost_trail_removed_by_pedestrian_boxes():

@@ -12,7 +12,10 @@ stage, then calls the other benchmark functions of the project in the same run:
 - free-space insertion vs octomap-python (flows/bench/occupancy.py ``bench_freespace``);
 - store throughput vs raw numpy writes (flows/bench/storage.py ``bench_store``);
 - the fuse stage's frame fan-out on a Dask LocalCluster with 1 vs ``workers`` worker processes
-  (same frames, same output), speed-up computed here.
+  (same frames, same output), speed-up computed here;
+- map + fuse seconds per frame over octomap-python's ``insertPointCloud`` seconds per scan of the
+  bench sequence's own sweeps (the speed issue's target: <= 0.2), and the top costs inside map
+  and fuse (a cProfile rerun of each; library time charged to the calling function of ours).
 
 Ratios are computed inside the run. CPU counts, model name, memory and library versions go in the
 JSON's ``machine``. Run: ``mobileocc bench [--quick] [--json FILE]``.
@@ -174,6 +177,112 @@ def _fuse_fanout(data_root: str, out_root: str, overrides: dict, n_workers: int)
     return {"workers": n_workers, "wall_s": wall, "worker_peak_rss_mb": max(rss.values())}
 
 
+def _octomap_same_scans(data_root: str, out_root: str, overrides: dict) -> dict:
+    """octomap-python's insertPointCloud on the bench sequence's own sweeps (world frame, from the
+    LiDAR centre, the map stage's free-space voxel size and range): seconds per scan."""
+    import numpy as np
+
+    from flows.bench.occupancy import octomap_seconds_per_scan
+    from flows.pipeline.inputs import open_sequence
+    from tasks.conventions import transform_points
+
+    cfg = make_config(Path(data_root), Path(out_root), overrides)
+    seq = open_sequence(cfg, "0")
+    scans = []
+    for i in range(len(seq)):
+        f = seq.frame(i)
+        scans.append((transform_points(f.T_world_from_lidar, f.points_lidar), f.T_world_from_lidar[:3, 3]))
+    fs = cfg.map.freespace
+    return {"scans": len(scans), "points_per_scan": float(np.mean([len(p) for p, _ in scans])),
+            "voxel_size_m": fs.voxel_size_m, "max_range_m": fs.max_range_m,
+            **octomap_seconds_per_scan(scans, fs.voxel_size_m, fs.max_range_m)}
+
+
+#: code whose functions the stage breakdown names (time in libraries is charged to the caller)
+_OWN_CODE = ("/tasks/", "/storage/", "/flows/stages/")
+
+
+def _stage_costs(data_root: str, out_root: str, overrides: dict, stages=("map", "fuse"), top: int = 6) -> dict:
+    """Rerun stages (their upstream products reused) under cProfile timing process CPU: per stage
+    the functions of our code with the most CPU, each charged with its own plus that of the
+    library calls it makes (numpy, scipy, torch, zlib; a wait on its worker threads is charged
+    the CPU those threads use meanwhile). CPU seconds per frame and share of the stage's CPU."""
+    import cProfile
+    import pstats
+
+    from flows.pipeline.dag import STAGES
+    from flows.pipeline.inputs import INPUTS, open_sequence, sequence_ref
+    from flows.stages import STAGE_FUNCTIONS
+    from flows.stages.common import StageContext
+    from storage.manifest import Manifest
+
+    cfg = make_config(Path(data_root), Path(out_root), overrides)
+    man = Manifest.load(Path(out_root))
+    seq = "0"
+    frames = len(open_sequence(cfg, seq))
+    result = {}
+    for stage in stages:
+        ups = {u: Path(out_root) / man.get(seq, u).location for u in STAGES[stage] if man.get(seq, u)}
+
+        def context(work: Path, key: str) -> StageContext:
+            return StageContext(sequence_ref(cfg, seq), INPUTS[stage](cfg), Path(out_root), work, ups, key=key)
+
+        STAGE_FUNCTIONS[stage](context(Path(tempfile.mkdtemp(dir=out_root)), "warm-up"))  # JIT caches, imports
+        work = Path(tempfile.mkdtemp(dir=out_root))
+        prof = cProfile.Profile(time.process_time)
+        t0, c0 = time.perf_counter(), time.process_time()
+        prof.enable()
+        STAGE_FUNCTIONS[stage](context(work, "profile"))
+        prof.disable()
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        costs = _charge_to_own_code(pstats.Stats(prof))
+        ranked = sorted(costs.items(), key=lambda kv: -kv[1])[:top]
+        result[stage] = {"frames": frames, "profiled_wall_s": wall, "profiled_cpu_s": cpu, "top": [
+            {"function": name, "cpu_s_per_frame": sec / frames, "share": sec / cpu} for name, sec in ranked]}
+    return result
+
+
+def _charge_to_own_code(stats) -> dict[str, float]:
+    """{'path:function': seconds}: every profiled function's own time, charged to our code: a
+    function of ours keeps its own time; a library function's time is split over its callers in
+    proportion to the time each call path spent in it, up to the first functions of ours."""
+    table = stats.stats  # func -> (cc, nc, tottime, cumtime, callers {func: (cc, nc, tt, ct)})
+    memo: dict = {}
+
+    def own(func) -> bool:
+        return any(part in func[0] for part in _OWN_CODE)
+
+    def owners(func, stack=()) -> dict:
+        if own(func):
+            return {func: 1.0}
+        if func in memo:
+            return memo[func]
+        callers = table.get(func, (0, 0, 0, 0, {}))[4]
+        total = sum(v[3] for c, v in callers.items() if c not in stack)
+        share: dict = {}
+        if total > 0:
+            for c, v in callers.items():
+                if c in stack or v[3] <= 0:
+                    continue
+                for o, w in owners(c, stack + (func,)).items():
+                    share[o] = share.get(o, 0.0) + w * v[3] / total
+        memo[func] = share
+        return share
+
+    def name(func) -> str:
+        path = func[0]
+        for part in _OWN_CODE:
+            if part in path:
+                path = part.strip("/") + "/" + path.split(part, 1)[1]
+        return f"{path}:{func[2]}"
+
+    costs: dict[str, float] = {}
+    for func, (_, _, tottime, _, _) in table.items():
+        for o, w in owners(func).items():
+            costs[name(o)] = costs.get(name(o), 0.0) + w * tottime
+    return costs
+
+
 def _fit_rate(data_root: str, out_root: str, overrides: dict, device: str) -> dict:
     """Person-fits/s of the fit kernel on the track product's rows (one batch, after a warm-up)."""
     import numpy as np
@@ -258,6 +367,21 @@ def bench(quick: bool, json_path: Path | None, workers: int = 2, work_dir: Path 
         result["fuse_fanout"] = {"1": one, str(workers): many, "speedup": one["wall_s"] / many["wall_s"],
                                  "frames": frames, "chunks": -(-frames // 2)}
         result["freespace_vs_octomap"] = _spawned(bench_freespace, quick)
+        # the issue's target: map + fuse per frame <= 0.2 x octomap's insertPointCloud of the
+        # same scan (the bench sequence's sweeps, same run): wall seconds on both sides, and
+        # process CPU seconds (less sensitive to other load on the machine; ours counts all threads)
+        octo = _spawned(_octomap_same_scans, str(data), str(out02), over)
+        map_fuse = (per["map"]["wall_s"] + per["fuse"]["wall_s"]) / frames
+        map_fuse_cpu = (per["map"]["cpu_s"] + per["fuse"]["cpu_s"]) / frames
+        result["map_fuse_vs_octomap"] = {
+            "map_s_per_frame": per["map"]["wall_s"] / frames, "fuse_s_per_frame": per["fuse"]["wall_s"] / frames,
+            "map_fuse_s_per_frame": map_fuse, "map_fuse_frames_per_s": 1.0 / map_fuse,
+            "octomap_insert_s_per_scan": octo["wall_s"], "ratio": map_fuse / octo["wall_s"],
+            "map_fuse_cpu_s_per_frame": map_fuse_cpu, "octomap_insert_cpu_s_per_scan": octo["cpu_s"],
+            "ratio_cpu": map_fuse_cpu / octo["cpu_s"], "octomap": octo, "target_ratio": 0.2,
+            "note": "stage seconds include the stage's fixed costs (process start-up of its kernels, "
+                    "sequence-level reads and writes) spread over the bench's few frames"}
+        result["stage_costs"] = _spawned(_stage_costs, str(data), str(out02), over)
         result["store_vs_numpy"] = _spawned(bench_store, quick)
     finally:
         shutil.rmtree(work, ignore_errors=True)
@@ -291,6 +415,15 @@ def format_table(r: dict) -> str:
     for dev, v in r.get("person_fits", {}).items():
         if isinstance(v, dict):
             row(f"person fits/s ({dev})", v.get("fits_per_s"), f"{v.get('persons')} persons, {v.get('iterations')} iterations")
+    mf = r.get("map_fuse_vs_octomap")
+    if mf:
+        row("(map + fuse) / octomap scan, wall", mf["ratio"], f"{mf['map_fuse_s_per_frame']:.3f} s/frame vs octomap "
+            f"{mf['octomap_insert_s_per_scan']:.3f} s/scan (target <= {mf['target_ratio']})")
+        row("(map + fuse) / octomap scan, cpu", mf["ratio_cpu"], f"{mf['map_fuse_cpu_s_per_frame']:.3f} s/frame vs "
+            f"octomap {mf['octomap_insert_cpu_s_per_scan']:.3f} s/scan")
+    for st, v in (r.get("stage_costs") or {}).items():
+        for item in v["top"]:
+            row(f"{st} cost cpu s/frame", item["cpu_s_per_frame"], f"{item['function']} ({100 * item['share']:.0f} %)")
     if "fuse_fanout" in r:
         fo = r["fuse_fanout"]
         row("fuse fan-out speed-up 1 -> N", fo["speedup"], f"{fo['1']['wall_s']:.1f} s -> "

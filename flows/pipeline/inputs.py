@@ -20,7 +20,7 @@ import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from configs.schema import Config
 from flows.pipeline.dag import CODE_VERSIONS, STAGES
@@ -124,10 +124,12 @@ class Runtime:
 
     #: route the fit's batches to workers started with ``--resources GPU=1``
     gpu_fit: bool = False
+    #: route the detect stage's frame chunks there too (image_provider 'models' on CUDA)
+    gpu_detect: bool = False
 
 
 def runtime(config: Config) -> Runtime:
-    return Runtime(gpu_fit=config.dask.gpu_fit)
+    return Runtime(gpu_fit=config.dask.gpu_fit, gpu_detect=config.dask.gpu_detect)
 
 
 def source(config: Config) -> Source:
@@ -143,6 +145,8 @@ def source(config: Config) -> Source:
 class OracleProvider:
     """Detections from the synthetic ground truth with the oracle's noise model."""
 
+    NAME: ClassVar[str] = "oracle"
+
     noise: OracleNoise
     seed: int
 
@@ -151,6 +155,8 @@ class OracleProvider:
 class PrecomputedProvider:
     """Model outputs read from files (storage/PERCEPTION_FORMAT.md) under ``directory``."""
 
+    NAME: ClassVar[str] = "precomputed"
+
     directory: str
 
 
@@ -158,7 +164,33 @@ class PrecomputedProvider:
 class LidarClustersProvider:
     """The weight-free LiDAR pedestrian detector."""
 
+    NAME: ClassVar[str] = "lidar-clusters"
+
     params: LidarClusterParams
+
+
+@dataclass(frozen=True)
+class ModelsProvider:
+    """Real networks from local files (the ``detect.models`` section; model files are named by
+    path: replacing a file at the same path is not seen by the key), with the oracle's semantics
+    and ground-truth identities where ``models.semantic.kind`` is 'oracle' (synthetic data)."""
+
+    NAME: ClassVar[str] = "models"
+
+    models: Any
+    oracle: OracleProvider | None
+    #: the camera whose images the networks see (dataset.camera)
+    camera: str
+
+
+@dataclass(frozen=True)
+class CliffProvider:
+    """Initial bodies from a CLIFF ONNX export run on each tracked box."""
+
+    NAME: ClassVar[str] = "cliff"
+
+    path: str
+    device: str
 
 
 @dataclass(frozen=True)
@@ -166,12 +198,16 @@ class OracleInitProvider:
     """Initial body estimates from the synthetic ground truth, perturbed like a monocular
     regressor (tasks.fit.init_oracle)."""
 
+    NAME: ClassVar[str] = "oracle"
+
     seed: int
 
 
 @dataclass(frozen=True)
 class NoProvider:
     """No detections of this kind."""
+
+    NAME: ClassVar[str] = "none"
 
 
 @dataclass(frozen=True)
@@ -189,7 +225,7 @@ class BodyModelFiles:
 @dataclass(frozen=True)
 class DetectInputs:
     source: Source
-    image: OracleProvider | PrecomputedProvider
+    image: OracleProvider | PrecomputedProvider | ModelsProvider
     lidar: LidarClustersProvider | OracleProvider | PrecomputedProvider | NoProvider
 
 
@@ -206,7 +242,7 @@ class TrackInputs:
 class FitInputs:
     source: Source
     #: initial estimates: the oracle (perturbed ground truth) or precomputed CLIFF files
-    init: OracleInitProvider | PrecomputedProvider
+    init: OracleInitProvider | PrecomputedProvider | CliffProvider
     body: BodyModelFiles
     #: the loss weights of the chosen preset (its name, and the weights resolved)
     preset: str
@@ -273,6 +309,10 @@ def _provider(name: str, config: Config, seed: int) -> Any:
         return LidarClustersProvider(det.lidar_clusters.to(LidarClusterParams))
     if name == "none":
         return NoProvider()
+    if name == "models":
+        oracle = det.models.semantic.kind == "oracle"
+        return ModelsProvider(det.models, _provider("oracle", config, seed) if oracle else None,
+                              config.dataset.camera)
     raise ValueError(f"unknown provider {name!r}")  # the schema's Literal types prevent this
 
 
@@ -296,8 +336,9 @@ def track_inputs(config: Config) -> TrackInputs:
 
 def fit_inputs(config: Config) -> FitInputs:
     f = config.fit
-    init = (OracleInitProvider(f.seed) if f.init_provider == "oracle"
-            else PrecomputedProvider(str(f.init_dir)))
+    init = {"oracle": lambda: OracleInitProvider(f.seed),
+            "precomputed": lambda: PrecomputedProvider(str(f.init_dir)),
+            "cliff": lambda: CliffProvider(str(f.cliff_path), f.device)}[f.init_provider]()
     return FitInputs(source(config), init, _body(config), f.preset, f.weights, f.to(FitSettings))
 
 

@@ -25,8 +25,8 @@ def detect_frames(ref: SequenceRef, inputs: DetectInputs, positions: list[int], 
     rows = []
     for i in positions:
         frame = seq.frame(i)
-        image, gt_index = images.image(frame)
         lidar = lidars.lidar(frame)
+        image, gt_index = images.image(frame, lidar)
         if image.image_size != (cam.width, cam.height):
             raise ValueError(f"sequence {ref.sequence} frame {frame.index}: perception image size "
                              f"{image.image_size} != camera {(cam.width, cam.height)}")
@@ -40,10 +40,10 @@ def detect_frames(ref: SequenceRef, inputs: DetectInputs, positions: list[int], 
 
 def run_detect(ctx: StageContext) -> dict:
     n = len(ctx.open())
-    rows = [r for part in fan_out(detect_frames, [(ctx.ref, ctx.inputs, c, ctx.out_dir)
-                                                  for c in chunks(n, 4)]) for r in part]
+    resources = {"GPU": 1} if ctx.runtime.gpu_detect else None
+    rows = [r for part in fan_out(detect_frames, [(ctx.ref, ctx.inputs, c, ctx.out_dir) for c in chunks(n, 4)],
+                                  resources) for r in part]
     return {"implemented": True, "frames": [r["frame"] for r in rows],
-            "image_provider": type(ctx.inputs.image).__name__,
-            "lidar_provider": type(ctx.inputs.lidar).__name__,
+            "image_provider": ctx.inputs.image.NAME, "lidar_provider": ctx.inputs.lidar.NAME,
             "detections": sum(r["detections"] for r in rows),
             "lidar_boxes": sum(r["lidar_boxes"] for r in rows)}

@@ -17,12 +17,14 @@ from typing import Protocol
 
 import numpy as np
 
-from flows.pipeline.inputs import (LidarClustersProvider, NoProvider, OracleInitProvider,
-                                   OracleProvider, PrecomputedProvider)
+from flows.pipeline.inputs import (CliffProvider, LidarClustersProvider, ModelsProvider, NoProvider,
+                                   OracleInitProvider, OracleProvider, PrecomputedProvider)
+from flows.stages.models import cliff_estimator, gt_index_by_boxes, lidar_proposals, model_perception
 from flows.stages.common import frame_rng, is_night
 from storage.cliff_files import cliff_path, read_cliff_estimates
 from storage.coda import CodaSequence
 from storage.gt import read_frame_gt
+from storage.images import read_rgb
 from storage.model import Frame
 from storage.perception_files import PrecomputedPerception
 from storage.products import Tracks
@@ -34,8 +36,9 @@ from tasks.perception.types import ImagePerception, LidarDetections
 
 
 class ImageProvider(Protocol):
-    def image(self, frame: Frame) -> tuple[ImagePerception, np.ndarray | None]:
-        """The frame's 2D perception, and (D,) int64 ground-truth rows (oracle) or None."""
+    def image(self, frame: Frame, lidar: LidarDetections) -> tuple[ImagePerception, np.ndarray | None]:
+        """The frame's 2D perception (given its LiDAR boxes), and (D,) int64 ground-truth rows
+        (synthetic data) or None."""
 
 
 class LidarProvider(Protocol):
@@ -48,7 +51,7 @@ class OracleImage:
     def __init__(self, spec: OracleProvider, seq: CodaSequence):
         self.spec, self.seq, self.night = spec, seq, is_night(seq)
 
-    def image(self, frame: Frame) -> tuple[ImagePerception, np.ndarray]:
+    def image(self, frame: Frame, lidar: LidarDetections | None = None) -> tuple[ImagePerception, np.ndarray]:
         gt = read_frame_gt(self.seq.root, int(self.seq.sequence), frame.index)
         rng = frame_rng(self.spec.seed, self.seq.sequence, frame.index, 1)
         return oracle_image_perception(
@@ -71,7 +74,7 @@ class PrecomputedFiles:
     def __init__(self, spec: PrecomputedProvider, seq: CodaSequence):
         self.files = PrecomputedPerception(Path(spec.directory) / seq.sequence)
 
-    def image(self, frame: Frame) -> tuple[ImagePerception, None]:
+    def image(self, frame: Frame, lidar: LidarDetections) -> tuple[ImagePerception, None]:
         return ImagePerception(**self.files.image(frame.index)), None
 
     def lidar(self, frame: Frame) -> LidarDetections:
@@ -96,7 +99,29 @@ class NoLidar:
         return LidarDetections.empty()
 
 
-IMAGE_PROVIDERS = {OracleProvider: OracleImage, PrecomputedProvider: PrecomputedFiles}
+class ModelsImage:
+    """Real networks on the frame's camera image (flows/stages/models.py); LiDAR boxes as the
+    proposals when the detector is 'lidar'; with the oracle's semantics (synthetic data) the
+    detections take ground-truth identities by box."""
+
+    def __init__(self, spec: ModelsProvider, seq: CodaSequence):
+        self.spec, self.seq = spec, seq
+        self.cam = seq.info.calibration.cameras[spec.camera]
+        self.oracle = OracleImage(spec.oracle, seq) if spec.oracle is not None else None
+
+    def image(self, frame: Frame, lidar: LidarDetections) -> tuple[ImagePerception, np.ndarray | None]:
+        m, cam = self.spec.models, self.cam
+        semantic = self.oracle.image(frame)[0].semantic if self.oracle is not None else None
+        rgb = read_rgb(frame.image_paths[self.spec.camera], (cam.width, cam.height))
+        proposals = lidar_proposals(lidar, cam) if m.detector.kind == "lidar" else None
+        image = model_perception(m)(rgb, proposals, semantic)
+        if self.oracle is None:
+            return image, None
+        gt = read_frame_gt(self.seq.root, int(self.seq.sequence), frame.index)
+        return image, gt_index_by_boxes(image.boxes_xyxy, gt.box2d)
+
+
+IMAGE_PROVIDERS = {OracleProvider: OracleImage, PrecomputedProvider: PrecomputedFiles, ModelsProvider: ModelsImage}
 LIDAR_PROVIDERS = {OracleProvider: OracleLidar, PrecomputedProvider: PrecomputedFiles,
                    LidarClustersProvider: LidarClusters, NoProvider: NoLidar}
 
@@ -156,7 +181,30 @@ class PrecomputedCliff:
                                e["bbox_size"][i], self.K, e["transl"][i].reshape(-1, 3), e["has_transl"][i])
 
 
-INIT_PROVIDERS = {OracleInitProvider: OracleInit, PrecomputedProvider: PrecomputedCliff}
+class CliffModel:
+    """A CLIFF export on each tracked box (one image read per frame of the batch)."""
+
+    def __init__(self, spec: CliffProvider, seq: CodaSequence, model, camera):
+        self.spec, self.seq, self.camera = spec, seq, camera
+        self.at = {raw: k for k, raw in enumerate(seq.info.frame_indices)}
+
+    def available(self, tracks: Tracks) -> np.ndarray:
+        return np.arange(len(tracks.track_id), dtype=np.int64)
+
+    def estimates(self, tracks: Tracks, rows: np.ndarray) -> BodyParams:
+        rows, cam = np.asarray(rows, np.int64), self.camera
+        cliff, parts = cliff_estimator(self.spec.path, self.spec.device), []
+        for raw in dict.fromkeys(tracks.frame[rows].tolist()):  # frames in order of first row
+            here = rows[tracks.frame[rows] == raw]
+            frame = self.seq.frame(self.at[int(raw)])
+            rgb = read_rgb(frame.image_paths[cam.name], (cam.width, cam.height))
+            parts.append((here, cliff(rgb, tracks.boxes_xyxy[here], cam.K)))
+        order = np.argsort(np.concatenate([h for h, _ in parts]), kind="stable")
+        return BodyParams(*(np.concatenate([getattr(p, f) for _, p in parts])[order]
+                            for f in ("betas", "global_orient", "body_pose", "transl")))
+
+
+INIT_PROVIDERS = {OracleInitProvider: OracleInit, PrecomputedProvider: PrecomputedCliff, CliffProvider: CliffModel}
 
 
 def init_provider(spec, seq: CodaSequence, model, camera):

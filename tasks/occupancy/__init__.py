@@ -6,8 +6,12 @@ Conventions (frames, array dtypes, class ids) are those of :mod:`tasks.conventio
 - :mod:`.grid`: ``GridSpec`` (box, voxel size, indices, centres).
 - :mod:`.freespace`: ``OccupancyMap`` (insert_scan / query / query_grid / to_arrays / from_arrays).
 - :mod:`.static_map`: ``StaticSemanticMap`` (add_sweep / finalize -> ``StaticMap``),
-  ``lift_image_semantics``, ``pedestrian_point_mask``, ``points_in_boxes``.
+  ``project_points`` (once per sweep), ``lift_image_semantics``, ``pedestrian_point_mask``,
+  ``pedestrian_boxes_for_masking``, ``points_in_boxes``, ``lookup_labels``.
+- :mod:`.nearest`: ``nearest_indices`` (exact 3D nearest neighbours, the out-of-view fallback).
+- :mod:`.resample`: ``static_in_grid`` / ``static_labels_at_cells`` (the static map in a local grid).
 - :mod:`.visibility`: ``lidar_mask``, ``camera_mask``.
 - :mod:`.fuse`: ``fuse_frame`` -> ``FrameGrids``; ``voxelize_mesh``, ``voxelize_labels``.
+- :mod:`.threads`: the kernels' thread pools (an explicit count per call; None: one per core).
 - :mod:`.synthetic`: OS1-128-like ray casting into box scenes (tests, benchmarks).
 """

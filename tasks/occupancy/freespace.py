@@ -24,13 +24,12 @@ voxel (hit wins). Memory grows with the observed volume (about 2.2 KiB per touch
 from __future__ import annotations
 
 import math
-import os
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numba import njit
 
 from tasks.occupancy.settings import FreeSpaceParams
+from tasks.occupancy.threads import executor, resolve_threads
 
 _BLOCK_SHIFT = 3
 _BLOCK_CELLS = 1 << (3 * _BLOCK_SHIFT)  # 512
@@ -140,163 +139,177 @@ def _dense_row(kx, ky, kz, b0, nb):
     return (bx * nb[1] + by) * nb[2] + bz
 
 
+@njit(cache=True, inline="always")
+def _ray_end(ox, oy, oz, px, py, pz, max_range):
+    """Where the ray to endpoint p stops: p, or (OctoMap) origin + direction * max_range when p
+    is farther (that ray only frees). Returns (ex, ey, ez, length)."""
+    dx = px - ox
+    dy = py - oy
+    dz = pz - oz
+    length = math.sqrt(dx * dx + dy * dy + dz * dz)
+    if max_range >= 0.0 and length > max_range:
+        s = max_range / length
+        px = ox + dx * s
+        py = oy + dy * s
+        pz = oz + dz * s
+        dx = px - ox
+        dy = py - oy
+        dz = pz - oz
+        length = math.sqrt(dx * dx + dy * dy + dz * dz)
+    return px, py, pz, length
+
+
+@njit(cache=True, inline="always")
+def _walk_ray(ox, oy, oz, ex, ey, ez, length, res, scan_id, hkeys, hvals, bkeys, nused, bstamp,
+              touched, ntouched, fbits, ckeys, crows, dense, b0, nb):
+    """Set the free bit of every voxel on the ray origin -> end, end voxel excluded: the 3D DDA
+    of OctoMap's computeRayKeys (the origin voxel is on the ray). Returns 0 when done, -1 when
+    the block pool is full, -2 when a voxel is outside the dense box.
+
+    Block rows: a dense box row, or a pool row found through ckeys / crows, a direct-mapped cache
+    of this scan's blocks (1024 slots, stays in L1: rays from one origin revisit the same
+    blocks, so most block changes skip the hash table). The lookup is written out here, not
+    called: a call per block change passing the pool's arrays costs as much as the walk itself.
+    """
+    inv = 1.0 / res
+    cx = np.int64(math.floor(ox * inv))
+    cy = np.int64(math.floor(oy * inv))
+    cz = np.int64(math.floor(oz * inv))
+    kex = np.int64(math.floor(ex * inv))
+    key = np.int64(math.floor(ey * inv))
+    kez = np.int64(math.floor(ez * inv))
+    if cx == kex and cy == key and cz == kez:
+        return 0
+    dx = (ex - ox) / length
+    dy = (ey - oy) / length
+    dz = (ez - oz) / length
+    big = 1e300
+    sx = 1 if dx > 0 else (-1 if dx < 0 else 0)
+    sy = 1 if dy > 0 else (-1 if dy < 0 else 0)
+    sz = 1 if dz > 0 else (-1 if dz < 0 else 0)
+    tmx, tdx, tmy, tdy, tmz, tdz = big, big, big, big, big, big
+    if sx != 0:
+        tmx = ((cx + 0.5) * res + sx * res * 0.5 - ox) / dx
+        tdx = res / abs(dx)
+    if sy != 0:
+        tmy = ((cy + 0.5) * res + sy * res * 0.5 - oy) / dy
+        tdy = res / abs(dy)
+    if sz != 0:
+        tmz = ((cz + 0.5) * res + sz * res * 0.5 - oz) / dz
+        tdz = res / abs(dz)
+    # a step enters a new block when the stepped coordinate's low 3 bits wrap
+    wx = 0 if sx > 0 else 7
+    wy = 0 if sy > 0 else 7
+    wz = 0 if sz > 0 else 7
+    b = np.int64(-1)
+    new_block = True
+    while True:
+        if new_block:
+            new_block = False
+            if dense:
+                b = _dense_row(cx, cy, cz, b0, nb)
+                if b < 0:
+                    return -2
+            else:
+                bk = _block_key(cx, cy, cz)
+                slot = ((cx >> 3) & 15) | (((cy >> 3) & 15) << 4) | (((cz >> 3) & 3) << 8)
+                if ckeys[slot] == bk:
+                    b = crows[slot]
+                else:
+                    b = _touch_block(hkeys, hvals, bkeys, nused, bstamp, touched, ntouched, bk, scan_id)
+                    if b < 0:
+                        return -1
+                    ckeys[slot] = bk
+                    crows[slot] = b
+        c = _cell(cx, cy, cz)
+        fbits[b, c >> 6] |= np.uint64(1) << np.uint64(c & 63)
+        if tmx < tmy:
+            if tmx < tmz:
+                cx += sx
+                tmx += tdx
+                new_block = (cx & 7) == wx
+            else:
+                cz += sz
+                tmz += tdz
+                new_block = (cz & 7) == wz
+        elif tmy < tmz:
+            cy += sy
+            tmy += tdy
+            new_block = (cy & 7) == wy
+        else:
+            cz += sz
+            tmz += tdz
+            new_block = (cz & 7) == wz
+        if cx == kex and cy == key and cz == kez:
+            return 0
+        if min(tmx, min(tmy, tmz)) > length:
+            return 0
+
+
+@njit(cache=True, inline="always")
+def _mark_endpoints(points, i0, ox, oy, oz, max_range, res, scan_id, hkeys, hvals, bkeys, nused,
+                    bstamp, touched, ntouched, hbits, dense, b0, nb):
+    """Set the hit bit of the voxel of every endpoint points[i0:] within max_range. Returns -1
+    when done, else the endpoint where the pool ran out (-1 - i: outside the dense box)."""
+    inv = 1.0 / res
+    last_bk = np.int64(-1)
+    b = np.int64(-1)
+    for i in range(i0, points.shape[0]):
+        px = points[i, 0]
+        py = points[i, 1]
+        pz = points[i, 2]
+        if max_range >= 0.0 and math.sqrt((px - ox) ** 2 + (py - oy) ** 2 + (pz - oz) ** 2) > max_range:
+            continue
+        kx = np.int64(math.floor(px * inv))
+        ky = np.int64(math.floor(py * inv))
+        kz = np.int64(math.floor(pz * inv))
+        bk = _block_key(kx, ky, kz)
+        if bk != last_bk:  # consecutive endpoints mostly share a block
+            if dense:
+                b = _dense_row(kx, ky, kz, b0, nb)
+                if b < 0:
+                    return -1 - i
+            else:
+                b = _touch_block(hkeys, hvals, bkeys, nused, bstamp, touched, ntouched, bk, scan_id)
+                if b < 0:
+                    return i
+            last_bk = bk
+        c = _cell(kx, ky, kz)
+        hbits[b, c >> 6] |= np.uint64(1) << np.uint64(c & 63)
+    return -1
+
+
 @njit(cache=True, nogil=True)
 def _mark_scan(points, origin, max_range, res, scan_id, hkeys, hvals, bkeys, nused, bstamp,
                touched, ntouched, fbits, hbits, phase0, ray0, dense, b0, nb):
     """Mark one scan's voxels in per-block bitsets: fbits = on a ray, hbits = holds an endpoint.
 
-    Phase 0 walks the rays, phase 1 marks the endpoints. Returns (phase, ray) where the block pool
-    ran out, or (2, 0) when done; resuming a ray after the pool grew sets the same bits again.
-    One 64-byte bitset per block keeps the marks of a scan in L1 cache: the walk runs close to the
-    speed of the bare DDA.
+    Phase 0 walks the rays, phase 1 marks the endpoints (within max_range). Returns (phase, ray)
+    where the block pool ran out, or (2, 0) when done; resuming a ray after the pool grew sets
+    the same bits again. One 64-byte bitset per block keeps the marks of a scan in L1 cache: the
+    walk runs close to the speed of the bare DDA.
 
     dense: the bitsets are a private dense box of blocks instead of the map's pool: block
     (bx, by, bz) is row ((bx - b0[0]) * nb[1] + by - b0[1]) * nb[2] + bz - b0[2]; the map is not
     touched (so several threads can mark disjoint rays at once, nogil). Returns (3, ray) if a
     voxel falls outside the box.
     """
-    inv = 1.0 / res
-    ox = origin[0]
-    oy = origin[1]
-    oz = origin[2]
-    n = points.shape[0]
-    last_bk = np.int64(-1)
-    last_b = np.int64(-1)
-    # A direct-mapped cache of blocks touched in this scan (1024 slots, stays in L1): rays from
-    # one origin revisit the same blocks, so most block changes skip the hash table.
+    ox, oy, oz = origin[0], origin[1], origin[2]
     ckeys = np.full(1024, -1, dtype=np.int64)
     crows = np.zeros(1024, dtype=np.int64)
-    kox = np.int64(math.floor(ox * inv))
-    koy = np.int64(math.floor(oy * inv))
-    koz = np.int64(math.floor(oz * inv))
-    big = 1e300
-    r0 = ray0 if phase0 == 0 else n
-    for i in range(r0, n):
-        ex = points[i, 0]
-        ey = points[i, 1]
-        ez = points[i, 2]
-        dx = ex - ox
-        dy = ey - oy
-        dz = ez - oz
-        length = math.sqrt(dx * dx + dy * dy + dz * dz)
-        if max_range >= 0.0 and length > max_range:
-            # OctoMap: new_end = origin + direction * maxrange; the ray only frees.
-            s = max_range / length
-            ex = ox + dx * s
-            ey = oy + dy * s
-            ez = oz + dz * s
-            dx = ex - ox
-            dy = ey - oy
-            dz = ez - oz
-            length = math.sqrt(dx * dx + dy * dy + dz * dz)
-        kex = np.int64(math.floor(ex * inv))
-        key = np.int64(math.floor(ey * inv))
-        kez = np.int64(math.floor(ez * inv))
-        if kox == kex and koy == key and koz == kez:
-            continue
-        # The DDA of OctoMap's computeRayKeys: origin voxel on the ray, end voxel not.
-        dx /= length
-        dy /= length
-        dz /= length
-        sx = 1 if dx > 0 else (-1 if dx < 0 else 0)
-        sy = 1 if dy > 0 else (-1 if dy < 0 else 0)
-        sz = 1 if dz > 0 else (-1 if dz < 0 else 0)
-        if sx != 0:
-            tmx = ((kox + 0.5) * res + sx * res * 0.5 - ox) / dx
-            tdx = res / abs(dx)
-        else:
-            tmx = big
-            tdx = big
-        if sy != 0:
-            tmy = ((koy + 0.5) * res + sy * res * 0.5 - oy) / dy
-            tdy = res / abs(dy)
-        else:
-            tmy = big
-            tdy = big
-        if sz != 0:
-            tmz = ((koz + 0.5) * res + sz * res * 0.5 - oz) / dz
-            tdz = res / abs(dz)
-        else:
-            tmz = big
-            tdz = big
-        cx = kox
-        cy = koy
-        cz = koz
-        # a step enters a new block when the stepped coordinate's low 3 bits wrap
-        wx = 0 if sx > 0 else 7
-        wy = 0 if sy > 0 else 7
-        wz = 0 if sz > 0 else 7
-        new_block = True
-        while True:
-            if new_block:
-                new_block = False
-                bk = _block_key(cx, cy, cz)
-                if bk != last_bk:
-                    slot = ((cx >> 3) & 15) | (((cy >> 3) & 15) << 4) | (((cz >> 3) & 3) << 8)
-                    if dense:
-                        b = _dense_row(cx, cy, cz, b0, nb)
-                        if b < 0:
-                            return 3, i
-                    elif ckeys[slot] == bk:
-                        b = crows[slot]
-                    else:
-                        b = _touch_block(hkeys, hvals, bkeys, nused, bstamp, touched, ntouched,
-                                         bk, scan_id)
-                        if b < 0:
-                            return 0, i
-                        ckeys[slot] = bk
-                        crows[slot] = b
-                    last_bk = bk
-                    last_b = b
-            c = _cell(cx, cy, cz)
-            fbits[last_b, c >> 6] |= np.uint64(1) << np.uint64(c & 63)
-            if tmx < tmy:
-                if tmx < tmz:
-                    cx += sx
-                    tmx += tdx
-                    new_block = (cx & 7) == wx
-                else:
-                    cz += sz
-                    tmz += tdz
-                    new_block = (cz & 7) == wz
-            elif tmy < tmz:
-                cy += sy
-                tmy += tdy
-                new_block = (cy & 7) == wy
-            else:
-                cz += sz
-                tmz += tdz
-                new_block = (cz & 7) == wz
-            if cx == kex and cy == key and cz == kez:
-                break
-            if min(tmx, min(tmy, tmz)) > length:
-                break
-    e0 = 0 if phase0 == 0 else ray0
-    for i in range(e0, n):
-        px = points[i, 0]
-        py = points[i, 1]
-        pz = points[i, 2]
-        if max_range >= 0.0:
-            r = math.sqrt((px - ox) ** 2 + (py - oy) ** 2 + (pz - oz) ** 2)
-            if r > max_range:
-                continue
-        kx = np.int64(math.floor(px * inv))
-        ky = np.int64(math.floor(py * inv))
-        kz = np.int64(math.floor(pz * inv))
-        bk = _block_key(kx, ky, kz)
-        if bk != last_bk:
-            if dense:
-                b = _dense_row(kx, ky, kz, b0, nb)
-                if b < 0:
-                    return 3, i
-            else:
-                b = _touch_block(hkeys, hvals, bkeys, nused, bstamp, touched, ntouched, bk, scan_id)
-            if b < 0:
-                return 1, i
-            last_bk = bk
-            last_b = b
-        c = _cell(kx, ky, kz)
-        hbits[last_b, c >> 6] |= np.uint64(1) << np.uint64(c & 63)
+    n = points.shape[0]
+    for i in range(ray0 if phase0 == 0 else n, n):
+        ex, ey, ez, length = _ray_end(ox, oy, oz, points[i, 0], points[i, 1], points[i, 2], max_range)
+        status = _walk_ray(ox, oy, oz, ex, ey, ez, length, res, scan_id, hkeys, hvals, bkeys, nused,
+                           bstamp, touched, ntouched, fbits, ckeys, crows, dense, b0, nb)
+        if status < 0:
+            return (3 if status == -2 else 0), i
+    stop = _mark_endpoints(points, 0 if phase0 == 0 else ray0, ox, oy, oz, max_range, res, scan_id,
+                           hkeys, hvals, bkeys, nused, bstamp, touched, ntouched, hbits, dense, b0, nb)
+    if stop >= 0:
+        return 1, stop
+    if stop < -1:
+        return 3, -1 - stop
     return 2, 0
 
 
@@ -444,13 +457,23 @@ def _export(bkeys, logodds, nused):
 
 
 @njit(cache=True)
-def _import(keys, vals, hkeys, hvals, bkeys, logodds, nused):
-    for i in range(keys.shape[0]):
+def _import(keys, vals, start, hkeys, hvals, bkeys, logodds, nused):
+    """Write voxels keys[start:] into the pool; returns the row where the pool ran out (grow and
+    resume there) or -1 when done."""
+    last_bk = np.int64(-1)
+    b = np.int64(-1)
+    for i in range(start, keys.shape[0]):
         kx = keys[i, 0]
         ky = keys[i, 1]
         kz = keys[i, 2]
-        b = _find_or_add(hkeys, hvals, bkeys, nused, _block_key(kx, ky, kz))
+        bk = _block_key(kx, ky, kz)
+        if bk != last_bk:  # exported maps list a block's voxels together
+            b = _find_or_add(hkeys, hvals, bkeys, nused, bk)
+            if b < 0:
+                return i
+            last_bk = bk
         logodds[b, _cell(kx, ky, kz)] = vals[i]
+    return -1
 
 
 _NO_BOX = np.zeros(3, dtype=np.int64)
@@ -459,14 +482,6 @@ _NO_BOX = np.zeros(3, dtype=np.int64)
 _DENSE_MAX_BLOCKS = 1 << 18
 _MIN_RAYS_PER_THREAD = 4096
 _CHUNKS_PER_THREAD = 8
-_POOL: ThreadPoolExecutor | None = None
-
-
-def _executor() -> ThreadPoolExecutor:
-    global _POOL
-    if _POOL is None:
-        _POOL = ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1), thread_name_prefix="freespace")
-    return _POOL
 
 
 @njit(cache=True, nogil=True)
@@ -527,8 +542,9 @@ class OccupancyMap:
             )
         if threads is not None and threads < 1:
             raise OccupancyError(f"threads must be >= 1, got {threads}")
-        #: threads marking a scan's rays (None: one per core); results do not depend on it
-        self.threads = int(threads) if threads is not None else max(1, os.cpu_count() or 1)
+        #: threads marking a scan's rays (None: one per core, os.cpu_count(); a Dask worker passes
+        #: its allotment); the map does not depend on it
+        self.threads = resolve_threads(threads)
         self.voxel_size_m = float(voxel_size_m)
         self.params = (prob_hit, prob_miss, clamp_min, clamp_max, occupancy_threshold)
         self._hit = np.float32(_logit(prob_hit))
@@ -563,10 +579,6 @@ class OccupancyMap:
         self._hkeys = np.full(4 * n, -1, dtype=np.int64)
         self._hvals = np.full(4 * n, -1, dtype=np.int64)
         _rehash(self._bkeys, int(self._nused[0]), self._hkeys, self._hvals)
-
-    @property
-    def num_blocks(self) -> int:
-        return int(self._nused[0])
 
     @property
     def memory_bytes(self) -> int:
@@ -655,7 +667,7 @@ class OccupancyMap:
         if threads == 1:
             inside = mark(0)
         else:
-            inside = all(_executor().map(mark, range(threads)))
+            inside = all(executor(threads).map(mark, range(threads)))
         if not inside:  # a ray left the box (float corner cases): the sparse path is exact anyway
             return False
         row = 0
@@ -709,20 +721,25 @@ class OccupancyMap:
         vals = np.ascontiguousarray(np.asarray(logodds, dtype=np.float32).reshape(-1))
         if len(keys) != len(vals):
             raise OccupancyError(f"{len(keys)} keys but {len(vals)} log-odds values")
-        blocks = len(np.unique(keys >> _BLOCK_SHIFT, axis=0)) if len(keys) else 1
-        m = cls(voxel_size_m, initial_blocks=blocks, **params)
-        _import(keys, vals, m._hkeys, m._hvals, m._bkeys, m._logodds, m._nused)
+        # a guess of the block count (exports hold ~100-500 voxels per block); the pool grows
+        m = cls(voxel_size_m, initial_blocks=max(1, len(keys) // 128), **params)
+        row = 0
+        while row >= 0:
+            row = _import(keys, vals, row, m._hkeys, m._hvals, m._bkeys, m._logodds, m._nused)
+            if row >= 0:
+                m._grow()
         return m
 
     def __getstate__(self):
         keys, vals = self.to_arrays()
         return {"voxel_size_m": self.voxel_size_m, "params": self.params, "keys": keys,
-                "logodds": vals, "num_scans": self.num_scans}
+                "logodds": vals, "num_scans": self.num_scans, "threads": self.threads}
 
     def __setstate__(self, state):
         ph, pm, cmin, cmax, thr = state["params"]
         other = OccupancyMap.from_arrays(state["voxel_size_m"], state["keys"], state["logodds"],
                                          prob_hit=ph, prob_miss=pm, clamp_min=cmin,
-                                         clamp_max=cmax, occupancy_threshold=thr)
+                                         clamp_max=cmax, occupancy_threshold=thr,
+                                         threads=state.get("threads"))
         self.__dict__.update(other.__dict__)
         self.num_scans = state["num_scans"]

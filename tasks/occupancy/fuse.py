@@ -11,8 +11,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import math
+
 import numpy as np
-import open3d as o3d
+from numba import njit
 
 from tasks.conventions import FREE, PEDESTRIAN
 from tasks.occupancy.grid import GridSpec
@@ -85,28 +87,168 @@ def surface_points(vertices: np.ndarray, faces: np.ndarray, spacing_m: float) ->
     return np.concatenate(out)
 
 
+@njit(cache=True, inline="always")
+def _floor_index(x, origin, vs):
+    return np.int64(math.floor((x - origin) / vs))
+
+
+@njit(cache=True)
+def _mark_surface(v, f, origin, vs, shape, g0, occ):
+    """Mark the voxels of :func:`surface_points` (spacing vs / 2) in occ, a local grid whose
+    voxel (0, 0, 0) is grid voxel g0; points outside the grid are skipped. Same lattice and the
+    same float64 arithmetic as surface_points (weights i / k, j / k, (k - i - j) / k, summed in
+    that order), without materialising the points."""
+    spacing = 0.5 * vs
+    for n in range(v.shape[0]):
+        _mark_point(v[n, 0], v[n, 1], v[n, 2], origin, vs, shape, g0, occ)
+    for t in range(f.shape[0]):
+        a, b, c = f[t, 0], f[t, 1], f[t, 2]
+        edge = 0.0
+        for p, q in ((a, c), (b, a), (c, b)):  # tri - roll(tri, 1): a - c, b - a, c - b
+            dx = v[p, 0] - v[q, 0]
+            dy = v[p, 1] - v[q, 1]
+            dz = v[p, 2] - v[q, 2]
+            edge = max(edge, math.sqrt(dx * dx + dy * dy + dz * dz))
+        k = min(max(np.int64(math.ceil(edge / spacing)), 1), 256)
+        for i in range(k + 1):
+            for j in range(k + 1 - i):
+                wa = i / k
+                wb = j / k
+                wc = (k - i - j) / k
+                _mark_point((wa * v[a, 0] + wb * v[b, 0]) + wc * v[c, 0],
+                            (wa * v[a, 1] + wb * v[b, 1]) + wc * v[c, 1],
+                            (wa * v[a, 2] + wb * v[b, 2]) + wc * v[c, 2], origin, vs, shape, g0, occ)
+
+
+@njit(cache=True, inline="always")
+def _mark_point(x, y, z, origin, vs, shape, g0, occ):
+    ix = _floor_index(x, origin[0], vs)
+    iy = _floor_index(y, origin[1], vs)
+    iz = _floor_index(z, origin[2], vs)
+    if 0 <= ix < shape[0] and 0 <= iy < shape[1] and 0 <= iz < shape[2]:
+        lx, ly, lz = ix - g0[0], iy - g0[1], iz - g0[2]
+        if 0 <= lx < occ.shape[0] and 0 <= ly < occ.shape[1] and 0 <= lz < occ.shape[2]:
+            occ[lx, ly, lz] = 1
+
+
+@njit(cache=True, inline="always")
+def _edge(v, i, j, x, y):
+    """Side of (x, y) w.r.t. the xy line through vertices i, j, oriented from the lower vertex
+    index to the higher: the same float operations for both faces that share the edge."""
+    if i > j:
+        i, j = j, i
+    return (v[j, 0] - v[i, 0]) * (y - v[i, 1]) - (v[j, 1] - v[i, 1]) * (x - v[i, 0])
+
+
+@njit(cache=True, inline="always")
+def _covers(v, i, j, r, x, y):
+    """(x, y) on the side of edge (i, j) where the face's third vertex r lies; a point exactly on
+    the edge belongs to the face on the edge's positive side, so of two faces that meet there
+    from opposite sides exactly one counts it (crossings stay consistent along a shared edge)."""
+    e = _edge(v, i, j, x, y)
+    s = _edge(v, i, j, v[r, 0], v[r, 1])
+    return (e > 0.0 and s > 0.0) or (e < 0.0 and s < 0.0) or (e == 0.0 and s > 0.0)
+
+
+@njit(cache=True)
+def _column_crossings(v, f, cx, cy, vs, counts, zs, fill):
+    """Heights where the faces cross the vertical line through each column centre (cx[i], cy[j]),
+    column i * len(cy) + j. With fill False, counts (columns + 1,) gets each column's crossings
+    at [column + 1]; with fill True, counts (columns,) is each column's next free slot in zs."""
+    nx, ny = cx.shape[0], cy.shape[0]
+    for t in range(f.shape[0]):
+        a, b, c = f[t, 0], f[t, 1], f[t, 2]
+        nz = (v[b, 0] - v[a, 0]) * (v[c, 1] - v[a, 1]) - (v[b, 1] - v[a, 1]) * (v[c, 0] - v[a, 0])
+        if nz == 0.0:  # a vertical face: the lines graze it, its neighbours count
+            continue
+        xmin = min(v[a, 0], min(v[b, 0], v[c, 0]))
+        xmax = max(v[a, 0], max(v[b, 0], v[c, 0]))
+        ymin = min(v[a, 1], min(v[b, 1], v[c, 1]))
+        ymax = max(v[a, 1], max(v[b, 1], v[c, 1]))
+        nxv = (v[b, 1] - v[a, 1]) * (v[c, 2] - v[a, 2]) - (v[b, 2] - v[a, 2]) * (v[c, 1] - v[a, 1])
+        nyv = (v[b, 2] - v[a, 2]) * (v[c, 0] - v[a, 0]) - (v[b, 0] - v[a, 0]) * (v[c, 2] - v[a, 2])
+        # candidate columns (one column of slack: the exact tests below decide)
+        i0 = max(0, np.int64(math.floor((xmin - cx[0]) / vs)))
+        i1 = min(nx - 1, np.int64(math.ceil((xmax - cx[0]) / vs)))
+        j0 = max(0, np.int64(math.floor((ymin - cy[0]) / vs)))
+        j1 = min(ny - 1, np.int64(math.ceil((ymax - cy[0]) / vs)))
+        for i in range(i0, i1 + 1):
+            x = cx[i]
+            if x < xmin or x > xmax:
+                continue
+            for j in range(j0, j1 + 1):
+                y = cy[j]
+                if y < ymin or y > ymax:
+                    continue
+                if not (_covers(v, a, b, c, x, y) and _covers(v, b, c, a, x, y)
+                        and _covers(v, c, a, b, x, y)):
+                    continue
+                col = i * ny + j
+                if fill:  # the face's plane at (x, y): n . (p - a) = 0
+                    zs[counts[col]] = v[a, 2] - (nxv * (x - v[a, 0]) + nyv * (y - v[a, 1])) / nz
+                    counts[col] += 1
+                else:
+                    counts[col + 1] += 1
+
+
+@njit(cache=True)
+def _fill_inside(starts, zs, cz, nx, ny, g, occ):
+    """Mark the voxel centres with an odd number of crossings above them (inside a closed
+    surface); g: the local-grid offset of the volume box."""
+    for i in range(nx):
+        for j in range(ny):
+            s, e = starts[i * ny + j], starts[i * ny + j + 1]
+            if e - s < 2:
+                continue
+            col = np.sort(zs[s:e])
+            for k in range(cz.shape[0]):
+                above = e - s - np.searchsorted(col, cz[k], side="right")
+                if above % 2 == 1:
+                    occ[g[0] + i, g[1] + j, g[2] + k] = 1
+
+
 def voxelize_mesh(spec: GridSpec, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Voxels of a closed mesh: the volume (open3d occupancy at voxel centres) plus the surface
-    (lattice points at half-voxel spacing). vertices (V, 3) float metres and faces (F, 3) int in
-    the grid frame. Returns (M, 3) int64 unique in-bounds voxel indices."""
-    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    """Voxels of a closed mesh: the volume (voxels whose centre is inside the mesh) plus the
+    surface (voxels holding a point of :func:`surface_points` at half-voxel spacing).
+
+    vertices (V, 3) float metres and faces (F, 3) int in the grid frame; the mesh must be closed
+    (watertight) for the volume to mean inside. Returns (M, 3) int64 unique in-bounds voxel
+    indices, rows in lexicographic order.
+
+    Inside: the parity of the faces crossed by the vertical line above the centre (for a closed
+    surface the parity of any ray's crossings, so this equals a ray cast in any direction, e.g.
+    open3d's ``RaycastingScene.compute_occupancy``). The faces are taken at float32 precision,
+    like open3d's. A centre on a shared edge's vertical plane is counted by exactly one of the
+    two faces (fixed orientation of each edge); a centre exactly on the surface is undecided.
+    Cost: one pass over the faces plus one over the mesh's box of voxels (no dense sampling).
+    """
+    v = np.ascontiguousarray(np.asarray(vertices, dtype=np.float64).reshape(-1, 3))
+    f = np.ascontiguousarray(np.asarray(faces, dtype=np.int64).reshape(-1, 3))
     if not len(v):
         return np.empty((0, 3), dtype=np.int64)
-    surf = spec.index_of(surface_points(v, f, 0.5 * spec.voxel_size_m))
-    surf = surf[spec.in_bounds(surf)]
-    lo = np.maximum(spec.index_of(v.min(axis=0, keepdims=True))[0], 0)
-    hi = np.minimum(spec.index_of(v.max(axis=0, keepdims=True))[0], np.asarray(spec.shape) - 1)
-    vol = np.empty((0, 3), dtype=np.int64)
+    if len(f) and (f.min() < 0 or f.max() >= len(v)):
+        raise FuseError(f"faces index vertices 0..{len(v) - 1}, got {f.min()}..{f.max()}")
+    shape = np.asarray(spec.shape, dtype=np.int64)
+    vmin, vmax = spec.index_of(v.min(axis=0, keepdims=True))[0], spec.index_of(v.max(axis=0, keepdims=True))[0]
+    # the local grid: the mesh box one voxel wider (rounding of lattice points), inside the grid
+    g0 = np.maximum(vmin - 1, 0)
+    g1 = np.minimum(vmax + 1, shape - 1)
+    if np.any(g1 < g0):
+        return np.empty((0, 3), dtype=np.int64)
+    occ = np.zeros(tuple(g1 - g0 + 1), dtype=np.uint8)
+    _mark_surface(v, f, spec.origin, spec.voxel_size_m, shape, g0, occ)
+    lo, hi = np.maximum(vmin, 0), np.minimum(vmax, shape - 1)
     if len(f) and np.all(hi >= lo):
-        axes = [np.arange(lo[a], hi[a] + 1) for a in range(3)]
-        idx = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-        scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)),
-                            o3d.core.Tensor(f.astype(np.uint32)))
-        occ = scene.compute_occupancy(o3d.core.Tensor(spec.center_of(idx).astype(np.float32))).numpy()
-        vol = idx[occ > 0.5]
-    return np.unique(np.concatenate([surf, vol]), axis=0)
+        v32 = v.astype(np.float32).astype(np.float64)  # open3d's float32 mesh and centres
+        cx, cy, cz = ((spec.origin[a] + (np.arange(lo[a], hi[a] + 1) + 0.5) * spec.voxel_size_m)
+                      .astype(np.float32).astype(np.float64) for a in range(3))
+        counts = np.zeros(len(cx) * len(cy) + 1, dtype=np.int64)
+        _column_crossings(v32, f, cx, cy, spec.voxel_size_m, counts, np.empty(0), False)
+        starts = np.cumsum(counts)
+        zs = np.empty(starts[-1], dtype=np.float64)
+        _column_crossings(v32, f, cx, cy, spec.voxel_size_m, starts[:-1].copy(), zs, True)
+        _fill_inside(starts, zs, cz, len(cx), len(cy), lo - g0, occ)
+    return np.argwhere(occ) + g0
 
 
 def voxelize_labels(spec: GridSpec, points: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -144,6 +286,7 @@ def fuse_frame(
     pixel_stride: int | None = None,
     camera_method: str = FuseSettings.camera_method,
     velocity_dtype=np.float16,
+    threads: int | None = None,
 ) -> FrameGrids:
     """Fuse one frame into the robot-local grid.
 
@@ -159,6 +302,7 @@ def fuse_frame(
     "rays" for voxels >= 0.1 m (exact DDA, cheap), "zbuffer" for finer grids (98.8 % agreement
     with "rays" at 0.05 m, 3.5x faster; rays would take seconds per frame at 0.02 m).
     velocity_dtype: float16 (default, 221 MB at 0.02 m on the benchmark extent) or float32.
+    threads: for the visibility rays (None: one thread per core; the grids do not depend on it).
     """
     T = np.asarray(T_world_from_base, dtype=np.float64)
     if T.shape != (4, 4):
@@ -194,7 +338,7 @@ def fuse_frame(
     if lidar_points_base is not None:
         if lidar_origin_base is None:
             raise FuseError("lidar_points_base needs lidar_origin_base")
-        m_lidar = lidar_mask(spec, lidar_points_base, lidar_origin_base)
+        m_lidar = lidar_mask(spec, lidar_points_base, lidar_origin_base, threads)
     else:
         m_lidar = np.zeros(spec.shape, dtype=np.uint8)
     if camera is not None:
@@ -202,7 +346,7 @@ def fuse_frame(
         if method == "auto":
             method = "rays" if spec.voxel_size_m >= 0.1 else "zbuffer"
         m_cam = camera_mask(spec, semantics != FREE, camera.K, camera.width, camera.height,
-                            camera.T_base_from_cam, pixel_stride, method)
+                            camera.T_base_from_cam, pixel_stride, method, threads)
     else:
         m_cam = np.zeros(spec.shape, dtype=np.uint8)
     return FrameGrids(semantics, instances, m_lidar, m_cam, velocity, state)

@@ -17,8 +17,8 @@ from tasks.conventions import PEDESTRIAN, transform_points
 from tasks.occupancy.freespace import OccupancyMap
 from tasks.occupancy.settings import FreeSpaceParams, MapParams
 from tasks.occupancy.static_map import (StaticMap, StaticSemanticMap, lift_image_semantics,
-                                        merge_static_maps, pedestrian_point_mask, project_points)
-from tasks.perception.person_points import associate_lidar_boxes
+                                        merge_static_maps, pedestrian_boxes_for_masking,
+                                        pedestrian_point_mask, project_points)
 
 
 def new_occupancy_map(p: FreeSpaceParams, threads: int | None = None) -> OccupancyMap:
@@ -32,27 +32,6 @@ def load_occupancy_map(p: FreeSpaceParams, keys: np.ndarray, logodds: np.ndarray
     return OccupancyMap.from_arrays(p.voxel_size_m, keys, logodds, prob_hit=p.prob_hit, prob_miss=p.prob_miss,
                                     clamp_min=p.clamp_min, clamp_max=p.clamp_max,
                                     occupancy_threshold=p.occupancy_threshold)
-
-
-def pedestrian_boxes_for_masking(boxes_xyxy: np.ndarray, lidar_centers: np.ndarray, lidar_sizes: np.ndarray,
-                                 lidar_yaws: np.ndarray, K: np.ndarray, T_cam_from_lidar: np.ndarray,
-                                 width: int, height: int, min_iou: float) -> np.ndarray:
-    """(M', 7) LiDAR pedestrian boxes [cx, cy, cz, l, w, h, yaw] used to remove people's points.
-
-    Inside the camera view the image decides (instance masks are sharper and a geometric LiDAR
-    detector fires on trunks and posts): a box there counts only if an image detection confirms
-    it (IoU >= min_iou, :func:`associate_lidar_boxes`). Outside the view the LiDAR boxes are all
-    there is, so they all count.
-    """
-    boxes = np.column_stack([lidar_centers, lidar_sizes, lidar_yaws])
-    if len(boxes) == 0:
-        return boxes.reshape(0, 7)
-    _, in_view = project_points(lidar_centers, K, T_cam_from_lidar, width, height)
-    matched = associate_lidar_boxes(boxes_xyxy, lidar_centers, lidar_sizes, lidar_yaws, K,
-                                    T_cam_from_lidar, min_iou)
-    confirmed = np.zeros(len(boxes), bool)
-    confirmed[matched[matched >= 0]] = True
-    return boxes[~in_view | confirmed]
 
 
 class SequenceMapper:
@@ -71,6 +50,7 @@ class SequenceMapper:
         self.seen = StaticSemanticMap(params.voxel_size_m)
         self.unseen = StaticSemanticMap(params.voxel_size_m)
         self.occupancy = new_occupancy_map(freespace, threads)
+        self.threads = threads
         self.kept = self.removed = 0
 
     def add_sweep(self, points_lidar: np.ndarray, T_world_from_lidar: np.ndarray, semantic: np.ndarray,
@@ -80,16 +60,17 @@ class SequenceMapper:
         Cityscapes train ids, mask_labels (H, W) instance labels (> 0: a person), image boxes
         (D, 4), LiDAR pedestrian boxes (M, 3) / (M,)."""
         p, (width, height) = self.params, self.size
+        projection = project_points(points_lidar, self.K, self.T_cam, width, height)  # once per sweep
+        in_image = projection[1]
         labels = lift_image_semantics(points_lidar, semantic, self.K, self.T_cam, self.lut,
                                       fallback=p.outside_image_fallback, ground_cell_m=p.ground_cell_m,
                                       ground_tol_m=p.ground_max_deviation_m,
-                                      ground_lateral_scale=p.fallback_ground_lateral_scale)
-        _, in_image = project_points(points_lidar, self.K, self.T_cam, width, height)
+                                      ground_lateral_scale=p.fallback_ground_lateral_scale,
+                                      projection=projection, threads=self.threads)
         boxes = pedestrian_boxes_for_masking(boxes_xyxy, lidar_centers, lidar_sizes, lidar_yaws, self.K,
                                              self.T_cam, width, height, self.min_iou)
-        people = pedestrian_point_mask(points_lidar, K=self.K, T_cam_from_lidar=self.T_cam,
-                                       instance_image=mask_labels, boxes_lidar=boxes,
-                                       box_margin_m=p.pedestrian_box_margin_m)
+        people = pedestrian_point_mask(points_lidar, instance_image=mask_labels, boxes_lidar=boxes,
+                                       box_margin_m=p.pedestrian_box_margin_m, projection=projection)
         keep = ~people & (labels != PEDESTRIAN)
         world = transform_points(T_world_from_lidar, points_lidar).astype(np.float32)
         self.seen.add_sweep(world, labels, keep=keep & in_image)

@@ -16,11 +16,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
+from numba import njit
 
 from tasks.conventions import FREE, PEDESTRIAN, ROAD, TERRAIN, UNLABELED
 from tasks.occupancy.settings import MapParams
+from tasks.occupancy.nearest import nearest_indices
 from tasks.perception.lidar_clusters import ground_height
+from tasks.perception.person_points import associate_lidar_boxes
 
 NUM_OCCUPIED_CLASSES = FREE  # classes 0..8 take votes; 9 (free) never does
 _OFF = 1 << 20  # 21 bits per axis in a packed key: +-2^20 voxels
@@ -46,6 +48,27 @@ def unpack_keys(packed: np.ndarray) -> np.ndarray:
 
 
 # -- per-sweep helpers ----------------------------------------------------------------------------
+@njit(cache=True)
+def _project(p, R, t, K, width, height, min_depth_m, pix, valid):
+    for i in range(p.shape[0]):
+        x = R[0, 0] * p[i, 0] + R[0, 1] * p[i, 1] + R[0, 2] * p[i, 2] + t[0]
+        y = R[1, 0] * p[i, 0] + R[1, 1] * p[i, 1] + R[1, 2] * p[i, 2] + t[1]
+        z = R[2, 0] * p[i, 0] + R[2, 1] * p[i, 1] + R[2, 2] * p[i, 2] + t[2]
+        pix[i, 0] = 0
+        pix[i, 1] = 0
+        valid[i] = False
+        if not z > min_depth_m:
+            continue
+        xn = x / z
+        yn = y / z
+        u = np.floor(xn * K[0, 0] + yn * K[0, 1] + K[0, 2] + 0.5)
+        v = np.floor(xn * K[1, 0] + yn * K[1, 1] + K[1, 2] + 0.5)
+        if u >= 0 and u < width and v >= 0 and v < height:
+            pix[i, 0] = np.int64(u)
+            pix[i, 1] = np.int64(v)
+            valid[i] = True
+
+
 def project_points(points_lidar: np.ndarray, K: np.ndarray, T_cam_from_lidar: np.ndarray,
                    width: int, height: int, min_depth_m: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
     """Pixels of LiDAR points in a rectified pinhole image.
@@ -53,18 +76,31 @@ def project_points(points_lidar: np.ndarray, K: np.ndarray, T_cam_from_lidar: np
     points_lidar: (N, 3) float metres, LiDAR frame. K: (3, 3) intrinsics (pixels).
     T_cam_from_lidar: (4, 4) float64. Returns (pixel (N, 2) int64 column/row of the pixel whose
     centre is nearest, OpenCV convention: centre of pixel (0, 0) at (0, 0); valid (N,) bool: depth
-    z_cam > min_depth_m and inside the image).
+    z_cam > min_depth_m and inside the image; pixel is (0, 0) where not valid). One pass per point
+    (a sweep is projected once and the result passed to the kernels that need it).
     """
-    p = np.asarray(points_lidar, dtype=np.float64).reshape(-1, 3)
+    p = np.ascontiguousarray(np.asarray(points_lidar, dtype=np.float64).reshape(-1, 3))
     T = np.asarray(T_cam_from_lidar, dtype=np.float64)
-    pc = p @ T[:3, :3].T + T[:3, 3]
-    z = pc[:, 2]
-    front = z > min_depth_m
-    zs = np.where(front, z, 1.0)
-    uv = (pc[:, :2] / zs[:, None]) @ np.asarray(K, dtype=np.float64)[:2, :2].T + np.asarray(K)[:2, 2]
-    pix = np.floor(uv + 0.5).astype(np.int64)
-    valid = front & (pix[:, 0] >= 0) & (pix[:, 0] < width) & (pix[:, 1] >= 0) & (pix[:, 1] < height)
-    pix[~valid] = 0
+    pix = np.empty((len(p), 2), dtype=np.int64)
+    valid = np.empty(len(p), dtype=bool)
+    _project(p, np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]),
+             np.ascontiguousarray(np.asarray(K, dtype=np.float64)), int(width), int(height),
+             float(min_depth_m), pix, valid)
+    return pix, valid
+
+
+def _checked_projection(projection, n: int, image: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """A caller's (pixel, valid) from :func:`project_points`, checked against the points and image."""
+    pix, valid = projection
+    pix, valid = np.asarray(pix), np.asarray(valid, dtype=bool)
+    if pix.shape != (n, 2) or valid.shape != (n,):
+        raise StaticMapError(f"projection for {what} has shapes {pix.shape}, {valid.shape}; "
+                             f"expected ({n}, 2), ({n},)")
+    if valid.any():
+        top = pix[valid].max(axis=0)
+        if top[0] >= image.shape[1] or top[1] >= image.shape[0]:
+            raise StaticMapError(f"projection reaches pixel {tuple(int(v) for v in top)} but the "
+                                 f"{what} is {image.shape[1]} x {image.shape[0]}")
     return pix, valid
 
 
@@ -72,8 +108,9 @@ def lift_image_semantics(points_lidar: np.ndarray, semantic_image: np.ndarray, K
                          T_cam_from_lidar: np.ndarray, class_lut: np.ndarray,
                          fallback: str = MapParams.outside_image_fallback,
                          ground_cell_m: float = MapParams.ground_cell_m,
-                         ground_tol_m: float = MapParams.ground_max_deviation_m,
-                         ground_lateral_scale: float = 1.0) -> np.ndarray:
+                         ground_tol_m: float = MapParams.ground_max_deviation_m, ground_lateral_scale: float = 1.0,
+                         projection: tuple[np.ndarray, np.ndarray] | None = None,
+                         threads: int | None = None) -> np.ndarray:
     """Class of each LiDAR point from a semantic image.
 
     points_lidar: (N, 3) float metres, LiDAR frame. semantic_image: (H, W) uint8 Cityscapes train
@@ -83,11 +120,14 @@ def lift_image_semantics(points_lidar: np.ndarray, semantic_image: np.ndarray, K
     the same level: a point less than ground_tol_m above the local ground (the lowest point of its
     ground_cell_m cell's 3 x 3 neighbourhood) takes the label of the nearest such in-image point,
     any other point that of the nearest other in-image point, so the side of a car beside the
-    robot is not labelled road and the road beside it not car) or "unknown" (UNLABELED).
+    robot is not labelled road and the road beside it not car; on exact distance ties the
+    in-image point that comes first) or "unknown" (UNLABELED).
     ground_lateral_scale > 1 stretches the LiDAR y axis (across the direction of travel, LiDAR x
     forward) when matching ground points: roads, sidewalks and lawn strips run along the robot's
     path, so the ground beside the robot takes the label seen ahead at the same lateral offset
-    rather than that of the nearest in-view (mostly road) point. Returns (N,) uint8.
+    rather than that of the nearest in-view (mostly road) point. projection: this sweep's
+    :func:`project_points` into an image of this size (computed here when None). threads: for
+    the nearest-neighbour search (None: one per core). Returns (N,) uint8.
     """
     if fallback not in ("nearest", "unknown"):
         raise StaticMapError(f"fallback must be 'nearest' or 'unknown', got {fallback!r}")
@@ -98,7 +138,10 @@ def lift_image_semantics(points_lidar: np.ndarray, semantic_image: np.ndarray, K
     if lut.shape != (256,):
         raise StaticMapError(f"class_lut must be (256,) uint8, got shape {lut.shape}")
     p = np.asarray(points_lidar, dtype=np.float64).reshape(-1, 3)
-    pix, valid = project_points(p, K, T_cam_from_lidar, img.shape[1], img.shape[0])
+    if projection is None:
+        pix, valid = project_points(p, K, T_cam_from_lidar, img.shape[1], img.shape[0])
+    else:
+        pix, valid = _checked_projection(projection, len(p), img, "semantic image")
     labels = np.full(len(p), UNLABELED, dtype=np.uint8)
     labels[valid] = lut[img[pix[valid, 1], pix[valid, 0]].astype(np.uint8)]
     if fallback == "nearest" and not valid.all():
@@ -110,9 +153,33 @@ def lift_image_semantics(points_lidar: np.ndarray, semantic_image: np.ndarray, K
             if not src.any():  # nothing of this level in view: any in-view label
                 src = labelled
             if src.any() and dst.any():
-                _, nn = cKDTree(q[src]).query(q[dst], k=1)
-                labels[dst] = labels[src][nn]
+                labels[dst] = labels[src][nearest_indices(q[src], q[dst], threads)]
     return labels
+
+
+@njit(cache=True)
+def _in_boxes(p, boxes, cos_yaw, sin_yaw, margin, inside):
+    for b in range(boxes.shape[0]):
+        cx, cy, cz = boxes[b, 0], boxes[b, 1], boxes[b, 2]
+        hx = boxes[b, 3] / 2 + margin
+        hy = boxes[b, 4] / 2 + margin
+        hz = boxes[b, 5] / 2 + margin
+        c, s = cos_yaw[b], sin_yaw[b]
+        # a conservative horizontal reach: skips far points before the exact test
+        r2 = (hx * hx + hy * hy) * (1.0 + 1e-6) + 1e-9
+        for i in range(p.shape[0]):
+            if inside[i]:
+                continue
+            dz = p[i, 2] - cz
+            if not abs(dz) <= hz:
+                continue
+            dx = p[i, 0] - cx
+            dy = p[i, 1] - cy
+            if dx * dx + dy * dy > r2:
+                continue
+            lx = c * dx + s * dy
+            ly = -s * dx + c * dy
+            inside[i] = abs(lx) <= hx and abs(ly) <= hy
 
 
 def points_in_boxes(points: np.ndarray, boxes: np.ndarray, margin_m: float = 0.0) -> np.ndarray:
@@ -122,16 +189,10 @@ def points_in_boxes(points: np.ndarray, boxes: np.ndarray, margin_m: float = 0.0
     (l along the box x, w along y, h along z; yaw rad). margin_m grows every half-size.
     Returns (N,) bool.
     """
-    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+    p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+    b = np.ascontiguousarray(np.asarray(boxes, dtype=np.float64).reshape(-1, 7))
     inside = np.zeros(len(p), dtype=bool)
-    for cx, cy, cz, ln, w, h, yaw in b:
-        d = p - (cx, cy, cz)
-        c, s = np.cos(yaw), np.sin(yaw)
-        lx = c * d[:, 0] + s * d[:, 1]
-        ly = -s * d[:, 0] + c * d[:, 1]
-        inside |= ((np.abs(lx) <= ln / 2 + margin_m) & (np.abs(ly) <= w / 2 + margin_m)
-                   & (np.abs(d[:, 2]) <= h / 2 + margin_m))
+    _in_boxes(p, b, np.cos(b[:, 6]), np.sin(b[:, 6]), float(margin_m), inside)
     return inside
 
 
@@ -139,22 +200,52 @@ def pedestrian_point_mask(points_lidar: np.ndarray, *, K: np.ndarray | None = No
                           T_cam_from_lidar: np.ndarray | None = None,
                           instance_image: np.ndarray | None = None,
                           boxes_lidar: np.ndarray | None = None,
-                          box_margin_m: float = 0.1) -> np.ndarray:
+                          box_margin_m: float = 0.1,
+                          projection: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Points to remove before static mapping: True where a point projects into a pedestrian
-    instance mask (instance_image (H, W) int > 0, with K (3, 3) and T_cam_from_lidar (4, 4)) or lies
-    in a pedestrian box (boxes_lidar (M, 7) [cx, cy, cz, l, w, h, yaw], LiDAR frame, grown by
+    instance mask (instance_image (H, W) int > 0, with K (3, 3) and T_cam_from_lidar (4, 4), or
+    this sweep's :func:`project_points` into an image of that size as projection) or lies in a
+    pedestrian box (boxes_lidar (M, 7) [cx, cy, cz, l, w, h, yaw], LiDAR frame, grown by
     box_margin_m). points_lidar: (N, 3) float metres, LiDAR frame. Returns (N,) bool."""
     p = np.asarray(points_lidar, dtype=np.float64).reshape(-1, 3)
     out = np.zeros(len(p), dtype=bool)
     if instance_image is not None:
-        if K is None or T_cam_from_lidar is None:
-            raise StaticMapError("instance_image needs K and T_cam_from_lidar")
         inst = np.asarray(instance_image)
-        pix, valid = project_points(p, K, T_cam_from_lidar, inst.shape[1], inst.shape[0])
+        if projection is not None:
+            pix, valid = _checked_projection(projection, len(p), inst, "instance image")
+        elif K is None or T_cam_from_lidar is None:
+            raise StaticMapError("instance_image needs K and T_cam_from_lidar (or a projection)")
+        else:
+            pix, valid = project_points(p, K, T_cam_from_lidar, inst.shape[1], inst.shape[0])
         out[valid] = inst[pix[valid, 1], pix[valid, 0]] > 0
     if boxes_lidar is not None and len(boxes_lidar):
         out |= points_in_boxes(p, boxes_lidar, box_margin_m)
     return out
+
+
+def pedestrian_boxes_for_masking(boxes_xyxy: np.ndarray, lidar_centers: np.ndarray,
+                                 lidar_sizes: np.ndarray, lidar_yaws: np.ndarray, K: np.ndarray,
+                                 T_cam_from_lidar: np.ndarray, width: int, height: int,
+                                 min_iou: float) -> np.ndarray:
+    """(M', 7) LiDAR pedestrian boxes [cx, cy, cz, l, w, h, yaw] used to remove people's points.
+
+    boxes_xyxy: (D, 4) image detections (pixels). lidar_centers, lidar_sizes: (M, 3) metres, LiDAR
+    frame; lidar_yaws: (M,) rad. Inside the camera view (width x height, K, T_cam_from_lidar) the
+    image decides (instance masks are sharper and a geometric LiDAR detector fires on trunks and
+    posts): a box there counts only if an image detection confirms it (IoU >= min_iou of its
+    projected corners). Outside the view the LiDAR boxes are all there is, so they all count.
+    """
+    centers = np.asarray(lidar_centers).reshape(-1, 3)
+    boxes = np.column_stack([centers, np.asarray(lidar_sizes).reshape(-1, 3),
+                             np.asarray(lidar_yaws).reshape(-1)])
+    if len(boxes) == 0:
+        return boxes.reshape(0, 7)
+    _, in_view = project_points(centers, K, T_cam_from_lidar, width, height)
+    matched = associate_lidar_boxes(boxes_xyxy, centers, lidar_sizes, lidar_yaws, K,
+                                    T_cam_from_lidar, min_iou)
+    confirmed = np.zeros(len(boxes), bool)
+    confirmed[matched[matched >= 0]] = True
+    return boxes[~in_view | confirmed]
 
 
 # -- the map --------------------------------------------------------------------------------------
@@ -385,6 +476,35 @@ def merge_static_maps(primary: StaticMap, secondary: StaticMap) -> StaticMap:
                      primary.ground_rejected + secondary.ground_rejected)
 
 
+def sorted_table(static: StaticMap) -> tuple[np.ndarray, np.ndarray]:
+    """(packed keys (K,) int64 ascending, labels (K,) uint8 in that order) of a map, for
+    :func:`lookup_packed`. Maps written by the map stage are already in this order (no sort)."""
+    table = pack_keys(static.keys)
+    if len(table) > 1 and not np.all(table[1:] > table[:-1]):
+        order = np.argsort(table, kind="stable")
+        return table[order], static.labels[order]
+    return table, np.asarray(static.labels)
+
+
+@njit(cache=True, inline="always")
+def lookup_packed(table, labels, kx, ky, kz):
+    """Label of map voxel key (kx, ky, kz) in a :func:`sorted_table`, UNLABELED if absent."""
+    if not (-_OFF <= kx <= _MASK - _OFF and -_OFF <= ky <= _MASK - _OFF and -_OFF <= kz <= _MASK - _OFF):
+        return np.uint8(UNLABELED)
+    q = ((kx + _OFF) << 42) | ((ky + _OFF) << 21) | (kz + _OFF)
+    at = np.searchsorted(table, q)
+    if at < table.shape[0] and table[at] == q:
+        return labels[at]
+    return np.uint8(UNLABELED)
+
+
+@njit(cache=True)
+def _lookup_points(p, vs, table, labels, out):
+    for i in range(p.shape[0]):
+        out[i] = lookup_packed(table, labels, np.int64(np.floor(p[i, 0] / vs)),
+                               np.int64(np.floor(p[i, 1] / vs)), np.int64(np.floor(p[i, 2] / vs)))
+
+
 def lookup_labels(static: StaticMap, points_world: np.ndarray) -> np.ndarray:
     """Label of the map voxel containing each point, UNLABELED where the map has none.
 
@@ -393,15 +513,10 @@ def lookup_labels(static: StaticMap, points_world: np.ndarray) -> np.ndarray:
     the map voxel under its centre, with no holes where the two grids are offset (pushing the map's
     voxel centres into an offset grid would leave every other cell empty).
     """
-    p = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+    p = np.ascontiguousarray(np.asarray(points_world, dtype=np.float64).reshape(-1, 3))
     out = np.full(len(p), UNLABELED, dtype=np.uint8)
     if len(static.keys) == 0 or len(p) == 0:
         return out
-    table = pack_keys(static.keys)
-    order = np.argsort(table, kind="stable")
-    table = table[order]
-    query = pack_keys(np.floor(p / static.voxel_size_m).astype(np.int64))
-    at = np.clip(np.searchsorted(table, query), 0, len(table) - 1)
-    hit = table[at] == query
-    out[hit] = static.labels[order[at[hit]]]
+    table, labels = sorted_table(static)
+    _lookup_points(p, static.voxel_size_m, table, labels, out)
     return out

@@ -12,11 +12,14 @@ import math
 import numpy as np
 from numba import njit
 
+from tasks.occupancy.threads import executor, resolve_threads
 
-@njit(cache=True)
+
+@njit(cache=True, inline="always")
 def _walk(o0, o1, o2, e0, e1, e2, shape, occupied, out, stop_at_occupied):
-    """Mark voxels of out (X, Y, Z) uint8 crossed by the segment o -> e (grid units: the voxel
-    [i, i + 1) per axis). With stop_at_occupied, stop after the first voxel with occupied != 0."""
+    """Mark voxels of out crossed by the segment o -> e (grid units: the voxel [i, i + 1) per
+    axis). out, occupied: the (X, Y, Z) grids flattened in C order (uint8). With
+    stop_at_occupied, stop after the first voxel with occupied != 0."""
     dx = e0 - o0
     dy = e1 - o1
     dz = e2 - o2
@@ -63,9 +66,13 @@ def _walk(o0, o1, o2, e0, e1, e2, shape, occupied, out, stop_at_occupied):
         sz, tmz, tdz = -1, (cz - o2) / dz, -1.0 / dz
     else:
         sz, tmz, tdz = 0, big, big
+    # flat C-order index, stepped with the axis; only the stepped axis can leave the box
+    s1 = shape[2]
+    s0 = shape[1] * s1
+    flat = (cx * shape[1] + cy) * s1 + cz
     while True:
-        out[cx, cy, cz] = 1
-        if stop_at_occupied and occupied[cx, cy, cz] != 0:
+        out[flat] = 1
+        if stop_at_occupied and occupied[flat] != 0:
             return
         if tmx < tmy:
             if tmx < tmz:
@@ -73,40 +80,51 @@ def _walk(o0, o1, o2, e0, e1, e2, shape, occupied, out, stop_at_occupied):
                     return
                 cx += sx
                 tmx += tdx
+                if cx < 0 or cx >= shape[0]:
+                    return
+                flat += sx * s0
             else:
                 if tmz > t1:
                     return
                 cz += sz
                 tmz += tdz
+                if cz < 0 or cz >= shape[2]:
+                    return
+                flat += sz
         elif tmy < tmz:
             if tmy > t1:
                 return
             cy += sy
             tmy += tdy
+            if cy < 0 or cy >= shape[1]:
+                return
+            flat += sy * s1
         else:
             if tmz > t1:
                 return
             cz += sz
             tmz += tdz
-        if cx < 0 or cy < 0 or cz < 0 or cx >= shape[0] or cy >= shape[1] or cz >= shape[2]:
-            return
+            if cz < 0 or cz >= shape[2]:
+                return
+            flat += sz
 
 
-@njit(cache=True)
-def _walk_all(origin, ends, shape, occupied, out, stop_at_occupied):
-    # Rays only ever store 1, so the result does not depend on the ray order (safe to run in
-    # parallel should that pay off).
-    for i in range(ends.shape[0]):
+@njit(cache=True, nogil=True)
+def _walk_all(origin, ends, shape, occupied, out, stop_at_occupied, r0, r1):
+    # Rays only ever store 1, so the result depends neither on the ray order nor on how the rays
+    # are split over threads sharing ``out``.
+    for i in range(r0, r1):
         _walk(origin[0], origin[1], origin[2], ends[i, 0], ends[i, 1], ends[i, 2], shape,
               occupied, out, stop_at_occupied)
 
 
-@njit(cache=True)
-def _walk_camera(origin, Kinv, R, us, vs, far, shape, occupied, out):
-    """One ray per sampled pixel (us x vs pixel coordinates), directions R @ Kinv @ (u, v, 1),
-    from origin (grid units) to far (grid units) or the first occupied voxel."""
+@njit(cache=True, nogil=True)
+def _walk_camera(origin, Kinv, R, us, vs, far, shape, occupied, out, r0, r1):
+    """Rays r0..r1 of one ray per sampled pixel (ray r: us[r % len(us)], vs[r // len(us)]),
+    directions R @ Kinv @ (u, v, 1), from origin (grid units) to far (grid units) or the first
+    occupied voxel."""
     nu = us.shape[0]
-    for r in range(nu * vs.shape[0]):
+    for r in range(r0, r1):
         u = us[r % nu]
         v = vs[r // nu]
         cx = Kinv[0, 0] * u + Kinv[0, 1] * v + Kinv[0, 2]
@@ -120,11 +138,28 @@ def _walk_camera(origin, Kinv, R, us, vs, far, shape, occupied, out):
               origin[1] + dy / n * far, origin[2] + dz / n * far, shape, occupied, out, True)
 
 
-def lidar_mask(spec, points_base: np.ndarray, origin_base: np.ndarray) -> np.ndarray:
+#: rays per thread below which splitting the rays over threads does not pay
+_MIN_RAYS_PER_THREAD = 8192
+
+
+def _split_rays(walk, n_rays: int, threads: int | None) -> None:
+    """Run walk(r0, r1) over [0, n_rays) in contiguous parts, one per thread (all share the
+    output; every write stores 1, so the result is the same for any split)."""
+    n = min(resolve_threads(threads), max(1, n_rays // _MIN_RAYS_PER_THREAD))
+    bounds = np.linspace(0, n_rays, n + 1).astype(np.int64)
+    if n == 1:
+        walk(0, n_rays)
+        return
+    list(executor(n).map(lambda k: walk(bounds[k], bounds[k + 1]), range(n)))
+
+
+def lidar_mask(spec, points_base: np.ndarray, origin_base: np.ndarray,
+               threads: int | None = None) -> np.ndarray:
     """Voxels traversed or hit by this frame's LiDAR rays.
 
     spec: GridSpec (base frame). points_base: (N, 3) float metres, base frame (the endpoints).
-    origin_base: (3,) the LiDAR centre in the base frame. Returns (X, Y, Z) uint8 (1 observed).
+    origin_base: (3,) the LiDAR centre in the base frame. threads: rays walked in parallel (None:
+    one thread per core). Returns (X, Y, Z) uint8 (1 observed).
     """
     shape = np.asarray(spec.shape, dtype=np.int64)
     out = np.zeros(spec.shape, dtype=np.uint8)
@@ -133,7 +168,8 @@ def lidar_mask(spec, points_base: np.ndarray, origin_base: np.ndarray) -> np.nda
     if len(p):
         g = np.ascontiguousarray((p - spec.origin) / spec.voxel_size_m)
         o = (np.asarray(origin_base, dtype=np.float64) - spec.origin) / spec.voxel_size_m
-        _walk_all(o, g, shape, out, out, False)
+        flat = out.reshape(-1)
+        _split_rays(lambda r0, r1: _walk_all(o, g, shape, flat, flat, False, r0, r1), len(g), threads)
     return out
 
 
@@ -200,7 +236,7 @@ def _visible(nx, ny, nz, lo, vs, R, t, fx, fy, cx, cy, zbuf, out):
 
 def camera_mask(spec, occupied: np.ndarray, K: np.ndarray, width: int, height: int,
                 T_base_from_cam: np.ndarray, pixel_stride: int | None = None,
-                method: str = "zbuffer") -> np.ndarray:
+                method: str = "zbuffer", threads: int | None = None) -> np.ndarray:
     """Voxels visible from the camera.
 
     spec: GridSpec (base frame). occupied: (X, Y, Z) bool/uint8, non-zero where a voxel blocks the
@@ -209,7 +245,8 @@ def camera_mask(spec, occupied: np.ndarray, K: np.ndarray, width: int, height: i
     the image and no occupied voxel in front covers that pixel (occupied voxels splat square
     footprints into a depth buffer whose pixels are no larger than a voxel at the grid's farthest
     corner). method "rays": one ray per sampled pixel (pixel_stride, None: auto) walked with a DDA
-    up to and including the first occupied voxel. Returns (X, Y, Z) uint8, 1 observed.
+    up to and including the first occupied voxel; threads: rays walked in parallel (None: one
+    thread per core). Returns (X, Y, Z) uint8, 1 observed.
     """
     if occupied.shape != spec.shape:
         raise ValueError(f"occupied has shape {occupied.shape}, grid is {spec.shape}")
@@ -241,6 +278,8 @@ def camera_mask(spec, occupied: np.ndarray, K: np.ndarray, width: int, height: i
     us = np.arange(stride / 2 - 0.5, width - 0.5, stride)  # centres of stride x stride pixel blocks
     vs = np.arange(stride / 2 - 0.5, height - 0.5, stride)
     occ = np.ascontiguousarray(occupied.astype(np.uint8, copy=False))
-    _walk_camera(o, np.linalg.inv(K), np.ascontiguousarray(T[:3, :3]), us, vs, far,
-                 np.asarray(spec.shape, dtype=np.int64), occ, out)
+    Kinv, R, shape = np.linalg.inv(K), np.ascontiguousarray(T[:3, :3]), np.asarray(spec.shape, dtype=np.int64)
+    occ_flat, out_flat = occ.reshape(-1), out.reshape(-1)
+    _split_rays(lambda r0, r1: _walk_camera(o, Kinv, R, us, vs, far, shape, occ_flat, out_flat, r0, r1),
+                len(us) * len(vs), threads)
     return out
