@@ -318,7 +318,7 @@ class _FitBase(Strict):
 FitConfig = section(
     "FitConfig", "The body fit: tasks.fit.settings.FitSettings, the objective's preset and options.",
     kernel_fields(FitSettings, {"iterations": _NONNEG, "learning_rate": _POS, "nn_every": {"ge": 1},
-                                "chamfer_vertex_max_m": _POS, "min_points": _NONNEG, "max_shift_m": _POS,
+                                "converge_rtol": _POS, "chamfer_vertex_max_m": _POS, "min_points": _NONNEG, "max_shift_m": _POS,
                                 "batch_persons": {"ge": 1}}),
     {key: (typing.get_type_hints(FitWeights)[f], Field(next(x.default for x in dataclasses.fields(FitWeights)
                                                             if x.name == f)))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -19,7 +21,7 @@ from tasks.fit.lidar_sim import (
     synthesize_persons,
 )
 from tasks.fit.metrics import mean_error_mm
-from tasks.fit.optimize import fit_persons
+from tasks.fit.optimize import fit_persons, ragged_points
 
 K = np.array([[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]])
 
@@ -37,11 +39,13 @@ def scene():
     return model, prior, sp, truth, init
 
 
-def _fit(scene, **kw):
+def _fit(scene, rows=slice(None), device="cpu", **kw):
     model, prior, sp, _, init = scene
     args = dict(iterations=25, lr=0.03)
     args.update(kw)
-    return fit_persons(model, prior, init, sp.keypoints, K, sp.T_cam_from_lidar, sp.points_lidar, sp.point_mask, **args)
+    prior = prior if device == "cpu" else copy.deepcopy(prior).to(device)
+    return fit_persons(model, prior, init.take(rows), sp.keypoints[rows], K, sp.T_cam_from_lidar,
+                       *ragged_points(sp.points_lidar[rows], sp.point_mask[rows]), device=device, **args)
 
 
 def test_simulated_sweep_lies_on_the_body_inside_the_frustum(scene):
@@ -101,8 +105,8 @@ def test_fit_from_the_truth_stays_put_with_the_vertex_cap(scene, cap, bound_mm):
     # towards the sensor (~30 mm at Ouster-128 on the benchmark): visible vertices without a
     # nearby return (between scan lines, self-occluded) were dragged onto the nearest return
     model, prior, sp, truth, _ = scene
-    r = fit_persons(model, prior, truth, sp.keypoints, K, sp.T_cam_from_lidar, sp.points_lidar, sp.point_mask,
-                    iterations=60, nn_every=5, chamfer_vertex_max_m=cap)
+    r = fit_persons(model, prior, truth, sp.keypoints, K, sp.T_cam_from_lidar,
+                    *ragged_points(sp.points_lidar, sp.point_mask), iterations=60, nn_every=5, chamfer_vertex_max_m=cap)
     ray = sp.truth_joints[:, 0] / np.linalg.norm(sp.truth_joints[:, 0], axis=1, keepdims=True)
     towards_mm = -((r.joints[:, 0] - sp.truth_joints[:, 0]) * ray).sum(1) * 1000
     if bound_mm is not None:
@@ -115,7 +119,7 @@ def test_fit_is_deterministic_and_handles_a_person_without_points(scene):
     model, prior, sp, _, init = scene
     mask = sp.point_mask.copy()
     mask[1] = False  # second person: no LiDAR returns -> no ICP, no L_3D
-    args = (model, prior, init, sp.keypoints, K, sp.T_cam_from_lidar, sp.points_lidar, mask)
+    args = (model, prior, init, sp.keypoints, K, sp.T_cam_from_lidar, *ragged_points(sp.points_lidar, mask))
     a = fit_persons(*args, iterations=5, seed=3)
     b = fit_persons(*args, iterations=5, seed=3)
     assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.betas, b.betas)
@@ -139,20 +143,41 @@ def test_cliff_conversion_round_trip():
         cliff_to_params(R[:, :10], np.zeros((2, 10)), np.zeros((2, 3)), center, size, K)
 
 
+def test_a_persons_fit_does_not_depend_on_its_batch(scene):
+    # persons do not interact: fitted alone or with another person (whose points, visible set
+    # and stop differ), a person's fit is the same up to float rounding of batched products
+    both = _fit(scene, iterations=30, nn_every=5, chamfer_vertex_max_m=0.03, converge_rtol=1e-2)
+    for b in range(2):
+        alone = _fit(scene, rows=slice(b, b + 1), iterations=30, nn_every=5, chamfer_vertex_max_m=0.03,
+                     converge_rtol=1e-2)
+        assert alone.residuals["steps"][0] == both.residuals["steps"][b]
+        assert np.abs(alone.vertices[0] - both.vertices[b]).max() < 1e-4  # 0.1 mm
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cpu_and_gpu_fits_agree(scene):
-    model, prior, sp, _, init = scene
-    a = _fit(scene, iterations=10)
-    b = fit_persons(model, prior.to("cuda"), init, sp.keypoints, K, sp.T_cam_from_lidar, sp.points_lidar,
-                    sp.point_mask, iterations=10, lr=0.03, device="cuda")
-    assert np.abs(a.vertices - b.vertices).max() < 5e-3  # mm-level: float32 + brute-force NN ties
+    # same persons on both devices: float32 on both, but different kernels (the CPU's exact grid
+    # search vs the GPU's distance matrices, cuBLAS vs MKL sums), so nearest pairs can differ
+    # where two points are near-equidistant and the paths part by rounding; after 30 steps the
+    # meshes agree to 2 mm (a tenth of the benchmark's 20 mm MPJPE), the steps taken exactly
+    kw = {"iterations": 30, "nn_every": 5, "chamfer_vertex_max_m": 0.03}
+    a = _fit(scene, **kw)
+    b = _fit(scene, device="cuda", **kw)
+    assert np.abs(a.vertices - b.vertices).max() < 2e-3
+    assert np.array_equal(a.residuals["steps"], b.residuals["steps"])
+    assert np.allclose(a.residuals["icp_fitness"], b.residuals["icp_fitness"], atol=0.02)
+    c = _fit(scene, device="cuda", **kw)  # deterministic on the device
+    assert np.array_equal(b.vertices, c.vertices)
 
 
 def test_fit_rejects_mismatched_inputs(scene):
     model, prior, sp, _, init = scene
+    pts, counts = ragged_points(sp.points_lidar, sp.point_mask)
     with pytest.raises(ValueError, match="keypoints"):
-        fit_persons(model, prior, init, sp.keypoints[:1], K, sp.T_cam_from_lidar, sp.points_lidar, sp.point_mask)
+        fit_persons(model, prior, init, sp.keypoints[:1], K, sp.T_cam_from_lidar, pts, counts)
+    with pytest.raises(ValueError, match="counts"):
+        fit_persons(model, prior, init, sp.keypoints, K, sp.T_cam_from_lidar, pts, counts + 1)
 
 
 def test_drop_far_fits_keeps_rows_aligned():

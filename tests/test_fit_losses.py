@@ -44,14 +44,21 @@ def test_reprojection_zero_at_exact_projection_and_confidence_power():
     assert L.reprojection_loss(X, kp2, K, conf_power=1.0).item() == pytest.approx(2 * expect, rel=1e-5)
 
 
+def _chamfer(v, vm, p, pm, cap=None, method="auto"):
+    """L_3D of padded sets (the kernel takes ragged points), pairs found now."""
+    t = L.chamfer_targets(v.detach(), vm, p[pm], pm.nonzero()[:, 0], method=method)
+    return L.chamfer_loss(v, t, vertex_max_m=cap)
+
+
 def test_chamfer_known_value_masks_and_minimum():
     v = torch.tensor([[[0.0, 0, 0], [1.0, 0, 0], [9.0, 9, 9]]])
     vm = torch.tensor([[True, True, False]])
     p = torch.tensor([[[0.0, 0, 0.1], [1.0, 0, 0.1], [0.5, 0, 0.1], [5.0, 5, 5]]])
     pm = torch.tensor([[True, True, True, False]])
     # v->p: 0.01, 0.01 -> mean 0.01; p->v: 0.01, 0.01, 0.25 + 0.01 -> mean 0.28/3
-    assert L.chamfer_loss(v, vm, p, pm).item() == pytest.approx(0.01 + 0.28 / 3, rel=1e-5)
-    same = L.chamfer_loss(v, vm, v.clone(), vm)
+    for method in ("grid", "brute"):
+        assert _chamfer(v, vm, p, pm, method=method).item() == pytest.approx(0.01 + 0.28 / 3, rel=1e-5)
+    same = _chamfer(v, vm, v.clone(), vm)
     assert same.item() == 0.0
 
 
@@ -62,10 +69,10 @@ def test_chamfer_vertex_cap_only_limits_the_vertex_to_point_direction():
     vm = torch.ones(1, 3, dtype=torch.bool)
     p = torch.tensor([[[0.0, 0, 0.1], [1.0, 0, 0.1], [0.5, 0, 0.1]]])
     pm = torch.ones(1, 3, dtype=torch.bool)
-    capped = L.chamfer_loss(v, vm, p, pm, vertex_max_m=0.2)
+    capped = _chamfer(v, vm, p, pm, cap=0.2)
     # v->p: (0.01 + 0.01 + 0.2^2) / 3; p->v: (0.01 + 0.01 + 0.25 + 0.01) / 3
     assert capped.item() == pytest.approx((0.02 + 0.04) / 3 + 0.28 / 3, rel=1e-5)
-    assert L.chamfer_loss(v, vm, p, pm).item() == pytest.approx((0.02 + 1.0) / 3 + 0.28 / 3, rel=1e-5)
+    assert _chamfer(v, vm, p, pm).item() == pytest.approx((0.02 + 1.0) / 3 + 0.28 / 3, rel=1e-5)
     capped.sum().backward()
     assert v.grad[0, 2].abs().max() == 0.0 and v.grad[0, 0].abs().max() > 0.0
 
@@ -74,11 +81,11 @@ def test_chamfer_gradient_finite_at_zero_distance_and_empty_sets():
     v = torch.tensor([[[0.0, 0, 0], [1.0, 0, 0]]], requires_grad=True)
     p = torch.tensor([[[0.0, 0, 0], [1.0, 0, 0]]])
     m = torch.ones(1, 2, dtype=torch.bool)
-    loss = L.chamfer_loss(v, m, p, m)
+    loss = _chamfer(v, m, p, m)
     loss.sum().backward()
     assert torch.isfinite(v.grad).all() and v.grad.abs().max() == 0.0
     v.grad = None
-    loss = L.chamfer_loss(v, m, p, torch.zeros(1, 2, dtype=torch.bool))
+    loss = _chamfer(v, m, p, torch.zeros(1, 2, dtype=torch.bool))
     loss.sum().backward()
     assert loss.item() == 0.0 and torch.isfinite(v.grad).all()
 
@@ -92,7 +99,7 @@ def test_chamfer_translation_gradient_points_to_minimum():
     offset = torch.tensor([[[0.05, -0.03, 0.1]]])
     for _ in range(200):
         opt.zero_grad()
-        L.chamfer_loss(p + offset + shift, m, p, m).sum().backward()
+        _chamfer(p + offset + shift, m, p, m).sum().backward()
         opt.step()
     assert torch.allclose(shift, -offset.expand(2, 1, 3), atol=2e-3)
 
@@ -157,6 +164,20 @@ def test_visibility_part_filter():
     assert torch.equal(vis2.vertex_mask[0] & (parts == 0), vis.vertex_mask[0] & (parts == 0))
 
 
+def _icp(vertices, points, **kw):
+    """Batched ICP of one person per (vertices (N, 3), points (M, 3)) pair."""
+    B = len(vertices)
+    n = max(len(v) for v in vertices)
+    V = torch.zeros(B, n, 3, dtype=torch.float64)
+    vm = torch.zeros(B, n, dtype=torch.bool)
+    for b, v in enumerate(vertices):
+        V[b, :len(v)] = torch.as_tensor(v)
+        vm[b, :len(v)] = True
+    P = torch.as_tensor(np.concatenate(points))
+    person = torch.repeat_interleave(torch.arange(B), torch.tensor([len(p) for p in points]))
+    return icp_align(V, vm, P, person, **kw)
+
+
 def test_icp_recovers_rigid_motion_and_param_update():
     rng = np.random.default_rng(0)
     pts = rng.normal(size=(800, 3)) * np.array([0.2, 0.5, 0.1]) + np.array([0.3, 0.2, 6.0])
@@ -164,9 +185,12 @@ def test_icp_recovers_rigid_motion_and_param_update():
     c = pts.mean(0)
     t = np.array([0.05, -0.04, 0.35])
     moved_back = (pts - c) @ R + c - t  # the "estimate" is the inverse motion of the points
-    res = icp_align(moved_back, pts)
-    assert res.used_icp
-    aligned = moved_back @ res.T[:3, :3].T + res.T[:3, 3]
+    # second person: too few points -> identity, not aligned; third: the first one again
+    res = _icp([moved_back, moved_back, moved_back], [pts, pts[:5], pts], relative_change=1e-9)
+    assert res.used_icp.tolist() == [True, False, True]
+    assert np.array_equal(res.T[1], np.eye(4)) and res.fitness[1] == 0.0
+    assert np.array_equal(res.T[0], res.T[2])  # persons do not interact
+    aligned = moved_back @ res.T[0, :3, :3].T + res.T[0, :3, 3]
     assert np.abs(aligned - pts).max() < 1e-4
     # parameter update about the root joint J0 reproduces moving the mesh
     Rg = _rot([1, 0, 0], 180.0)
@@ -174,14 +198,39 @@ def test_icp_recovers_rigid_motion_and_param_update():
     j0 = np.array([0.0, -0.2, 0.02])
     x_rest = np.array([0.3, 0.4, 0.1])  # a rest-pose point
     x = Rg @ (x_rest - j0) + j0 + transl
-    R2, t2 = rigid_update_params(Rg, transl, j0, res.T[:3, :3], res.T[:3, 3])
+    R2, t2 = rigid_update_params(Rg, transl, j0, res.T[0, :3, :3], res.T[0, :3, 3])
     x2 = R2 @ (x_rest - j0) + j0 + t2
-    assert np.allclose(x2, res.T[:3, :3] @ x + res.T[:3, 3])
+    assert np.allclose(x2, res.T[0, :3, :3] @ x + res.T[0, :3, 3])
 
 
-def test_icp_too_few_points_is_identity():
-    res = icp_align(np.zeros((5, 3)), np.zeros((3, 3)))
-    assert not res.used_icp and np.array_equal(res.T, np.eye(4))
+def test_icp_matches_open3d_registration():
+    # the batched ICP is Open3D's point-to-point registration_icp (coarse to fine radii, same
+    # stopping rule): partial, noisy, offset views of a body-sized ellipsoid
+    rng = np.random.default_rng(5)
+    verts, pts = [], []
+    for k in range(3):
+        u = rng.normal(size=(3000, 3))
+        surf = u / np.linalg.norm(u, axis=1, keepdims=True) * np.array([0.25, 0.8, 0.15])
+        front = surf[surf[:, 2] < 0.05]
+        p = front[rng.choice(len(front), 400, replace=False)] + rng.normal(0, 0.01, (400, 3)) + [0.0, 0.0, 5.0 + k]
+        v = (front[:1200] @ _rot([0, 1, 0], 8.0 * (k + 1)).T) + [0.03 * k, 0.02, 5.2 + k]
+        verts.append(v)
+        pts.append(p)
+    res = _icp(verts, pts, relative_change=1e-6)
+    for k in range(3):
+        T = np.eye(4)
+        T[:3, 3] = pts[k].mean(0) - verts[k].mean(0)
+        src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(verts[k]))
+        dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[k]))
+        for radius in (0.3, 0.1):
+            reg = o3d.pipelines.registration.registration_icp(
+                src, dst, radius, T, o3d.pipelines.registration.TransformationEstimationPointToPoint(),
+                o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=30))
+            if reg.fitness > 0:
+                T = np.asarray(reg.transformation)
+        assert res.used_icp[k]
+        assert np.abs(res.T[k] - T).max() < 1e-6, (k, res.T[k] - T)
+        assert res.fitness[k] == pytest.approx(reg.fitness, abs=1e-9)
 
 
 def test_metrics_analytic():
@@ -199,10 +248,39 @@ def test_metrics_analytic():
     assert m["mpjpe"] == pytest.approx([10.0, 10.0]) and m["mpjpe_root"] == pytest.approx([0, 0], abs=1e-9)
 
 
-def test_nearest_kdtree_matches_brute_force():
+def test_chamfer_targets_grid_matches_brute_force_and_sums():
+    # exact nearest pairs both ways: the CPU grid search (numba) and the distance-matrix path
+    # agree; the per-vertex sums reproduce the point -> vertex sum over nearest pairs
     g = torch.Generator().manual_seed(3)
-    a, b = torch.rand(3, 40, 3, generator=g), torch.rand(3, 25, 3, generator=g)
-    am, bm = torch.rand(3, 40, generator=g) > 0.3, torch.rand(3, 25, generator=g) > 0.3
-    k = L.nearest_indices(a, am, b, bm, method="kdtree")
-    f = L.nearest_indices(a, am, b, bm, method="brute")
-    assert torch.equal(k[0][am], f[0][am]) and torch.equal(k[1][bm], f[1][bm])
+    K, N = 3, 60
+    v = torch.rand(K, N, 3, generator=g, dtype=torch.float64) * torch.tensor([0.5, 1.8, 0.3]) + 4.0
+    vm = torch.rand(K, N, generator=g) > 0.3
+    vm[2] = False  # no vertex: takes no part
+    counts = torch.tensor([40, 25, 10])
+    p = torch.rand(int(counts.sum()), 3, generator=g, dtype=torch.float64) * torch.tensor([0.6, 2.0, 0.4]) + 4.0
+    p[:3] += 3.0  # far outliers: every shell empty, the full scan finds them
+    person = torch.repeat_interleave(torch.arange(K), counts)
+    a = L.chamfer_targets(v, vm, p, person, method="grid")
+    b = L.chamfer_targets(v, vm, p, person, method="brute")
+    for x, y in zip((a.vertex_target, a.point_count, a.point_mean, a.point_rest),
+                    (b.vertex_target, b.point_count, b.point_mean, b.point_rest)):
+        assert torch.allclose(x, y, atol=1e-9)
+    d = torch.cdist(p[:40], v[0][vm[0]])
+    near = v[0][vm[0]][d.argmin(1)]
+    expect = ((p[:40] - near) ** 2).sum()
+    vk = v[0]
+    got = (a.point_count[0] * ((vk - a.point_mean[0]) ** 2).sum(-1)).sum() + a.point_rest[0]
+    assert got.item() == pytest.approx(expect.item(), rel=1e-9)
+    assert a.point_count[2].sum() == 0 and a.point_rest[2] == 0 and not a.vertex_mask[2].any()
+
+
+def test_grid_nearest_is_exact_on_wide_and_degenerate_sets():
+    from tasks.fit.nearest import nearest_indices
+
+    rng = np.random.default_rng(4)
+    for data in (rng.normal(size=(500, 3)) * [5.0, 0.1, 0.1],  # wide: cells grow
+                 np.zeros((7, 3)),  # one cell, all tied: lowest index
+                 rng.normal(size=(1, 3))):
+        q = rng.normal(size=(300, 3)) * 3.0
+        d = ((q[:, None] - data[None]) ** 2).sum(-1)
+        assert np.array_equal(nearest_indices(q, data), d.argmin(1))

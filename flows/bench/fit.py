@@ -7,6 +7,10 @@ without the visibility filter, and the initial estimate; plus person-fits per se
 method, wall clock of ``fit_persons`` including ICP). No prefect: a plain function / CLI.
 
     nice .venv/bin/mobileocc bench fit --persons 64 --sensors ouster-128
+
+``--throughput`` measures only speed: person-fits/s of one large batch on ``--device`` (e.g.
+``mobileocc bench fit --device cuda --throughput --persons 1024``) after a warm-up, printed as one
+JSON line.
 """
 
 from __future__ import annotations
@@ -61,7 +65,7 @@ def bench_fit(
     from tasks.fit.lidar_sim import SENSORS, synthesize_persons
     from tasks.fit.losses import FIT_PRESETS
     from tasks.fit.metrics import fit_metrics
-    from tasks.fit.optimize import fit_persons
+    from tasks.fit.optimize import fit_persons, ragged_points
 
     model = default_body_model()
     g = generate_pose_prior()
@@ -81,7 +85,7 @@ def bench_fit(
             t0 = time.perf_counter()
             r = fit_persons(
                 model, prior, init.take(idx), sp.keypoints[idx], sp.K, sp.T_cam_from_lidar,
-                sp.points_lidar[idx], sp.point_mask[idx], w, iterations=its, lr=lr,
+                *ragged_points(sp.points_lidar[idx], sp.point_mask[idx]), w, iterations=its, lr=lr,
                 device=device, seed=seed, nn_every=nn_every,
                 chamfer_vertex_max_m=chamfer_vertex_max_m, **extra,
             )
@@ -133,7 +137,7 @@ def _warm_start_rows(model, prior, sp, truth, init, weights, rng, run_fits, fit_
     import torch
 
     from tasks.fit.init_oracle import BodyParams, oracle_initial_estimate
-    from tasks.fit.lidar_sim import SENSORS, synthesize_persons  # noqa: F401
+    from tasks.fit.lidar_sim import SENSORS, synthesize_persons
 
     B = len(truth)
     _, _, first = run_fits(sp, init, weights, {"count": False})
@@ -193,6 +197,86 @@ def _resimulate(model, sp, verts, joints, sensor, rng):
                                truth_vertices=verts, truth_joints=joints)
 
 
+def bench_throughput(persons: int = 1024, device: str = "cuda", iterations: int = 100, pool: int = 64,
+                     sensor: str = "ouster-128", seed: int = 0, nn_every: int = 5,
+                     chamfer_vertex_max_m: float | None = 0.03, preset: str = "3dpw") -> dict:
+    """Person-fits/s of ``fit_persons`` on one batch of ``persons`` on ``device``.
+
+    ``pool`` distinct persons are simulated (the LiDAR simulation is CPU-bound) and repeated to
+    fill the batch: fits do not interact, so repeats cost the same as new persons. A warm-up fit
+    of a few persons first (device start-up, kernels, numba compilation); the timed fit returns
+    numpy arrays, so the device has finished when the clock stops (and it is synchronised
+    explicitly as well). Also timed alone: the batched ICP of the same batch. Returns the JSON
+    record (fits_per_s, wall_s, icp_s, mpjpe_mm of the fits, peak device memory)."""
+    import numpy as np
+    import torch
+
+    from tasks.body.poses import sample_plausible_poses
+    from tasks.body.prior import GMMPosePrior, generate_pose_prior
+    from tasks.body.procedural import default_body_model
+    from tasks.fit.icp import icp_align
+    from tasks.fit.init_oracle import BodyParams, oracle_initial_estimate
+    from tasks.fit.lidar_sim import SENSORS, synthesize_persons
+    from tasks.fit.losses import FIT_PRESETS
+    from tasks.fit.metrics import mean_error_mm
+    from tasks.fit.optimize import fit_persons, ragged_points
+    from tasks.fit.visibility import vertex_parts, visibility_masks
+
+    def sync():
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+
+    model = default_body_model()
+    g = generate_pose_prior()
+    prior = GMMPosePrior(g["means"], g["covars"], g["weights"]).to(device)
+    rng = np.random.default_rng(seed)
+    n = min(pool, persons)
+    sp = synthesize_persons(model, sample_plausible_poses(n, rng), SENSORS[sensor], rng)
+    truth = BodyParams(sp.truth_betas, sp.truth_global_orient, sp.truth_body_pose, sp.truth_transl)
+    init0 = oracle_initial_estimate(model, truth, rng)
+    rep = np.arange(persons) % n
+    init = init0.take(rep)
+    pts, counts = ragged_points(sp.points_lidar[rep], sp.point_mask[rep])
+    args = {"weights": FIT_PRESETS[preset], "iterations": iterations, "device": device, "nn_every": nn_every,
+            "chamfer_vertex_max_m": chamfer_vertex_max_m}
+    w = min(4, persons)
+    warm_pts, warm_counts = ragged_points(sp.points_lidar[rep[:w]], sp.point_mask[rep[:w]])
+    fit_persons(model, prior, init.take(slice(0, w)), sp.keypoints[rep[:w]], sp.K, sp.T_cam_from_lidar,
+                warm_pts, warm_counts, **{**args, "iterations": min(iterations, 6)})
+    if device.startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats()
+    sync()
+    t0 = time.perf_counter()
+    r = fit_persons(model, prior, init, sp.keypoints[rep], sp.K, sp.T_cam_from_lidar, pts, counts, **args)
+    sync()
+    wall = time.perf_counter() - t0
+    # the ICP alone, as the fit runs it: the initial meshes' visible vertices of the same batch
+    dev_model = model.to(device) if device != "cpu" else model
+    kp = torch.as_tensor(sp.keypoints[rep], device=device)
+    with torch.no_grad():
+        o = dev_model(*(torch.as_tensor(getattr(init, k), device=device) for k in
+                        ("betas", "global_orient", "body_pose", "transl")))
+        vis = visibility_masks(o.vertices, dev_model.faces_tensor, torch.as_tensor(vertex_parts(model.lbs_weights), device=device),
+                               kp[..., 2], w=FIT_PRESETS[preset].w, j_conf=FIT_PRESETS[preset].j_conf)
+    T = torch.as_tensor(sp.T_cam_from_lidar, dtype=torch.float64, device=device)
+    p_cam = (torch.as_tensor(pts, dtype=torch.float64, device=device) @ T[:3, :3].T + T[:3, 3]).float()
+    person = torch.repeat_interleave(torch.arange(persons, device=device), torch.as_tensor(counts, device=device))
+    sync()
+    t1 = time.perf_counter()
+    icp_align(o.vertices, vis.vertex_mask, p_cam, person)
+    sync()
+    icp_s = time.perf_counter() - t1
+    out = {"device": device, "device_name": torch.cuda.get_device_name() if device.startswith("cuda") else "cpu",
+           "torch_threads": torch.get_num_threads(), "persons": persons, "distinct_persons": n,
+           "iterations": iterations, "nn_every": nn_every, "wall_s": round(wall, 3),
+           "fits_per_s": round(persons / wall, 2), "icp_s": round(icp_s, 3),
+           "mpjpe_mm": round(float(mean_error_mm(r.joints, sp.truth_joints[rep]).mean()), 2),
+           "mean_steps": float(r.residuals["steps"].mean())}
+    if device.startswith("cuda"):
+        out["peak_memory_gb"] = round(torch.cuda.max_memory_allocated() / 2**30, 2)
+    return out
+
+
 def _print_table(sensor: str, table: dict, persons: int, occluded: int) -> None:
     cols = ("pve", "mpjpe", "pa_mpjpe", "pve_root", "mpjpe_root", "mpere")
     print(f"\n{sensor}: {persons} persons ({occluded} with an occluded limb); mm, MPERE unitless")
@@ -228,7 +312,24 @@ def main(argv=None) -> None:
                     help="cap of the vertex -> point distances in L_3D (m); 0 = the paper's uncapped form")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", default=None, help="also write the results (means, stds) to this file")
+    ap.add_argument("--throughput", action="store_true",
+                    help="only speed: fits/s of one batch of --persons on --device, one JSON line")
+    ap.add_argument("--pool", type=int, default=64, help="--throughput: distinct simulated persons")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="torch intra-op threads (default: torch's, every core); on a shared CPU 1 per "
+                         "process avoids OpenMP spin-waiting")
     a = ap.parse_args(argv)
+    if a.threads:
+        import torch
+
+        torch.set_num_threads(a.threads)
+    if a.throughput:
+        import json
+
+        sensor = a.sensors.split(",")[-1]
+        print(json.dumps(bench_throughput(a.persons, a.device, a.iterations, a.pool, sensor, a.seed, a.nn_every,
+                                          a.chamfer_vertex_max_m or None, a.preset)))
+        return
     results = bench_fit(a.persons, tuple(a.sensors.split(",")), not a.no_ablations, a.device, preset=a.preset,
                         iterations=a.iterations, chunk=a.chunk, warm_start=a.warm_start, nn_every=a.nn_every,
                         seed=a.seed, chamfer_vertex_max_m=a.chamfer_vertex_max_m or None,

@@ -22,7 +22,7 @@ from flows.pipeline.parallel import fan_out
 from flows.stages.common import StageContext, body_model, pose_prior
 from flows.stages.providers import init_provider
 from storage.products import Bodies, Tracks
-from tasks.fit.batch import drop_far_fits, fit_rows, pad_point_sets
+from tasks.fit.batch import concat_point_sets, drop_far_fits, fit_rows
 from tasks.fit.init_oracle import BodyParams
 from tasks.fit.optimize import fit_persons
 from tasks.fit.warm_start import warm_started
@@ -50,9 +50,10 @@ def fit_batch(ref: SequenceRef, inputs: FitInputs, out_root: Path, tracks_dir: P
     if init is None:
         init = init_provider(inputs.init, seq, model, cam).estimates(tracks, np.asarray(rows))
     result = fit_persons(model, pose_prior(inputs.body, out_root), init, tracks.keypoints[rows], cam.K,
-                         cam.T_cam_from_lidar, *pad_point_sets(points), weights=inputs.weights,
+                         cam.T_cam_from_lidar, *concat_point_sets(points), weights=inputs.weights,
                          iterations=s.iterations, lr=s.learning_rate, device=device(s.device), seed=s.seed,
-                         nn_every=s.nn_every, chamfer_vertex_max_m=s.chamfer_vertex_max_m)
+                         nn_every=s.nn_every, converge_rtol=s.converge_rtol,
+                         chamfer_vertex_max_m=s.chamfer_vertex_max_m)
     return {"rows": np.asarray(rows, np.int64),
             **fit_rows(model, result, init, points, tracks.keypoints[rows], cam.K, cam.T_cam_from_lidar,
                        inputs.weights.j_conf)}

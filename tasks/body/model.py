@@ -124,6 +124,11 @@ class BodyModel(torch.nn.Module):
         self.register_buffer(
             "lbs_weights", torch.tensor(np.asarray(params["weights"], dtype=np.float64), dtype=f32)
         )
+        J_regressor = np.asarray(params["J_regressor"], dtype=np.float64)
+        # float64 on purpose: the joints' shape basis, formed once (see rest_joints)
+        self.register_buffer("J_template", torch.tensor(J_regressor @ v_template), persistent=False)
+        self.register_buffer("J_shapedirs", torch.tensor(np.einsum("jv,vcl->jcl", J_regressor, shapedirs)),
+                             persistent=False)
         self.register_buffer("faces_tensor", torch.tensor(self.faces), persistent=False)
         self.register_buffer("_eye3", torch.eye(3, dtype=f32), persistent=False)
         self._parents_clamped = np.maximum(self.parents, 0)
@@ -138,17 +143,21 @@ class BodyModel(torch.nn.Module):
         self.register_buffer("_parents_clamped_t", torch.tensor(self._parents_clamped), persistent=False)
 
     def rest_joints(self, betas: Tensor) -> Tensor:
-        """betas (B, L<=num_betas) -> rest-pose joints (B, 24, 3), metres, template frame."""
-        v_shaped = self._shaped(betas)
-        return torch.einsum("jv,bvc->bjc", self.J_regressor.to(v_shaped), v_shaped)
+        """betas (B, L<=num_betas) -> rest-pose joints (B, 24, 3), metres, template frame.
 
-    def _shaped(self, betas: Tensor) -> Tensor:
+        J = J_regressor (v_template + shapedirs beta), evaluated as J_template + J_shapedirs beta
+        with both products formed once in float64 (24 x 3 x L instead of V x 3 x L per call)."""
         if betas.ndim != 2 or betas.shape[1] > self.num_betas:
             raise ValueError(f"betas: expected (B, <= {self.num_betas}), got {tuple(betas.shape)}")
         L = betas.shape[1]
-        v_template = self.v_template.to(betas)
-        shapedirs = self.shapedirs[:, :, :L].to(betas)
-        return v_template[None] + torch.einsum("bl,vcl->bvc", betas, shapedirs)
+        return self.J_template.to(betas)[None] + torch.einsum(
+            "jcl,bl->bjc", self.J_shapedirs[:, :, :L].to(betas), betas)
+
+    def select_vertices(self, vertex_ids: Tensor) -> VertexSubset:
+        """The model's per-vertex data at vertex_ids (B, N) long (a different subset per person),
+        for :meth:`forward` with ``vertex_subset``: evaluating only the vertices a loss needs."""
+        ids = vertex_ids.to(self.v_template.device).long()
+        return VertexSubset(ids=ids, weights=self.lbs_weights[ids])
 
     def forward(
         self,
@@ -157,69 +166,116 @@ class BodyModel(torch.nn.Module):
         body_pose: Tensor,
         transl: Tensor,
         pose2rot: bool = True,
+        vertex_subset: VertexSubset | None = None,
+        pose_offsets: Tensor | None = None,
     ) -> BodyOutput:
         """Pose and shape the body.
 
         betas (B, L<=10); global_orient (B, 3) axis-angle [or (B, 3, 3) with pose2rot=False];
         body_pose (B, 69) or (B, 23, 3) axis-angle [or (B, 23, 3, 3)]; transl (B, 3), metres.
         Returns BodyOutput with vertices (B, V, 3) and posed joints (B, 24, 3), in the frame of
-        the global pose; device and dtype of ``betas``.
+        the global pose; device and dtype of ``betas``. With ``vertex_subset`` (from
+        :meth:`select_vertices`, B rows) only those vertices are posed: vertices (B, N, 3).
+        pose_offsets (B, V, 3): pose blend-shape offsets to use instead of forming them from this
+        pose (:meth:`pose_offsets`; an optimiser may hold them fixed for a few steps).
         """
         B = betas.shape[0]
-        dtype, device = betas.dtype, betas.device
+        dtype = betas.dtype
+        rot = self._rotations(B, global_orient, body_pose, pose2rot).to(dtype)
+        if transl.shape != (B, 3):
+            raise ValueError(f"transl: expected ({B}, 3), got {tuple(transl.shape)}")
+        J = self.rest_joints(betas)  # (B, 24, 3)
+        G_rot, joints = self._kinematics(rot, J)
+        # Skinning transform of joint j, [G_rot | joints_j - G_rot J_j] (B, 24, 3, 4), maps a
+        # rest-pose point x to G_rot (x - J_j) + joints_j.
+        A = torch.cat((G_rot, (joints - (G_rot @ J[..., None])[..., 0])[..., None]), dim=-1)
+        if pose_offsets is None:
+            pose_offsets = self._pose_offsets(rot)
+        elif pose_offsets.shape != (B, self.num_vertices, 3):
+            raise ValueError(f"pose_offsets: expected ({B}, {self.num_vertices}, 3), got {tuple(pose_offsets.shape)}")
+        # Shape blend shapes of every vertex as one matrix product (B, L) x (L, 3V): cheaper than
+        # gathering per-person rows of the basis (memory-bound) for a vertex subset.
+        L = betas.shape[1]
+        v_posed = (self.v_template.to(dtype)[None] + pose_offsets.to(dtype)
+                   + torch.einsum("bl,vcl->bvc", betas, self.shapedirs[:, :, :L].to(dtype)))
+        A = A.reshape(B, NUM_JOINTS, 12)
+        if vertex_subset is None:
+            T = torch.einsum("vj,bjk->bvk", self.lbs_weights.to(dtype), A)  # (B, V, 12)
+        else:
+            s = vertex_subset
+            if s.ids.shape[0] != B:
+                raise ValueError(f"vertex_subset: {s.ids.shape[0]} rows for {B} persons")
+            v_posed = torch.gather(v_posed, 1, s.ids[..., None].expand(-1, -1, 3))
+            T = s.weights.to(dtype) @ A  # (B, N, 12)
+        # v = T[:, :3] v_posed + T[:, 3], one column at a time: a batched matmul of B x V tiny
+        # 3 x 3 matrices, or a sum over a last axis of 3, is several times slower on the CPU;
+        # unbind (not slicing) keeps the backward pass to one stack instead of zero-filled copies
+        c0, c1, c2, c3 = T.unflatten(-1, (3, 4)).unbind(-1)
+        x, y, z = (c[..., None] for c in v_posed.unbind(-1))
+        verts = c0 * x + c1 * y + c2 * z + c3
+        t = transl.to(dtype)[:, None, :]
+        return BodyOutput(vertices=verts + t, joints=joints + t)
+
+    def pose_offsets(self, global_orient: Tensor, body_pose: Tensor) -> Tensor:
+        """Pose blend-shape offsets (B, V, 3) of axis-angle poses global_orient (B, 3), body_pose
+        (B, 69) (the root's rotation does not enter), in the rest frame, metres."""
+        B = body_pose.shape[0]
+        return self._pose_offsets(self._rotations(B, global_orient, body_pose, True))
+
+    def _pose_offsets(self, rot: Tensor) -> Tensor:
+        # (B, 207) x (207, 3V): the largest product of a forward pass (a per-person subset of
+        # posedirs would be a memory-bound gather of 207 x 3 floats per vertex)
+        B = rot.shape[0]
+        pose_feat = (rot[:, 1:] - self._eye3.to(rot)).reshape(B, NUM_POSE_FEATURES)
+        return (pose_feat @ self.posedirs.to(rot.dtype)).reshape(B, self.num_vertices, 3)
+
+    @staticmethod
+    def _rotations(B: int, global_orient: Tensor, body_pose: Tensor, pose2rot: bool) -> Tensor:
+        """Validated joint rotation matrices (B, 24, 3, 3)."""
         if pose2rot:
             if body_pose.numel() != B * NUM_BODY_JOINTS * 3 or global_orient.numel() != B * 3:
                 raise ValueError(
                     f"global_orient / body_pose: expected ({B}, 3) / ({B}, 69) axis-angle, got "
                     f"{tuple(global_orient.shape)} / {tuple(body_pose.shape)}"
                 )
-            go = global_orient.reshape(B, 1, 3)
-            bp = body_pose.reshape(B, NUM_BODY_JOINTS, 3)
-            if bp.shape[1] != NUM_BODY_JOINTS:
-                raise ValueError(f"body_pose: expected (B, 69) or (B, 23, 3), got {tuple(body_pose.shape)}")
-            rot = axis_angle_to_matrix(torch.cat((go, bp), dim=1).to(dtype))
-        else:
-            if body_pose.numel() != B * NUM_BODY_JOINTS * 9 or global_orient.numel() != B * 9:
-                raise ValueError(
-                    f"global_orient / body_pose: expected ({B}, 3, 3) / ({B}, 23, 3, 3) rotation "
-                    f"matrices, got {tuple(global_orient.shape)} / {tuple(body_pose.shape)}"
-                )
-            go = global_orient.reshape(B, 1, 3, 3)
-            bp = body_pose.reshape(B, NUM_BODY_JOINTS, 3, 3)
-            if bp.shape[1] != NUM_BODY_JOINTS:
-                raise ValueError(f"body_pose: expected (B, 23, 3, 3), got {tuple(body_pose.shape)}")
-            rot = torch.cat((go, bp), dim=1).to(dtype)
-        if transl.shape != (B, 3):
-            raise ValueError(f"transl: expected ({B}, 3), got {tuple(transl.shape)}")
+            aa = torch.cat((global_orient.reshape(B, 1, 3), body_pose.reshape(B, NUM_BODY_JOINTS, 3)), dim=1)
+            return axis_angle_to_matrix(aa)
+        if body_pose.numel() != B * NUM_BODY_JOINTS * 9 or global_orient.numel() != B * 9:
+            raise ValueError(
+                f"global_orient / body_pose: expected ({B}, 3, 3) / ({B}, 23, 3, 3) rotation "
+                f"matrices, got {tuple(global_orient.shape)} / {tuple(body_pose.shape)}"
+            )
+        return torch.cat((global_orient.reshape(B, 1, 3, 3), body_pose.reshape(B, NUM_BODY_JOINTS, 3, 3)), dim=1)
 
-        v_shaped = self._shaped(betas)  # (B, V, 3)
-        J = torch.einsum("jv,bvc->bjc", self.J_regressor.to(v_shaped), v_shaped)  # (B, 24, 3)
-
-        eye = self._eye3.to(rot)
-        pose_feat = (rot[:, 1:] - eye).reshape(B, NUM_POSE_FEATURES)
-        v_posed = v_shaped + (pose_feat @ self.posedirs.to(v_shaped)).reshape(B, self.num_vertices, 3)
-
-        # Forward kinematics, G_j = G_parent(j) [R_j | J_j - J_parent(j)], one tree level at a
-        # time (9 levels instead of 23 joints: fewer, larger kernels on CPU and GPU).
+    def _kinematics(self, rot: Tensor, J: Tensor) -> tuple[Tensor, Tensor]:
+        """Forward kinematics, G_j = G_parent(j) [R_j | J_j - J_parent(j)], one tree level at a
+        time (9 levels instead of 23 joints: fewer, larger kernels on CPU and GPU). rot (B, 24,
+        3, 3), J (B, 24, 3) rest joints -> global rotations (B, 24, 3, 3), posed joints (B, 24, 3)."""
+        B, device = rot.shape[0], rot.device
         rel = J - J[:, self._parents_clamped_t.to(device)]  # (B, 24, 3); root row unused
-        G_rot_t = rot[:, :1].expand(B, NUM_JOINTS, 3, 3)
+        G_rot = rot[:, :1].expand(B, NUM_JOINTS, 3, 3)
         joints = J[:, :1].expand(B, NUM_JOINTS, 3)
         for d in range(1, self._num_levels + 1):
             js = getattr(self, f"_level{d}_joints").to(device)
             ps = getattr(self, f"_level{d}_parents").to(device)
-            Rp = G_rot_t[:, ps]
-            new_R = Rp @ rot[:, js]
-            new_t = joints[:, ps] + (Rp @ rel[:, js, :, None])[..., 0]
-            G_rot_t = G_rot_t.index_copy(1, js, new_R)
-            joints = joints.index_copy(1, js, new_t)
-        # Skinning transform of joint j maps a rest-pose point x to G_rot (x - J_j) + joints_j.
-        A_t = joints - (G_rot_t @ J[..., None])[..., 0]  # (B, 24, 3)
-        W = self.lbs_weights.to(v_shaped)  # (V, 24)
-        T_rot = torch.einsum("vj,bjrc->bvrc", W, G_rot_t)  # (B, V, 3, 3)
-        T_t = torch.einsum("vj,bjc->bvc", W, A_t)  # (B, V, 3)
-        verts = (T_rot @ v_posed[..., None])[..., 0] + T_t
-        t = transl.to(dtype)[:, None, :]
-        return BodyOutput(vertices=verts + t, joints=joints + t)
+            Rp = G_rot[:, ps]
+            G_rot = G_rot.index_copy(1, js, Rp @ rot[:, js])
+            joints = joints.index_copy(1, js, joints[:, ps] + (Rp @ rel[:, js, :, None])[..., 0])
+        return G_rot, joints
+
+
+@dataclass(frozen=True)
+class VertexSubset:
+    """Per-person vertex subset of a BodyModel (:meth:`BodyModel.select_vertices`): ids (B, N)
+    int64 and their skinning weights (B, N, 24), gathered once, so that skinning touches N
+    instead of V vertices per person (the blend shapes are still formed for all V)."""
+
+    ids: Tensor
+    weights: Tensor
+
+    def take(self, rows: Tensor) -> VertexSubset:
+        """The subset of some persons, rows (K,) int64."""
+        return VertexSubset(self.ids[rows], self.weights[rows])
 
 
 def rigid_transform_params(

@@ -11,16 +11,11 @@ from tasks.fit.quality import fit_residuals
 from tasks.fit.reframe import reframe_params
 
 
-def pad_point_sets(points: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """B point sets (N_b, 3) -> padded (B, P, 3) float32 (P = the largest N_b, at least 1) and
-    the validity mask (B, P) bool."""
-    pmax = max([1] + [len(p) for p in points])
-    padded = np.zeros((len(points), pmax, 3), np.float32)
-    mask = np.zeros((len(points), pmax), bool)
-    for k, p in enumerate(points):
-        padded[k, :len(p)] = p
-        mask[k, :len(p)] = True
-    return padded, mask
+def concat_point_sets(points: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """B point sets (N_b, 3) -> the fit's ragged layout: points (sum N_b, 3) float32 one set after
+    another, and counts (B,) int64."""
+    flat = np.concatenate([np.asarray(p, np.float32).reshape(-1, 3) for p in points] or [np.zeros((0, 3), np.float32)])
+    return flat, np.array([len(p) for p in points], np.int64)
 
 
 def fit_rows(model, result: FitResult, init: BodyParams, points_lidar: list[np.ndarray],

@@ -1,9 +1,9 @@
 """Loss terms of the fitting objective (paper Eq. total), torch, batched over persons.
 
 All functions return one value per person, shape ``(B,)``, so that a batch of persons is
-optimised by summing them (persons do not interact). Ragged point sets are padded to a common
-length and come with boolean masks. Units: pixels for L_J, metres^2 for L_3D, radians for the
-pose terms.
+optimised by summing them (persons do not interact). Vertex sets are padded to a common length
+and come with boolean masks; LiDAR points are ragged: (P, 3) with the person of each point (P,).
+Units: pixels for L_J, metres^2 for L_3D, radians for the pose terms.
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ class FitWeights:
         value = float(getattr(self, f"lambda_{name}"))
         return value * value if self.square_lambdas else value
 
-    def with_(self, **changes) -> "FitWeights":
+    def with_(self, **changes) -> FitWeights:
         """A copy with some fields changed (ablations: ``weights.with_(lambda_3d=0.0)``)."""
         return replace(self, **changes)
 
@@ -112,82 +112,131 @@ def reprojection_loss(
     return (conf * pen).sum(-1)
 
 
-def masked_centroid(points: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    m = mask.to(points.dtype)[..., None]
-    return (points * m).sum(1) / m.sum(1).clamp(min=1.0)
+@dataclass(frozen=True)
+class ChamferTargets:
+    """The nearest pairs of L_3D for fixed correspondences, reduced to per-vertex targets.
+
+    For K persons with N (padded) model vertices each: vertex_mask (K, N) bool, the vertices that
+    take part (visible, person with points); vertex_target (K, N, 3) the nearest point of each
+    vertex; point_count (K, N) how many points have this vertex as their nearest, point_mean
+    (K, N, 3) their mean and point_rest (K,) the sum over the person's points of
+    |p - point_mean[nearest(p)]|^2; num_points (K,) float. With these, the point -> vertex sum
+    sum_p |p - v_n(p)|^2 = sum_n count_n |v_n - mean_n|^2 + rest is a dense per-vertex term:
+    no gather and no scatter per step, and no order-dependent atomic adds on a GPU.
+    """
+
+    vertex_mask: torch.Tensor
+    vertex_target: torch.Tensor
+    point_count: torch.Tensor
+    point_mean: torch.Tensor
+    point_rest: torch.Tensor
+    num_points: torch.Tensor
+
+    def take(self, rows: torch.Tensor) -> ChamferTargets:
+        """The targets of some persons, rows (k,) int64."""
+        return ChamferTargets(self.vertex_mask[rows], self.vertex_target[rows], self.point_count[rows],
+                              self.point_mean[rows], self.point_rest[rows], self.num_points[rows])
 
 
 @torch.no_grad()
-def nearest_indices(
-    a: torch.Tensor,
-    a_mask: torch.Tensor,
-    b: torch.Tensor,
-    b_mask: torch.Tensor,
-    chunk: int = 8,
+def chamfer_targets(
+    vertices: torch.Tensor,
+    vertex_mask: torch.Tensor,
+    points: torch.Tensor,
+    point_person: torch.Tensor,
     method: str = "auto",
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Nearest neighbours both ways between padded sets (no gradient).
+    chunk_elements: int = 2**27,
+) -> ChamferTargets:
+    """Nearest pairs both ways between each person's vertices and points (no gradient).
 
-    a (B, N, 3), a_mask (B, N) bool, b (B, M, 3), b_mask (B, M) bool. Returns idx_ab (B, N)
-    (index into b of the nearest valid b for each a) and idx_ba (B, M). Rows without any valid
-    partner get index 0 (they are masked out by the caller). On the CPU a k-d tree per person;
-    elsewhere a brute-force distance matrix in chunks of persons ('brute', memory chunk * N * M floats).
+    vertices (K, N, 3) and vertex_mask (K, N) bool: model vertices (padded); points (P, 3) in
+    the same frame (m) and point_person (P,) int64 in [0, K): ragged LiDAR points. A person
+    takes part when it has a vertex and a point. method: 'grid' (exact grid search per person,
+    numba, float64: :mod:`tasks.fit.nearest`), 'brute' (distance matrices for chunks of persons of at most
+    ``chunk_elements`` entries; used on GPUs) or 'auto' (grid on the CPU).
     """
-    B, N, _ = a.shape
-    M = b.shape[1]
-    idx_ab = torch.zeros(B, N, dtype=torch.long, device=a.device)
-    idx_ba = torch.zeros(B, M, dtype=torch.long, device=a.device)
-    if N == 0 or M == 0:
-        return idx_ab, idx_ba
-    if method == "kdtree" or (method == "auto" and a.device.type == "cpu"):
-        return _nearest_kdtree(a, a_mask, b, b_mask, idx_ab, idx_ba)
+    K = vertex_mask.shape[0]
+    dev = vertices.device
+    num_points = torch.bincount(point_person, minlength=K)[:K]
+    active = (vertex_mask.sum(1) > 0) & (num_points > 0)
+    vm = vertex_mask & active[:, None]
+    pm = active[point_person]
+    if method == "grid" or (method == "auto" and dev.type == "cpu"):
+        target, count, mean, rest = _targets_grid(vertices, vm, points, point_person, pm)
+    else:
+        target, count, mean, rest = _targets_brute(vertices, vm, points, point_person, pm, chunk_elements)
+    f = vertices.dtype
+    return ChamferTargets(vm, target.to(f), count.to(f), mean.to(f), rest.to(f), num_points.to(f))
+
+
+def _targets_grid(vertices, vm, points, point_person, pm):
+    """CPU path of chamfer_targets: exact grid search per person (tasks.fit.nearest), float64."""
+    from tasks.fit.nearest import chamfer_pairs
+
+    K = vm.shape[0]
+    dev = vertices.device
+    person = point_person.cpu().numpy()
+    order = np.argsort(person, kind="stable")
+    keep = pm.cpu().numpy()[order]
+    order = order[keep]
+    bounds = np.searchsorted(person[order], np.arange(K + 1))
+    out = chamfer_pairs(vertices.detach().cpu().double().numpy(), vm.cpu().numpy(),
+                        np.ascontiguousarray(points.cpu().double().numpy()[order]), bounds)
+    return tuple(torch.from_numpy(a).to(dev) for a in out)
+
+
+def _targets_brute(vertices, vm, points, point_person, pm, chunk_elements):
+    """Device path of chamfer_targets: per chunk of persons, the (N x P_max) distance matrix of
+    each; the point -> vertex sums as a one-hot matrix product (dense, order-fixed)."""
+    K, N = vm.shape
+    dev, f = vertices.device, vertices.dtype
+    counts = torch.bincount(point_person, minlength=K)[:K]
+    pmax = max(int(counts.max().item()) if K else 0, 1)
+    starts = torch.cumsum(counts, 0) - counts
+    slot = torch.arange(len(point_person), device=dev) - starts[point_person]
+    pad = torch.zeros(K, pmax, 3, dtype=f, device=dev)
+    pad_mask = torch.zeros(K, pmax, dtype=torch.bool, device=dev)
+    pad[point_person, slot] = points.to(f)
+    pad_mask[point_person, slot] = pm
     # Padding is parked far away (1e4 m, opposite corners) instead of masking the distance
-    # matrix: a valid row never picks it while any valid partner exists.
-    a = torch.where(a_mask[..., None], a, torch.full_like(a, 1e4))
-    b = torch.where(b_mask[..., None], b, torch.full_like(b, -1e4))
-    for s in range(0, B, chunk):
-        e = min(B, s + chunk)
+    # matrix: a valid row never picks it while any valid partner exists. Both sets are shifted
+    # by the person's point centroid first: cdist expands |a - b|^2, which loses precision at
+    # long range.
+    c = (pad * pad_mask[..., None]).sum(1) / pad_mask.sum(1).clamp(min=1)[:, None]
+    a = torch.where(vm[..., None], vertices.detach() - c[:, None], torch.full_like(vertices, 1e4))
+    b = torch.where(pad_mask[..., None], pad - c[:, None], torch.full_like(pad, -1e4))
+    target = torch.zeros(K, N, 3, dtype=f, device=dev)
+    count = torch.zeros(K, N, dtype=f, device=dev)
+    mean = torch.zeros(K, N, 3, dtype=f, device=dev)
+    rest = torch.zeros(K, dtype=f, device=dev)
+    step = max(1, chunk_elements // (N * pmax))
+    ar = torch.arange(N, device=dev)
+    for s in range(0, K, step):
+        e = min(K, s + step)
         d = torch.cdist(a[s:e], b[s:e])  # only compared, never differentiated
-        idx_ab[s:e] = d.argmin(2)
-        idx_ba[s:e] = d.argmin(1)
-    return idx_ab, idx_ba
-
-
-def _nearest_kdtree(a, a_mask, b, b_mask, idx_ab, idx_ba):
-    """CPU path of nearest_indices: a k-d tree per person (cheaper than the B x N x M matrix)."""
-    from scipy.spatial import cKDTree
-
-    an, bn = a.numpy(), b.numpy()
-    am, bm = a_mask.numpy(), b_mask.numpy()
-    for i in range(an.shape[0]):
-        ia, ib = np.flatnonzero(am[i]), np.flatnonzero(bm[i])
-        if len(ia) == 0 or len(ib) == 0:
-            continue
-        _, j = cKDTree(bn[i, ib]).query(an[i], k=1)
-        idx_ab[i] = torch.from_numpy(ib[j])
-        _, j = cKDTree(an[i, ia]).query(bn[i], k=1)
-        idx_ba[i] = torch.from_numpy(ia[j])
-    return idx_ab, idx_ba
+        target[s:e] = torch.gather(pad[s:e], 1, d.argmin(2)[..., None].expand(-1, -1, 3))
+        near = d.argmin(1)  # (k, P_max) nearest vertex of each point
+        onehot = ((near[:, None, :] == ar[None, :, None]) & pad_mask[s:e, None, :]).to(f)  # (k, N, P_max)
+        count[s:e] = onehot.sum(2)
+        mean[s:e] = (onehot @ pad[s:e]) / count[s:e].clamp(min=1.0)[..., None]
+        near_mean = torch.gather(mean[s:e], 1, near[..., None].expand(-1, -1, 3))
+        rest[s:e] = (((pad[s:e] - near_mean) ** 2).sum(-1) * pad_mask[s:e]).sum(1)
+    target = torch.where(vm[..., None], target, torch.zeros_like(target))
+    return target, count, mean, rest
 
 
 def chamfer_loss(
     vertices: torch.Tensor,
-    vertex_mask: torch.Tensor,
-    points: torch.Tensor,
-    point_mask: torch.Tensor,
-    indices: tuple[torch.Tensor, torch.Tensor] | None = None,
+    targets: ChamferTargets,
     vertex_max_m: float | None = None,
 ) -> torch.Tensor:
-    """L_3D: symmetric, size-normalised squared Chamfer distance per person (B,), m^2.
+    """L_3D: symmetric, size-normalised squared Chamfer distance per person (K,), m^2.
 
-    vertices (B, V, 3) model vertices, vertex_mask (B, V) bool (the visible set), points
-    (B, P, 3) LiDAR points in the same frame, point_mask (B, P) bool. Both sets are shifted by
-    the person's point centroid first (precision at long range). Squared distances are formed
-    from coordinate differences of nearest pairs (found without gradient), so the gradient is
-    finite at zero distance. A person with no valid vertex or point contributes 0.
-    indices: the nearest pairs (idx_vp (B, V), idx_pv (B, P)) from an earlier call of
-    :func:`nearest_indices`, to reuse correspondences for a few steps (they change slowly); None =
-    search now.
+    vertices (K, N, 3) model vertices (the rows of :func:`chamfer_targets`, same frame);
+    targets: the nearest pairs, found without gradient by :func:`chamfer_targets` and reused for
+    a few steps (they change slowly). Squared distances are formed from coordinate differences,
+    so the gradient is finite at zero distance. A person with no vertex or no point
+    contributes 0.
     vertex_max_m: cap of the vertex -> point distance (the term then contributes the constant
     vertex_max_m^2 and no gradient); None = the paper's uncapped form. Why: the visible set of
     backface culling over-approximates what the LiDAR saw (self-occlusion, grazing faces, gaps
@@ -195,24 +244,21 @@ def chamfer_loss(
     sensor and thins it (measured: -31 mm depth bias starting from the true body, Ouster-128).
     The point -> vertex direction is never capped: every return lies on the body.
     """
-    c = masked_centroid(points, point_mask).detach()[:, None, :]
-    v = vertices - c
-    p = points - c
-    if indices is None:
-        indices = nearest_indices(v.detach(), vertex_mask, p, point_mask)
-    idx_vp, idx_pv = indices
-    p_near = torch.gather(p, 1, idx_vp[..., None].expand(-1, -1, 3))
-    v_near = torch.gather(v, 1, idx_pv[..., None].expand(-1, -1, 3))
-    d_vp = ((v - p_near) ** 2).sum(-1)
+    t = targets
+    vm = t.vertex_mask.to(vertices.dtype)
+    d_vp = _sq_norm(vertices - t.vertex_target)
     if vertex_max_m is not None:
         d_vp = d_vp.clamp(max=float(vertex_max_m) ** 2)
-    d_pv = ((p - v_near) ** 2).sum(-1)
-    vm = vertex_mask.to(v.dtype)
-    pm = point_mask.to(v.dtype)
-    both = (vm.sum(1) > 0) & (pm.sum(1) > 0)
-    term_v = (d_vp * vm).sum(1) / vm.sum(1).clamp(min=1.0)
-    term_p = (d_pv * pm).sum(1) / pm.sum(1).clamp(min=1.0)
-    return torch.where(both, term_v + term_p, torch.zeros_like(term_v))
+    nv = vm.sum(1)
+    term_v = (d_vp * vm).sum(1) / nv.clamp(min=1.0)
+    term_p = ((_sq_norm(vertices - t.point_mean) * t.point_count).sum(1) + t.point_rest) / t.num_points.clamp(min=1.0)
+    return torch.where((nv > 0) & (t.num_points > 0), term_v + term_p, torch.zeros_like(term_v))
+
+
+def _sq_norm(d: torch.Tensor) -> torch.Tensor:
+    """|d|^2 over the last axis of 3 (written out: a reduction over 3 is slow on the CPU)."""
+    x, y, z = d.unbind(-1)
+    return x * x + y * y + z * z
 
 
 def hyperextension_loss(body_pose: torch.Tensor) -> torch.Tensor:
@@ -236,8 +282,3 @@ def occlusion_pose_loss(
     """
     trace = (rotmats_init * rotmats).sum((-1, -2))  # trace(R0^T R) = sum_ij R0_ij R_ij
     return (((3.0 - trace) / 4.0) * occluded.to(rotmats.dtype)).sum(-1)
-
-
-def gmm_pose_loss(prior, body_pose: torch.Tensor) -> torch.Tensor:
-    """L_theta: the GMM pose prior's negative log-likelihood (B,). prior: callable (B, 69) -> (B,)."""
-    return prior(body_pose)

@@ -5,19 +5,31 @@ only K there, and the monocular initial estimate lives there. LiDAR points arriv
 frame and are moved into the cam frame with ``T_cam_from_lidar``; every returned array is in the
 cam frame (use :func:`tasks.body.model.rigid_transform_params` to express a fit elsewhere).
 
-Steps per chunk of B persons (all batched except ICP, which is per person on the CPU):
+Steps for a batch of B persons (:func:`fit_persons`):
 1. visibility filter on the initial mesh (appendix A) -> visible vertices, occluded joints;
 2. rigid ICP of the visible vertices onto the person's points; (R, t) moves the global
    orientation and translation about the root joint;
 3. visibility again on the aligned mesh, then Adam on (beta, theta, t) minimising
    L_J + l_3D L_3D + l_theta L_theta + l_a L_a + l_beta L_beta + l_occ L_theta,occ.
-Persons do not interact: the batch loss is the sum of per-person losses, so a person's fit does
-not depend on which chunk it was in.
+   Each step poses only the vertices the loss reads (the visible set, fixed after step 3, and
+   the face keypoints); the Chamfer pairs and the pose blend shapes (no gradient through them
+   in between) are refreshed every ``nn_every`` steps, and a person
+   whose objective improved by less than ``converge_rtol`` (relative) between two refreshes
+   stops there and leaves the batch.
+Persons do not interact: every term is per person, the batch loss is their sum, and a person's
+stop depends on its own objective only, so a person's fit does not depend on which batch it was
+in (up to float rounding of batched matrix products).
+
+Threads: the kernel never changes a global thread setting. Its torch operations use torch's
+intra-op pool, which the caller sizes (``torch.set_num_threads``; a Dask worker should size it to
+its own allotment, as torch defaults to every core); its nearest-pair searches (numba) run on the
+calling thread.
 """
 
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +44,11 @@ from tasks.fit.settings import FitSettings
 from tasks.fit.visibility import Visibility, vertex_parts, visibility_masks
 
 _COCO_JOINT_IDX = [COCO_TO_SMPL_JOINT[i] for i in range(5, 17)]
+#: layout of the packed parameter rows (B, 85): betas, global_orient, body_pose, transl
+_SLICES = {"betas": slice(0, 10), "global_orient": slice(10, 13), "body_pose": slice(13, 82),
+           "transl": slice(82, 85)}
+_ADAM_BETAS = (0.9, 0.999)
+_ADAM_EPS = 1e-8
 
 
 @dataclass(frozen=True)
@@ -39,7 +56,7 @@ class FitResult:
     """Fitted bodies, cam frame, numpy float32. betas (B, 10); global_orient (B, 3) and body_pose
     (B, 69) axis-angle (rad); transl (B, 3) m; vertices (B, V, 3) m; joints (B, 24, 3) m;
     residuals: dict of (B,) float64 final term values ('L_J', 'L_3D', 'L_theta', 'L_a',
-    'L_beta', 'L_occ', 'total', 'icp_fitness', 'visible_vertices')."""
+    'L_beta', 'L_occ', 'total', 'icp_fitness', 'visible_vertices', 'steps': Adam steps taken)."""
 
     betas: np.ndarray
     global_orient: np.ndarray
@@ -60,17 +77,11 @@ def model_keypoints(joints: torch.Tensor, vertices: torch.Tensor, keypoint_verte
     return torch.cat([vertices[:, ids], joints[:, _COCO_JOINT_IDX]], dim=1)
 
 
-def _visible_index(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Padded indices (B, N) of True entries of mask (B, V), and their validity (B, N)."""
-    counts = mask.sum(1)
-    n = max(int(counts.max().item()) if mask.numel() else 0, 1)
-    order = torch.argsort((~mask).to(torch.int8), dim=1, stable=True)[:, :n]
-    valid = torch.arange(n, device=mask.device)[None, :] < counts[:, None]
-    return order, valid
-
-
-def _gather_rows(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
-    return torch.gather(x, 1, idx[..., None].expand(-1, -1, x.shape[-1]))
+def ragged_points(points, point_mask) -> tuple[np.ndarray, np.ndarray]:
+    """Padded point sets (B, P, 3) with point_mask (B, P) bool -> (points (sum, 3) in person
+    order, counts (B,) int64): the layout :func:`fit_persons` takes."""
+    pts, mask = np.asarray(points), np.asarray(point_mask, dtype=bool)
+    return pts[mask], mask.sum(1).astype(np.int64)
 
 
 def fit_persons(
@@ -81,7 +92,7 @@ def fit_persons(
     K,
     T_cam_from_lidar,
     points,
-    point_mask,
+    counts,
     weights: L.FitWeights = L.FIT_PRESETS["3dpw"],
     iterations: int = FitSettings.iterations,
     lr: float = 0.02,
@@ -94,147 +105,255 @@ def fit_persons(
     min_points: int = 10,
     nn_every: int = 1,
     chamfer_vertex_max_m: float | None = None,
+    converge_rtol: float | None = FitSettings.converge_rtol,
 ) -> FitResult:
     """Fit B persons jointly (batched Adam), returning cam-frame bodies.
 
     model: BodyModel; prior: callable body_pose (B, 69) -> (B,) neg. log-likelihood (the GMM);
     init: BodyParams (cam frame) of the initial estimate (oracle, CLIFF, or the track's previous
-    frame for a warm start); nn_every: recompute the Chamfer nearest pairs every this many steps
-    (the k-d tree search dominates a CPU step; pairs change slowly); chamfer_vertex_max_m: cap of
-    the vertex -> point distances in L_3D (see :func:`tasks.fit.losses.chamfer_loss`; None = the
-    paper's uncapped Chamfer); keypoints (B, 17, 3) COCO-17 (u, v, confidence), pixels;
-    K (B, 3, 3) or (3, 3); T_cam_from_lidar (4, 4) or (B, 4, 4) float64; points (B, P, 3) lidar
-    frame (m), padded; point_mask (B, P) bool. Persons with fewer than ``min_points`` points skip
-    ICP and L_3D. use_visibility=False uses every vertex and flags no joint occluded (ablation).
-    Deterministic for a fixed seed on a given device.
+    frame for a warm start); keypoints (B, 17, 3) COCO-17 (u, v, confidence), pixels;
+    K (B, 3, 3) or (3, 3); T_cam_from_lidar (4, 4) or (B, 4, 4) float64; points (P, 3) lidar
+    frame (m), the persons' points one after another, counts (B,) how many belong to each
+    (:func:`ragged_points` converts padded sets). Persons with fewer than ``min_points`` points
+    skip ICP and L_3D. nn_every: recompute the Chamfer nearest pairs and the pose blend shapes
+    every this many steps (both change slowly; 1 = the exact gradient); chamfer_vertex_max_m:
+    cap of the vertex -> point distances in L_3D (see :func:`tasks.fit.losses.chamfer_loss`;
+    None = the paper's uncapped Chamfer);
+    converge_rtol: a person stops when its objective fell by less than this fraction between
+    two pair refreshes (None: always ``iterations`` steps). use_visibility=False uses every
+    vertex and flags no joint occluded (ablation). Deterministic for a fixed seed on a device.
     """
     B = len(init)
-    kp_np, pts_in, pm_in = np.asarray(keypoints), np.asarray(points), np.asarray(point_mask)
-    for name, arr, shape in (("keypoints", kp_np, (B, 17, 3)), ("points", pts_in, (B, None, 3)), ("point_mask", pm_in, (B, None))):
-        if arr.ndim != len(shape) or any(e is not None and a != e for a, e in zip(arr.shape, shape)):
-            raise ValueError(f"fit_persons: {name} has shape {arr.shape}, expected {shape} for {B} persons")
-    if pm_in.shape[1] != pts_in.shape[1]:
-        raise ValueError(f"fit_persons: point_mask {pm_in.shape} does not match points {pts_in.shape}")
+    kp_np, pts_l, counts = np.asarray(keypoints), np.asarray(points), np.asarray(counts).reshape(-1)
+    _check_inputs(B, kp_np, pts_l, counts)
     torch.manual_seed(seed)
     dev = torch.device(device)
-    f32 = torch.float32
     if model.v_template.device != dev:
         model = copy.deepcopy(model).to(dev)  # never move a shared (memoised) model in place
-    kp = torch.as_tensor(np.asarray(keypoints), dtype=f32, device=dev)
-    Kt = torch.as_tensor(np.asarray(K), dtype=f32, device=dev)
-    T = np.asarray(T_cam_from_lidar, dtype=np.float64)
-    T = np.broadcast_to(T, (B, 4, 4))
-    pts_l = np.asarray(points, dtype=np.float64).reshape(B, -1, 3)
-    pts_np = np.einsum("bij,bpj->bpi", T[:, :3, :3], pts_l) + T[:, None, :3, 3]
-    pmask_np = np.asarray(point_mask, dtype=bool).reshape(B, -1)
-    has_pts = pmask_np.sum(1) >= min_points
-    pmask_np = pmask_np & has_pts[:, None]
-    # valid points first, padding trimmed to the largest person (the NN search is B x V x P)
-    order = np.argsort(~pmask_np, axis=1, kind="stable")
-    keep = max(int(pmask_np.sum(1).max()), 1)
-    pts_np = np.take_along_axis(pts_np, order[:, :keep, None], 1)
-    pmask_np = np.take_along_axis(pmask_np, order[:, :keep], 1)
-    pts = torch.as_tensor(pts_np, dtype=f32, device=dev)
-    pmask = torch.as_tensor(pmask_np, device=dev)
+    buffers = list(prior.buffers()) if isinstance(prior, torch.nn.Module) else []
+    if buffers and buffers[0].device != dev:
+        prior = copy.deepcopy(prior).to(dev)  # not one host-to-device copy per step
+    pts = _PersonPoints.build(pts_l, counts, T_cam_from_lidar, min_points, dev)
+    f32 = torch.float32
+    kp = torch.as_tensor(kp_np, dtype=f32, device=dev)
+    Kt = torch.as_tensor(np.asarray(K), dtype=f32, device=dev).expand(B, 3, 3)
     kw = None if keypoint_weights is None else torch.as_tensor(np.asarray(keypoint_weights), dtype=f32, device=dev)
-    faces = model.faces_tensor.to(dev)
-    parts = torch.as_tensor(vertex_parts(model.lbs_weights), device=dev)
-    conf = kp[..., 2]
+    vis_fn = _visibility_fn(model, kp[..., 2], weights, use_visibility)
+    x = torch.cat([torch.as_tensor(np.asarray(getattr(init, k)), dtype=f32, device=dev).reshape(B, -1)
+                   for k in _SLICES], 1)
 
-    def visibility(verts):
-        if use_visibility:
-            return visibility_masks(verts, faces, parts, conf, w=weights.w, j_conf=weights.j_conf)
-        ones = torch.ones(verts.shape[:2], dtype=torch.bool, device=dev)
-        return Visibility(ones, torch.zeros(B, 24, dtype=torch.bool, device=dev), ones)
-
-    betas = torch.as_tensor(init.betas, dtype=f32, device=dev)
-    go = torch.as_tensor(init.global_orient, dtype=f32, device=dev)
-    bp = torch.as_tensor(init.body_pose, dtype=f32, device=dev)
-    tr = torch.as_tensor(init.transl, dtype=f32, device=dev)
-
-    # 1-2: visibility on the estimate, then ICP per person.
     icp_fitness = np.zeros(B)
     if use_icp:
-        with torch.no_grad():
-            out = model(betas, go, bp, tr)
-            vis = visibility(out.vertices)
-            j0 = model.rest_joints(betas)[:, 0].cpu().numpy()
-        verts_np = out.vertices.cpu().numpy()
-        vmask_np = vis.vertex_mask.cpu().numpy()
-        Rg = axis_angle_to_matrix(go.double()).cpu().numpy()
-        tr_np = tr.double().cpu().numpy()
-        for b in range(B):
-            if not has_pts[b]:
-                continue
-            res = icp_align(
-                verts_np[b][vmask_np[b]], pts_np[b][pmask_np[b]],
-                max_rotation_deg=icp_max_rotation_deg, min_points=min_points,
-            )
-            icp_fitness[b] = res.fitness
-            Rg[b], tr_np[b] = rigid_update_params(Rg[b], tr_np[b], j0[b], res.T[:3, :3], res.T[:3, 3])
-        go = matrix_to_axis_angle(torch.as_tensor(Rg)).to(dev, f32)
-        tr = torch.as_tensor(tr_np, dtype=f32, device=dev)
+        x, icp_fitness = _align_rigidly(model, x, vis_fn(_posed(model, x).vertices), pts,
+                                        icp_max_rotation_deg, min_points)
+    problem = _Problem.build(model, prior, x, vis_fn, pts, kp, Kt, kw, weights, chamfer_vertex_max_m)
+    x, steps = _optimize(problem, x, iterations, lr, nn_every, converge_rtol)
 
-    # 3: visible set on the aligned mesh; its indices stay fixed during the optimisation.
     with torch.no_grad():
-        out = model(betas, go, bp, tr)
-        vis = visibility(out.vertices)
-        R0 = axis_angle_to_matrix(torch.cat([go[:, None], bp.reshape(B, 23, 3)], 1))
-    vidx, vvalid = _visible_index(vis.vertex_mask)
-    occluded = vis.occluded_joints
+        full = _posed(model, x)
+        _, terms = problem.objective(x, refresh=True)
+    residuals = {k: v.double().cpu().numpy() for k, v in terms.items()}
+    residuals["icp_fitness"] = icp_fitness
+    residuals["visible_vertices"] = problem.visible_count.cpu().numpy().astype(np.float64)
+    residuals["steps"] = steps.cpu().numpy().astype(np.float64)
+    rows = {k: x[:, s].cpu().numpy().astype(np.float32) for k, s in _SLICES.items()}
+    return FitResult(vertices=full.vertices.cpu().numpy().astype(np.float32),
+                     joints=full.joints.cpu().numpy().astype(np.float32), residuals=residuals, **rows)
 
-    params = [t.clone().requires_grad_(True) for t in (betas, go, bp, tr)]
-    opt = torch.optim.Adam(params, lr=lr)
 
-    pairs = None
+def _check_inputs(B: int, keypoints: np.ndarray, points: np.ndarray, counts: np.ndarray) -> None:
+    if keypoints.shape != (B, 17, 3):
+        raise ValueError(f"fit_persons: keypoints has shape {keypoints.shape}, expected ({B}, 17, 3)")
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"fit_persons: points has shape {points.shape}, expected (P, 3)")
+    if counts.shape != (B,) or (counts < 0).any() or counts.sum() != len(points):
+        raise ValueError(f"fit_persons: counts {counts.tolist()} must be {B} non-negative numbers "
+                         f"summing to the {len(points)} points")
 
-    def terms(p_betas, p_go, p_bp, p_tr, refresh=True):
-        nonlocal pairs
-        o = model(p_betas, p_go, p_bp, p_tr)
-        visible = _gather_rows(o.vertices, vidx)
-        if refresh or pairs is None:
-            c = L.masked_centroid(pts, pmask)[:, None, :]
-            pairs = L.nearest_indices((visible - c).detach(), vvalid, pts - c, pmask)
-        t = {}
-        t["L_J"] = L.reprojection_loss(
-            model_keypoints(o.joints, o.vertices, model.keypoint_vertex_ids), kp, Kt,
-            weights.rho_px, weights.conf_power, kw,
-        )
-        t["L_3D"] = L.chamfer_loss(visible, vvalid, pts, pmask, indices=pairs,
-                                   vertex_max_m=chamfer_vertex_max_m)
-        t["L_theta"] = prior(p_bp)
-        t["L_a"] = L.hyperextension_loss(p_bp)
-        t["L_beta"] = L.shape_loss(p_betas)
-        R = axis_angle_to_matrix(torch.cat([p_go[:, None], p_bp.reshape(B, 23, 3)], 1))
-        t["L_occ"] = L.occlusion_pose_loss(R, R0, occluded)
-        t["total"] = (
-            t["L_J"]
-            + weights.scale("3d") * t["L_3D"]
-            + weights.scale("theta") * t["L_theta"]
-            + weights.scale("a") * t["L_a"]
-            + weights.scale("beta") * t["L_beta"]
-            + weights.scale("occ") * t["L_occ"]
-        )
+
+def _posed(model, x: torch.Tensor, vertex_subset=None):
+    """The model posed by packed parameter rows x (B, 85)."""
+    return model(*(x[:, s] for s in _SLICES.values()), vertex_subset=vertex_subset)
+
+
+@dataclass(frozen=True)
+class _PersonPoints:
+    """Ragged cam-frame points: xyz (P, 3) float32, person (P,) int64, has (B,) bool (persons
+    with at least min_points points; the others' points are dropped)."""
+
+    xyz: torch.Tensor
+    person: torch.Tensor
+    has: torch.Tensor
+
+    @staticmethod
+    def build(points_lidar: np.ndarray, counts: np.ndarray, T_cam_from_lidar, min_points: int, dev) -> _PersonPoints:
+        B = len(counts)
+        person = np.repeat(np.arange(B), counts)
+        T = np.broadcast_to(np.asarray(T_cam_from_lidar, dtype=np.float64), (B, 4, 4))[person]
+        cam = np.einsum("pij,pj->pi", T[:, :3, :3], points_lidar.astype(np.float64)) + T[:, :3, 3]
+        has = counts >= max(min_points, 1)
+        keep = has[person]
+        return _PersonPoints(torch.as_tensor(cam[keep], dtype=torch.float32, device=dev),
+                             torch.as_tensor(person[keep], device=dev), torch.as_tensor(has, device=dev))
+
+
+def _visibility_fn(model, conf: torch.Tensor, weights: L.FitWeights, use_visibility: bool):
+    """verts (B, V, 3) -> Visibility of the persons whose keypoint confidences are conf (B, 17)."""
+    faces = model.faces_tensor
+    parts = torch.as_tensor(vertex_parts(model.lbs_weights), device=conf.device)
+
+    def visibility(verts: torch.Tensor) -> Visibility:
+        if use_visibility:
+            return visibility_masks(verts, faces, parts, conf, w=weights.w, j_conf=weights.j_conf)
+        ones = torch.ones(verts.shape[:2], dtype=torch.bool, device=verts.device)
+        return Visibility(ones, torch.zeros(verts.shape[0], 24, dtype=torch.bool, device=verts.device), ones)
+
+    return visibility
+
+
+def _align_rigidly(model, x: torch.Tensor, vis: Visibility, pts: _PersonPoints, max_rotation_deg: float,
+                   min_points: int) -> tuple[torch.Tensor, np.ndarray]:
+    """Steps 1-2: ICP of each person's visible vertices onto its points; returns the packed rows
+    with global_orient and transl moved by the rigid motion, and the ICP fitness (B,)."""
+    with torch.no_grad():
+        verts = _posed(model, x).vertices
+        j0 = model.rest_joints(x[:, _SLICES["betas"]])[:, 0]
+    idx, valid = _visible_index(vis.vertex_mask & pts.has[:, None])
+    res = icp_align(torch.gather(verts, 1, idx[..., None].expand(-1, -1, 3)), valid, pts.xyz, pts.person,
+                    max_rotation_deg=max_rotation_deg, min_points=min_points)
+    Rg = axis_angle_to_matrix(x[:, _SLICES["global_orient"]].double()).cpu().numpy()
+    tr = x[:, _SLICES["transl"]].double().cpu().numpy()
+    Rg, tr = rigid_update_params(Rg, tr, j0.double().cpu().numpy(), res.T[:, :3, :3], res.T[:, :3, 3])
+    x = x.clone()
+    x[:, _SLICES["global_orient"]] = matrix_to_axis_angle(torch.as_tensor(Rg)).to(x)
+    x[:, _SLICES["transl"]] = torch.as_tensor(tr).to(x)
+    return x, res.fitness
+
+
+def _visible_index(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Padded indices (B, n) of the True entries of mask (B, V) (ascending), and their validity
+    (B, n); padding points at index 0."""
+    counts = mask.sum(1)
+    n = int(counts.max().item()) if mask.shape[0] else 0
+    order = torch.argsort((~mask).to(torch.int8), dim=1, stable=True)[:, :n]
+    valid = torch.arange(n, device=mask.device)[None, :] < counts[:, None]
+    return torch.where(valid, order, torch.zeros_like(order)), valid
+
+
+class _Problem:
+    """The objective of the persons still being optimised (step 3), with what stays fixed
+    during the optimisation: the vertex subset each person's loss reads (face keypoint vertices
+    first, then the visible set of the aligned mesh), occluded joints, initial rotations,
+    keypoints, and the current Chamfer targets. Rows can be dropped (:meth:`keep`)."""
+
+    def __init__(self, model, prior, weights, cap, subset, occluded, R0, kp, Kt, kw, pts, vertex_mask):
+        self.model, self.prior, self.weights, self.cap = model, prior, weights, cap
+        self.subset, self.occluded, self.R0, self.kp, self.Kt, self.kw = subset, occluded, R0, kp, Kt, kw
+        self.pts, self.vertex_mask = pts, vertex_mask
+        self.targets: L.ChamferTargets | None = None
+        self.offsets: torch.Tensor | None = None  # pose blend shapes, (k, V, 3)
+        self.visible_count = vertex_mask.sum(1)
+
+    @staticmethod
+    def build(model, prior, x, vis_fn, pts: _PersonPoints, kp, Kt, kw, weights, cap) -> _Problem:
+        B = x.shape[0]
+        dev = x.device
+        with torch.no_grad():
+            vis = vis_fn(_posed(model, x).vertices)
+            R0 = axis_angle_to_matrix(x[:, 10:82].reshape(B, 24, 3))
+        # no points: no L_3D, no visible set needed
+        order, valid = _visible_index(vis.vertex_mask & pts.has[:, None])
+        kp_ids = torch.as_tensor(np.asarray(model.keypoint_vertex_ids), device=dev).expand(B, -1)
+        ids = torch.cat([kp_ids, order], 1)
+        vertex_mask = torch.cat([torch.zeros_like(kp_ids, dtype=torch.bool), valid], 1)
+        problem = _Problem(model, prior, weights, cap, model.select_vertices(ids), vis.occluded_joints, R0,
+                           kp, Kt, kw, pts, vertex_mask)
+        problem.visible_count = vis.vertex_mask.sum(1)
+        return problem
+
+    def take(self, rows: torch.Tensor) -> _Problem:
+        """The problem of persons rows (k,) int64 only (in the current numbering)."""
+        new_index = torch.full((self.kp.shape[0],), -1, dtype=torch.long, device=rows.device)
+        new_index[rows] = torch.arange(len(rows), device=rows.device)
+        p = self.pts
+        on = new_index[p.person] >= 0
+        out = _Problem(self.model, self.prior, self.weights, self.cap, self.subset.take(rows),
+                       self.occluded[rows], self.R0[rows], self.kp[rows], self.Kt[rows], self.kw,
+                       _PersonPoints(p.xyz[on], new_index[p.person[on]], p.has[rows]), self.vertex_mask[rows])
+        out.targets = None if self.targets is None else self.targets.take(rows)
+        out.offsets = None if self.offsets is None else self.offsets[rows]
+        out.visible_count = self.visible_count[rows]
+        return out
+
+    def objective(self, x: torch.Tensor, refresh: bool) -> tuple:
+        """Pose the vertex subset for parameter rows x (k, 85) and evaluate every term (k,).
+        refresh: first recompute the pose blend shapes from this pose and, from the posed
+        vertices, the Chamfer targets; in between both are held fixed (no gradient flows
+        through the pose blend shapes then: a second-order term, and the (k, 207) x (207, 3V)
+        product it needs is the largest of a step)."""
+        w = self.weights
+        if refresh or self.offsets is None:
+            with torch.no_grad():
+                self.offsets = self.model.pose_offsets(x[:, _SLICES["global_orient"]], x[:, _SLICES["body_pose"]])
+        o = self.model(*(x[:, s] for s in _SLICES.values()), vertex_subset=self.subset, pose_offsets=self.offsets)
+        if refresh or self.targets is None:
+            self.targets = L.chamfer_targets(o.vertices.detach(), self.vertex_mask, self.pts.xyz,
+                                             self.pts.person)
+        bp = x[:, _SLICES["body_pose"]]
+        k = x.shape[0]
+        keypoints = torch.cat([o.vertices[:, :5], o.joints[:, _COCO_JOINT_IDX]], dim=1)
+        R = axis_angle_to_matrix(x[:, 10:82].reshape(k, 24, 3))
+        t = {
+            "L_J": L.reprojection_loss(keypoints, self.kp, self.Kt, w.rho_px, w.conf_power, self.kw),
+            "L_3D": L.chamfer_loss(o.vertices, self.targets, vertex_max_m=self.cap),
+            "L_theta": self.prior(bp),
+            "L_a": L.hyperextension_loss(bp),
+            "L_beta": L.shape_loss(x[:, _SLICES["betas"]]),
+            "L_occ": L.occlusion_pose_loss(R, self.R0, self.occluded),
+        }
+        t["total"] = (t["L_J"] + w.scale("3d") * t["L_3D"] + w.scale("theta") * t["L_theta"]
+                      + w.scale("a") * t["L_a"] + w.scale("beta") * t["L_beta"] + w.scale("occ") * t["L_occ"])
         return o, t
 
-    for step in range(iterations):
-        opt.zero_grad(set_to_none=True)
-        _, t = terms(*params, refresh=step % max(1, nn_every) == 0)
-        t["total"].sum().backward()
-        opt.step()
 
-    with torch.no_grad():
-        o, t = terms(*params)
-    residuals = {k: v.double().cpu().numpy() for k, v in t.items()}
-    residuals["icp_fitness"] = icp_fitness
-    residuals["visible_vertices"] = vis.vertex_mask.sum(1).cpu().numpy().astype(np.float64)
-    cpu = [p.detach().cpu().numpy().astype(np.float32) for p in params]
-    return FitResult(
-        betas=cpu[0],
-        global_orient=cpu[1],
-        body_pose=cpu[2],
-        transl=cpu[3],
-        vertices=o.vertices.cpu().numpy().astype(np.float32),
-        joints=o.joints.cpu().numpy().astype(np.float32),
-        residuals=residuals,
-    )
+def _optimize(problem: _Problem, x: torch.Tensor, iterations: int, lr: float, nn_every: int,
+              converge_rtol: float | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Adam on the packed rows x (B, 85) (torch.optim.Adam's update, written out so that rows
+    can leave the batch with their moments). Returns the final rows and the steps per person."""
+    B = x.shape[0]
+    dev = x.device
+    out = x.clone()
+    steps = torch.full((B,), iterations, dtype=torch.long, device=dev)
+    index = torch.arange(B, device=dev)  # original person of each current row
+    x = x.clone()
+    m, v = torch.zeros_like(x), torch.zeros_like(x)
+    b1, b2 = _ADAM_BETAS
+    nn_every = max(1, nn_every)
+    last = None  # objective at the previous refresh
+    for step in range(iterations):
+        if len(index) == 0:
+            break
+        refresh = step % nn_every == 0
+        xr = x.detach().requires_grad_(True)
+        _, t = problem.objective(xr, refresh)
+        total = t["total"]
+        keep = None
+        if refresh and converge_rtol is not None:
+            now = total.detach()
+            if last is not None:
+                done = (last - now) <= converge_rtol * now.abs()
+                if bool(done.any()):
+                    out[index[done]] = x[done]
+                    steps[index[done]] = step
+                    keep = (~done).nonzero().reshape(-1)
+            last = now
+        (g,) = torch.autograd.grad(total.sum(), xr)
+        if keep is not None:
+            x, m, v, g, index, last = x[keep], m[keep], v[keep], g[keep], index[keep], last[keep]
+            problem = problem.take(keep)
+        m.mul_(b1).add_(g, alpha=1 - b1)
+        v.mul_(b2).addcmul_(g, g, value=1 - b2)
+        bc1, bc2 = 1 - b1 ** (step + 1), 1 - b2 ** (step + 1)
+        x = x.addcdiv(m, (v.sqrt() / math.sqrt(bc2)).add_(_ADAM_EPS), value=-lr / bc1)
+    out[index] = x
+    return out, steps
