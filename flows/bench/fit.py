@@ -197,26 +197,51 @@ def _resimulate(model, sp, verts, joints, sensor, rng):
                                truth_vertices=verts, truth_joints=joints)
 
 
+#: the arrays of a simulated person pool (tasks.fit.lidar_sim.SyntheticPersons and the oracle's
+#: initial estimates) that the throughput and agreement runs need
+POOL_FIELDS = ("keypoints", "K", "points_lidar", "point_mask", "T_cam_from_lidar", "truth_joints",
+               "init_betas", "init_global_orient", "init_body_pose", "init_transl")
+
+
+def simulated_pool(pool: int, sensor: str, seed: int, **synthesize) -> dict:
+    """``pool`` simulated persons (the LiDAR simulation, CPU, needs open3d) and their oracle
+    initial estimates, as plain arrays (:data:`POOL_FIELDS`): saved with ``--save-pool`` they run
+    on a machine without the simulator's dependencies (``--pool-file``)."""
+    import numpy as np
+
+    from tasks.body.poses import sample_plausible_poses
+    from tasks.body.procedural import default_body_model
+    from tasks.fit.init_oracle import BodyParams, oracle_initial_estimate
+    from tasks.fit.lidar_sim import SENSORS, synthesize_persons
+
+    model, rng = default_body_model(), np.random.default_rng(seed)
+    sp = synthesize_persons(model, sample_plausible_poses(pool, rng), SENSORS[sensor], rng, **synthesize)
+    init = oracle_initial_estimate(model, BodyParams(sp.truth_betas, sp.truth_global_orient,
+                                                     sp.truth_body_pose, sp.truth_transl), rng)
+    arrays = {k: getattr(sp, k) for k in POOL_FIELDS if not k.startswith("init_")}
+    arrays.update({f"init_{k}": getattr(init, k) for k in ("betas", "global_orient", "body_pose", "transl")})
+    return arrays
+
+
 def bench_throughput(persons: int = 1024, device: str = "cuda", iterations: int = 100, pool: int = 64,
                      sensor: str = "ouster-128", seed: int = 0, nn_every: int = 5,
-                     chamfer_vertex_max_m: float | None = 0.03, preset: str = "3dpw") -> dict:
+                     chamfer_vertex_max_m: float | None = 0.03, preset: str = "3dpw",
+                     pool_arrays: dict | None = None) -> dict:
     """Person-fits/s of ``fit_persons`` on one batch of ``persons`` on ``device``.
 
-    ``pool`` distinct persons are simulated (the LiDAR simulation is CPU-bound) and repeated to
-    fill the batch: fits do not interact, so repeats cost the same as new persons. A warm-up fit
-    of a few persons first (device start-up, kernels, numba compilation); the timed fit returns
-    numpy arrays, so the device has finished when the clock stops (and it is synchronised
-    explicitly as well). Also timed alone: the batched ICP of the same batch. Returns the JSON
-    record (fits_per_s, wall_s, icp_s, mpjpe_mm of the fits, peak device memory)."""
+    ``pool`` distinct persons are simulated (or given as ``pool_arrays``, :func:`simulated_pool`)
+    and repeated to fill the batch: fits do not interact, so repeats cost the same as new persons.
+    A warm-up fit of a few persons first (device start-up, kernels, numba compilation); the timed
+    fit returns numpy arrays, so the device has finished when the clock stops (and it is
+    synchronised explicitly as well). Also timed alone: the batched ICP of the same batch. Returns
+    the JSON record (fits_per_s, wall_s, icp_s, mpjpe_mm of the fits, peak device memory)."""
     import numpy as np
     import torch
 
-    from tasks.body.poses import sample_plausible_poses
     from tasks.body.prior import GMMPosePrior, generate_pose_prior
     from tasks.body.procedural import default_body_model
     from tasks.fit.icp import icp_align
-    from tasks.fit.init_oracle import BodyParams, oracle_initial_estimate
-    from tasks.fit.lidar_sim import SENSORS, synthesize_persons
+    from tasks.fit.init_oracle import BodyParams
     from tasks.fit.losses import FIT_PRESETS
     from tasks.fit.metrics import mean_error_mm
     from tasks.fit.optimize import fit_persons, ragged_points
@@ -229,36 +254,34 @@ def bench_throughput(persons: int = 1024, device: str = "cuda", iterations: int 
     model = default_body_model()
     g = generate_pose_prior()
     prior = GMMPosePrior(g["means"], g["covars"], g["weights"]).to(device)
-    rng = np.random.default_rng(seed)
-    n = min(pool, persons)
-    sp = synthesize_persons(model, sample_plausible_poses(n, rng), SENSORS[sensor], rng)
-    truth = BodyParams(sp.truth_betas, sp.truth_global_orient, sp.truth_body_pose, sp.truth_transl)
-    init0 = oracle_initial_estimate(model, truth, rng)
+    a = pool_arrays if pool_arrays is not None else simulated_pool(min(pool, persons), sensor, seed)
+    n = len(a["keypoints"])
+    init0 = BodyParams(*(a[f"init_{k}"] for k in ("betas", "global_orient", "body_pose", "transl")))
     rep = np.arange(persons) % n
     init = init0.take(rep)
-    pts, counts = ragged_points(sp.points_lidar[rep], sp.point_mask[rep])
+    pts, counts = ragged_points(a["points_lidar"][rep], a["point_mask"][rep])
     args = {"weights": FIT_PRESETS[preset], "iterations": iterations, "device": device, "nn_every": nn_every,
             "chamfer_vertex_max_m": chamfer_vertex_max_m}
     w = min(4, persons)
-    warm_pts, warm_counts = ragged_points(sp.points_lidar[rep[:w]], sp.point_mask[rep[:w]])
-    fit_persons(model, prior, init.take(slice(0, w)), sp.keypoints[rep[:w]], sp.K, sp.T_cam_from_lidar,
+    warm_pts, warm_counts = ragged_points(a["points_lidar"][rep[:w]], a["point_mask"][rep[:w]])
+    fit_persons(model, prior, init.take(slice(0, w)), a["keypoints"][rep[:w]], a["K"], a["T_cam_from_lidar"],
                 warm_pts, warm_counts, **{**args, "iterations": min(iterations, 6)})
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
     sync()
     t0 = time.perf_counter()
-    r = fit_persons(model, prior, init, sp.keypoints[rep], sp.K, sp.T_cam_from_lidar, pts, counts, **args)
+    r = fit_persons(model, prior, init, a["keypoints"][rep], a["K"], a["T_cam_from_lidar"], pts, counts, **args)
     sync()
     wall = time.perf_counter() - t0
     # the ICP alone, as the fit runs it: the initial meshes' visible vertices of the same batch
     dev_model = model.to(device) if device != "cpu" else model
-    kp = torch.as_tensor(sp.keypoints[rep], device=device)
+    kp = torch.as_tensor(a["keypoints"][rep], device=device)
     with torch.no_grad():
         o = dev_model(*(torch.as_tensor(getattr(init, k), device=device) for k in
                         ("betas", "global_orient", "body_pose", "transl")))
         vis = visibility_masks(o.vertices, dev_model.faces_tensor, torch.as_tensor(vertex_parts(model.lbs_weights), device=device),
                                kp[..., 2], w=FIT_PRESETS[preset].w, j_conf=FIT_PRESETS[preset].j_conf)
-    T = torch.as_tensor(sp.T_cam_from_lidar, dtype=torch.float64, device=device)
+    T = torch.as_tensor(a["T_cam_from_lidar"], dtype=torch.float64, device=device)
     p_cam = (torch.as_tensor(pts, dtype=torch.float64, device=device) @ T[:3, :3].T + T[:3, 3]).float()
     person = torch.repeat_interleave(torch.arange(persons, device=device), torch.as_tensor(counts, device=device))
     sync()
@@ -270,11 +293,45 @@ def bench_throughput(persons: int = 1024, device: str = "cuda", iterations: int 
            "torch_threads": torch.get_num_threads(), "persons": persons, "distinct_persons": n,
            "iterations": iterations, "nn_every": nn_every, "wall_s": round(wall, 3),
            "fits_per_s": round(persons / wall, 2), "icp_s": round(icp_s, 3),
-           "mpjpe_mm": round(float(mean_error_mm(r.joints, sp.truth_joints[rep]).mean()), 2),
+           "mpjpe_mm": round(float(mean_error_mm(r.joints, a["truth_joints"][rep]).mean()), 2),
            "mean_steps": float(r.residuals["steps"].mean())}
     if device.startswith("cuda"):
         out["peak_memory_gb"] = round(torch.cuda.max_memory_allocated() / 2**30, 2)
     return out
+
+
+def device_agreement(pool_arrays: dict, device: str = "cuda", iterations: int = 30, preset: str = "3dpw") -> dict:
+    """The same persons fitted on the CPU and on ``device`` (twice): the largest vertex
+    difference CPU vs device (m), whether the steps taken agree, the largest ICP-fitness
+    difference, and whether two device runs are bit-identical (tests/test_fit.py asserts the same
+    on a 2-person scene where CUDA is present)."""
+    import copy
+
+    import numpy as np
+
+    from tasks.body.prior import GMMPosePrior, generate_pose_prior
+    from tasks.body.procedural import default_body_model
+    from tasks.fit.init_oracle import BodyParams
+    from tasks.fit.losses import FIT_PRESETS
+    from tasks.fit.optimize import fit_persons, ragged_points
+
+    a, model = pool_arrays, default_body_model()
+    g = generate_pose_prior()
+    prior = GMMPosePrior(g["means"], g["covars"], g["weights"])
+    init = BodyParams(*(a[f"init_{k}"] for k in ("betas", "global_orient", "body_pose", "transl")))
+    pts, counts = ragged_points(a["points_lidar"], a["point_mask"])
+    kw = {"weights": FIT_PRESETS[preset], "iterations": iterations, "nn_every": 5, "chamfer_vertex_max_m": 0.03}
+
+    def fit(dev):
+        p = prior if dev == "cpu" else copy.deepcopy(prior).to(dev)
+        return fit_persons(model, p, init, a["keypoints"], a["K"], a["T_cam_from_lidar"], pts, counts, device=dev, **kw)
+
+    c, d1, d2 = fit("cpu"), fit(device), fit(device)
+    return {"persons": len(counts), "iterations": iterations,
+            "max_vertex_diff_m": float(np.abs(c.vertices - d1.vertices).max()),
+            "steps_equal": bool(np.array_equal(c.residuals["steps"], d1.residuals["steps"])),
+            "max_icp_fitness_diff": float(np.abs(c.residuals["icp_fitness"] - d1.residuals["icp_fitness"]).max()),
+            "device_runs_identical": bool(np.array_equal(d1.vertices, d2.vertices))}
 
 
 def _print_table(sensor: str, table: dict, persons: int, occluded: int) -> None:
@@ -315,6 +372,12 @@ def main(argv=None) -> None:
     ap.add_argument("--throughput", action="store_true",
                     help="only speed: fits/s of one batch of --persons on --device, one JSON line")
     ap.add_argument("--pool", type=int, default=64, help="--throughput: distinct simulated persons")
+    ap.add_argument("--save-pool", default=None,
+                    help="simulate the --pool persons (and their initial estimates), save them to this .npz, exit")
+    ap.add_argument("--pool-file", default=None,
+                    help="--throughput / --agreement: persons saved by --save-pool (no simulator needed)")
+    ap.add_argument("--agreement", action="store_true",
+                    help="fit the pool on the CPU and on --device (twice); print how they agree, one JSON line")
     ap.add_argument("--threads", type=int, default=None,
                     help="torch intra-op threads (default: torch's, every core); on a shared CPU 1 per "
                          "process avoids OpenMP spin-waiting")
@@ -323,12 +386,30 @@ def main(argv=None) -> None:
         import torch
 
         torch.set_num_threads(a.threads)
+    sensor = a.sensors.split(",")[-1]
+    if a.save_pool:
+        import numpy as np
+
+        np.savez_compressed(a.save_pool, **simulated_pool(a.pool, sensor, a.seed))
+        print(f"{a.pool} persons ({sensor}) saved to {a.save_pool}")
+        return
+    pool_arrays = None
+    if a.pool_file:
+        import numpy as np
+
+        with np.load(a.pool_file, allow_pickle=False) as z:
+            pool_arrays = {k: z[k] for k in POOL_FIELDS}
+    if a.agreement:
+        import json
+
+        print(json.dumps(device_agreement(pool_arrays or simulated_pool(a.pool, sensor, a.seed), a.device,
+                                          a.iterations, a.preset)))
+        return
     if a.throughput:
         import json
 
-        sensor = a.sensors.split(",")[-1]
         print(json.dumps(bench_throughput(a.persons, a.device, a.iterations, a.pool, sensor, a.seed, a.nn_every,
-                                          a.chamfer_vertex_max_m or None, a.preset)))
+                                          a.chamfer_vertex_max_m or None, a.preset, pool_arrays)))
         return
     results = bench_fit(a.persons, tuple(a.sensors.split(",")), not a.no_ablations, a.device, preset=a.preset,
                         iterations=a.iterations, chunk=a.chunk, warm_start=a.warm_start, nn_every=a.nn_every,

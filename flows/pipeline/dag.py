@@ -21,7 +21,8 @@ CODE_VERSIONS: dict[str, str] = {
     "fit": "4",  # 2: L_3D caps the vertex -> point distances (fit.chamfer_vertex_max_m); 100 iterations;
     #             3: detections with fewer than fit.min_points LiDAR points are not fitted, fits
     #                that moved more than fit.max_shift_m from their estimate are dropped;
-    #             4: bodies carry chamfer_m and reproj_px (typed products); the rectified camera
+    #             4: bodies carry chamfer_m and reproj_px (typed products); the rectified camera;
+    #                the kernel rewritten for speed (batched ICP, vertex subset, grid pairs); torch on 1 thread
     "map": "3",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path;
     #             3: 2d_rect cameras read as the rectified pinhole (real CODa calibration)
     "fuse": "2",  # 2: mask_camera is inside mask_lidar (Occ3D); class_counts among voxels with
