@@ -6,7 +6,10 @@ fits them, and prints a paper-style table: full method, without L_3D, without L_
 without the visibility filter, and the initial estimate; plus person-fits per second (full
 method, wall clock of ``fit_persons`` including ICP). No prefect: a plain function / CLI.
 
-    nice .venv/bin/mobileocc bench fit --persons 64 --sensors ouster-128
+    nice .venv/bin/mobileocc bench fit --persons 64 --sensors ouster-128 [--set fit.iterations=60]
+
+The fit settings and loss weights are the pipeline's (the config loader: the default config,
+``--config``, ``--set``), so the table measures what the pipeline runs.
 
 ``--throughput`` measures only speed: person-fits/s of one large batch on ``--device`` (e.g.
 ``mobileocc bench fit --device cuda --throughput --persons 1024``) after a warm-up, printed as one
@@ -16,6 +19,7 @@ JSON line.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 
@@ -33,20 +37,20 @@ def _variants(weights, ablations: bool):
 
 def bench_fit(
     persons: int,
+    weights,
+    settings,
     sensors=("ouster-32", "ouster-64", "ouster-128"),
     ablations: bool = True,
     device: str = "cpu",
-    preset: str = "3dpw",
-    iterations: int = 100,
-    lr: float = 0.02,
-    chunk: int = 16,
     seed: int = 0,
     warm_start: bool = False,
-    nn_every: int = 5,
-    chamfer_vertex_max_m: float | None = 0.03,
     ablation_sensors=None,
 ) -> dict:
     """Run the benchmark; returns {sensor: {variant: {metric: mean}}} plus 'person_fits_per_s'.
+
+    weights (tasks.fit.losses.FitWeights) and settings (tasks.fit.settings.FitSettings: iterations,
+    learning rate, nn_every, the L_3D cap, converge_rtol, batch_persons as the chunk): the
+    pipeline's, from the config loader (``main``: the default config, ``--config``, ``--set``).
 
     Metrics (mean over persons): pve, mpjpe (sensor frame, no alignment, mm), pve_root /
     mpjpe_root (pelvis-aligned, mm), pa_mpjpe (mm), mpere; per sensor also 'occluded_subset'
@@ -63,14 +67,13 @@ def bench_fit(
     from tasks.body.procedural import default_body_model
     from tasks.fit.init_oracle import BodyParams, oracle_initial_estimate
     from tasks.fit.lidar_sim import SENSORS, synthesize_persons
-    from tasks.fit.losses import FIT_PRESETS
     from tasks.fit.metrics import fit_metrics
     from tasks.fit.optimize import fit_persons, ragged_points
 
     model = default_body_model()
     g = generate_pose_prior()
     prior = GMMPosePrior(g["means"], g["covars"], g["weights"]).to(device)
-    weights = FIT_PRESETS[preset]
+    iterations, chunk = settings.iterations, settings.batch_persons
     results: dict = {}
     fit_time, fit_count = 0.0, 0
 
@@ -85,9 +88,10 @@ def bench_fit(
             t0 = time.perf_counter()
             r = fit_persons(
                 model, prior, init.take(idx), sp.keypoints[idx], sp.K, sp.T_cam_from_lidar,
-                *ragged_points(sp.points_lidar[idx], sp.point_mask[idx]), w, iterations=its, lr=lr,
-                device=device, seed=seed, nn_every=nn_every,
-                chamfer_vertex_max_m=chamfer_vertex_max_m, **extra,
+                *ragged_points(sp.points_lidar[idx], sp.point_mask[idx]), w, iterations=its,
+                lr=settings.learning_rate, device=device, seed=seed, nn_every=settings.nn_every,
+                chamfer_vertex_max_m=settings.chamfer_vertex_max_m, converge_rtol=settings.converge_rtol,
+                **extra,
             )
             if count:
                 fit_time += time.perf_counter() - t0
@@ -223,10 +227,8 @@ def simulated_pool(pool: int, sensor: str, seed: int, **synthesize) -> dict:
     return arrays
 
 
-def bench_throughput(persons: int = 1024, device: str = "cuda", iterations: int = 100, pool: int = 64,
-                     sensor: str = "ouster-128", seed: int = 0, nn_every: int = 5,
-                     chamfer_vertex_max_m: float | None = 0.03, preset: str = "3dpw",
-                     pool_arrays: dict | None = None) -> dict:
+def bench_throughput(persons: int, device: str, weights, settings, pool: int = 64,
+                     sensor: str = "ouster-128", seed: int = 0, pool_arrays: dict | None = None) -> dict:
     """Person-fits/s of ``fit_persons`` on one batch of ``persons`` on ``device``.
 
     ``pool`` distinct persons are simulated (or given as ``pool_arrays``, :func:`simulated_pool`)
@@ -242,10 +244,11 @@ def bench_throughput(persons: int = 1024, device: str = "cuda", iterations: int 
     from tasks.body.procedural import default_body_model
     from tasks.fit.icp import icp_align
     from tasks.fit.init_oracle import BodyParams
-    from tasks.fit.losses import FIT_PRESETS
     from tasks.fit.metrics import mean_error_mm
     from tasks.fit.optimize import fit_persons, ragged_points
     from tasks.fit.visibility import vertex_parts, visibility_masks
+
+    iterations = settings.iterations
 
     def sync():
         if device.startswith("cuda"):
@@ -260,8 +263,9 @@ def bench_throughput(persons: int = 1024, device: str = "cuda", iterations: int 
     rep = np.arange(persons) % n
     init = init0.take(rep)
     pts, counts = ragged_points(a["points_lidar"][rep], a["point_mask"][rep])
-    args = {"weights": FIT_PRESETS[preset], "iterations": iterations, "device": device, "nn_every": nn_every,
-            "chamfer_vertex_max_m": chamfer_vertex_max_m}
+    args = {"weights": weights, "iterations": iterations, "device": device, "nn_every": settings.nn_every,
+            "chamfer_vertex_max_m": settings.chamfer_vertex_max_m, "lr": settings.learning_rate,
+            "converge_rtol": settings.converge_rtol}
     w = min(4, persons)
     warm_pts, warm_counts = ragged_points(a["points_lidar"][rep[:w]], a["point_mask"][rep[:w]])
     fit_persons(model, prior, init.take(slice(0, w)), a["keypoints"][rep[:w]], a["K"], a["T_cam_from_lidar"],
@@ -280,7 +284,7 @@ def bench_throughput(persons: int = 1024, device: str = "cuda", iterations: int 
         o = dev_model(*(torch.as_tensor(getattr(init, k), device=device) for k in
                         ("betas", "global_orient", "body_pose", "transl")))
         vis = visibility_masks(o.vertices, dev_model.faces_tensor, torch.as_tensor(vertex_parts(model.lbs_weights), device=device),
-                               kp[..., 2], w=FIT_PRESETS[preset].w, j_conf=FIT_PRESETS[preset].j_conf)
+                               kp[..., 2], w=weights.w, j_conf=weights.j_conf)
     T = torch.as_tensor(a["T_cam_from_lidar"], dtype=torch.float64, device=device)
     p_cam = (torch.as_tensor(pts, dtype=torch.float64, device=device) @ T[:3, :3].T + T[:3, 3]).float()
     person = torch.repeat_interleave(torch.arange(persons, device=device), torch.as_tensor(counts, device=device))
@@ -291,7 +295,7 @@ def bench_throughput(persons: int = 1024, device: str = "cuda", iterations: int 
     icp_s = time.perf_counter() - t1
     out = {"device": device, "device_name": torch.cuda.get_device_name() if device.startswith("cuda") else "cpu",
            "torch_threads": torch.get_num_threads(), "persons": persons, "distinct_persons": n,
-           "iterations": iterations, "nn_every": nn_every, "wall_s": round(wall, 3),
+           "iterations": iterations, "nn_every": settings.nn_every, "wall_s": round(wall, 3),
            "fits_per_s": round(persons / wall, 2), "icp_s": round(icp_s, 3),
            "mpjpe_mm": round(float(mean_error_mm(r.joints, a["truth_joints"][rep]).mean()), 2),
            "mean_steps": float(r.residuals["steps"].mean())}
@@ -300,7 +304,7 @@ def bench_throughput(persons: int = 1024, device: str = "cuda", iterations: int 
     return out
 
 
-def device_agreement(pool_arrays: dict, device: str = "cuda", iterations: int = 30, preset: str = "3dpw") -> dict:
+def device_agreement(pool_arrays: dict, device: str, weights, iterations: int = 30) -> dict:
     """The same persons fitted on the CPU and on ``device`` (twice): the largest vertex
     difference CPU vs device (m), whether the steps taken agree, the largest ICP-fitness
     difference, and whether two device runs are bit-identical (tests/test_fit.py asserts the same
@@ -312,7 +316,6 @@ def device_agreement(pool_arrays: dict, device: str = "cuda", iterations: int = 
     from tasks.body.prior import GMMPosePrior, generate_pose_prior
     from tasks.body.procedural import default_body_model
     from tasks.fit.init_oracle import BodyParams
-    from tasks.fit.losses import FIT_PRESETS
     from tasks.fit.optimize import fit_persons, ragged_points
 
     a, model = pool_arrays, default_body_model()
@@ -320,7 +323,7 @@ def device_agreement(pool_arrays: dict, device: str = "cuda", iterations: int = 
     prior = GMMPosePrior(g["means"], g["covars"], g["weights"])
     init = BodyParams(*(a[f"init_{k}"] for k in ("betas", "global_orient", "body_pose", "transl")))
     pts, counts = ragged_points(a["points_lidar"], a["point_mask"])
-    kw = {"weights": FIT_PRESETS[preset], "iterations": iterations, "nn_every": 5, "chamfer_vertex_max_m": 0.03}
+    kw = {"weights": weights, "iterations": iterations, "nn_every": 5, "chamfer_vertex_max_m": 0.03}
 
     def fit(dev):
         p = prior if dev == "cpu" else copy.deepcopy(prior).to(dev)
@@ -352,21 +355,22 @@ def _print_table(sensor: str, table: dict, persons: int, occluded: int) -> None:
 
 
 def main(argv=None) -> None:
+    import yaml
+
+    from configs.schema import load_config
+    from tasks.fit.settings import FitSettings
+
     ap = argparse.ArgumentParser(prog="mobileocc bench fit", description=__doc__.splitlines()[0])
+    ap.add_argument("--config", default=None, help="the fit settings of this config (default: configs/default.yaml)")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a config key, e.g. --set fit.iterations=60 (repeatable)")
     ap.add_argument("--persons", type=int, default=32)
     ap.add_argument("--sensors", default="ouster-32,ouster-64,ouster-128")
     ap.add_argument("--no-ablations", action="store_true")
     ap.add_argument("--ablation-sensors", default=None,
                     help="comma-separated sensors that get the ablation rows (default: all)")
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--iterations", type=int, default=100)
-    ap.add_argument("--chunk", type=int, default=16)
     ap.add_argument("--warm-start", action="store_true")
-    ap.add_argument("--preset", default="3dpw")
-    ap.add_argument("--nn-every", type=int, default=5,
-                    help="recompute Chamfer nearest pairs every N steps")
-    ap.add_argument("--chamfer-vertex-max-m", type=float, default=0.03,
-                    help="cap of the vertex -> point distances in L_3D (m); 0 = the paper's uncapped form")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", default=None, help="also write the results (means, stds) to this file")
     ap.add_argument("--throughput", action="store_true",
@@ -382,6 +386,12 @@ def main(argv=None) -> None:
                     help="torch intra-op threads (default: torch's, every core); on a shared CPU 1 per "
                          "process avoids OpenMP spin-waiting")
     a = ap.parse_args(argv)
+    overrides = {}
+    for item in a.overrides:
+        key, _, value = item.partition("=")
+        overrides[key.strip()] = yaml.safe_load(value)
+    fit = load_config(a.config, overrides).fit
+    weights, settings = fit.weights, fit.to(FitSettings)
     if a.threads:
         import torch
 
@@ -402,22 +412,20 @@ def main(argv=None) -> None:
     if a.agreement:
         import json
 
-        print(json.dumps(device_agreement(pool_arrays or simulated_pool(a.pool, sensor, a.seed), a.device,
-                                          a.iterations, a.preset)))
+        print(json.dumps(device_agreement(pool_arrays or simulated_pool(a.pool, sensor, a.seed), a.device, weights)))
         return
     if a.throughput:
         import json
 
-        print(json.dumps(bench_throughput(a.persons, a.device, a.iterations, a.pool, sensor, a.seed, a.nn_every,
-                                          a.chamfer_vertex_max_m or None, a.preset, pool_arrays)))
+        print(json.dumps(bench_throughput(a.persons, a.device, weights, settings, a.pool, sensor, a.seed, pool_arrays)))
         return
-    results = bench_fit(a.persons, tuple(a.sensors.split(",")), not a.no_ablations, a.device, preset=a.preset,
-                        iterations=a.iterations, chunk=a.chunk, warm_start=a.warm_start, nn_every=a.nn_every,
-                        seed=a.seed, chamfer_vertex_max_m=a.chamfer_vertex_max_m or None,
+    results = bench_fit(a.persons, weights, settings, tuple(a.sensors.split(",")), not a.no_ablations, a.device,
+                        seed=a.seed, warm_start=a.warm_start,
                         ablation_sensors=None if a.ablation_sensors is None else tuple(a.ablation_sensors.split(",")))
+    results["settings"] = {"preset": fit.preset, "weights": dataclasses.asdict(weights),
+                           "fit": dataclasses.asdict(settings)}
     if a.json:
         import json
         from pathlib import Path
 
         Path(a.json).write_text(json.dumps({"argv": argv if argv is not None else sys.argv[1:], **results}, indent=1))
-
