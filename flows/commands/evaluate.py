@@ -339,6 +339,21 @@ def _sample_positions(ds, sample_frames: int) -> set:
     return {pairs[i] for i in pick}
 
 
+def open_for_evaluation(dataset: Path, data: Path | None):
+    """(OUT, its manifest, the recorded config, the raw data root holding the labels, the
+    published dataset); EvaluateError naming what is missing."""
+    out = Path(dataset)
+    manifest = Manifest.load(out)
+    config = manifest.meta.get("config") or {}
+    root = _gt_root(out, manifest, data)
+    if not root.is_dir():
+        raise EvaluateError(f"data root {root} does not exist (pass --gt DATA, the raw data root)")
+    ds = open_dataset(out)
+    if not ds.sequences:
+        raise EvaluateError(f"{out}: no published sequence to evaluate (run the pipeline first)")
+    return out, manifest, config, root, ds
+
+
 def evaluate(dataset: Path, gt: Path | None, report_dir: Path, sample_frames: int = 3,
              labels: str = "synthetic") -> dict:
     """Evaluate the dataset at ``dataset`` (OUT) against the ground truth under ``gt`` (the raw data
@@ -352,15 +367,7 @@ def evaluate(dataset: Path, gt: Path | None, report_dir: Path, sample_frames: in
         return evaluate_coda(dataset, gt, report_dir, sample_frames)
     if labels != "synthetic":
         raise EvaluateError(f"labels {labels!r}: expected 'synthetic' or 'coda'")
-    out = Path(dataset)
-    manifest = Manifest.load(out)
-    config = manifest.meta.get("config") or {}
-    gt_root = _gt_root(out, manifest, gt)
-    if not gt_root.is_dir():
-        raise EvaluateError(f"ground-truth root {gt_root} does not exist (pass --gt GT, the raw data root)")
-    ds = open_dataset(out)
-    if not ds.sequences:
-        raise EvaluateError(f"{out}: no published sequence to evaluate (run the pipeline first)")
+    out, manifest, config, gt_root, ds = open_for_evaluation(dataset, gt)
     tot = _Totals()
     positions = _sample_positions(ds, sample_frames)
     for seq in ds.sequences:

@@ -25,8 +25,6 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.dataset import open_dataset
-from storage.manifest import Manifest
 from tasks import conventions as C
 from tasks.metrics._common import PRCounts
 from tasks.metrics.coda_labels import box_class, points_in_boxes, semantic_to_classes
@@ -64,23 +62,14 @@ def evaluate_coda(dataset: Path, data: Path | None, report_dir: Path, sample_fra
     ``data`` (None: the recorded dataset.root). Writes report.md and results.json under
     ``report_dir``; returns the results dict."""
     from flows.commands.evaluate import (
-        EvaluateError,
         _boxes_to_base,
         _frustum,
-        _gt_root,
         _in_image,
+        open_for_evaluation,
     )
     from flows.commands.report import to_jsonable, write_report
 
-    out = Path(dataset)
-    manifest = Manifest.load(out)
-    config = manifest.meta.get("config") or {}
-    root = _gt_root(out, manifest, data)
-    if not root.is_dir():
-        raise EvaluateError(f"data root {root} does not exist (pass --gt DATA, the CODa root)")
-    ds = open_dataset(out)
-    if not ds.sequences:
-        raise EvaluateError(f"{out}: no published sequence to evaluate (run the pipeline first)")
+    out, manifest, config, root, ds = open_for_evaluation(dataset, data)
     camera = ((config.get("dataset") or {}).get("camera")) or "cam0"
     static, boxes, lidar = {}, {}, {}
     labels = {"frames": 0, "frames with 3d_semantic": 0, "frames with 3d_bbox": 0, "pedestrian boxes": 0,
