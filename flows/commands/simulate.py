@@ -104,12 +104,16 @@ def make_simulator(opts, fast: bool = False):
     return Simulator(opts, rig=make_rig(opts.sensor, image_scale=FAST_IMAGE_SCALE if fast else 1.0))
 
 
-def _limit_threads() -> None:
-    """One BLAS / OpenMP / torch thread in a frame worker: the workers are the parallelism, and
-    idle BLAS threads spinning beside them cost CPU on a shared machine."""
+def _limit_threads() -> int:
+    """One torch thread (returns the previous count). The body model's float32 sums depend on
+    torch's thread count (vertices differ by ~5e-7 m between 1 and 2 threads, and so do the LiDAR
+    returns on people), so every frame is made on one thread: the files are the same bytes on any
+    machine and for any number of frame workers, which are the parallelism."""
     import torch
 
+    before = torch.get_num_threads()
     torch.set_num_threads(1)
+    return before
 
 
 #: the Simulator of the sequence a frame worker is on (one sequence at a time per worker)
@@ -166,6 +170,7 @@ def simulate(out: Path, sequences: int, frames: int, seed: int, pedestrians: int
 
         pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_limit_threads)
     written = []
+    threads = _limit_threads()
     try:
         for seq in range(first_id, first_id + sequences):
             opts = SimOptions(seed=sequence_seed(seed, seq), frames=frames, pedestrians=pedestrians,
@@ -192,6 +197,9 @@ def simulate(out: Path, sequences: int, frames: int, seed: int, pedestrians: int
             pool.shutdown(cancel_futures=True)
         _WORKER_SIM.clear()
         bar.close()
+        import torch
+
+        torch.set_num_threads(threads)
     return written
 
 
