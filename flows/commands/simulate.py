@@ -140,7 +140,7 @@ def _chunks(items: list[int], n: int) -> list[list[int]]:
 def simulate(out: Path, sequences: int, frames: int, seed: int, pedestrians: int | None = None,
              crowd: str = "uncrowded", night: bool = False, sensor: str = "os1-128",
              progress: bool = True, first_id: int = 0, image_ext: str = ".jpg",
-             split_style: bool = False, fast: bool = False, workers: int = 1) -> list[int]:
+             split_style: bool = False, fast: bool = False, workers: int = 1, frame_step: int = 1) -> list[int]:
     """Write ``sequences`` synthetic sequences (ids first_id..first_id+sequences-1) of ``frames``
     raw 10 Hz frames under ``out`` in the CODa layout plus ``gt/``. Returns the sequence ids
     written. Sequence ``s`` is seeded from (seed, s), so a benchmark can add sequences of another
@@ -149,7 +149,9 @@ def simulate(out: Path, sequences: int, frames: int, seed: int, pedestrians: int
     split_style: files only for :func:`split_style_frames` (timestamps, poses: every frame).
     fast: cameras at FAST_IMAGE_SCALE (612 x 512; everything else, the ground truth included, as
     without it). workers: frame worker processes (each frame is a pure function of the
-    sequence's options and its index, so the files are the same bytes for any number)."""
+    sequence's options and its index, so the files are the same bytes for any number).
+    frame_step: files only for every ``frame_step``-th raw frame (2: the 5 Hz frames the pipeline
+    keeps, half the simulation; timestamps and poses: every frame)."""
     from tqdm import tqdm
 
     from tasks.sim import SimOptions
@@ -160,8 +162,11 @@ def simulate(out: Path, sequences: int, frames: int, seed: int, pedestrians: int
         raise ValueError(f"first_id must be >= 0, got {first_id}")
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
+    if frame_step < 1:
+        raise ValueError(f"frame_step must be >= 1, got {frame_step}")
     out = Path(out)
     written_frames = split_style_frames(frames) if split_style else list(range(frames))
+    written_frames = written_frames[::frame_step]
     bar = tqdm(total=sequences * len(written_frames), desc="simulate", unit="frame", disable=not progress)
     pool = None
     if workers > 1 and sequences * len(written_frames) > 1:
