@@ -154,10 +154,12 @@ def _run_stages_forked(data_root: str, out_root: str, overrides: dict) -> dict:
 
 
 def _spawned(fn, *args):
+    """``fn(*args)`` in a fresh spawned process (not a daemon: it may start processes itself)."""
     import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
 
-    with mp.get_context("spawn").Pool(1) as pool:
-        return pool.apply(fn, args)
+    with ProcessPoolExecutor(1, mp_context=mp.get_context("spawn")) as pool:
+        return pool.submit(fn, *args).result()
 
 
 # ---- the loopback Dask cluster -------------------------------------------------------------------

@@ -81,7 +81,7 @@ def _pool_frames_per_s(long_frames: int, crowd: str, fast: bool, sample: int, wo
 
     opts = SimOptions(seed=1, frames=long_frames, crowd=crowd)
     with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_limit_threads) as pool:
-        warm = [pool.submit(_write_frames, str(out), 1, opts, fast, [i], [i], ".jpg") for i in range(2 * workers)]
+        warm = [pool.submit(_write_frames, str(out), 1, opts, fast, [i], [i], ".jpg") for i in range(workers)]
         for f in warm:
             f.result()
         idx = [int(i) for i in (1 + (long_frames - 2) * (k + 0.5) / sample for k in range(sample))]
@@ -104,7 +104,7 @@ def bench_simulator(long_frames: int = 2000, sample: int = 8, workers: int = 2,
                 row = _profiled_frames(long_frames, crowd, fast, sample, work / name.replace(" ", "-"))
                 row["frames_per_s_cpu"] = workers / row["cpu_s_per_frame"]
                 row["load_avg_1m_before"] = os.getloadavg()[0]
-                row["frames_per_s_wall"] = _pool_frames_per_s(long_frames, crowd, fast, sample * workers, workers,
+                row["frames_per_s_wall"] = _pool_frames_per_s(long_frames, crowd, fast, sample, workers,
                                                                work / f"pool-{name.replace(' ', '-')}")
                 row["load_avg_1m_after"] = os.getloadavg()[0]
                 result["modes"][name] = row
