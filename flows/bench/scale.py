@@ -170,9 +170,9 @@ def _dask_cli() -> list[str]:
 
 
 @contextlib.contextmanager
-def loopback_cluster(n_workers: int, work: Path, memory_limit: str = "3GiB"):
-    """A ``dask scheduler`` and ``dask worker --nworkers n --nthreads 1`` on 127.0.0.1; yields
-    the scheduler address once every worker has joined."""
+def loopback_cluster(n_workers: int, work: Path, memory_limit: str = "3GiB", threads: int = 1):
+    """A ``dask scheduler`` and ``dask worker --nworkers n --nthreads threads`` on 127.0.0.1;
+    yields the scheduler address once every worker has joined."""
     from distributed import Client
 
     work.mkdir(parents=True, exist_ok=True)
@@ -190,7 +190,7 @@ def loopback_cluster(n_workers: int, work: Path, memory_limit: str = "3GiB"):
             time.sleep(0.1)
         address = json.loads(sched_file.read_text())["address"]
         procs.append(subprocess.Popen([*_dask_cli(), "worker", address, "--nworkers", str(n_workers),
-                                       "--nthreads", "1", "--memory-limit", memory_limit, "--no-dashboard",
+                                       "--nthreads", str(threads), "--memory-limit", memory_limit, "--no-dashboard",
                                        "--local-directory", str(work / "dask-worker-space")],
                                       stdout=log, stderr=subprocess.STDOUT, env=env))
         with Client(address, timeout=120) as client:
@@ -226,9 +226,10 @@ def _rebuild_on(data_root: str, out_root: str, address: str, overrides: dict) ->
 
 
 def bench_cluster(src_root: Path, src_id: int, work: Path, workers=DEFAULT_CLUSTER_WORKERS,
-                  sequences: int = CLUSTER_SEQUENCES, frames: int = CLUSTER_FRAMES) -> dict:
+                  sequences: int = CLUSTER_SEQUENCES, frames: int = CLUSTER_FRAMES, threads_check: bool = True) -> dict:
     """Rebuild ``sequences`` copies of a ``frames``-frame sequence on loopback clusters of each
-    worker count; speed-up and efficiency against one worker."""
+    worker count (one thread each); speed-up and efficiency against one worker. ``threads_check``:
+    also one worker of 2 threads (``threads_1x2``), against 2 workers of 1 thread."""
     data = work / "cluster-data"
     shutil.rmtree(data, ignore_errors=True)
     for k in range(sequences):
@@ -243,8 +244,15 @@ def bench_cluster(src_root: Path, src_id: int, work: Path, workers=DEFAULT_CLUST
     for n, r in runs.items():
         r["speedup"] = t1 / r["units_s"]
         r["efficiency"] = r["speedup"] / n
-    return {"sequences": sequences, "frames_per_sequence": frames, "fit.iterations": LONG_FIT_ITERATIONS,
-            "cores": os.cpu_count(), "runs": runs}
+    res = {"sequences": sequences, "frames_per_sequence": frames, "fit.iterations": LONG_FIT_ITERATIONS,
+           "cores": os.cpu_count(), "runs": runs}
+    if threads_check:
+        with loopback_cluster(1, work / "cluster", threads=2) as address:
+            r = _spawned(_rebuild_on, str(data), str(work / "cluster-out-1x2"), address, over)
+        r["load_avg_1m"] = os.getloadavg()[0]
+        r["speedup"] = t1 / r["units_s"]
+        res["threads_1x2"] = r
+    return res
 
 
 # ---- the projection ------------------------------------------------------------------------------
@@ -381,6 +389,8 @@ def format_scale(r: dict) -> str:
                      f"{cl['cores']} cores): " + ", ".join(
                          f"{n} worker(s) {v['units_s']:.0f} s (x{v['speedup']:.2f}, eff {v['efficiency']:.2f})"
                          for n, v in cl["runs"].items()))
+        if "threads_1x2" in cl:
+            lines.append(f"  1 worker x 2 threads: {cl['threads_1x2']['units_s']:.0f} s (x{cl['threads_1x2']['speedup']:.2f})")
     if "projection" in r:
         p = r["projection"]
         lines.append(f"projected wall for {p['frames']} frames ({p['s_per_frame']:.2f} s/frame on one worker; "
