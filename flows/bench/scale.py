@@ -6,8 +6,9 @@ Parts (``parts``), each in its own spawned process where it matters:
 - ``long``: one long sequence (``simulate --fast``, every 2nd raw frame: the 5 Hz frames the
   pipeline keeps) cut by hard links into sequences of ``frames`` 5 Hz frames (same scene, same
   density); each through the six stages, every stage in a process forked from a runner that has
-  imported everything (so a stage's peak RSS is the runner's baseline plus what the stage itself
-  holds: ``peak_rss_mb`` and ``stage_rss_mb`` = peak - baseline); wall and CPU seconds per frame.
+  imported everything: ``peak_rss_mb`` is the stage process's peak (ru_maxrss), ``baseline_rss_mb``
+  its RSS when it starts (the runner's pages the fork maps), ``stage_rss_mb`` = peak - baseline,
+  what the stage itself holds; wall and CPU seconds per frame.
   ``fit.iterations`` is LONG_FIT_ITERATIONS here (the fit's memory is per batch and its time per
   person-frame: its default cost comes from the ``cost`` part).
 - ``cost``: the shortest of those sequences through the six stages with the default settings:
@@ -16,10 +17,13 @@ Parts (``parts``), each in its own spawned process where it matters:
   (flows/bench/planning.py ``bench_planning``).
 - ``cluster``: ``mobileocc rebuild --address`` against a real ``dask scheduler`` + ``dask worker
   --nworkers N --nthreads 1`` on loopback, N in ``cluster_workers``, on CLUSTER_SEQUENCES copies
-  of a CLUSTER_FRAMES-frame sequence; efficiency e(N) = T(1) / (N T(N)).
+  of a CLUSTER_FRAMES-frame sequence: wall speed-up T(1) / T(N) (bounded by the machine's free
+  cores) and, from the scheduler's task stream, ``busy`` = compute seconds / (N x wall), the
+  share of N worker threads the run kept busy; ``speedup_dedicated`` = N busy(N) / busy(1) is the
+  speed-up on N cores of their own (what the projection uses).
 - ``projection``: wall time of DATASET_FRAMES frames on N workers = frames x (the ``cost`` part's
-  CPU seconds per frame) / (N e(N)), where e(N) is measured for N <= the machine's cores and
-  extrapolated beyond with Amdahl's law fitted to those points; never less than the critical
+  CPU seconds per frame) / S(N), S(N) = ``speedup_dedicated`` measured for N <= the machine's
+  cores and extrapolated beyond with Amdahl's law fitted to those points; never less than the critical
   path of one sequence of SEQUENCE_FRAMES frames through its serial stages (track and map are one
   task per sequence), at the per-frame cost of the longest ``long`` run.
 
@@ -120,17 +124,18 @@ def _run_stages_forked(data_root: str, out_root: str, overrides: dict) -> dict:
         from flows.pipeline.dag import STAGES
 
         ups = {u: done[u] for u in STAGES[stage] if u in done}
-        baseline = _rss_mb()
         r, w = os.pipe()
         pid = os.fork()
         if pid == 0:  # the child: one stage, then report and leave without cleanup handlers
             code = 0
             try:
                 os.close(r)
+                start_rss = _rss_mb()  # what the fork maps of the runner (its anonymous pages)
                 c0, t0 = time.process_time(), time.perf_counter()
                 outcome = execute_unit(plan.units[stage], out, ups, plan.fingerprint, runtime(cfg))
                 msg = {"outcome": outcome, "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
-                       "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+                       "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+                       "start_rss_mb": start_rss}
                 os.write(w, json.dumps(msg, default=str).encode())
             except BaseException as exc:  # noqa: BLE001 - reported to the runner
                 os.write(w, json.dumps({"error": f"{type(exc).__name__}: {exc}"}).encode())
@@ -149,7 +154,7 @@ def _run_stages_forked(data_root: str, out_root: str, overrides: dict) -> dict:
         n = max(1, plan.num_frames)
         res[stage] = {"wall_s": msg["wall_s"], "cpu_s": msg["cpu_s"], "wall_s_per_frame": msg["wall_s"] / n,
                       "cpu_s_per_frame": msg["cpu_s"] / n, "peak_rss_mb": msg["peak_rss_mb"],
-                      "baseline_rss_mb": baseline, "stage_rss_mb": msg["peak_rss_mb"] - baseline}
+                      "baseline_rss_mb": msg["start_rss_mb"], "stage_rss_mb": msg["peak_rss_mb"] - msg["start_rss_mb"]}
     return res
 
 
@@ -225,6 +230,23 @@ def _rebuild_on(data_root: str, out_root: str, address: str, overrides: dict) ->
             "sequences": len(report.plans)}
 
 
+def _rebuild_with_task_stream(address: str, slots: int, data: str, out: str, over: dict) -> dict:
+    """The rebuild on the cluster, and from the scheduler's task stream the seconds its worker
+    threads computed: ``busy`` = compute seconds / (slots x wall of the units), the share of the
+    cluster the run kept busy (its parallelism, whatever else loads the machine)."""
+    from distributed import Client
+
+    with Client(address, timeout=120) as client:
+        client.get_task_stream(start=time.time())  # installs the scheduler's task-stream plugin
+        t0 = time.time()
+        run = _spawned(_rebuild_on, data, out, address, over)
+        stream = client.get_task_stream(start=t0)
+    compute = sum(ss["stop"] - ss["start"] for t in stream for ss in t.get("startstops", ())
+                  if ss.get("action") == "compute")
+    run.update(compute_s=compute, tasks=len(stream), busy=compute / (slots * run["units_s"]))
+    return run
+
+
 def bench_cluster(src_root: Path, src_id: int, work: Path, workers=DEFAULT_CLUSTER_WORKERS,
                   sequences: int = CLUSTER_SEQUENCES, frames: int = CLUSTER_FRAMES, threads_check: bool = True) -> dict:
     """Rebuild ``sequences`` copies of a ``frames``-frame sequence on loopback clusters of each
@@ -238,17 +260,19 @@ def bench_cluster(src_root: Path, src_id: int, work: Path, workers=DEFAULT_CLUST
     runs = {}
     for n in workers:
         with loopback_cluster(n, work / "cluster") as address:
-            runs[n] = _spawned(_rebuild_on, str(data), str(work / f"cluster-out-{n}"), address, over)
+            runs[n] = _rebuild_with_task_stream(address, n, str(data), str(work / f"cluster-out-{n}"), over)
         runs[n]["load_avg_1m"] = os.getloadavg()[0]
     t1 = runs[min(workers)]["units_s"] * min(workers)
     for n, r in runs.items():
         r["speedup"] = t1 / r["units_s"]
         r["efficiency"] = r["speedup"] / n
+        # on dedicated cores a worker computes at one worker's speed: speed-up = N x busy / busy(1)
+        r["speedup_dedicated"] = n * r["busy"] / runs[min(workers)]["busy"]
     res = {"sequences": sequences, "frames_per_sequence": frames, "fit.iterations": LONG_FIT_ITERATIONS,
            "cores": os.cpu_count(), "runs": runs}
     if threads_check:
         with loopback_cluster(1, work / "cluster", threads=2) as address:
-            r = _spawned(_rebuild_on, str(data), str(work / "cluster-out-1x2"), address, over)
+            r = _rebuild_with_task_stream(address, 2, str(data), str(work / "cluster-out-1x2"), over)
         r["load_avg_1m"] = os.getloadavg()[0]
         r["speedup"] = t1 / r["units_s"]
         res["threads_1x2"] = r
@@ -277,9 +301,13 @@ def project(cost: dict, long: dict, cluster: dict | None, frames: int = DATASET_
 
     cpu_per_frame = sum(cost[s]["cpu_s_per_frame"] for s in STAGE_ORDER)
     wall_per_frame = sum(cost[s]["wall_s_per_frame"] for s in STAGE_ORDER)
-    per_frame = max(cpu_per_frame, wall_per_frame)  # a worker is one thread: it waits too
+    # a worker is one process of one thread on a core of its own: its wall time per frame is the
+    # CPU time measured here (the wall time on a shared, loaded machine is not)
+    per_frame = cpu_per_frame
     cores = os.cpu_count() or 1
-    measured = {int(n): r["speedup"] for n, r in (cluster or {}).get("runs", {}).items()}
+    # the speed-ups a cluster of dedicated cores would give: N x the busy share the run kept
+    # (measured on this machine's cluster whatever its load), for N up to its cores
+    measured = {int(n): r["speedup_dedicated"] for n, r in (cluster or {}).get("runs", {}).items()}
     fit_points = {n: s for n, s in measured.items() if n <= cores}
     f = amdahl_serial_fraction(fit_points) if fit_points else 0.0
     longest = max(long, key=int) if long else None
@@ -387,8 +415,8 @@ def format_scale(r: dict) -> str:
         cl = r["cluster"]
         lines.append(f"loopback dask cluster ({cl['sequences']} x {cl['frames_per_sequence']} frames, "
                      f"{cl['cores']} cores): " + ", ".join(
-                         f"{n} worker(s) {v['units_s']:.0f} s (x{v['speedup']:.2f}, eff {v['efficiency']:.2f})"
-                         for n, v in cl["runs"].items()))
+                         f"{n} worker(s) {v['units_s']:.0f} s (wall x{v['speedup']:.2f}, busy {v['busy']:.2f}, "
+                         f"dedicated-core x{v['speedup_dedicated']:.2f})" for n, v in cl["runs"].items()))
         if "threads_1x2" in cl:
             lines.append(f"  1 worker x 2 threads: {cl['threads_1x2']['units_s']:.0f} s (x{cl['threads_1x2']['speedup']:.2f})")
     if "projection" in r:
