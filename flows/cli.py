@@ -184,7 +184,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     ids = simulate(args.out, sequences=args.sequences, frames=args.frames, seed=args.seed,
                    pedestrians=args.pedestrians, crowd=args.crowd, night=args.night,
                    progress=not args.quiet, first_id=args.first_id, image_ext=f".{args.image_format}",
-                   split_style=args.split_style)
+                   split_style=args.split_style, fast=args.fast, workers=args.workers)
     print(f"wrote sequence(s) {', '.join(map(str, ids))} to {args.out}")
     return 0
 
@@ -291,6 +291,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="2d_rect images as CODa's downloads (jpg) or the devkit's tools (png) write them")
     p.add_argument("--split-style", action="store_true",
                    help="files only for blocks of frames, as CODa's split downloads (timestamps, poses: all)")
+    p.add_argument("--fast", action="store_true",
+                   help="cameras at half resolution (612x512, same field of view; exact ground truth; "
+                        "for scale tests)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="frame worker processes (the files are the same bytes for any number)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_simulate)
 

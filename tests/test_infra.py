@@ -169,6 +169,27 @@ def test_local_cluster_from_spec_has_a_gpu_pool():
         assert on == "gpu-0-0"
 
 
+def test_cluster_up_writes_the_address_and_releases_it(tmp_path):
+    # `mobileocc cluster up SPEC --address-file F`: the runbook's way to start a cluster and hand
+    # its address to `mobileocc rebuild --address`
+    from distributed import Client
+
+    from flows.deploy.clusters import hold_cluster
+
+    spec = cluster_spec_from_dict({"kind": "local", "cpu": {"jobs": 1, "cores": 2, "processes": 2, "memory": "2GiB"}})
+    seen = {}
+
+    def probe(address: str) -> None:  # runs while the cluster is held
+        seen["file"] = (tmp_path / "address").read_text().strip()
+        with Client(address, timeout=60) as client:
+            client.wait_for_workers(2, timeout=120)
+            seen["threads"] = sorted(w["nthreads"] for w in client.scheduler_info(n_workers=-1)["workers"].values())
+
+    address = hold_cluster(spec, tmp_path / "address", wait=probe)
+    assert address.startswith("tcp://") and seen == {"file": address, "threads": [1, 1]}
+    assert not (tmp_path / "address").exists()
+
+
 def _worker_name() -> str:
     from distributed import get_worker
 

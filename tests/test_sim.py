@@ -49,6 +49,49 @@ def test_same_seed_gives_byte_identical_files(runs):
     assert [k for k in a if a[k] != b[k]] == []
 
 
+def test_frame_workers_write_the_same_bytes(runs, tmp_path):
+    # frames are pure functions of (options, index): two worker processes give the same files
+    from flows.commands.simulate import simulate
+
+    simulate(tmp_path, sequences=1, frames=2, seed=SEED, pedestrians=5, progress=False, workers=2)
+    a, b = _files(runs[0]), _files(tmp_path)
+    assert sorted(a) == sorted(b)
+    assert [k for k in a if a[k] != b[k]] == []
+
+
+def test_fast_mode_changes_only_the_cameras(runs, tmp_path):
+    # --fast renders both cameras at half resolution; the scene, the LiDAR and the 3D ground truth
+    # are the same bytes, the camera-derived fields are consistent with the smaller images
+    from PIL import Image
+
+    from flows.commands.simulate import FAST_IMAGE_SCALE, simulate
+    from storage.coda import CodaSequence
+
+    simulate(tmp_path, sequences=1, frames=2, seed=SEED, pedestrians=5, progress=False, fast=True)
+    slow = runs[0]
+    for f in range(2):
+        for rel in (f"3d_comp/os1/0/3d_comp_os1_0_{f}.bin", f"3d_semantic/os1/0/3d_semantic_os1_0_{f}.bin"):
+            assert (slow / rel).read_bytes() == (tmp_path / rel).read_bytes()
+        a, b = GT.read_frame_gt(slow, 0, f), GT.read_frame_gt(tmp_path, 0, f)
+        for name in ("occupancy", "occupancy_instance", "point_class", "point_instance", "vertices", "joints",
+                     "box_center", "box_size", "T_world_from_lidar"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), name
+        assert b.cam0_semantic.shape == (512, 612) and b.cam0_instance.shape == (512, 612)
+        with Image.open(tmp_path / f"2d_rect/cam1/0/2d_rect_cam1_0_{f}.jpg") as im:
+            assert im.size == (612, 512)
+        # the same people in view, their boxes at half the pixel coordinates (to a pixel)
+        seen = ~np.isnan(a.box2d[:, 0])
+        assert seen.any() and np.array_equal(seen, ~np.isnan(b.box2d[:, 0]))
+        np.testing.assert_allclose(b.box2d[seen], (a.box2d[seen] + 0.5) * FAST_IMAGE_SCALE - 0.5, atol=1.0)
+    cam = CodaSequence(tmp_path, 0, frame_stride=1).info.calibration.cameras["cam0"]
+    full = make_rig().camera("cam0")
+    assert (cam.width, cam.height) == (612, 512)
+    np.testing.assert_allclose(cam.K[0, 0], full.K[0, 0] * FAST_IMAGE_SCALE)
+    np.testing.assert_allclose(cam.T_cam_from_lidar, full.T_cam_from_lidar, atol=1e-9)
+    meta = json.loads((tmp_path / "metadata/0.json").read_text())
+    assert meta["simulation"] == "fast" and meta["image_scale"] == FAST_IMAGE_SCALE
+
+
 def test_written_layout_is_coda(runs):
     root = runs[0]
     names = set(_files(root))

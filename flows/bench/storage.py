@@ -131,7 +131,8 @@ def _bench_export(work: Path, n: int) -> dict:
     frames = synthetic_frames(n, 0.2)
     eye = np.eye(4)
     with pub.sequence_writer(root, "s0", "k") as staged:
-        layout = occ.create_store(staged.store_path, n, frames["semantics"].shape[1:], 50, {"voxel_size_m": 0.2})
+        layout = occ.create_store(staged.store_path, n, frames["semantics"].shape[1:], 50, {
+            "voxel_size_m": 0.2, "range_min": RANGE_MIN.tolist(), "range_max": RANGE_MAX.tolist()})
         for start, stop in layout.write_units():
             occ.write_frames(staged.store_path, start, {k: v[start:stop] for k, v in frames.items()})
         rows = []

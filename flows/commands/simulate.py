@@ -92,61 +92,149 @@ def write_frame(out: Path, seq: int, frame, stamp_ns: int, image_ext: str = ".jp
     })
 
 
+#: ``--fast``: cameras at this fraction of CODa's 1224 x 1024 (612 x 512, same field of view)
+FAST_IMAGE_SCALE = 0.5
+
+
+def make_simulator(opts, fast: bool = False):
+    """The Simulator of one sequence; ``fast``: cameras at FAST_IMAGE_SCALE (see README)."""
+    from tasks.sim import Simulator
+    from tasks.sim.sensors import make_rig
+
+    return Simulator(opts, rig=make_rig(opts.sensor, image_scale=FAST_IMAGE_SCALE if fast else 1.0))
+
+
+def _limit_threads() -> int:
+    """One torch thread (returns the previous count). The body model's float32 sums depend on
+    torch's thread count (vertices differ by ~5e-7 m between 1 and 2 threads, and so do the LiDAR
+    returns on people), so every frame is made on one thread: the files are the same bytes on any
+    machine and for any number of frame workers, which are the parallelism."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    return before
+
+
+#: the Simulator of the sequence a frame worker is on (one sequence at a time per worker)
+_WORKER_SIM: dict = {}
+
+
+def _write_frames(out: str, seq: int, opts, fast: bool, indices: list[int], stamps_ns: list[int],
+                  image_ext: str) -> int:
+    """Simulate and write ``indices`` of sequence ``seq`` (in a frame worker or in-process)."""
+    key = (seq, opts, fast)
+    if _WORKER_SIM.get("key") != key:
+        _WORKER_SIM.clear()
+        _WORKER_SIM.update(key=key, sim=make_simulator(opts, fast))
+    sim = _WORKER_SIM["sim"]
+    for i, stamp in zip(indices, stamps_ns):
+        write_frame(Path(out), seq, sim.frame(i), int(stamp), image_ext)
+    return len(indices)
+
+
+def _chunks(items: list[int], n: int) -> list[list[int]]:
+    return [items[i: i + n] for i in range(0, len(items), n)]
+
+
 def simulate(out: Path, sequences: int, frames: int, seed: int, pedestrians: int | None = None,
              crowd: str = "uncrowded", night: bool = False, sensor: str = "os1-128",
              progress: bool = True, first_id: int = 0, image_ext: str = ".jpg",
-             split_style: bool = False) -> list[int]:
+             split_style: bool = False, fast: bool = False, workers: int = 1, frame_step: int = 1) -> list[int]:
     """Write ``sequences`` synthetic sequences (ids first_id..first_id+sequences-1) of ``frames``
     raw 10 Hz frames under ``out`` in the CODa layout plus ``gt/``. Returns the sequence ids
     written. Sequence ``s`` is seeded from (seed, s), so a benchmark can add sequences of another
     condition (``--night``, ``--crowd``) beside existing ones with a different ``first_id``.
     image_ext: ".jpg" (CODa's downloads) or ".png" (the devkit's own rectification tool).
-    split_style: files only for :func:`split_style_frames` (timestamps, poses: every frame)."""
+    split_style: files only for :func:`split_style_frames` (timestamps, poses: every frame).
+    fast: cameras at FAST_IMAGE_SCALE (612 x 512; everything else, the ground truth included, as
+    without it). workers: frame worker processes (each frame is a pure function of the
+    sequence's options and its index, so the files are the same bytes for any number).
+    frame_step: files only for every ``frame_step``-th raw frame (2: the 5 Hz frames the pipeline
+    keeps, half the simulation; timestamps and poses: every frame)."""
     from tqdm import tqdm
 
-    from storage import coda_writer as W
-    from storage import gt as GT
-    from tasks.sim import SimOptions, Simulator
+    from tasks.sim import SimOptions
 
     if sequences < 0:
         raise ValueError(f"sequences must be >= 0, got {sequences}")
-    out = Path(out)
-    written = []
-    written_frames = split_style_frames(frames) if split_style else list(range(frames))
-    bar = tqdm(total=sequences * len(written_frames), desc="simulate", unit="frame", disable=not progress)
     if first_id < 0:
         raise ValueError(f"first_id must be >= 0, got {first_id}")
-    for seq in range(first_id, first_id + sequences):
-        opts = SimOptions(seed=sequence_seed(seed, seq), frames=frames, pedestrians=pedestrians,
-                          crowd=crowd, night=night, sensor=sensor)
-        sim = Simulator(opts)
-        start_ns = (START_UNIX_S + 3600 * seq) * 1_000_000_000
-        stamps = start_ns + FRAME_PERIOD_NS * np.arange(frames, dtype=np.int64)
-        for i in written_frames:
-            write_frame(out, seq, sim.frame(i), int(stamps[i]), image_ext)
-            bar.update(1)
-        poses = [sim.robot_pose(i)[1] for i in range(frames)]
-        W.write_calibration(out, seq, _calibration(sim.rig))
-        W.write_timestamps(out, seq, stamps)
-        W.write_poses(out, seq, stamps, np.asarray(poses))
-        GT.write_sequence_gt(out, seq, {
-            "grid_range_min": np.asarray(sim.grid.range_min, np.float64),
-            "grid_voxel_size_m": np.float64(sim.grid.voxel_size_m),
-            "grid_shape": np.asarray(sim.grid.shape, np.int64),
-            "person_faces": np.asarray(sim.person_faces, np.int64),
-            "keypoint_vertex_ids": np.asarray(sim.model.keypoint_vertex_ids, np.int64),
-            "T_base_from_lidar": sim.rig.T_base_from_lidar,
-        })
-        # Metadata last: its presence marks a complete sequence.
-        W.write_metadata(out, seq, {
-            "synthetic": True, "lighting": "night" if night else "day", "crowd": crowd,
-            "seed": opts.seed, "run_seed": int(seed), "frames": frames, "sensor": sensor,
-            "pedestrians": opts.num_pedestrians, "frame_rate_hz": 10.0, "generator": "mobileocc.tasks.sim",
-            "trajectory": seq, **W.annotation_lists(seq, written_frames, written_frames),
-        })
-        written.append(seq)
-    bar.close()
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    if frame_step < 1:
+        raise ValueError(f"frame_step must be >= 1, got {frame_step}")
+    out = Path(out)
+    written_frames = split_style_frames(frames) if split_style else list(range(frames))
+    written_frames = written_frames[::frame_step]
+    bar = tqdm(total=sequences * len(written_frames), desc="simulate", unit="frame", disable=not progress)
+    pool = None
+    if workers > 1 and sequences * len(written_frames) > 1:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_limit_threads)
+    written = []
+    threads = _limit_threads()
+    try:
+        for seq in range(first_id, first_id + sequences):
+            opts = SimOptions(seed=sequence_seed(seed, seq), frames=frames, pedestrians=pedestrians,
+                              crowd=crowd, night=night, sensor=sensor)
+            start_ns = (START_UNIX_S + 3600 * seq) * 1_000_000_000
+            stamps = start_ns + FRAME_PERIOD_NS * np.arange(frames, dtype=np.int64)
+            if pool is None:
+                for i in written_frames:
+                    _write_frames(str(out), seq, opts, fast, [i], [int(stamps[i])], image_ext)
+                    bar.update(1)
+            else:
+                size = max(1, min(16, -(-len(written_frames) // (4 * workers))))
+                futures = [pool.submit(_write_frames, str(out), seq, opts, fast, c,
+                                       [int(stamps[i]) for i in c], image_ext)
+                           for c in _chunks(written_frames, size)]
+                from concurrent.futures import as_completed
+
+                for fut in as_completed(futures):
+                    bar.update(fut.result())
+            _write_sequence_files(out, seq, opts, fast, frames, stamps, seed, written_frames)
+            written.append(seq)
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+        _WORKER_SIM.clear()
+        bar.close()
+        import torch
+
+        torch.set_num_threads(threads)
     return written
+
+
+def _write_sequence_files(out: Path, seq: int, opts, fast: bool, frames: int, stamps: np.ndarray,
+                          seed: int, written_frames: list[int]) -> None:
+    """Calibration, timestamps, poses, the sequence's ground truth, then the metadata (last: its
+    presence marks a complete sequence)."""
+    from storage import coda_writer as W
+    from storage import gt as GT
+
+    sim = make_simulator(opts, fast) if _WORKER_SIM.get("key") != (seq, opts, fast) else _WORKER_SIM["sim"]
+    poses = [sim.robot_pose(i)[1] for i in range(frames)]
+    W.write_calibration(out, seq, _calibration(sim.rig))
+    W.write_timestamps(out, seq, stamps)
+    W.write_poses(out, seq, stamps, np.asarray(poses))
+    GT.write_sequence_gt(out, seq, {
+        "grid_range_min": np.asarray(sim.grid.range_min, np.float64),
+        "grid_voxel_size_m": np.float64(sim.grid.voxel_size_m),
+        "grid_shape": np.asarray(sim.grid.shape, np.int64),
+        "person_faces": np.asarray(sim.person_faces, np.int64),
+        "keypoint_vertex_ids": np.asarray(sim.model.keypoint_vertex_ids, np.int64),
+        "T_base_from_lidar": sim.rig.T_base_from_lidar,
+    })
+    fast_keys = {"simulation": "fast", "image_scale": FAST_IMAGE_SCALE} if fast else {}
+    W.write_metadata(out, seq, {
+        "synthetic": True, "lighting": "night" if opts.night else "day", "crowd": opts.crowd,
+        "seed": opts.seed, "run_seed": int(seed), "frames": frames, "sensor": opts.sensor,
+        "pedestrians": opts.num_pedestrians, "frame_rate_hz": 10.0, "generator": "mobileocc.tasks.sim",
+        "trajectory": seq, **fast_keys, **W.annotation_lists(seq, written_frames, written_frames),
+    })
 
 
 def benchmark(frames: int = 5, seed: int = 0, pedestrians: int | None = None, out: Path | None = None) -> dict:

@@ -17,6 +17,7 @@ them. ``build_cluster`` starts real resources.
 
     mobileocc cluster render infra/slurm.yaml        # the job script of each pool
     mobileocc cluster render infra/kubernetes.yaml   # the resources, for kubectl apply -f -
+    mobileocc cluster up infra/slurm.yaml --address-file scheduler.txt   # start it and hold it
 """
 
 from __future__ import annotations
@@ -342,18 +343,51 @@ def _build_kubernetes(spec: ClusterSpec) -> ClusterHandle:
     return ClusterHandle(cluster)
 
 
+def hold_cluster(spec: ClusterSpec, address_file: Path | None = None, wait=None) -> str:
+    """Start the spec's cluster, print its scheduler address (and write it to ``address_file``
+    for ``mobileocc rebuild --address $(cat FILE)``), hold it while ``wait(address)`` runs (None:
+    until interrupted), then release it and remove the file. Returns the address it had."""
+    with build_cluster(spec) as handle:
+        address = handle.address
+        print(address, flush=True)
+        if address_file is not None:
+            Path(address_file).write_text(address + "\n")
+        try:
+            (wait or _sleep_forever)(address)
+        except KeyboardInterrupt:
+            pass
+        finally:
+            if address_file is not None:
+                Path(address_file).unlink(missing_ok=True)
+    return address
+
+
+def _sleep_forever(address: str) -> None:  # pragma: no cover - ended by an interrupt
+    import time
+
+    while True:
+        time.sleep(3600)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="mobileocc cluster")
     sub = parser.add_subparsers(dest="command", required=True)
     r = sub.add_parser("render", help="print the SLURM job scripts or the Kubernetes resources")
     r.add_argument("spec", type=Path)
     r.add_argument("--scheduler", default=RENDER_SCHEDULER, help="scheduler address (SLURM)")
+    u = sub.add_parser("up", help="start the spec's cluster (both pools, one scheduler), print the scheduler "
+                                  "address and hold the cluster until interrupted")
+    u.add_argument("spec", type=Path)
+    u.add_argument("--address-file", type=Path, default=None, help="also write the address here")
     args = parser.parse_args(argv)
     try:
         spec = load_cluster_spec(args.spec)
     except ClusterSpecError as exc:
         print(exc, file=sys.stderr)
         return 1
+    if args.command == "up":
+        hold_cluster(spec, args.address_file)
+        return 0
     if spec.kind == "slurm":
         for pool in ("cpu", "gpu") if spec.gpu else ("cpu",):
             print(f"# ---- {pool} pool ----")

@@ -20,11 +20,11 @@ from tasks.sim.geometry import make_transform, rot_x, rot_z, rotation_to_axis_an
 from tasks.sim.scene import LabelledObject, Scene, SimOptions, build_scene, pedestrian_state
 from tasks.sim.sensors import (
     ALBEDO,
+    CameraRays,
     CameraRender,
     LidarSweep,
     MeshSet,
     SensorRig,
-    camera_rays,
     cast_lidar,
     make_rig,
     render_camera,
@@ -124,7 +124,7 @@ class Simulator:
         self.grid = grid
         self.model = body_model
         self.person_faces = np.asarray(body_model.faces, dtype=np.int64)
-        self._rays = {c.name: camera_rays(c) for c in self.rig.cameras}
+        self._rays: dict[str, CameraRays] = {}  # made on the first frame (poses need none)
         self._static = self._static_meshes()
 
     # ---------------------------------------------------------------- static geometry
@@ -224,6 +224,9 @@ class Simulator:
         rng = np.random.default_rng(np.random.SeedSequence([self.options.seed, 0x11DA, index]))
         sweep = cast_lidar(rc, meshes, T_wl, self.options.sensor, self.rig.noise, rng)
         cam0c, cam1c = self.rig.camera("cam0"), self.rig.camera("cam1")
+        for c in (cam0c, cam1c):
+            if c.name not in self._rays:
+                self._rays[c.name] = CameraRays(c)
         cam0 = render_camera(rc, meshes, cam0c, T_wl, self.options.night, self._rays["cam0"])
         cam1 = render_camera(rc, meshes, cam1c, T_wl, self.options.night, self._rays["cam1"])
         occ, occ_inst = self._occupancy(T_wb, people_world)

@@ -11,6 +11,7 @@ column's firing offset within the 0.1 s sweep.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -96,15 +97,23 @@ RAW_CAMERAS = {
 
 def make_rig(sensor: str = "os1-128", lidar_height_m: float = 0.9, width: int = 1224,
              height: int = 1024, focal_px: float = 730.0, baseline_m: float = 0.12,
-             noise: LidarNoise = LidarNoise(), raw_cameras: bool = True) -> SensorRig:
+             noise: LidarNoise = LidarNoise(), raw_cameras: bool = True, image_scale: float = 1.0) -> SensorRig:
     """The default rig: LiDAR ``lidar_height_m`` above the base origin, cameras 0.15 m below and
     0.08 m ahead of it, cam0 left of centre by half the baseline, cam1 right, both looking forward
     (these are the rectified frames). raw_cameras: attach the raw cameras of ``RAW_CAMERAS``
-    (distorted, rotated by their rectification), else each camera is its own raw camera."""
+    (distorted, rotated by their rectification), else each camera is its own raw camera.
+    image_scale: both cameras' images scaled by this factor (width, height rounded; focal
+    lengths and the raw cameras' intrinsics scaled with them, pixel centres kept: a pixel (u, v)
+    at scale 1 is at s (u + 0.5) - 0.5 after): the same field of view on fewer pixels."""
     from scipy.spatial.transform import Rotation
 
     if sensor not in ROW_STRIDE:
         raise ValueError(f"sensor must be one of {tuple(ROW_STRIDE)}, got {sensor!r}")
+    if not 0.0 < image_scale <= 1.0:
+        raise ValueError(f"image_scale must be in (0, 1], got {image_scale}")
+    if image_scale != 1.0:
+        width, height = int(round(width * image_scale)), int(round(height * image_scale))
+        focal_px = focal_px * image_scale
     T_base_from_lidar = make_transform(np.eye(3), [0.0, 0.0, lidar_height_m])
     K = np.array([[focal_px, 0.0, (width - 1) / 2], [0.0, focal_px, (height - 1) / 2], [0, 0, 1.0]])
     R_cam_from_lidar = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
@@ -114,6 +123,9 @@ def make_rig(sensor: str = "os1-128", lidar_height_m: float = 0.9, width: int = 
         raw = {}
         if raw_cameras:
             (fx, fy, cx, cy), dist, rotvec = RAW_CAMERAS[name]
+            if image_scale != 1.0:
+                fx, fy = fx * image_scale, fy * image_scale
+                cx, cy = image_scale * (cx + 0.5) - 0.5, image_scale * (cy + 0.5) - 0.5
             raw = {"K_raw": np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]),
                    "distortion": np.array(dist, dtype=np.float64),
                    "R_rect": Rotation.from_rotvec(rotvec).as_matrix()}
@@ -133,13 +145,17 @@ def coda_semantic_ids(point_class: np.ndarray) -> np.ndarray:
     return table[np.asarray(point_class, dtype=np.uint8)]
 
 
+@functools.lru_cache(maxsize=1)
 def lidar_directions() -> np.ndarray:
-    """Unit beam directions (128, 1024, 3) float64 in the LiDAR frame (row 0 = top beam)."""
+    """Unit beam directions (128, 1024, 3) float64 in the LiDAR frame (row 0 = top beam); one
+    read-only array per process."""
     half = np.deg2rad(VERTICAL_FOV_DEG / 2)
     elev = np.linspace(half, -half, ROWS)
     az = np.pi - 2 * np.pi * (np.arange(COLUMNS) + 0.5) / COLUMNS
     ce, se = np.cos(elev)[:, None], np.sin(elev)[:, None]
-    return np.stack([ce * np.cos(az)[None], ce * np.sin(az)[None], np.broadcast_to(se, (ROWS, COLUMNS))], -1)
+    dirs = np.stack([ce * np.cos(az)[None], ce * np.sin(az)[None], np.broadcast_to(se, (ROWS, COLUMNS))], -1)
+    dirs.setflags(write=False)
+    return dirs
 
 
 @dataclass(frozen=True)
@@ -242,26 +258,48 @@ def camera_rays(cam: CameraModel) -> np.ndarray:
     return np.stack([x, y, np.ones_like(x)], axis=-1).reshape(-1, 3).astype(np.float32)
 
 
+class CameraRays:
+    """One camera's rays, reused from frame to frame: the camera-frame directions, and the
+    world-frame ray array (H * W, 6) float32 with each pixel's sky-gradient factor (H * W,)
+    float32 for the last camera orientation seen. The simulated robot only translates, so the
+    rotation, and with it everything but the ray origins, is computed once per sequence."""
+
+    def __init__(self, cam: CameraModel):
+        self.rays_cam = camera_rays(cam)
+        self._R: bytes | None = None
+        self._rays = np.empty((len(self.rays_cam), 6), dtype=np.float32)
+        self._sky = np.empty(len(self.rays_cam), dtype=np.float32)
+
+    def world(self, R_world_from_cam: np.ndarray, t_world_from_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(rays (H * W, 6) float32 origin + direction, sky factor (H * W,)) in the world frame.
+        The arrays are this object's buffers: valid until the next call."""
+        key = np.asarray(R_world_from_cam, np.float64).tobytes()
+        if key != self._R:
+            d = self.rays_cam @ R_world_from_cam.T.astype(np.float32)
+            self._rays[:, 3:] = d
+            self._sky[:] = np.clip(d[:, 2] / np.linalg.norm(d, axis=1), 0.0, 1.0)
+            self._R = key
+        self._rays[:, :3] = t_world_from_cam
+        return self._rays, self._sky
+
+
 def render_camera(scene: o3d.t.geometry.RaycastingScene, meshes: MeshSet, cam: CameraModel,
-                  T_world_from_lidar: np.ndarray, night: bool, rays_cam: np.ndarray | None = None,
+                  T_world_from_lidar: np.ndarray, night: bool, rays: CameraRays | None = None,
                   ) -> CameraRender:
     """Render one rectified image: per-class albedo x Lambert shading, a sky gradient."""
-    if rays_cam is None:
-        rays_cam = camera_rays(cam)
+    if rays is None:
+        rays = CameraRays(cam)
     T_world_from_cam = T_world_from_lidar @ np.linalg.inv(cam.T_cam_from_lidar)
-    R, t = T_world_from_cam[:3, :3], T_world_from_cam[:3, 3]
     H, W = cam.height, cam.width
-    rays = np.empty((H * W, 6), dtype=np.float32)
-    rays[:, :3] = t
-    rays[:, 3:] = rays_cam @ R.T.astype(np.float32)
-    hit = scene.cast_rays(o3c.Tensor(rays))
+    ray_array, sky_s = rays.world(T_world_from_cam[:3, :3], T_world_from_cam[:3, 3])
+    hit = scene.cast_rays(o3c.Tensor(ray_array))
     t_hit = hit["t_hit"].numpy()
     ok = np.isfinite(t_hit)
     okn = np.flatnonzero(ok)
     prim = hit["primitive_ids"].numpy()[okn].astype(np.int64)
     n = hit["primitive_normals"].numpy()[okn]
     t_ok = t_hit[okn]
-    d_ok = rays[okn, 3:]
+    d_ok = ray_array[okn, 3:]
     cls = np.full(H * W, C.UNLABELED, dtype=np.uint8)
     inst = np.zeros(H * W, dtype=np.uint16)
     cls_ok = meshes.tri_class[prim]
@@ -274,8 +312,7 @@ def render_camera(scene: o3d.t.geometry.RaycastingScene, meshes: MeshSet, cam: C
     albedo = meshes.tri_albedo[prim]
     rgb = np.empty((H * W, 3), dtype=np.float32)
     sky_idx = np.flatnonzero(~ok)
-    d_sky = rays[sky_idx, 3:]
-    s = np.clip(d_sky[:, 2] / np.linalg.norm(d_sky, axis=1), 0.0, 1.0)[:, None]
+    s = sky_s[sky_idx][:, None]
     if night:
         sky = (1 - s) * np.array([0.06, 0.07, 0.12], np.float32) + s * np.array([0.01, 0.01, 0.04], np.float32)
         rgb[okn] = albedo * (0.12 + 0.2 * lambert[:, None]) * np.exp(-t_ok / 25.0)[:, None]
