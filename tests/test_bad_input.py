@@ -364,3 +364,183 @@ def test_bad_input_fails_its_sequence_alone(case: Case, clean, tmp_path, capsys)
 
 def test_the_table_is_large_enough():
     assert len(CASES) >= 40 and len({c.name for c in CASES}) == len(CASES)
+
+
+# ---- one bad frame: left out, the rest of the sequence goes on ------------------------------------
+
+def test_a_bad_frame_is_left_out_and_the_sequence_goes_on(clean, tmp_path, capsys):
+    from storage.dataset import open_dataset
+    from storage.products import FusedFrames
+
+    data, out = _link_copy(clean.data, tmp_path / "data"), _link_copy(clean.out, tmp_path / "out")
+    _cut(1000)(data / BIN.format(2))
+    over = {"detect.max_failed_frame_share": 0.5, "dataset.sequences": [BAD]}  # 1 of 2 frames may go
+    cfg = load_config(clean.config, {"dataset.root": str(data), "output.root": str(out), **over})
+    report = run_units(cfg, inline=True, progress=False)
+    assert {o["status"] for o in report.outcomes.values()} == {"done"}, summary_table(report)
+    assert report.exit_code == 1  # a frame was lost: the run says so
+    [bad] = report.failed_frames()[BAD]
+    assert bad["frame"] == 2 and "3d_comp_os1_1_2.bin (frame 2)" in bad["error"] and "bytes but" in bad["error"]
+    assert "FRAME FAILED 1/frame 2: " in summary_table(report)
+    # the store's frame axis, the fuse product and the frames table agree: only raw frame 0
+    ds = open_dataset(out)
+    assert ds.arrays(BAD, lazy="zarr")["semantics"].shape[0] == 1
+    fused = FusedFrames.read(out / Manifest.load(out).get(BAD, "fuse").location)
+    frames = read_table(out, "frames", BAD).to_pylist()
+    assert fused.frame.tolist() == [0] and [(r["frame"], r["raw_frame"]) for r in frames] == [(0, 0)]
+    pose0 = np.loadtxt(data / "poses/dense_global/1.txt")[0]
+    assert np.allclose(np.reshape(frames[0]["T_world_from_lidar"], (4, 4))[:3, 3], pose0[1:4])
+    assert Manifest.load(out).get(BAD, "detect").summary["failed_frames"] == [bad]
+    capsys.readouterr()
+    code = cli.main(["status", "--config", str(clean.config), "--data", str(data), "--out", str(out),
+                     "--set", "detect.max_failed_frame_share=0.5", "--set", "dataset.sequences=['1']"])
+    status = capsys.readouterr().out
+    assert code == 1 and "fresh, frame 2 left out:" in status and "3d_comp_os1_1_2.bin (frame 2)" in status
+    assert _published(out, "0") == clean.published["0"]
+
+
+# ---- the command line's edges --------------------------------------------------------------------
+
+def _edge_args(kind: str, clean, tmp_path: Path) -> tuple[list[str], str]:
+    """(rebuild arguments, what stderr must say) for one edge of the command line."""
+    out, data = tmp_path / "out", str(clean.data)
+    (tmp_path / "a-file").write_text("x")
+    (tmp_path / "empty").mkdir()
+    return {
+        "data missing": (["--data", str(tmp_path / "nowhere"), "--out", str(out)], "does not exist"),
+        "data is a file": (["--data", str(tmp_path / "a-file"), "--out", str(out)], "is not a folder"),
+        "data empty": (["--data", str(tmp_path / "empty"), "--out", str(out)], "holds no sequence"),
+        "out is a file": (["--data", data, "--out", str(tmp_path / "a-file")], "is not a folder"),
+        "out not writable": (["--data", data, "--out", "/proc/mobileocc-out"], "is not writable"),
+        "config inf": (["--data", data, "--out", str(out), "--set", "fuse.grid.range_max=[.inf, 4.8, 3.8]"],
+                       "fuse.grid.range_max.0: Input should be a finite number"),
+        "config nan": (["--data", data, "--out", str(out), "--set", "fuse.grid.voxel_size_m=.nan"],
+                       "fuse.grid.voxel_size_m: Input should be a finite number"),
+        "config boolean for a number": (["--data", data, "--out", str(out), "--set", "map.min_votes=true"],
+                                        "map.min_votes: Value error, expected a number, got True"),
+        "config string for a number": (["--data", data, "--out", str(out), "--set", "dataset.max_range_m='9'"],
+                                       "expected a number, got '9'"),
+        "config grid too large": (["--data", data, "--out", str(out), "--set", "fuse.grid.range_min=[-1000, -4.8, -1]",
+                                   "--set", "fuse.grid.range_max=[1000, 4.8, 3.8]"], "at most 4096"),
+    }[kind]
+
+
+@pytest.mark.parametrize("kind", ["data missing", "data is a file", "data empty", "out is a file",
+                                  "out not writable", "config inf", "config nan", "config boolean for a number",
+                                  "config string for a number", "config grid too large"])
+def test_command_line_edges_are_one_clear_error(kind, clean, tmp_path, capsys):
+    args, says = _edge_args(kind, clean, tmp_path)
+    capsys.readouterr()
+    code = cli.main(["rebuild", "--config", str(clean.config), "--quiet", *args])
+    err = capsys.readouterr().err
+    assert code == cli.EXIT_USAGE and says in err, err
+    assert len(err.strip().splitlines()) <= 2 and "Traceback" not in err  # config errors: file + key line
+    assert not (tmp_path / "out" / "manifest.json").exists()  # no work started
+    print(f"\nCASE | {kind} | cli | exit {code} | {err.strip().splitlines()[-1][:160]}")
+
+
+def test_config_validate_rejects_non_finite_and_boolean_numbers(tmp_path, capsys):
+    path = tmp_path / "bad.yaml"
+    path.write_text("fuse:\n  grid:\n    range_max: [.inf, 4.8, 3.8]\nmap:\n  min_votes: true\n"
+                    "fit:\n  learning_rate: .nan\n")
+    assert cli.main(["config", "validate", str(path)]) == 1
+    err = capsys.readouterr().err
+    assert "3 error(s)" in err and "fuse.grid.range_max.0" in err and "map.min_votes" in err
+    assert "fit.learning_rate" in err and "Traceback" not in err
+
+
+# ---- the run lock, leftovers, disk errors, withdrawn exports ---------------------------------------
+
+HOLD_LOCK = textwrap.dedent("""
+    import sys
+    from storage.manifest import run_lock
+    with run_lock(sys.argv[1]):
+        print("holding", flush=True)
+        sys.stdin.read()
+""")
+
+
+def test_a_refused_run_prints_one_line(clean, tmp_path, capsys):
+    out = _link_copy(clean.out, tmp_path / "out")
+    holder = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, str(out)], cwd=ROOT, stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, env={**os.environ, "PYTHONPATH": str(ROOT)}, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "holding"
+        capsys.readouterr()
+        code = cli.main(["rebuild", "--config", str(clean.config), "--data", str(clean.data), "--out", str(out)])
+        err = capsys.readouterr().err.strip()
+        assert code == cli.EXIT_BUSY and len(err.splitlines()) == 1, err
+        assert "is in use by another run" in err and f"pid {holder.pid}" in err
+    finally:
+        holder.communicate("", timeout=60)
+    # the holder is gone: the lock is free again
+    assert cli.main(["rebuild", "--config", str(clean.config), "--data", str(clean.data), "--out", str(out)]) == 0
+
+
+@pytest.mark.parametrize("content", ['{"host": "%s", "pid": 999999999}', ""], ids=["dead pid", "empty"])
+def test_a_lock_file_left_behind_is_taken_over(content, clean, tmp_path):
+    import socket
+
+    out = _link_copy(clean.out, tmp_path / "out")
+    (out / ".lock").write_text(content.replace("%s", socket.gethostname()))
+    code = cli.main(["rebuild", "--config", str(clean.config), "--data", str(clean.data), "--out", str(out)])
+    assert code == 0 and not (out / ".lock").exists()
+
+
+def test_leftovers_of_killed_runs_are_swept(clean, tmp_path):
+    out = _link_copy(clean.out, tmp_path / "out")
+    leftovers = [".tmp-0-abc-123", ".cache/.tmp-procedural_smpl_v1.npz-1a2b", ".cache/sequences/.tmp-0.json-9",
+                 "stages/detect/0/.tmp-deadbeef-1", "occupancy/0/.tmp-old-x", "tables/frames/sequence=0/.tmp-1.parquet",
+                 "exports/.tmp-occ3d-1", ".tmp-manifest.json-77"]
+    for rel in leftovers:
+        (out / rel).parent.mkdir(parents=True, exist_ok=True)
+        (out / rel).mkdir() if "." not in rel.rsplit("/", 1)[-1][5:] else (out / rel).write_bytes(b"x" * 10)
+    assert cli.main(["rebuild", "--config", str(clean.config), "--data", str(clean.data), "--out", str(out)]) == 0
+    assert [rel for rel in leftovers if os.path.lexists(out / rel)] == []
+    assert _published(out, "0") == clean.published["0"]
+
+
+DISK_FULL = textwrap.dedent("""
+    import resource, signal, sys
+    from configs.schema import load_config
+    from flows.pipeline.run import run_units, summary_table
+    cfg = load_config(sys.argv[1], {"dataset.root": sys.argv[2], "output.root": sys.argv[3]})
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # writes past the limit fail with EFBIG instead
+    resource.setrlimit(resource.RLIMIT_FSIZE, (4096, 4096))  # every file written stops at 4 KiB
+    report = run_units(cfg, inline=True, progress=False)
+    print(summary_table(report))
+    sys.exit(report.exit_code)
+""")
+
+
+def test_a_disk_error_names_the_file(clean, tmp_path, capsys):
+    data, out = _link_copy(clean.data, tmp_path / "data"), _link_copy(clean.out, tmp_path / "out")
+    path = data / BIN.format(0)  # a valid edit: sequence 1 must run again
+    raw = bytearray(path.read_bytes())
+    raw[-8:-4] = bytes([0, 0, 192, 63])
+    _put(path, bytes(raw))
+    run = subprocess.run([sys.executable, "-c", DISK_FULL, str(clean.config), str(data), str(out)], cwd=ROOT,
+                         capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=600)
+    assert run.returncode == 1, run.stdout + run.stderr
+    assert "FAILED 1/detect: OSError: [Errno 27] File too large:" in run.stdout and "stages/detect/1/" in run.stdout
+    error = Manifest.load(out).get(BAD, "detect").error  # the journal kept it
+    assert "File too large" in error and f"{out}/stages/detect/1/" in error and ".npz" in error
+    capsys.readouterr()
+    code = cli.main(["status", "--config", str(clean.config), "--data", str(data), "--out", str(out)])
+    assert code == 1 and "File too large" in capsys.readouterr().out
+    assert _published(out, "0") == clean.published["0"]
+    print(f"\nCASE | file size limit (a full disk) | run | exit {run.returncode} | {error[:160]}")
+
+
+def test_a_failed_sequence_leaves_the_dataset_exports(clean, tmp_path):
+    data, out = _link_copy(clean.data, tmp_path / "data"), _link_copy(clean.out, tmp_path / "out")
+    args = ["rebuild", "--config", str(clean.config), "--data", str(data), "--out", str(out),
+            "--set", "export.formats=['occ3d']"]
+    assert cli.main(args) == 0
+    scenes = json.loads((out / "exports/occ3d/annotations.json").read_text())["scene_infos"]
+    assert sorted(scenes) == ["coda-0", "coda-1"] and (out / "exports/occ3d/gts/coda-1").is_dir()
+    _yaml(_matrix("extrinsic_matrix", _rotation(lambda r: r * 2)))(data / CALIB.format("calib_os1_to_cam0"))
+    assert cli.main(args) == 1
+    scenes = json.loads((out / "exports/occ3d/annotations.json").read_text())["scene_infos"]
+    assert sorted(scenes) == ["coda-0"] and not (out / "exports/occ3d/gts/coda-1").exists()
+    assert _published(out, "0") == clean.published["0"] and not (out / "occupancy/1").exists()
