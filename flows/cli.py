@@ -73,7 +73,7 @@ def _run(args: argparse.Namespace, force: bool) -> int:
     # progress bars and the summary (PREFECT_LOGGING_LEVEL=INFO brings them back)
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
     from flows.pipeline.plan import PlanCosts, plan_without_hashing
-    from flows.pipeline.run import check_run_paths, run_units, summary_table
+    from flows.pipeline.units import check_run_paths, run_units, summary_table
     from storage.manifest import FingerprintCache, Manifest, run_lock
 
     cfg = _config(args)
@@ -83,7 +83,7 @@ def _run(args: argparse.Namespace, force: bool) -> int:
         plans = plan_without_hashing(cfg, Manifest.load(out), FingerprintCache(out / ".cache" / "sequences", verify),
                                      force, ids, costs)
         if plans is not None and all(u.fresh for plan in plans for u in plan.units.values()):
-            report = run_units(cfg, force, ids, progress=False, verify=verify, inline=True, plans=plans,
+            report = run_units(cfg, force, ids, progress=False, verify=verify, plans=plans,
                                lock_held=True)
             report.costs = costs  # nothing to run: no task runner, no Prefect server
         else:

@@ -658,16 +658,17 @@ def check_dataset_root(root: Path) -> list[str]:
 
 
 def sequence_layout(root: Path, sequence: str, lidar_source: str, image_source: str,
-                    cameras: tuple[str, ...] = ("cam0", "cam1")) -> list[tuple[Path, bool]]:
+                    cameras: tuple[str, ...] = ("cam0", "cam1")) -> list[tuple[str, bool]]:
     """(path, is a folder to list) of everything a sequence's files live in, for a stat
-    signature: if no entry of these changed size, mtime or inode, the sequence reads the same."""
-    root, seq = Path(root), str(sequence)
-    out = [(root / "timestamps" / f"{seq}.txt", False), (root / "poses" / "dense_global" / f"{seq}.txt", False),
-           (root / "poses" / "dense" / f"{seq}.txt", False), (root / "metadata" / f"{seq}.json", False),
-           (root / "calibrations" / seq, True), (root / "gt" / seq, True)]
+    signature: if no entry of these changed size, mtime or inode, the sequence reads the same.
+    Plain strings: this runs for every sequence of every plan."""
+    root, seq, join = os.fspath(root), str(sequence), os.path.join
+    out = [(join(root, "timestamps", f"{seq}.txt"), False), (join(root, "poses", "dense_global", f"{seq}.txt"), False),
+           (join(root, "poses", "dense", f"{seq}.txt"), False), (join(root, "metadata", f"{seq}.json"), False),
+           (join(root, "calibrations", seq), True), (join(root, "gt", seq), True)]
     for modality, sensor in [(lidar_source, "os1"), ("3d_bbox", "os1"), ("3d_semantic", "os1"),
                              *[(image_source, cam) for cam in cameras]]:
-        out.append((root / modality / sensor / seq, True))
+        out.append((join(root, modality, sensor, seq), True))
     return out
 
 

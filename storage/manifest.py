@@ -156,39 +156,42 @@ def sequence_fingerprint(root: Path, files: Iterable[Path], hasher: FileHasher) 
     return _hash_bytes(canonical_json(entries))[:32]
 
 
-def _stat_entry(st: os.stat_result) -> list:
-    return [st.st_size, st.st_mtime_ns, st.st_ino, stat.S_IFMT(st.st_mode)]
+def _stat_line(name: str, st: os.stat_result) -> bytes:
+    return f"{name}\0{st.st_size}\0{st.st_mtime_ns}\0{st.st_ino}\0{stat.S_IFMT(st.st_mode)}\n".encode()
 
 
-def layout_signature(root: Path, entries: Iterable[tuple[Path, bool]]) -> str:
+def layout_signature(root: Path | str, entries: Iterable[tuple[Path | str, bool]]) -> str:
     """A hash of the stat facts (size, mtime_ns, inode, type) of every path and, for folders, of
     every entry in them (symlinks followed; an entry that cannot be stat'ed counts by its error).
     Paths count relative to ``root`` (the same files reached from another place, e.g. hard links,
     sign the same). No file is opened: equal signatures mean nothing was added, removed, replaced
-    or rewritten (up to the mtime resolution)."""
-    root_s, out = os.path.abspath(root), []
+    or rewritten (up to the mtime resolution). About one ``stat`` per file."""
+    root_s = os.path.abspath(root) + os.sep
+    h = hashlib.sha256()
     for path, is_folder in entries:
-        rel = _relative(root_s, Path(path))
+        p = os.fspath(path)
+        rel = p[len(root_s):] if p.startswith(root_s) else p
         try:
-            st = os.stat(path)
+            st = os.stat(p)
         except OSError as exc:
-            out.append([rel, exc.errno])
+            h.update(f"{rel}\0!{exc.errno}\n".encode())
             continue
         if not is_folder or not stat.S_ISDIR(st.st_mode):
-            out.append([rel, _stat_entry(st)])
+            h.update(_stat_line(rel, st))
             continue
-        out.append([rel, "folder"])  # its entries below say what changed; its own mtime adds nothing
+        h.update(f"{rel}\0folder\n".encode())  # its entries say what changed; its own mtime adds nothing
         try:
-            children = sorted(os.scandir(path), key=lambda e: e.name)
+            with os.scandir(p) as it:
+                children = sorted(it, key=lambda e: e.name)
         except OSError as exc:
-            out.append([rel, "list", exc.errno])
+            h.update(f"{rel}\0!list {exc.errno}\n".encode())
             continue
         for entry in children:
             try:
-                out.append([entry.name, _stat_entry(entry.stat())])
+                h.update(_stat_line(entry.name, entry.stat()))
             except OSError as exc:
-                out.append([entry.name, exc.errno])
-    return _hash_bytes(canonical_json(out))[:32]
+                h.update(f"{entry.name}\0!{exc.errno}\n".encode())
+    return h.hexdigest()[:32]
 
 
 class FingerprintCache:

@@ -3,7 +3,7 @@
 One clean run of a 2-sequence synthetic dataset is shared. Each case copies it (hard links: a
 damage replaces a file, never writes into one), damages sequence 1 (or adds a stray one), runs
 ``mobileocc rebuild`` (in-process; with nothing to run it starts no Prefect server) or, where
-detect must run, the same run without Prefect (``run_units(inline=True)``), then ``mobileocc
+detect must run, the same run without Prefect (``flows.pipeline.units.run_units``), then ``mobileocc
 status``, and asserts: the exit codes are 1; the manifest and the status output show the failure
 with the file (and frame) named; the damaged sequence's earlier published data are withdrawn and
 the sequences table marks it failed; sequence 0's published bytes equal the clean run's.
@@ -32,7 +32,7 @@ import yaml
 
 from configs.schema import load_config
 from flows import cli
-from flows.pipeline.run import run_units, summary_table
+from flows.pipeline.units import run_units, summary_table
 from storage.manifest import Manifest
 from storage.tables import read_table
 
@@ -73,7 +73,7 @@ def clean(synthetic_root, tmp_path_factory):
     config = work / "faults.yaml"
     config.write_text(yaml.safe_dump(CHEAP))
     out = work / "out"
-    report = run_units(load_config(config, {"dataset.root": str(data), "output.root": str(out)}), inline=True,
+    report = run_units(load_config(config, {"dataset.root": str(data), "output.root": str(out)}),
                        progress=False)
     assert report.exit_code == 0, summary_table(report)
     published = {seq: _published(out, seq) for seq in ("0", "1")}
@@ -342,7 +342,7 @@ def test_bad_input_fails_its_sequence_alone(case: Case, clean, tmp_path, capsys)
         text = capsys.readouterr().out
     else:
         report = run_units(load_config(clean.config, {"dataset.root": str(data), "output.root": str(out)}),
-                           inline=True, progress=False)
+                           progress=False)
         code, text = report.exit_code, summary_table(report)
     assert code == 1, text
     error = Manifest.load(out).get(case.sequence, "detect").error
@@ -376,7 +376,7 @@ def test_a_bad_frame_is_left_out_and_the_sequence_goes_on(clean, tmp_path, capsy
     _cut(1000)(data / BIN.format(2))
     over = {"detect.max_failed_frame_share": 0.5, "dataset.sequences": [BAD]}  # 1 of 2 frames may go
     cfg = load_config(clean.config, {"dataset.root": str(data), "output.root": str(out), **over})
-    report = run_units(cfg, inline=True, progress=False)
+    report = run_units(cfg, progress=False)
     assert {o["status"] for o in report.outcomes.values()} == {"done"}, summary_table(report)
     assert report.exit_code == 1  # a frame was lost: the run says so
     [bad] = report.failed_frames()[BAD]
@@ -503,11 +503,11 @@ def test_leftovers_of_killed_runs_are_swept(clean, tmp_path):
 DISK_FULL = textwrap.dedent("""
     import resource, signal, sys
     from configs.schema import load_config
-    from flows.pipeline.run import run_units, summary_table
+    from flows.pipeline.units import run_units, summary_table
     cfg = load_config(sys.argv[1], {"dataset.root": sys.argv[2], "output.root": sys.argv[3]})
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # writes past the limit fail with EFBIG instead
     resource.setrlimit(resource.RLIMIT_FSIZE, (4096, 4096))  # every file written stops at 4 KiB
-    report = run_units(cfg, inline=True, progress=False)
+    report = run_units(cfg, progress=False)
     print(summary_table(report))
     sys.exit(report.exit_code)
 """)

@@ -115,16 +115,17 @@ class NeedsHashing(Exception):
 
 
 def sequence_facts(config: Config, ref: SequenceRef, cache: FingerprintCache,
-                   hashing: bool = True) -> tuple[str, int, tuple, bool]:
+                   hashing: bool = True, src: Any = None, reader: Any = None) -> tuple[str, int, tuple, bool]:
     """(files fingerprint, frames, reader warnings, taken from the memo) of one sequence.
 
     The stat signature is taken before anything is read, so a file changing meanwhile only makes
     the next plan read the sequence again. ``hashing=False``: NeedsHashing instead of hashing
-    (after opening the sequence, so bad input is still found)."""
-    src = source(config)
+    (after opening the sequence, so bad input is still found). ``src`` / ``reader``: the
+    config's Source and its JSON, when the caller has them."""
+    src = src or source(config)
     signature = layout_signature(ref.root, sequence_layout(ref.root, ref.sequence, src.lidar_source,
                                                            src.image_source))
-    reader = {"version": READER_VERSION, "source": to_jsonable(src), "lighting": ref.lighting}
+    reader = {"version": READER_VERSION, "source": reader or to_jsonable(src), "lighting": ref.lighting}
     memo = cache.load(ref.sequence)
     if cache.hit(memo, reader, signature):
         return memo["fingerprint"], int(memo["num_frames"]), tuple(memo["warnings"]), True
@@ -150,14 +151,15 @@ def iter_plans(config: Config, manifest: Manifest, cache: FingerprintCache | Fil
     """Plan the selected sequences one at a time: fingerprint, per-stage keys, freshness with a
     reason. A sequence that cannot be listed, opened or hashed gets ``error`` and no units."""
     cache, costs = _as_cache(cache), costs if costs is not None else PlanCosts()
-    inputs = stage_inputs(config)
-    hashes = {stage: inputs_hash(obj) for stage, obj in inputs.items()}
+    inputs, src = stage_inputs(config), source(config)
+    hashes, reader = {stage: inputs_hash(obj) for stage, obj in inputs.items()}, to_jsonable(src)
     manifest.remember_inputs({stage: (hashes[stage], to_jsonable(obj)) for stage, obj in inputs.items()})
     for seq in sequences if sequences is not None else selected_sequences(config):
         t0, plan = time.perf_counter(), SequencePlan(str(seq))
         ref = sequence_ref(config, str(seq))
         try:
-            files_fp, plan.num_frames, plan.warnings, plan.memo_hit = sequence_facts(config, ref, cache, hashing)
+            files_fp, plan.num_frames, plan.warnings, plan.memo_hit = sequence_facts(config, ref, cache, hashing,
+                                                                                     src, reader)
         except NeedsHashing:
             raise
         except Exception as exc:  # noqa: BLE001 - whatever breaks on one sequence fails that sequence
