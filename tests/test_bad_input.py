@@ -18,9 +18,11 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import textwrap
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
@@ -544,3 +546,28 @@ def test_a_failed_sequence_leaves_the_dataset_exports(clean, tmp_path):
     scenes = json.loads((out / "exports/occ3d/annotations.json").read_text())["scene_infos"]
     assert sorted(scenes) == ["coda-0"] and not (out / "exports/occ3d/gts/coda-1").exists()
     assert _published(out, "0") == clean.published["0"] and not (out / "occupancy/1").exists()
+
+
+def test_the_temporary_prefect_server_dies_with_its_cli(clean, tmp_path):
+    """Regression: after a SIGKILL of the CLI its temporary Prefect server kept running."""
+    import psutil
+
+    env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
+    env.update(PYTHONPATH=str(ROOT), PREFECT_HOME=str(tmp_path / "prefect-home"))
+    cli_proc = subprocess.Popen([sys.executable, "-m", "flows.cli", "rebuild", "--config", str(clean.config),
+                                 "--data", str(clean.data), "--out", str(tmp_path / "out"), "--quiet"],
+                                cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    server, deadline = None, time.time() + 300
+    try:
+        while server is None and time.time() < deadline and cli_proc.poll() is None:  # a start-up timeout
+            kids = psutil.Process(cli_proc.pid).children(recursive=True)
+            server = next((k for k in kids if "uvicorn" in " ".join(k.cmdline())), None)
+            time.sleep(0.1)
+        assert server is not None, "the CLI started no Prefect server"
+        os.kill(cli_proc.pid, signal.SIGKILL)
+        cli_proc.wait()
+        gone, alive = psutil.wait_procs([server], timeout=60)
+        assert gone and not alive
+    finally:
+        if server is not None and server.is_running():
+            server.kill()

@@ -3,57 +3,52 @@
 Without ``PREFECT_API_URL`` Prefect starts a temporary server per process, and Dask worker
 processes would each start their own (measured with prefect 3.8). So when no API is
 configured we start one temporary server here and export its address, which the Dask worker
-processes inherit. The server is a child process; a small watchdog process ends it when this
-process ends in any way (a SIGKILL included), so no server outlives its CLI.
+processes inherit. The server is a child process that the kernel ends when this process ends in
+any way (``PR_SET_PDEATHSIG`` on Linux, a ``kill -9`` included), so no server outlives its CLI.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
-import subprocess
 import sys
 import tempfile
 from typing import Iterator
 
-#: the watchdog: wait until the parent (the CLI) is gone, then end the server (SIGTERM, then SIGKILL)
-_WATCHDOG = """
-import os, signal, sys, time
-parent, server = int(sys.argv[1]), int(sys.argv[2])
-def alive(pid):
+def _die_with(parent: int):
+    """A ``preexec_fn``: the child gets SIGTERM when ``parent`` ends, however it ends (Linux
+    ``PR_SET_PDEATHSIG``; the kernel sends it, so a ``kill -9`` of the CLI is covered)."""
+    import ctypes
+    import signal
+
+    libc = ctypes.CDLL(None, use_errno=True)  # loaded here: the child only calls into it
+
+    def preexec() -> None:
+        libc.prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
+        if os.getppid() != parent:  # the parent died before the line above
+            os.kill(os.getpid(), signal.SIGTERM)
+    return preexec
+
+
+@contextlib.contextmanager
+def _server_dies_with_this_process() -> Iterator[None]:
+    """While Prefect starts its temporary server, its ``subprocess.Popen`` gets :func:`_die_with`."""
+    if not sys.platform.startswith("linux"):
+        yield  # elsewhere the server ends with server.stop() only
+        return
+    import prefect.server.api.server as server_module
+
+    real = server_module.subprocess.Popen
+
+    def popen(*args, **kwargs):
+        kwargs.setdefault("preexec_fn", _die_with(os.getpid()))
+        return real(*args, **kwargs)
+
+    server_module.subprocess.Popen = popen
     try:
-        os.kill(pid, 0)
-        return True
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-def start_time(pid):
-    try:
-        with open(f"/proc/{pid}/stat") as fh:
-            return fh.read().rsplit(")", 1)[1].split()[19]
-    except OSError:
-        return None
-mark = start_time(server)
-while os.getppid() == parent and alive(parent) and alive(server):
-    time.sleep(0.5)
-if alive(server) and start_time(server) == mark:  # the same process, not a reused pid
-    os.kill(server, signal.SIGTERM)
-    for _ in range(50):
-        time.sleep(0.1)
-        if not alive(server):
-            break
-    else:
-        os.kill(server, signal.SIGKILL)
-"""
-
-
-def _watch(server_pid: int) -> subprocess.Popen:
-    """Start the watchdog of the server ``server_pid`` (ends it when this process is gone)."""
-    return subprocess.Popen([sys.executable, "-c", _WATCHDOG, str(os.getpid()), str(server_pid)],
-                            stdin=subprocess.DEVNULL, start_new_session=True)
-
-from configs.schema import Config
+        yield
+    finally:
+        server_module.subprocess.Popen = real
 
 
 @contextlib.contextmanager
@@ -70,8 +65,8 @@ def prefect_api() -> Iterator[str | None]:
     from prefect.settings import PREFECT_API_URL, temporary_settings
 
     server = SubprocessASGIServer()
-    server.start(timeout=120)
-    watchdog = _watch(server.server_process.pid) if server.server_process is not None else None
+    with _server_dies_with_this_process():
+        server.start(timeout=120)
     os.environ["PREFECT_API_URL"] = server.api_url
     try:
         with temporary_settings(updates={PREFECT_API_URL: server.api_url}):
@@ -80,9 +75,6 @@ def prefect_api() -> Iterator[str | None]:
     finally:
         os.environ.pop("PREFECT_API_URL", None)
         server.stop()
-        if watchdog is not None:
-            watchdog.terminate()
-            watchdog.wait()
 
 
 def _drain_prefect_workers() -> None:
