@@ -134,7 +134,7 @@ class FileHasher:
         self.memo[key] = stamp + [digest]
         return digest
 
-    def share_inodes(self, other: "FileHasher") -> "FileHasher":
+    def share_inodes(self, other: FileHasher) -> FileHasher:
         """Use ``other``'s (device, inode) table and counters' home: one table per plan."""
         self._by_inode = other._by_inode
         return self

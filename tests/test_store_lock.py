@@ -14,7 +14,14 @@ from pathlib import Path
 
 import pytest
 
-from storage.manifest import JOURNAL, MANIFEST, Manifest, StageRecord, StoreLockedError, run_lock
+from storage.manifest import (
+    JOURNAL,
+    MANIFEST,
+    Manifest,
+    StageRecord,
+    StoreLockedError,
+    run_lock,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -68,14 +75,13 @@ def test_racing_processes_never_hold_the_lock_together(left_behind, tmp_path):
 
 
 def test_a_killed_holder_leaves_no_lock(tmp_path):
-    holder = subprocess.Popen([sys.executable, "-c", "import sys\nfrom storage.manifest import run_lock\n"
-                               "with run_lock(sys.argv[1]):\n    print('in', flush=True)\n    sys.stdin.read()\n",
-                               str(tmp_path)], cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                              env={**os.environ, "PYTHONPATH": str(ROOT)})
+    code = ("import sys\nfrom storage.manifest import run_lock\n"
+            "with run_lock(sys.argv[1]):\n    print('in', flush=True)\n    sys.stdin.read()\n")
+    holder = subprocess.Popen([sys.executable, "-c", code, str(tmp_path)], cwd=ROOT, stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert holder.stdout.readline().strip() == "in"
-    with pytest.raises(StoreLockedError, match=f"in use by another run .*pid {holder.pid}"):
-        with run_lock(tmp_path):
-            pass
+    with pytest.raises(StoreLockedError, match=f"in use by another run .*pid {holder.pid}"), run_lock(tmp_path):
+        pass
     os.kill(holder.pid, signal.SIGKILL)
     holder.wait()
     assert (tmp_path / ".lock").exists()  # the file stays, the kernel's lock went with the process

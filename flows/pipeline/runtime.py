@@ -15,6 +15,9 @@ import sys
 import tempfile
 from typing import Iterator
 
+from configs.schema import Config
+
+
 def _die_with(parent: int):
     """A ``preexec_fn``: the child gets SIGTERM when ``parent`` ends, however it ends (Linux
     ``PR_SET_PDEATHSIG``; the kernel sends it, so a ``kill -9`` of the CLI is covered)."""

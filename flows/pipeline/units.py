@@ -3,12 +3,13 @@
 :func:`run_units` is the body of the Prefect flows of flows/pipeline/run.py, which hand it a
 submitter that turns each (sequence, stage) unit into a Prefect task; without one it runs every
 unit here, in order (``inline``: tests, benchmarks, and the CLI when nothing needs to run, which
-then imports neither Prefect nor the stages). Units whose key is fresh in the manifest are not
-submitted. A unit whose upstream failed is skipped (and
-recorded as such). Sequences are planned one by one and each one's detect unit is submitted as
-soon as it is planned, so fingerprinting the next sequences overlaps with work; the later stages
-are submitted stage-major once planning is done. The flow process appends every finished unit to
-the manifest's journal at once, so a killed run resumes where it stopped.
+then imports neither Prefect nor the stages).
+
+Units whose key is fresh in the manifest are not submitted; a unit whose upstream failed is
+skipped (and recorded as such). Sequences are planned one by one and each one's detect unit is
+submitted as soon as it is planned, so fingerprinting the next sequences overlaps with work; the
+later stages are submitted stage-major once planning is done. The flow process appends every
+finished unit to the manifest's journal at once, so a killed run resumes where it stopped.
 
 Nothing disappears: a sequence that cannot be read, or any of whose units failed or was skipped,
 is in the report (``RunReport.exit_code`` 1) and the manifest, and its earlier published data are
@@ -18,7 +19,6 @@ out of the dataset-level exports.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import shutil
@@ -31,17 +31,29 @@ from typing import Any, Callable
 
 from configs.schema import Config, config_hash
 from flows.pipeline.dag import CODE_VERSIONS, STAGES
-from flows.pipeline.inputs import (DatasetExportInputs, Runtime, dataset_export_inputs, export_inputs, inputs_hash,
-                                   runtime)
-from flows.pipeline.plan import PlanCosts, SequencePlan, UnitPlan, iter_plans, selected_sequences
+from flows.pipeline.inputs import (
+    DatasetExportInputs,
+    Runtime,
+    dataset_export_inputs,
+    export_inputs,
+    inputs_hash,
+    runtime,
+)
+from flows.pipeline.plan import (
+    PlanCosts,
+    SequencePlan,
+    UnitPlan,
+    iter_plans,
+    selected_sequences,
+)
 from storage.coda import check_dataset_root
 from storage.manifest import (
     FingerprintCache,
     Manifest,
     StageRecord,
     check_writable,
-    remove_stale_versions,
     holding_lock,
+    remove_stale_versions,
     run_lock,
     stage_dir,
     staged_output,
@@ -69,7 +81,10 @@ def execute_unit(unit: UnitPlan, out_root: Path, upstream: dict[str, dict],
     if (final / "summary.json").exists():  # finished by a run that was killed before recording it
         summary = json.loads((final / "summary.json").read_text())
         return {**base, "status": "done", "location": location, "summary": summary, "seconds": 0.0}
-    from flows.stages import STAGE_FUNCTIONS, StageContext  # the kernels: only where a unit runs
+    from flows.stages import (  # the kernels: only where a unit runs
+        STAGE_FUNCTIONS,
+        StageContext,
+    )
 
     started = time.perf_counter()
     try:
