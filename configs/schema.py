@@ -20,6 +20,7 @@ import typing
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator, model_validator
 
@@ -40,8 +41,34 @@ CONFIG_DIR = Path(__file__).resolve().parent
 DEFAULT_CONFIG = CONFIG_DIR / "default.yaml"
 
 
+def _number_kind(annotation: Any) -> bool:
+    """Whether a field holds numbers (int / float, or a tuple / list / optional of them)."""
+    if annotation in (int, float):
+        return True
+    args = [a for a in typing.get_args(annotation) if a is not type(None) and a is not Ellipsis]
+    return bool(args) and typing.get_origin(annotation) is not dict and all(_number_kind(a) for a in args)
+
+
+def _not_a_number(value: Any) -> bool:
+    if isinstance(value, (list, tuple)):
+        return any(_not_a_number(v) for v in value)
+    return isinstance(value, (bool, str))
+
+
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    """Every config model: unknown keys are errors, values frozen, and numbers are numbers:
+    finite (no .inf / .nan: ``allow_inf_nan``), never a boolean or a string (YAML ``true`` or
+    ``"2"`` for a number is an error, not 1 or 2)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _numbers_are_numbers(cls, value: Any, info: Any) -> Any:
+        field = cls.model_fields.get(info.field_name)
+        if field is not None and _number_kind(field.annotation) and _not_a_number(value):
+            raise ValueError(f"expected a number, got {value!r} ({type(value).__name__})")
+        return value
 
     def to(self, kernel: type, rename: dict[str, str] | None = None, **values: Any) -> Any:
         """The kernel dataclass ``kernel`` made of this section's fields of the same names
@@ -87,6 +114,13 @@ _POS = {"gt": 0}
 _NONNEG = {"ge": 0}
 
 
+#: grid bounds: every range within +-MAX_GRID_RANGE_M of the robot, at most MAX_GRID_CELLS_PER_AXIS
+#: voxels along an axis and MAX_GRID_VOXELS in all (a uint8 frame of 1 GiB)
+MAX_GRID_RANGE_M = 1000.0
+MAX_GRID_CELLS_PER_AXIS = 4096
+MAX_GRID_VOXELS = 2 ** 30
+
+
 class GridConfig(Strict):
     """A robot-local voxel grid in the base frame, [x, y, z] order (default: the benchmark grid)."""
 
@@ -97,14 +131,23 @@ class GridConfig(Strict):
     @model_validator(mode="after")
     def _extent_divides(self) -> GridConfig:
         for axis, (lo, hi) in enumerate(zip(self.range_min, self.range_max)):
+            if max(abs(lo), abs(hi)) > MAX_GRID_RANGE_M:
+                raise ValueError(f"range [{lo}, {hi}] along axis {axis} reaches beyond {MAX_GRID_RANGE_M:g} m "
+                                 "of the robot")
             if hi <= lo:
                 raise ValueError(f"range_max[{axis}]={hi} must exceed range_min[{axis}]={lo}")
+            if (hi - lo) / self.voxel_size_m > MAX_GRID_CELLS_PER_AXIS + 0.5:
+                raise ValueError(f"extent {hi - lo:g} m along axis {axis} is {(hi - lo) / self.voxel_size_m:.0f} "
+                                 f"voxels of {self.voxel_size_m:g} m; at most {MAX_GRID_CELLS_PER_AXIS}")
             cells = (hi - lo) / self.voxel_size_m
             if abs(cells - round(cells)) > 1e-6:
                 raise ValueError(
                     f"extent {hi - lo:g} m along axis {axis} is not a multiple of "
                     f"voxel_size_m={self.voxel_size_m:g}"
                 )
+        if int(np.prod(self.shape, dtype=np.int64)) > MAX_GRID_VOXELS:
+            raise ValueError(f"grid of {' x '.join(map(str, self.shape))} voxels is more than {MAX_GRID_VOXELS} "
+                             "(a uint8 frame over 1 GiB)")
         return self
 
     @property
@@ -229,6 +272,9 @@ class DetectConfig(Strict):
     lidar_clusters: LidarClustersConfig = LidarClustersConfig()
     models: ModelsConfig = ModelsConfig()
     seed: int = 0
+    #: a frame whose input is bad (a cut sweep, an image that does not decode) is left out of
+    #: every stage; the sequence fails when more than this share of its frames is bad (0: any)
+    max_failed_frame_share: float = Field(0.5, ge=0, le=1)
 
     @model_validator(mode="after")
     def _precomputed_needs_dir(self) -> DetectConfig:

@@ -61,19 +61,43 @@ def cmd_config(args: argparse.Namespace) -> int:
     return 0
 
 
+#: exit codes of rebuild / reprocess / status (also in `mobileocc --help`)
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_BUSY = 0, 1, 2, 3
+EXIT_CODES = ("exit codes: 0 every sequence and frame went through; 1 a sequence failed, was skipped or "
+              "lost frames, or a write failed (the summary lists each with its reason); 2 a usage, config, "
+              "--data or --out problem; 3 the output store is in use by another run")
+
+
 def _run(args: argparse.Namespace, force: bool) -> int:
     # before prefect is imported: its settings are read once; per-task INFO lines would bury the
     # progress bars and the summary (PREFECT_LOGGING_LEVEL=INFO brings them back)
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
-    from flows.pipeline.run import rebuild_dataset, summary_table
-    from flows.pipeline.runtime import prefect_api
+    from flows.pipeline.plan import PlanCosts, plan_without_hashing
+    from flows.pipeline.units import check_run_paths, run_units, summary_table
+    from storage.manifest import FingerprintCache, Manifest, run_lock
 
     cfg = _config(args)
-    with prefect_api():
-        report = rebuild_dataset(cfg, force=force, progress=not args.quiet)
+    ids, out, verify = check_run_paths(cfg), Path(cfg.output.root), getattr(args, "verify", False)
+    with run_lock(out):  # a second run is refused here, before any server starts
+        costs = PlanCosts()
+        plans = plan_without_hashing(cfg, Manifest.load(out), FingerprintCache(out / ".cache" / "sequences", verify),
+                                     force, ids, costs)
+        if plans is not None and all(u.fresh for plan in plans for u in plan.units.values()):
+            report = run_units(cfg, force, ids, progress=False, verify=verify, plans=plans,
+                               lock_held=True)
+            report.costs = costs  # nothing to run: no task runner, no Prefect server
+        else:
+            report = _run_flow(cfg, force, not args.quiet, verify)
     print(summary_table(report))
-    export_failed = any(v != "done" for v in report.dataset_exports.values())
-    return 1 if report.failed or export_failed else 0
+    return report.exit_code
+
+
+def _run_flow(cfg, force: bool, progress: bool, verify: bool):
+    from flows.pipeline.run import rebuild_dataset
+    from flows.pipeline.runtime import prefect_api
+
+    with prefect_api():
+        return rebuild_dataset(cfg, force=force, progress=progress, verify=verify, lock_held=True)
 
 
 def cmd_rebuild(args: argparse.Namespace) -> int:
@@ -86,32 +110,47 @@ def cmd_reprocess(args: argparse.Namespace) -> int:
     return _run(args, force=False)
 
 
+def _unit_state(manifest, plan, stage: str, unit, dry_run: bool) -> list[str]:
+    """Lines for one unit: nothing when fresh and whole; its reason, failure or lost frames."""
+    rec = manifest.get(plan.sequence, stage)
+    if unit.fresh:
+        bad = (rec.summary or {}).get("failed_frames") or [] if rec is not None else []
+        return [f"fresh, frame {b['frame']} left out: {b['error']}" for b in bad[:3]] + \
+            ([f"fresh, {len(bad)} frame(s) left out in all"] if len(bad) > 3 else [])
+    if rec is not None and rec.status in ("failed", "skipped") and not dry_run:
+        return [f"{rec.status}: {rec.error.splitlines()[0] if rec.error else ''}"]
+    return [f"{'would run' if dry_run else 'stale'}: {unit.reason}"]
+
+
 def _print_plan(args: argparse.Namespace, dry_run: bool) -> int:
-    from flows.pipeline.plan import plan_run
-    from storage.manifest import FileHasher, Manifest
+    from flows.pipeline.plan import PlanCosts, plan_run, selected_sequences
+    from storage.coda import check_dataset_root
+    from storage.manifest import FingerprintCache, Manifest
 
     cfg = _config(args)
-    out = Path(cfg.output.root)
+    if cfg.dataset.sequences == "all":
+        check_dataset_root(cfg.dataset.root)
+    out, costs = Path(cfg.output.root), PlanCosts()
     manifest = Manifest.load(out)
-    plans = plan_run(cfg, manifest, FileHasher(out / ".cache" / "file-hashes.json"))
-    runs = 0
+    cache = FingerprintCache(out / ".cache" / "sequences" if out.is_dir() else None, getattr(args, "verify", False))
+    plans = plan_run(cfg, manifest, cache, sequences=selected_sequences(cfg), costs=costs)
+    runs = problems = 0
     for plan in plans:
         if plan.error:
             print(f"{plan.sequence:>6}  cannot be read: {plan.error}")
+            problems += 1
             continue
-        for stage, unit in plan.units.items():
-            rec = manifest.get(plan.sequence, stage)
-            if unit.fresh:
-                state = "fresh"
-            elif rec is not None and rec.status == "failed" and not dry_run:
-                state = f"failed: {rec.error.splitlines()[0] if rec.error else ''}"
-            else:
-                state = f"{'would run' if dry_run else 'stale'}: {unit.reason}"
-            runs += not unit.fresh
-            print(f"{plan.sequence:>6}  {stage:<7} {state}")
-    if dry_run:
-        print(f"{runs} unit(s) would run")
-    return 0
+        lines = [(stage, line) for stage, unit in plan.units.items()
+                 for line in _unit_state(manifest, plan, stage, unit, dry_run)]
+        runs += sum(not u.fresh for u in plan.units.values())
+        problems += any(line.startswith(("failed", "skipped", "fresh, ")) for _, line in lines)
+        for stage, line in lines:
+            print(f"{plan.sequence:>6}  {stage:<7} {line}")
+        if not lines and not dry_run:
+            print(f"{plan.sequence:>6}  fresh ({len(plan.units)} stages)")
+    print(f"{len(plans)} sequence(s): {runs} unit(s) {'would run' if dry_run else 'stale or failed'}, "
+          f"{problems} sequence(s) with failures; {costs.line()}")
+    return EXIT_FAILED if problems else EXIT_OK
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -151,7 +190,8 @@ def cmd_check_data(args: argparse.Namespace) -> int:
 
 #: `mobileocc bench [WHAT] ...`: the module whose ``main(argv)`` parses the rest of the line
 BENCHMARKS = {"pipeline": "flows.bench.pipeline", "fit": "flows.bench.fit",
-              "occupancy": "flows.bench.occupancy", "perception": "flows.bench.perception"}
+              "occupancy": "flows.bench.occupancy", "perception": "flows.bench.perception",
+              "planning": "flows.bench.planning"}
 
 
 def run_bench(argv: list[str]) -> int:
@@ -236,9 +276,12 @@ def build_parser() -> argparse.ArgumentParser:
         ("reprocess", cmd_reprocess, "run only what is stale (changed inputs, config or code)"),
         ("status", cmd_status, "per sequence and stage: fresh, stale with reason, or failed"),
     ):
-        p = sub.add_parser(name, help=text)
+        p = sub.add_parser(name, help=text, epilog=EXIT_CODES)
         _add_config_args(p)
         p.add_argument("--quiet", action="store_true", help="no progress bars")
+        p.add_argument("--verify", action="store_true",
+                       help="hash every input file (default: a sequence whose files kept their size, mtime "
+                            "and inode is taken as unchanged, without reading it)")
         if name == "rebuild":
             p.add_argument("--force", action="store_true", help="ignore the cache, run everything")
         if name == "reprocess":
@@ -271,7 +314,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     for name, text in (
         ("bench", "measure speeds, memory and reference ratios in one run: `mobileocc bench "
-                  "[pipeline | fit | occupancy | perception] [--help | options]` (default pipeline)"),
+                  "[pipeline | fit | occupancy | perception | planning] [--help | options]` (default pipeline)"),
         ("cluster", "render a Dask cluster spec: `mobileocc cluster render infra/slurm.yaml`"),
         ("deploy", "Prefect deployments: `mobileocc deploy serve | apply | trigger [--config FILE]`"),
     ):  # listed for --help; main() hands their arguments to the module's own parser
@@ -321,12 +364,20 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     from configs.schema import ConfigError
+    from storage.files import InputError
+    from storage.manifest import OutputError, StoreLockedError
 
     try:
         return args.func(args)
     except ConfigError as exc:
         print(exc, file=sys.stderr)
-        return 2
+        return EXIT_USAGE
+    except (InputError, OutputError) as exc:  # --data / --out / a manifest that cannot be read
+        print(f"mobileocc {args.command}: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except StoreLockedError as exc:
+        print(f"mobileocc {args.command}: {exc}", file=sys.stderr)
+        return EXIT_BUSY
 
 
 if __name__ == "__main__":

@@ -26,15 +26,27 @@ pinhole (``K = P[:, :3]``, ``T_cam_from_lidar = [[R, 0], [0, 1]] @ T_cam_from_li
 rectified frame (storage.model.CameraCalibration); the files' values stay on ``.raw``.
 
 Every error names the file, the frame where there is one, the value and what was expected. All are
-:class:`CodaFormatError` (a ValueError); those of one frame's files are :class:`CodaFrameError`,
-which carries the path and the frame, so a caller can fail that frame and go on. A malformed or
-degenerate box does not fail its frame: it is skipped and reported in ``Frame.box_problems``.
+:class:`CodaFormatError` (a :class:`storage.files.InputError`, a ValueError); those of one frame's
+files are :class:`CodaFrameError`, which carries the path and the frame, so a caller can fail that
+frame and go on. A malformed or degenerate box does not fail its frame: it is skipped and reported
+in ``Frame.box_problems``. Only regular files are read (storage/files.py): a FIFO, device,
+directory or symlink loop in place of a data file is a named error, never a hang.
+
+What is checked when a sequence is opened (once, at the edge): timestamps (numbers, strictly
+increasing), poses (one finite line per frame, unit quaternions, the pose times within
+``POSE_TIME_TOLERANCE_S`` of the timestamps, translations within ``MAX_POSITION_M`` and speeds
+between raw frames below ``MAX_SPEED_MPS``), calibration (finite numbers, rotations orthonormal
+with determinant +1, positive focal lengths, whole positive image sizes), metadata types, and the
+sweeps' channel count, taken from the sequence's first sweep of a valid size (every sweep must
+then have that size). Per frame (``frame``, ``check_images``): sweep size and finite values, label
+and box files, images decoded and of the calibrated size.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,6 +54,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from storage.files import InputError, open_regular, read_bytes, read_text, regular_stat, where
 from storage.model import (
     Box3D,
     Calibration,
@@ -64,10 +77,23 @@ METADATA_TASKS = ("ObjectTracking", "SemanticSegmentation")
 #: metadata ``lighting`` values that mean night (the devkit's METALighting.DARK is "dark")
 NIGHT_WORDS = ("night", "dark")
 NS_PER_S = 1_000_000_000
+#: pose times may differ from the frame timestamps by this much (half a frame at 10 Hz)
+POSE_TIME_TOLERANCE_S = 0.05
+#: a robot faster than this between two raw frames is a broken pose, not a fast robot
+MAX_SPEED_MPS = 20.0
+#: pose translations beyond this distance from the map origin are not a campus-scale map
+MAX_POSITION_M = 1.0e5
+#: rotation matrices: |R R^T - I| and |det R - 1| within this
+ROTATION_TOLERANCE = 1e-3
+#: version of what opening a sequence checks and returns: a fingerprint memo made by another
+#: version is not used (planning opens the sequence again); bump when the checks change
+READER_VERSION = "2"
+#: the layout folders that hold one sub-folder per sequence (``{modality}/{sensor}/{SEQ}/``)
+SEQUENCE_MODALITIES = ("3d_comp", "3d_raw", "2d_rect", "2d_raw", "3d_bbox", "3d_semantic")
 
 
-class CodaFormatError(ValueError):
-    """Bad or missing input in a CODa-layout dataset."""
+class CodaFormatError(InputError):
+    """Bad or missing input in a CODa-layout dataset (``path`` / ``frame`` where known)."""
 
 
 class CodaFrameError(CodaFormatError):
@@ -77,14 +103,16 @@ class CodaFrameError(CodaFormatError):
     """
 
     def __init__(self, message: str, path: Path, frame: int | None, sequence: str | None = None):
-        super().__init__(message)
-        self.path = Path(path)
-        self.frame = frame
-        self.sequence = sequence
+        super().__init__(message, path, frame, sequence)
 
 
 def _where(path: Path, frame: int | None) -> str:
-    return f"{path}" + (f" (frame {frame})" if frame is not None else "")
+    return where(path, frame)
+
+
+def _frame_error(exc: InputError, frame: int | None) -> CodaFrameError:
+    """An InputError about one frame's file as that frame's CodaFrameError."""
+    return CodaFrameError(str(exc), exc.path or Path("?"), frame if exc.frame is None else exc.frame)
 
 
 @dataclass(frozen=True)
@@ -107,15 +135,31 @@ class LidarSweep:
     channels: int = 5
 
 
-def lidar_channels(path: Path, frame: int | None = None) -> int:
-    """Channels (4 or 5) of an organised OS1-128 ``.bin`` from its size alone (no read)."""
+def _channels_of_size(size: int) -> int | None:
+    per_channel = POINTS_PER_SWEEP * 4
+    if size == 0 or size % per_channel or size // per_channel not in (4, 5):
+        return None
+    return size // per_channel
+
+
+def lidar_channels(path: Path, frame: int | None = None, expected: tuple[int, Path] | None = None) -> int:
+    """Channels (4 or 5) of an organised OS1-128 ``.bin`` from its size alone (no read).
+
+    expected: (channels, file they were taken from) of the sequence; a file of another size is an
+    error even when that size is a whole sweep of the other channel count (a 5-channel sweep cut
+    to exactly the 4-channel size would otherwise be read as 4 scrambled channels)."""
     path = Path(path)
     where = _where(path, frame)
     try:
-        size = path.stat().st_size
-    except FileNotFoundError:
-        raise CodaFrameError(f"{where}: LiDAR file is missing", path, frame) from None
+        size = regular_stat(path, frame, "LiDAR file").st_size
+    except InputError as exc:
+        raise _frame_error(exc, frame) from None
     per_channel = POINTS_PER_SWEEP * 4
+    if expected is not None and size != expected[0] * per_channel:
+        raise CodaFrameError(
+            f"{where}: {size} bytes but the sequence's sweeps have {expected[0]} float32 channels "
+            f"({expected[0] * per_channel} bytes, as its first sweep {expected[1].name}); the file is truncated "
+            "or from another recording", path, frame)
     if size == 0 or size % per_channel:
         raise CodaFrameError(
             f"{where}: {size} bytes is not a whole organised 128x1024 sweep "
@@ -129,11 +173,19 @@ def lidar_channels(path: Path, frame: int | None = None) -> int:
     return int(channels)
 
 
-def read_lidar_raw(path: Path, frame: int | None = None) -> np.ndarray:
-    """(131072, C) float32 organised sweep as stored (C = 4 or 5), finite values checked."""
+def read_lidar_raw(path: Path, frame: int | None = None, expected: tuple[int, Path] | None = None) -> np.ndarray:
+    """(131072, C) float32 organised sweep as stored (C = 4 or 5), finite values checked;
+    ``expected``: the sequence's (channels, first sweep), see :func:`lidar_channels`."""
     path = Path(path)
-    channels = lidar_channels(path, frame)
-    raw = np.fromfile(path, dtype="<f4").reshape(POINTS_PER_SWEEP, channels)
+    channels = lidar_channels(path, frame, expected)
+    try:
+        data = read_bytes(path, frame, "LiDAR file")
+    except InputError as exc:
+        raise _frame_error(exc, frame) from None
+    if len(data) != POINTS_PER_SWEEP * channels * 4:  # changed between the stat and the read
+        raise CodaFrameError(f"{_where(path, frame)}: read {len(data)} bytes, expected "
+                             f"{POINTS_PER_SWEEP * channels * 4}", path, frame)
+    raw = np.frombuffer(data, dtype="<f4").reshape(POINTS_PER_SWEEP, channels)
     bad = ~np.isfinite(raw).all(axis=1)
     if bad.any():
         first = int(np.flatnonzero(bad)[0])
@@ -144,9 +196,10 @@ def read_lidar_raw(path: Path, frame: int | None = None) -> np.ndarray:
 
 
 def read_lidar_bin(path: Path, min_range_m: float = 0.0, max_range_m: float = math.inf,
-                   frame: int | None = None) -> LidarSweep:
-    """Decode an organised OS1-128 ``.bin`` (float32 LE, 4 or 5 channels inferred from size)."""
-    raw = read_lidar_raw(path, frame)
+                   frame: int | None = None, expected: tuple[int, Path] | None = None) -> LidarSweep:
+    """Decode an organised OS1-128 ``.bin`` (float32 LE, 4 or 5 channels inferred from size, or
+    ``expected`` = the sequence's (channels, first sweep))."""
+    raw = read_lidar_raw(path, frame, expected)
     channels = raw.shape[1]
     rng = np.linalg.norm(raw[:, :3], axis=1)
     keep = (rng > max(min_range_m, 1e-6)) & (rng <= max_range_m)
@@ -263,9 +316,14 @@ class CodaSequence:
         self.lidar_height_m = lidar_height_m
         self._lighting = lighting
         if self.sequence not in list_sequences(self.root):
+            stamps = self.root / "timestamps" / f"{self.sequence}.txt"
+            held = sequence_folders(self.root, self.sequence)
+            if held:  # the sequence has files, but not the one that says which frames exist
+                raise CodaFormatError(f"{stamps}: timestamps file is missing (sequence {self.sequence} has "
+                                      f"{', '.join(held[:3])}{' ...' if len(held) > 3 else ''})", stamps)
             raise CodaFormatError(
                 f"unknown sequence id {self.sequence!r} in {self.root}: no "
-                f"timestamps/{self.sequence}.txt (available: {list_sequences(self.root) or 'none'})"
+                f"timestamps/{self.sequence}.txt (available: {list_sequences(self.root) or 'none'})", stamps
             )
         self.info = self._read_info()
 
@@ -283,7 +341,7 @@ class CodaSequence:
         No fallback to the other image source: its pixels belong to another camera model."""
         for ext in IMAGE_EXTENSIONS:
             candidate = self.path(self.image_source, camera, frame, ext)
-            if candidate.exists():
+            if _present(candidate):
                 return candidate
         missing = self.path(self.image_source, camera, frame, ".png")
         raise CodaFrameError(
@@ -295,17 +353,17 @@ class CodaSequence:
         stamps_path = self.root / "timestamps" / f"{self.sequence}.txt"
         stamps_s = _read_timestamps(stamps_path)
         pose_path = self.root / "poses" / "dense_global" / f"{self.sequence}.txt"
-        if not pose_path.exists():  # sequences 8, 14, 15 of CODa have no dense_global poses
+        if not _present(pose_path):  # sequences 8, 14, 15 of CODa have no dense_global poses
             pose_path = self.root / "poses" / "dense" / f"{self.sequence}.txt"
-        poses = _read_poses(pose_path, expected=len(stamps_s), stamps_path=stamps_path)
+        poses = _read_poses(pose_path, expected=len(stamps_s), stamps_path=stamps_path, stamps_s=stamps_s)
         metadata_path = self.root / "metadata" / f"{self.sequence}.json"
-        metadata = _read_json(metadata_path) if metadata_path.exists() else {}
-        if not isinstance(metadata, dict):
-            raise CodaFormatError(f"{metadata_path}: expected a JSON object")
+        metadata = _read_json(metadata_path) if _present(metadata_path) else {}
+        _check_metadata(metadata, metadata_path)
         warnings: list[str] = []
         calibration = self._read_calibration(warnings)
         frames, selection = self._select_frames(len(stamps_s), metadata, metadata_path)
         lighting, source = self._resolve_lighting(metadata)
+        channels = self._sweep_channels(frames)
         idx = np.asarray(frames, dtype=np.int64)
         return SequenceInfo(
             sequence=self.sequence,
@@ -321,7 +379,22 @@ class CodaSequence:
             lighting=lighting,
             lighting_source=source,
             warnings=tuple(warnings),
+            lidar_channels=channels[0] if channels else 0,
+            lidar_channels_from=channels[1] if channels else None,
         )
+
+    def _sweep_channels(self, frames) -> tuple[int, Path] | None:
+        """(channels, file) of the first selected sweep whose size is a whole 4- or 5-channel
+        sweep (sizes only); None when no sweep has such a size (each frame then fails alone)."""
+        for f in frames:
+            path = self.lidar_path(f)
+            try:
+                channels = _channels_of_size(regular_stat(path, f).st_size)
+            except InputError:
+                continue
+            if channels is not None:
+                return channels, path
+        return None
 
     def lidar_frames_on_disk(self) -> list[int]:
         """Raw frame numbers that have a ``lidar_source`` sweep file (a directory listing)."""
@@ -389,15 +462,15 @@ class CodaSequence:
     def _read_calibration(self, warnings: list[str]) -> Calibration:
         folder = self.root / "calibrations" / self.sequence
         c01_path = folder / "calib_cam0_to_cam1.yaml"
-        T_cam1_from_cam0 = read_extrinsic(c01_path)[0] if c01_path.exists() else None
+        T_cam1_from_cam0 = read_extrinsic(c01_path)[0] if _present(c01_path) else None
         cameras = {}
         for cam in self.cameras:
             intr_path = folder / f"calib_{cam}_intrinsics.yaml"
             ext_path = folder / f"calib_os1_to_{cam}.yaml"
-            if cam != "cam0" and not intr_path.exists():
+            if cam != "cam0" and not _present(intr_path):
                 continue  # only cam0 is required
             intr = read_intrinsics(intr_path)
-            if ext_path.exists():
+            if _present(ext_path):
                 T, P_l2r = read_extrinsic(ext_path)
             elif cam == "cam1" and T_cam1_from_cam0 is not None and "cam0" in cameras:
                 # as the devkit's gen_calibrations.py: T_os1_to_cam1 = T_cam0_to_cam1 @ T_os1_to_cam0
@@ -419,7 +492,7 @@ class CodaSequence:
                 cameras[cam] = CameraCalibration(cam, intr["K"], intr["distortion"], intr["width"],
                                                  intr["height"], T, raw, rectified=False)
         base_path = folder / "calib_os1_to_base.yaml"
-        if base_path.exists() or self.lidar_height_m is None:
+        if _present(base_path) or self.lidar_height_m is None:
             T_base, base_default = read_extrinsic(base_path)[0], False
         else:
             T_base, base_default = np.eye(4), True
@@ -432,7 +505,7 @@ class CodaSequence:
 
     def _input_files(self, frames, *extra: Path) -> list[Path]:
         """Every file the selected frames read, for the content fingerprint."""
-        files = [p for p in extra if p.exists()]
+        files = [p for p in extra if _present(p)]
         files += sorted((self.root / "calibrations" / self.sequence).glob("*.yaml"))
         wanted = set(frames)
         patterns = [(self.lidar_source, "os1"), ("3d_bbox", "os1"), ("3d_semantic", "os1")]
@@ -446,8 +519,8 @@ class CodaSequence:
                 if n is not None and n in wanted:
                     files.append(p)
         gt = self.root / "gt" / self.sequence
-        if gt.is_dir():
-            files += sorted(p for p in gt.rglob("*") if p.is_file())
+        if gt.is_dir():  # every entry that is not a folder: a FIFO or a broken link fails the hash
+            files += sorted(Path(top) / name for top, dirs, names in os.walk(gt) for name in names)
         return files
 
     # -- frame level ------------------------------------------------------------------------
@@ -475,11 +548,13 @@ class CodaSequence:
 
     def _frame(self, i: int, raw: int) -> Frame:
         lidar_path = self.lidar_path(raw)
-        sweep = read_lidar_bin(lidar_path, self.min_range_m, self.max_range_m, frame=raw)
+        info = self.info
+        expected = (info.lidar_channels, info.lidar_channels_from) if info.lidar_channels_from else None
+        sweep = read_lidar_bin(lidar_path, self.min_range_m, self.max_range_m, frame=raw, expected=expected)
         sem_path = self.path("3d_semantic", "os1", raw, ".bin")
-        semantic = read_semantic(sem_path, raw)[sweep.index] if sem_path.exists() else None
+        semantic = read_semantic(sem_path, raw)[sweep.index] if _present(sem_path) else None
         box_path = self.path("3d_bbox", "os1", raw, ".json")
-        boxes, problems = read_boxes(box_path, frame=raw) if box_path.exists() else ((), ())
+        boxes, problems = read_boxes(box_path, frame=raw) if _present(box_path) else ((), ())
         images = {cam: self.image_path(cam, raw) for cam in self.info.calibration.cameras}
         return Frame(
             sequence=self.sequence,
@@ -501,19 +576,145 @@ class CodaSequence:
         for i in range(len(self)):
             yield self.frame(i)
 
+    def check_images(self, raw_frame: int) -> None:
+        """Decode every camera's image of a raw frame and check its size against the calibration
+        (CodaFrameError naming the file and frame otherwise). Header checks cannot see a corrupt
+        or cut image; a stage that hands images on (detect, for the exports) calls this."""
+        for name, cam in self.info.calibration.cameras.items():
+            path = self.image_path(name, raw_frame)
+            decode_image(path, raw_frame, (cam.width, cam.height), self.sequence)
+
+
+def _sorted_ids(ids) -> list[str]:
+    return sorted(set(ids), key=lambda s: (not s.isdigit(), int(s) if s.isdigit() else 0, s))
+
 
 def list_sequences(root: Path) -> list[str]:
     """Sequence ids of a CODa-layout root (those with a timestamps file), numerically sorted."""
     folder = Path(root) / "timestamps"
     if not folder.is_dir():
         return []
-    ids = [p.stem for p in folder.glob("*.txt")]
-    return sorted(ids, key=lambda s: (not s.isdigit(), int(s) if s.isdigit() else 0, s))
+    return _sorted_ids(p.stem for p in folder.glob("*.txt") if not p.name.startswith("."))
+
+
+def _ids_in(folder: Path, files: bool, suffix: str = "") -> list[str]:
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:  # missing, not a folder, unreadable: no ids from here
+        return []
+    out = []
+    for e in entries:
+        if e.name.startswith((".", "_")):
+            continue
+        if files and e.name.endswith(suffix):
+            out.append(e.name[: len(e.name) - len(suffix)])
+        elif not files:
+            out.append(e.name)
+    return out
+
+
+def sequence_ids(root: Path) -> list[str]:
+    """Every sequence id that has any layout file or folder under ``root`` (timestamps, poses,
+    metadata, calibrations or a ``{modality}/{sensor}/{SEQ}`` folder), numerically sorted: a
+    sequence missing its timestamps file is still found, so a run can report it instead of
+    leaving it out."""
+    root = Path(root)
+    ids = list_sequences(root)
+    ids += _ids_in(root / "poses" / "dense_global", True, ".txt") + _ids_in(root / "poses" / "dense", True, ".txt")
+    ids += _ids_in(root / "metadata", True, ".json") + _ids_in(root / "calibrations", False)
+    for modality in SEQUENCE_MODALITIES:
+        for sensor in _ids_in(root / modality, False):
+            ids += _ids_in(root / modality / sensor, False)
+    return _sorted_ids(ids)
+
+
+def sequence_folders(root: Path, sequence: str) -> list[str]:
+    """The layout paths (relative to ``root``) that hold files of ``sequence``."""
+    root, out = Path(root), []
+    for rel in (f"timestamps/{sequence}.txt", f"poses/dense_global/{sequence}.txt", f"poses/dense/{sequence}.txt",
+                f"metadata/{sequence}.json", f"calibrations/{sequence}"):
+        if os.path.lexists(root / rel):
+            out.append(rel)
+    for modality in SEQUENCE_MODALITIES:
+        for sensor in _ids_in(root / modality, False):
+            if os.path.lexists(root / modality / sensor / sequence):
+                out.append(f"{modality}/{sensor}/{sequence}")
+    return out
+
+
+def check_dataset_root(root: Path) -> list[str]:
+    """The sequence ids of a dataset root (:func:`sequence_ids`); CodaFormatError when the root is
+    missing, not a folder, or holds no sequence at all."""
+    root = Path(root)
+    if not root.exists():
+        raise CodaFormatError(f"dataset root {root} does not exist", root)
+    if not root.is_dir():
+        raise CodaFormatError(f"dataset root {root} is not a folder", root)
+    ids = sequence_ids(root)
+    if not ids:
+        raise CodaFormatError(f"dataset root {root} holds no sequence (expected the CODa layout: "
+                              "timestamps/<SEQ>.txt, poses/, calibrations/<SEQ>/, 3d_comp/os1/<SEQ>/ ...)", root)
+    return ids
+
+
+def sequence_layout(root: Path, sequence: str, lidar_source: str, image_source: str,
+                    cameras: tuple[str, ...] = ("cam0", "cam1")) -> list[tuple[str, bool]]:
+    """(path, is a folder to list) of everything a sequence's files live in, for a stat
+    signature: if no entry of these changed size, mtime or inode, the sequence reads the same.
+    Plain strings: this runs for every sequence of every plan."""
+    root, seq, join = os.fspath(root), str(sequence), os.path.join
+    out = [(join(root, "timestamps", f"{seq}.txt"), False), (join(root, "poses", "dense_global", f"{seq}.txt"), False),
+           (join(root, "poses", "dense", f"{seq}.txt"), False), (join(root, "metadata", f"{seq}.json"), False),
+           (join(root, "calibrations", seq), True), (join(root, "gt", seq), True)]
+    for modality, sensor in [(lidar_source, "os1"), ("3d_bbox", "os1"), ("3d_semantic", "os1"),
+                             *[(image_source, cam) for cam in cameras]]:
+        out.append((join(root, modality, sensor, seq), True))
+    return out
+
+
+def _present(path: Path) -> bool:
+    """The path exists as an entry (a broken or looping link counts: reading it gives the error)."""
+    return os.path.lexists(path)
+
+
+def image_size(path: Path, frame: int | None = None) -> tuple[int, int]:
+    """(width, height) of an image from its header (not decoded)."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with open_regular(path, frame, "image") as fh, Image.open(fh) as im:
+            return int(im.size[0]), int(im.size[1])
+    except InputError as exc:
+        raise _frame_error(exc, frame) from None
+    except (UnidentifiedImageError, OSError, ValueError) as exc:
+        raise CodaFrameError(f"{_where(path, frame)}: not a readable image ({exc})", path, frame) from None
+
+
+def decode_image(path: Path, frame: int | None, expect_size: tuple[int, int] | None = None,
+                 sequence: str | None = None) -> None:
+    """Decode an image fully (a corrupt or cut file fails here) and check its size."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with open_regular(path, frame, "image") as fh, Image.open(fh) as im:
+            im.load()
+            size = (int(im.size[0]), int(im.size[1]))
+    except InputError as exc:
+        raise _frame_error(exc, frame) from None
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
+        raise CodaFrameError(f"{_where(path, frame)}: image cannot be decoded ({exc})", path, frame,
+                             sequence) from None
+    if expect_size is not None and size != tuple(expect_size):
+        raise CodaFrameError(f"{_where(path, frame)}: image is {size[0]} x {size[1]} px, the camera calibration "
+                             f"says {expect_size[0]} x {expect_size[1]}", path, frame, sequence)
 
 
 def read_semantic(path: Path, frame: int | None = None) -> np.ndarray:
     """(131072,) uint8 CODa 3d_semantic ids of an organised sweep (one byte per point)."""
-    labels = np.fromfile(path, dtype=np.uint8)
+    try:
+        labels = np.frombuffer(read_bytes(path, frame, "3d_semantic file"), dtype=np.uint8)
+    except InputError as exc:
+        raise _frame_error(exc, frame) from None
     if labels.size != POINTS_PER_SWEEP:
         raise CodaFrameError(f"{_where(path, frame)}: {labels.size} labels, expected {POINTS_PER_SWEEP} "
                              "(one byte per point of the organised sweep)", path, frame)
@@ -533,10 +734,10 @@ def read_boxes(path: Path, frame: int | None = None) -> tuple[tuple[Box3D, ...],
     path = Path(path)
     where = _where(path, frame)
     try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise CodaFrameError(f"{where}: file is missing", path, frame) from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        data = json.loads(read_text(path, frame, "3d_bbox file"))
+    except InputError as exc:
+        raise _frame_error(exc, frame) from None
+    except json.JSONDecodeError as exc:
         raise CodaFrameError(f"{where}: invalid JSON ({exc})", path, frame) from None
     if not isinstance(data, dict) or not isinstance(data.get("3dbbox"), list):
         raise CodaFrameError(f"{where}: expected an object with a '3dbbox' list", path, frame)
@@ -585,8 +786,7 @@ def read_intrinsics(path: Path) -> dict:
     height = _positive_int(data, "image_height", path)
     has_rect = "rectification_matrix" in data and "projection_matrix" in data
     R = _yaml_matrix(data, "rectification_matrix", (3, 3), path) if "rectification_matrix" in data else np.eye(3)
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4):
-        raise CodaFormatError(f"{path}: rectification_matrix is not a rotation (R R^T != I): {R.tolist()}")
+    _check_rotation(R, path, "rectification_matrix")
     P = _yaml_matrix(data, "projection_matrix", (3, 4), path) if "projection_matrix" in data \
         else np.hstack([K, np.zeros((3, 1))])
     for name, M in (("camera_matrix", K), ("projection_matrix", P)):
@@ -618,18 +818,49 @@ def read_extrinsic(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
         T[:3] = values[:12].reshape(3, 4)
         if values.size == 16 and not np.allclose(values[12:], [0, 0, 0, 1], atol=1e-9):
             raise CodaFormatError(f"{path}: extrinsic_matrix last row {values[12:].tolist()}, expected 0 0 0 1")
-    if not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-3):
-        raise CodaFormatError(f"{path}: extrinsic_matrix rotation is not orthonormal: {T[:3, :3].tolist()}")
+    _check_rotation(T[:3, :3], path, "extrinsic_matrix rotation")
     P = _yaml_matrix(data, "projection_matrix", (3, 4), path) if "projection_matrix" in data else None
     return T, P
+
+
+def _check_rotation(R: np.ndarray, path: Path, name: str) -> None:
+    """A rotation: orthonormal (R R^T = I) with determinant +1, within ROTATION_TOLERANCE."""
+    err = float(np.max(np.abs(R @ R.T - np.eye(3))))
+    if err > ROTATION_TOLERANCE:
+        raise CodaFormatError(f"{path}: {name} is not orthonormal (max |R R^T - I| = {err:.3g}, a scaled, sheared "
+                              f"or zero matrix): {np.round(R, 6).tolist()}", path)
+    det = float(np.linalg.det(R))
+    if abs(det - 1.0) > ROTATION_TOLERANCE:
+        raise CodaFormatError(f"{path}: {name} has determinant {det:.4f}, expected +1 (a reflection, not a "
+                              f"rotation): {np.round(R, 6).tolist()}", path)
+
+
+def _check_metadata(metadata, path: Path) -> None:
+    """The metadata fields the reader uses have the types CODa's devkit writes."""
+    if not isinstance(metadata, dict):
+        raise CodaFormatError(f"{path}: expected a JSON object, got {type(metadata).__name__}", path)
+    lighting = metadata.get("lighting")
+    if lighting is not None and not isinstance(lighting, str):
+        raise CodaFormatError(f"{path}: 'lighting' is {lighting!r}, expected a string (e.g. \"dark\")", path)
+    for task in METADATA_TASKS:
+        lists = metadata.get(task)
+        if lists is None:
+            continue
+        if not isinstance(lists, dict):
+            raise CodaFormatError(f"{path}: {task!r} is a {type(lists).__name__}, expected an object of file "
+                                  "lists (split -> [paths])", path)
+        for split, files in lists.items():
+            if files is not None and (not isinstance(files, list) or not all(isinstance(f, str) for f in files)):
+                raise CodaFormatError(f"{path}: {task}.{split} is {str(files)[:80]}, expected a list of file "
+                                      "paths", path)
 
 
 # -- small parsers ----------------------------------------------------------------------------
 def _read_timestamps(path: Path) -> np.ndarray:
     try:
-        lines = path.read_text().split()
-    except FileNotFoundError:
-        raise CodaFormatError(f"{path}: timestamps file is missing") from None
+        lines = read_text(path, None, "timestamps file").split()
+    except InputError as exc:
+        raise CodaFormatError(str(exc), path) from None
     try:
         stamps = np.array([float(x) for x in lines], dtype=np.float64)
     except ValueError as exc:
@@ -650,18 +881,20 @@ def _read_timestamps(path: Path) -> np.ndarray:
 
 def read_pose_stamps(path: Path) -> np.ndarray:
     """(F,) float64 first column (Unix seconds) of a dense pose file."""
-    rows = [line.split() for line in Path(path).read_text().splitlines() if line.strip()]
+    rows = [line.split() for line in read_text(path, None, "poses file").splitlines() if line.strip()]
     return np.array([float(r[0]) for r in rows], dtype=np.float64)
 
 
-def _read_poses(path: Path, expected: int, stamps_path: Path) -> np.ndarray:
-    """Pose lines ``ts x y z qw qx qy qz`` -> (F, 4, 4) float64 T_world_from_lidar."""
+def _read_poses(path: Path, expected: int, stamps_path: Path, stamps_s: np.ndarray | None = None) -> np.ndarray:
+    """Pose lines ``ts x y z qw qx qy qz`` -> (F, 4, 4) float64 T_world_from_lidar; with
+    ``stamps_s`` the pose times are checked against the frame timestamps, and the robot's
+    position and speed for plausibility."""
+    if not _present(path):
+        raise CodaFormatError(f"{path}: poses file is missing (looked in poses/dense_global and poses/dense)", path)
     try:
-        rows = [line.split() for line in path.read_text().splitlines() if line.strip()]
-    except FileNotFoundError:
-        raise CodaFormatError(
-            f"{path}: poses file is missing (looked in poses/dense_global and poses/dense)"
-        ) from None
+        rows = [line.split() for line in read_text(path, None, "poses file").splitlines() if line.strip()]
+    except InputError as exc:
+        raise CodaFormatError(str(exc), path) from None
     if len(rows) != expected:
         raise CodaFormatError(
             f"{path}: {len(rows)} pose lines but {stamps_path} has {expected} frames; expected one "
@@ -683,21 +916,41 @@ def _read_poses(path: Path, expected: int, stamps_path: Path) -> np.ndarray:
                 f"{path}: line {k + 1} (frame {k}): quaternion norm {np.linalg.norm(values[4:8]):.4f}, "
                 "expected a unit quaternion (w x y z)"
             )
+        if stamps_s is not None and abs(values[0] - stamps_s[k]) > POSE_TIME_TOLERANCE_S:
+            raise CodaFormatError(
+                f"{path}: line {k + 1} (frame {k}): pose time {values[0]:.6f} differs from {stamps_path} line "
+                f"{k + 1} ({stamps_s[k]:.6f}) by {values[0] - stamps_s[k]:.3f} s; expected within "
+                f"{POSE_TIME_TOLERANCE_S} s (the poses of another recording?)", path, k)
+        if np.max(np.abs(values[1:4])) > MAX_POSITION_M:
+            raise CodaFormatError(
+                f"{path}: line {k + 1} (frame {k}): position {values[1:4].tolist()} is more than "
+                f"{MAX_POSITION_M:g} m from the map origin; expected a campus-scale map frame", path, k)
         poses[k, :3, :3] = quat_wxyz_to_matrix(values[4:8])
         poses[k, :3, 3] = values[1:4]
+        if k and stamps_s is not None:
+            step = float(np.linalg.norm(poses[k, :3, 3] - poses[k - 1, :3, 3]))
+            dt = float(stamps_s[k] - stamps_s[k - 1])
+            if step > MAX_SPEED_MPS * dt:
+                raise CodaFormatError(
+                    f"{path}: line {k + 1} (frame {k}): the robot moves {step:.3g} m in {dt:.3f} s from line {k} "
+                    f"({step / dt:.3g} m/s); expected at most {MAX_SPEED_MPS:g} m/s", path, k)
     return poses
 
 
 def _read_yaml(path: Path) -> dict:
     try:
-        data = yaml.safe_load(path.read_text())
-    except FileNotFoundError:
-        raise CodaFormatError(f"{path}: calibration file is missing") from None
+        data = yaml.load(read_text(path, None, "calibration file"), Loader=_YamlLoader)
+    except InputError as exc:
+        raise CodaFormatError(str(exc), path) from None
     except yaml.YAMLError as exc:
-        raise CodaFormatError(f"{path}: invalid YAML ({exc})") from None
+        raise CodaFormatError(f"{path}: invalid YAML ({exc})", path) from None
     if not isinstance(data, dict):
-        raise CodaFormatError(f"{path}: expected a YAML mapping")
+        raise CodaFormatError(f"{path}: expected a YAML mapping", path)
     return data
+
+
+#: libyaml's safe loader where PyYAML has it (the calibration files are parsed at every open)
+_YamlLoader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 
 def _yaml_key(data: dict, key: str, path: Path, name: str | None = None):
@@ -735,8 +988,8 @@ def _yaml_matrix(data: dict, key: str, shape: tuple[int, int] | None, path: Path
 
 def _read_json(path: Path, where: str | None = None):
     try:
-        return json.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise CodaFormatError(f"{where or path}: file is missing") from None
+        return json.loads(read_text(path, None, "JSON file"))
+    except InputError as exc:
+        raise CodaFormatError(str(exc), path) from None
     except json.JSONDecodeError as exc:
-        raise CodaFormatError(f"{where or path}: invalid JSON ({exc})") from None
+        raise CodaFormatError(f"{where or path}: invalid JSON ({exc})", path) from None

@@ -9,11 +9,13 @@ deflate), so the same inputs give byte-identical files; ``np.load`` reads them.
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
 
+from storage.files import InputError, open_regular
 from storage.npzio import save_npz_deterministic
 
 #: Fields of a frame file: name -> (dtype, shape with -1 for free dims, documented in GT_FORMAT.md).
@@ -52,8 +54,27 @@ SEQUENCE_FIELDS: dict[str, tuple[str, tuple[int, ...]]] = {
 }
 
 
-class GTFormatError(ValueError):
-    """A ground-truth file with a missing field or a wrong dtype / shape."""
+class GTFormatError(InputError):
+    """A ground-truth file that is not a readable npz, or has a missing field or a wrong dtype /
+    shape (``path``, and ``frame`` for a frame's file)."""
+
+
+class GTMissingError(GTFormatError, FileNotFoundError):
+    """A ground-truth file that is not there."""
+
+
+def _load(path: Path, frame: int | None) -> dict[str, np.ndarray]:
+    """Every array of a ground-truth npz (regular files only, no pickles); GTFormatError naming
+    the file when it is not a readable npz."""
+    try:
+        with open_regular(path, frame, "ground-truth file") as fh, np.load(fh, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except InputError as exc:
+        raise GTFormatError(str(exc), path, frame) from None
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
+        where = f"{path}" + (f" (frame {frame})" if frame is not None else "")
+        raise GTFormatError(f"{where}: not a readable ground-truth npz ({type(exc).__name__}: {exc})", path,
+                            frame) from None
 
 
 def write_npz_deterministic(path: Path, arrays: dict[str, np.ndarray]) -> Path:
@@ -62,15 +83,16 @@ def write_npz_deterministic(path: Path, arrays: dict[str, np.ndarray]) -> Path:
     return save_npz_deterministic(path, compressed=True, **{k: np.asarray(arrays[k]) for k in sorted(arrays)})
 
 
-def _check(path: Path, arrays: dict, spec: dict) -> None:
+def _check(path: Path, arrays: dict, spec: dict, frame: int | None = None) -> None:
     for name, (dtype, shape) in spec.items():
         if name not in arrays:
-            raise GTFormatError(f"{path}: missing field {name!r}")
+            raise GTFormatError(f"{path}: missing field {name!r}", path, frame)
         a = np.asarray(arrays[name])
         ok = a.dtype == np.dtype(dtype) and a.ndim == len(shape) and all(
             s == -1 or s == d for s, d in zip(shape, a.shape))
         if not ok:
-            raise GTFormatError(f"{path}: field {name!r} is {a.dtype} {a.shape}, expected {dtype} {shape}")
+            raise GTFormatError(f"{path}: field {name!r} is {a.dtype} {a.shape}, expected {dtype} {shape}", path,
+                                frame)
 
 
 def gt_dir(root: Path, seq: int) -> Path:
@@ -152,12 +174,12 @@ def list_gt_frames(root: Path, seq: int) -> list[int]:
 
 
 def read_sequence_gt(root: Path, seq: int) -> GTSequence:
-    """Read ``gt/{SEQ}/sequence.npz``; raises GTFormatError / FileNotFoundError naming the file."""
+    """Read ``gt/{SEQ}/sequence.npz``; raises GTFormatError (GTMissingError, also a
+    FileNotFoundError, when it is not there) naming the file."""
     path = gt_dir(root, seq) / "sequence.npz"
     if not path.exists():
-        raise FileNotFoundError(f"{path}: no ground truth for sequence {seq}")
-    with np.load(path, allow_pickle=False) as z:
-        a = {k: z[k] for k in z.files}
+        raise GTMissingError(f"{path}: no ground truth for sequence {seq}", path)
+    a = _load(path, None)
     _check(path, a, SEQUENCE_FIELDS)
     return GTSequence(a["grid_range_min"], float(a["grid_voxel_size_m"]),
                       tuple(int(v) for v in a["grid_shape"]), a["person_faces"], a["keypoint_vertex_ids"],
@@ -168,10 +190,9 @@ def read_frame_gt(root: Path, seq: int, frame: int) -> GTFrame:
     """Read one frame's ground truth as arrays."""
     path = frame_path(root, seq, frame)
     if not path.exists():
-        raise FileNotFoundError(f"{path}: no ground truth for sequence {seq} frame {frame}")
-    with np.load(path, allow_pickle=False) as z:
-        a = {k: z[k] for k in z.files}
-    _check(path, a, FRAME_FIELDS)
+        raise GTMissingError(f"{path} (frame {frame}): no ground truth for sequence {seq} frame {frame}", path, frame)
+    a = _load(path, frame)
+    _check(path, a, FRAME_FIELDS, frame)
     kw = {f.name: a[f.name] for f in fields(GTFrame)}
     kw["stamp_ns"] = int(kw["stamp_ns"])
     return GTFrame(**kw)

@@ -1,11 +1,15 @@
 """The stage cache: content fingerprints, stage keys, key-named outputs, the manifest, the run lock.
 
 The manifest (``OUT/manifest.json``) is the source of truth of what was processed: one row per
-(sequence, stage) with the stage key, where the output is, the status and the error. It is
-rewritten atomically (write aside, fsync, rename) after every stage that finishes, so a killed run
-loses at most the stages in flight. A stage is fresh when its row is ``done``, its key equals the key
-computed now, and its output still exists; otherwise it runs again (and so does everything
-downstream, whose keys include the upstream keys).
+(sequence, stage) with the stage key, where the output is, the status and the error. During a run
+every finished unit is appended as one JSON line to ``OUT/manifest.journal`` (flushed and fsynced:
+a killed run loses at most the units in flight); :meth:`Manifest.save` compacts the rows into
+``manifest.json`` (write aside, fsync, rename) and removes the journal, and :meth:`Manifest.load`
+replays a journal left by a killed run. Appending is O(1) per unit, where rewriting the whole
+manifest after each unit was O(units) (O(units^2) per run: measured in flows/bench/planning.py).
+A stage is fresh when its row is ``done``, its key equals the key computed now, and its output
+still exists; otherwise it runs again (and so does everything downstream, whose keys include the
+upstream keys).
 
 Keys (prior art: Bazel action keys, Dagster code versions, DVC content hashes)::
 
@@ -13,16 +17,25 @@ Keys (prior art: Bazel action keys, Dagster code versions, DVC content hashes)::
     key(sequence, stage)  = H(stage, stage code version, the config slice the stage reads,
                               fingerprint for the first stage / upstream keys after it)
 
-Content hashes are memoised by (size, mtime_ns, inode) in ``OUT/.cache/file-hashes.json``.
+Content hashes are memoised per sequence in ``OUT/.cache/sequences/<seq>.json`` by (size,
+mtime_ns, inode); that file also keeps a *stat signature* of every entry of the sequence's layout
+folders (name, size, mtime_ns, inode, type). While the signature is unchanged, planning takes the
+fingerprint from the memo and reads no byte of the sequence (not even its calibration): a file
+rewritten in place with the same size within the file system's mtime resolution, or restored with
+its old mtime by a tool, is not noticed. ``--verify`` (``FingerprintCache(verify=True)``) reads
+and hashes every file instead.
 """
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import os
 import shutil
 import socket
+import stat
+import threading
 import time
 import uuid
 from contextlib import contextmanager
@@ -30,8 +43,12 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
+from storage.files import InputError, open_regular
+
 MANIFEST = "manifest.json"
+JOURNAL = "manifest.journal"
 MANIFEST_VERSION = 1
+TMP_PREFIX = ".tmp-"
 
 
 def _hash_bytes(*parts: bytes) -> str:
@@ -46,63 +63,178 @@ def canonical_json(value: Any) -> bytes:
     return json.dumps(value, sort_keys=True, separators=(",", ":"), default=str).encode()
 
 
+def _named(exc: OSError, path: Path) -> OSError:
+    """The same OSError with the file named (a failed write() does not say which file)."""
+    if exc.filename:
+        return exc
+    return type(exc)(exc.errno, exc.strerror or str(exc), str(path))
+
+
 def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` so readers see the old or the new file, never a part."""
+    """Write ``data`` to ``path`` so readers see the old or the new file, never a part. A disk
+    error (ENOSPC, EFBIG, ...) is raised with the file named and leaves no temporary file."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".tmp-{path.name}-{uuid.uuid4().hex[:8]}")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    tmp = path.with_name(f"{TMP_PREFIX}{path.name}-{uuid.uuid4().hex[:8]}")
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise _named(exc, path) from None
 
 
 class FileHasher:
-    """sha256 of file contents, memoised by (size, mtime_ns, inode) across runs."""
+    """sha256 of file contents, memoised by (size, mtime_ns, inode).
 
-    def __init__(self, cache_path: Path | None = None):
-        self.cache_path = cache_path
-        self._memo: dict[str, list] = {}
-        if cache_path is not None and cache_path.exists():
-            try:
-                self._memo = json.loads(cache_path.read_text())
-            except (OSError, json.JSONDecodeError):
-                self._memo = {}  # a damaged memo only costs rehashing
+    memo: relative path -> [size, mtime_ns, inode, sha256] (a sequence's part of the fingerprint
+    cache); verify: read and hash every file whatever the memo says. Files with the same
+    (device, inode, size, mtime) are hashed once per hasher (hard links). Only regular files are
+    read (storage.files); anything else is an InputError naming the file. ``bytes_hashed`` and
+    ``seconds`` say what hashing cost.
+    """
+
+    def __init__(self, memo: dict | None = None, verify: bool = False):
+        self.memo: dict[str, list] = memo if memo is not None else {}
+        self.verify = verify
+        self._by_inode: dict[tuple, str] = {}
+        self.used: set[str] = set()  # memo keys asked for (what the memo keeps)
         self.hashed = 0
+        self.bytes_hashed = 0
+        self.seconds = 0.0
 
-    def __call__(self, path: Path) -> str:
-        st = os.stat(path)
-        stamp = [st.st_size, st.st_mtime_ns, st.st_ino]
-        key = str(Path(path).resolve())
-        hit = self._memo.get(key)
-        if hit is not None and hit[:3] == stamp:
-            return hit[3]
-        h = hashlib.sha256()
-        with open(path, "rb") as fh:
-            for block in iter(lambda: fh.read(1 << 20), b""):
-                h.update(block)
-        digest = h.hexdigest()
-        self._memo[key] = stamp + [digest]
-        self.hashed += 1
+    def __call__(self, path: Path, rel: str | None = None) -> str:
+        path = Path(path)
+        key = rel if rel is not None else os.path.abspath(path)
+        self.used.add(key)
+        t0 = time.perf_counter()
+        with open_regular(path, None, "input file") as fh:
+            st = os.fstat(fh.fileno())
+            stamp = [st.st_size, st.st_mtime_ns, st.st_ino]
+            hit = self.memo.get(key)
+            if not self.verify and hit is not None and hit[:3] == stamp:
+                return hit[3]
+            ident = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+            digest = self._by_inode.get(ident)
+            if digest is None:
+                h = hashlib.sha256()
+                try:
+                    for block in iter(lambda: fh.read(1 << 20), b""):
+                        h.update(block)
+                except OSError as exc:
+                    raise InputError(f"{path}: cannot read the input file: {exc.strerror or exc}", path) from None
+                digest = h.hexdigest()
+                self._by_inode[ident] = digest
+                self.hashed += 1
+                self.bytes_hashed += st.st_size
+                self.seconds += time.perf_counter() - t0
+        self.memo[key] = stamp + [digest]
         return digest
 
-    def save(self) -> None:
-        if self.cache_path is not None:
-            atomic_write_bytes(self.cache_path, canonical_json(self._memo))
+    def share_inodes(self, other: FileHasher) -> FileHasher:
+        """Use ``other``'s (device, inode) table and counters' home: one table per plan."""
+        self._by_inode = other._by_inode
+        return self
+
+
+def _relative(root: str, path: Path) -> str:
+    ap = os.path.abspath(path)
+    return ap[len(root) + 1:] if ap.startswith(root + os.sep) else ap
 
 
 def sequence_fingerprint(root: Path, files: Iterable[Path], hasher: FileHasher) -> str:
-    """Content fingerprint of a sequence's input files (paths relative to the dataset root)."""
-    root = Path(root).resolve()
+    """Content fingerprint of a sequence's input files (paths relative to the dataset root; the
+    paths are not resolved, so the same files at another place give the same fingerprint)."""
+    root_s = os.path.abspath(root)
     entries = []
-    for p in sorted(Path(f).resolve() for f in files):
-        try:
-            rel = str(p.relative_to(root))
-        except ValueError:
-            rel = str(p)
-        entries.append([rel, hasher(p)])
+    for p in sorted(os.path.abspath(f) for f in files):
+        rel = _relative(root_s, Path(p))
+        entries.append([rel, hasher(Path(p), rel)])
     return _hash_bytes(canonical_json(entries))[:32]
+
+
+def _stat_line(name: str, st: os.stat_result) -> bytes:
+    return f"{name}\0{st.st_size}\0{st.st_mtime_ns}\0{st.st_ino}\0{stat.S_IFMT(st.st_mode)}\n".encode()
+
+
+def layout_signature(root: Path | str, entries: Iterable[tuple[Path | str, bool]]) -> str:
+    """A hash of the stat facts (size, mtime_ns, inode, type) of every path and, for folders, of
+    every entry in them (symlinks followed; an entry that cannot be stat'ed counts by its error).
+    Paths count relative to ``root`` (the same files reached from another place, e.g. hard links,
+    sign the same). No file is opened: equal signatures mean nothing was added, removed, replaced
+    or rewritten (up to the mtime resolution). About one ``stat`` per file."""
+    root_s = os.path.abspath(root) + os.sep
+    h = hashlib.sha256()
+    for path, is_folder in entries:
+        p = os.fspath(path)
+        rel = p[len(root_s):] if p.startswith(root_s) else p
+        try:
+            st = os.stat(p)
+        except OSError as exc:
+            h.update(f"{rel}\0!{exc.errno}\n".encode())
+            continue
+        if not is_folder or not stat.S_ISDIR(st.st_mode):
+            h.update(_stat_line(rel, st))
+            continue
+        h.update(f"{rel}\0folder\n".encode())  # its entries say what changed; its own mtime adds nothing
+        try:
+            with os.scandir(p) as it:
+                children = sorted(it, key=lambda e: e.name)
+        except OSError as exc:
+            h.update(f"{rel}\0!list {exc.errno}\n".encode())
+            continue
+        for entry in children:
+            try:
+                h.update(_stat_line(entry.name, entry.stat()))
+            except OSError as exc:
+                h.update(f"{entry.name}\0!{exc.errno}\n".encode())
+    return h.hexdigest()[:32]
+
+
+class FingerprintCache:
+    """``OUT/.cache/sequences/<seq>.json``: per sequence, what planning learnt from its files
+    (``reader``: how it was read, ``signature``: :func:`layout_signature`, ``fingerprint``,
+    ``num_frames``, ``warnings``, ``files``: the content-hash memo). One small file per sequence,
+    written only when it changes. ``folder=None`` keeps nothing (every plan reads everything);
+    ``verify`` ignores what is kept."""
+
+    def __init__(self, folder: Path | None, verify: bool = False):
+        self.folder = None if folder is None else Path(folder)
+        self.verify = verify
+        self.hasher = FileHasher(verify=verify)  # the plan's (device, inode) table and counters
+        self.errors: list[str] = []  # memo files that could not be written (a full disk)
+
+    def load(self, sequence: str) -> dict:
+        if self.folder is None:
+            return {}
+        try:
+            return json.loads((self.folder / f"{sequence}.json").read_text())
+        except (OSError, ValueError):
+            return {}  # a missing or damaged memo only costs reading the sequence again
+
+    def hit(self, memo: dict, reader: Any, signature: str) -> bool:
+        return (not self.verify and memo.get("reader") == reader and memo.get("signature") == signature
+                and "fingerprint" in memo)
+
+    def file_hasher(self, memo: dict) -> FileHasher:
+        h = FileHasher(dict(memo.get("files") or {}), self.verify).share_inodes(self.hasher)
+        return h
+
+    def add_costs(self, hasher: FileHasher) -> None:
+        self.hasher.hashed += hasher.hashed
+        self.hasher.bytes_hashed += hasher.bytes_hashed
+        self.hasher.seconds += hasher.seconds
+
+    def save(self, sequence: str, entry: dict) -> None:
+        if self.folder is None:
+            return
+        try:
+            atomic_write_bytes(self.folder / f"{sequence}.json", canonical_json(entry))
+        except OSError as exc:  # the run goes on; the next plan reads the sequence again
+            self.errors.append(f"{exc.filename}: {exc.strerror}")
 
 
 def stage_key(stage: str, code_version: str, inputs_hash: str, upstream: dict[str, str]) -> str:
@@ -141,30 +273,47 @@ class StageRecord:
 
 
 class Manifest:
-    """The rows of ``OUT/manifest.json``; write with :meth:`save` (atomic)."""
+    """The rows of ``OUT/manifest.json`` and of the journal beside it.
+
+    :meth:`record` appends one row to the journal (O(1), fsynced); :meth:`save` compacts
+    everything into ``manifest.json`` (atomic) and removes the journal; :meth:`load` reads both.
+    """
 
     def __init__(self, root: Path, rows: dict[tuple[str, str], StageRecord] | None = None,
                  meta: dict | None = None):
         self.root = Path(root)
         self.rows = rows or {}
         self.meta = meta or {}
+        self.journal_lines = 0  # rows read from a journal (a killed run) or appended since the last save
 
     @classmethod
     def load(cls, root: Path) -> Manifest:
         path = Path(root) / MANIFEST
-        if not path.exists():
-            return cls(root)
+        manifest = cls(root)
+        if path.exists():
+            try:
+                data = json.loads(path.read_text())
+            except json.JSONDecodeError as exc:
+                raise OutputError(f"{path}: manifest is not valid JSON ({exc}); move it aside to rebuild") from None
+            if data.get("version") != MANIFEST_VERSION:
+                raise OutputError(f"{path}: manifest version {data.get('version')!r}, expected {MANIFEST_VERSION}")
+            for row in data["rows"]:
+                manifest.put(StageRecord(**row))
+            manifest.meta = data.get("meta", {})
+        manifest._replay(Path(root) / JOURNAL)
+        return manifest
+
+    def _replay(self, path: Path) -> None:
         try:
-            data = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{path}: manifest is not valid JSON ({exc}); move it aside to rebuild") from None
-        if data.get("version") != MANIFEST_VERSION:
-            raise ValueError(f"{path}: manifest version {data.get('version')!r}, expected {MANIFEST_VERSION}")
-        rows = {}
-        for row in data["rows"]:
-            rec = StageRecord(**row)
-            rows[(rec.sequence, rec.stage)] = rec
-        return cls(root, rows, data.get("meta", {}))
+            lines = path.read_bytes().splitlines()
+        except FileNotFoundError:
+            return
+        for line in lines:
+            try:
+                self.put(StageRecord(**json.loads(line)))
+            except (ValueError, TypeError):  # a line cut by a kill or a full disk: the unit reruns
+                continue
+            self.journal_lines += 1
 
     def get(self, sequence: str, stage: str) -> StageRecord | None:
         return self.rows.get((sequence, stage))
@@ -172,7 +321,23 @@ class Manifest:
     def put(self, record: StageRecord) -> None:
         self.rows[(record.sequence, record.stage)] = record
 
+    def record(self, record: StageRecord) -> None:
+        """Put a row and append it to the journal at once (a disk error names the journal; the
+        row stays in memory for the next :meth:`save`)."""
+        self.put(record)
+        path = self.root / JOURNAL
+        line = json.dumps(asdict(record), sort_keys=True, separators=(",", ":")).encode() + b"\n"
+        try:
+            with open(path, "ab") as fh:
+                fh.write(line)
+                fh.flush()
+                os.fsync(fh.fileno())
+        except OSError as exc:
+            raise _named(exc, path) from None
+        self.journal_lines += 1
+
     def save(self) -> None:
+        """Compact: every row and the meta into ``manifest.json`` (atomic), then drop the journal."""
         used = {(r.stage, (r.parts or {}).get("config")) for r in self.rows.values()}
         for stage, table in self.meta.get("inputs", {}).items():
             keep = {h for s, h in used if s == stage} | set(list(table)[-1:])
@@ -182,6 +347,8 @@ class Manifest:
         atomic_write_bytes(self.root / MANIFEST, json.dumps(
             {"version": MANIFEST_VERSION, "meta": self.meta, "rows": rows}, indent=1,
             sort_keys=True).encode())
+        (self.root / JOURNAL).unlink(missing_ok=True)
+        self.journal_lines = 0
 
     def output_exists(self, record: StageRecord) -> bool:
         return bool(record.location) and (self.root / record.location).exists()
@@ -236,12 +403,24 @@ def staged_output(final: Path) -> Iterator[Path]:
         shutil.rmtree(tmp, ignore_errors=True)  # another writer published the same key meanwhile
 
 
+#: where runs leave temporary files, relative to OUT (a killed run, a full disk): stage outputs
+#: being written, publication staging, table partitions, the manifest and memo files, exports
+TEMPORARY_PATTERNS = (f"{TMP_PREFIX}*", f".cache/{TMP_PREFIX}*", f".cache/*/{TMP_PREFIX}*",
+                      f"stages/*/*/{TMP_PREFIX}*", f"occupancy/*/{TMP_PREFIX}*", f"tables/*/*/{TMP_PREFIX}*",
+                      f"exports/{TMP_PREFIX}*", f"exports/*/{TMP_PREFIX}*", f"exports/*/*/{TMP_PREFIX}*")
+
+
 def sweep_temporaries(root: Path) -> int:
-    """Remove ``.tmp-*`` leftovers of killed runs under ``root/stages``; returns how many."""
+    """Remove the ``.tmp-*`` leftovers of killed or failed runs (``TEMPORARY_PATTERNS``); returns
+    how many. Call it only while holding :func:`run_lock` (no other run is writing)."""
     n = 0
-    for tmp in (Path(root) / "stages").glob("*/*/.tmp-*"):
-        shutil.rmtree(tmp, ignore_errors=True)
-        n += 1
+    for pattern in TEMPORARY_PATTERNS:
+        for tmp in Path(root).glob(pattern):
+            if tmp.is_dir() and not tmp.is_symlink():
+                shutil.rmtree(tmp, ignore_errors=True)
+            else:
+                tmp.unlink(missing_ok=True)
+            n += 1
     return n
 
 
@@ -255,51 +434,130 @@ def remove_stale_versions(root: Path, stage: str, sequence: str, keep: str) -> N
 
 
 class StoreLockedError(RuntimeError):
-    pass
+    """Another run holds the output store's lock."""
+
+
+class OutputError(ValueError):
+    """The output store cannot be written (checked before any work starts)."""
+
+
+def check_writable(root: Path) -> None:
+    """``root`` is (or can be made) a folder this process can write; OutputError naming it and the
+    reason otherwise (a file, a read-only place, a full disk)."""
+    root = Path(root)
+    if root.exists() and not root.is_dir():
+        raise OutputError(f"output store {root} is not a folder")
+    probe = root / f"{TMP_PREFIX}writable-{uuid.uuid4().hex[:8]}"
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        with open(probe, "wb") as fh:
+            fh.write(b"0")
+    except OSError as exc:
+        raise OutputError(f"output store {root} is not writable ({exc.strerror or exc}"
+                          f"{': ' + str(exc.filename) if exc.filename and str(exc.filename) != str(probe) else ''})") from None
+    finally:
+        try:
+            probe.unlink()
+        except OSError:
+            pass
+
+
+#: the output stores whose lock this process holds (a caller holding it may hand the run to code
+#: that would take it again: :func:`holding_lock`)
+_HELD: set[str] = set()
+_HELD_GUARD = threading.Lock()
+LOCK_FILE = ".lock"
 
 
 @contextmanager
 def run_lock(root: Path) -> Iterator[None]:
-    """One run at a time per output store: a second run is refused with a clear message.
+    """One run at a time per output store: a second run is refused with :class:`StoreLockedError`
+    (a second one in the same process too).
 
-    The lock file holds host and pid; a lock left by a dead process on this host is taken over.
+    The lock is a kernel file lock (``flock``) on ``OUT/.lock``, so it is released when its process
+    ends however it ends: a lock "left" by a killed run is no lock, and the next run takes it. The
+    file's content (host, pid, start time) is only for the refusal's message; a failed write of it
+    (a full disk) leaves the lock held and the file empty, never a wedged store. The holder
+    unlinks the file before unlocking, and a process that locked a file which is no longer the one
+    at ``OUT/.lock`` tries again, so two processes can never both hold it (tests race many).
     """
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
-    path = root / ".lock"
-    me = {"host": socket.gethostname(), "pid": os.getpid(), "started": time.time()}
-    for _ in range(2):
-        try:
-            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-        except FileExistsError:
-            try:
-                holder = json.loads(path.read_text())
-            except (OSError, json.JSONDecodeError):
-                holder = {}
-            if holder.get("host") == me["host"] and not _pid_alive(int(holder.get("pid", -1))):
-                path.unlink(missing_ok=True)  # stale: its process is gone
-                continue
-            raise StoreLockedError(
-                f"{root} is in use by another run (host {holder.get('host', '?')}, pid "
-                f"{holder.get('pid', '?')}); wait for it to finish, or remove {path} if that run is "
-                "gone"
-            ) from None
-        with os.fdopen(fd, "w") as fh:
-            json.dump(me, fh)
-        break
+    path = root / LOCK_FILE
+    key = os.path.abspath(path)
+    with _HELD_GUARD:
+        if key in _HELD:
+            raise StoreLockedError(f"{root} is in use by another run (in this process, pid {os.getpid()})")
+        _HELD.add(key)
+    try:
+        fd = _acquire(path)
+    except BaseException:
+        with _HELD_GUARD:
+            _HELD.discard(key)
+        raise
     try:
         yield
     finally:
-        path.unlink(missing_ok=True)
+        try:
+            os.unlink(path)
+        except OSError:
+            pass
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        os.close(fd)
+        with _HELD_GUARD:
+            _HELD.discard(key)
 
 
-def _pid_alive(pid: int) -> bool:
-    if pid <= 0:
-        return False
+@contextmanager
+def holding_lock(root: Path) -> Iterator[None]:
+    """For code run on behalf of a caller that holds :func:`run_lock` of ``root`` (the CLI takes it
+    before starting Prefect, then runs the flow): checks that this process holds it."""
+    with _HELD_GUARD:
+        held = os.path.abspath(Path(root) / LOCK_FILE) in _HELD
+    if not held:
+        raise StoreLockedError(f"{root}: the run was told the lock is held, but this process does not hold it")
+    yield
+
+
+def _acquire(path: Path) -> int:
+    me = {"host": socket.gethostname(), "pid": os.getpid(), "started": time.time()}
+    for _ in range(100):
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _holder(fd)
+            os.close(fd)
+            when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(holder["started"])) \
+                if isinstance(holder.get("started"), (int, float)) else "?"
+            raise StoreLockedError(
+                f"{path.parent} is in use by another run (host {holder.get('host', '?')}, pid "
+                f"{holder.get('pid', '?')}, started {when}); wait for it to finish") from None
+        except OSError as exc:
+            os.close(fd)
+            raise StoreLockedError(f"{path}: cannot lock the output store ({exc.strerror}); its file system "
+                                   "does not support flock") from None
+        try:
+            same = os.stat(path).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            same = False
+        if not same:  # locked a file its holder unlinked on release: take the current one
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            os.close(fd)
+            continue
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, json.dumps(me).encode(), 0)
+        except OSError:
+            pass  # the kernel lock is held; only the refusal message of another run loses host / pid
+        return fd
+    raise StoreLockedError(f"{path}: the lock changed hands 100 times while taking it; try again")
+
+
+def _holder(fd: int) -> dict:
     try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+        data = os.pread(fd, 4096, 0)
+        holder = json.loads(data) if data else {}
+    except (OSError, ValueError):
+        holder = {}
+    return holder if isinstance(holder, dict) else {}

@@ -143,6 +143,8 @@ class SequenceInfo:
     files: every input file the sequence reads (for the content fingerprint).
     lighting: "day" or "night"; lighting_source: "config", "metadata" or "default".
     warnings: what a run should say about the sequence (defaults used, values ignored).
+    lidar_channels: float32 channels of every sweep of the sequence (4 or 5), taken from the size
+    of its first sweep of a valid size (``lidar_channels_from``); 0 when no sweep has one.
     """
 
     sequence: str
@@ -158,6 +160,8 @@ class SequenceInfo:
     lighting: str = "day"
     lighting_source: str = "default"
     warnings: tuple[str, ...] = ()
+    lidar_channels: int = 0
+    lidar_channels_from: Path | None = None
 
     @property
     def num_frames(self) -> int:

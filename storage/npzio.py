@@ -45,6 +45,10 @@ def save_npz_deterministic(path: str | os.PathLike, compressed: bool = True, **a
                 info.create_system = 3  # unix, independent of the host
                 zf.writestr(info, buffer.getvalue())
         os.replace(tmp, path)
+    except OSError as exc:  # a failed write() does not say which file (a full disk, a file size limit)
+        if exc.filename:
+            raise
+        raise type(exc)(exc.errno, exc.strerror or str(exc), str(path)) from None
     finally:
         if tmp.exists():
             tmp.unlink()

@@ -26,7 +26,7 @@ from storage.layout import (
     StoreError,
     check_name,
 )
-from storage.tables import partition_dir, publish_partition, to_table, write_table_file
+from storage.tables import partition_dir, publish_partition, to_table, write_partition, write_table_file
 
 
 @dataclass(frozen=True)
@@ -98,6 +98,27 @@ def publish_sequence(staged: StagedSequence, keep_old_versions: bool = False) ->
                 shutil.rmtree(old, ignore_errors=True)
     shutil.rmtree(staged.staging_dir, ignore_errors=True)
     return target
+
+
+def withdraw_sequence(root: str | os.PathLike, sequence: str, error: str, row: dict) -> bool:
+    """Take a sequence out of the published dataset because its last run failed: its arrays
+    (``occupancy/<seq>/``, ``current.json`` first, so readers stop listing it at once) and its
+    frames / instances partitions are removed, and its sequences-table row says ``status``
+    "failed" with ``error`` (``row``: the other non-null columns: fingerprint, config_hash,
+    code_version). Returns whether anything had been published."""
+    check_name("sequence", sequence)
+    root = Path(root)
+    seq_dir = root / OCCUPANCY_DIR / sequence
+    had = (seq_dir / CURRENT_FILE).exists()
+    (seq_dir / CURRENT_FILE).unlink(missing_ok=True)
+    shutil.rmtree(seq_dir, ignore_errors=True)
+    for name in ("frames", "instances"):
+        part = partition_dir(root, name, sequence)
+        had |= part.exists()
+        shutil.rmtree(part, ignore_errors=True)
+    write_partition(root, "sequences", sequence, [{**row, "status": "failed", "error": error, "num_frames": 0,
+                                                   "occupancy_version": None}])
+    return had
 
 
 def discard(staged: StagedSequence | str | os.PathLike) -> None:

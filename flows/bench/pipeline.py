@@ -161,7 +161,7 @@ def _fuse_fanout(data_root: str, out_root: str, overrides: dict, n_workers: int)
     inputs = fuse_inputs(cfg)
     man = Manifest.load(Path(out_root))
     seq = cfg.dataset.sequences[0] if isinstance(cfg.dataset.sequences, list) else "0"
-    ups = {s: Path(out_root) / man.get(seq, s).location for s in ("map",)}
+    ups = {s: Path(out_root) / man.get(seq, s).location for s in ("detect", "map")}
     with LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None) as cl, \
             Client(cl) as client:
         def unit():

@@ -1,22 +1,27 @@
-"""Planning at dataset scale: plan / status / dry-run seconds and hashing MB/s vs sequences.
+"""Planning at dataset scale: what ``rebuild`` / ``reprocess --dry-run`` / ``status`` cost on
+datasets of many sequences, and what the manifest costs (issue 17, item 3).
 
-``bench_planning(sequences, work_dir)`` simulates one short sequence (``simulate --fast``, 4 raw
-frames), replicates it with hard links under ``n`` sequence ids for each ``n`` of ``sequences``
-(the planner cannot tell: every path is hashed on its own), and measures, for each dataset, in
-this process (imports already done):
+``bench_planning(sequences, work_dir)`` simulates one short sequence, replicates it under N ids
+with hard links (same bytes, same inodes: a dataset of N sequences on the disk space of one) for
+each N in ``sequences``, and measures, per N:
 
-- ``first_status_s``: ``mobileocc status`` on an empty output store: opens every sequence and
-  hashes every input byte; ``hash_s``: the same plan once more (``status`` keeps no hash memo;
-  a run saves it) for ``hashed_mb`` and ``hash_mb_per_s`` (the copies share their pages, so the
-  bytes come from the page cache: sha256 speed, not disk speed);
-- every unit is then recorded done in ``OUT/manifest.json`` (an empty key folder with a
-  ``summary.json`` per unit, as a finished run leaves them; ``manifest_kb``);
-- ``plan_s``: ``plan_run`` once fingerprints are known (the hash memo is loaded);
-  ``status_s``: ``mobileocc status``; ``dry_run_s``: ``mobileocc reprocess --dry-run`` (both print
-  to /dev/null; every unit is fresh).
+- ``first_plan_s``: the first plan (no fingerprint known): every sequence opened, validated and
+  hashed; with ``hash_mb_per_s`` (bytes read and hashed / hashing seconds; hard links are hashed
+  once per plan, so ``bytes_hashed`` is about one sequence's worth) and ``unique_mb``;
+- ``status_s``, ``dry_run_s``, ``rebuild_s``: wall seconds of ``mobileocc status`` /
+  ``reprocess --dry-run`` / ``rebuild`` as commands (a new Python process each: start-up and
+  imports included; ``startup_s`` is ``mobileocc config show`` for comparison) once fingerprints
+  are known, on a store whose manifest holds every unit as done (rows written here with the keys
+  the plan computes and summaries shaped like a real run's: the pipeline itself is not run N
+  times). A rebuild with nothing to run starts no task runner and no Prefect server;
+- ``files_opened_in_plan``: input files opened by a no-change ``status`` (0: no frame bytes read);
+- the manifest: ``manifest_mb``, ``manifest_load_s``, ``manifest_save_s`` (one compaction),
+  ``journal_append_ms`` (one unit recorded), and ``full_rewrite_per_unit_run_s`` = units x one
+  full save: what recording a whole run cost when the manifest was rewritten after every unit
+  (measured save time x units, not run).
 
-This is the measurement the scale benchmark (flows/bench/scale.py) reports; the planner itself
-is flows/pipeline/plan.py.
+Run: ``python -m flows.bench.planning 10 100 1000`` (``mobileocc bench --scale`` calls
+:func:`bench_planning`).
 """
 
 from __future__ import annotations
@@ -26,12 +31,16 @@ import io
 import json
 import os
 import shutil
+import subprocess
+import sys
+import tempfile
 import time
 from pathlib import Path
 
-#: id of the simulated source sequence: a number no replica takes, replaced in paths by the
-#: replica's id
-_SOURCE_ID = 987654
+#: raw 10 Hz frames of the replicated sequence (10 frames at 5 Hz)
+RAW_FRAMES = 20
+#: the replicated sequence's own id: one that no replica's id or frame index can be mistaken for
+SOURCE_ID = 987654
 
 
 def replicate_sequence(src_root: Path, dst_root: Path, source_id: int, ids: list[int]) -> int:
@@ -56,125 +65,189 @@ def replicate_sequence(src_root: Path, dst_root: Path, source_id: int, ids: list
     return links
 
 
-def _record_all_done(config, out: Path) -> None:
-    """A manifest in which every unit of every sequence is done (empty outputs)."""
+def _cli(argv: list[str]) -> tuple[int, float, str]:
+    """(exit code, seconds, stdout) of ``mobileocc <argv>`` in this process."""
+    from flows import cli
+
+    buf = io.StringIO()
+    t0 = time.perf_counter()
+    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(io.StringIO()):
+        code = cli.main(argv)
+    return code, time.perf_counter() - t0, buf.getvalue()
+
+
+def _command(argv: list[str]) -> tuple[int, float, str]:
+    """(exit code, wall seconds, stdout) of ``mobileocc <argv>`` as a new process (this checkout)."""
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
+    t0 = time.perf_counter()
+    run = subprocess.run([sys.executable, "-m", "flows.cli", *argv], cwd=root, env=env, capture_output=True,
+                         text=True)
+    return run.returncode, time.perf_counter() - t0, run.stdout
+
+
+def _summaries(frames: int) -> dict[str, dict]:
+    """Stage summaries shaped like a real run's (their size is what the manifest carries)."""
+    raws = list(range(0, 2 * frames, 2))
+    return {"detect": {"implemented": True, "frames": raws, "failed_frames": [], "image_provider": "oracle",
+                       "lidar_provider": "lidar-clusters", "detections": 31, "lidar_boxes": 28},
+            "track": {"implemented": True, "tracks": 4, "tracked_detections": 29, "mean_person_points": 151.3},
+            "fit": {"implemented": True, "fitted": 25, "batches": 1, "skipped_without_estimate": 2,
+                    "skipped_few_points": 2, "dropped_far_from_estimate": 0, "device": "cpu", "preset": "ut_campus"},
+            "map": {"implemented": True, "static_voxels": 91234, "camera_labelled_voxels": 40211,
+                    "occupancy_voxels": 250119, "points_kept": 1200345, "points_removed": 2311,
+                    "ground_votes_rejected": 12},
+            "fuse": {"implemented": True, "frames": frames, "grid_shape": [48, 48, 24], "voxel_size_m": 0.2,
+                     "body_source": "fit", "pedestrian_meshes": 25},
+            "export": {"implemented": True, "frames": frames, "instances": 29, "occupancy_version": "x"}}
+
+
+def _complete_store(config, out: Path) -> int:
+    """Record every unit of every sequence as done (with an output folder), as a finished run
+    would leave the store; returns the number of rows."""
     from flows.pipeline.plan import plan_run
-    from storage.manifest import FileHasher, Manifest, StageRecord, stage_dir
+    from storage.manifest import FingerprintCache, Manifest, StageRecord, stage_dir
 
     manifest = Manifest.load(out)
-    hasher = FileHasher(out / ".cache" / "file-hashes.json")
-    for plan in plan_run(config, manifest, hasher):
+    plans = plan_run(config, manifest, FingerprintCache(out / ".cache" / "sequences"))
+    for plan in plans:
+        summaries = _summaries(plan.num_frames)
         for stage, unit in plan.units.items():
-            d = stage_dir(out, stage, plan.sequence, unit.key)
-            d.mkdir(parents=True, exist_ok=True)
-            (d / "summary.json").write_text("{}")
-            manifest.put(StageRecord(plan.sequence, stage, unit.key, "done", str(d.relative_to(out)),
-                                     finished_at=time.time(), parts=unit.parts))
+            folder = stage_dir(out, stage, plan.sequence, unit.key)
+            folder.mkdir(parents=True, exist_ok=True)
+            manifest.put(StageRecord(plan.sequence, stage, unit.key, "done", str(folder.relative_to(out)),
+                                     seconds=1.0, finished_at=time.time(), summary=summaries[stage],
+                                     parts=unit.parts))
+    manifest.meta.update({"config": config.model_dump(mode="json")})
     manifest.save()
+    return len(manifest.rows)
 
 
-def _cli_seconds(argv: list[str]) -> float:
-    from flows.cli import main
-
-    t0 = time.perf_counter()
-    with contextlib.redirect_stdout(io.StringIO()):
-        code = main(argv)
-    if code:
-        raise RuntimeError(f"mobileocc {' '.join(argv)} exited {code}")
-    return time.perf_counter() - t0
-
-
-def _plan_seconds(config, out: Path) -> float:
-    from flows.pipeline.plan import plan_run
-    from storage.manifest import FileHasher, Manifest
+def _manifest_costs(out: Path) -> dict:
+    from storage.manifest import JOURNAL, MANIFEST, Manifest
 
     t0 = time.perf_counter()
-    plans = plan_run(config, Manifest.load(out), FileHasher(out / ".cache" / "file-hashes.json"))
-    seconds = time.perf_counter() - t0
-    stale = sum(not u.fresh for p in plans for u in p.units.values())
-    if stale:
-        raise RuntimeError(f"{out}: {stale} unit(s) stale after recording every unit done")
-    return seconds
+    manifest = Manifest.load(out)
+    load_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    manifest.save()
+    save_s = time.perf_counter() - t0
+    rows = list(manifest.rows.values())[:50]
+    t0 = time.perf_counter()
+    for rec in rows:
+        manifest.record(rec)
+    append_ms = (time.perf_counter() - t0) / len(rows) * 1e3
+    (out / JOURNAL).unlink(missing_ok=True)
+    return {"rows": len(manifest.rows), "manifest_mb": (out / MANIFEST).stat().st_size / 1e6,
+            "manifest_load_s": load_s, "manifest_save_s": save_s, "journal_append_ms": append_ms,
+            "full_rewrite_per_unit_run_s": save_s * len(manifest.rows),
+            "journal_per_unit_run_s": append_ms / 1e3 * len(manifest.rows) + save_s}
 
 
-class _TimedHasher:
-    """A FileHasher that adds up the seconds spent in it (hashing, and stat-ing the memo's hits)."""
+def _opened_during(fn, root: Path) -> tuple[int, object]:
+    """How many files under ``root`` ``fn()`` opened (os.open and open), and its result."""
+    import builtins
 
-    def __init__(self, hasher):
-        self.hasher, self.seconds = hasher, 0.0
+    root_s, count = os.path.abspath(root) + os.sep, [0]
+    real_open, real_os_open = builtins.open, os.open
 
-    def __call__(self, path):
-        t0 = time.perf_counter()
-        try:
-            return self.hasher(path)
-        finally:
-            self.seconds += time.perf_counter() - t0
+    def counting_open(file, *a, **kw):
+        if isinstance(file, (str, os.PathLike)) and os.path.abspath(file).startswith(root_s):
+            count[0] += 1
+        return real_open(file, *a, **kw)
 
-    def save(self) -> None:
-        self.hasher.save()
+    def counting_os_open(path, *a, **kw):
+        if os.path.abspath(path).startswith(root_s):
+            count[0] += 1
+        return real_os_open(path, *a, **kw)
 
-
-def _prefill_memo(data: Path, out: Path, src: Path) -> None:
-    """The hash memo a first plan would leave, without hashing: the copies are hard links of the
-    source's files (same content); the rewritten metadata files are hashed."""
-    from storage.manifest import FileHasher, atomic_write_bytes, canonical_json
-
-    hasher = FileHasher(None)
-    by_inode = {p.stat().st_ino: hasher(p) for p in src.rglob("*") if p.is_file()}
-    memo = {}
-    for p in data.rglob("*"):
-        if p.is_file():
-            st = p.stat()
-            digest = by_inode.get(st.st_ino) or hasher(p)
-            memo[str(p.resolve())] = [st.st_size, st.st_mtime_ns, st.st_ino, digest]
-    atomic_write_bytes(out / ".cache" / "file-hashes.json", canonical_json(memo))
+    builtins.open, os.open = counting_open, counting_os_open
+    try:
+        result = fn()
+    finally:
+        builtins.open, os.open = real_open, real_os_open
+    return count[0], result
 
 
-def bench_planning(sequences: list[int], work_dir, hash_up_to: int = 100) -> dict:
-    """Plan / status / dry-run seconds and hashing MB/s for datasets of ``sequences`` sequences
-    (see the module docstring). Datasets of more than ``hash_up_to`` sequences are not hashed
-    (minutes on a loaded machine): their hash memo is filled from the source's digests (the copies
-    are hard links) and their first plan is projected from the hashing MB/s measured on the
-    largest hashed one (``first_status_s`` None, ``first_status_projected_s``). Returns
-    {"source": {...}, "datasets": {n: {...}}}."""
-    from flows.bench.pipeline import make_config
+def bench_planning(sequences: list[int], work_dir: Path | str) -> dict:
+    """Planning figures for datasets of each size in ``sequences`` (see the module docstring).
+    Returns {"machine", "raw_frames", "sizes": {N: figures}}."""
+    from configs.schema import load_config
+    from flows.bench.pipeline import machine
     from flows.commands.simulate import simulate
-    from flows.pipeline.plan import plan_run
-    from storage.manifest import FileHasher, Manifest
+    from flows.pipeline.plan import PlanCosts, plan_run
+    from storage.manifest import FingerprintCache, Manifest
 
     work = Path(work_dir)
-    src = work / "planning-source"
-    if not (src / "metadata" / f"{_SOURCE_ID}.json").exists():
-        simulate(src, sequences=1, frames=4, seed=3, pedestrians=2, progress=False, first_id=_SOURCE_ID,
-                 fast=True)
-    source_mb = sum(p.stat().st_size for p in src.rglob("*") if p.is_file() and "gt" not in p.parts) / 1e6
-    result: dict = {"source": {"raw_frames": 4, "frames": 2, "input_mb": source_mb}, "datasets": {}}
-    per_seq_mb = mb_per_s = None
-    for n in sorted(sequences):
-        if n > hash_up_to and per_seq_mb is None:
-            raise ValueError(f"bench_planning: {n} sequences are not hashed; list a size <= {hash_up_to} too")
-        data, out = work / f"planning-{n}" / "data", work / f"planning-{n}" / "out"
-        shutil.rmtree(data.parent, ignore_errors=True)
-        links = replicate_sequence(src, data, _SOURCE_ID, list(range(n)))
-        cfg = make_config(data, out)
-        args = ["--data", str(data), "--out", str(out)]
-        if n <= hash_up_to:
-            first = _cli_seconds(["status", *args])  # `status` hashes but keeps no memo: a run does
-            hasher = _TimedHasher(FileHasher(out / ".cache" / "file-hashes.json"))
-            plan_run(cfg, Manifest.load(out), hasher)
-            hasher.save()
-            hash_s = hasher.seconds
-            hashed_mb = sum(v[0] for v in json.loads((out / ".cache" / "file-hashes.json").read_text()).values()) / 1e6
-            per_seq_mb, mb_per_s = hashed_mb / n, hashed_mb / hash_s
-        else:
-            _prefill_memo(data, out, src)
-            first, hash_s, hashed_mb = None, None, per_seq_mb * n
-        _record_all_done(cfg, out)
-        result["datasets"][n] = {
-            "links": links, "first_status_s": first, "hashed_mb": hashed_mb, "hash_s": hash_s,
-            "hash_mb_per_s": mb_per_s, "first_status_projected_s": hashed_mb / mb_per_s,
-            "manifest_kb": (out / "manifest.json").stat().st_size / 1e3,
-            "plan_s": _plan_seconds(cfg, out), "status_s": _cli_seconds(["status", *args]),
-            "dry_run_s": _cli_seconds(["reprocess", "--dry-run", *args])}
-        shutil.rmtree(data.parent, ignore_errors=True)
+    work.mkdir(parents=True, exist_ok=True)
+    source = work / "source"
+    if not (source / "timestamps").is_dir():
+        simulate(source, sequences=1, frames=RAW_FRAMES, seed=3, pedestrians=2, crowd="uncrowded", progress=False,
+                 first_id=SOURCE_ID)
+    result: dict = {"machine": machine(), "raw_frames": RAW_FRAMES, "sizes": {}}
+    for n in sequences:
+        data, out = work / f"data-{n}", work / f"out-{n}"
+        shutil.rmtree(out, ignore_errors=True)
+        out.mkdir(parents=True)
+        replicate_sequence(source, data, SOURCE_ID, list(range(n)))
+        over = {"dataset.root": str(data), "output.root": str(out), "export.formats": []}
+        config = load_config(None, over)
+        args = ["--data", str(data), "--out", str(out), "--set", "export.formats=[]"]
+        costs = PlanCosts()
+        t0 = time.perf_counter()
+        plans = plan_run(config, Manifest.load(out), FingerprintCache(out / ".cache" / "sequences"), costs=costs)
+        first = time.perf_counter() - t0
+        assert not any(p.error for p in plans), [p.error for p in plans if p.error][:3]
+        rows = _complete_store(config, out)
+        figures = {"sequences": n, "units": rows, "first_plan_s": first, "files_hashed": costs.files_hashed,
+                   "bytes_hashed": costs.bytes_hashed, "hash_mb_per_s": costs.hash_mb_per_s,
+                   "unique_mb": sum(f.stat().st_size for f in source.rglob("*") if f.is_file()) / 1e6}
+        figures["startup_s"] = _command(["config", "show"])[1]
+        for name, argv in (("status", ["status", *args]), ("dry_run", ["reprocess", "--dry-run", *args]),
+                           ("rebuild", ["rebuild", "--quiet", *args])):
+            code, seconds, text = _command(argv)
+            figures[f"{name}_s"], figures[f"{name}_exit"] = seconds, code
+            figures[f"{name}_lines"] = len(text.splitlines())
+        opened, _ = _opened_during(lambda: _cli(["status", *args]), data)
+        figures["files_opened_in_plan"] = opened
+        figures.update(_manifest_costs(out))
+        result["sizes"][n] = figures
     return result
+
+
+def format_table(result: dict) -> str:
+    m = result["machine"]
+    lines = [f"machine: {m['cpu_model']} x{m['cpu_count']}, load {m['load_avg_1m']:.1f}; one sequence of "
+             f"{result['raw_frames']} raw frames replicated by hard links",
+             f"{'sequences':>9} {'first plan':>10} {'MB/s':>6} {'start-up':>8} {'status':>7} {'dry-run':>8} {'rebuild':>8} "
+             f"{'opened':>6} {'manifest':>9} {'load':>6} {'save':>6} {'append':>7} {'rewrite/unit':>12}"]
+    for n, f in sorted(result["sizes"].items()):
+        lines.append(f"{n:>9} {f['first_plan_s']:>9.1f}s {f['hash_mb_per_s'] or 0:>6.0f} {f['startup_s']:>7.1f}s "
+                     f"{f['status_s']:>6.1f}s "
+                     f"{f['dry_run_s']:>7.1f}s {f['rebuild_s']:>7.1f}s {f['files_opened_in_plan']:>6} "
+                     f"{f['manifest_mb']:>7.1f}MB {f['manifest_load_s']:>5.2f}s {f['manifest_save_s']:>5.2f}s "
+                     f"{f['journal_append_ms']:>5.2f}ms {f['full_rewrite_per_unit_run_s']:>11.0f}s")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:  # pragma: no cover - a measurement, run by hand
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m flows.bench.planning", description=__doc__.splitlines()[0])
+    p.add_argument("sizes", nargs="*", type=int, default=[10, 100, 1000])
+    p.add_argument("--work", type=Path, default=None, help="working folder (default: a temporary one, removed)")
+    p.add_argument("--json", type=Path, default=None)
+    a = p.parse_args(argv)
+    work = a.work or Path(tempfile.mkdtemp(prefix="mobileocc-bench-planning-"))
+    try:
+        result = bench_planning(a.sizes, work)
+    finally:
+        if a.work is None:
+            shutil.rmtree(work, ignore_errors=True)
+    print(format_table(result))
+    if a.json is not None:
+        a.json.write_text(json.dumps(result, indent=1, default=str) + "\n")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -44,6 +44,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from flows.bench.planning import SOURCE_ID  # the simulated long sequence's id (a number no copy takes)
+
 DEFAULT_FRAMES = (10, 20, 40)
 DEFAULT_SEQUENCES = (10, 100, 1000)
 DEFAULT_CLUSTER_WORKERS = (1, 2, 4)
@@ -54,8 +56,6 @@ SEQUENCE_FRAMES = 5_000
 LONG_FIT_ITERATIONS = 10
 CLUSTER_SEQUENCES = 4
 CLUSTER_FRAMES = 6
-#: id of the simulated long sequence (a number no copy takes)
-SOURCE_ID = 987654
 PARTS = ("simulator", "long", "cost", "planning", "cluster")
 SERIAL_STAGES = ("track", "map")
 
@@ -406,11 +406,9 @@ def format_scale(r: dict) -> str:
         lines.append(f"per-frame cost, default settings ({c['frames']} frames): " + ", ".join(
             f"{st} {c[st]['cpu_s_per_frame']:.2f} CPU / {c[st]['wall_s_per_frame']:.2f} wall s" for st in STAGE_ORDER))
     if "planning" in r:
-        lines.append("planning vs sequences (s): first status (hashing) / plan / status / dry-run; hashing MB/s")
-        for n, v in r["planning"]["datasets"].items():
-            first = "n/a" if v.get("first_status_s") is None else f"{v['first_status_s']:.2f}"
-            lines.append(f"  {n:>6} seq: {first:>7} / {v['plan_s']:.2f} / {v['status_s']:.2f} / {v['dry_run_s']:.2f};"
-                         f" {v['hash_mb_per_s']:.0f} MB/s over {v['hashed_mb']:.0f} MB; manifest {v['manifest_kb']:.0f} kB")
+        from flows.bench.planning import format_table
+        lines.append("planning vs sequences (flows/bench/planning.py):")
+        lines.extend("  " + line for line in format_table(r["planning"]).splitlines())
     if "cluster" in r:
         cl = r["cluster"]
         lines.append(f"loopback dask cluster ({cl['sequences']} x {cl['frames_per_sequence']} frames, "

@@ -8,14 +8,17 @@ STAGES: dict[str, tuple[str, ...]] = {
     "track": ("detect",),
     "fit": ("track",),
     "map": ("detect",),
-    "fuse": ("fit", "map"),
+    "fuse": ("detect", "fit", "map"),  # detect: the frames it produced are the store's frame axis
     "export": ("fuse", "track", "fit"),  # tables take tracks and body fits too
 }
 
 #: Explicit code versions: bump a stage's version when its output for the same input changes.
 #: (A key from code versions, not from source hashes: refactors do not invalidate datasets.)
 CODE_VERSIONS: dict[str, str] = {
-    "detect": "2",  # 2: the oracle's miss curve calibrated on the paper's detection table
+    "detect": "3",  # 2: the oracle's miss curve calibrated on the paper's detection table; 3: a frame
+    #               with bad input is left out (failed_frames in the summary) instead of failing the
+    #               sequence, images decoded and size-checked, a sweep's channels from its sequence's
+    #               first sweep (every later stage's key follows through its upstream keys)
     "track": "5",  # 2: offline back-fill and stitching; 3: world-position check; 4: person points past the
     #               image side; 5: 2d_rect cameras read as the rectified pinhole (real CODa calibration)
     "fit": "4",  # 2: L_3D caps the vertex -> point distances (fit.chamfer_vertex_max_m); 100 iterations;

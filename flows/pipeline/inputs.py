@@ -239,6 +239,8 @@ class DetectInputs:
     source: Source
     image: OracleProvider | PrecomputedProvider | ModelsProvider
     lidar: LidarClustersProvider | OracleProvider | PrecomputedProvider | NoProvider
+    #: frames with bad input are left out; the stage fails when more than this share of them are
+    max_failed_frame_share: float
 
 
 @dataclass(frozen=True)
@@ -337,7 +339,7 @@ def _body(config: Config) -> BodyModelFiles:
 def detect_inputs(config: Config) -> DetectInputs:
     det = config.detect
     return DetectInputs(source(config), _provider(det.image_provider, config, det.seed),
-                        _provider(det.lidar_provider, config, det.seed))
+                        _provider(det.lidar_provider, config, det.seed), det.max_failed_frame_share)
 
 
 def track_inputs(config: Config) -> TrackInputs:

@@ -3,17 +3,55 @@
 Without ``PREFECT_API_URL`` Prefect starts a temporary server per process, and Dask worker
 processes would each start their own (measured with prefect 3.8). So when no API is
 configured we start one temporary server here and export its address, which the Dask worker
-processes inherit.
+processes inherit. The server is a child process that the kernel ends when this process ends in
+any way (``PR_SET_PDEATHSIG`` on Linux, a ``kill -9`` included), so no server outlives its CLI.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import sys
 import tempfile
 from typing import Iterator
 
 from configs.schema import Config
+
+
+def _die_with(parent: int):
+    """A ``preexec_fn``: the child gets SIGTERM when ``parent`` ends, however it ends (Linux
+    ``PR_SET_PDEATHSIG``; the kernel sends it, so a ``kill -9`` of the CLI is covered)."""
+    import ctypes
+    import signal
+
+    libc = ctypes.CDLL(None, use_errno=True)  # loaded here: the child only calls into it
+
+    def preexec() -> None:
+        libc.prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
+        if os.getppid() != parent:  # the parent died before the line above
+            os.kill(os.getpid(), signal.SIGTERM)
+    return preexec
+
+
+@contextlib.contextmanager
+def _server_dies_with_this_process() -> Iterator[None]:
+    """While Prefect starts its temporary server, its ``subprocess.Popen`` gets :func:`_die_with`."""
+    if not sys.platform.startswith("linux"):
+        yield  # elsewhere the server ends with server.stop() only
+        return
+    import prefect.server.api.server as server_module
+
+    real = server_module.subprocess.Popen
+
+    def popen(*args, **kwargs):
+        kwargs.setdefault("preexec_fn", _die_with(os.getpid()))
+        return real(*args, **kwargs)
+
+    server_module.subprocess.Popen = popen
+    try:
+        yield
+    finally:
+        server_module.subprocess.Popen = real
 
 
 @contextlib.contextmanager
@@ -30,7 +68,8 @@ def prefect_api() -> Iterator[str | None]:
     from prefect.settings import PREFECT_API_URL, temporary_settings
 
     server = SubprocessASGIServer()
-    server.start(timeout=120)
+    with _server_dies_with_this_process():
+        server.start(timeout=120)
     os.environ["PREFECT_API_URL"] = server.api_url
     try:
         with temporary_settings(updates={PREFECT_API_URL: server.api_url}):

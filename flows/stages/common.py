@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import json
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,6 +42,14 @@ class StageContext:
     @property
     def sequence(self) -> str:
         return self.ref.sequence
+
+
+def detected_positions(ctx: StageContext, seq: CodaSequence) -> list[int]:
+    """Positions (in ``seq.info.frame_indices``) of the frames the detect stage produced: a frame
+    whose input was bad is in its ``failed_frames`` instead and no later stage reads it."""
+    summary = json.loads((ctx.upstream["detect"] / "summary.json").read_text())
+    at = {raw: k for k, raw in enumerate(seq.info.frame_indices)}
+    return [at[int(raw)] for raw in summary["frames"]]
 
 
 def chunks(n: int, size: int) -> list[list[int]]:

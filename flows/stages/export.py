@@ -61,14 +61,15 @@ def instance_rows(ctx: StageContext, frame_pos: dict[int, int], T_base_from_lida
 
 
 def frame_rows(ctx: StageContext, seq, fused: FusedFrames) -> list[dict]:
-    """One row per frame; source paths relative to the dataset root."""
+    """One row per frame of the fused store (the frames detect produced); source paths relative
+    to the dataset root."""
     night, cams = is_night(seq), seq.info.calibration.cameras
 
     def rel(path):
         return source_relative(path, seq.root)
 
     return [{"frame": k, "raw_frame": raw, "stamp_ns": int(fused.stamp_ns[k]),
-             "T_world_from_lidar": seq.info.poses[k].reshape(-1).tolist(),
+             "T_world_from_lidar": seq.info.poses[seq.position(raw)].reshape(-1).tolist(),
              "T_world_from_base": fused.T_world_from_base[k].reshape(-1).tolist(),
              "lidar_path": rel(seq.path(seq.lidar_source, "os1", raw, ".bin")),
              "cam0_path": rel(seq.image_path("cam0", raw)) if "cam0" in cams else "",

@@ -16,7 +16,7 @@ import numpy as np
 
 from flows.pipeline.inputs import FuseInputs, SequenceRef
 from flows.pipeline.parallel import fan_out
-from flows.stages.common import StageContext, body_model
+from flows.stages.common import StageContext, body_model, detected_positions
 from storage.gt import read_frame_gt, read_sequence_gt
 from storage.occupancy_store import create_store, write_frames
 from storage.products import Bodies, FusedFrames, OccupancyMapProduct, StaticMapProduct
@@ -57,8 +57,10 @@ class _People:
 
 
 def fuse_chunk(ref: SequenceRef, inputs: FuseInputs, out_root: Path, positions: list[int],
-               store: Path, map_dir: Path, fit_dir: Path | None, threads: int) -> list[dict]:
-    """Fuse some frames (one write unit of the store) and write them."""
+               store: Path, map_dir: Path, fit_dir: Path | None, start: int,
+               threads: int) -> list[dict]:
+    """Fuse some frames (positions in the sequence) and write them as one write unit of the store,
+    from index ``start`` of its frame axis (the frames detect produced, in order)."""
     seq = inputs.source.open(ref)
     calib = seq.info.calibration
     cam, T_base_from_lidar = calib.cameras[inputs.source.camera], calib.T_base_from_lidar
@@ -79,20 +81,20 @@ def fuse_chunk(ref: SequenceRef, inputs: FuseInputs, out_root: Path, positions: 
             stacks.setdefault(name, []).append(value)
         rows.append({"frame": frame.index, "stamp_ns": frame.stamp_ns, "people": len(persons), "counts": counts,
                      "T_world_from_base": T_world_from_base})
-    write_frames(store, positions[0], {k: np.stack(v) for k, v in stacks.items()})
+    write_frames(store, start, {k: np.stack(v) for k, v in stacks.items()})
     return rows
 
 
 def run_fuse(ctx: StageContext) -> dict:
     inp, spec = ctx.inputs, ctx.inputs.grid
     fit_dir = ctx.upstream.get("fit") if inp.body_source == "fit" else None
-    store = ctx.out_dir / "occupancy.zarr"
-    layout = create_store(store, len(ctx.open()), spec.shape, inp.frames_per_chunk, {
+    store, at = ctx.out_dir / "occupancy.zarr", detected_positions(ctx, ctx.open())
+    layout = create_store(store, len(at), spec.shape, inp.frames_per_chunk, {
         "range_min": list(spec.range_min), "range_max": list(spec.range_max),
         "voxel_size_m": spec.voxel_size_m, "stage_key": ctx.key, "sequence": ctx.sequence,
         "body_source": inp.body_source})
-    parts = fan_out(fuse_chunk, [(ctx.ref, inp, ctx.out_root, list(range(a, b)), store, ctx.upstream["map"],
-                                  fit_dir, ctx.runtime.threads) for a, b in layout.write_units()],
+    parts = fan_out(fuse_chunk, [(ctx.ref, inp, ctx.out_root, at[a:b], store, ctx.upstream["map"], fit_dir, a,
+                                  ctx.runtime.threads) for a, b in layout.write_units()],
                     threads=ctx.runtime.threads)
     rows = [r for part in parts for r in part]
     FusedFrames(np.array([r["frame"] for r in rows], np.int64), np.array([r["stamp_ns"] for r in rows], np.int64),

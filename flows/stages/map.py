@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from flows.stages.common import StageContext
+from flows.stages.common import StageContext, detected_positions
 from storage.products import Detections, OccupancyMapProduct, StaticMapProduct
 from tasks.conventions import UNLABELED
 from tasks.occupancy.mapping import SequenceMapper
@@ -21,7 +21,7 @@ def run_map(ctx: StageContext) -> dict:
     lut[[k for k, _ in inp.class_lut]] = [v for _, v in inp.class_lut]
     mapper = SequenceMapper(inp.settings, inp.freespace, lut, cam.K, cam.T_cam_from_lidar, cam.width,
                             cam.height, inp.assoc_min_iou, threads=ctx.runtime.threads)
-    for i in range(len(seq)):
+    for i in detected_positions(ctx, seq):
         frame = seq.frame(i)
         d = Detections.read(ctx.upstream["detect"], Detections.file_name(frame.index))
         mapper.add_sweep(frame.points_lidar, frame.T_world_from_lidar, d.semantic, d.mask_labels,

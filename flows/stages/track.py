@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from flows.stages.common import StageContext
+from flows.stages.common import StageContext, detected_positions
 from storage.products import Detections, Tracks, labels_to_masks
 from tasks.track.ocsort import PedestrianTracker
 from tasks.track.offline import track_offline
@@ -31,11 +31,11 @@ def _frame(ctx: StageContext, seq, cam, i: int) -> tuple[int, dict, FramePersons
 
 def run_track(ctx: StageContext) -> dict:
     inp, seq = ctx.inputs, ctx.open()
-    cam = seq.info.calibration.cameras[inp.source.camera]
-    raws, dets, persons = zip(*(_frame(ctx, seq, cam, i) for i in range(len(seq)))) if len(seq) else ((), (), ())
+    cam, at = seq.info.calibration.cameras[inp.source.camera], detected_positions(ctx, seq)
+    raws, dets, persons = zip(*(_frame(ctx, seq, cam, i) for i in at)) if at else ((), (), ())
     per = {k: [d[k] for d in dets] for k in ("boxes_xyxy", "scores", "keypoints", "gt_index")}
     ids = track_offline(per["boxes_xyxy"], per["scores"], PedestrianTracker(inp.tracker), inp.offline,
-                        [p.world_xy for p in persons], seq.info.stamps_ns * 1e-9, inp.world_check)
+                        [p.world_xy for p in persons], seq.info.stamps_ns[at] * 1e-9, inp.world_check)
     tracks = Tracks(**track_rows(list(raws), ids, list(persons), per["boxes_xyxy"], per["scores"],
                                  per["keypoints"], per["gt_index"]))
     tracks.write(ctx.out_dir)

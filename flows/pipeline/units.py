@@ -1,0 +1,445 @@
+"""Running a dataset's units: plan, submit, record, withdraw, export (Prefect-free).
+
+:func:`run_units` is the body of the Prefect flows of flows/pipeline/run.py, which hand it a
+submitter that turns each (sequence, stage) unit into a Prefect task; without one it runs every
+unit here, in order (``inline``: tests, benchmarks, and the CLI when nothing needs to run, which
+then imports neither Prefect nor the stages).
+
+Units whose key is fresh in the manifest are not submitted; a unit whose upstream failed is
+skipped (and recorded as such). Sequences are planned one by one and each one's detect unit is
+submitted as soon as it is planned, so fingerprinting the next sequences overlaps with work; the
+later stages are submitted stage-major once planning is done. The flow process appends every
+finished unit to the manifest's journal at once, so a killed run resumes where it stopped.
+
+Nothing disappears: a sequence that cannot be read, or any of whose units failed or was skipped,
+is in the report (``RunReport.exit_code`` 1) and the manifest, and its earlier published data are
+withdrawn (storage.publish.withdraw_sequence: the sequences table marks it failed) and so left
+out of the dataset-level exports.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+import traceback
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from configs.schema import Config, config_hash
+from flows.pipeline.dag import CODE_VERSIONS, STAGES
+from flows.pipeline.inputs import (
+    DatasetExportInputs,
+    Runtime,
+    dataset_export_inputs,
+    export_inputs,
+    inputs_hash,
+    runtime,
+)
+from flows.pipeline.plan import (
+    PlanCosts,
+    SequencePlan,
+    UnitPlan,
+    iter_plans,
+    selected_sequences,
+)
+from storage.coda import check_dataset_root
+from storage.manifest import (
+    FingerprintCache,
+    Manifest,
+    StageRecord,
+    check_writable,
+    holding_lock,
+    remove_stale_versions,
+    run_lock,
+    stage_dir,
+    staged_output,
+    sweep_temporaries,
+)
+from storage.publish import withdraw_sequence
+
+
+def _error_text(exc: BaseException, where: Path) -> str:
+    """A stage error as recorded: a disk error without a file name gets the unit's output folder."""
+    if isinstance(exc, OSError) and not exc.filename:
+        return f"{type(exc).__name__}: {exc} (writing under {where})"
+    return f"{type(exc).__name__}: {exc}"
+
+
+def execute_unit(unit: UnitPlan, out_root: Path, upstream: dict[str, dict],
+                 fingerprint: str = "", runtime: Runtime = Runtime()) -> dict:
+    """Run one (sequence, stage): returns an outcome dict; never raises for a stage error."""
+    base = {"sequence": unit.sequence, "stage": unit.stage, "key": unit.key, "parts": unit.parts}
+    blocked = [s for s, o in upstream.items() if o["status"] not in ("done", "cached")]
+    if blocked:
+        return {**base, "status": "skipped", "error": f"upstream {', '.join(blocked)} did not finish"}
+    final = stage_dir(out_root, unit.stage, unit.sequence, unit.key)
+    location = str(final.relative_to(out_root))
+    if (final / "summary.json").exists():  # finished by a run that was killed before recording it
+        summary = json.loads((final / "summary.json").read_text())
+        return {**base, "status": "done", "location": location, "summary": summary, "seconds": 0.0}
+    from flows.pipeline.parallel import limit_threads
+    from flows.stages import (  # the kernels: only where a unit runs
+        STAGE_FUNCTIONS,
+        StageContext,
+    )
+
+    started = time.perf_counter()
+    limit_threads(runtime.threads)
+    try:
+        with staged_output(final) as tmp:
+            ctx = StageContext(unit.ref, unit.inputs, Path(out_root), tmp,
+                               {s: Path(out_root) / o["location"] for s, o in upstream.items()},
+                               key=unit.key, fingerprint=fingerprint, runtime=runtime)
+            summary = STAGE_FUNCTIONS[unit.stage](ctx)
+            (tmp / "summary.json").write_text(json.dumps(summary, sort_keys=True, indent=1))
+    except Exception as exc:  # noqa: BLE001 - one bad sequence fails alone, with its error
+        return {**base, "status": "failed", "seconds": time.perf_counter() - started,
+                "error": _error_text(exc, final.parent), "traceback": traceback.format_exc(limit=8)}
+    return {**base, "status": "done", "location": location, "summary": summary,
+            "seconds": time.perf_counter() - started}
+
+
+@dataclass
+class RunReport:
+    out_root: Path
+    plans: list[SequencePlan]
+    outcomes: dict[tuple[str, str], dict] = field(default_factory=dict)
+    seconds: float = 0.0
+    #: format -> "done" or "failed: <error>" for the dataset-level exports made in this run
+    dataset_exports: dict[str, str] = field(default_factory=dict)
+    #: what planning cost (sequences read, bytes hashed, MB/s)
+    costs: PlanCosts = field(default_factory=PlanCosts)
+    #: sequences whose earlier published data this run withdrew (their last run failed)
+    withdrawn: list[str] = field(default_factory=list)
+    #: manifest / memo files that could not be written (a full disk), with the error
+    write_errors: list[str] = field(default_factory=list)
+    #: leftovers of earlier runs removed at the start
+    swept: int = 0
+
+    @property
+    def failed(self) -> list[dict]:
+        return [o for o in self.outcomes.values() if o["status"] == "failed"]
+
+    @property
+    def skipped(self) -> list[dict]:
+        return [o for o in self.outcomes.values() if o["status"] == "skipped"]
+
+    def failed_frames(self) -> dict[str, list[dict]]:
+        """sequence -> the frames detect left out for bad input (run now or cached)."""
+        out = {}
+        for (seq, stage), o in sorted(self.outcomes.items()):
+            bad = (o.get("summary") or {}).get("failed_frames") if stage == "detect" else None
+            if bad and o["status"] in ("done", "cached"):
+                out[seq] = bad
+        return out
+
+    @property
+    def exit_code(self) -> int:
+        """0 when every sequence and frame went through and everything was written; 1 otherwise."""
+        bad_export = any(v != "done" for v in self.dataset_exports.values())
+        return int(bool(self.failed or self.skipped or self.failed_frames() or bad_export or self.write_errors))
+
+    def ran(self, stage: str | None = None) -> list[tuple[str, str]]:
+        return sorted(k for k, o in self.outcomes.items()
+                      if o["status"] in ("done", "failed") and o.get("ran", True)
+                      and (stage is None or k[1] == stage))
+
+
+def _record(manifest: Manifest, outcome: dict, report: RunReport | None = None) -> None:
+    """Journal a unit's outcome (done, failed or skipped); a disk error is reported, not raised:
+    the row stays in memory for the final save and the run goes on."""
+    if outcome["status"] not in ("done", "failed", "skipped"):
+        return
+    rec = StageRecord(
+        sequence=outcome["sequence"], stage=outcome["stage"], key=outcome["key"],
+        status=outcome["status"], location=outcome.get("location", ""),
+        error=outcome.get("error", ""), seconds=round(outcome.get("seconds", 0.0), 3),
+        finished_at=time.time(), summary=outcome.get("summary", {}), parts=outcome["parts"])
+    try:
+        manifest.record(rec)
+    except OSError as exc:
+        if report is None:
+            raise
+        report.write_errors.append(f"manifest journal {exc.filename}: {exc.strerror}")
+    if outcome["status"] == "done":
+        remove_stale_versions(manifest.root, outcome["stage"], outcome["sequence"], outcome["key"])
+
+
+def _save(manifest: Manifest, report: RunReport) -> None:
+    try:
+        manifest.save()
+    except OSError as exc:
+        report.write_errors.append(f"manifest {exc.filename}: {exc.strerror}")
+
+
+def check_run_paths(config: Config, sequences: list[str] | None = None) -> list[str]:
+    """Before any work: the output store is writable and the dataset root holds sequences;
+    returns the sequences to run. Raises storage.manifest.OutputError / storage.coda's
+    CodaFormatError with one clear line."""
+    check_writable(Path(config.output.root))
+    if sequences is not None:
+        return [str(s) for s in sequences]
+    check_dataset_root(Path(config.dataset.root))
+    return selected_sequences(config)
+
+
+class Submitter:
+    """How units run. This one: here, at once (``submit`` returns the outcome). The Prefect flows
+    use one that returns futures and yields outcomes as they complete (flows/pipeline/run.py)."""
+
+    def submit(self, stage: str, *args) -> Any:
+        return execute_unit(*args)
+
+    def completed(self, futures: list) -> Any:
+        return iter(())
+
+
+class _Units:
+    """Submits units and records their outcomes."""
+
+    def __init__(self, config: Config, manifest: Manifest, report: RunReport, submitter: Submitter):
+        self.config, self.manifest, self.report, self.submitter = config, manifest, report, submitter
+        self.results: dict[str, dict[str, Any]] = {}
+        self.futures: list = []
+        self.on_done: Callable[[dict], None] = lambda outcome: None
+
+    def fail_plan(self, plan: SequencePlan) -> None:
+        outcome = {"sequence": plan.sequence, "stage": "detect", "key": "", "parts": {},
+                   "status": "failed", "error": plan.error}
+        self.finish(outcome)
+
+    def finish(self, outcome: dict) -> None:
+        self.report.outcomes[(outcome["sequence"], outcome["stage"])] = outcome
+        _record(self.manifest, outcome, self.report)
+        self.on_done(outcome)
+
+    def submit(self, plan: SequencePlan, stage: str) -> None:
+        mine, unit = self.results.setdefault(plan.sequence, {}), plan.units[stage]
+        if unit.fresh:
+            rec = self.manifest.get(plan.sequence, stage)
+            mine[stage] = {"sequence": plan.sequence, "stage": stage, "key": unit.key, "parts": unit.parts,
+                           "status": "cached", "location": rec.location, "summary": rec.summary,
+                           "seconds": 0.0, "ran": False}
+            self.report.outcomes[(plan.sequence, stage)] = mine[stage]
+            return
+        mine[stage] = self.submitter.submit(stage, unit, self.report.out_root, {u: mine[u] for u in STAGES[stage]},
+                                            plan.fingerprint, runtime(self.config))
+        if isinstance(mine[stage], dict):  # ran here
+            self.finish(mine[stage])
+        else:
+            self.futures.append(mine[stage])
+
+    def wait(self) -> None:
+        for outcome in self.submitter.completed(self.futures):
+            self.finish(outcome)
+
+
+def run_units(config: Config, force: bool = False, sequences: list[str] | None = None,
+              progress: bool = True, verify: bool = False,
+              plans: list[SequencePlan] | None = None, lock_held: bool = False,
+              submitter: Submitter | None = None) -> RunReport:
+    """Plan and run; the body of both flows (which pass a Prefect ``submitter``). Without one
+    (``inline``) every unit runs here, in order. ``verify``: hash every input file.
+    ``plans``: already made under this run's lock (flows.pipeline.plan.plan_without_hashing).
+    ``lock_held``: the caller holds the output store's lock (checked) and keeps it."""
+    out_root, started = Path(config.output.root), time.perf_counter()
+    ids = check_run_paths(config, sequences)
+    with holding_lock(out_root) if lock_held else run_lock(out_root):
+        report = RunReport(out_root, [])
+        report.swept = sweep_temporaries(out_root)
+        manifest = Manifest.load(out_root)
+        manifest.meta.update({"config_hash": config_hash(config), "config": config.model_dump(mode="json")})
+        units = _Units(config, manifest, report, submitter or Submitter())
+        cache = FingerprintCache(out_root / ".cache" / "sequences", verify)
+        with _Progress(report, units, progress, len(ids)) as bars:
+            for plan in plans if plans is not None else iter_plans(config, manifest, cache, force, ids, report.costs):
+                report.plans.append(plan)
+                bars.planned()
+                if plan.error:
+                    units.fail_plan(plan)
+                else:
+                    units.submit(plan, "detect")  # now: the next sequences are hashed meanwhile
+            report.write_errors += cache.errors
+            _save(manifest, report)  # the meta (config, inputs) with the rows so far
+            bars.start(units)
+            # stage-major order: a thread pool runs tasks in submission order and a task waiting on
+            # its upstream holds a thread, so every sequence's track goes first, then every fit, ...
+            for stage in list(STAGES)[1:]:
+                for plan in report.plans:
+                    if not plan.error:
+                        units.submit(plan, stage)
+            units.wait()
+        _withdraw_failed(config, report)
+        _dataset_exports(config, manifest, report)
+        _save(manifest, report)
+    report.seconds = time.perf_counter() - started
+    return report
+
+
+def _first_problem(report: RunReport, plan: SequencePlan) -> str | None:
+    """Why a sequence is not published by this run (None when its export is done or cached)."""
+    if plan.error:
+        return plan.error
+    export = report.outcomes.get((plan.sequence, "export"))
+    if export is not None and export["status"] in ("done", "cached"):
+        return None
+    for stage in STAGES:
+        o = report.outcomes.get((plan.sequence, stage))
+        if o is not None and o["status"] == "failed":
+            return f"{stage}: {o.get('error', '')}"
+    return "export did not run"
+
+
+def _withdraw_failed(config: Config, report: RunReport) -> None:
+    """Withdraw the published data of every sequence this run could not publish (and mark it
+    failed in the sequences table), so the dataset never shows outputs the manifest calls failed."""
+    ex = export_inputs(config)
+    for plan in report.plans:
+        problem = _first_problem(report, plan)
+        if problem is None:
+            continue
+        row = {"fingerprint": plan.fingerprint, "config_hash": ex.content_hash, "code_version": CODE_VERSIONS["export"]}
+        try:
+            if withdraw_sequence(report.out_root, plan.sequence, problem, row):
+                report.withdrawn.append(plan.sequence)
+        except (OSError, ValueError) as exc:  # e.g. a sequence id that is no valid partition name
+            report.write_errors.append(f"withdrawing sequence {plan.sequence}: {exc}")
+
+
+def _dataset_exports(config: Config, manifest: Manifest, report: RunReport) -> None:
+    """The Occ3D / nuScenes exports of the whole dataset (``export.formats``), made again when a
+    sequence was (re)published or withdrawn, or their settings changed. Each is written aside and
+    swapped in, so a failed or killed export leaves the previous one. A failure is reported, not
+    raised: the sequences are published."""
+    ex = dataset_export_inputs(config)
+    published = report.withdrawn or any(st == "export" and o["status"] == "done" and o.get("ran", True)
+                                        for (_, st), o in report.outcomes.items())
+    key, done = inputs_hash(ex), manifest.meta.setdefault("dataset_exports", {})
+    for fmt in ex.formats:
+        if not (published or done.get(fmt) != key):
+            continue
+        final = Path(config.output.root) / "exports" / fmt
+        tmp = final.with_name(f".tmp-{fmt}-{uuid.uuid4().hex[:8]}")
+        try:
+            export_dataset(ex, Path(config.output.root), Path(config.dataset.root), fmt, target=tmp)
+            _swap_in(tmp, final)
+            done[fmt] = key
+            report.dataset_exports[fmt] = "done"
+        except Exception as exc:  # noqa: BLE001 - the sequences stay published
+            shutil.rmtree(tmp, ignore_errors=True)
+            done.pop(fmt, None)
+            report.dataset_exports[fmt] = f"failed: {type(exc).__name__}: {exc}"
+
+
+def _swap_in(new: Path, final: Path) -> None:
+    """Replace the folder ``final`` by ``new`` (two renames; the old one is then deleted)."""
+    old = final.with_name(f".tmp-old-{final.name}-{uuid.uuid4().hex[:8]}")
+    if final.exists():
+        os.replace(final, old)
+    os.replace(new, final)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+class _Progress:
+    """One progress line for planning, then one per stage (never one per sequence)."""
+
+    def __init__(self, report: RunReport, units: _Units, enabled: bool, sequences: int):
+        self.report, self.enabled, self.bars, self.plan_bar = report, enabled, {}, None
+        if enabled and sequences > 1:
+            from tqdm import tqdm
+
+            self.plan_bar = tqdm(total=sequences, desc="  plan", unit="seq", leave=True)
+
+    def __enter__(self) -> _Progress:
+        return self
+
+    def planned(self) -> None:
+        if self.plan_bar is not None:
+            self.plan_bar.update(1)
+
+    def start(self, units: _Units) -> None:
+        if self.plan_bar is not None:
+            self.plan_bar.close()
+        todo = {s: sum(1 for p in self.report.plans if not p.error and not p.units[s].fresh) for s in STAGES}
+        if not self.enabled or not any(todo.values()):
+            return
+        from tqdm import tqdm
+
+        self.bars = {s: tqdm(total=todo[s], desc=f"{s:>6}", unit="seq", position=i, leave=True)
+                     for i, s in enumerate(STAGES)}
+        units.on_done = lambda o: self.bars[o["stage"]].update(1) if o["stage"] in self.bars else None
+
+    def __exit__(self, *exc) -> None:
+        for bar in [*self.bars.values(), *([self.plan_bar] if self.plan_bar is not None else [])]:
+            bar.close()
+
+
+def export_dataset(ex: DatasetExportInputs, out_root: Path, data_root: Path, fmt: str,
+                   target: Path | None = None, gt: bool = False) -> Path:
+    """Export the published dataset (every sequence) for occupancy trainers; ``gt``: Occ3D labels
+    from the synthetic ground truth under ``data_root`` instead of the pipeline's."""
+    from storage.export.nuscenes import export_nuscenes
+    from storage.export.occ3d import export_occ3d
+
+    target = Path(target) if target is not None else Path(out_root) / "exports" / fmt
+    if gt and fmt != "occ3d":
+        raise ValueError(f"--gt exports Occ3D labels; it does not apply to --format {fmt}")
+    if fmt == "occ3d":
+        export_occ3d(out_root, target, scene_prefix=ex.scene_prefix, val_sequences=ex.val_sequences,
+                     gt_root=Path(data_root) if gt else None)
+    else:
+        export_nuscenes(out_root, target, version=ex.nuscenes_version, scene_prefix=ex.scene_prefix,
+                        source_root=Path(data_root), min_range_m=ex.min_range_m, val_sequences=ex.val_sequences,
+                        **({"infos_data_root": ex.infos_data_root} if ex.infos_data_root else {}))
+    return target
+
+
+def _first_line(text: str) -> str:
+    return text.splitlines()[0] if text else ""
+
+
+def summary_table(report: RunReport) -> str:
+    """Time per stage, cached vs run; then every sequence that failed, was skipped, lost frames
+    or was withdrawn, each with its reason (one line each), and what planning cost."""
+    lines = []
+    header = f"{'stage':<8}{'ran':>5}{'cached':>8}{'failed':>8}{'skipped':>9}{'seconds':>10}"
+    lines.append(header)
+    lines.append("-" * len(header))
+    for stage in STAGES:
+        outs = [o for (s, st), o in report.outcomes.items() if st == stage]
+        ran = sum(o["status"] == "done" for o in outs)
+        cached = sum(o["status"] == "cached" for o in outs)
+        failed = sum(o["status"] == "failed" for o in outs)
+        skipped = sum(o["status"] == "skipped" for o in outs)
+        secs = sum(o.get("seconds", 0.0) for o in outs)
+        lines.append(f"{stage:<8}{ran:>5}{cached:>8}{failed:>8}{skipped:>9}{secs:>10.1f}")
+    frames = sum(p.num_frames for p in report.plans)
+    lines.append(f"{len(report.plans)} sequence(s), {frames} frame(s), {report.seconds:.1f} s wall; "
+                 f"{report.costs.line()}")
+    not_impl = sorted({st for (s, st), o in report.outcomes.items()
+                       if o.get("summary", {}).get("implemented") is False})
+    if not_impl:
+        lines.append(f"not implemented yet (placeholders): {', '.join(not_impl)}")
+    for o in report.failed:
+        lines.append(f"FAILED {o['sequence']}/{o['stage']}: {_first_line(o['error'])}")
+    skipped: dict[str, list[str]] = {}
+    for o in report.skipped:
+        skipped.setdefault(o["sequence"], []).append(o["stage"])
+    for seq, stages in sorted(skipped.items()):
+        lines.append(f"SKIPPED {seq}/{', '.join(stages)}: an upstream stage did not finish")
+    for seq, bad in report.failed_frames().items():
+        more = f" (+{len(bad) - 3} more)" if len(bad) > 3 else ""
+        lines += [f"FRAME FAILED {seq}/frame {b['frame']}: {_first_line(b['error'])}" for b in bad[:3]]
+        lines += [f"FRAME FAILED {seq}: {len(bad)} frame(s) left out{more}"] if more else []
+    if report.withdrawn:
+        lines.append(f"WITHDRAWN {', '.join(report.withdrawn)}: earlier published data removed (the sequences "
+                     "table marks them failed)")
+    for fmt, state in sorted(report.dataset_exports.items()):
+        lines.append(f"{fmt} export: {state}")
+    lines += [f"WRITE FAILED {e}" for e in report.write_errors]
+    lines += [f"WARNING {p.sequence}: {w}" for p in report.plans for w in p.warnings]
+    return "\n".join(lines)
