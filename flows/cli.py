@@ -151,7 +151,8 @@ def cmd_check_data(args: argparse.Namespace) -> int:
 
 #: `mobileocc bench [WHAT] ...`: the module whose ``main(argv)`` parses the rest of the line
 BENCHMARKS = {"pipeline": "flows.bench.pipeline", "fit": "flows.bench.fit",
-              "occupancy": "flows.bench.occupancy", "perception": "flows.bench.perception"}
+              "occupancy": "flows.bench.occupancy", "perception": "flows.bench.perception",
+              "memory": "flows.bench.memory"}
 
 
 def run_bench(argv: list[str]) -> int:
@@ -271,7 +272,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     for name, text in (
         ("bench", "measure speeds, memory and reference ratios in one run: `mobileocc bench "
-                  "[pipeline | fit | occupancy | perception] [--help | options]` (default pipeline)"),
+                  "[pipeline | fit | occupancy | perception | memory] [--help | options]` (default pipeline)"),
         ("cluster", "render a Dask cluster spec: `mobileocc cluster render infra/slurm.yaml`"),
         ("deploy", "Prefect deployments: `mobileocc deploy serve | apply | trigger [--config FILE]`"),
     ):  # listed for --help; main() hands their arguments to the module's own parser
