@@ -29,6 +29,7 @@ from tasks.fit.losses import FIT_PRESETS, FitWeights
 from tasks.fit.settings import FitSettings
 from tasks.occupancy.grid import GridSpec
 from tasks.occupancy.settings import FreeSpaceParams, FuseSettings, MapParams
+from tasks.occupancy.tiles import check_tiling
 from tasks.perception.lidar_clusters import LidarClusterParams
 from tasks.perception.models.settings import (BlazePoseSettings, DetectorSettings, KeypointSettings,
                                               MaskSettings, SemanticSettings)
@@ -387,7 +388,8 @@ MapConfig = section(
     kernel_fields(MapParams, {"voxel_size_m": {"ge": 0.02, "le": 1.0}, "fallback_ground_lateral_scale": {"ge": 1},
                               "pedestrian_box_margin_m": _NONNEG, "ground_max_deviation_m": _POS,
                               "ground_cell_m": _POS, "ground_neighbourhood_cells": _NONNEG,
-                              "ground_quantile": _PROB, "min_votes": {"ge": 1}}),
+                              "ground_quantile": _PROB, "min_votes": {"ge": 1}, "tile_m": _POS,
+                              "window_frames": {"ge": 1}, "region_tiles": {"ge": 1}}),
     cityscapes_to_class=(dict[int, str], Field(default_factory=lambda: dict(DEFAULT_CITYSCAPES_TO_CLASS))),
     ground_classes=(list[str], ["road", "terrain"]),
     freespace=(FreeSpaceConfig, FreeSpaceConfig()))
@@ -457,6 +459,7 @@ class Config(Strict):
                 raise ValueError(
                     f"map.cityscapes_to_class[{cs_id}] = {name!r} is not an occupied class {occupied}"
                 )
+        check_tiling(self.map.tile_m, self.map.voxel_size_m, self.map.freespace.voxel_size_m)
         return self
 
 

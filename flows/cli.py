@@ -191,7 +191,7 @@ def cmd_check_data(args: argparse.Namespace) -> int:
 #: `mobileocc bench [WHAT] ...`: the module whose ``main(argv)`` parses the rest of the line
 BENCHMARKS = {"pipeline": "flows.bench.pipeline", "fit": "flows.bench.fit",
               "occupancy": "flows.bench.occupancy", "perception": "flows.bench.perception",
-              "planning": "flows.bench.planning"}
+              "planning": "flows.bench.planning", "memory": "flows.bench.memory"}
 
 
 def run_bench(argv: list[str]) -> int:
@@ -314,7 +314,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     for name, text in (
         ("bench", "measure speeds, memory and reference ratios in one run: `mobileocc bench "
-                  "[pipeline | fit | occupancy | perception | planning] [--help | options]` (default pipeline)"),
+                  "[pipeline | fit | occupancy | perception | planning | memory] [--help | options]` "
+                  "(default pipeline)"),
         ("cluster", "render a Dask cluster spec: `mobileocc cluster render infra/slurm.yaml`"),
         ("deploy", "Prefect deployments: `mobileocc deploy serve | apply | trigger [--config FILE]`"),
     ):  # listed for --help; main() hands their arguments to the module's own parser

@@ -219,26 +219,115 @@ class Bodies(Product):
     shift_m: np.ndarray = array(np.float32, ("R",), "how far the fit moved the root from its initial estimate, m")
 
 
+#: the map stage's folder of tile products (StaticMapProduct, OccupancyMapProduct)
+TILES = "tiles"
+
+
+def _tile_name(kind: str, tile) -> str:
+    return f"{kind}_{int(tile[0])}_{int(tile[1])}"
+
+
 @dataclasses.dataclass(frozen=True)
 class StaticMapProduct(Product):
-    """map: the human-free static semantic map (world frame). Voxel k covers
-    ``[keys[k], keys[k] + 1) * voxel_size_m``."""
+    """map, one per tile (``tiles/static_<tx>_<ty>.npz``): the human-free static semantic map
+    (world frame) inside tile (tx, ty) (MapTiles). Voxel k covers ``[keys[k], keys[k] + 1) *
+    voxel_size_m``; keys ascending (x, then y, then z); the tiles together are the sequence's map."""
 
-    NAME: ClassVar[str] = "static_map"
     voxel_size_m: np.ndarray = array(np.float64, (), "voxel edge, m")
     keys: np.ndarray = array(np.int64, ("K", 3), "integer voxel keys")
     labels: np.ndarray = array(np.uint8, ("K",), "class id (max voting)")
     counts: np.ndarray = array(np.uint16, ("K", 9), "votes per occupied class 0..8")
 
+    @staticmethod
+    def file_name(tile) -> str:
+        return _tile_name("static", tile)
+
 
 @dataclasses.dataclass(frozen=True)
 class OccupancyMapProduct(Product):
-    """map: the free / unknown map (OctoMap semantics, world frame); unknown voxels are absent."""
+    """map, one per tile (``tiles/occupancy_<tx>_<ty>.npz``): the free / unknown map (OctoMap
+    semantics, world frame) inside tile (tx, ty); unknown voxels are absent; keys ascending."""
 
-    NAME: ClassVar[str] = "occupancy"
     voxel_size_m: np.ndarray = array(np.float64, (), "voxel edge, m")
     keys: np.ndarray = array(np.int64, ("M", 3), "integer voxel keys")
     logodds: np.ndarray = array(np.float32, ("M",), "OctoMap log-odds")
+
+    @staticmethod
+    def file_name(tile) -> str:
+        return _tile_name("occupancy", tile)
+
+
+@dataclasses.dataclass(frozen=True)
+class MapTiles(Product):
+    """map (``map_tiles.npz``): the index of the map's tiles. Tile (tx, ty) covers world x in
+    ``[tx, tx + 1) * tile_m`` and y in ``[ty, ty + 1) * tile_m`` (any z); a voxel key k of a map
+    of voxel v lies in tile ``floor(k / (tile_m / v))``. Tiles not listed hold no voxel."""
+
+    NAME: ClassVar[str] = "map_tiles"
+    tile_m: np.ndarray = array(np.float64, (), "tile edge, m")
+    static_voxel_size_m: np.ndarray = array(np.float64, (), "the static map's voxel edge, m")
+    occupancy_voxel_size_m: np.ndarray = array(np.float64, (), "the occupancy map's voxel edge, m")
+    static_tiles: np.ndarray = array(np.int64, ("S", 2), "(tx, ty) of every StaticMapProduct tile, ascending")
+    static_voxels: np.ndarray = array(np.int64, ("S",), "voxels in that tile")
+    occupancy_tiles: np.ndarray = array(np.int64, ("O", 2), "(tx, ty) of every OccupancyMapProduct tile, ascending")
+    occupancy_voxels: np.ndarray = array(np.int64, ("O",), "voxels in that tile")
+
+    @classmethod
+    def of(cls, tile_m: float, static_voxel_size_m: float, occupancy_voxel_size_m: float,
+           static: list[tuple[tuple[int, int], int]], occupancy: list[tuple[tuple[int, int], int]]) -> "MapTiles":
+        """The index of (tile, voxels) lists (any order; tiles of no voxel are left out)."""
+        s, o = sorted(t for t in static if t[1]), sorted(t for t in occupancy if t[1])
+        return cls(np.array(tile_m, np.float64), np.array(static_voxel_size_m, np.float64),
+                   np.array(occupancy_voxel_size_m, np.float64), np.array([t for t, _ in s], np.int64).reshape(-1, 2),
+                   np.array([n for _, n in s], np.int64), np.array([t for t, _ in o], np.int64).reshape(-1, 2),
+                   np.array([n for _, n in o], np.int64))
+
+    def has(self, kind: str, tile) -> bool:
+        tiles = self.static_tiles if kind == "static" else self.occupancy_tiles
+        return bool(np.any(np.all(tiles == np.asarray(tile, np.int64), axis=1)))
+
+
+@dataclasses.dataclass(frozen=True)
+class KeepMasks(Product):
+    """map, scratch (``work/keep_<window>.npz``, deleted when the stage ends): which points of each
+    sweep of a window of frames are kept (not a person), handed from the window pass to the
+    occupancy pass. Sweep r's mask is bits ``offsets[r]:offsets[r + 1]`` of ``unpackbits(bits)``."""
+
+    frame: np.ndarray = array(np.int64, ("W",), "raw frame number")
+    offsets: np.ndarray = array(np.int64, ("W+1",), "first bit of each sweep's mask")
+    bits: np.ndarray = array(np.uint8, ("B",), "np.packbits of the concatenated masks (1 = kept)")
+
+    @staticmethod
+    def file_name(window: int) -> str:
+        return f"keep_{int(window)}"
+
+    @classmethod
+    def of(cls, frames: list[int], masks: list[np.ndarray]) -> "KeepMasks":
+        sizes = [len(m) for m in masks]
+        bits = np.concatenate(masks).astype(bool) if masks else np.zeros(0, bool)
+        return cls(np.asarray(frames, np.int64).reshape(-1), np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
+                   np.packbits(bits))
+
+    def mask(self, row: int) -> np.ndarray:
+        a, b = int(self.offsets[row]), int(self.offsets[row + 1])
+        return np.unpackbits(self.bits, count=b)[a:b].astype(bool)
+
+
+@dataclasses.dataclass(frozen=True)
+class WindowVotesProduct(Product):
+    """map, scratch (``work/votes_<window>_<tx>_<ty>.npz``, deleted when the stage ends): the raw
+    static-map votes of one window of frames inside one tile, camera-seen and not (summed over
+    windows, then voted per tile). Packed keys: 21 bits per axis, offset 2^20
+    (tasks.occupancy.static_map.pack_keys), ascending."""
+
+    seen_keys: np.ndarray = array(np.int64, ("A",), "packed voxel keys with camera votes")
+    seen_counts: np.ndarray = array(np.uint16, ("A", 9), "camera votes per class 0..8")
+    unseen_keys: np.ndarray = array(np.int64, ("U",), "packed voxel keys with fallback votes")
+    unseen_counts: np.ndarray = array(np.uint16, ("U", 9), "fallback votes per class 0..8")
+
+    @staticmethod
+    def file_name(window: int, tile) -> str:
+        return f"votes_{int(window)}_{int(tile[0])}_{int(tile[1])}"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -254,7 +343,8 @@ class FusedFrames(Product):
 
 #: every product type, for the schema documentation test
 PRODUCTS: tuple[type[Product], ...] = (Detections, Tracks, Bodies, StaticMapProduct,
-                                       OccupancyMapProduct, FusedFrames)
+                                       OccupancyMapProduct, MapTiles, KeepMasks, WindowVotesProduct,
+                                       FusedFrames)
 
 
 def masks_to_labels(masks: np.ndarray) -> np.ndarray:

@@ -26,8 +26,12 @@ CODE_VERSIONS: dict[str, str] = {
     #                that moved more than fit.max_shift_m from their estimate are dropped;
     #             4: bodies carry chamfer_m and reproj_px (typed products); the rectified camera;
     #                the kernel rewritten for speed (batched ICP, vertex subset, grid pairs); torch on 1 thread
-    "map": "3",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path;
-    #             3: 2d_rect cameras read as the rectified pinhole (real CODa calibration)
+    "map": "4",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path;
+    #             3: 2d_rect cameras read as the rectified pinhole (real CODa calibration);
+    #             4: both maps written by spatial tile (map_tiles.npz + tiles/*.npz, map.tile_m), built in
+    #                parallel windows / regions; the voxels are the same, the product files are not.
+    #             (fuse not bumped: it reads the tiles near its frames and writes the same bytes; its key
+    #             follows the map's key)
     "fuse": "2",  # 2: mask_camera is inside mask_lidar (Occ3D); class_counts among voxels with
     #               mask_lidar = 1 (as documented); store attrs carry the stage key, not a config hash;
     #               the rectified camera

@@ -19,13 +19,16 @@ from flows.pipeline.parallel import fan_out
 from flows.stages.common import StageContext, body_model, detected_positions
 from storage.gt import read_frame_gt, read_sequence_gt
 from storage.occupancy_store import create_store, write_frames
-from storage.products import Bodies, FusedFrames, OccupancyMapProduct, StaticMapProduct
+from storage.products import TILES, Bodies, FusedFrames, MapTiles, OccupancyMapProduct, StaticMapProduct
 from tasks.body.posing import posed_vertices
 from tasks.conventions import FREE, transform_points
 from tasks.occupancy.frame import local_grids
+from tasks.occupancy.freespace import OccupancyMap
 from tasks.occupancy.fuse import CameraView, PedestrianMesh
-from tasks.occupancy.mapping import load_occupancy_map
+from tasks.occupancy.mapping import join_static_tiles, load_occupancy_map
+from tasks.occupancy.resample import grid_reach_m
 from tasks.occupancy.static_map import StaticMap
+from tasks.occupancy.tiles import tiles_near_grids
 
 
 class _People:
@@ -56,6 +59,22 @@ class _People:
                 for t, v, w in zip(ids, verts, vel)]
 
 
+def maps_near(map_dir: Path, inputs: FuseInputs, T_world_from_base: np.ndarray) -> tuple[StaticMap, OccupancyMap]:
+    """The static and occupancy maps of the tiles that a grid at these poses ((F, 4, 4)) can touch:
+    a chunk reads a bounded part of the sequence's maps, and its grids equal those of whole maps."""
+    index = MapTiles.read(map_dir)
+    sv, ov = float(index.static_voxel_size_m), float(index.occupancy_voxel_size_m)
+    tiles = tiles_near_grids(float(index.tile_m), grid_reach_m(inputs.grid), T_world_from_base, max(sv, ov))
+    static = [StaticMapProduct.read(map_dir / TILES, StaticMapProduct.file_name(t)) for t in tiles
+              if index.has("static", t)]
+    occ = [OccupancyMapProduct.read(map_dir / TILES, OccupancyMapProduct.file_name(t)) for t in tiles
+           if index.has("occupancy", t)]
+    keys = np.concatenate([o.keys for o in occ]) if occ else np.empty((0, 3), np.int64)
+    logodds = np.concatenate([o.logodds for o in occ]) if occ else np.empty(0, np.float32)
+    return (join_static_tiles(sv, [(p.keys, p.labels, p.counts) for p in static]),
+            load_occupancy_map(inputs.freespace, keys, logodds))
+
+
 def fuse_chunk(ref: SequenceRef, inputs: FuseInputs, out_root: Path, positions: list[int],
                store: Path, map_dir: Path, fit_dir: Path | None, start: int,
                threads: int) -> list[dict]:
@@ -64,9 +83,8 @@ def fuse_chunk(ref: SequenceRef, inputs: FuseInputs, out_root: Path, positions: 
     seq = inputs.source.open(ref)
     calib = seq.info.calibration
     cam, T_base_from_lidar = calib.cameras[inputs.source.camera], calib.T_base_from_lidar
-    s, o = StaticMapProduct.read(map_dir), OccupancyMapProduct.read(map_dir)
-    smap = StaticMap(float(s.voxel_size_m), s.keys, s.labels, s.counts, 0)
-    occupancy, people = load_occupancy_map(inputs.freespace, o.keys, o.logodds), _People(inputs, seq, out_root, fit_dir)
+    smap, occupancy = maps_near(map_dir, inputs, seq.info.poses[positions] @ np.linalg.inv(T_base_from_lidar))
+    people = _People(inputs, seq, out_root, fit_dir)
     camera = (CameraView(cam.K, cam.width, cam.height, T_base_from_lidar @ np.linalg.inv(cam.T_cam_from_lidar))
               if inputs.fusion.camera_mask else None)
     stacks, rows = {}, []

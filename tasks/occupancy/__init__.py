@@ -9,6 +9,10 @@ Conventions (frames, array dtypes, class ids) are those of :mod:`tasks.conventio
   ``project_points`` (once per sweep), ``lift_image_semantics``, ``pedestrian_point_mask``,
   ``pedestrian_boxes_for_masking``, ``points_in_boxes``, ``lookup_labels``.
 - :mod:`.nearest`: ``nearest_indices`` (exact 3D nearest neighbours, the out-of-view fallback).
+- :mod:`.tiles`: spatial tiles of the sequence maps and the map stage's split (``plan_map``:
+  windows of frames, regions of tiles; ``tiles_near_grids``: what a fuse chunk reads).
+- :mod:`.mapping`: ``SweepLabeller`` (labels, person removal), ``SequenceMapper`` (whole maps,
+  the reference), ``WindowVotes`` / ``region_occupancy`` / ``finalize_tiles`` (the same maps by tile).
 - :mod:`.resample`: ``static_in_grid`` / ``static_labels_at_cells`` (the static map in a local grid).
 - :mod:`.visibility`: ``lidar_mask``, ``camera_mask``.
 - :mod:`.fuse`: ``fuse_frame`` -> ``FrameGrids``; ``voxelize_mesh``, ``voxelize_labels``.

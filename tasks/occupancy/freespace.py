@@ -129,6 +129,14 @@ def _touch_block(hkeys, hvals, bkeys, nused, bstamp, touched, ntouched, bk, scan
 
 
 @njit(cache=True, inline="always")
+def _outside(kx, ky, rb):
+    """Is voxel key (kx, ky, .) outside the region of blocks rb = (bx0, bx1, by0, by1)?"""
+    bx = kx >> 3
+    by = ky >> 3
+    return bx < rb[0] or bx >= rb[1] or by < rb[2] or by >= rb[3]
+
+
+@njit(cache=True, inline="always")
 def _dense_row(kx, ky, kz, b0, nb):
     """Row of voxel key (kx, ky, kz)'s block in a dense box of blocks, -1 outside it."""
     bx = (kx >> 3) - b0[0]
@@ -161,10 +169,13 @@ def _ray_end(ox, oy, oz, px, py, pz, max_range):
 
 @njit(cache=True, inline="always")
 def _walk_ray(ox, oy, oz, ex, ey, ez, length, res, scan_id, hkeys, hvals, bkeys, nused, bstamp,
-              touched, ntouched, fbits, ckeys, crows, dense, b0, nb):
+              touched, ntouched, fbits, ckeys, crows, dense, b0, nb, rb):
     """Set the free bit of every voxel on the ray origin -> end, end voxel excluded: the 3D DDA
     of OctoMap's computeRayKeys (the origin voxel is on the ray). Returns 0 when done, -1 when
     the block pool is full, -2 when a voxel is outside the dense box.
+
+    rb: the region, blocks [rb[0], rb[1]) x [rb[2], rb[3]) in x / y: voxels outside it are
+    walked through but not marked (no block is made for them).
 
     Block rows: a dense box row, or a pool row found through ckeys / crows, a direct-mapped cache
     of this scan's blocks (1024 slots, stays in L1: rays from one origin revisit the same
@@ -206,7 +217,9 @@ def _walk_ray(ox, oy, oz, ex, ey, ez, length, res, scan_id, hkeys, hvals, bkeys,
     while True:
         if new_block:
             new_block = False
-            if dense:
+            if _outside(cx, cy, rb):
+                b = -1
+            elif dense:
                 b = _dense_row(cx, cy, cz, b0, nb)
                 if b < 0:
                     return -2
@@ -221,8 +234,9 @@ def _walk_ray(ox, oy, oz, ex, ey, ez, length, res, scan_id, hkeys, hvals, bkeys,
                         return -1
                     ckeys[slot] = bk
                     crows[slot] = b
-        c = _cell(cx, cy, cz)
-        fbits[b, c >> 6] |= np.uint64(1) << np.uint64(c & 63)
+        if b >= 0:
+            c = _cell(cx, cy, cz)
+            fbits[b, c >> 6] |= np.uint64(1) << np.uint64(c & 63)
         if tmx < tmy:
             if tmx < tmz:
                 cx += sx
@@ -248,7 +262,7 @@ def _walk_ray(ox, oy, oz, ex, ey, ez, length, res, scan_id, hkeys, hvals, bkeys,
 
 @njit(cache=True, inline="always")
 def _mark_endpoints(points, i0, ox, oy, oz, max_range, res, scan_id, hkeys, hvals, bkeys, nused,
-                    bstamp, touched, ntouched, hbits, dense, b0, nb):
+                    bstamp, touched, ntouched, hbits, dense, b0, nb, rb):
     """Set the hit bit of the voxel of every endpoint points[i0:] within max_range. Returns -1
     when done, else the endpoint where the pool ran out (-1 - i: outside the dense box)."""
     inv = 1.0 / res
@@ -265,7 +279,9 @@ def _mark_endpoints(points, i0, ox, oy, oz, max_range, res, scan_id, hkeys, hval
         kz = np.int64(math.floor(pz * inv))
         bk = _block_key(kx, ky, kz)
         if bk != last_bk:  # consecutive endpoints mostly share a block
-            if dense:
+            if _outside(kx, ky, rb):
+                b = -1
+            elif dense:
                 b = _dense_row(kx, ky, kz, b0, nb)
                 if b < 0:
                     return -1 - i
@@ -274,14 +290,15 @@ def _mark_endpoints(points, i0, ox, oy, oz, max_range, res, scan_id, hkeys, hval
                 if b < 0:
                     return i
             last_bk = bk
-        c = _cell(kx, ky, kz)
-        hbits[b, c >> 6] |= np.uint64(1) << np.uint64(c & 63)
+        if b >= 0:
+            c = _cell(kx, ky, kz)
+            hbits[b, c >> 6] |= np.uint64(1) << np.uint64(c & 63)
     return -1
 
 
 @njit(cache=True, nogil=True)
 def _mark_scan(points, origin, max_range, res, scan_id, hkeys, hvals, bkeys, nused, bstamp,
-               touched, ntouched, fbits, hbits, phase0, ray0, dense, b0, nb):
+               touched, ntouched, fbits, hbits, phase0, ray0, dense, b0, nb, rb):
     """Mark one scan's voxels in per-block bitsets: fbits = on a ray, hbits = holds an endpoint.
 
     Phase 0 walks the rays, phase 1 marks the endpoints (within max_range). Returns (phase, ray)
@@ -292,7 +309,7 @@ def _mark_scan(points, origin, max_range, res, scan_id, hkeys, hvals, bkeys, nus
     dense: the bitsets are a private dense box of blocks instead of the map's pool: block
     (bx, by, bz) is row ((bx - b0[0]) * nb[1] + by - b0[1]) * nb[2] + bz - b0[2]; the map is not
     touched (so several threads can mark disjoint rays at once, nogil). Returns (3, ray) if a
-    voxel falls outside the box.
+    voxel falls outside the box. rb: the region marked (see :func:`_walk_ray`).
     """
     ox, oy, oz = origin[0], origin[1], origin[2]
     ckeys = np.full(1024, -1, dtype=np.int64)
@@ -301,11 +318,11 @@ def _mark_scan(points, origin, max_range, res, scan_id, hkeys, hvals, bkeys, nus
     for i in range(ray0 if phase0 == 0 else n, n):
         ex, ey, ez, length = _ray_end(ox, oy, oz, points[i, 0], points[i, 1], points[i, 2], max_range)
         status = _walk_ray(ox, oy, oz, ex, ey, ez, length, res, scan_id, hkeys, hvals, bkeys, nused,
-                           bstamp, touched, ntouched, fbits, ckeys, crows, dense, b0, nb)
+                           bstamp, touched, ntouched, fbits, ckeys, crows, dense, b0, nb, rb)
         if status < 0:
             return (3 if status == -2 else 0), i
     stop = _mark_endpoints(points, 0 if phase0 == 0 else ray0, ox, oy, oz, max_range, res, scan_id,
-                           hkeys, hvals, bkeys, nused, bstamp, touched, ntouched, hbits, dense, b0, nb)
+                           hkeys, hvals, bkeys, nused, bstamp, touched, ntouched, hbits, dense, b0, nb, rb)
     if stop >= 0:
         return 1, stop
     if stop < -1:
@@ -477,6 +494,11 @@ def _import(keys, vals, start, hkeys, hvals, bkeys, logodds, nused):
 
 
 _NO_BOX = np.zeros(3, dtype=np.int64)
+#: the whole plane as a region of blocks (bx0, bx1, by0, by1): block keys hold +-2^20 blocks per axis
+_EVERYWHERE = np.array([-(1 << 40), 1 << 40, -(1 << 40), 1 << 40], dtype=np.int64)
+#: a ray's voxels lie inside the box of its origin and end voxels grown by this many voxels (the
+#: DDA steps at most one voxel past a face in float corner cases; a block of margin)
+_RAY_MARGIN_VOXELS = 8
 #: Dense marking boxes above this many blocks (x threads) use the sparse path: 2 bitsets of 64 B
 #: per block, so at most 32 MiB; a 20 m OS1-128 scan needs ~6,000 blocks at 0.2 m, ~300,000 at 0.05 m.
 _DENSE_MAX_BLOCKS = 1 << 18
@@ -508,6 +530,28 @@ def _scan_box(pts, origin, max_range_m, res):
         b0[a] = (np.int64(math.floor(lo[a] / res)) >> _BLOCK_SHIFT) - 1
         nb[a] = (np.int64(math.floor(hi[a] / res)) >> _BLOCK_SHIFT) + 2 - b0[a]
     return b0, nb
+
+
+def _region_blocks(region) -> np.ndarray:
+    """(bx0, bx1, by0, by1) blocks of a region given in voxel keys (multiples of 8)."""
+    r = np.asarray(region, dtype=np.int64).reshape(-1)
+    if r.shape != (4,) or np.any(r % 8) or r[0] >= r[1] or r[2] >= r[3]:
+        raise OccupancyError(f"region must be (kx0, kx1, ky0, ky1) with kx0 < kx1, ky0 < ky1, "
+                             f"multiples of 8 voxels; got {tuple(region)}")
+    return r >> _BLOCK_SHIFT
+
+
+def _rays_reaching(pts: np.ndarray, origin: np.ndarray, res: float, region) -> np.ndarray:
+    """(N,) bool: rays origin -> pts[i] whose voxel box (grown by _RAY_MARGIN_VOXELS) meets the
+    region's keys in x and y; the others cannot touch a voxel of the region."""
+    inv = 1.0 / res
+    m = _RAY_MARGIN_VOXELS
+    ok = np.ones(len(pts), dtype=bool)
+    for a in range(2):
+        k = np.floor(pts[:, a] * inv).astype(np.int64)
+        ko = int(math.floor(origin[a] * inv))
+        ok &= (np.maximum(k, ko) + m >= region[2 * a]) & (np.minimum(k, ko) - m < region[2 * a + 1])
+    return ok
 
 
 class OccupancyMap:
@@ -593,6 +637,7 @@ class OccupancyMap:
         origin_world: np.ndarray,
         max_range_m: float = -1.0,
         discretize: bool = FreeSpaceParams.discretize,
+        region: tuple[int, int, int, int] | None = None,
     ) -> None:
         """Insert one scan (OctoMap ``insertPointCloud``).
 
@@ -600,6 +645,12 @@ class OccupancyMap:
         for the static map). origin_world: (3,) float, the sensor origin in the world frame.
         max_range_m: < 0 for no limit. discretize: OctoMap's ``discretize`` (one ray per distinct
         endpoint voxel, aimed at its centre).
+
+        region: (kx0, kx1, ky0, ky1) voxel keys, multiples of 8 (whole blocks): only voxels with
+        kx0 <= kx < kx1 and ky0 <= ky < ky1 (any z) are updated, each exactly as the whole scan
+        would update it; rays that cannot reach the region are not walked. Maps of disjoint
+        regions fed the same scans in the same order are the pieces of the map of the whole
+        plane (the map stage builds its tiles this way, in parallel).
         """
         pts = np.asarray(points_world)
         if pts.ndim != 2 or pts.shape[1] != 3:
@@ -618,12 +669,17 @@ class OccupancyMap:
             packed = np.unique((keys[:, 0] << 42) | (keys[:, 1] << 21) | keys[:, 2])
             keys = np.stack([packed >> 42, (packed >> 21) & _KEY_MASK, packed & _KEY_MASK], axis=1)
             pts = (keys - _KEY_OFFSET + 0.5) * self.voxel_size_m
+        rb = _EVERYWHERE
+        if region is not None:
+            rb = _region_blocks(region)
+            pts = pts[_rays_reaching(pts, origin, self.voxel_size_m, region)]
         pts = np.ascontiguousarray(pts)
-        if not (len(pts) and self._insert_dense(pts, origin, float(max_range_m))):
-            self._insert_sparse(pts, origin, float(max_range_m))
+        if not (len(pts) and self._insert_dense(pts, origin, float(max_range_m), rb)):
+            self._insert_sparse(pts, origin, float(max_range_m), rb)
         self.num_scans += 1
 
-    def _insert_sparse(self, pts: np.ndarray, origin: np.ndarray, max_range_m: float) -> None:
+    def _insert_sparse(self, pts: np.ndarray, origin: np.ndarray, max_range_m: float,
+                       rb: np.ndarray = _EVERYWHERE) -> None:
         """One thread, marks straight in the map's block pool (any extent)."""
         scan_id = np.int32(self.num_scans % (2**31 - 1))
         phase, ray = 0, 0
@@ -631,7 +687,7 @@ class OccupancyMap:
             phase, ray = _mark_scan(
                 pts, origin, max_range_m, self.voxel_size_m, scan_id, self._hkeys,
                 self._hvals, self._bkeys, self._nused, self._bstamp, self._touched,
-                self._ntouched, self._fbits, self._hbits, phase, ray, False, _NO_BOX, _NO_BOX,
+                self._ntouched, self._fbits, self._hbits, phase, ray, False, _NO_BOX, _NO_BOX, rb,
             )
             if phase == 2:
                 break
@@ -639,10 +695,15 @@ class OccupancyMap:
         _apply_marks(self._touched, self._ntouched, self._fbits, self._hbits, self._logodds, self._hit,
                      self._miss, self._lo_min, self._lo_max)
 
-    def _insert_dense(self, pts: np.ndarray, origin: np.ndarray, max_range_m: float) -> bool:
-        """Rays split over threads, each marking a private dense box of blocks around the scan;
-        the union is then applied once. False (nothing changed) when the box would be too big."""
+    def _insert_dense(self, pts: np.ndarray, origin: np.ndarray, max_range_m: float,
+                      rb: np.ndarray = _EVERYWHERE) -> bool:
+        """Rays split over threads, each marking a private dense box of blocks around the scan
+        (cut to the region rb); the union is then applied once. False (nothing changed) when the
+        box would be too big."""
         b0, nb = _scan_box(pts, origin, max_range_m, self.voxel_size_m)
+        for a in range(2):  # x / y: only the region's blocks
+            lo, hi = max(b0[a], rb[2 * a]), min(b0[a] + nb[a], rb[2 * a + 1])
+            b0[a], nb[a] = lo, max(0, hi - lo)
         threads = max(1, min(self.threads, len(pts) // _MIN_RAYS_PER_THREAD))
         if int(np.prod(nb)) * threads > _DENSE_MAX_BLOCKS:
             return False
@@ -658,7 +719,7 @@ class OccupancyMap:
                 phase, _ = _mark_scan(
                     pts[lo:hi], origin, max_range_m, self.voxel_size_m, scan_id, self._hkeys,
                     self._hvals, self._bkeys, self._nused, self._bstamp, self._touched,
-                    self._ntouched, fbits[t], hbits[t], 0, 0, True, b0, nb,
+                    self._ntouched, fbits[t], hbits[t], 0, 0, True, b0, nb, rb,
                 )
                 if phase != 2:
                     return False

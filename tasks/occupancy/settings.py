@@ -37,6 +37,12 @@ class MapParams:
     votes farther than ground_max_deviation_m from the local ground height (per ground_cell_m cell,
     pooled over ground_neighbourhood_cells neighbouring cells, vote-weighted ground_quantile) are
     rejected; a voxel needs min_votes votes.
+
+    Tiles (tasks/occupancy/tiles.py): both maps are built, stored and read by square tiles of
+    tile_m (a whole number of map voxels and of 8-voxel occupancy blocks), so memory does not grow
+    with the sequence. window_frames (sweeps per window) and region_tiles (a region is
+    region_tiles x region_tiles tiles) set how the map stage splits its work into parallel tasks;
+    the maps do not depend on them.
     """
 
     voxel_size_m: float = 0.2
@@ -48,6 +54,9 @@ class MapParams:
     ground_neighbourhood_cells: int = 1
     ground_quantile: float = 0.5
     min_votes: int = 1
+    tile_m: float = 25.6
+    window_frames: int = 100
+    region_tiles: int = 4
 
 
 @dataclass(frozen=True)

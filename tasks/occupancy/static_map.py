@@ -381,6 +381,12 @@ class StaticSemanticMap:
         self._flush()
         return unpack_keys(self._keys), self._counts.copy()
 
+    def packed_counts(self) -> tuple[np.ndarray, np.ndarray]:
+        """Raw votes so far: packed keys (K,) int64 ascending (:func:`pack_keys`), counts (K, 9)
+        uint16 (the arrays themselves, not copies)."""
+        self._flush()
+        return self._keys, self._counts
+
     def finalize(self, ground_classes: tuple[int, ...] = (ROAD, TERRAIN),
                  ground_tolerance_m: float = MapParams.ground_max_deviation_m,
                  ground_cell_m: float = MapParams.ground_cell_m,
@@ -398,25 +404,60 @@ class StaticSemanticMap:
         than min_votes remaining votes are dropped.
         """
         self._flush()
-        keys = unpack_keys(self._keys)
-        counts = self._counts.astype(np.int64)
-        centers = (keys + 0.5) * self.voxel_size_m
-        g_idx = np.asarray(ground_classes, dtype=np.int64)
-        rejected = 0
-        if len(g_idx) and len(keys):
-            gvotes = counts[:, g_idx].sum(axis=1)
-            height = _local_ground_height(centers, gvotes, ground_cell_m, ground_neighbourhood,
-                                          ground_quantile)
-            bad = (gvotes > 0) & np.isfinite(height) & (np.abs(centers[:, 2] - height) > ground_tolerance_m)
-            rejected = int(gvotes[bad].sum())
-            counts[np.ix_(bad, g_idx)] = 0
-        vote = counts.copy()
-        if ignore_classes:
-            vote[:, list(ignore_classes)] = 0
-        labels = np.argmax(vote, axis=1).astype(np.uint8)
-        keep = vote.max(axis=1) >= max(1, min_votes)
-        return StaticMap(self.voxel_size_m, keys[keep], labels[keep],
-                         np.minimum(counts[keep], 65535).astype(np.uint16), rejected)
+        return vote(self._keys, self._counts, self.voxel_size_m, ground_classes, ground_tolerance_m,
+                    ground_cell_m, ground_neighbourhood, ground_quantile, ignore_classes, min_votes)
+
+
+def vote(packed_keys: np.ndarray, counts: np.ndarray, voxel_size_m: float,
+         ground_classes: tuple[int, ...] = (ROAD, TERRAIN),
+         ground_tolerance_m: float = MapParams.ground_max_deviation_m,
+         ground_cell_m: float = MapParams.ground_cell_m,
+         ground_neighbourhood: int = MapParams.ground_neighbourhood_cells,
+         ground_quantile: float = MapParams.ground_quantile,
+         ignore_classes: tuple[int, ...] = (PEDESTRIAN,),
+         min_votes: int = MapParams.min_votes, select: np.ndarray | None = None) -> StaticMap:
+    """:meth:`StaticSemanticMap.finalize` of raw votes: packed_keys (K,) int64 ascending, counts
+    (K, 9) uint16. select: (K,) bool, the voxels to return (default all); the ground heights use
+    every voxel given, so the votes of a tile plus its halo (:func:`tasks.occupancy.tiles.
+    ground_halo_tiles`) give the tile's voxels exactly as the whole map does (the weights are
+    integer vote counts: their sums are exact in float64). ground_rejected counts selected voxels.
+    """
+    keys = unpack_keys(packed_keys)
+    counts = np.asarray(counts).astype(np.int64)
+    centers = (keys + 0.5) * voxel_size_m
+    g_idx = np.asarray(ground_classes, dtype=np.int64)
+    sel = np.ones(len(keys), bool) if select is None else np.asarray(select, dtype=bool)
+    rejected = 0
+    if len(g_idx) and len(keys):
+        gvotes = counts[:, g_idx].sum(axis=1)
+        height = _local_ground_height(centers, gvotes, ground_cell_m, ground_neighbourhood,
+                                      ground_quantile)
+        bad = (gvotes > 0) & np.isfinite(height) & (np.abs(centers[:, 2] - height) > ground_tolerance_m)
+        rejected = int(gvotes[bad & sel].sum())
+        counts[np.ix_(bad, g_idx)] = 0
+    vote = counts.copy()
+    if ignore_classes:
+        vote[:, list(ignore_classes)] = 0
+    labels = np.argmax(vote, axis=1).astype(np.uint8)
+    keep = (vote.max(axis=1) >= max(1, min_votes)) & sel
+    return StaticMap(voxel_size_m, keys[keep], labels[keep],
+                     np.minimum(counts[keep], 65535).astype(np.uint16), rejected)
+
+
+def sum_votes(parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """Votes of several windows of sweeps added: parts of (packed keys (K,) int64 ascending, counts
+    (K, 9) uint16) -> the same for their union. Counts saturate at 65535 like
+    :class:`StaticSemanticMap`'s (a sum of non-negative counts saturated once equals any order of
+    saturated partial sums), so the windows of a sequence sum to its sequential votes."""
+    parts = [(np.asarray(k, np.int64), np.asarray(c, np.uint16)) for k, c in parts if len(k)]
+    if not parts:
+        return np.empty(0, np.int64), np.empty((0, NUM_OCCUPIED_CLASSES), np.uint16)
+    if len(parts) == 1:
+        return parts[0]
+    keys, inv = np.unique(np.concatenate([k for k, _ in parts]), return_inverse=True)
+    total = np.zeros((len(keys), NUM_OCCUPIED_CLASSES), np.int64)
+    np.add.at(total, inv, np.concatenate([c for _, c in parts]).astype(np.int64))
+    return keys, np.minimum(total, np.iinfo(np.uint16).max).astype(np.uint16)
 
 
 def _local_ground_height(centers: np.ndarray, gvotes: np.ndarray, cell_m: float, nb: int,
