@@ -38,7 +38,7 @@ def _peak_mb() -> float:
 
 def _write_detections(folder: Path, raw_frames: list[int], K: np.ndarray, height: int, width: int) -> None:
     """One Detections product (rows below the horizon road, above building, nobody), hard-linked
-    as every frame's."""
+    as every frame's, and the detect stage's summary."""
     from storage.products import Detections
 
     semantic = np.where(np.arange(height)[:, None] > K[1, 2], 0, 2).astype(np.uint8) * np.ones((1, width), np.uint8)
@@ -48,6 +48,9 @@ def _write_detections(folder: Path, raw_frames: list[int], K: np.ndarray, height
         target = folder / f"{Detections.file_name(raw)}.npz"
         if not target.exists():
             os.link(first, target)
+    # the frames the detect stage produced (the later stages read them from its summary)
+    (folder / "summary.json").write_text(json.dumps({"implemented": True, "frames": list(raw_frames),
+                                                     "failed_frames": []}))
 
 
 def make_sequences(root: Path, frames: list[int], seed: int = 0) -> dict[int, dict]:
@@ -184,8 +187,8 @@ def bench_memory(frames: list[int], work_dir: Path, untiled: bool = False, overr
             out.setdefault("map", {})[n] = {k: v for k, v in m.items() if k != "outcome"} | {
                 "summary": m["outcome"]["summary"]}
         if "fuse" in stages:
-            f = _spawned(_stage_process, str(work / "data"), str(outroot), seq, "fuse", {"map": m["outcome"]},
-                         overrides)
+            f = _spawned(_stage_process, str(work / "data"), str(outroot), seq, "fuse",
+                         {"map": m["outcome"], "detect": {"status": "done", "location": detect}}, overrides)
             out.setdefault("fuse", {})[n] = {k: v for k, v in f.items() if k != "outcome"}
         if untiled:
             out.setdefault("untiled_map", {})[n] = _spawned(_untiled_process, str(work / "data"), seq, detect,
