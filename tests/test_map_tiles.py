@@ -34,7 +34,7 @@ def drive():
     ground road / terrain by position, raised points mostly structure with some spurious road votes
     (the ground check rejects those), high points vegetation."""
     scene = build_scene(campus_strip(10.0, seed=3, reach_m=30.0))
-    poses = strip_poses(6, step_m=1.5)
+    poses = strip_poses(6, step_m=1.5, lidar_height_m=0.9)
     out = []
     for k in [0, 1, 2, 3, 4, 5, 4, 3, 2, 1]:
         pts = organised_sweep(scene, poses[k], os1_directions(64, 256), max_range_m=25.0)
@@ -205,7 +205,7 @@ def test_region_pieces_of_an_occupancy_map_on_every_path(monkeypatch):
 
     scene = build_scene(campus_strip(4.0, seed=1, reach_m=20.0))
     scans = []
-    for T in strip_poses(3, step_m=2.0):
+    for T in strip_poses(3, step_m=2.0, lidar_height_m=0.9):
         pts = organised_sweep(scene, T, os1_directions(32, 256), max_range_m=15.0)
         scans.append((world_points(T, pts[np.any(pts != 0, axis=1)]), T[:3, 3]))
     for dense_max, discretize in ((fs._DENSE_MAX_BLOCKS, False), (0, False), (fs._DENSE_MAX_BLOCKS, True)):

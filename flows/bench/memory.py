@@ -28,6 +28,8 @@ from pathlib import Path
 import numpy as np
 
 STEP_M = 0.2
+#: ray range of the synthetic sweeps, m (the OS1's nominal range)
+SWEEP_RANGE_M = 120.0
 #: sequence ids: the length (5 Hz frames) plus this
 SEQ_BASE = 700_000
 
@@ -71,7 +73,7 @@ def make_sequences(root: Path, frames: list[int], seed: int = 0) -> dict[int, di
         scene, dirs = build_scene(campus_strip(half * STEP_M, seed)), os1_directions(128, 1024)
         zeros = np.zeros(128 * 1024, np.float32)
         for k in missing:
-            path = W.write_lidar(pool, 0, k, organised_sweep(scene, poses[k], dirs), zeros, zeros)
+            path = W.write_lidar(pool, 0, k, organised_sweep(scene, poses[k], dirs, SWEEP_RANGE_M), zeros, zeros)
             os.replace(path, pool / f"{k}.bin")
     sim_s = time.perf_counter() - t0
     cam = rig.camera("cam0")

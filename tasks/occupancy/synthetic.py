@@ -104,7 +104,7 @@ def campus_strip(length_m: float, seed: int = 0, reach_m: float = 140.0) -> list
     return meshes
 
 
-def strip_poses(frames: int, step_m: float = 0.2, lidar_height_m: float = 0.9) -> np.ndarray:
+def strip_poses(frames: int, step_m: float, lidar_height_m: float) -> np.ndarray:
     """(frames, 4, 4) float64 T_world_from_lidar of a walk along +x at step_m per frame (1 m/s at
     5 Hz), weaving +-0.5 m sideways with a matching small heading, LiDAR lidar_height_m up."""
     s = np.arange(frames) * step_m
@@ -117,7 +117,7 @@ def strip_poses(frames: int, step_m: float = 0.2, lidar_height_m: float = 0.9) -
 
 
 def organised_sweep(scene, T_world_from_lidar: np.ndarray, directions: np.ndarray,
-                    max_range_m: float = 120.0) -> np.ndarray:
+                    max_range_m: float) -> np.ndarray:
     """(len(directions), 3) float32 LiDAR-frame returns of a scene (meshes or :func:`build_scene`)
     seen from a pose, in beam order, zeros where a ray hits nothing within max_range_m (an
     organised OS1 sweep)."""
