@@ -37,6 +37,7 @@ from tasks.perception.oracle import OracleNoise
 from tasks.perception.person_points import PersonPointParams
 from tasks.track.ocsort import TrackerParams
 from tasks.track.offline import OfflineParams, WorldCheck
+from tasks.track.rate import GateRate
 
 CONFIG_DIR = Path(__file__).resolve().parent
 DEFAULT_CONFIG = CONFIG_DIR / "default.yaml"
@@ -175,7 +176,8 @@ class DatasetConfig(Strict):
     lighting: dict[str, Literal["day", "night"]] = Field(default_factory=dict)
     #: LiDAR height above the ground, used only where calib_os1_to_base.yaml is missing
     lidar_height_m: float = Field(0.9, gt=0)
-    #: raw sensors run at 10 Hz; MobileOcc keeps every 2nd frame (5 Hz)
+    #: raw sensors run at 10 Hz; MobileOcc keeps every 2nd frame (5 Hz); 10: every frame (the
+    #: tracking gates counted in frames are scaled to it: track.gates_rate_hz)
     rate_hz: float = Field(5.0, gt=0)
     sensor_rate_hz: float = Field(10.0, gt=0)
     #: drops no-return points (zeros) and returns off the robot body
@@ -304,11 +306,13 @@ WorldCheckConfig = section(
 
 TrackConfig = section(
     "TrackConfig", "OC-SORT (tasks.track.ocsort.TrackerParams), the offline refinement "
-                   "(tasks.track.offline.OfflineParams, WorldCheck) and person points.",
+                   "(tasks.track.offline.OfflineParams, WorldCheck), person points, and the rate the "
+                   "frame-counted gates are given at (tasks.track.rate.GateRate: scaled to dataset.rate_hz).",
     kernel_fields(TrackerParams, {"det_thresh": _PROB, "max_age": {"ge": 1}, "min_hits": {"ge": 1},
                                   "iou_threshold": _PROB, "delta_t": {"ge": 1}, "inertia": _PROB}),
     kernel_fields(OfflineParams, {"stitch_max_gap": _NONNEG, "stitch_max_distance": _POS,
                                   "stitch_max_scale": {"ge": 1}}),
+    kernel_fields(GateRate, {"gates_rate_hz": _POS}),
     world_check=(WorldCheckConfig, WorldCheckConfig()), person_points=(PersonPointsConfig, PersonPointsConfig()))
 
 #: FitWeights fields named differently in the config (paper's symbols)
@@ -405,7 +409,8 @@ class _FuseBase(Strict):
 
 FuseConfig = section("FuseConfig", "The per-frame fusion: the grid, the bodies, and "
                                    "tasks.occupancy.settings.FuseSettings.",
-                     kernel_fields(FuseSettings, {"camera_pixel_stride": {"ge": 1}}), __base__=_FuseBase)
+                     kernel_fields(FuseSettings, {"camera_pixel_stride": {"ge": 1},
+                                                   "velocity_max_gap_s": _POS}), __base__=_FuseBase)
 
 
 class ExportConfig(Strict):

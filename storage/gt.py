@@ -44,6 +44,10 @@ FRAME_FIELDS: dict[str, tuple[str, tuple[int, ...]]] = {
     "box_size": ("float32", (-1, 3)),
     "box_yaw": ("float32", (-1,)),
 }
+#: Frame fields that ground truth written before they existed lacks (read as None there).
+OPTIONAL_FRAME_FIELDS: dict[str, tuple[str, tuple[int, ...]]] = {
+    "vertex_velocity_base": ("float32", (-1, -1, 3)),
+}
 SEQUENCE_FIELDS: dict[str, tuple[str, tuple[int, ...]]] = {
     "grid_range_min": ("float64", (3,)),
     "grid_voxel_size_m": ("float64", ()),
@@ -83,10 +87,12 @@ def write_npz_deterministic(path: Path, arrays: dict[str, np.ndarray]) -> Path:
     return save_npz_deterministic(path, compressed=True, **{k: np.asarray(arrays[k]) for k in sorted(arrays)})
 
 
-def _check(path: Path, arrays: dict, spec: dict, frame: int | None = None) -> None:
-    for name, (dtype, shape) in spec.items():
+def _check(path: Path, arrays: dict, spec: dict, optional: dict | None = None, frame: int | None = None) -> None:
+    for name, (dtype, shape) in {**spec, **(optional or {})}.items():
         if name not in arrays:
-            raise GTFormatError(f"{path}: missing field {name!r}", path, frame)
+            if name in spec:
+                raise GTFormatError(f"{path}: missing field {name!r}", path, frame)
+            continue
         a = np.asarray(arrays[name])
         ok = a.dtype == np.dtype(dtype) and a.ndim == len(shape) and all(
             s == -1 or s == d for s, d in zip(shape, a.shape))
@@ -111,10 +117,12 @@ def write_sequence_gt(root: Path, seq: int, arrays: dict[str, np.ndarray]) -> Pa
 
 
 def write_frame_gt(root: Path, seq: int, frame: int, arrays: dict[str, np.ndarray]) -> Path:
-    """Write one frame's ground truth (fields FRAME_FIELDS, validated)."""
+    """Write one frame's ground truth (fields FRAME_FIELDS and those of OPTIONAL_FRAME_FIELDS
+    given, validated)."""
     path = frame_path(root, seq, frame)
-    _check(path, arrays, FRAME_FIELDS)
-    return write_npz_deterministic(path, {k: np.asarray(arrays[k]) for k in FRAME_FIELDS})
+    _check(path, arrays, FRAME_FIELDS, OPTIONAL_FRAME_FIELDS)
+    names = [*FRAME_FIELDS, *(k for k in OPTIONAL_FRAME_FIELDS if arrays.get(k) is not None)]
+    return write_npz_deterministic(path, {k: np.asarray(arrays[k]) for k in names})
 
 
 @dataclass(frozen=True)
@@ -159,6 +167,8 @@ class GTFrame:
     box_center: np.ndarray
     box_size: np.ndarray
     box_yaw: np.ndarray
+    #: (K, V, 3) per-vertex world velocity in base axes, m/s; None in ground truth written before it
+    vertex_velocity_base: np.ndarray | None = None
 
 
 def list_gt_frames(root: Path, seq: int) -> list[int]:
@@ -192,7 +202,7 @@ def read_frame_gt(root: Path, seq: int, frame: int) -> GTFrame:
     if not path.exists():
         raise GTMissingError(f"{path} (frame {frame}): no ground truth for sequence {seq} frame {frame}", path, frame)
     a = _load(path, frame)
-    _check(path, a, FRAME_FIELDS, frame)
-    kw = {f.name: a[f.name] for f in fields(GTFrame)}
+    _check(path, a, FRAME_FIELDS, OPTIONAL_FRAME_FIELDS, frame)
+    kw = {f.name: a.get(f.name) for f in fields(GTFrame)}
     kw["stamp_ns"] = int(kw["stamp_ns"])
     return GTFrame(**kw)

@@ -30,7 +30,8 @@ def test_report_sections_and_gt_bodies_near_perfect(built, tmp_path):
     res = evaluate(out, None, tmp_path / "report", sample_frames=2)  # gt root from the manifest
     md = (tmp_path / "report" / "report.md").read_text()
     for title in ("Semantic occupancy", "Static semantic voxels", "Pedestrian voxels (vs GT 3D boxes)",
-                  "Pedestrian voxels (vs LiDAR body GT)", "Detection robustness", "Tracking", "Pedestrian velocity (AVE)", "Notes",
+                  "Pedestrian voxels (vs LiDAR body GT)", "Detection robustness", "Tracking", "Pedestrian velocity (AVE)",
+                  "Pedestrian velocity (AVE) per limb group", "Notes",
                   "Sample frames"):
         assert title in md, title
     saved = json.loads((tmp_path / "report" / "results.json").read_text())
@@ -44,7 +45,12 @@ def test_report_sections_and_gt_bodies_near_perfect(built, tmp_path):
     # (fails when frames are misaligned: a body of frame k compared with GT of frame k + 1)
     assert res["occupancy"]["per_class_iou"]["pedestrian"] > 0.97
     assert res["pedestrian_lidar"]["all"]["f1"] > 0.97
-    assert res["velocity"]["all"]["ave_t"] < 0.05
+    # and their exact vertex velocities (fuse.velocity vertex): a match to the per-vertex GT in
+    # every limb group, while the per-person GT (one velocity per body) differs from it
+    assert res["velocity_vertex_gt"]["all"]["ave_t"] < 0.05
+    limbs = res["velocity_by_limb"]
+    assert all(limbs[g]["ave_t_vertex_gt"] < 0.05 for g in ("legs", "arms", "torso"))
+    assert limbs["legs"]["ave_o_person_gt"] > 2 * limbs["legs"]["ave_o_vertex_gt"]
     assert res["occupancy"]["geometric_iou"] > 0.6
     # detection: every GT person in view counted once (T + misses), condition from the metadata
     d = res["detection"]["crowded"]

@@ -38,8 +38,9 @@ PROVIDER_ONLY = {
 #: every leaf under these prefixes is read only with the provider chosen
 PROVIDER_PREFIXES = {"detect.models.": {"detect.image_provider": "models"}}
 #: leaves read only in part: of ``fit.presets`` only the preset ``fit.preset`` names counts
-#: (test_a_chosen_custom_preset_is_in_the_fit_key)
-READ_IN_PART = {"fit.presets"}
+#: (test_a_chosen_custom_preset_is_in_the_fit_key); track.scale_min_hits acts only where
+#: dataset.rate_hz differs from track.gates_rate_hz (test_scale_min_hits_is_in_the_track_key_at_10_hz)
+READ_IN_PART = {"fit.presets", "track.scale_min_hits"}
 
 
 def _leaves(tree: Any, prefix: str = "") -> dict[str, Any]:
@@ -62,7 +63,7 @@ def _candidates(value: Any) -> list[Any]:
     if isinstance(value, str):
         return ["3d_comp", "3d_raw", "2d_raw", "cam1", "unknown", "metadata", "rays", "zbuffer", "ground-truth",
                 "oracle", "none", "precomputed", "lidar-clusters", "cpu", "cuda", "v1.0-mini", "3dpw",
-                "thread", "dask", "yolox", value + "x"]
+                "thread", "dask", "yolox", "person", value + "x"]
     if value is None:
         return ["/x", 0.05, 2, 0.5, [256, 512]]
     if isinstance(value, list):
@@ -130,6 +131,14 @@ def test_every_leaf_changes_exactly_the_keys_of_the_stages_that_read_it():
             unread.append(key)
     assert not untested, f"no valid mutation found for {untested}"
     assert not unread, f"settings that no stage reads (dead config or a missing input): {unread}"
+
+
+def test_scale_min_hits_is_in_the_track_key_at_10_hz():
+    """At the gates' own rate min_hits is the same either way (the key too); at 10 Hz it doubles."""
+    at = {hz: [load_config(overrides={"dataset.rate_hz": hz, "track.scale_min_hits": s}) for s in (False, True)]
+          for hz in (5.0, 10.0)}
+    assert _state(at[5.0][0])[1]["track"] == _state(at[5.0][1])[1]["track"]
+    assert _state(at[10.0][0])[1]["track"] != _state(at[10.0][1])[1]["track"]
 
 
 def test_the_old_slice_table_misses_the_map_stages_iou_and_the_inputs_do_not():

@@ -330,3 +330,41 @@ def test_an_outlier_just_before_a_missed_stretch_does_not_split_the_track():
     positions[7] = np.array([[4.0, 0.5]])
     out = _refine(ids, boxes, positions)
     assert {int(r[0]) for r in out if len(r)} == {1}
+
+
+# ---- the gates at the tracking rate (tasks/track/rate.py) -------------------------------------------
+
+from tasks.track.offline import WorldCheck  # noqa: E402
+from tasks.track.rate import GateRate, frames_at, gates_at_rate  # noqa: E402
+
+
+def test_gates_keep_their_duration_at_another_rate():
+    base = (TrackerParams(), OfflineParams(), WorldCheck())
+    assert gates_at_rate(*base, 5.0) == base  # the rate they are given at: unchanged
+    tracker, offline, check = gates_at_rate(*base, 10.0)
+    assert (tracker.max_age, tracker.delta_t, tracker.min_hits) == (60, 6, 3)
+    assert (offline.stitch_max_gap, check.window) == (20, 10)
+    assert gates_at_rate(*base, 10.0, GateRate(scale_min_hits=True))[0].min_hits == 6
+    tracker, offline, check = gates_at_rate(*base, 2.5)
+    assert (tracker.max_age, tracker.delta_t, offline.stitch_max_gap, check.window) == (15, 2, 5, 3)  # halves up
+    assert gates_at_rate(*base, 10.0, GateRate(gates_rate_hz=10.0)) == base
+    assert frames_at(0, 2.0, 1) == 0 and frames_at(1, 0.1, 1) == 1  # off stays off; never below the minimum
+    with pytest.raises(ValueError, match="rates must be > 0"):
+        gates_at_rate(*base, 0.0)
+
+
+def test_a_walker_hidden_for_1_6_s_is_joined_at_5_and_at_10_hz():
+    """The same scene sampled at 5 and 10 Hz (a walker at 40 px/s hidden from 2.0 to 3.6 s, beside
+    a standing person): with the gates scaled to the rate the walker keeps one id at both; at
+    10 Hz with the 5 Hz frame counts the gap (17 frames) is longer than stitch_max_gap (10)."""
+    def ids_at(rate, scaled):
+        frames = [[_box(600, cy=300)] + ([] if 2.0 <= f / rate < 3.6 else [_box(100 + 40 * f / rate)])
+                  for f in range(int(6 * rate))]
+        base = (TrackerParams(max_age=3), OfflineParams(stitch_max_gap=10), WorldCheck())
+        tracker, offline, _ = gates_at_rate(*base, rate) if scaled else base
+        boxes = [np.asarray(b, np.float32).reshape(-1, 4) for b in frames]
+        ids = track_offline(boxes, [np.full(len(b), 0.9) for b in boxes], PedestrianTracker(tracker), offline)
+        return set(np.concatenate(ids).tolist()) - {-1}
+
+    assert ids_at(5.0, True) == {1, 2} and ids_at(10.0, True) == {1, 2}
+    assert len(ids_at(10.0, False)) == 3

@@ -20,7 +20,11 @@ Definitions beyond the kernels' own (each kernel's docstring has the rest):
 - tracking: the same GT persons, ids = GT track ids, against the track product's rows;
 - fit: each fitted row's detection box matched (IoU >= 0.5, Hungarian) to the GT persons' box2d
   of its frame; vertices / joints from the configured body model;
-- velocity: GT velocity grid = velocity_base of the person on each of its occupancy_instance voxels;
+- velocity: GT velocity grid = velocity_base of the person on each of its occupancy_instance voxels
+  (per-person GT); per-vertex GT = on each of those voxels the mean of the GT vertex velocities
+  over the body surface in it (the fuse stage's rule, tasks/metrics/velocity.py
+  ``vertex_velocity_grid``), its limb group (legs / arms / torso) that of the nearest GT vertex
+  (skinning weights of the simulator's body model); both over camera-visible voxels;
 - box heading: the published box yaw (instances table) of each matched fitted row vs the GT
   person's heading (box_yaw), both about base z (tasks/metrics/heading.py);
 - box visibility: the nuScenes export's visible fraction of each matched fitted row's box vs the
@@ -54,10 +58,15 @@ from tasks.metrics.pedestrian import (
 from tasks.metrics.static import StaticCounts, static_counts
 from tasks.metrics.tracking import tracking_scores
 from tasks.metrics.velocity import (
+    LIMB_GROUPS,
     VelocityErrors,
+    limb_velocity_errors,
     velocity_errors,
+    vertex_limb_groups,
+    vertex_velocity_grid,
     voxel_velocity_errors,
 )
+from tasks.occupancy.grid import GridSpec
 
 #: a GT person counts as "visible" for detection when at least this fraction of its silhouette shows
 VISIBLE_FRACTION = 0.3
@@ -158,6 +167,11 @@ class _Totals:
         self.detection: dict[str, DetectionCounts] = {}
         self.tracking: dict = {}
         self.velocity: dict[str, VelocityErrors] = {}
+        self.velocity_vertex: dict[str, VelocityErrors] = {}
+        #: "vertex" / "person" GT -> limb group -> AVE counts
+        self.limbs: dict[str, dict[str, VelocityErrors]] = {g: {n: VelocityErrors() for n in LIMB_GROUPS}
+                                                             for g in ("vertex", "person")}
+        self.limb_groups: dict[str, np.ndarray | None] = {}  # sequence -> (V,) limb of each GT vertex
         self.fit: dict[str, dict[str, list]] = {}
         self.person_points: dict[str, PRCounts] = {}
         self.notes: dict[str, str] = {}
@@ -209,6 +223,7 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
 
     occ = tot.occ.setdefault(seq, OccupancyMetric())
     st, bx, li, ve, pp = StaticCounts(), PRCounts(), PRCounts(), VelocityErrors(), PRCounts()
+    vv = VelocityErrors()
     track_frames, fit_rows = [], {k: [] for k in ("pve", "mpjpe", "pa_mpjpe", "mpere", "heading", "visible",
                                                    "visible_gt")}
     boxed = [r for r in ds.table("instances", seq).to_pylist() if r["box3d_center"] is not None]
@@ -241,6 +256,8 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
                 gvel[gtf.occupancy_instance == tid] = gtf.velocity_base[j]
             pvel = np.asarray(arrays["velocity"][k]).astype(np.float32)
             ve = ve + velocity_errors(pred, pvel, gtf.occupancy, gvel, mask_cam)
+            vv = _vertex_velocity(tot, seq, gseq, gtf, T_bl, GridSpec(tuple(range_min), tuple(
+                range_min + np.asarray(shape) * vs), vs), pred, pvel, gvel, mask_cam, vv)
             tot.hist["velocity_error"].append(voxel_velocity_errors(pred, pvel, gtf.occupancy, gvel, mask_cam)[0])
             if len(tot.samples) < len(sample_positions) + 1 and (seq, k) in sample_positions:
                 tot.samples.append({"title": f"sequence {seq} frame {raw} ({condition})", "pred": pred,
@@ -285,6 +302,8 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
     tot.static[seq], tot.boxes[seq], tot.lidar[seq], tot.velocity[seq] = st, bx, li, ve
     if pp.pred_total:
         tot.person_points[seq] = pp
+    if vv.n_t:
+        tot.velocity_vertex[seq] = vv
     if not same_grid:
         tot.occ.pop(seq)
         tot.velocity.pop(seq)
@@ -295,6 +314,47 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
         tot.fit[seq] = got
         tot.hist["PVE_mm"].append(got["pve"])
         tot.hist["MPJPE_mm"].append(got["mpjpe"])
+
+
+def _limb_groups(gseq) -> np.ndarray | None:
+    """(V,) limb group of each GT body vertex, from the simulator's body model (the procedural
+    one) when its mesh is the ground truth's; None otherwise."""
+    from tasks.body.procedural import default_body_model
+
+    model = default_body_model()
+    faces = np.asarray(model.faces)
+    if faces.shape != gseq.person_faces.shape or not np.array_equal(faces, gseq.person_faces):
+        return None
+    return vertex_limb_groups(model.lbs_weights.numpy())
+
+
+def _vertex_velocity(tot: _Totals, seq: str, gseq, gtf, T_bl, spec: GridSpec, pred, pvel, gvel, mask,
+                     vv: VelocityErrors) -> VelocityErrors:
+    """Add one frame's AVE against the per-vertex GT (and per limb group against both GTs)."""
+    if seq not in tot.limb_groups:
+        tot.limb_groups[seq] = _limb_groups(gseq)
+    groups = tot.limb_groups[seq]
+    if gtf.vertex_velocity_base is None or groups is None:
+        tot.notes[f"velocity per vertex {seq}"] = (
+            "ground truth without vertex_velocity_base (simulated before it existed)" if groups is not None else
+            "the ground truth's body mesh is not the simulator's procedural one: no limb groups")
+        return vv
+    verts = np.stack([C.transform_points(T_bl, v) for v in gtf.vertices]) if len(gtf.vertices) else gtf.vertices
+    gvv, group = vertex_velocity_grid(spec, gtf.occupancy_instance, gtf.track_id, verts, gseq.person_faces,
+                                      gtf.vertex_velocity_base[..., :2], groups)
+    for name, g in (("vertex", gvv), ("person", gvel)):
+        per = limb_velocity_errors(pred, pvel, gtf.occupancy, g, group, mask)
+        tot.limbs[name] = {n: tot.limbs[name][n] + per[n] for n in LIMB_GROUPS}
+    return vv + velocity_errors(pred, pvel, gtf.occupancy, gvv, mask)
+
+
+def _limb_table(limbs: dict[str, dict[str, VelocityErrors]]) -> dict:
+    """{limb group and "all": AVE-O / AVE-T against the per-vertex and the per-person GT}."""
+    rows = {**{n: (limbs["vertex"][n], limbs["person"][n]) for n in LIMB_GROUPS},
+            "all": tuple(_sum(limbs[g].values()) for g in ("vertex", "person"))}
+    return {n: {"ave_o_vertex_gt": v.ave_o, "ave_t_vertex_gt": v.ave_t, "ave_o_person_gt": p.ave_o,
+                "ave_t_person_gt": p.ave_t, "num_voxels_o": v.n_o, "num_voxels_t": v.n_t}
+            for n, (v, p) in rows.items()}
 
 
 # ---- entry point --------------------------------------------------------------------------------
@@ -408,6 +468,10 @@ def evaluate(dataset: Path, gt: Path | None, report_dir: Path, sample_frames: in
     if tot.velocity:
         results["velocity"] = {**{s: v.as_dict() for s, v in tot.velocity.items()},
                                "all": _sum(tot.velocity.values()).as_dict()}
+    if tot.velocity_vertex:
+        results["velocity_vertex_gt"] = {**{s: v.as_dict() for s, v in tot.velocity_vertex.items()},
+                                         "all": _sum(tot.velocity_vertex.values()).as_dict()}
+        results["velocity_by_limb"] = _limb_table(tot.limbs)
     if tot.notes:
         results["notes"] = {k: {"note": v} for k, v in tot.notes.items()}
     hist = {}

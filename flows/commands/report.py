@@ -11,7 +11,8 @@ and renders what it finds. ``results`` (JSON-like; numpy scalars / arrays allowe
 - ``occupancy``: ``OccupancyScores.as_dict()``, or {name: that} for several rows.
 - ``fit``: {metric: value} or {row: {metric: value}} (PVE / MPJPE / PA-MPJPE in mm, MPERE).
 - ``tracking``: {sequence: ``TrackingScores.as_dict()``}.
-- ``velocity``: ``VelocityErrors.as_dict()`` or {name: that}.
+- ``velocity``, ``velocity_vertex_gt``: ``VelocityErrors.as_dict()`` or {name: that};
+  ``velocity_by_limb``: {limb group: AVE against the per-vertex / per-person GT}.
 - any other key: a table of its scalars (rows when its values are dicts).
 
 Ratios (IoU, precision, recall, accuracy, MOTA ...) are fractions in results.json and
@@ -45,7 +46,8 @@ _LABELS = {"geometric_iou": "IoU (geom.)", "miou": "mIoU", "f1": "F1", "mota": "
            "ave_t": "AVE-T (m/s)", "coverage": "GT point coverage", "voxel_accuracy": "Voxel-level accuracy",
            "point_accuracy": "Point-level accuracy", "num_voxels_o": "voxels (O)", "num_voxels_t": "voxels (T)",
            "pred_total": "pred. voxels", "ref_total": "ref. voxels", "num_objects": "GT boxes",
-           "num_voxels": "voxels", "PVE_mm": "PVE (mm)", "MPJPE_mm": "MPJPE (mm)", "PA_MPJPE_mm": "PA-MPJPE (mm)"}
+           "num_voxels": "voxels", "ave_o_vertex_gt": "AVE-O vs vertex GT", "ave_t_vertex_gt": "AVE-T vs vertex GT",
+           "ave_o_person_gt": "AVE-O vs person GT", "ave_t_person_gt": "AVE-T vs person GT", "PVE_mm": "PVE (mm)", "MPJPE_mm": "MPJPE (mm)", "PA_MPJPE_mm": "PA-MPJPE (mm)"}
 _DIFF_COLORS = np.array([[255, 255, 255],  # free in both
                          [44, 160, 44],  # correct: green
                          [255, 165, 0],  # wrong class: orange
@@ -78,20 +80,30 @@ _HOW_TO_READ = {
     "tracking": "MOTA = 1 - (misses + false positives + id switches) / GT boxes; IDF1 = identity F1; "
                 "HOTA = sqrt(DetA x AssA) averaged over IoU thresholds 0.05..0.95. Higher is better.",
     "velocity": "Absolute velocity error of pedestrian voxels (m/s, lower is better): AVE-O over voxels pedestrian "
-                "in both, AVE-T over all GT pedestrian voxels (a missed voxel counts with zero velocity).",
+                "in both, AVE-T over all GT pedestrian voxels (a missed voxel counts with zero velocity). "
+                "Ground truth: each person's own velocity on all its voxels.",
+    "velocity_vertex_gt": "AVE as above against the per-vertex ground truth: each GT pedestrian voxel moves with "
+                          "the mean velocity of the body surface in it (a swinging leg's voxels faster than the "
+                          "torso's).",
+    "velocity_by_limb": "AVE per limb group of the GT voxel (the group of its nearest GT vertex, from the body "
+                        "model's skinning weights), against the per-vertex GT and against the per-person GT; "
+                        "m/s, lower is better.",
 }
 _TITLES = {"static": "Static semantic voxels (vs GT LiDAR points)",
            "pedestrian_boxes": "Pedestrian voxels (vs GT 3D boxes)",
            "pedestrian_lidar": "Pedestrian voxels (vs LiDAR body GT)",
            "detection": "Detection robustness", "occupancy": "Semantic occupancy (Occ3D metric)",
            "fit": "Body fit accuracy", "box_heading": "Pedestrian box heading (vs GT)",
-           "box_visibility": "Pedestrian box visibility (vs GT)", "tracking": "Tracking", "velocity": "Pedestrian velocity (AVE)"}
+           "box_visibility": "Pedestrian box visibility (vs GT)", "tracking": "Tracking", "velocity": "Pedestrian velocity (AVE)",
+           "velocity_vertex_gt": "Pedestrian velocity (AVE) vs per-vertex GT",
+           "velocity_by_limb": "Pedestrian velocity (AVE) per limb group"}
 _COLUMNS = {
     "pedestrian_boxes": ["precision", "recall", "f1", "pred_total", "ref_total"],
     "pedestrian_lidar": ["precision", "recall", "f1", "pred_total", "ref_total"],
     "detection": ["T", "M_vis", "M_occ", "W", "recall", "precision", "miss_vis"],
     "tracking": ["mota", "idf1", "hota", "deta", "assa", "switches", "num_objects"],
     "velocity": ["ave_o", "ave_t", "num_voxels_o", "num_voxels_t"],
+    "velocity_vertex_gt": ["ave_o", "ave_t", "num_voxels_o", "num_voxels_t"],
 }
 _MAX_PNG_BYTES = 300_000
 

@@ -88,7 +88,7 @@ def write_frame(out: Path, seq: int, frame, stamp_ns: int, image_ext: str = ".jp
         "global_orient": p.global_orient, "body_pose": p.body_pose, "transl": p.transl,
         "vertices": p.vertices, "joints": p.joints, "velocity_base": p.velocity_base, "box2d": p.box2d,
         "keypoints": p.keypoints, "visible_fraction": p.visible_fraction, "box_center": p.box_center,
-        "box_size": p.box_size, "box_yaw": p.box_yaw,
+        "box_size": p.box_size, "box_yaw": p.box_yaw, "vertex_velocity_base": p.vertex_velocity_base,
     })
 
 

@@ -32,9 +32,10 @@ CODE_VERSIONS: dict[str, str] = {
     #                parallel windows / regions; the voxels are the same, the product files are not.
     #             (fuse not bumped: it reads the tiles near its frames and writes the same bytes; its key
     #             follows the map's key)
-    "fuse": "2",  # 2: mask_camera is inside mask_lidar (Occ3D); class_counts among voxels with
+    "fuse": "3",  # 2: mask_camera is inside mask_lidar (Occ3D); class_counts among voxels with
     #               mask_lidar = 1 (as documented); store attrs carry the stage key, not a config hash;
-    #               the rectified camera
+    #               the rectified camera; 3: pedestrian voxel velocity from each vertex's motion along
+    #               the track (fuse.velocity "vertex"), the mean over the body surface in the voxel
     "export": "3",  # 2: instances carry the fitted bodies, 3D boxes and velocities; 3: source paths
     #                 relative to the dataset root, box yaw from the body's forward axis, no NaN
     #                 velocity, chamfer_m / reproj_px written, config_hash of the stage inputs; the

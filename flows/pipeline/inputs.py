@@ -36,6 +36,7 @@ from tasks.perception.oracle import OracleNoise
 from tasks.perception.person_points import PersonPointParams
 from tasks.track.ocsort import TrackerParams
 from tasks.track.offline import OfflineParams, WorldCheck
+from tasks.track.rate import GateRate, gates_at_rate
 
 #: config keys that only say where things are or how many workers run (no stage reads them)
 RUNTIME_KEYS = ("dataset.root", "dataset.sequences", "output.root", "dask")
@@ -246,6 +247,7 @@ class DetectInputs:
 @dataclass(frozen=True)
 class TrackInputs:
     source: Source
+    #: the frame-counted gates at dataset.rate_hz (tasks.track.rate: the same values at 5 Hz)
     tracker: TrackerParams
     offline: OfflineParams
     world_check: WorldCheck
@@ -344,8 +346,9 @@ def detect_inputs(config: Config) -> DetectInputs:
 
 def track_inputs(config: Config) -> TrackInputs:
     t = config.track
-    return TrackInputs(source(config), t.to(TrackerParams), t.to(OfflineParams), t.world_check.to(WorldCheck),
-                       t.person_points.to(PersonPointParams))
+    tracker, offline, check = gates_at_rate(t.to(TrackerParams), t.to(OfflineParams), t.world_check.to(WorldCheck),
+                                            config.dataset.rate_hz, t.to(GateRate))
+    return TrackInputs(source(config), tracker, offline, check, t.person_points.to(PersonPointParams))
 
 
 def fit_inputs(config: Config) -> FitInputs:

@@ -17,10 +17,10 @@ import numpy as np
 from flows.pipeline.inputs import FuseInputs, SequenceRef
 from flows.pipeline.parallel import fan_out
 from flows.stages.common import StageContext, body_model, detected_positions
-from storage.gt import read_frame_gt, read_sequence_gt
+from storage.gt import frame_path, read_frame_gt, read_sequence_gt
 from storage.occupancy_store import create_store, write_frames
 from storage.products import TILES, Bodies, FusedFrames, MapTiles, OccupancyMapProduct, StaticMapProduct
-from tasks.body.posing import posed_vertices
+from tasks.body.motion import TrackedBodies
 from tasks.conventions import FREE, transform_points
 from tasks.occupancy.frame import local_grids
 from tasks.occupancy.freespace import OccupancyMap
@@ -32,31 +32,48 @@ from tasks.occupancy.tiles import tiles_near_grids
 
 
 class _People:
-    """The pedestrians of a frame as meshes in the base frame: fitted bodies, or the simulator's."""
+    """The pedestrians of a frame as meshes in the base frame: fitted bodies, or the simulator's;
+    with ``fusion.velocity`` "vertex" each vertex carries its own velocity (tasks/body/motion.py
+    for fits, the ground truth's ``vertex_velocity_base`` for the simulator's bodies)."""
 
     def __init__(self, inputs: FuseInputs, seq, out_root: Path, fit_dir: Path | None):
-        self.inputs, self.seq = inputs, seq
+        self.inputs, self.seq, self.per_vertex = inputs, seq, inputs.fusion.velocity == "vertex"
         self.T = seq.info.calibration.T_base_from_lidar
         if inputs.body_source == "ground-truth":
             self.faces = read_sequence_gt(seq.root, int(seq.sequence)).person_faces
-        else:
-            self.model = body_model(inputs.body, out_root)
-            self.faces = np.asarray(self.model.faces)
-            self.bodies = Bodies.read(fit_dir) if fit_dir is not None else Bodies.empty()
+            return
+        self.model = body_model(inputs.body, out_root)
+        self.faces = np.asarray(self.model.faces)
+        b = Bodies.read(fit_dir) if fit_dir is not None else Bodies.empty()
+        pos = {raw: k for k, raw in enumerate(seq.info.frame_indices)}
+        self.bodies = TrackedBodies(self.model, b.betas, b.global_orient, b.body_pose, b.transl, b.track_id,
+                                    np.array([pos[int(f)] for f in b.frame], np.int64), b.velocity_base,
+                                    seq.info.stamps_ns * 1e-9, seq.info.poses, self.T,
+                                    inputs.fusion.velocity_max_gap_s)
 
-    def __call__(self, frame: int) -> list[PedestrianMesh]:
+    def __call__(self, position: int, frame: int) -> list[PedestrianMesh]:
         if self.inputs.body_source == "ground-truth":
-            gt = read_frame_gt(self.seq.root, int(self.seq.sequence), frame)
-            returns = np.array([(gt.point_instance == t).sum() for t in gt.track_id], np.int64)
-            n = self.inputs.gt_min_points
-            observed = (returns >= n) & (gt.visible_fraction > 0) if n else returns >= 0
-            ids, verts, vel = gt.track_id[observed], gt.vertices[observed], gt.velocity_base[observed]
+            ids, verts, vel, vertex_vel = self._ground_truth(frame)
         else:
-            b = self.bodies.take(np.flatnonzero(self.bodies.frame == frame))
-            ids, vel = b.track_id, b.velocity_base
-            verts = posed_vertices(self.model, b.betas, b.global_orient, b.body_pose, b.transl)
-        return [PedestrianMesh(int(t), transform_points(self.T, v), self.faces, w)
-                for t, v, w in zip(ids, verts, vel)]
+            rows, verts, vertex_vel = self.bodies.frame(position)
+            ids, vel = self.bodies.track_id[rows], self.bodies.velocity_base[rows]
+        return [PedestrianMesh(int(t), transform_points(self.T, v), self.faces, w,
+                               vertex_vel[k, :, :2] if self.per_vertex else None)
+                for k, (t, v, w) in enumerate(zip(ids, verts, vel))]
+
+    def _ground_truth(self, frame: int):
+        """(track ids, vertices LiDAR frame, person velocities, vertex velocities base axes) of
+        the observed simulated people."""
+        gt = read_frame_gt(self.seq.root, int(self.seq.sequence), frame)
+        returns = np.array([(gt.point_instance == t).sum() for t in gt.track_id], np.int64)
+        n = self.inputs.gt_min_points
+        observed = (returns >= n) & (gt.visible_fraction > 0) if n else returns >= 0
+        if self.per_vertex and gt.vertex_velocity_base is None:
+            raise ValueError(f"{frame_path(self.seq.root, int(self.seq.sequence), frame)}: no vertex_velocity_base "
+                             "(ground truth simulated before it existed): simulate again, or set "
+                             "fuse.velocity: person")
+        vertex_vel = gt.vertex_velocity_base[observed] if self.per_vertex else None
+        return gt.track_id[observed], gt.vertices[observed], gt.velocity_base[observed], vertex_vel
 
 
 def maps_near(map_dir: Path, inputs: FuseInputs, T_world_from_base: np.ndarray) -> tuple[StaticMap, OccupancyMap]:
@@ -91,7 +108,7 @@ def fuse_chunk(ref: SequenceRef, inputs: FuseInputs, out_root: Path, positions: 
     for i in positions:
         frame = seq.frame(i)
         T_world_from_base = frame.T_world_from_lidar @ np.linalg.inv(T_base_from_lidar)
-        persons = people(frame.index)
+        persons = people(i, frame.index)
         grids, counts = local_grids(inputs.grid, T_world_from_base, smap, occupancy, persons, frame.points_lidar,
                                     T_base_from_lidar, camera, inputs.fusion.camera_pixel_stride,
                                     inputs.fusion.camera_method, threads)

@@ -71,3 +71,61 @@ def velocity_errors(pred, pred_velocity, gt, gt_velocity, mask=None) -> Velocity
     """AVE counts of one frame (arrays as in :func:`voxel_velocity_errors`)."""
     err_o, err_t = voxel_velocity_errors(pred, pred_velocity, gt, gt_velocity, mask)
     return VelocityErrors(float(err_o.sum()), len(err_o), float(err_t.sum()), len(err_t))
+
+
+# ---- per limb, against per-vertex ground truth -----------------------------------------------------
+
+#: the limb groups of a body; a vertex belongs to the group of its most weighted skinning joint
+LIMB_GROUPS = ("legs", "arms", "torso")
+#: SMPL joint (tasks.conventions.SMPL_JOINT_NAMES) -> index into LIMB_GROUPS: hips, knees, ankles and
+#: feet are legs; shoulders, elbows, wrists and hands arms; pelvis, spine, neck, collars and head torso
+SMPL_JOINT_LIMB = np.array([2, 0, 0, 2, 0, 0, 2, 0, 0, 2, 0, 0, 2, 2, 2, 2, 1, 1, 1, 1, 1, 1, 1, 1], np.int64)
+
+
+def vertex_limb_groups(lbs_weights: np.ndarray) -> np.ndarray:
+    """(V,) int64 index into LIMB_GROUPS of each vertex, from skinning weights (V, 24) float."""
+    w = np.asarray(lbs_weights, np.float64)
+    if w.ndim != 2 or w.shape[1] != len(SMPL_JOINT_LIMB):
+        raise MetricInputError(f"lbs_weights: expected (V, {len(SMPL_JOINT_LIMB)}), got {w.shape}")
+    return SMPL_JOINT_LIMB[np.argmax(w, axis=1)]
+
+
+def vertex_velocity_grid(spec, instance_grid: np.ndarray, track_ids: np.ndarray, vertices: np.ndarray,
+                         faces: np.ndarray, vertex_velocity: np.ndarray, vertex_group: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth velocity and limb group of every pedestrian voxel from per-vertex velocities.
+
+    spec: the grid (tasks.occupancy.grid.GridSpec, base frame). instance_grid (X, Y, Z) int: the
+    track id owning each voxel (0 none). Per person k of track_ids (K,): vertices (K, V, 3) float
+    metres, base frame, faces (F, 3), vertex_velocity (K, V, D) float m/s, base axes; vertex_group
+    (V,) int (:func:`vertex_limb_groups`). A voxel's velocity is the mean over the body surface in
+    it (:func:`tasks.occupancy.fuse.mesh_voxel_velocity`, the rule the fuse stage labels with);
+    its group is that of the vertex nearest its centre. Returns (velocity (X, Y, Z, D) float64,
+    zero off pedestrians; group (X, Y, Z) int8, -1 off pedestrians).
+    """
+    from scipy.spatial import cKDTree
+
+    from tasks.occupancy.fuse import mesh_voxel_velocity
+
+    inst = np.asarray(instance_grid)
+    vel = np.asarray(vertex_velocity, np.float64)
+    out = np.zeros(inst.shape + (vel.shape[-1],))
+    group = np.full(inst.shape, -1, np.int8)
+    for k, tid in enumerate(np.asarray(track_ids).reshape(-1)):
+        voxels = np.argwhere(inst == tid)
+        if not len(voxels) or tid == 0:
+            continue
+        _, v = mesh_voxel_velocity(spec, vertices[k], faces, vel[k], voxels)
+        out[tuple(voxels.T)] = v
+        _, nearest = cKDTree(np.asarray(vertices[k], np.float64)).query(spec.center_of(voxels))
+        group[tuple(voxels.T)] = np.asarray(vertex_group)[nearest]
+    return out, group
+
+
+def limb_velocity_errors(pred, pred_velocity, gt, gt_velocity, group: np.ndarray,
+                         mask=None) -> dict[str, VelocityErrors]:
+    """AVE counts of one frame per limb group (LIMB_GROUPS; group (X, Y, Z) int, the group of
+    each ground-truth pedestrian voxel, -1 elsewhere); arrays as in :func:`voxel_velocity_errors`."""
+    m = np.ones(np.shape(gt), bool) if mask is None else np.asarray(mask, bool)
+    return {name: velocity_errors(pred, pred_velocity, gt, gt_velocity, m & (np.asarray(group) == g))
+            for g, name in enumerate(LIMB_GROUPS)}

@@ -31,13 +31,17 @@ class PedestrianMesh:
     """One person in one frame: a closed body mesh in the base frame.
 
     instance_id: 1..65535 (0 means "no instance"). vertices_base: (V, 3) float metres, base frame.
-    faces: (F, 3) int vertex indices. velocity_base: (2,) float m/s (vx, vy), base frame.
+    faces: (F, 3) int vertex indices. velocity_base: (2,) float m/s (vx, vy), base frame: the
+    person's velocity, every voxel's unless vertex_velocity_base (V, 2) float m/s (vx, vy per
+    vertex, base axes) is given; then each voxel takes the mean velocity of the body surface in it
+    (:func:`mesh_voxel_velocity`).
     """
 
     instance_id: int
     vertices_base: np.ndarray
     faces: np.ndarray
     velocity_base: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    vertex_velocity_base: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -93,14 +97,23 @@ def _floor_index(x, origin, vs):
 
 
 @njit(cache=True)
-def _mark_surface(v, f, origin, vs, shape, g0, occ):
+def _mark_surface(v, f, origin, vs, shape, g0, occ, vel, sums, counts):
     """Mark the voxels of :func:`surface_points` (spacing vs / 2) in occ, a local grid whose
     voxel (0, 0, 0) is grid voxel g0; points outside the grid are skipped. Same lattice and the
     same float64 arithmetic as surface_points (weights i / k, j / k, (k - i - j) / k, summed in
-    that order), without materialising the points."""
+    that order), without materialising the points. With vel (V, D), D > 0, every point also adds
+    its velocity (a vertex's own; a triangle point's vertex velocities blended with its weights)
+    to sums (occ's shape + (D,)) and 1 to counts (occ's shape); with D = 0 they are not touched."""
     spacing = 0.5 * vs
+    nd = vel.shape[1]
     for n in range(v.shape[0]):
-        _mark_point(v[n, 0], v[n, 1], v[n, 2], origin, vs, shape, g0, occ)
+        lx, ly, lz, ok = _local_index(v[n, 0], v[n, 1], v[n, 2], origin, vs, shape, g0, occ)
+        if ok:
+            occ[lx, ly, lz] = 1
+            if nd:
+                counts[lx, ly, lz] += 1
+                for d in range(nd):
+                    sums[lx, ly, lz, d] += vel[n, d]
     for t in range(f.shape[0]):
         a, b, c = f[t, 0], f[t, 1], f[t, 2]
         edge = 0.0
@@ -115,20 +128,30 @@ def _mark_surface(v, f, origin, vs, shape, g0, occ):
                 wa = i / k
                 wb = j / k
                 wc = (k - i - j) / k
-                _mark_point((wa * v[a, 0] + wb * v[b, 0]) + wc * v[c, 0],
-                            (wa * v[a, 1] + wb * v[b, 1]) + wc * v[c, 1],
-                            (wa * v[a, 2] + wb * v[b, 2]) + wc * v[c, 2], origin, vs, shape, g0, occ)
+                lx, ly, lz, ok = _local_index((wa * v[a, 0] + wb * v[b, 0]) + wc * v[c, 0],
+                                              (wa * v[a, 1] + wb * v[b, 1]) + wc * v[c, 1],
+                                              (wa * v[a, 2] + wb * v[b, 2]) + wc * v[c, 2],
+                                              origin, vs, shape, g0, occ)
+                if ok:
+                    occ[lx, ly, lz] = 1
+                    if nd:
+                        counts[lx, ly, lz] += 1
+                        for d in range(nd):
+                            sums[lx, ly, lz, d] += (wa * vel[a, d] + wb * vel[b, d]) + wc * vel[c, d]
 
 
 @njit(cache=True, inline="always")
-def _mark_point(x, y, z, origin, vs, shape, g0, occ):
+def _local_index(x, y, z, origin, vs, shape, g0, occ):
+    """(lx, ly, lz, True): the local-grid voxel of a point inside the grid and the local grid,
+    else (0, 0, 0, False)."""
     ix = _floor_index(x, origin[0], vs)
     iy = _floor_index(y, origin[1], vs)
     iz = _floor_index(z, origin[2], vs)
     if 0 <= ix < shape[0] and 0 <= iy < shape[1] and 0 <= iz < shape[2]:
         lx, ly, lz = ix - g0[0], iy - g0[1], iz - g0[2]
         if 0 <= lx < occ.shape[0] and 0 <= ly < occ.shape[1] and 0 <= lz < occ.shape[2]:
-            occ[lx, ly, lz] = 1
+            return lx, ly, lz, True
+    return np.int64(0), np.int64(0), np.int64(0), False
 
 
 @njit(cache=True, inline="always")
@@ -222,10 +245,63 @@ def voxelize_mesh(spec: GridSpec, vertices: np.ndarray, faces: np.ndarray) -> np
     two faces (fixed orientation of each edge); a centre exactly on the surface is undecided.
     Cost: one pass over the faces plus one over the mesh's box of voxels (no dense sampling).
     """
+    return _voxelize(spec, vertices, faces)[0]
+
+
+def mesh_voxel_velocity(spec: GridSpec, vertices: np.ndarray, faces: np.ndarray, vertex_velocity: np.ndarray,
+                        voxels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The velocity of the voxels of a moving closed mesh (a body whose vertices move apart).
+
+    Each voxel takes the mean velocity of the body surface inside it: the points of
+    :func:`surface_points` at half-voxel spacing (the lattice that makes a voxel a surface voxel
+    in :func:`voxelize_mesh`), each carrying its triangle's vertex velocities blended with its
+    barycentric weights. The lattice is uniform over the surface, so the mean weighs the surface
+    by area; a mean over the vertices alone would lean to where a body model's vertices crowd
+    (face, hands) and leave voxels the surface crosses between vertices without a value. A voxel
+    no surface point falls in (inside the body, or a requested voxel the lattice misses) takes
+    the velocity of the vertex nearest its centre (the mesh defines no motion inside itself).
+
+    vertices (V, 3) float metres, grid frame; faces (F, 3) int; vertex_velocity (V, D) float (D
+    components, e.g. (vx, vy) m/s). voxels: (M, 3) int voxel indices to give velocities for (None:
+    the mesh's own, those of :func:`voxelize_mesh`, computed in the same pass). Returns (voxels
+    (M, 3) int64, velocity (M, D) float64).
+    """
+    vel = np.asarray(vertex_velocity, dtype=np.float64)
+    if vel.ndim != 2 or len(vel) != len(np.asarray(vertices).reshape(-1, 3)):
+        raise FuseError(f"vertex_velocity must be (V, D) with V = {len(np.asarray(vertices).reshape(-1, 3))} "
+                        f"vertices, got {vel.shape}")
+    own, g0, sums, counts = _voxelize(spec, vertices, faces, vel)
+    idx = own if voxels is None else np.asarray(voxels, dtype=np.int64).reshape(-1, 3)
+    out = np.zeros((len(idx), vel.shape[1]), dtype=np.float64)
+    if not len(idx):
+        return idx, out
+    local = idx - g0
+    has = np.all((local >= 0) & (local < np.asarray(counts.shape)), axis=1)
+    n = np.zeros(len(idx), dtype=np.int64)
+    n[has] = counts[tuple(local[has].T)]
+    hit = n > 0
+    out[hit] = sums[tuple(local[hit].T)] / n[hit, None]
+    if not hit.all():
+        from scipy.spatial import cKDTree
+
+        v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+        _, nearest = cKDTree(v).query(spec.center_of(idx[~hit]))
+        out[~hit] = vel[nearest]
+    return idx, out
+
+
+def _voxelize(spec: GridSpec, vertices: np.ndarray, faces: np.ndarray, vertex_velocity: np.ndarray | None = None):
+    """:func:`voxelize_mesh`'s voxels, and with vertex_velocity (V, D) the surface points'
+    velocity sums (local grid + (D,)) and counts (local grid) whose voxel (0, 0, 0) is grid voxel
+    g0: (voxels (M, 3) int64, g0 (3,), sums, counts)."""
     v = np.ascontiguousarray(np.asarray(vertices, dtype=np.float64).reshape(-1, 3))
     f = np.ascontiguousarray(np.asarray(faces, dtype=np.int64).reshape(-1, 3))
+    vel = (np.zeros((len(v), 0)) if vertex_velocity is None
+           else np.ascontiguousarray(np.asarray(vertex_velocity, dtype=np.float64)))
+    nothing = (np.empty((0, 3), dtype=np.int64), np.zeros(3, np.int64), np.zeros((0, 0, 0, vel.shape[1])),
+               np.zeros((0, 0, 0), np.int64))
     if not len(v):
-        return np.empty((0, 3), dtype=np.int64)
+        return nothing
     if len(f) and (f.min() < 0 or f.max() >= len(v)):
         raise FuseError(f"faces index vertices 0..{len(v) - 1}, got {f.min()}..{f.max()}")
     shape = np.asarray(spec.shape, dtype=np.int64)
@@ -234,9 +310,12 @@ def voxelize_mesh(spec: GridSpec, vertices: np.ndarray, faces: np.ndarray) -> np
     g0 = np.maximum(vmin - 1, 0)
     g1 = np.minimum(vmax + 1, shape - 1)
     if np.any(g1 < g0):
-        return np.empty((0, 3), dtype=np.int64)
+        return nothing
     occ = np.zeros(tuple(g1 - g0 + 1), dtype=np.uint8)
-    _mark_surface(v, f, spec.origin, spec.voxel_size_m, shape, g0, occ)
+    tracked = vel.shape[1] > 0  # velocity sums over the local grid, else 1-voxel placeholders
+    sums = np.zeros((*(occ.shape if tracked else (1, 1, 1)), vel.shape[1]))
+    samples = np.zeros(occ.shape if tracked else (1, 1, 1), dtype=np.int64)
+    _mark_surface(v, f, spec.origin, spec.voxel_size_m, shape, g0, occ, vel, sums, samples)
     lo, hi = np.maximum(vmin, 0), np.minimum(vmax, shape - 1)
     if len(f) and np.all(hi >= lo):
         v32 = v.astype(np.float32).astype(np.float64)  # open3d's float32 mesh and centres
@@ -248,7 +327,7 @@ def voxelize_mesh(spec: GridSpec, vertices: np.ndarray, faces: np.ndarray) -> np
         zs = np.empty(starts[-1], dtype=np.float64)
         _column_crossings(v32, f, cx, cy, spec.voxel_size_m, starts[:-1].copy(), zs, True)
         _fill_inside(starts, zs, cz, len(cx), len(cy), lo - g0, occ)
-    return np.argwhere(occ) + g0
+    return np.argwhere(occ) + g0, g0, sums, samples
 
 
 def voxelize_labels(spec: GridSpec, points: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -294,7 +373,8 @@ def fuse_frame(
     static_points_world: (N, 3) float32 metres, world frame, with static_labels (N,) uint8: the
     static map near the robot (e.g.
     ``StaticMap.crop_to_grid(spec, T_world_from_base).sample_points(spec.voxel_size_m)``).
-    pedestrians: body meshes of this frame (later ones win where they overlap).
+    pedestrians: body meshes of this frame (later ones win where they overlap); a voxel's velocity
+    is its person's, or with per-vertex velocities the mean over the body surface in the voxel.
     occupancy: a :class:`tasks.occupancy.freespace.OccupancyMap` (world frame) or None.
     lidar_points_base (M, 3) / lidar_origin_base (3,): this frame's LiDAR endpoints and centre in
     the base frame (None: mask_lidar all 0). camera: the view for mask_camera (None: all 0);
@@ -323,13 +403,18 @@ def fuse_frame(
     for ped in pedestrians:
         if not 1 <= int(ped.instance_id) <= 65535:
             raise FuseError(f"instance_id must be in 1..65535, got {ped.instance_id}")
-        idx = voxelize_mesh(spec, ped.vertices_base, ped.faces)
+        if ped.vertex_velocity_base is None:
+            idx = voxelize_mesh(spec, ped.vertices_base, ped.faces)
+            vel = np.asarray(ped.velocity_base, dtype=np.float64).reshape(2)
+        else:
+            idx, vel = mesh_voxel_velocity(spec, ped.vertices_base, ped.faces,
+                                           np.asarray(ped.vertex_velocity_base).reshape(-1, 2))
         if not len(idx):
             continue
         f = spec.flat_index(idx)
         semantics[f] = PEDESTRIAN
         instances[f] = ped.instance_id
-        velocity[f] = np.asarray(ped.velocity_base, dtype=np.float64).reshape(2)
+        velocity[f] = vel
     semantics = semantics.reshape(spec.shape)
     instances = instances.reshape(spec.shape)
     velocity = velocity.reshape(*spec.shape, 2)

@@ -67,8 +67,18 @@ class FuseSettings:
     ("rays"), a depth buffer ("zbuffer"), or "auto" (rays for voxels >= 0.1 m). camera_pixel_stride:
     rays every this many pixels (None: from the voxel size, 13 px at 0.2 m, which misses grazing
     ground voxels; they project to ~2 px at 10 m).
+
+    velocity: "vertex": a pedestrian voxel's velocity is the mean velocity of the body surface in
+    it, each vertex's from the posed bodies of the track's neighbouring frames
+    (tasks/body/motion.py); "person": every voxel of a person takes the person's velocity.
+    velocity_max_gap_s: a neighbouring frame counts for the vertex velocities when it lies at most
+    this far in time (the direct neighbours at 5 Hz, up to one missing frame at 10 Hz): across a
+    longer gap a swinging limb's difference shrinks to its mean (at 0.4 s apart a 1 Hz gait swing
+    keeps ~25 % of its speed); without a neighbour the vertices take the person's velocity.
     """
 
     camera_mask: bool = True
     camera_method: Literal["auto", "rays", "zbuffer"] = "auto"
     camera_pixel_stride: int | None = 2
+    velocity: Literal["vertex", "person"] = "vertex"
+    velocity_max_gap_s: float = 0.25

@@ -7,7 +7,7 @@ parallel. Times: t = index / frame_rate_hz seconds since the first frame.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import open3d as o3d
@@ -30,6 +30,11 @@ from tasks.sim.sensors import (
     render_camera,
 )
 
+#: half the time step of the central difference behind the per-vertex velocities, s: the posed body
+#: is a smooth function of time (except where a walk starts or stops), so the truncation error
+#: (~h^2 times the third derivative) is below the float32 rounding of the vertices over 2 h (~1e-4 m/s)
+VERTEX_VELOCITY_STEP_S = 1e-3
+
 #: COCO-17 keypoints taken from SMPL joints (the face ones come from vertices).
 _COCO_JOINT_IDX = np.array([C.COCO_TO_SMPL_JOINT[i] for i in range(5, 17)])
 
@@ -44,7 +49,8 @@ class PeopleFrame:
     box2d (K, 4) float32 cam0 px xyxy of the projected body clipped to the image (NaN when not
     in view); keypoints (K, 17, 3) float32 (u, v, flag 0/1/2) cam0; visible_fraction (K,) float32
     visible / full silhouette pixels in cam0; box_center (K, 3), box_size (K, 3) (l, w, h),
-    box_yaw (K,) float32 (rad); occlusion: CODa isOccluded per person.
+    box_yaw (K,) float32 (rad); occlusion: CODa isOccluded per person. vertex_velocity_base
+    (K, V, 3) float32 m/s: each vertex's world velocity in base axes (Simulator.vertex_velocity_base).
     """
 
     track_id: np.ndarray
@@ -62,6 +68,7 @@ class PeopleFrame:
     box_size: np.ndarray
     box_yaw: np.ndarray
     occlusion: tuple[str, ...]
+    vertex_velocity_base: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -192,6 +199,28 @@ class Simulator:
         j_l = (j0 + transl_w[:, None]) @ R_lw.T + t_lw
         return states, betas.numpy(), go_l, body_pose, transl_l, v_l, j_l
 
+    def vertex_velocity_base(self, index: int) -> np.ndarray:
+        """(K, V, 3) float32 m/s: the velocity of every body vertex of frame ``index`` in the world
+        (the robot's motion is not in it), expressed in the base axes of that frame. The people are
+        posed at t -+ VERTEX_VELOCITY_STEP_S and differenced (same topology, same vertex order);
+        one-sided for a person who starts or stops walking within the step (the pose switches
+        between standing and gait there, e.g. walkers starting at t = 0): the side that walks or
+        stands as the person does at t."""
+        h, t_s = VERTEX_VELOCITY_STEP_S, index / self.options.frame_rate_hz
+        times = (t_s - h, t_s, t_s + h)
+        world = [self._pose_people(t, np.eye(4)) for t in (times[0], times[2])]  # lidar frame = world
+        if world[0] is None:
+            return np.zeros((0, len(self.model.v_template), 3), np.float32)
+        v_world = (world[1][5] - world[0][5]) / (2.0 * h)
+        moving = np.array([[pedestrian_state(p, t).moving for t in times] for p in self.scene.pedestrians])
+        before, after = moving[:, 0] != moving[:, 1], moving[:, 2] != moving[:, 1]
+        if before.any() or after.any():
+            here = self._pose_people(t_s, np.eye(4))[5]
+            v_world[after] = (here[after] - world[0][5][after]) / h
+            v_world[before] = (world[1][5][before] - here[before]) / h
+        R_base_from_world = self.robot_pose(index)[0][:3, :3].T
+        return (v_world @ R_base_from_world.T).astype(np.float32)
+
     # ---------------------------------------------------------------- one frame
     def frame(self, index: int) -> SimFrame:
         """Simulate frame ``index`` (0-based)."""
@@ -231,6 +260,7 @@ class Simulator:
         cam1 = render_camera(rc, meshes, cam1c, T_wl, self.options.night, self._rays["cam1"])
         occ, occ_inst = self._occupancy(T_wb, people_world)
         people = self._people_gt(posed, T_wb, T_wl, cam0c, cam0)
+        people = replace(people, vertex_velocity_base=self.vertex_velocity_base(index))
         T_lw = np.linalg.inv(T_wl)
         objects = []
         for obj in self.scene.objects:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from tasks.conventions import transform_points
+
 
 def track_velocities(track_ids: np.ndarray, stamps_s: np.ndarray, positions: np.ndarray) -> np.ndarray:
     """Velocity of every row from its track's neighbouring rows.
@@ -49,3 +51,52 @@ def velocities_in_base(track_ids: np.ndarray, stamps_s: np.ndarray, positions_li
     v_world = track_velocities(track_ids, stamps_s, world)
     R_base_from_world = np.asarray(T_base_from_lidar, np.float64)[:3, :3] @ np.transpose(T[:, :3, :3], (0, 2, 1))
     return np.einsum("rij,rj->ri", R_base_from_world, v_world)[:, :2]
+
+
+def track_neighbours(track_ids: np.ndarray, stamps_s: np.ndarray,
+                     max_gap_s: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """The row of the same track just before and just after each row in time.
+
+    track_ids: (R,) int; stamps_s: (R,) float seconds. A neighbour farther than ``max_gap_s`` from
+    the row is not used (-1), so a difference never spans a long run of frames whose fit is
+    missing or was dropped. Returns (previous (R,), next (R,)) int64 row indices, -1 = none.
+    """
+    ids = np.asarray(track_ids).reshape(-1)
+    t = np.asarray(stamps_s, np.float64).reshape(-1)
+    if len(ids) != len(t):
+        raise ValueError(f"track_neighbours: {len(ids)} ids, {len(t)} stamps")
+    prev = np.full(len(ids), -1, np.int64)
+    nxt = np.full(len(ids), -1, np.int64)
+    order = np.lexsort((t, ids))
+    same = ids[order[1:]] == ids[order[:-1]]
+    gap = t[order[1:]] - t[order[:-1]]
+    ok = same & (gap > 0) & (gap <= max_gap_s)
+    prev[order[1:][ok]] = order[:-1][ok]
+    nxt[order[:-1][ok]] = order[1:][ok]
+    return prev, nxt
+
+
+def vertex_velocities_in_base(vertices_lidar: list, T_world_from_lidar: list, stamps_s: list,
+                              T_base_from_lidar: np.ndarray, fallback_base: np.ndarray) -> np.ndarray:
+    """Per-vertex velocity of one body in one frame from its neighbours along the track.
+
+    vertices_lidar: [previous, this, next]: (V, 3) float metres (the same topology), each in the
+    LiDAR frame of its own frame, whose pose is the matching T_world_from_lidar (4, 4) float64;
+    previous / next None where the track has none (:func:`track_neighbours`). stamps_s: the three
+    times, seconds. The vertices go to the world (robot motion removed), then: central difference
+    with both neighbours, one-sided with one, ``fallback_base`` (3,) m/s base axes (e.g. the
+    person's velocity) with none. Returns (V, 3) float64 m/s in the base axes of this frame.
+    """
+    world = [None if v is None else transform_points(np.asarray(T, np.float64), np.asarray(v, np.float64))
+             for v, T in zip(vertices_lidar, T_world_from_lidar)]
+    R_base_from_world = (np.asarray(T_base_from_lidar, np.float64)[:3, :3]
+                         @ np.asarray(T_world_from_lidar[1], np.float64)[:3, :3].T)
+    a = 0 if world[0] is not None else 1
+    b = 2 if world[2] is not None else 1
+    if a == b:
+        return np.broadcast_to(np.asarray(fallback_base, np.float64).reshape(3),
+                               (len(world[1]), 3)).copy()
+    dt = float(stamps_s[b]) - float(stamps_s[a])
+    if not dt > 0:
+        raise ValueError(f"vertex_velocities_in_base: times {stamps_s} do not increase")
+    return ((world[b] - world[a]) / dt) @ R_base_from_world.T
