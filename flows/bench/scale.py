@@ -376,10 +376,9 @@ def bench_scale(frames=DEFAULT_FRAMES, sequences=DEFAULT_SEQUENCES, cluster_work
     result["bench_wall_s"] = time.perf_counter() - started
     print(format_scale(result))
     if json_path is not None:
-        from flows.commands.report import to_jsonable
+        from flows.commands.report import write_json
 
-        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
-        Path(json_path).write_text(json.dumps(to_jsonable(result), indent=1) + "\n")
+        write_json(json_path, result)
     return result
 
 

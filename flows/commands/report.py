@@ -134,6 +134,14 @@ def to_jsonable(value):
     raise ReportError(f"results: cannot write a {type(value).__name__} ({value!r}) to JSON")
 
 
+def write_json(path: Path | str, value) -> Path:
+    """``value`` (:func:`to_jsonable`) as indented JSON at ``path``, folders made."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(to_jsonable(value), indent=1) + "\n")
+    return path
+
+
 # ---- Markdown -----------------------------------------------------------------------------------
 
 def _fmt(key: str, value) -> str:
