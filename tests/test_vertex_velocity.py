@@ -164,7 +164,7 @@ def test_tracked_bodies_translate_rigidly_and_fall_back_across_gaps():
     bodies = TrackedBodies(model, betas, go, pose, transl, np.full(4, 7), frames, np.tile([0.3, 0.0], (4, 1)),
                            stamps, poses, T_base_from_lidar, max_gap_s=0.25)
     for position in (0, 1, 2):
-        rows, verts, vel = bodies.frame(position)
+        rows, _, vel = bodies.frame(position)
         assert rows.tolist() == [position]
         expect = T_base_from_lidar[:3, :3] @ poses[position][:3, :3].T @ walk
         np.testing.assert_allclose(vel[0], np.broadcast_to(expect, vel[0].shape), atol=2e-4)

@@ -46,10 +46,10 @@ class _People:
         self.faces = np.asarray(self.model.faces)
         b = Bodies.read(fit_dir) if fit_dir is not None else Bodies.empty()
         pos = {raw: k for k, raw in enumerate(seq.info.frame_indices)}
+        gap = inputs.fusion.velocity_max_gap_s if self.per_vertex else 0.0  # per person: no neighbour posed
         self.bodies = TrackedBodies(self.model, b.betas, b.global_orient, b.body_pose, b.transl, b.track_id,
                                     np.array([pos[int(f)] for f in b.frame], np.int64), b.velocity_base,
-                                    seq.info.stamps_ns * 1e-9, seq.info.poses, self.T,
-                                    inputs.fusion.velocity_max_gap_s)
+                                    seq.info.stamps_ns * 1e-9, seq.info.poses, self.T, gap)
 
     def __call__(self, position: int, frame: int) -> list[PedestrianMesh]:
         if self.inputs.body_source == "ground-truth":

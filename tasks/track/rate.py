@@ -43,7 +43,7 @@ def frames_at(count: int, scale: float, minimum: int) -> int:
     0 stays 0 (a gate switched off)."""
     if count == 0:
         return 0
-    return max(minimum, int(math.floor(count * scale + 0.5)))
+    return max(minimum, math.floor(count * scale + 0.5))
 
 
 def gates_at_rate(tracker: TrackerParams, offline: OfflineParams, check: WorldCheck, rate_hz: float,
