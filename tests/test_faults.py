@@ -33,8 +33,13 @@ SEQUENCES = ("0", "1")
 ONE = ("0",)  # the fault tests run one sequence: enough units in flight, half the time
 
 
+#: the map split into one window per frame and one region per small tile, so its windows, regions
+#: and static tiles fan out over the cluster's workers even on this short sequence
+MAP_SPLIT = {"map.tile_m": 6.4, "map.region_tiles": 1, "map.window_frames": 1}
+
+
 def _config(data: Path, out: Path, **overrides):
-    return load_config(overrides={"dataset.root": str(data), "output.root": str(out), **overrides})
+    return load_config(overrides={"dataset.root": str(data), "output.root": str(out), **MAP_SPLIT, **overrides})
 
 
 def _run(cfg, **kw):
@@ -152,7 +157,7 @@ def dataset(tmp_path_factory):
     from flows.commands.simulate import simulate
 
     root = tmp_path_factory.mktemp("data")
-    simulate(root, sequences=len(SEQUENCES), frames=2, seed=7, pedestrians=3, crowd="uncrowded",
+    simulate(root, sequences=len(SEQUENCES), frames=4, seed=7, pedestrians=3, crowd="uncrowded",
              progress=False)
     return root
 
@@ -165,6 +170,8 @@ def reference(dataset, tmp_path_factory):
     published = _published(out)
     # every unit ran; stages still under construction may fail, identically in every run below
     assert all(published[(s, "detect")]["status"] == "done" for s in SEQUENCES)
+    split = json.loads(published[("0", "map")]["summary"])
+    assert split["windows"] >= 2 and split["regions"] >= 2, split  # the map's work really fans out
     assert report.outcomes.keys() == {(s, st) for s in SEQUENCES for st in STAGES}
     return published
 
@@ -235,7 +242,8 @@ def test_one_worker_or_two_give_the_same_bytes(cluster, dataset, reference, tmp_
 def _cli(dataset: Path, out: Path, address: str, env: dict) -> subprocess.Popen:
     return subprocess.Popen([str(BIN / "mobileocc"), "rebuild", "--data", str(dataset), "--out",
                              str(out), "--address", address, "--quiet",
-                             "--set", f"dataset.sequences={json.dumps(list(ONE))}"],
+                             "--set", f"dataset.sequences={json.dumps(list(ONE))}",
+                             *(a for k, v in MAP_SPLIT.items() for a in ("--set", f"{k}={v}"))],
                             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
 
 

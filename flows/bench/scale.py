@@ -13,6 +13,11 @@ Parts (``parts``), each in its own spawned process where it matters:
   person-frame: its default cost comes from the ``cost`` part).
 - ``cost``: the shortest of those sequences through the six stages with the default settings:
   CPU and wall seconds per frame per stage, the figures the projection multiplies.
+- ``memory``: peak RSS of the map and fuse stages at MEMORY_FRAMES frames on a synthetic strip
+  of constant density (flows/bench/memory.py ``bench_memory``; ``mobileocc bench memory --untiled``
+  adds the whole-sequence map for comparison):
+  the tiled map's bound on memory at real sequence lengths (the ``long`` part cannot reach them:
+  it runs every stage, the fit included).
 - ``planning``: plan / status / dry-run seconds and hashing MB/s vs sequences
   (flows/bench/planning.py ``bench_planning``).
 - ``cluster``: ``mobileocc rebuild --address`` against a real ``dask scheduler`` + ``dask worker
@@ -27,8 +32,6 @@ Parts (``parts``), each in its own spawned process where it matters:
   path of one sequence of SEQUENCE_FRAMES frames through its serial stages (track and map are one
   task per sequence), at the per-frame cost of the longest ``long`` run.
 
-The map and fuse stages are measured as they are; when they become tile-based the same code
-measures the new ones.
 """
 
 from __future__ import annotations
@@ -56,7 +59,9 @@ SEQUENCE_FRAMES = 5_000
 LONG_FIT_ITERATIONS = 10
 CLUSTER_SEQUENCES = 4
 CLUSTER_FRAMES = 6
-PARTS = ("simulator", "long", "cost", "planning", "cluster")
+PARTS = ("simulator", "long", "cost", "memory", "planning", "cluster")
+#: sequence lengths (5 Hz frames) of the ``memory`` part
+MEMORY_FRAMES = (200, 1000, 2000)
 SERIAL_STAGES = ("track", "map")
 
 
@@ -330,7 +335,8 @@ def project(cost: dict, long: dict, cluster: dict | None, frames: int = DATASET_
 
 def bench_scale(frames=DEFAULT_FRAMES, sequences=DEFAULT_SEQUENCES, cluster_workers=DEFAULT_CLUSTER_WORKERS,
                 parts=PARTS, json_path: Path | None = None, work_dir: Path | None = None,
-                sim_long_frames: int = 2000, sim_sample: int = 6, sim_workers: int = 2) -> dict:
+                sim_long_frames: int = 2000, sim_sample: int = 6, sim_workers: int = 2,
+                memory_frames=MEMORY_FRAMES) -> dict:
     """Run the parts listed in the module docstring; print a table; write JSON when asked."""
     from flows.bench.pipeline import machine
     from flows.bench.planning import bench_planning
@@ -365,6 +371,10 @@ def bench_scale(frames=DEFAULT_FRAMES, sequences=DEFAULT_SEQUENCES, cluster_work
             data = work / "cost-data"
             link_sequence(src, SOURCE_ID, data, 0, raw_frames=2 * frames[0])
             result["cost"] = _spawned(_run_stages_forked, str(data), str(work / "cost-out"), {})
+        if "memory" in parts:
+            from flows.bench.memory import bench_memory
+
+            result["memory"] = bench_memory(list(memory_frames), work / "memory")
         if "planning" in parts:
             result["planning"] = _spawned(bench_planning, list(sequences), str(work))
         if "cluster" in parts:
@@ -404,6 +414,11 @@ def format_scale(r: dict) -> str:
         c = r["cost"]
         lines.append(f"per-frame cost, default settings ({c['frames']} frames): " + ", ".join(
             f"{st} {c[st]['cpu_s_per_frame']:.2f} CPU / {c[st]['wall_s_per_frame']:.2f} wall s" for st in STAGE_ORDER))
+    if "memory" in r:
+        from flows.bench.memory import format_table as format_memory
+
+        lines.append("peak RSS of map and fuse vs frames (flows/bench/memory.py):")
+        lines.extend("  " + line for line in format_memory(r["memory"]).splitlines())
     if "planning" in r:
         from flows.bench.planning import format_table
         lines.append("planning vs sequences (flows/bench/planning.py):")
