@@ -466,6 +466,8 @@ def main(argv: list[str] | None = None) -> None:  # pragma: no cover - the CLI c
                    help="sequences of the planning datasets (default %(default)s)")
     g.add_argument("--cluster-workers", type=ints, default=list(scale.DEFAULT_CLUSTER_WORKERS),
                    help="worker counts of the loopback Dask cluster (default %(default)s)")
+    g.add_argument("--memory-frames", type=ints, default=list(scale.MEMORY_FRAMES),
+                   help="5 Hz frames of the memory part's sequences (default %(default)s)")
     g.add_argument("--parts", default=",".join(scale.PARTS), help="which parts (default %(default)s)")
     g.add_argument("--sim-frames", type=int, default=2000, help="raw frames of the simulator's long sequence")
     a = p.parse_args(argv)
@@ -475,7 +477,7 @@ def main(argv: list[str] | None = None) -> None:  # pragma: no cover - the CLI c
         if unknown:
             p.error(f"--parts: unknown {unknown}; expected some of {list(scale.PARTS)}")
         scale.bench_scale(a.frames, a.sequences, a.cluster_workers, parts, a.json, sim_long_frames=a.sim_frames,
-                          sim_workers=a.workers)
+                          sim_workers=a.workers, memory_frames=a.memory_frames)
         return
     bench(a.quick, a.json, a.workers)
 
