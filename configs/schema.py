@@ -25,7 +25,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator, model_validator
 
 from tasks.conventions import CITYSCAPES_TO_CLASS, CLASS_NAMES, FREE, UNLABELED
-from tasks.fit.losses import FIT_PRESETS, FitWeights
+from tasks.fit.weights import FIT_PRESETS, FitWeights
 from tasks.fit.settings import FitSettings
 from tasks.occupancy.grid import GridSpec
 from tasks.occupancy.settings import FreeSpaceParams, FuseSettings, MapParams
@@ -330,7 +330,7 @@ LossWeights = section(
 
 class _FitBase(Strict):
     preset: str = "ut_campus"
-    #: named loss-weight presets beside the paper's four (tasks.fit.losses.FIT_PRESETS)
+    #: named loss-weight presets beside the paper's four (tasks.fit.weights.FIT_PRESETS)
     presets: dict[str, LossWeights] = Field(default_factory=dict)
     init_provider: Literal["oracle", "precomputed", "cliff"] = "oracle"
     #: cliff: a CLIFF ONNX export run on each tracked box (tasks/perception/models/cliff.py), on

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from configs.schema import Config, ConfigError, config_hash, load_config
-from tasks.fit.losses import FIT_PRESETS
+from tasks.fit.weights import FIT_PRESETS
 from tasks import conventions
 
 CONFIGS = sorted((Path(__file__).resolve().parents[1] / "configs").glob("*.yaml"))

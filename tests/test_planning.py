@@ -107,3 +107,16 @@ def test_verify_sees_an_edit_that_keeps_size_mtime_and_inode(store):
     verified, costs, _ = _plan(config, out, verify=True)
     assert _stale(verified)[("1", "detect")] == "input files changed" and ("0", "detect") not in _stale(verified)
     assert costs.memo_hits == 0 and costs.files_hashed > 0
+
+
+def test_the_config_and_the_planner_import_no_torch():
+    """status / dry-run / a no-op rebuild start in about a second: torch (~1 s to import) is only
+    imported where a unit runs (the fit weights live in torch-free tasks/fit/weights.py)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, configs.schema, flows.pipeline.plan, flows.pipeline.units\n"
+            "print(sorted(m for m in ('torch', 'prefect', 'flows.stages') if m in sys.modules))")
+    run = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[1],
+                         capture_output=True, text=True, check=True)
+    assert run.stdout.strip() == "[]"

@@ -48,7 +48,7 @@ def bench_fit(
 ) -> dict:
     """Run the benchmark; returns {sensor: {variant: {metric: mean}}} plus 'person_fits_per_s'.
 
-    weights (tasks.fit.losses.FitWeights) and settings (tasks.fit.settings.FitSettings: iterations,
+    weights (tasks.fit.weights.FitWeights) and settings (tasks.fit.settings.FitSettings: iterations,
     learning rate, nn_every, the L_3D cap, converge_rtol, batch_persons as the chunk): the
     pipeline's, from the config loader (``main``: the default config, ``--config``, ``--set``).
 

@@ -27,7 +27,7 @@ from configs.schema import Config
 from flows.pipeline.dag import CODE_VERSIONS, STAGES
 from storage.coda import CodaSequence
 from tasks.conventions import CLASS_NAMES
-from tasks.fit.losses import FitWeights
+from tasks.fit.weights import FitWeights
 from tasks.fit.settings import FitSettings
 from tasks.occupancy.grid import GridSpec
 from tasks.occupancy.settings import FreeSpaceParams, FuseSettings, MapParams
