@@ -30,8 +30,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import supervision as sv
-from trackers import OCSORTTracker
 
 
 @dataclass(frozen=True)
@@ -68,6 +66,8 @@ class PedestrianTracker:
                 f"PedestrianTracker: need max_age >= 0, min_hits >= 1, delta_t >= 1; got "
                 f"max_age={max_age}, min_hits={min_hits}, delta_t={delta_t}"
             )
+        from trackers import OCSORTTracker  # here: the settings above import without the library
+
         # frame_rate == 30 makes the library's lost-track buffer exactly ``max_age`` frames.
         self._tracker = OCSORTTracker(
             lost_track_buffer=int(max_age),
@@ -108,6 +108,8 @@ class PedestrianTracker:
             )
         if not (np.isfinite(boxes).all() and np.isfinite(conf).all()):
             raise ValueError(f"PedestrianTracker.update (frame {self.frame_count}): NaN/inf input")
+        import supervision as sv
+
         count = boxes.shape[0]
         detections = sv.Detections(
             xyxy=boxes,
