@@ -10,8 +10,9 @@ the rest root joint J_0(beta), not the origin:
 so moving a fit by a rigid motion (R, t) gives ``transl' = R (J_0 + transl) + t - J_0``
 (:func:`rigid_transform_params`).
 
-The model parameters are a dict with the official SMPL keys (see
-/work/shared/reference/human-fitting.md): ``v_template`` (V, 3), ``f`` (F, 3), ``shapedirs``
+The model parameters are a dict with the keys of the official SMPL model files (as SMPL's release
+and the ``smplx`` package, github.com/vchoutas/smplx ``smplx/body_models.py``, read them):
+``v_template`` (V, 3), ``f`` (F, 3), ``shapedirs``
 (V, 3, B), ``posedirs`` (V, 3, 207), ``weights`` (V, 24), ``kintree_table`` (2, 24) (root parent
 2**32-1), ``J_regressor`` (24, V) dense; optional extra ``coco_vertex_ids`` (5,).
 """
