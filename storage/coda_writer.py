@@ -92,11 +92,6 @@ def image_bytes(image: np.ndarray, ext: str = ".png") -> bytes:
     return buf.getvalue()
 
 
-def png_bytes(image: np.ndarray) -> bytes:
-    """PNG of an (H, W, 3) uint8, (H, W) uint8 or (H, W) uint16 image."""
-    return image_bytes(image, ".png")
-
-
 def write_image(root: Path, seq: int, cam: str, frame: int, rgb: np.ndarray, ext: str = ".jpg") -> Path:
     """A rectified image (H, W, 3) uint8 RGB as JPEG (CODa's downloads) or PNG (the devkit's tools)."""
     if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:

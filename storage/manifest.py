@@ -44,11 +44,11 @@ from pathlib import Path
 from typing import Any, Iterable, Iterator
 
 from storage.files import InputError, open_regular
+from storage.layout import TMP_PREFIX
 
 MANIFEST = "manifest.json"
 JOURNAL = "manifest.journal"
 MANIFEST_VERSION = 1
-TMP_PREFIX = ".tmp-"
 
 
 def _hash_bytes(*parts: bytes) -> str:
@@ -385,7 +385,7 @@ def staged_output(final: Path) -> Iterator[Path]:
     """
     final = Path(final)
     final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = final.with_name(f".tmp-{final.name}-{uuid.uuid4().hex[:8]}")
+    tmp = final.with_name(f"{TMP_PREFIX}{final.name}-{uuid.uuid4().hex[:8]}")
     tmp.mkdir()
     try:
         yield tmp
@@ -429,7 +429,7 @@ def remove_stale_versions(root: Path, stage: str, sequence: str, keep: str) -> N
     folder = Path(root) / "stages" / stage / sequence
     if folder.is_dir():
         for child in folder.iterdir():
-            if child.name != keep and not child.name.startswith(".tmp-"):
+            if child.name != keep and not child.name.startswith(TMP_PREFIX):
                 shutil.rmtree(child, ignore_errors=True)
 
 

@@ -26,7 +26,14 @@ from storage.layout import (
     StoreError,
     check_name,
 )
-from storage.tables import partition_dir, publish_partition, to_table, write_partition, write_table_file
+from storage.manifest import atomic_write_bytes
+from storage.tables import (
+    partition_dir,
+    publish_partition,
+    to_table,
+    write_partition,
+    write_table_file,
+)
 
 
 @dataclass(frozen=True)
@@ -60,12 +67,6 @@ def stage_sequence(root: str | os.PathLike, sequence: str, version: str) -> Stag
     return StagedSequence(root, sequence, version, staging)
 
 
-def _write_json_atomic(path: Path, obj: Any) -> None:
-    tmp = path.with_name(f"{TMP_PREFIX}{path.name}-{uuid.uuid4().hex[:8]}")
-    tmp.write_text(json.dumps(obj, indent=1, sort_keys=True))
-    os.replace(tmp, path)
-
-
 def publish_sequence(staged: StagedSequence, keep_old_versions: bool = False) -> Path:
     """Make a staged sequence visible; returns the published store path.
 
@@ -91,7 +92,7 @@ def publish_sequence(staged: StagedSequence, keep_old_versions: bool = False) ->
     for staged_file in sorted(staged.tables_dir.glob("*.parquet")):
         publish_partition(staged.root, staged_file.stem, staged.sequence, staged_file)
     if target.exists():
-        _write_json_atomic(seq_dir / CURRENT_FILE, {"version": staged.version})
+        atomic_write_bytes(seq_dir / CURRENT_FILE, json.dumps({"version": staged.version}, indent=1, sort_keys=True).encode())
     if not keep_old_versions:
         for old in seq_dir.glob("*.zarr"):
             if old != target and target.exists():

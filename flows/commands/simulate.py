@@ -235,32 +235,3 @@ def _write_sequence_files(out: Path, seq: int, opts, fast: bool, frames: int, st
         "pedestrians": opts.num_pedestrians, "frame_rate_hz": 10.0, "generator": "mobileocc.tasks.sim",
         "trajectory": seq, **fast_keys, **W.annotation_lists(seq, written_frames, written_frames),
     })
-
-
-def benchmark(frames: int = 5, seed: int = 0, pedestrians: int | None = None, out: Path | None = None) -> dict:
-    """Time the simulator: seconds per frame (LiDAR + both cameras + ground truth) and, when
-    ``out`` is given, seconds and bytes per written frame. Run under ``taskset -c 0`` with
-    ``OMP_NUM_THREADS=1`` for the one-core figure."""
-    import time
-
-    from tasks.sim import SimOptions, Simulator
-
-    t0 = time.perf_counter()
-    sim = Simulator(SimOptions(seed=seed, frames=frames + 1, pedestrians=pedestrians))
-    setup_s = time.perf_counter() - t0
-    sim.frame(0)  # warm-up (lazy imports, first allocations)
-    t0, c0 = time.perf_counter(), time.process_time()
-    made = [sim.frame(i) for i in range(1, frames + 1)]
-    frame_s = (time.perf_counter() - t0) / frames
-    # CPU time is the figure to compare on a shared machine (wall time includes waiting).
-    result = {"setup_s": setup_s, "frame_s": frame_s, "frames_per_s": 1.0 / frame_s,
-              "frame_cpu_s": (time.process_time() - c0) / frames, "pedestrians": sim.options.num_pedestrians}
-    if out is not None:
-        out = Path(out)
-        t0 = time.perf_counter()
-        for f in made:
-            write_frame(out, 0, f, START_UNIX_S * 1_000_000_000 + f.index * FRAME_PERIOD_NS)
-        result["write_s"] = (time.perf_counter() - t0) / frames
-        total = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
-        result["bytes_per_frame"] = total / frames
-    return result
