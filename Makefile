@@ -51,6 +51,8 @@ demo-bundled: setup
 	  --out $(DEMO_OUT)-bundled --workers $(WORKERS)
 
 test: setup
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
 	$(PY) -m pytest -q -n 2 --dist loadgroup
 
 bench: setup

@@ -22,17 +22,30 @@ from typing import Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    create_model,
+    field_validator,
+    model_validator,
+)
 
 from tasks.conventions import CITYSCAPES_TO_CLASS, CLASS_NAMES, FREE, UNLABELED
-from tasks.fit.weights import FIT_PRESETS, FitWeights
 from tasks.fit.settings import FitSettings
+from tasks.fit.weights import FIT_PRESETS, FitWeights
 from tasks.occupancy.grid import GridSpec
 from tasks.occupancy.settings import FreeSpaceParams, FuseSettings, MapParams
 from tasks.occupancy.tiles import check_tiling
 from tasks.perception.lidar_clusters import LidarClusterParams
-from tasks.perception.models.settings import (BlazePoseSettings, DetectorSettings, KeypointSettings,
-                                              MaskSettings, SemanticSettings)
+from tasks.perception.models.settings import (
+    BlazePoseSettings,
+    DetectorSettings,
+    KeypointSettings,
+    MaskSettings,
+    SemanticSettings,
+)
 from tasks.perception.oracle import OracleNoise
 from tasks.perception.person_points import PersonPointParams
 from tasks.track.ocsort import TrackerParams
@@ -48,7 +61,11 @@ def _number_kind(annotation: Any) -> bool:
     if annotation in (int, float):
         return True
     args = [a for a in typing.get_args(annotation) if a is not type(None) and a is not Ellipsis]
-    return bool(args) and typing.get_origin(annotation) is not dict and all(_number_kind(a) for a in args)
+    return (
+        bool(args)
+        and typing.get_origin(annotation) is not dict
+        and all(_number_kind(a) for a in args)
+    )
 
 
 def _not_a_number(value: Any) -> bool:
@@ -83,8 +100,13 @@ class Strict(BaseModel):
         return kernel(**values)
 
 
-def kernel_fields(kernel: type, constraints: dict[str, dict] | None = None, *, exclude: tuple[str, ...] = (),
-                  rename: dict[str, str] | None = None) -> dict[str, Any]:
+def kernel_fields(
+    kernel: type,
+    constraints: dict[str, dict] | None = None,
+    *,
+    exclude: tuple[str, ...] = (),
+    rename: dict[str, str] | None = None,
+) -> dict[str, Any]:
     """pydantic field definitions with the types and defaults of a kernel dataclass's fields: the
     kernel's defaults are the only ones (one home per default); the schema adds only the checks
     (``constraints``: config key -> Field keyword arguments such as ``gt=0``)."""
@@ -99,8 +121,9 @@ def kernel_fields(kernel: type, constraints: dict[str, dict] | None = None, *, e
     return out
 
 
-def section(name: str, doc: str, *parts: dict[str, Any], __base__: type[Strict] = Strict,
-            **more: Any) -> type[Strict]:
+def section(
+    name: str, doc: str, *parts: dict[str, Any], __base__: type[Strict] = Strict, **more: Any
+) -> type[Strict]:
     """A strict, frozen config section made of kernel fields (:func:`kernel_fields`) and more."""
     fields: dict[str, Any] = {}
     for part in (*parts, more):
@@ -120,7 +143,7 @@ _NONNEG = {"ge": 0}
 #: voxels along an axis and MAX_GRID_VOXELS in all (a uint8 frame of 1 GiB)
 MAX_GRID_RANGE_M = 1000.0
 MAX_GRID_CELLS_PER_AXIS = 4096
-MAX_GRID_VOXELS = 2 ** 30
+MAX_GRID_VOXELS = 2**30
 
 
 class GridConfig(Strict):
@@ -134,13 +157,17 @@ class GridConfig(Strict):
     def _extent_divides(self) -> GridConfig:
         for axis, (lo, hi) in enumerate(zip(self.range_min, self.range_max)):
             if max(abs(lo), abs(hi)) > MAX_GRID_RANGE_M:
-                raise ValueError(f"range [{lo}, {hi}] along axis {axis} reaches beyond {MAX_GRID_RANGE_M:g} m "
-                                 "of the robot")
+                raise ValueError(
+                    f"range [{lo}, {hi}] along axis {axis} reaches beyond {MAX_GRID_RANGE_M:g} m "
+                    "of the robot"
+                )
             if hi <= lo:
                 raise ValueError(f"range_max[{axis}]={hi} must exceed range_min[{axis}]={lo}")
             if (hi - lo) / self.voxel_size_m > MAX_GRID_CELLS_PER_AXIS + 0.5:
-                raise ValueError(f"extent {hi - lo:g} m along axis {axis} is {(hi - lo) / self.voxel_size_m:.0f} "
-                                 f"voxels of {self.voxel_size_m:g} m; at most {MAX_GRID_CELLS_PER_AXIS}")
+                raise ValueError(
+                    f"extent {hi - lo:g} m along axis {axis} is {(hi - lo) / self.voxel_size_m:.0f} "
+                    f"voxels of {self.voxel_size_m:g} m; at most {MAX_GRID_CELLS_PER_AXIS}"
+                )
             cells = (hi - lo) / self.voxel_size_m
             if abs(cells - round(cells)) > 1e-6:
                 raise ValueError(
@@ -148,14 +175,17 @@ class GridConfig(Strict):
                     f"voxel_size_m={self.voxel_size_m:g}"
                 )
         if int(np.prod(self.shape, dtype=np.int64)) > MAX_GRID_VOXELS:
-            raise ValueError(f"grid of {' x '.join(map(str, self.shape))} voxels is more than {MAX_GRID_VOXELS} "
-                             "(a uint8 frame over 1 GiB)")
+            raise ValueError(
+                f"grid of {' x '.join(map(str, self.shape))} voxels is more than {MAX_GRID_VOXELS} "
+                "(a uint8 frame over 1 GiB)"
+            )
         return self
 
     @property
     def shape(self) -> tuple[int, int, int]:
         return tuple(  # type: ignore[return-value]
-            int(round((hi - lo) / self.voxel_size_m)) for lo, hi in zip(self.range_min, self.range_max)
+            int(round((hi - lo) / self.voxel_size_m))
+            for lo, hi in zip(self.range_min, self.range_max)
         )
 
     def spec(self) -> GridSpec:
@@ -193,9 +223,7 @@ class DatasetConfig(Strict):
     def _stride_integral(self) -> DatasetConfig:
         stride = self.sensor_rate_hz / self.rate_hz
         if abs(stride - round(stride)) > 1e-9 or stride < 1:
-            raise ValueError(
-                f"sensor_rate_hz / rate_hz = {stride:g} must be a whole number >= 1"
-            )
+            raise ValueError(f"sensor_rate_hz / rate_hz = {stride:g} must be a whole number >= 1")
         return self
 
     @property
@@ -204,35 +232,90 @@ class DatasetConfig(Strict):
 
 
 OracleNoiseConfig = section(
-    "OracleNoiseConfig", "Noise of the `oracle` provider (synthetic data only): tasks.perception.oracle.",
-    kernel_fields(OracleNoise, {
-        **{k: _PROB for k in ("day_recall", "night_recall", "occlusion_miss", "min_visible_fraction",
-                              "distance_miss", "mask_flip_prob", "lidar_recall")},
-        **{k: _POS for k in ("occlusion_power", "near_m", "far_m", "lidar_far_m")},
-        **{k: _NONNEG for k in ("fp_per_frame", "box_jitter", "keypoint_sigma", "semantic_patches",
-                                "night_noise_scale", "lidar_center_sigma_m", "lidar_size_sigma_m",
-                                "lidar_yaw_sigma_rad")}}))
+    "OracleNoiseConfig",
+    "Noise of the `oracle` provider (synthetic data only): tasks.perception.oracle.",
+    kernel_fields(
+        OracleNoise,
+        {
+            **{
+                k: _PROB
+                for k in (
+                    "day_recall",
+                    "night_recall",
+                    "occlusion_miss",
+                    "min_visible_fraction",
+                    "distance_miss",
+                    "mask_flip_prob",
+                    "lidar_recall",
+                )
+            },
+            **{k: _POS for k in ("occlusion_power", "near_m", "far_m", "lidar_far_m")},
+            **{
+                k: _NONNEG
+                for k in (
+                    "fp_per_frame",
+                    "box_jitter",
+                    "keypoint_sigma",
+                    "semantic_patches",
+                    "night_noise_scale",
+                    "lidar_center_sigma_m",
+                    "lidar_size_sigma_m",
+                    "lidar_yaw_sigma_rad",
+                )
+            },
+        },
+    ),
+)
 
 LidarClustersConfig = section(
-    "LidarClustersConfig", "The weight-free LiDAR pedestrian detector: tasks.perception.lidar_clusters.",
-    kernel_fields(LidarClusterParams, {
-        **{k: _POS for k in ("ground_cell_m", "ceiling_m", "voxel_m", "cluster_tol_m", "min_height_m",
-                             "max_height_m", "max_footprint_m", "max_range_m")},
-        "ground_tol_m": _NONNEG, "min_points": {"ge": 1}}))
+    "LidarClustersConfig",
+    "The weight-free LiDAR pedestrian detector: tasks.perception.lidar_clusters.",
+    kernel_fields(
+        LidarClusterParams,
+        {
+            **{
+                k: _POS
+                for k in (
+                    "ground_cell_m",
+                    "ceiling_m",
+                    "voxel_m",
+                    "cluster_tol_m",
+                    "min_height_m",
+                    "max_height_m",
+                    "max_footprint_m",
+                    "max_range_m",
+                )
+            },
+            "ground_tol_m": _NONNEG,
+            "min_points": {"ge": 1},
+        },
+    ),
+)
 
 
 DetectorModelConfig = section(
-    "DetectorModelConfig", "Person boxes of image_provider 'models': tasks/perception/models/settings.py.",
-    kernel_fields(DetectorSettings, {"person_class": _NONNEG, "score_threshold": _PROB,
-                                     "nms_iou": {"gt": 0, "le": 1}}))
+    "DetectorModelConfig",
+    "Person boxes of image_provider 'models': tasks/perception/models/settings.py.",
+    kernel_fields(
+        DetectorSettings,
+        {"person_class": _NONNEG, "score_threshold": _PROB, "nms_iou": {"gt": 0, "le": 1}},
+    ),
+)
 KeypointModelConfig = section(
-    "KeypointModelConfig", "Top-down COCO-17 keypoints: tasks/perception/models/settings.py.",
-    kernel_fields(KeypointSettings, {"batch_size": {"ge": 1}}))
+    "KeypointModelConfig",
+    "Top-down COCO-17 keypoints: tasks/perception/models/settings.py.",
+    kernel_fields(KeypointSettings, {"batch_size": {"ge": 1}}),
+)
 MaskModelConfig = section(
-    "MaskModelConfig", "Person instance masks: tasks/perception/models/settings.py.",
-    kernel_fields(MaskSettings, {"person_class": _NONNEG, "score_threshold": _PROB}))
+    "MaskModelConfig",
+    "Person instance masks: tasks/perception/models/settings.py.",
+    kernel_fields(MaskSettings, {"person_class": _NONNEG, "score_threshold": _PROB}),
+)
 SemanticModelConfig = section(
-    "SemanticModelConfig", "Image semantics of image_provider 'models'.", kernel_fields(SemanticSettings))
+    "SemanticModelConfig",
+    "Image semantics of image_provider 'models'.",
+    kernel_fields(SemanticSettings),
+)
 
 
 class _ModelsBase(Strict):
@@ -250,21 +333,32 @@ class _ModelsBase(Strict):
     @model_validator(mode="after")
     def _kinds_and_paths(self):
         if self.masks.kind == "blazepose" and self.keypoints.kind != "blazepose":
-            raise ValueError("masks.kind 'blazepose' comes with keypoints.kind 'blazepose' (one model run)")
+            raise ValueError(
+                "masks.kind 'blazepose' comes with keypoints.kind 'blazepose' (one model run)"
+            )
         if self.masks.kind == "semantic" and self.semantic.kind == "none":
-            raise ValueError("masks.kind 'semantic' needs a semantic model (semantic.kind onnx or oracle)")
-        for name, part, needs in (("detector", self.detector, self.detector.kind != "lidar"),
-                                  ("keypoints", self.keypoints, self.keypoints.kind in ("vitpose", "rtmpose")),
-                                  ("masks", self.masks, self.masks.kind == "mask2former"),
-                                  ("semantic", self.semantic, self.semantic.kind == "onnx")):
+            raise ValueError(
+                "masks.kind 'semantic' needs a semantic model (semantic.kind onnx or oracle)"
+            )
+        for name, part, needs in (
+            ("detector", self.detector, self.detector.kind != "lidar"),
+            ("keypoints", self.keypoints, self.keypoints.kind in ("vitpose", "rtmpose")),
+            ("masks", self.masks, self.masks.kind == "mask2former"),
+            ("semantic", self.semantic, self.semantic.kind == "onnx"),
+        ):
             if needs and part.path is None:
-                raise ValueError(f"{name}.path is required for {name}.kind {part.kind!r} (an ONNX file)")
+                raise ValueError(
+                    f"{name}.path is required for {name}.kind {part.kind!r} (an ONNX file)"
+                )
         return self
 
 
 ModelsConfig = section(
-    "ModelsConfig", _ModelsBase.__doc__,
-    kernel_fields(BlazePoseSettings, {"min_pose_flag": _PROB, "box_scale": _POS}), __base__=_ModelsBase)
+    "ModelsConfig",
+    _ModelsBase.__doc__,
+    kernel_fields(BlazePoseSettings, {"min_pose_flag": _PROB, "box_scale": _POS}),
+    __base__=_ModelsBase,
+)
 
 
 class DetectConfig(Strict):
@@ -284,36 +378,82 @@ class DetectConfig(Strict):
         uses = "precomputed" in (self.image_provider, self.lidar_provider)
         if uses and self.precomputed_dir is None:
             raise ValueError("precomputed_dir is required when a provider is 'precomputed'")
-        if (self.image_provider == "models" and self.models.detector.kind == "lidar"
-                and self.lidar_provider == "none"):
+        if (
+            self.image_provider == "models"
+            and self.models.detector.kind == "lidar"
+            and self.lidar_provider == "none"
+        ):
             raise ValueError("models.detector.kind 'lidar' needs a lidar_provider (not 'none')")
         return self
 
 
 PersonPointsConfig = section(
-    "PersonPointsConfig", "Separating a person's LiDAR points: tasks.perception.person_points.",
-    kernel_fields(PersonPointParams, {
-        **{k: _POS for k in ("gap_m", "person_height_m", "range_sigma_frac", "ground_cell_m",
-                             "edge_extent_m")},
-        **{k: _NONNEG for k in ("min_depth_m", "feet_radius_m", "edge_grow_m", "edge_margin_px")},
-        "min_points": {"ge": 1}, "core_frac": {"gt": 0, "le": 1}, "assoc_min_iou": _PROB}))
+    "PersonPointsConfig",
+    "Separating a person's LiDAR points: tasks.perception.person_points.",
+    kernel_fields(
+        PersonPointParams,
+        {
+            **{
+                k: _POS
+                for k in (
+                    "gap_m",
+                    "person_height_m",
+                    "range_sigma_frac",
+                    "ground_cell_m",
+                    "edge_extent_m",
+                )
+            },
+            **{
+                k: _NONNEG
+                for k in ("min_depth_m", "feet_radius_m", "edge_grow_m", "edge_margin_px")
+            },
+            "min_points": {"ge": 1},
+            "core_frac": {"gt": 0, "le": 1},
+            "assoc_min_iou": _PROB,
+        },
+    ),
+)
 
 WorldCheckConfig = section(
-    "WorldCheckConfig", "Offline identity check on world positions: tasks.track.offline.WorldCheck.",
-    kernel_fields(WorldCheck, {"min_points": {"ge": 1}, "max_speed_mps": _POS, "tol_m": _POS,
-                               "speed_sigma_mps": _NONNEG, "window": {"ge": 1},
-                               "continuation_gate_scale": {"ge": 1}}))
+    "WorldCheckConfig",
+    "Offline identity check on world positions: tasks.track.offline.WorldCheck.",
+    kernel_fields(
+        WorldCheck,
+        {
+            "min_points": {"ge": 1},
+            "max_speed_mps": _POS,
+            "tol_m": _POS,
+            "speed_sigma_mps": _NONNEG,
+            "window": {"ge": 1},
+            "continuation_gate_scale": {"ge": 1},
+        },
+    ),
+)
 
 TrackConfig = section(
-    "TrackConfig", "OC-SORT (tasks.track.ocsort.TrackerParams), the offline refinement "
-                   "(tasks.track.offline.OfflineParams, WorldCheck), person points, and the rate the "
-                   "frame-counted gates are given at (tasks.track.rate.GateRate: scaled to dataset.rate_hz).",
-    kernel_fields(TrackerParams, {"det_thresh": _PROB, "max_age": {"ge": 1}, "min_hits": {"ge": 1},
-                                  "iou_threshold": _PROB, "delta_t": {"ge": 1}, "inertia": _PROB}),
-    kernel_fields(OfflineParams, {"stitch_max_gap": _NONNEG, "stitch_max_distance": _POS,
-                                  "stitch_max_scale": {"ge": 1}}),
+    "TrackConfig",
+    "OC-SORT (tasks.track.ocsort.TrackerParams), the offline refinement "
+    "(tasks.track.offline.OfflineParams, WorldCheck), person points, and the rate the "
+    "frame-counted gates are given at (tasks.track.rate.GateRate: scaled to dataset.rate_hz).",
+    kernel_fields(
+        TrackerParams,
+        {
+            "det_thresh": _PROB,
+            "max_age": {"ge": 1},
+            "min_hits": {"ge": 1},
+            "iou_threshold": _PROB,
+            "delta_t": {"ge": 1},
+            "inertia": _PROB,
+        },
+    ),
+    kernel_fields(
+        OfflineParams,
+        {"stitch_max_gap": _NONNEG, "stitch_max_distance": _POS, "stitch_max_scale": {"ge": 1}},
+    ),
     kernel_fields(GateRate, {"gates_rate_hz": _POS}),
-    world_check=(WorldCheckConfig, WorldCheckConfig()), person_points=(PersonPointsConfig, PersonPointsConfig()))
+    world_check=(WorldCheckConfig, WorldCheckConfig()),
+    person_points=(PersonPointsConfig, PersonPointsConfig()),
+)
 
 #: FitWeights fields named differently in the config (paper's symbols)
 FIT_WEIGHT_NAMES = {"rho_px": "rho"}
@@ -321,11 +461,23 @@ FIT_WEIGHT_NAMES = {"rho_px": "rho"}
 FIT_OBJECTIVE_NAMES = {"conf_power": "confidence_power", "square_lambdas": "squared_weights"}
 
 LossWeights = section(
-    "LossWeights", "Scalar weights and thresholds of the fitting objective (paper, appendix table).",
-    kernel_fields(FitWeights, {"rho": _POS, **{k: _NONNEG for k in ("lambda_theta", "lambda_a", "lambda_beta",
-                                                                     "lambda_3d", "lambda_occ")},
-                               "w": {"ge": -1, "le": 1}, "j_conf": _PROB},
-                  exclude=tuple(FIT_OBJECTIVE_NAMES), rename=FIT_WEIGHT_NAMES))
+    "LossWeights",
+    "Scalar weights and thresholds of the fitting objective (paper, appendix table).",
+    kernel_fields(
+        FitWeights,
+        {
+            "rho": _POS,
+            **{
+                k: _NONNEG
+                for k in ("lambda_theta", "lambda_a", "lambda_beta", "lambda_3d", "lambda_occ")
+            },
+            "w": {"ge": -1, "le": 1},
+            "j_conf": _PROB,
+        },
+        exclude=tuple(FIT_OBJECTIVE_NAMES),
+        rename=FIT_WEIGHT_NAMES,
+    ),
+)
 
 
 class _FitBase(Strict):
@@ -367,36 +519,81 @@ class _FitBase(Strict):
 
 
 FitConfig = section(
-    "FitConfig", "The body fit: tasks.fit.settings.FitSettings, the objective's preset and options.",
-    kernel_fields(FitSettings, {"iterations": _NONNEG, "learning_rate": _POS, "nn_every": {"ge": 1},
-                                "converge_rtol": _POS, "chamfer_vertex_max_m": _POS, "min_points": _NONNEG, "max_shift_m": _POS,
-                                "batch_persons": {"ge": 1}}),
-    {key: (typing.get_type_hints(FitWeights)[f], Field(next(x.default for x in dataclasses.fields(FitWeights)
-                                                            if x.name == f)))
-     for f, key in FIT_OBJECTIVE_NAMES.items()},
-    __base__=_FitBase)
+    "FitConfig",
+    "The body fit: tasks.fit.settings.FitSettings, the objective's preset and options.",
+    kernel_fields(
+        FitSettings,
+        {
+            "iterations": _NONNEG,
+            "learning_rate": _POS,
+            "nn_every": {"ge": 1},
+            "converge_rtol": _POS,
+            "chamfer_vertex_max_m": _POS,
+            "min_points": _NONNEG,
+            "max_shift_m": _POS,
+            "batch_persons": {"ge": 1},
+        },
+    ),
+    {
+        key: (
+            typing.get_type_hints(FitWeights)[f],
+            Field(next(x.default for x in dataclasses.fields(FitWeights) if x.name == f)),
+        )
+        for f, key in FIT_OBJECTIVE_NAMES.items()
+    },
+    __base__=_FitBase,
+)
 
 FreeSpaceConfig = section(
-    "FreeSpaceConfig", "OctoMap sensor model of the free / unknown map: tasks.occupancy.mapping.FreeSpaceParams.",
-    kernel_fields(FreeSpaceParams, {"voxel_size_m": {"ge": 0.02, "le": 1.0}, "prob_hit": {"gt": 0.5, "lt": 1},
-                                    "prob_miss": {"gt": 0, "lt": 0.5}, "clamp_min": {"gt": 0, "lt": 0.5},
-                                    "clamp_max": {"gt": 0.5, "lt": 1}, "occupancy_threshold": {"gt": 0, "lt": 1},
-                                    "max_range_m": _POS}))
+    "FreeSpaceConfig",
+    "OctoMap sensor model of the free / unknown map: tasks.occupancy.mapping.FreeSpaceParams.",
+    kernel_fields(
+        FreeSpaceParams,
+        {
+            "voxel_size_m": {"ge": 0.02, "le": 1.0},
+            "prob_hit": {"gt": 0.5, "lt": 1},
+            "prob_miss": {"gt": 0, "lt": 0.5},
+            "clamp_min": {"gt": 0, "lt": 0.5},
+            "clamp_max": {"gt": 0.5, "lt": 1},
+            "occupancy_threshold": {"gt": 0, "lt": 1},
+            "max_range_m": _POS,
+        },
+    ),
+)
 
 #: Cityscapes train id -> class name, the default mapping (tasks.conventions.CITYSCAPES_TO_CLASS)
-DEFAULT_CITYSCAPES_TO_CLASS = {cs: CLASS_NAMES[int(CITYSCAPES_TO_CLASS[cs])] for cs in range(19)
-                               if CITYSCAPES_TO_CLASS[cs] != UNLABELED}
+DEFAULT_CITYSCAPES_TO_CLASS = {
+    cs: CLASS_NAMES[int(CITYSCAPES_TO_CLASS[cs])]
+    for cs in range(19)
+    if CITYSCAPES_TO_CLASS[cs] != UNLABELED
+}
 
 MapConfig = section(
-    "MapConfig", "The static semantic map: tasks.occupancy.mapping.MapParams.",
-    kernel_fields(MapParams, {"voxel_size_m": {"ge": 0.02, "le": 1.0}, "fallback_ground_lateral_scale": {"ge": 1},
-                              "pedestrian_box_margin_m": _NONNEG, "ground_max_deviation_m": _POS,
-                              "ground_cell_m": _POS, "ground_neighbourhood_cells": _NONNEG,
-                              "ground_quantile": _PROB, "min_votes": {"ge": 1}, "tile_m": _POS,
-                              "window_frames": {"ge": 1}, "region_tiles": {"ge": 1}}),
-    cityscapes_to_class=(dict[int, str], Field(default_factory=lambda: dict(DEFAULT_CITYSCAPES_TO_CLASS))),
+    "MapConfig",
+    "The static semantic map: tasks.occupancy.mapping.MapParams.",
+    kernel_fields(
+        MapParams,
+        {
+            "voxel_size_m": {"ge": 0.02, "le": 1.0},
+            "fallback_ground_lateral_scale": {"ge": 1},
+            "pedestrian_box_margin_m": _NONNEG,
+            "ground_max_deviation_m": _POS,
+            "ground_cell_m": _POS,
+            "ground_neighbourhood_cells": _NONNEG,
+            "ground_quantile": _PROB,
+            "min_votes": {"ge": 1},
+            "tile_m": _POS,
+            "window_frames": {"ge": 1},
+            "region_tiles": {"ge": 1},
+        },
+    ),
+    cityscapes_to_class=(
+        dict[int, str],
+        Field(default_factory=lambda: dict(DEFAULT_CITYSCAPES_TO_CLASS)),
+    ),
     ground_classes=(list[str], ["road", "terrain"]),
-    freespace=(FreeSpaceConfig, FreeSpaceConfig()))
+    freespace=(FreeSpaceConfig, FreeSpaceConfig()),
+)
 
 
 class _FuseBase(Strict):
@@ -407,10 +604,12 @@ class _FuseBase(Strict):
     gt_min_points: int = Field(10, ge=0)
 
 
-FuseConfig = section("FuseConfig", "The per-frame fusion: the grid, the bodies, and "
-                                   "tasks.occupancy.settings.FuseSettings.",
-                     kernel_fields(FuseSettings, {"camera_pixel_stride": {"ge": 1},
-                                                   "velocity_max_gap_s": _POS}), __base__=_FuseBase)
+FuseConfig = section(
+    "FuseConfig",
+    "The per-frame fusion: the grid, the bodies, and tasks.occupancy.settings.FuseSettings.",
+    kernel_fields(FuseSettings, {"camera_pixel_stride": {"ge": 1}, "velocity_max_gap_s": _POS}),
+    __base__=_FuseBase,
+)
 
 
 class ExportConfig(Strict):
@@ -456,10 +655,14 @@ class Config(Strict):
         occupied = CLASS_NAMES[:FREE]
         for name in self.map.ground_classes:
             if name not in occupied:
-                raise ValueError(f"map.ground_classes: {name!r} is not an occupied class {occupied}")
+                raise ValueError(
+                    f"map.ground_classes: {name!r} is not an occupied class {occupied}"
+                )
         for cs_id, name in self.map.cityscapes_to_class.items():
             if not 0 <= cs_id <= 18:
-                raise ValueError(f"map.cityscapes_to_class: Cityscapes train id {cs_id} not in 0..18")
+                raise ValueError(
+                    f"map.cityscapes_to_class: Cityscapes train id {cs_id} not in 0..18"
+                )
             if name not in occupied:
                 raise ValueError(
                     f"map.cityscapes_to_class[{cs_id}] = {name!r} is not an occupied class {occupied}"
@@ -509,7 +712,9 @@ def read_config_dict(path: Path, _seen: tuple[Path, ...] = ()) -> dict:
         raise ConfigError(str(path), [("", f"invalid YAML: {exc}")]) from None
     raw = raw or {}
     if not isinstance(raw, dict):
-        raise ConfigError(str(path), [("", f"expected a mapping at top level, got {type(raw).__name__}")])
+        raise ConfigError(
+            str(path), [("", f"expected a mapping at top level, got {type(raw).__name__}")]
+        )
     parent = raw.pop("extends", None)
     if parent is not None:
         raw = _deep_merge(read_config_dict(path.parent / parent, _seen + (path,)), raw)

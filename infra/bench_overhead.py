@@ -33,10 +33,14 @@ def _measure(cfg_for, data: Path, work: Path, name: str, sequences: int) -> dict
     wall, report = run(work / f"{name}-run", [str(i) for i in range(sequences)])
     inside = sum(o.get("seconds", 0.0) for o in report.outcomes.values())
     units = sum(o["status"] in ("done", "failed") for o in report.outcomes.values())
-    return {"flow_s": round(wall, 2), "inside_stages_s": round(inside, 2), "units": units,
-            "failed_units": len(report.failed),
-            "overhead_per_sequence_s": round((wall - inside) / sequences, 3),
-            "overhead_per_unit_s": round((wall - inside) / max(units, 1), 3)}
+    return {
+        "flow_s": round(wall, 2),
+        "inside_stages_s": round(inside, 2),
+        "units": units,
+        "failed_units": len(report.failed),
+        "overhead_per_sequence_s": round((wall - inside) / sequences, 3),
+        "overhead_per_unit_s": round((wall - inside) / max(units, 1), 3),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -48,28 +52,51 @@ def main(argv: list[str] | None = None) -> int:
     from distributed import LocalCluster
 
     from configs.schema import load_config
-    from flows.pipeline.runtime import prefect_api
     from flows.commands.simulate import simulate
+    from flows.pipeline.runtime import prefect_api
 
     work = Path(tempfile.mkdtemp(prefix="mobileocc-bench-overhead-"))
     data = work / "data"
-    simulate(data, sequences=args.sequences, frames=args.frames, seed=3, pedestrians=2,
-             crowd="uncrowded", progress=False)
+    simulate(
+        data,
+        sequences=args.sequences,
+        frames=args.frames,
+        seed=3,
+        pedestrians=2,
+        crowd="uncrowded",
+        progress=False,
+    )
 
     def base(data: Path, out: Path, seqs: list[str], **extra):
-        return load_config(overrides={"dataset.root": str(data), "output.root": str(out),
-                                      "dataset.sequences": seqs, **extra})
+        return load_config(
+            overrides={
+                "dataset.root": str(data),
+                "output.root": str(out),
+                "dataset.sequences": seqs,
+                **extra,
+            }
+        )
 
     result = {"sequences": args.sequences, "raw_frames": args.frames}
     with prefect_api():
-        result["thread"] = _measure(lambda d, o, s: base(d, o, s, **{"dask.workers": 1}),
-                                    data, work, "thread", args.sequences)
-        with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
-                          dashboard_address=None) as cluster:
+        result["thread"] = _measure(
+            lambda d, o, s: base(d, o, s, **{"dask.workers": 1}),
+            data,
+            work,
+            "thread",
+            args.sequences,
+        )
+        with LocalCluster(
+            n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as cluster:
             address = cluster.scheduler_address
             result["dask"] = _measure(
                 lambda d, o, s: base(d, o, s, **{"dask.runner": "dask", "dask.address": address}),
-                data, work, "dask", args.sequences)
+                data,
+                work,
+                "dask",
+                args.sequences,
+            )
     print(json.dumps(result, indent=1))
     return 0
 

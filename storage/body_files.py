@@ -33,7 +33,15 @@ import scipy.sparse
 
 from storage.manifest import atomic_write_bytes
 
-BODY_MODEL_KEYS = ("v_template", "f", "shapedirs", "posedirs", "weights", "kintree_table", "J_regressor")
+BODY_MODEL_KEYS = (
+    "v_template",
+    "f",
+    "shapedirs",
+    "posedirs",
+    "weights",
+    "kintree_table",
+    "J_regressor",
+)
 POSE_PRIOR_KEYS = ("means", "covars", "weights")
 
 
@@ -69,8 +77,10 @@ class _ChumpyStandIn:
                 return _to_plain(arrays[0])
         elif isinstance(st, np.ndarray):
             return st
-        raise BodyFileError(f"a chumpy object without a recognisable array (state keys: "
-                            f"{sorted(st) if isinstance(st, dict) else type(st).__name__})")
+        raise BodyFileError(
+            f"a chumpy object without a recognisable array (state keys: "
+            f"{sorted(st) if isinstance(st, dict) else type(st).__name__})"
+        )
 
 
 class _SparseStandIn:
@@ -108,7 +118,8 @@ class _SparseStandIn:
 
 
 _SPARSE_STAND_INS = {
-    kind: type(f"_Sparse_{kind}", (_SparseStandIn,), {"kind": kind}) for kind in ("csc", "csr", "coo")
+    kind: type(f"_Sparse_{kind}", (_SparseStandIn,), {"kind": kind})
+    for kind in ("csc", "csr", "coo")
 }
 
 
@@ -134,7 +145,21 @@ def _latin1_encode(text, encoding="latin1", errors="strict"):
 # Constructors of plain data types (chumpy states hold sets, for instance); none can run code.
 _SAFE_BUILTINS = {
     t.__name__: t
-    for t in (object, set, frozenset, list, dict, tuple, slice, complex, bytearray, bool, int, float, str)
+    for t in (
+        object,
+        set,
+        frozenset,
+        list,
+        dict,
+        tuple,
+        slice,
+        complex,
+        bytearray,
+        bool,
+        int,
+        float,
+        str,
+    )
 }
 
 
@@ -157,7 +182,9 @@ class _RestrictedUnpickler(pickle.Unpickler):
         is_sparse = name[:3] in _SPARSE_STAND_INS and name[3:] in ("_matrix", "_array")
         if module.startswith("scipy.sparse") and is_sparse:
             return _SPARSE_STAND_INS[name[:3]]
-        raise UnsafePickleError(f"pickle refers to the global {module}.{name}, which is not allowed")
+        raise UnsafePickleError(
+            f"pickle refers to the global {module}.{name}, which is not allowed"
+        )
 
     def persistent_load(self, pid):
         raise UnsafePickleError("pickle uses persistent ids, which are not allowed")
@@ -167,7 +194,10 @@ def _to_plain(obj):
     if isinstance(obj, (_ChumpyStandIn, _SparseStandIn)):
         return obj.to_array()
     if isinstance(obj, dict):
-        return {(k.decode("latin1") if isinstance(k, bytes) else k): _to_plain(v) for k, v in obj.items()}
+        return {
+            (k.decode("latin1") if isinstance(k, bytes) else k): _to_plain(v)
+            for k, v in obj.items()
+        }
     return obj
 
 
@@ -261,8 +291,12 @@ def smplx_vertex_ids(params: dict) -> dict[str, int]:
     ``coco_vertex_ids`` (nose, l_eye, r_eye, l_ear, r_ear). Pass ``use_hands=False,
     use_feet_keypoints=False`` with it (no finger-tip / toe ids on the stand-in)."""
     if "coco_vertex_ids" not in params:
-        raise BodyFileError("body model has no coco_vertex_ids: cannot name its face keypoint vertices")
-    nose, leye, reye, lear, rear = (int(i) for i in np.asarray(params["coco_vertex_ids"]).reshape(5))
+        raise BodyFileError(
+            "body model has no coco_vertex_ids: cannot name its face keypoint vertices"
+        )
+    nose, leye, reye, lear, rear = (
+        int(i) for i in np.asarray(params["coco_vertex_ids"]).reshape(5)
+    )
     return {"nose": nose, "leye": leye, "reye": reye, "lear": lear, "rear": rear}
 
 

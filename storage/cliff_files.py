@@ -73,8 +73,14 @@ def write_cliff_estimates(
         a = np.asarray(x, np.float32).reshape(n, width)
         return [None if not np.isfinite(r).any() else r.tolist() for r in a]
 
-    size = [None] * n if bbox_size is None else [
-        None if not np.isfinite(v) else float(v) for v in np.asarray(bbox_size, np.float32).reshape(n)]
+    size = (
+        [None] * n
+        if bbox_size is None
+        else [
+            None if not np.isfinite(v) else float(v)
+            for v in np.asarray(bbox_size, np.float32).reshape(n)
+        ]
+    )
     table = pa.table(
         {
             "frame": np.asarray(frame, np.int64),
@@ -109,7 +115,12 @@ def read_cliff_estimates(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """
     path = Path(path)
     if not path.is_file():
-        raise _fail(path, None, None, "file is missing (fit.init_provider 'precomputed' needs one per sequence)")
+        raise _fail(
+            path,
+            None,
+            None,
+            "file is missing (fit.init_provider 'precomputed' needs one per sequence)",
+        )
     try:
         table = pq.read_table(path)
     except (pa.ArrowInvalid, OSError) as error:
@@ -122,8 +133,13 @@ def read_cliff_estimates(path: str | os.PathLike) -> dict[str, np.ndarray]:
     frame, det = cols["frame"], cols["det_index"]
     for i in range(n):
         if frame[i] is None or det[i] is None or det[i] < 0:
-            raise _fail(path, i, (frame[i], det[i]), "frame and det_index must be non-null, det_index >= 0")
-    out = {"frame": np.asarray(frame, np.int64).reshape(n), "det_index": np.asarray(det, np.int64).reshape(n)}
+            raise _fail(
+                path, i, (frame[i], det[i]), "frame and det_index must be non-null, det_index >= 0"
+            )
+    out = {
+        "frame": np.asarray(frame, np.int64).reshape(n),
+        "det_index": np.asarray(det, np.int64).reshape(n),
+    }
     keys = list(zip(out["frame"].tolist(), out["det_index"].tolist()))
 
     def fixed(name, width, i, value):
@@ -149,19 +165,33 @@ def read_cliff_estimates(path: str | os.PathLike) -> dict[str, np.ndarray]:
         crop = [cols[c][i] is not None for c in _CROP_COLUMNS]
         if cols["transl"][i] is not None:
             if any(crop):
-                raise _fail(path, i, keys[i], "has both transl and crop-camera columns; give one placement")
+                raise _fail(
+                    path, i, keys[i], "has both transl and crop-camera columns; give one placement"
+                )
             has_transl[i] = True
             transl[i] = fixed("transl", 3, i, cols["transl"][i])
             if transl[i, 2] <= 0:
-                raise _fail(path, i, keys[i], f"transl {transl[i].tolist()} must have z > 0 (in front of the camera)")
+                raise _fail(
+                    path,
+                    i,
+                    keys[i],
+                    f"transl {transl[i].tolist()} must have z > 0 (in front of the camera)",
+                )
         else:
             if not all(crop):
-                raise _fail(path, i, keys[i], "needs transl, or all of cam_crop, bbox_center, bbox_size")
+                raise _fail(
+                    path, i, keys[i], "needs transl, or all of cam_crop, bbox_center, bbox_size"
+                )
             cam[i] = fixed("cam_crop", 3, i, cols["cam_crop"][i])
             center[i] = fixed("bbox_center", 2, i, cols["bbox_center"][i])
             size[i] = fixed("bbox_size", 1, i, [cols["bbox_size"][i]])[0]
             if cam[i, 0] <= 0 or size[i] <= 0:
-                raise _fail(path, i, keys[i], f"cam_crop scale s = {cam[i, 0]} and bbox_size = {size[i]} must be > 0")
+                raise _fail(
+                    path,
+                    i,
+                    keys[i],
+                    f"cam_crop scale s = {cam[i, 0]} and bbox_size = {size[i]} must be > 0",
+                )
     # rotations: orthonormal with det +1 (a row of an unflattened or transposed-wrong file fails here)
     if n:
         err = np.abs(np.einsum("njki,njkl->njil", rot, rot) - np.eye(3)).max(axis=(2, 3))
@@ -169,8 +199,20 @@ def read_cliff_estimates(path: str | os.PathLike) -> dict[str, np.ndarray]:
         bad = (err > ROTATION_TOL) | (det_err > ROTATION_TOL)
         if bad.any():
             i, j = (int(v) for v in np.argwhere(bad)[0])
-            raise _fail(path, i, keys[i], f"rotmats[{j}] is not a rotation matrix (max |R^T R - I| = "
-                        f"{err[i, j]:.3g}, det = {np.linalg.det(rot[i, j]):.4f}): {rot[i, j].round(4).tolist()}")
-    out.update(rotmats=rot, betas=betas, has_transl=has_transl, transl=transl, cam_crop=cam,
-               bbox_center=center, bbox_size=size)
+            raise _fail(
+                path,
+                i,
+                keys[i],
+                f"rotmats[{j}] is not a rotation matrix (max |R^T R - I| = "
+                f"{err[i, j]:.3g}, det = {np.linalg.det(rot[i, j]):.4f}): {rot[i, j].round(4).tolist()}",
+            )
+    out.update(
+        rotmats=rot,
+        betas=betas,
+        has_transl=has_transl,
+        transl=transl,
+        cam_crop=cam,
+        bbox_center=center,
+        bbox_size=size,
+    )
     return out

@@ -112,7 +112,9 @@ def _where(path: Path, frame: int | None) -> str:
 
 def _frame_error(exc: InputError, frame: int | None) -> CodaFrameError:
     """An InputError about one frame's file as that frame's CodaFrameError."""
-    return CodaFrameError(str(exc), exc.path or Path("?"), frame if exc.frame is None else exc.frame)
+    return CodaFrameError(
+        str(exc), exc.path or Path("?"), frame if exc.frame is None else exc.frame
+    )
 
 
 @dataclass(frozen=True)
@@ -142,7 +144,9 @@ def _channels_of_size(size: int) -> int | None:
     return size // per_channel
 
 
-def lidar_channels(path: Path, frame: int | None = None, expected: tuple[int, Path] | None = None) -> int:
+def lidar_channels(
+    path: Path, frame: int | None = None, expected: tuple[int, Path] | None = None
+) -> int:
     """Channels (4 or 5) of an organised OS1-128 ``.bin`` from its size alone (no read).
 
     expected: (channels, file they were taken from) of the sequence; a file of another size is an
@@ -159,21 +163,32 @@ def lidar_channels(path: Path, frame: int | None = None, expected: tuple[int, Pa
         raise CodaFrameError(
             f"{where}: {size} bytes but the sequence's sweeps have {expected[0]} float32 channels "
             f"({expected[0] * per_channel} bytes, as its first sweep {expected[1].name}); the file is truncated "
-            "or from another recording", path, frame)
+            "or from another recording",
+            path,
+            frame,
+        )
     if size == 0 or size % per_channel:
         raise CodaFrameError(
             f"{where}: {size} bytes is not a whole organised 128x1024 sweep "
             f"(expected 4 or 5 float32 channels = {4 * per_channel} or {5 * per_channel} bytes); "
-            "the file is truncated or not an OS1-128 sweep", path, frame)
+            "the file is truncated or not an OS1-128 sweep",
+            path,
+            frame,
+        )
     channels = size // per_channel
     if channels not in (4, 5):
         raise CodaFrameError(
             f"{where}: {channels} channels inferred from {size} bytes; expected 4 (x y z intensity) "
-            "or 5 (x y z intensity time)", path, frame)
+            "or 5 (x y z intensity time)",
+            path,
+            frame,
+        )
     return int(channels)
 
 
-def read_lidar_raw(path: Path, frame: int | None = None, expected: tuple[int, Path] | None = None) -> np.ndarray:
+def read_lidar_raw(
+    path: Path, frame: int | None = None, expected: tuple[int, Path] | None = None
+) -> np.ndarray:
     """(131072, C) float32 organised sweep as stored (C = 4 or 5), finite values checked;
     ``expected``: the sequence's (channels, first sweep), see :func:`lidar_channels`."""
     path = Path(path)
@@ -183,20 +198,32 @@ def read_lidar_raw(path: Path, frame: int | None = None, expected: tuple[int, Pa
     except InputError as exc:
         raise _frame_error(exc, frame) from None
     if len(data) != POINTS_PER_SWEEP * channels * 4:  # changed between the stat and the read
-        raise CodaFrameError(f"{_where(path, frame)}: read {len(data)} bytes, expected "
-                             f"{POINTS_PER_SWEEP * channels * 4}", path, frame)
+        raise CodaFrameError(
+            f"{_where(path, frame)}: read {len(data)} bytes, expected "
+            f"{POINTS_PER_SWEEP * channels * 4}",
+            path,
+            frame,
+        )
     raw = np.frombuffer(data, dtype="<f4").reshape(POINTS_PER_SWEEP, channels)
     bad = ~np.isfinite(raw).all(axis=1)
     if bad.any():
         first = int(np.flatnonzero(bad)[0])
         raise CodaFrameError(
             f"{_where(path, frame)}: {int(bad.sum())} points have NaN or inf values (first at point "
-            f"{first}: {raw[first].tolist()}); expected finite floats (no-returns are zeros)", path, frame)
+            f"{first}: {raw[first].tolist()}); expected finite floats (no-returns are zeros)",
+            path,
+            frame,
+        )
     return raw
 
 
-def read_lidar_bin(path: Path, min_range_m: float = 0.0, max_range_m: float = math.inf,
-                   frame: int | None = None, expected: tuple[int, Path] | None = None) -> LidarSweep:
+def read_lidar_bin(
+    path: Path,
+    min_range_m: float = 0.0,
+    max_range_m: float = math.inf,
+    frame: int | None = None,
+    expected: tuple[int, Path] | None = None,
+) -> LidarSweep:
     """Decode an organised OS1-128 ``.bin`` (float32 LE, 4 or 5 channels inferred from size, or
     ``expected`` = the sequence's (channels, first sweep))."""
     raw = read_lidar_raw(path, frame, expected)
@@ -205,7 +232,9 @@ def read_lidar_bin(path: Path, min_range_m: float = 0.0, max_range_m: float = ma
     keep = (rng > max(min_range_m, 1e-6)) & (rng <= max_range_m)
     index = np.flatnonzero(keep)
     intensity = np.ascontiguousarray(raw[index, 3])
-    time_s = (raw[index, 4].astype(np.float64) / NS_PER_S).astype(np.float32) if channels == 5 else None
+    time_s = (
+        (raw[index, 4].astype(np.float64) / NS_PER_S).astype(np.float32) if channels == 5 else None
+    )
     return LidarSweep(
         points=np.ascontiguousarray(raw[index, :3]),
         intensity=intensity,
@@ -220,11 +249,13 @@ def read_lidar_bin(path: Path, min_range_m: float = 0.0, max_range_m: float = ma
 def quat_wxyz_to_matrix(q: np.ndarray) -> np.ndarray:
     """(4,) quaternion (w, x, y, z) -> (3, 3) rotation matrix, float64 (normalises q)."""
     w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def box_rotation(rpy: np.ndarray) -> np.ndarray:
@@ -244,8 +275,9 @@ def points_in_box(points: np.ndarray, box: Box3D, margin_m: float = 0.0) -> np.n
     return np.all(np.abs(local) <= half, axis=1)
 
 
-def rectified_camera(R_rect: np.ndarray, P_rect: np.ndarray,
-                     T_cam_from_lidar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def rectified_camera(
+    R_rect: np.ndarray, P_rect: np.ndarray, T_cam_from_lidar: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """The pinhole of a rectified image: (K (3, 3), T_rect_from_lidar (4, 4)) float64.
 
     R_rect (3, 3) rectification_matrix, P_rect (3, 4) projection_matrix, T_cam_from_lidar (4, 4)
@@ -289,11 +321,21 @@ class CodaSequence:
     lift of that height, with a warning in ``info.warnings``); None = that file is required.
     """
 
-    def __init__(self, root: Path, sequence: str | int, *, frame_stride: int = 2,
-                 lidar_source: str = "3d_comp", image_source: str = "2d_rect",
-                 min_range_m: float = 0.5, max_range_m: float = math.inf,
-                 cameras: tuple[str, ...] = ("cam0", "cam1"), frames: str = "files",
-                 lighting: str | None = None, lidar_height_m: float | None = None):
+    def __init__(
+        self,
+        root: Path,
+        sequence: str | int,
+        *,
+        frame_stride: int = 2,
+        lidar_source: str = "3d_comp",
+        image_source: str = "2d_rect",
+        min_range_m: float = 0.5,
+        max_range_m: float = math.inf,
+        cameras: tuple[str, ...] = ("cam0", "cam1"),
+        frames: str = "files",
+        lighting: str | None = None,
+        lidar_height_m: float | None = None,
+    ):
         self.root = Path(root)
         self.sequence = str(sequence)
         if lidar_source not in LIDAR_SOURCES:
@@ -303,7 +345,9 @@ class CodaSequence:
         if frames not in FRAME_SELECTIONS:
             raise CodaFormatError(f"frames {frames!r}: expected one of {FRAME_SELECTIONS}")
         if lighting not in (None, "day", "night"):
-            raise CodaFormatError(f"lighting {lighting!r} for sequence {self.sequence}: expected day or night")
+            raise CodaFormatError(
+                f"lighting {lighting!r} for sequence {self.sequence}: expected day or night"
+            )
         if frame_stride < 1:
             raise CodaFormatError(f"frame_stride {frame_stride}: expected >= 1")
         self.frame_stride = frame_stride
@@ -319,11 +363,15 @@ class CodaSequence:
             stamps = self.root / "timestamps" / f"{self.sequence}.txt"
             held = sequence_folders(self.root, self.sequence)
             if held:  # the sequence has files, but not the one that says which frames exist
-                raise CodaFormatError(f"{stamps}: timestamps file is missing (sequence {self.sequence} has "
-                                      f"{', '.join(held[:3])}{' ...' if len(held) > 3 else ''})", stamps)
+                raise CodaFormatError(
+                    f"{stamps}: timestamps file is missing (sequence {self.sequence} has "
+                    f"{', '.join(held[:3])}{' ...' if len(held) > 3 else ''})",
+                    stamps,
+                )
             raise CodaFormatError(
                 f"unknown sequence id {self.sequence!r} in {self.root}: no "
-                f"timestamps/{self.sequence}.txt (available: {list_sequences(self.root) or 'none'})", stamps
+                f"timestamps/{self.sequence}.txt (available: {list_sequences(self.root) or 'none'})",
+                stamps,
             )
         self.info = self._read_info()
 
@@ -346,7 +394,11 @@ class CodaSequence:
         missing = self.path(self.image_source, camera, frame, ".png")
         raise CodaFrameError(
             f"{missing} (frame {frame}): image is missing (looked for {', '.join(IMAGE_EXTENSIONS)} "
-            f"in {self.image_source})", missing, frame, self.sequence)
+            f"in {self.image_source})",
+            missing,
+            frame,
+            self.sequence,
+        )
 
     # -- sequence level ---------------------------------------------------------------------
     def _read_info(self) -> SequenceInfo:
@@ -355,7 +407,9 @@ class CodaSequence:
         pose_path = self.root / "poses" / "dense_global" / f"{self.sequence}.txt"
         if not _present(pose_path):  # sequences 8, 14, 15 of CODa have no dense_global poses
             pose_path = self.root / "poses" / "dense" / f"{self.sequence}.txt"
-        poses = _read_poses(pose_path, expected=len(stamps_s), stamps_path=stamps_path, stamps_s=stamps_s)
+        poses = _read_poses(
+            pose_path, expected=len(stamps_s), stamps_path=stamps_path, stamps_s=stamps_s
+        )
         metadata_path = self.root / "metadata" / f"{self.sequence}.json"
         metadata = _read_json(metadata_path) if _present(metadata_path) else {}
         _check_metadata(metadata, metadata_path)
@@ -429,23 +483,33 @@ class CodaSequence:
             if not candidates:
                 raise CodaFormatError(
                     f"{metadata_path}: no frames listed under {' / '.join(METADATA_TASKS)} "
-                    "(dataset.frames: metadata needs them; use dataset.frames: files)")
+                    "(dataset.frames: metadata needs them; use dataset.frames: files)"
+                )
             how = f"metadata: {len(candidates)} annotated frames listed"
         else:
             candidates = self.lidar_frames_on_disk()
             if not candidates:
-                other = [s for s in LIDAR_SOURCES if s != self.lidar_source
-                         and (self.root / s / "os1" / self.sequence).is_dir()]
-                hint = f"; found {other[0]}/os1/{self.sequence}: set dataset.lidar_source: {other[0]}" if other else ""
-                raise CodaFormatError(f"{folder}: no {self.lidar_source} sweeps for sequence "
-                                      f"{self.sequence}{hint}")
+                other = [
+                    s
+                    for s in LIDAR_SOURCES
+                    if s != self.lidar_source and (self.root / s / "os1" / self.sequence).is_dir()
+                ]
+                hint = (
+                    f"; found {other[0]}/os1/{self.sequence}: set dataset.lidar_source: {other[0]}"
+                    if other
+                    else ""
+                )
+                raise CodaFormatError(
+                    f"{folder}: no {self.lidar_source} sweeps for sequence {self.sequence}{hint}"
+                )
             kind = "all frames" if len(candidates) == num_stamps else "split-style subset"
             how = f"files: {len(candidates)} of {num_stamps} frames have a {self.lidar_source} sweep ({kind})"
         beyond = [f for f in candidates if f >= num_stamps]
         if beyond:
             raise CodaFormatError(
                 f"{self.lidar_path(beyond[0])} (frame {beyond[0]}): frame number beyond the "
-                f"{num_stamps} lines of timestamps/{self.sequence}.txt ({len(beyond)} such frames)")
+                f"{num_stamps} lines of timestamps/{self.sequence}.txt ({len(beyond)} such frames)"
+            )
         frames = stride_frames(candidates, self.frame_stride)
         if self.frame_stride > 1:
             how += f"; {len(frames)} kept at >= {self.frame_stride} raw frames apart"
@@ -477,31 +541,52 @@ class CodaSequence:
                 T, P_l2r = T_cam1_from_cam0 @ cameras["cam0"].raw.T_cam_from_lidar, None
             else:
                 T, P_l2r = read_extrinsic(ext_path)  # raises: file is missing
-            raw = RawCameraCalibration(intr["K"], intr["distortion"], intr["R"], intr["P"], T, P_l2r)
+            raw = RawCameraCalibration(
+                intr["K"], intr["distortion"], intr["R"], intr["P"], T, P_l2r
+            )
             if self.image_source == "2d_rect":
                 if not intr["has_rect"]:
-                    warnings.append(f"{intr_path}: no rectification_matrix / projection_matrix; 2d_rect "
-                                    "images are projected with camera_matrix and the raw extrinsic")
+                    warnings.append(
+                        f"{intr_path}: no rectification_matrix / projection_matrix; 2d_rect "
+                        "images are projected with camera_matrix and the raw extrinsic"
+                    )
                 K, T_cam = rectified_camera(intr["R"], intr["P"], T)
-                cameras[cam] = CameraCalibration(cam, K, np.zeros(5), intr["width"], intr["height"], T_cam,
-                                                 raw, rectified=True)
+                cameras[cam] = CameraCalibration(
+                    cam, K, np.zeros(5), intr["width"], intr["height"], T_cam, raw, rectified=True
+                )
             else:
                 if np.any(intr["distortion"] != 0):
-                    warnings.append(f"{cam}: 2d_raw images are distorted ({intr_path.name} k1={intr['distortion'][0]:.4g}) "
-                                    "and the pipeline projects with a pinhole; use 2d_rect")
-                cameras[cam] = CameraCalibration(cam, intr["K"], intr["distortion"], intr["width"],
-                                                 intr["height"], T, raw, rectified=False)
+                    warnings.append(
+                        f"{cam}: 2d_raw images are distorted ({intr_path.name} k1={intr['distortion'][0]:.4g}) "
+                        "and the pipeline projects with a pinhole; use 2d_rect"
+                    )
+                cameras[cam] = CameraCalibration(
+                    cam,
+                    intr["K"],
+                    intr["distortion"],
+                    intr["width"],
+                    intr["height"],
+                    T,
+                    raw,
+                    rectified=False,
+                )
         base_path = folder / "calib_os1_to_base.yaml"
         if _present(base_path) or self.lidar_height_m is None:
             T_base, base_default = read_extrinsic(base_path)[0], False
         else:
             T_base, base_default = np.eye(4), True
             T_base[2, 3] = float(self.lidar_height_m)
-            warnings.append(f"{base_path} is missing: T_base_from_lidar = the LiDAR "
-                            f"{self.lidar_height_m:g} m above the ground, axes aligned "
-                            "(dataset.lidar_height_m)")
-        return Calibration(cameras=cameras, T_base_from_lidar=T_base, base_is_default=base_default,
-                           T_cam1_from_cam0=T_cam1_from_cam0)
+            warnings.append(
+                f"{base_path} is missing: T_base_from_lidar = the LiDAR "
+                f"{self.lidar_height_m:g} m above the ground, axes aligned "
+                "(dataset.lidar_height_m)"
+            )
+        return Calibration(
+            cameras=cameras,
+            T_base_from_lidar=T_base,
+            base_is_default=base_default,
+            T_cam1_from_cam0=T_cam1_from_cam0,
+        )
 
     def _input_files(self, frames, *extra: Path) -> list[Path]:
         """Every file the selected frames read, for the content fingerprint."""
@@ -532,13 +617,17 @@ class CodaSequence:
         try:
             return self.info.frame_indices.index(int(raw_frame))
         except ValueError:
-            raise ValueError(f"sequence {self.sequence}: raw frame {raw_frame} is not a selected frame") from None
+            raise ValueError(
+                f"sequence {self.sequence}: raw frame {raw_frame} is not a selected frame"
+            ) from None
 
     def frame(self, i: int) -> Frame:
         """The i-th selected frame (i indexes ``info.frame_indices``); CodaFrameError if its files
         are missing or unreadable."""
         if not 0 <= i < len(self):
-            raise IndexError(f"sequence {self.sequence}: frame position {i} not in 0..{len(self) - 1}")
+            raise IndexError(
+                f"sequence {self.sequence}: frame position {i} not in 0..{len(self) - 1}"
+            )
         raw = self.info.frame_indices[i]
         try:
             return self._frame(i, raw)
@@ -549,8 +638,12 @@ class CodaSequence:
     def _frame(self, i: int, raw: int) -> Frame:
         lidar_path = self.lidar_path(raw)
         info = self.info
-        expected = (info.lidar_channels, info.lidar_channels_from) if info.lidar_channels_from else None
-        sweep = read_lidar_bin(lidar_path, self.min_range_m, self.max_range_m, frame=raw, expected=expected)
+        expected = (
+            (info.lidar_channels, info.lidar_channels_from) if info.lidar_channels_from else None
+        )
+        sweep = read_lidar_bin(
+            lidar_path, self.min_range_m, self.max_range_m, frame=raw, expected=expected
+        )
         sem_path = self.path("3d_semantic", "os1", raw, ".bin")
         semantic = read_semantic(sem_path, raw)[sweep.index] if _present(sem_path) else None
         box_path = self.path("3d_bbox", "os1", raw, ".json")
@@ -620,7 +713,9 @@ def sequence_ids(root: Path) -> list[str]:
     leaving it out."""
     root = Path(root)
     ids = list_sequences(root)
-    ids += _ids_in(root / "poses" / "dense_global", True, ".txt") + _ids_in(root / "poses" / "dense", True, ".txt")
+    ids += _ids_in(root / "poses" / "dense_global", True, ".txt") + _ids_in(
+        root / "poses" / "dense", True, ".txt"
+    )
     ids += _ids_in(root / "metadata", True, ".json") + _ids_in(root / "calibrations", False)
     for modality in SEQUENCE_MODALITIES:
         for sensor in _ids_in(root / modality, False):
@@ -631,8 +726,13 @@ def sequence_ids(root: Path) -> list[str]:
 def sequence_folders(root: Path, sequence: str) -> list[str]:
     """The layout paths (relative to ``root``) that hold files of ``sequence``."""
     root, out = Path(root), []
-    for rel in (f"timestamps/{sequence}.txt", f"poses/dense_global/{sequence}.txt", f"poses/dense/{sequence}.txt",
-                f"metadata/{sequence}.json", f"calibrations/{sequence}"):
+    for rel in (
+        f"timestamps/{sequence}.txt",
+        f"poses/dense_global/{sequence}.txt",
+        f"poses/dense/{sequence}.txt",
+        f"metadata/{sequence}.json",
+        f"calibrations/{sequence}",
+    ):
         if os.path.lexists(root / rel):
             out.append(rel)
     for modality in SEQUENCE_MODALITIES:
@@ -652,22 +752,39 @@ def check_dataset_root(root: Path) -> list[str]:
         raise CodaFormatError(f"dataset root {root} is not a folder", root)
     ids = sequence_ids(root)
     if not ids:
-        raise CodaFormatError(f"dataset root {root} holds no sequence (expected the CODa layout: "
-                              "timestamps/<SEQ>.txt, poses/, calibrations/<SEQ>/, 3d_comp/os1/<SEQ>/ ...)", root)
+        raise CodaFormatError(
+            f"dataset root {root} holds no sequence (expected the CODa layout: "
+            "timestamps/<SEQ>.txt, poses/, calibrations/<SEQ>/, 3d_comp/os1/<SEQ>/ ...)",
+            root,
+        )
     return ids
 
 
-def sequence_layout(root: Path, sequence: str, lidar_source: str, image_source: str,
-                    cameras: tuple[str, ...] = ("cam0", "cam1")) -> list[tuple[str, bool]]:
+def sequence_layout(
+    root: Path,
+    sequence: str,
+    lidar_source: str,
+    image_source: str,
+    cameras: tuple[str, ...] = ("cam0", "cam1"),
+) -> list[tuple[str, bool]]:
     """(path, is a folder to list) of everything a sequence's files live in, for a stat
     signature: if no entry of these changed size, mtime or inode, the sequence reads the same.
     Plain strings: this runs for every sequence of every plan."""
     root, seq, join = os.fspath(root), str(sequence), os.path.join
-    out = [(join(root, "timestamps", f"{seq}.txt"), False), (join(root, "poses", "dense_global", f"{seq}.txt"), False),
-           (join(root, "poses", "dense", f"{seq}.txt"), False), (join(root, "metadata", f"{seq}.json"), False),
-           (join(root, "calibrations", seq), True), (join(root, "gt", seq), True)]
-    for modality, sensor in [(lidar_source, "os1"), ("3d_bbox", "os1"), ("3d_semantic", "os1"),
-                             *[(image_source, cam) for cam in cameras]]:
+    out = [
+        (join(root, "timestamps", f"{seq}.txt"), False),
+        (join(root, "poses", "dense_global", f"{seq}.txt"), False),
+        (join(root, "poses", "dense", f"{seq}.txt"), False),
+        (join(root, "metadata", f"{seq}.json"), False),
+        (join(root, "calibrations", seq), True),
+        (join(root, "gt", seq), True),
+    ]
+    for modality, sensor in [
+        (lidar_source, "os1"),
+        ("3d_bbox", "os1"),
+        ("3d_semantic", "os1"),
+        *[(image_source, cam) for cam in cameras],
+    ]:
         out.append((join(root, modality, sensor, seq), True))
     return out
 
@@ -687,11 +804,17 @@ def image_size(path: Path, frame: int | None = None) -> tuple[int, int]:
     except InputError as exc:
         raise _frame_error(exc, frame) from None
     except (UnidentifiedImageError, OSError, ValueError) as exc:
-        raise CodaFrameError(f"{_where(path, frame)}: not a readable image ({exc})", path, frame) from None
+        raise CodaFrameError(
+            f"{_where(path, frame)}: not a readable image ({exc})", path, frame
+        ) from None
 
 
-def decode_image(path: Path, frame: int | None, expect_size: tuple[int, int] | None = None,
-                 sequence: str | None = None) -> None:
+def decode_image(
+    path: Path,
+    frame: int | None,
+    expect_size: tuple[int, int] | None = None,
+    sequence: str | None = None,
+) -> None:
     """Decode an image fully (a corrupt or cut file fails here) and check its size."""
     from PIL import Image, UnidentifiedImageError
 
@@ -702,11 +825,17 @@ def decode_image(path: Path, frame: int | None, expect_size: tuple[int, int] | N
     except InputError as exc:
         raise _frame_error(exc, frame) from None
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
-        raise CodaFrameError(f"{_where(path, frame)}: image cannot be decoded ({exc})", path, frame,
-                             sequence) from None
+        raise CodaFrameError(
+            f"{_where(path, frame)}: image cannot be decoded ({exc})", path, frame, sequence
+        ) from None
     if expect_size is not None and size != tuple(expect_size):
-        raise CodaFrameError(f"{_where(path, frame)}: image is {size[0]} x {size[1]} px, the camera calibration "
-                             f"says {expect_size[0]} x {expect_size[1]}", path, frame, sequence)
+        raise CodaFrameError(
+            f"{_where(path, frame)}: image is {size[0]} x {size[1]} px, the camera calibration "
+            f"says {expect_size[0]} x {expect_size[1]}",
+            path,
+            frame,
+            sequence,
+        )
 
 
 def read_semantic(path: Path, frame: int | None = None) -> np.ndarray:
@@ -716,8 +845,12 @@ def read_semantic(path: Path, frame: int | None = None) -> np.ndarray:
     except InputError as exc:
         raise _frame_error(exc, frame) from None
     if labels.size != POINTS_PER_SWEEP:
-        raise CodaFrameError(f"{_where(path, frame)}: {labels.size} labels, expected {POINTS_PER_SWEEP} "
-                             "(one byte per point of the organised sweep)", path, frame)
+        raise CodaFrameError(
+            f"{_where(path, frame)}: {labels.size} labels, expected {POINTS_PER_SWEEP} "
+            "(one byte per point of the organised sweep)",
+            path,
+            frame,
+        )
     return labels
 
 
@@ -747,21 +880,32 @@ def read_boxes(path: Path, frame: int | None = None) -> tuple[tuple[Box3D, ...],
             values = [float(entry[key]) for key in _BOX_KEYS]
             class_name = str(entry["classId"])
         except (KeyError, TypeError, ValueError) as exc:
-            problems.append(f"box {k}: malformed ({exc!r}); expected classId and {' '.join(_BOX_KEYS)}")
+            problems.append(
+                f"box {k}: malformed ({exc!r}); expected classId and {' '.join(_BOX_KEYS)}"
+            )
             continue
         instance_id = str(entry.get("instanceId") or "")
         if not all(math.isfinite(v) for v in values):
             problems.append(f"box {k} ({instance_id or class_name}): non-finite values {values}")
             continue
         if min(values[3:6]) <= 0:
-            problems.append(f"box {k} ({instance_id or class_name}): non-positive size l w h = {values[3:6]}")
+            problems.append(
+                f"box {k} ({instance_id or class_name}): non-positive size l w h = {values[3:6]}"
+            )
             continue
-        box = Box3D(instance_id, class_name, np.array(values[0:3]), np.array(values[3:6]),
-                    np.array(values[6:9]),
-                    str((entry.get("labelAttributes") or {}).get("isOccluded", "Unknown")))
+        box = Box3D(
+            instance_id,
+            class_name,
+            np.array(values[0:3]),
+            np.array(values[3:6]),
+            np.array(values[6:9]),
+            str((entry.get("labelAttributes") or {}).get("isOccluded", "Unknown")),
+        )
         if box.track_id < 0:
-            problems.append(f"box {k} ({class_name}): instanceId {instance_id!r} has no integer id "
-                            "after ':' (expected e.g. 'Pedestrian:12')")
+            problems.append(
+                f"box {k} ({class_name}): instanceId {instance_id!r} has no integer id "
+                "after ':' (expected e.g. 'Pedestrian:12')"
+            )
             continue
         boxes.append(box)
     return tuple(boxes), tuple(problems)
@@ -776,25 +920,45 @@ def read_intrinsics(path: Path) -> dict:
     K = _yaml_matrix(data, "camera_matrix", (3, 3), path)
     dist = _yaml_matrix(data, "distortion_coefficients", None, path).reshape(-1)
     if dist.size not in (4, 5, 8):
-        raise CodaFormatError(f"{path}: distortion_coefficients has {dist.size} values, expected 5 "
-                              "(plumb_bob k1 k2 p1 p2 k3)")
+        raise CodaFormatError(
+            f"{path}: distortion_coefficients has {dist.size} values, expected 5 "
+            "(plumb_bob k1 k2 p1 p2 k3)"
+        )
     if np.any(dist[5:] != 0):
-        raise CodaFormatError(f"{path}: distortion_coefficients {dist.tolist()}: only plumb_bob "
-                              "(k1 k2 p1 p2 k3) is supported")
+        raise CodaFormatError(
+            f"{path}: distortion_coefficients {dist.tolist()}: only plumb_bob "
+            "(k1 k2 p1 p2 k3) is supported"
+        )
     dist = np.pad(dist[:5], (0, 5 - min(dist.size, 5)))
     width = _positive_int(data, "image_width", path)
     height = _positive_int(data, "image_height", path)
     has_rect = "rectification_matrix" in data and "projection_matrix" in data
-    R = _yaml_matrix(data, "rectification_matrix", (3, 3), path) if "rectification_matrix" in data else np.eye(3)
+    R = (
+        _yaml_matrix(data, "rectification_matrix", (3, 3), path)
+        if "rectification_matrix" in data
+        else np.eye(3)
+    )
     _check_rotation(R, path, "rectification_matrix")
-    P = _yaml_matrix(data, "projection_matrix", (3, 4), path) if "projection_matrix" in data \
+    P = (
+        _yaml_matrix(data, "projection_matrix", (3, 4), path)
+        if "projection_matrix" in data
         else np.hstack([K, np.zeros((3, 1))])
+    )
     for name, M in (("camera_matrix", K), ("projection_matrix", P)):
         if not (M[0, 0] > 0 and M[1, 1] > 0 and np.allclose(M[2, :3], [0, 0, 1])):
-            raise CodaFormatError(f"{path}: {name} {M.tolist()} is not a camera matrix "
-                                  "(expected fx, fy > 0 and a last row 0 0 1)")
-    return {"width": width, "height": height, "K": K, "distortion": dist, "R": R, "P": P,
-            "has_rect": has_rect}
+            raise CodaFormatError(
+                f"{path}: {name} {M.tolist()} is not a camera matrix "
+                "(expected fx, fy > 0 and a last row 0 0 1)"
+            )
+    return {
+        "width": width,
+        "height": height,
+        "K": K,
+        "distortion": dist,
+        "R": R,
+        "P": P,
+        "has_rect": has_rect,
+    }
 
 
 def read_extrinsic(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
@@ -813,13 +977,21 @@ def read_extrinsic(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     else:
         values = _yaml_matrix(data, "extrinsic_matrix", None, path).reshape(-1)
         if values.size not in (12, 16):
-            raise CodaFormatError(f"{path}: extrinsic_matrix has {values.size} values, expected 4x4 "
-                                  "(rows/cols/data) or {R: 3x3, T: [3]}")
+            raise CodaFormatError(
+                f"{path}: extrinsic_matrix has {values.size} values, expected 4x4 "
+                "(rows/cols/data) or {R: 3x3, T: [3]}"
+            )
         T[:3] = values[:12].reshape(3, 4)
         if values.size == 16 and not np.allclose(values[12:], [0, 0, 0, 1], atol=1e-9):
-            raise CodaFormatError(f"{path}: extrinsic_matrix last row {values[12:].tolist()}, expected 0 0 0 1")
+            raise CodaFormatError(
+                f"{path}: extrinsic_matrix last row {values[12:].tolist()}, expected 0 0 0 1"
+            )
     _check_rotation(T[:3, :3], path, "extrinsic_matrix rotation")
-    P = _yaml_matrix(data, "projection_matrix", (3, 4), path) if "projection_matrix" in data else None
+    P = (
+        _yaml_matrix(data, "projection_matrix", (3, 4), path)
+        if "projection_matrix" in data
+        else None
+    )
     return T, P
 
 
@@ -827,32 +999,49 @@ def _check_rotation(R: np.ndarray, path: Path, name: str) -> None:
     """A rotation: orthonormal (R R^T = I) with determinant +1, within ROTATION_TOLERANCE."""
     err = float(np.max(np.abs(R @ R.T - np.eye(3))))
     if err > ROTATION_TOLERANCE:
-        raise CodaFormatError(f"{path}: {name} is not orthonormal (max |R R^T - I| = {err:.3g}, a scaled, sheared "
-                              f"or zero matrix): {np.round(R, 6).tolist()}", path)
+        raise CodaFormatError(
+            f"{path}: {name} is not orthonormal (max |R R^T - I| = {err:.3g}, a scaled, sheared "
+            f"or zero matrix): {np.round(R, 6).tolist()}",
+            path,
+        )
     det = float(np.linalg.det(R))
     if abs(det - 1.0) > ROTATION_TOLERANCE:
-        raise CodaFormatError(f"{path}: {name} has determinant {det:.4f}, expected +1 (a reflection, not a "
-                              f"rotation): {np.round(R, 6).tolist()}", path)
+        raise CodaFormatError(
+            f"{path}: {name} has determinant {det:.4f}, expected +1 (a reflection, not a "
+            f"rotation): {np.round(R, 6).tolist()}",
+            path,
+        )
 
 
 def _check_metadata(metadata, path: Path) -> None:
     """The metadata fields the reader uses have the types CODa's devkit writes."""
     if not isinstance(metadata, dict):
-        raise CodaFormatError(f"{path}: expected a JSON object, got {type(metadata).__name__}", path)
+        raise CodaFormatError(
+            f"{path}: expected a JSON object, got {type(metadata).__name__}", path
+        )
     lighting = metadata.get("lighting")
     if lighting is not None and not isinstance(lighting, str):
-        raise CodaFormatError(f"{path}: 'lighting' is {lighting!r}, expected a string (e.g. \"dark\")", path)
+        raise CodaFormatError(
+            f"{path}: 'lighting' is {lighting!r}, expected a string (e.g. \"dark\")", path
+        )
     for task in METADATA_TASKS:
         lists = metadata.get(task)
         if lists is None:
             continue
         if not isinstance(lists, dict):
-            raise CodaFormatError(f"{path}: {task!r} is a {type(lists).__name__}, expected an object of file "
-                                  "lists (split -> [paths])", path)
+            raise CodaFormatError(
+                f"{path}: {task!r} is a {type(lists).__name__}, expected an object of file "
+                "lists (split -> [paths])",
+                path,
+            )
         for split, files in lists.items():
-            if files is not None and (not isinstance(files, list) or not all(isinstance(f, str) for f in files)):
-                raise CodaFormatError(f"{path}: {task}.{split} is {str(files)[:80]}, expected a list of file "
-                                      "paths", path)
+            if files is not None and (
+                not isinstance(files, list) or not all(isinstance(f, str) for f in files)
+            ):
+                raise CodaFormatError(
+                    f"{path}: {task}.{split} is {str(files)[:80]}, expected a list of file paths",
+                    path,
+                )
 
 
 # -- small parsers ----------------------------------------------------------------------------
@@ -868,7 +1057,9 @@ def _read_timestamps(path: Path) -> np.ndarray:
     if stamps.size == 0:
         raise CodaFormatError(f"{path}: no timestamps")
     if not np.isfinite(stamps).all():
-        raise CodaFormatError(f"{path}: non-finite timestamp at line {int(np.argmin(np.isfinite(stamps))) + 1}")
+        raise CodaFormatError(
+            f"{path}: non-finite timestamp at line {int(np.argmin(np.isfinite(stamps))) + 1}"
+        )
     steps = np.diff(stamps)
     if (steps <= 0).any():
         k = int(np.flatnonzero(steps <= 0)[0])
@@ -881,18 +1072,28 @@ def _read_timestamps(path: Path) -> np.ndarray:
 
 def read_pose_stamps(path: Path) -> np.ndarray:
     """(F,) float64 first column (Unix seconds) of a dense pose file."""
-    rows = [line.split() for line in read_text(path, None, "poses file").splitlines() if line.strip()]
+    rows = [
+        line.split() for line in read_text(path, None, "poses file").splitlines() if line.strip()
+    ]
     return np.array([float(r[0]) for r in rows], dtype=np.float64)
 
 
-def _read_poses(path: Path, expected: int, stamps_path: Path, stamps_s: np.ndarray | None = None) -> np.ndarray:
+def _read_poses(
+    path: Path, expected: int, stamps_path: Path, stamps_s: np.ndarray | None = None
+) -> np.ndarray:
     """Pose lines ``ts x y z qw qx qy qz`` -> (F, 4, 4) float64 T_world_from_lidar; with
     ``stamps_s`` the pose times are checked against the frame timestamps, and the robot's
     position and speed for plausibility."""
     if not _present(path):
-        raise CodaFormatError(f"{path}: poses file is missing (looked in poses/dense_global and poses/dense)", path)
+        raise CodaFormatError(
+            f"{path}: poses file is missing (looked in poses/dense_global and poses/dense)", path
+        )
     try:
-        rows = [line.split() for line in read_text(path, None, "poses file").splitlines() if line.strip()]
+        rows = [
+            line.split()
+            for line in read_text(path, None, "poses file").splitlines()
+            if line.strip()
+        ]
     except InputError as exc:
         raise CodaFormatError(str(exc), path) from None
     if len(rows) != expected:
@@ -905,7 +1106,9 @@ def _read_poses(path: Path, expected: int, stamps_path: Path, stamps_s: np.ndarr
         try:
             values = np.array([float(x) for x in row], dtype=np.float64)
         except ValueError:
-            raise CodaFormatError(f"{path}: line {k + 1} (frame {k}) is not numeric: {row}") from None
+            raise CodaFormatError(
+                f"{path}: line {k + 1} (frame {k}) is not numeric: {row}"
+            ) from None
         if values.size != 8 or not np.isfinite(values).all():
             raise CodaFormatError(
                 f"{path}: line {k + 1} (frame {k}) has {values.size} values {row}; expected 8 finite "
@@ -920,11 +1123,17 @@ def _read_poses(path: Path, expected: int, stamps_path: Path, stamps_s: np.ndarr
             raise CodaFormatError(
                 f"{path}: line {k + 1} (frame {k}): pose time {values[0]:.6f} differs from {stamps_path} line "
                 f"{k + 1} ({stamps_s[k]:.6f}) by {values[0] - stamps_s[k]:.3f} s; expected within "
-                f"{POSE_TIME_TOLERANCE_S} s (the poses of another recording?)", path, k)
+                f"{POSE_TIME_TOLERANCE_S} s (the poses of another recording?)",
+                path,
+                k,
+            )
         if np.max(np.abs(values[1:4])) > MAX_POSITION_M:
             raise CodaFormatError(
                 f"{path}: line {k + 1} (frame {k}): position {values[1:4].tolist()} is more than "
-                f"{MAX_POSITION_M:g} m from the map origin; expected a campus-scale map frame", path, k)
+                f"{MAX_POSITION_M:g} m from the map origin; expected a campus-scale map frame",
+                path,
+                k,
+            )
         poses[k, :3, :3] = quat_wxyz_to_matrix(values[4:8])
         poses[k, :3, 3] = values[1:4]
         if k and stamps_s is not None:
@@ -933,7 +1142,10 @@ def _read_poses(path: Path, expected: int, stamps_path: Path, stamps_s: np.ndarr
             if step > MAX_SPEED_MPS * dt:
                 raise CodaFormatError(
                     f"{path}: line {k + 1} (frame {k}): the robot moves {step:.3g} m in {dt:.3f} s from line {k} "
-                    f"({step / dt:.3g} m/s); expected at most {MAX_SPEED_MPS:g} m/s", path, k)
+                    f"({step / dt:.3g} m/s); expected at most {MAX_SPEED_MPS:g} m/s",
+                    path,
+                    k,
+                )
     return poses
 
 
@@ -961,13 +1173,21 @@ def _yaml_key(data: dict, key: str, path: Path, name: str | None = None):
 
 def _positive_int(data: dict, key: str, path: Path) -> int:
     value = _yaml_key(data, key, path)
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or value <= 0 or value != int(value):
-        raise CodaFormatError(f"{path}: {key} is {value!r}, expected a positive whole number of pixels")
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, float))
+        or value <= 0
+        or value != int(value)
+    ):
+        raise CodaFormatError(
+            f"{path}: {key} is {value!r}, expected a positive whole number of pixels"
+        )
     return int(value)
 
 
-def _yaml_matrix(data: dict, key: str, shape: tuple[int, int] | None, path: Path,
-                 name: str | None = None) -> np.ndarray:
+def _yaml_matrix(
+    data: dict, key: str, shape: tuple[int, int] | None, path: Path, name: str | None = None
+) -> np.ndarray:
     name = name or key
     node = _yaml_key(data, key, path, name)
     values = node.get("data") if isinstance(node, dict) else node

@@ -51,7 +51,9 @@ class SequenceFacts:
     boxes_skipped: int = 0
     sample_frames: list[int] = field(default_factory=list)
     sample_points: list[np.ndarray] = field(default_factory=list)  # (N, 3) float32 LiDAR frame
-    intensity_zero: list[int] = field(default_factory=list)  # sampled / read frames with all-zero intensity
+    intensity_zero: list[int] = field(
+        default_factory=list
+    )  # sampled / read frames with all-zero intensity
     time_max_ns: float | None = None  # over the sampled / read sweeps; None: 4-channel files
     image_sizes: dict[str, tuple[int, int]] = field(default_factory=dict)
     pose_stamp_diff_s: float = 0.0
@@ -103,7 +105,11 @@ def inspect_sequence(open_sequence, sequence: str, deep: bool = False) -> Sequen
         except FileNotFoundError:
             facts.missing.setdefault(seq.lidar_source, []).append(f)
             continue
-        if size == 0 or size % (POINTS_PER_SWEEP * 4) or size // (POINTS_PER_SWEEP * 4) not in (4, 5):
+        if (
+            size == 0
+            or size % (POINTS_PER_SWEEP * 4)
+            or size // (POINTS_PER_SWEEP * 4) not in (4, 5)
+        ):
             facts.truncated.append(f"{path.name}: {size} bytes (frame {f})")
         else:
             facts.channels.add(size // (POINTS_PER_SWEEP * 4))
@@ -114,8 +120,11 @@ def inspect_sequence(open_sequence, sequence: str, deep: bool = False) -> Sequen
     facts.bbox_files = sum(f in bbox_frames for f in frames)
     facts.semantic_files = sum(f in sem_frames for f in frames)
     for what, lost in facts.missing.items():
-        facts.problem(True, f"{what}: {len(lost)} of {len(frames)} selected frames have no file "
-                            f"(first: frame {lost[0]})")
+        facts.problem(
+            True,
+            f"{what}: {len(lost)} of {len(frames)} selected frames have no file "
+            f"(first: frame {lost[0]})",
+        )
     for msg in facts.truncated[:3]:
         facts.problem(True, f"{seq.lidar_source} sweep truncated or not an OS1-128 sweep: {msg}")
     if len(facts.truncated) > 3:
@@ -127,7 +136,18 @@ def inspect_sequence(open_sequence, sequence: str, deep: bool = False) -> Sequen
     if deep:
         picked = whole
     else:
-        picked = sorted({whole[i] for i in np.linspace(0, len(whole) - 1, min(SAMPLES, len(whole))).round().astype(int)}) if whole else []
+        picked = (
+            sorted(
+                {
+                    whole[i]
+                    for i in np.linspace(0, len(whole) - 1, min(SAMPLES, len(whole)))
+                    .round()
+                    .astype(int)
+                }
+            )
+            if whole
+            else []
+        )
     times = []
     for f in picked:
         try:
@@ -141,24 +161,35 @@ def inspect_sequence(open_sequence, sequence: str, deep: bool = False) -> Sequen
             facts.intensity_zero.append(f)
         if raw.shape[1] == 5:
             times.append(float(raw[:, 4].max()))
-        if f in (picked[0], picked[len(picked) // 2], picked[-1]) and len(facts.sample_points) < SAMPLES:
+        if (
+            f in (picked[0], picked[len(picked) // 2], picked[-1])
+            and len(facts.sample_points) < SAMPLES
+        ):
             facts.sample_frames.append(f)
             facts.sample_points.append(np.ascontiguousarray(raw[returns, :3]))
     facts.time_max_ns = max(times) if times else None
     if facts.intensity_zero:
-        facts.problem(False, f"intensity is 0 for every return in {len(facts.intensity_zero)} of {facts.frames_read} "
-                             f"read sweeps (first: frame {facts.intensity_zero[0]}): not measurements (the devkit's "
-                             "3d_comp keeps x y z only); exported intensities would be zeros")
+        facts.problem(
+            False,
+            f"intensity is 0 for every return in {len(facts.intensity_zero)} of {facts.frames_read} "
+            f"read sweeps (first: frame {facts.intensity_zero[0]}): not measurements (the devkit's "
+            "3d_comp keeps x y z only); exported intensities would be zeros",
+        )
     if times and facts.time_max_ns == 0:
-        facts.problem(False, "the time channel is 0 everywhere in the read sweeps (no per-point times)")
+        facts.problem(
+            False, "the time channel is 0 everywhere in the read sweeps (no per-point times)"
+        )
     elif times and facts.time_max_ns < 1.0:
-        facts.problem(False, f"the time channel peaks at {facts.time_max_ns:.3g}: looks like seconds, "
-                             "CODa writes nanoseconds (read as ns)")
+        facts.problem(
+            False,
+            f"the time channel peaks at {facts.time_max_ns:.3g}: looks like seconds, "
+            "CODa writes nanoseconds (read as ns)",
+        )
 
     # images: one header per camera (all in the deep mode)
     for cam in cams:
         calib = info.calibration.cameras[cam]
-        for f in (frames if deep else frames[:1]):
+        for f in frames if deep else frames[:1]:
             path = _image(seq, cam, f)
             if path is None:
                 continue
@@ -166,19 +197,26 @@ def inspect_sequence(open_sequence, sequence: str, deep: bool = False) -> Sequen
                 with Image.open(path) as im:
                     size = im.size
             except Exception as exc:
-                facts.problem(True, f"{path} (frame {f}): not a readable image ({type(exc).__name__}: {exc})")
+                facts.problem(
+                    True, f"{path} (frame {f}): not a readable image ({type(exc).__name__}: {exc})"
+                )
                 break
             facts.image_sizes.setdefault(cam, size)
             if size != (calib.width, calib.height):
-                facts.problem(True, f"{path} (frame {f}): image is {size[0]}x{size[1]}, the calibration says "
-                                    f"{calib.width}x{calib.height}")
+                facts.problem(
+                    True,
+                    f"{path} (frame {f}): image is {size[0]}x{size[1]}, the calibration says "
+                    f"{calib.width}x{calib.height}",
+                )
                 break
 
     if deep:
         for f in frames:
             if f in bbox_frames:
                 try:
-                    facts.boxes_skipped += len(read_boxes(seq.path("3d_bbox", "os1", f, ".json"), f)[1])
+                    facts.boxes_skipped += len(
+                        read_boxes(seq.path("3d_bbox", "os1", f, ".json"), f)[1]
+                    )
                 except CodaFormatError as exc:
                     facts.problem(True, str(exc))
             if f in sem_frames:
@@ -187,17 +225,25 @@ def inspect_sequence(open_sequence, sequence: str, deep: bool = False) -> Sequen
                 except CodaFormatError as exc:
                     facts.problem(True, str(exc))
         if facts.boxes_skipped:
-            facts.problem(False, f"{facts.boxes_skipped} 3d_bbox boxes are malformed or degenerate and are skipped")
+            facts.problem(
+                False,
+                f"{facts.boxes_skipped} 3d_bbox boxes are malformed or degenerate and are skipped",
+            )
 
     # poses vs timestamps: the dense poses carry each frame's time in their first column
     pose_path = seq.root / "poses" / "dense_global" / f"{seq.sequence}.txt"
     if not pose_path.exists():
         pose_path = seq.root / "poses" / "dense" / f"{seq.sequence}.txt"
-        facts.problem(False, f"no poses/dense_global/{seq.sequence}.txt: poses/dense (not globally optimised)")
+        facts.problem(
+            False, f"no poses/dense_global/{seq.sequence}.txt: poses/dense (not globally optimised)"
+        )
     stamps = np.loadtxt(seq.root / "timestamps" / f"{seq.sequence}.txt", ndmin=1)
     facts.pose_stamp_diff_s = float(np.max(np.abs(read_pose_stamps(pose_path) - stamps)))
     if facts.pose_stamp_diff_s > 0.005:
-        facts.problem(False, f"pose times differ from the frame timestamps by up to {facts.pose_stamp_diff_s * 1e3:.1f} ms")
+        facts.problem(
+            False,
+            f"pose times differ from the frame timestamps by up to {facts.pose_stamp_diff_s * 1e3:.1f} ms",
+        )
     for w in info.warnings:
         facts.problem(False, w)
     return facts

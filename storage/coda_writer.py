@@ -63,15 +63,26 @@ def semantic_path(root: Path, seq: int, frame: int) -> Path:
     return _name(root, "3d_semantic", "os1", seq, frame, ".bin")
 
 
-def write_lidar(root: Path, seq: int, frame: int, points_lidar: np.ndarray, intensity: np.ndarray,
-                time_s: np.ndarray) -> Path:
+def write_lidar(
+    root: Path,
+    seq: int,
+    frame: int,
+    points_lidar: np.ndarray,
+    intensity: np.ndarray,
+    time_s: np.ndarray,
+) -> Path:
     """One organised sweep: points_lidar (131072, 3) float32 m (zeros = no return), intensity and
     time_s (131072,) float32 (seconds since the first column). Written as little-endian float32
     x y z intensity t with t in nanoseconds."""
-    for name, a, shape in (("points_lidar", points_lidar, (NUM_POINTS, 3)),
-                           ("intensity", intensity, (NUM_POINTS,)), ("time_s", time_s, (NUM_POINTS,))):
+    for name, a, shape in (
+        ("points_lidar", points_lidar, (NUM_POINTS, 3)),
+        ("intensity", intensity, (NUM_POINTS,)),
+        ("time_s", time_s, (NUM_POINTS,)),
+    ):
         if a.shape != shape:
-            raise ValueError(f"sequence {seq} frame {frame}: {name} has shape {a.shape}, expected {shape}")
+            raise ValueError(
+                f"sequence {seq} frame {frame}: {name} has shape {a.shape}, expected {shape}"
+            )
     data = np.empty((NUM_POINTS, CHANNELS), dtype="<f4")
     data[:, :3] = points_lidar
     data[:, 3] = intensity
@@ -92,10 +103,14 @@ def image_bytes(image: np.ndarray, ext: str = ".png") -> bytes:
     return buf.getvalue()
 
 
-def write_image(root: Path, seq: int, cam: str, frame: int, rgb: np.ndarray, ext: str = ".jpg") -> Path:
+def write_image(
+    root: Path, seq: int, cam: str, frame: int, rgb: np.ndarray, ext: str = ".jpg"
+) -> Path:
     """A rectified image (H, W, 3) uint8 RGB as JPEG (CODa's downloads) or PNG (the devkit's tools)."""
     if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
-        raise ValueError(f"sequence {seq} frame {frame} {cam}: expected (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
+        raise ValueError(
+            f"sequence {seq} frame {frame} {cam}: expected (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}"
+        )
     return _atomic_write(image_path(root, seq, cam, frame, ext), image_bytes(rgb, ext))
 
 
@@ -103,8 +118,10 @@ def write_semantic(root: Path, seq: int, frame: int, ids: np.ndarray) -> Path:
     """A 3d_semantic file: (131072,) uint8 CODa terrain ids, one per organised point."""
     ids = np.asarray(ids)
     if ids.shape != (NUM_POINTS,) or ids.dtype != np.uint8:
-        raise ValueError(f"sequence {seq} frame {frame}: semantic ids {ids.shape} {ids.dtype}, "
-                         f"expected ({NUM_POINTS},) uint8")
+        raise ValueError(
+            f"sequence {seq} frame {frame}: semantic ids {ids.shape} {ids.dtype}, "
+            f"expected ({NUM_POINTS},) uint8"
+        )
     return _atomic_write(semantic_path(root, seq, frame), ids.tobytes())
 
 
@@ -113,11 +130,20 @@ def box_record(box: Box3D) -> dict:
     cx, cy, cz = (float(v) for v in box.center)
     l, w, h = (float(v) for v in box.size)
     r, p, y = (float(v) for v in box.rpy)
-    return {"classId": box.class_name, "instanceId": box.instance_id,
-            "labelAttributes": {"isOccluded": box.occlusion},
-            "cX": _r6(cx), "cY": _r6(cy), "cZ": _r6(cz),
-            "l": _r6(l), "w": _r6(w), "h": _r6(h),
-            "r": _r6(r), "p": _r6(p), "y": _r6(y)}
+    return {
+        "classId": box.class_name,
+        "instanceId": box.instance_id,
+        "labelAttributes": {"isOccluded": box.occlusion},
+        "cX": _r6(cx),
+        "cY": _r6(cy),
+        "cZ": _r6(cz),
+        "l": _r6(l),
+        "w": _r6(w),
+        "h": _r6(h),
+        "r": _r6(r),
+        "p": _r6(p),
+        "y": _r6(y),
+    }
 
 
 def _r6(v: float) -> float:
@@ -128,16 +154,24 @@ def _r6(v: float) -> float:
 def write_boxes(root: Path, seq: int, frame: int, boxes: list[Box3D]) -> Path:
     """The 3D boxes of a frame (os1 frame) as CODa json ``{"3dbbox": [...]}``."""
     doc = {"3dbbox": [box_record(b) for b in boxes]}
-    return _atomic_write(bbox_path(root, seq, frame), (json.dumps(doc, sort_keys=True, indent=1) + "\n").encode())
+    return _atomic_write(
+        bbox_path(root, seq, frame), (json.dumps(doc, sort_keys=True, indent=1) + "\n").encode()
+    )
 
 
 def _matrix(a: np.ndarray) -> dict:
     a = np.asarray(a, dtype=np.float64)
-    return {"rows": int(a.shape[0]), "cols": int(a.shape[1]), "data": [float(v) for v in a.reshape(-1)]}
+    return {
+        "rows": int(a.shape[0]),
+        "cols": int(a.shape[1]),
+        "data": [float(v) for v in a.reshape(-1)],
+    }
 
 
 def _yaml(path: Path, doc: dict) -> Path:
-    return _atomic_write(path, yaml.safe_dump(doc, sort_keys=True, default_flow_style=None).encode())
+    return _atomic_write(
+        path, yaml.safe_dump(doc, sort_keys=True, default_flow_style=None).encode()
+    )
 
 
 def write_calibration(root: Path, seq: int, calib: Calibration) -> list[Path]:
@@ -154,23 +188,45 @@ def write_calibration(root: Path, seq: int, calib: Calibration) -> list[Path]:
     for name, cam in calib.cameras.items():
         T_rect_from_rect0 = cam.T_cam_from_lidar @ np.linalg.inv(cam0.T_cam_from_lidar)
         if cam.raw is not None:
-            K, D, R, P, T_raw = cam.raw.K, cam.raw.distortion, cam.raw.R_rect, cam.raw.P_rect, cam.raw.T_cam_from_lidar
+            K, D, R, P, T_raw = (
+                cam.raw.K,
+                cam.raw.distortion,
+                cam.raw.R_rect,
+                cam.raw.P_rect,
+                cam.raw.T_cam_from_lidar,
+            )
         else:
             K, D, R, T_raw = cam.K, cam.distortion, np.eye(3), cam.T_cam_from_lidar
             P = np.hstack([cam.K, np.zeros((3, 1))])
             P[0, 3] = cam.K[0, 0] * T_rect_from_rect0[0, 3]  # rectified stereo: Tx = -fx * baseline
         raw_T[name] = T_raw
-        out.append(_yaml(d / f"calib_{name}_intrinsics.yaml", {
-            "camera_name": name, "image_width": int(cam.width), "image_height": int(cam.height),
-            "camera_matrix": _matrix(K), "distortion_model": "plumb_bob",
-            "distortion_coefficients": _matrix(np.asarray(D, float).reshape(1, 5)),
-            "rectification_matrix": _matrix(R), "projection_matrix": _matrix(P)}))
+        out.append(
+            _yaml(
+                d / f"calib_{name}_intrinsics.yaml",
+                {
+                    "camera_name": name,
+                    "image_width": int(cam.width),
+                    "image_height": int(cam.height),
+                    "camera_matrix": _matrix(K),
+                    "distortion_model": "plumb_bob",
+                    "distortion_coefficients": _matrix(np.asarray(D, float).reshape(1, 5)),
+                    "rectification_matrix": _matrix(R),
+                    "projection_matrix": _matrix(P),
+                },
+            )
+        )
         out.append(_yaml(d / f"calib_os1_to_{name}.yaml", {"extrinsic_matrix": _matrix(T_raw)}))
     if "cam1" in calib.cameras:
         T = raw_T["cam1"] @ np.linalg.inv(raw_T["cam0"])
-        out.append(_yaml(d / "calib_cam0_to_cam1.yaml", {"extrinsic_matrix": {
-            "R": _matrix(T[:3, :3]), "T": [float(v) for v in T[:3, 3]]}}))
-    out.append(_yaml(d / "calib_os1_to_base.yaml", {"extrinsic_matrix": _matrix(calib.T_base_from_lidar)}))
+        out.append(
+            _yaml(
+                d / "calib_cam0_to_cam1.yaml",
+                {"extrinsic_matrix": {"R": _matrix(T[:3, :3]), "T": [float(v) for v in T[:3, 3]]}},
+            )
+        )
+    out.append(
+        _yaml(d / "calib_os1_to_base.yaml", {"extrinsic_matrix": _matrix(calib.T_base_from_lidar)})
+    )
     return out
 
 
@@ -198,7 +254,9 @@ def write_poses(root: Path, seq: int, stamps_ns: np.ndarray, poses: np.ndarray) 
         q = np.array([w, x, y, z]) * (1.0 if w >= 0 else -1.0)
         vals = [*T[:3, 3], *q]
         lines.append(_stamp_str(s) + " " + " ".join(f"{v:.9f}" for v in vals) + "\n")
-    return _atomic_write(Path(root) / "poses" / "dense_global" / f"{seq}.txt", "".join(lines).encode())
+    return _atomic_write(
+        Path(root) / "poses" / "dense_global" / f"{seq}.txt", "".join(lines).encode()
+    )
 
 
 def annotation_lists(seq: int, bbox_frames, semantic_frames) -> dict:
@@ -206,17 +264,25 @@ def annotation_lists(seq: int, bbox_frames, semantic_frames) -> dict:
     all under "training") for the frames that have 3d_bbox / 3d_semantic files."""
     rel = lambda p: str(p.as_posix())  # noqa: E731
     return {
-        "ObjectTracking": {"training": [rel(bbox_path(Path(), seq, f)) for f in bbox_frames],
-                           "validation": [], "testing": []},
-        "SemanticSegmentation": {"training": [rel(semantic_path(Path(), seq, f)) for f in semantic_frames],
-                                 "validation": [], "testing": []},
+        "ObjectTracking": {
+            "training": [rel(bbox_path(Path(), seq, f)) for f in bbox_frames],
+            "validation": [],
+            "testing": [],
+        },
+        "SemanticSegmentation": {
+            "training": [rel(semantic_path(Path(), seq, f)) for f in semantic_frames],
+            "validation": [],
+            "testing": [],
+        },
     }
 
 
 def write_metadata(root: Path, seq: int, metadata: dict) -> Path:
     """metadata/{SEQ}.json (sorted keys)."""
-    return _atomic_write(Path(root) / "metadata" / f"{seq}.json",
-                         (json.dumps(metadata, sort_keys=True, indent=1) + "\n").encode())
+    return _atomic_write(
+        Path(root) / "metadata" / f"{seq}.json",
+        (json.dumps(metadata, sort_keys=True, indent=1) + "\n").encode(),
+    )
 
 
 # ---------------------------------------------------------------- read-back (tests, show)
@@ -224,7 +290,9 @@ def _existing(candidates: list[Path]) -> Path:
     for p in candidates:
         if p.exists():
             return p
-    raise FileNotFoundError(f"{candidates[0]}: missing (also looked for {', '.join(p.name for p in candidates[1:])})")
+    raise FileNotFoundError(
+        f"{candidates[0]}: missing (also looked for {', '.join(p.name for p in candidates[1:])})"
+    )
 
 
 def read_lidar(root: Path, seq: int, frame: int) -> np.ndarray:

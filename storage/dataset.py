@@ -61,7 +61,9 @@ class Dataset:
 
     def _check(self, sequence: str) -> None:
         if sequence not in self.sequences:
-            raise StoreError(f"dataset {self.root}: no published sequence {sequence!r}; have {list(self.sequences)}")
+            raise StoreError(
+                f"dataset {self.root}: no published sequence {sequence!r}; have {list(self.sequences)}"
+            )
 
 
 def open_dataset(path: str | os.PathLike) -> Dataset:
@@ -69,7 +71,9 @@ def open_dataset(path: str | os.PathLike) -> Dataset:
     root = Path(path)
     occ = root / OCCUPANCY_DIR
     if not occ.is_dir() and not (root / tables.TABLES_DIR).is_dir():
-        raise StoreError(f"{root} is not a mobileocc dataset (no {OCCUPANCY_DIR}/ or {tables.TABLES_DIR}/)")
+        raise StoreError(
+            f"{root} is not a mobileocc dataset (no {OCCUPANCY_DIR}/ or {tables.TABLES_DIR}/)"
+        )
     seqs = sorted(
         p.name
         for p in (occ.iterdir() if occ.is_dir() else ())

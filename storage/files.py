@@ -23,8 +23,13 @@ from pathlib import Path
 class InputError(ValueError):
     """Bad or missing input: ``path`` (or None) and ``frame`` (raw frame number, or None)."""
 
-    def __init__(self, message: str, path: Path | str | None = None, frame: int | None = None,
-                 sequence: str | None = None):
+    def __init__(
+        self,
+        message: str,
+        path: Path | str | None = None,
+        frame: int | None = None,
+        sequence: str | None = None,
+    ):
         super().__init__(message)
         self.path = None if path is None else Path(path)
         self.frame = frame
@@ -38,9 +43,15 @@ def where(path: Path | str, frame: int | None = None) -> str:
 
 def file_kind(mode: int) -> str:
     """What a stat mode is, in words (for messages)."""
-    for test, name in ((stat.S_ISREG, "regular file"), (stat.S_ISDIR, "directory"), (stat.S_ISFIFO, "FIFO (named pipe)"),
-                       (stat.S_ISCHR, "character device"), (stat.S_ISBLK, "block device"),
-                       (stat.S_ISSOCK, "socket"), (stat.S_ISLNK, "symbolic link")):
+    for test, name in (
+        (stat.S_ISREG, "regular file"),
+        (stat.S_ISDIR, "directory"),
+        (stat.S_ISFIFO, "FIFO (named pipe)"),
+        (stat.S_ISCHR, "character device"),
+        (stat.S_ISBLK, "block device"),
+        (stat.S_ISSOCK, "socket"),
+        (stat.S_ISLNK, "symbolic link"),
+    ):
         if test(mode):
             return name
     return f"special file (mode {oct(mode)})"
@@ -63,12 +74,17 @@ def regular_stat(path: Path | str, frame: int | None = None, what: str = "file")
     except OSError as exc:
         raise _open_error(path, frame, what, exc) from None
     if not stat.S_ISREG(st.st_mode):
-        raise InputError(f"{where(path, frame)}: the {what} is a {file_kind(st.st_mode)}, expected a regular file",
-                         path, frame)
+        raise InputError(
+            f"{where(path, frame)}: the {what} is a {file_kind(st.st_mode)}, expected a regular file",
+            path,
+            frame,
+        )
     return st
 
 
-def open_regular(path: Path | str, frame: int | None = None, what: str = "file") -> io.BufferedReader:
+def open_regular(
+    path: Path | str, frame: int | None = None, what: str = "file"
+) -> io.BufferedReader:
     """Open a regular file for reading in binary mode, never blocking on a FIFO or a device."""
     path = Path(path)
     try:
@@ -78,8 +94,12 @@ def open_regular(path: Path | str, frame: int | None = None, what: str = "file")
     try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
-            raise InputError(f"{where(path, frame)}: the {what} is a {file_kind(st.st_mode)}, expected a regular "
-                             "file", path, frame)
+            raise InputError(
+                f"{where(path, frame)}: the {what} is a {file_kind(st.st_mode)}, expected a regular "
+                "file",
+                path,
+                frame,
+            )
         return os.fdopen(fd, "rb")
     except BaseException:
         os.close(fd)
@@ -93,8 +113,9 @@ def read_bytes(path: Path | str, frame: int | None = None, what: str = "file") -
         try:
             return fh.read()
         except OSError as exc:
-            raise InputError(f"{where(path, frame)}: cannot read the {what}: {exc.strerror or exc}", path,
-                             frame) from None
+            raise InputError(
+                f"{where(path, frame)}: cannot read the {what}: {exc.strerror or exc}", path, frame
+            ) from None
 
 
 def read_text(path: Path | str, frame: int | None = None, what: str = "file") -> str:
@@ -103,5 +124,9 @@ def read_text(path: Path | str, frame: int | None = None, what: str = "file") ->
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise InputError(f"{where(path, frame)}: the {what} is not UTF-8 text (byte {exc.start}: "
-                         f"{data[exc.start:exc.start + 1]!r})", path, frame) from None
+        raise InputError(
+            f"{where(path, frame)}: the {what} is not UTF-8 text (byte {exc.start}: "
+            f"{data[exc.start : exc.start + 1]!r})",
+            path,
+            frame,
+        ) from None

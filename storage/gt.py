@@ -71,34 +71,48 @@ def _load(path: Path, frame: int | None) -> dict[str, np.ndarray]:
     """Every array of a ground-truth npz (regular files only, no pickles); GTFormatError naming
     the file when it is not a readable npz."""
     try:
-        with open_regular(path, frame, "ground-truth file") as fh, np.load(fh, allow_pickle=False) as z:
+        with (
+            open_regular(path, frame, "ground-truth file") as fh,
+            np.load(fh, allow_pickle=False) as z,
+        ):
             return {k: z[k] for k in z.files}
     except InputError as exc:
         raise GTFormatError(str(exc), path, frame) from None
     except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
         where = f"{path}" + (f" (frame {frame})" if frame is not None else "")
-        raise GTFormatError(f"{where}: not a readable ground-truth npz ({type(exc).__name__}: {exc})", path,
-                            frame) from None
+        raise GTFormatError(
+            f"{where}: not a readable ground-truth npz ({type(exc).__name__}: {exc})", path, frame
+        ) from None
 
 
 def write_npz_deterministic(path: Path, arrays: dict[str, np.ndarray]) -> Path:
     """np.savez_compressed-compatible file whose bytes depend only on ``arrays`` (entries sorted
     by name; see :mod:`storage.npzio`)."""
-    return save_npz_deterministic(path, compressed=True, **{k: np.asarray(arrays[k]) for k in sorted(arrays)})
+    return save_npz_deterministic(
+        path, compressed=True, **{k: np.asarray(arrays[k]) for k in sorted(arrays)}
+    )
 
 
-def _check(path: Path, arrays: dict, spec: dict, optional: dict | None = None, frame: int | None = None) -> None:
+def _check(
+    path: Path, arrays: dict, spec: dict, optional: dict | None = None, frame: int | None = None
+) -> None:
     for name, (dtype, shape) in {**spec, **(optional or {})}.items():
         if name not in arrays:
             if name in spec:
                 raise GTFormatError(f"{path}: missing field {name!r}", path, frame)
             continue
         a = np.asarray(arrays[name])
-        ok = a.dtype == np.dtype(dtype) and a.ndim == len(shape) and all(
-            s == -1 or s == d for s, d in zip(shape, a.shape))
+        ok = (
+            a.dtype == np.dtype(dtype)
+            and a.ndim == len(shape)
+            and all(s == -1 or s == d for s, d in zip(shape, a.shape))
+        )
         if not ok:
-            raise GTFormatError(f"{path}: field {name!r} is {a.dtype} {a.shape}, expected {dtype} {shape}", path,
-                                frame)
+            raise GTFormatError(
+                f"{path}: field {name!r} is {a.dtype} {a.shape}, expected {dtype} {shape}",
+                path,
+                frame,
+            )
 
 
 def gt_dir(root: Path, seq: int) -> Path:
@@ -177,7 +191,7 @@ def list_gt_frames(root: Path, seq: int) -> list[int]:
     prefix = f"gt_{seq}_"
     out = []
     for p in d.glob(f"{prefix}*.npz"):
-        tail = p.stem[len(prefix):]
+        tail = p.stem[len(prefix) :]
         if tail.isdigit():
             out.append(int(tail))
     return sorted(out)
@@ -191,16 +205,24 @@ def read_sequence_gt(root: Path, seq: int) -> GTSequence:
         raise GTMissingError(f"{path}: no ground truth for sequence {seq}", path)
     a = _load(path, None)
     _check(path, a, SEQUENCE_FIELDS)
-    return GTSequence(a["grid_range_min"], float(a["grid_voxel_size_m"]),
-                      tuple(int(v) for v in a["grid_shape"]), a["person_faces"], a["keypoint_vertex_ids"],
-                      a["T_base_from_lidar"], tuple(list_gt_frames(root, seq)))
+    return GTSequence(
+        a["grid_range_min"],
+        float(a["grid_voxel_size_m"]),
+        tuple(int(v) for v in a["grid_shape"]),
+        a["person_faces"],
+        a["keypoint_vertex_ids"],
+        a["T_base_from_lidar"],
+        tuple(list_gt_frames(root, seq)),
+    )
 
 
 def read_frame_gt(root: Path, seq: int, frame: int) -> GTFrame:
     """Read one frame's ground truth as arrays."""
     path = frame_path(root, seq, frame)
     if not path.exists():
-        raise GTMissingError(f"{path} (frame {frame}): no ground truth for sequence {seq} frame {frame}", path, frame)
+        raise GTMissingError(
+            f"{path} (frame {frame}): no ground truth for sequence {seq} frame {frame}", path, frame
+        )
     a = _load(path, frame)
     _check(path, a, FRAME_FIELDS, OPTIONAL_FRAME_FIELDS, frame)
     kw = {f.name: a.get(f.name) for f in fields(GTFrame)}

@@ -21,6 +21,8 @@ def read_rgb(path: str | os.PathLike, expect_size: tuple[int, int] | None = None
     except (UnidentifiedImageError, OSError) as error:
         raise ValueError(f"{path}: not a readable image ({error})") from error
     if expect_size is not None and (rgb.shape[1], rgb.shape[0]) != tuple(expect_size):
-        raise ValueError(f"{path}: image is {rgb.shape[1]} x {rgb.shape[0]} px, the camera calibration "
-                         f"says {expect_size[0]} x {expect_size[1]}")
+        raise ValueError(
+            f"{path}: image is {rgb.shape[1]} x {rgb.shape[0]} px, the camera calibration "
+            f"says {expect_size[0]} x {expect_size[1]}"
+        )
     return rgb

@@ -20,4 +20,6 @@ class StoreError(ValueError):
 def check_name(kind: str, value: str) -> None:
     """A sequence or version name usable as one path component (raises StoreError)."""
     if not value or value.startswith((".", "_")) or "/" in value or "\\" in value or "=" in value:
-        raise StoreError(f"invalid {kind} {value!r}: must be non-empty, no '/', '=', leading '.' or '_'")
+        raise StoreError(
+            f"invalid {kind} {value!r}: must be non-empty, no '/', '=', leading '.' or '_'"
+        )

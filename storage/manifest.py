@@ -38,10 +38,11 @@ import stat
 import threading
 import time
 import uuid
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any
 
 from storage.files import InputError, open_regular
 from storage.layout import TMP_PREFIX
@@ -125,7 +126,9 @@ class FileHasher:
                     for block in iter(lambda: fh.read(1 << 20), b""):
                         h.update(block)
                 except OSError as exc:
-                    raise InputError(f"{path}: cannot read the input file: {exc.strerror or exc}", path) from None
+                    raise InputError(
+                        f"{path}: cannot read the input file: {exc.strerror or exc}", path
+                    ) from None
                 digest = h.hexdigest()
                 self._by_inode[ident] = digest
                 self.hashed += 1
@@ -142,7 +145,7 @@ class FileHasher:
 
 def _relative(root: str, path: Path) -> str:
     ap = os.path.abspath(path)
-    return ap[len(root) + 1:] if ap.startswith(root + os.sep) else ap
+    return ap[len(root) + 1 :] if ap.startswith(root + os.sep) else ap
 
 
 def sequence_fingerprint(root: Path, files: Iterable[Path], hasher: FileHasher) -> str:
@@ -157,7 +160,9 @@ def sequence_fingerprint(root: Path, files: Iterable[Path], hasher: FileHasher) 
 
 
 def _stat_line(name: str, st: os.stat_result) -> bytes:
-    return f"{name}\0{st.st_size}\0{st.st_mtime_ns}\0{st.st_ino}\0{stat.S_IFMT(st.st_mode)}\n".encode()
+    return (
+        f"{name}\0{st.st_size}\0{st.st_mtime_ns}\0{st.st_ino}\0{stat.S_IFMT(st.st_mode)}\n".encode()
+    )
 
 
 def layout_signature(root: Path | str, entries: Iterable[tuple[Path | str, bool]]) -> str:
@@ -170,7 +175,7 @@ def layout_signature(root: Path | str, entries: Iterable[tuple[Path | str, bool]
     h = hashlib.sha256()
     for path, is_folder in entries:
         p = os.fspath(path)
-        rel = p[len(root_s):] if p.startswith(root_s) else p
+        rel = p[len(root_s) :] if p.startswith(root_s) else p
         try:
             st = os.stat(p)
         except OSError as exc:
@@ -179,7 +184,9 @@ def layout_signature(root: Path | str, entries: Iterable[tuple[Path | str, bool]
         if not is_folder or not stat.S_ISDIR(st.st_mode):
             h.update(_stat_line(rel, st))
             continue
-        h.update(f"{rel}\0folder\n".encode())  # its entries say what changed; its own mtime adds nothing
+        h.update(
+            f"{rel}\0folder\n".encode()
+        )  # its entries say what changed; its own mtime adds nothing
         try:
             with os.scandir(p) as it:
                 children = sorted(it, key=lambda e: e.name)
@@ -216,8 +223,12 @@ class FingerprintCache:
             return {}  # a missing or damaged memo only costs reading the sequence again
 
     def hit(self, memo: dict, reader: Any, signature: str) -> bool:
-        return (not self.verify and memo.get("reader") == reader and memo.get("signature") == signature
-                and "fingerprint" in memo)
+        return (
+            not self.verify
+            and memo.get("reader") == reader
+            and memo.get("signature") == signature
+            and "fingerprint" in memo
+        )
 
     def file_hasher(self, memo: dict) -> FileHasher:
         h = FileHasher(dict(memo.get("files") or {}), self.verify).share_inodes(self.hasher)
@@ -240,8 +251,9 @@ class FingerprintCache:
 def stage_key(stage: str, code_version: str, inputs_hash: str, upstream: dict[str, str]) -> str:
     """Key of one (sequence, stage): what must change for the stage to run again (its code
     version, the hash of its inputs object, the fingerprint or its upstream keys)."""
-    return _hash_bytes(stage.encode(), code_version.encode(), inputs_hash.encode(),
-                       canonical_json(upstream))[:24]
+    return _hash_bytes(
+        stage.encode(), code_version.encode(), inputs_hash.encode(), canonical_json(upstream)
+    )[:24]
 
 
 def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:
@@ -279,12 +291,18 @@ class Manifest:
     everything into ``manifest.json`` (atomic) and removes the journal; :meth:`load` reads both.
     """
 
-    def __init__(self, root: Path, rows: dict[tuple[str, str], StageRecord] | None = None,
-                 meta: dict | None = None):
+    def __init__(
+        self,
+        root: Path,
+        rows: dict[tuple[str, str], StageRecord] | None = None,
+        meta: dict | None = None,
+    ):
         self.root = Path(root)
         self.rows = rows or {}
         self.meta = meta or {}
-        self.journal_lines = 0  # rows read from a journal (a killed run) or appended since the last save
+        self.journal_lines = (
+            0  # rows read from a journal (a killed run) or appended since the last save
+        )
 
     @classmethod
     def load(cls, root: Path) -> Manifest:
@@ -294,9 +312,13 @@ class Manifest:
             try:
                 data = json.loads(path.read_text())
             except json.JSONDecodeError as exc:
-                raise OutputError(f"{path}: manifest is not valid JSON ({exc}); move it aside to rebuild") from None
+                raise OutputError(
+                    f"{path}: manifest is not valid JSON ({exc}); move it aside to rebuild"
+                ) from None
             if data.get("version") != MANIFEST_VERSION:
-                raise OutputError(f"{path}: manifest version {data.get('version')!r}, expected {MANIFEST_VERSION}")
+                raise OutputError(
+                    f"{path}: manifest version {data.get('version')!r}, expected {MANIFEST_VERSION}"
+                )
             for row in data["rows"]:
                 manifest.put(StageRecord(**row))
             manifest.meta = data.get("meta", {})
@@ -344,9 +366,14 @@ class Manifest:
             for digest in [h for h in table if h not in keep]:
                 del table[digest]
         rows = [asdict(self.rows[k]) for k in sorted(self.rows)]
-        atomic_write_bytes(self.root / MANIFEST, json.dumps(
-            {"version": MANIFEST_VERSION, "meta": self.meta, "rows": rows}, indent=1,
-            sort_keys=True).encode())
+        atomic_write_bytes(
+            self.root / MANIFEST,
+            json.dumps(
+                {"version": MANIFEST_VERSION, "meta": self.meta, "rows": rows},
+                indent=1,
+                sort_keys=True,
+            ).encode(),
+        )
         (self.root / JOURNAL).unlink(missing_ok=True)
         self.journal_lines = 0
 
@@ -366,7 +393,11 @@ class Manifest:
         if old not in table or new not in table:
             return ""
         a, b = _flatten(table[old]), _flatten(table[new])
-        diffs = [f"{k} {a.get(k)!r} -> {b.get(k)!r}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+        diffs = [
+            f"{k} {a.get(k)!r} -> {b.get(k)!r}"
+            for k in sorted(set(a) | set(b))
+            if a.get(k) != b.get(k)
+        ]
         more = f" (+{len(diffs) - limit} more)" if len(diffs) > limit else ""
         return ", ".join(diffs[:limit]) + more
 
@@ -405,9 +436,17 @@ def staged_output(final: Path) -> Iterator[Path]:
 
 #: where runs leave temporary files, relative to OUT (a killed run, a full disk): stage outputs
 #: being written, publication staging, table partitions, the manifest and memo files, exports
-TEMPORARY_PATTERNS = (f"{TMP_PREFIX}*", f".cache/{TMP_PREFIX}*", f".cache/*/{TMP_PREFIX}*",
-                      f"stages/*/*/{TMP_PREFIX}*", f"occupancy/*/{TMP_PREFIX}*", f"tables/*/*/{TMP_PREFIX}*",
-                      f"exports/{TMP_PREFIX}*", f"exports/*/{TMP_PREFIX}*", f"exports/*/*/{TMP_PREFIX}*")
+TEMPORARY_PATTERNS = (
+    f"{TMP_PREFIX}*",
+    f".cache/{TMP_PREFIX}*",
+    f".cache/*/{TMP_PREFIX}*",
+    f"stages/*/*/{TMP_PREFIX}*",
+    f"occupancy/*/{TMP_PREFIX}*",
+    f"tables/*/*/{TMP_PREFIX}*",
+    f"exports/{TMP_PREFIX}*",
+    f"exports/*/{TMP_PREFIX}*",
+    f"exports/*/*/{TMP_PREFIX}*",
+)
 
 
 def sweep_temporaries(root: Path) -> int:
@@ -453,8 +492,10 @@ def check_writable(root: Path) -> None:
         with open(probe, "wb") as fh:
             fh.write(b"0")
     except OSError as exc:
-        raise OutputError(f"output store {root} is not writable ({exc.strerror or exc}"
-                          f"{': ' + str(exc.filename) if exc.filename and str(exc.filename) != str(probe) else ''})") from None
+        raise OutputError(
+            f"output store {root} is not writable ({exc.strerror or exc}"
+            f"{': ' + str(exc.filename) if exc.filename and str(exc.filename) != str(probe) else ''})"
+        ) from None
     finally:
         try:
             probe.unlink()
@@ -487,7 +528,9 @@ def run_lock(root: Path) -> Iterator[None]:
     key = os.path.abspath(path)
     with _HELD_GUARD:
         if key in _HELD:
-            raise StoreLockedError(f"{root} is in use by another run (in this process, pid {os.getpid()})")
+            raise StoreLockedError(
+                f"{root} is in use by another run (in this process, pid {os.getpid()})"
+            )
         _HELD.add(key)
     try:
         fd = _acquire(path)
@@ -515,7 +558,9 @@ def holding_lock(root: Path) -> Iterator[None]:
     with _HELD_GUARD:
         held = os.path.abspath(Path(root) / LOCK_FILE) in _HELD
     if not held:
-        raise StoreLockedError(f"{root}: the run was told the lock is held, but this process does not hold it")
+        raise StoreLockedError(
+            f"{root}: the run was told the lock is held, but this process does not hold it"
+        )
     yield
 
 
@@ -528,15 +573,21 @@ def _acquire(path: Path) -> int:
         except BlockingIOError:
             holder = _holder(fd)
             os.close(fd)
-            when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(holder["started"])) \
-                if isinstance(holder.get("started"), (int, float)) else "?"
+            when = (
+                time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(holder["started"]))
+                if isinstance(holder.get("started"), (int, float))
+                else "?"
+            )
             raise StoreLockedError(
                 f"{path.parent} is in use by another run (host {holder.get('host', '?')}, pid "
-                f"{holder.get('pid', '?')}, started {when}); wait for it to finish") from None
+                f"{holder.get('pid', '?')}, started {when}); wait for it to finish"
+            ) from None
         except OSError as exc:
             os.close(fd)
-            raise StoreLockedError(f"{path}: cannot lock the output store ({exc.strerror}); its file system "
-                                   "does not support flock") from None
+            raise StoreLockedError(
+                f"{path}: cannot lock the output store ({exc.strerror}); its file system "
+                "does not support flock"
+            ) from None
         try:
             same = os.stat(path).st_ino == os.fstat(fd).st_ino
         except FileNotFoundError:

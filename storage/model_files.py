@@ -27,10 +27,14 @@ import numpy as np
 MEDIAPIPE_VERSION = "0.10.21"
 #: file name -> (path inside the wheel, sha256 of the file)
 BUNDLED_MODELS = {
-    "pose_detection.tflite": ("mediapipe/modules/pose_detection/pose_detection.tflite",
-                              "9ba9dd3d42efaaba86b4ff0122b06f29c4122e756b329d89dca1e297fd8f866c"),
-    "pose_landmark_full.tflite": ("mediapipe/modules/pose_landmark/pose_landmark_full.tflite",
-                                  "e9a5c5cb17f736fafd4c2ec1da3b3d331d6edbe8a0d32395855aeb2cdfd64b9f"),
+    "pose_detection.tflite": (
+        "mediapipe/modules/pose_detection/pose_detection.tflite",
+        "9ba9dd3d42efaaba86b4ff0122b06f29c4122e756b329d89dca1e297fd8f866c",
+    ),
+    "pose_landmark_full.tflite": (
+        "mediapipe/modules/pose_landmark/pose_landmark_full.tflite",
+        "e9a5c5cb17f736fafd4c2ec1da3b3d331d6edbe8a0d32395855aeb2cdfd64b9f",
+    ),
 }
 #: where set-up puts them unless told otherwise (relative to the working directory)
 DEFAULT_BUNDLED_CACHE = Path(".cache/models/mediapipe-" + MEDIAPIPE_VERSION)
@@ -57,9 +61,13 @@ class OnnxRunner:
         if device == "auto":
             device = "cuda" if "CUDAExecutionProvider" in available else "cpu"
         if device == "cuda" and "CUDAExecutionProvider" not in available:
-            raise ModelFileError(f"{path}: device 'cuda' asked for, but this onnxruntime offers only {available} "
-                                 "(install onnxruntime-gpu on GPU workers)")
-        providers = (["CUDAExecutionProvider"] if device == "cuda" else []) + ["CPUExecutionProvider"]
+            raise ModelFileError(
+                f"{path}: device 'cuda' asked for, but this onnxruntime offers only {available} "
+                "(install onnxruntime-gpu on GPU workers)"
+            )
+        providers = (["CUDAExecutionProvider"] if device == "cuda" else []) + [
+            "CPUExecutionProvider"
+        ]
         opts = ort.SessionOptions()
         opts.log_severity_level = 3
         if threads:
@@ -96,16 +104,26 @@ class TfliteRunner:
         self.source = str(path)
         self._inputs = {d["name"]: d["index"] for d in self.interpreter.get_input_details()}
         self._outputs = {d["name"]: d["index"] for d in self.interpreter.get_output_details()}
-        self.input_shapes = {d["name"]: tuple(int(x) for x in d["shape"]) for d in self.interpreter.get_input_details()}
-        self.output_shapes = {d["name"]: tuple(int(x) for x in d["shape"]) for d in self.interpreter.get_output_details()}
+        self.input_shapes = {
+            d["name"]: tuple(int(x) for x in d["shape"])
+            for d in self.interpreter.get_input_details()
+        }
+        self.output_shapes = {
+            d["name"]: tuple(int(x) for x in d["shape"])
+            for d in self.interpreter.get_output_details()
+        }
         self._lock = threading.Lock()
 
     def __call__(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         with self._lock:
             for name, value in feeds.items():
-                self.interpreter.set_tensor(self._inputs[name], np.ascontiguousarray(value, np.float32))
+                self.interpreter.set_tensor(
+                    self._inputs[name], np.ascontiguousarray(value, np.float32)
+                )
             self.interpreter.invoke()
-            return {name: self.interpreter.get_tensor(i).copy() for name, i in self._outputs.items()}
+            return {
+                name: self.interpreter.get_tensor(i).copy() for name, i in self._outputs.items()
+            }
 
 
 def open_onnx(path: str | os.PathLike, device: str = "cpu") -> OnnxRunner:
@@ -133,8 +151,10 @@ def bundled_model(cache: str | os.PathLike, name: str) -> Path:
         raise ModelFileError(f"{name}: not a bundled model; bundled: {sorted(BUNDLED_MODELS)}")
     path = Path(cache) / name
     if not path.is_file():
-        raise ModelFileError(f"{path}: bundled model missing; run `make setup` (or `python -m "
-                             f"storage.model_files --wheel mediapipe-{MEDIAPIPE_VERSION}-*.whl --cache {cache}`)")
+        raise ModelFileError(
+            f"{path}: bundled model missing; run `make setup` (or `python -m "
+            f"storage.model_files --wheel mediapipe-{MEDIAPIPE_VERSION}-*.whl --cache {cache}`)"
+        )
     return path
 
 
@@ -151,10 +171,14 @@ def extract_bundled_models(wheel: str | os.PathLike, cache: str | os.PathLike) -
                 try:
                     data = zf.read(member)
                 except KeyError:
-                    raise ModelFileError(f"{wheel}: has no {member} (mediapipe {MEDIAPIPE_VERSION} ships it)") from None
+                    raise ModelFileError(
+                        f"{wheel}: has no {member} (mediapipe {MEDIAPIPE_VERSION} ships it)"
+                    ) from None
                 if hashlib.sha256(data).hexdigest() != digest:
-                    raise ModelFileError(f"{wheel}: {member} has sha256 {hashlib.sha256(data).hexdigest()}, "
-                                         f"expected {digest}")
+                    raise ModelFileError(
+                        f"{wheel}: {member} has sha256 {hashlib.sha256(data).hexdigest()}, "
+                        f"expected {digest}"
+                    )
                 tmp = target.with_name(name + ".tmp-write")
                 tmp.write_bytes(data)
                 os.replace(tmp, target)
@@ -166,7 +190,9 @@ def main(argv: list[str] | None = None) -> None:
     """Set-up helper: ``python -m storage.model_files --wheel W --cache DIR``."""
     import argparse
 
-    p = argparse.ArgumentParser(description="extract the bundled BlazePose models from a mediapipe wheel")
+    p = argparse.ArgumentParser(
+        description="extract the bundled BlazePose models from a mediapipe wheel"
+    )
     p.add_argument("--wheel", type=Path, required=True)
     p.add_argument("--cache", type=Path, default=DEFAULT_BUNDLED_CACHE)
     a = p.parse_args(argv)

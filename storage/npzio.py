@@ -18,7 +18,9 @@ import numpy as np
 _ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
 
 
-def save_npz_deterministic(path: str | os.PathLike, compressed: bool = True, **arrays: np.ndarray) -> Path:
+def save_npz_deterministic(
+    path: str | os.PathLike, compressed: bool = True, **arrays: np.ndarray
+) -> Path:
     """Write ``arrays`` to ``path`` as an ``.npz`` readable by ``np.load``; returns the path.
 
     compressed: deflate each entry (as ``np.savez_compressed``) or store it (as ``np.savez``).
@@ -36,7 +38,9 @@ def save_npz_deterministic(path: str | os.PathLike, compressed: bool = True, **a
             for key, value in arrays.items():
                 array = np.asanyarray(value)
                 if array.dtype.hasobject:
-                    raise ValueError(f"save_npz_deterministic({path}): array {key!r} has dtype object")
+                    raise ValueError(
+                        f"save_npz_deterministic({path}): array {key!r} has dtype object"
+                    )
                 buffer = io.BytesIO()
                 np.lib.format.write_array(buffer, array, allow_pickle=False)
                 info = zipfile.ZipInfo(f"{key}.npy", date_time=_ZIP_EPOCH)
@@ -45,7 +49,9 @@ def save_npz_deterministic(path: str | os.PathLike, compressed: bool = True, **a
                 info.create_system = 3  # unix, independent of the host
                 zf.writestr(info, buffer.getvalue())
         os.replace(tmp, path)
-    except OSError as exc:  # a failed write() does not say which file (a full disk, a file size limit)
+    except (
+        OSError
+    ) as exc:  # a failed write() does not say which file (a full disk, a file size limit)
         if exc.filename:
             raise
         raise type(exc)(exc.errno, exc.strerror or str(exc), str(path)) from None

@@ -60,9 +60,13 @@ class ArraySpec:
 
 
 ARRAYS: dict[str, ArraySpec] = {
-    "semantics": ArraySpec(np.dtype(np.uint8), FREE, description="class id, FREE where free or unknown"),
+    "semantics": ArraySpec(
+        np.dtype(np.uint8), FREE, description="class id, FREE where free or unknown"
+    ),
     "instances": ArraySpec(np.dtype(np.uint16), 0, description="pedestrian track id, 0 none"),
-    "mask_lidar": ArraySpec(np.dtype(np.uint8), 0, description="1 observed by the LiDAR, 0 unknown"),
+    "mask_lidar": ArraySpec(
+        np.dtype(np.uint8), 0, description="1 observed by the LiDAR, 0 unknown"
+    ),
     "mask_camera": ArraySpec(np.dtype(np.uint8), 0, description="1 observed by cam0, 0 unknown"),
     "velocity": ArraySpec(
         np.dtype(np.float16), 0.0, (2,), ("component",), "pedestrian (vx, vy), m/s, base frame"
@@ -93,7 +97,9 @@ class StoreLayout:
         ]
 
 
-def choose_chunks(grid_shape: tuple[int, int, int], frames_per_chunk: int) -> tuple[tuple[int, ...], bool]:
+def choose_chunks(
+    grid_shape: tuple[int, int, int], frames_per_chunk: int
+) -> tuple[tuple[int, ...], bool]:
     """Chunk shape (frames, cx, cy, cz) of a uint8 array and whether shards are used."""
     X, Y, Z = grid_shape
     frame_bytes = X * Y * Z
@@ -113,7 +119,9 @@ def choose_chunks(grid_shape: tuple[int, int, int], frames_per_chunk: int) -> tu
     return (1, *spatial), True
 
 
-def _shard_shape(chunks: tuple[int, ...], grid_shape: tuple[int, int, int], fpc: int) -> tuple[int, ...]:
+def _shard_shape(
+    chunks: tuple[int, ...], grid_shape: tuple[int, int, int], fpc: int
+) -> tuple[int, ...]:
     spatial = tuple(math.ceil(n / c) * c for n, c in zip(grid_shape, chunks[1:]))
     return (fpc, *spatial)
 
@@ -140,7 +148,9 @@ def create_store(
     """
     grid_shape = tuple(int(n) for n in grid_shape)
     if len(grid_shape) != 3 or min(grid_shape) < 1:
-        raise StoreError(f"create_store({path}): grid_shape must be 3 positive ints, got {grid_shape}")
+        raise StoreError(
+            f"create_store({path}): grid_shape must be 3 positive ints, got {grid_shape}"
+        )
     if num_frames < 1 or frames_per_chunk < 1:
         raise StoreError(
             f"create_store({path}): num_frames ({num_frames}) and frames_per_chunk "
@@ -191,7 +201,11 @@ def open_layout(path: str | os.PathLike) -> StoreLayout:
     sem = group["semantics"]
     fpc = int(group.attrs["frames_per_chunk"])
     return StoreLayout(
-        int(sem.shape[0]), tuple(int(n) for n in sem.shape[1:]), fpc, tuple(sem.chunks), sem.shards is not None
+        int(sem.shape[0]),
+        tuple(int(n) for n in sem.shape[1:]),
+        fpc,
+        tuple(sem.chunks),
+        sem.shards is not None,
     )
 
 
@@ -221,7 +235,9 @@ def write_frames(path: str | os.PathLike, start: int, grids: Mapping[str, np.nda
     num_frames = group["semantics"].shape[0]
     stop = start + n
     if n < 1 or start < 0 or stop > num_frames:
-        raise StoreError(f"write_frames({path}): region [{start}, {stop}) outside [0, {num_frames})")
+        raise StoreError(
+            f"write_frames({path}): region [{start}, {stop}) outside [0, {num_frames})"
+        )
     if start % fpc != 0 or (stop % fpc != 0 and stop != num_frames):
         raise StoreError(
             f"write_frames({path}): region [{start}, {stop}) is not aligned to the write unit of "
@@ -229,7 +245,9 @@ def write_frames(path: str | os.PathLike, start: int, grids: Mapping[str, np.nda
         )
     for name, data in grids.items():
         if name not in ARRAYS:
-            raise StoreError(f"write_frames({path}): unknown array {name!r}, expected one of {list(ARRAYS)}")
+            raise StoreError(
+                f"write_frames({path}): unknown array {name!r}, expected one of {list(ARRAYS)}"
+            )
         arr = group[name]
         # zarr's all-fill check per chunk: worth it on fine grids only (measured, see SCHEMA.md)
         arr = arr.with_config({"write_empty_chunks": not skip_empty})
@@ -275,6 +293,8 @@ def store_path(root: str | os.PathLike, sequence: str, version: str | None = Non
     if version is None:
         current = seq_dir / CURRENT_FILE
         if not current.is_file():
-            raise StoreError(f"sequence {sequence!r} has no published occupancy ({current} missing)")
+            raise StoreError(
+                f"sequence {sequence!r} has no published occupancy ({current} missing)"
+            )
         version = json.loads(current.read_text())["version"]
     return seq_dir / f"{version}.zarr"

@@ -45,7 +45,16 @@ LIDAR_SCHEMA = pa.schema(
     [("frame", pa.int64())]
     + [
         (name, pa.float32())
-        for name in ("center_x", "center_y", "center_z", "length", "width", "height", "yaw", "score")
+        for name in (
+            "center_x",
+            "center_y",
+            "center_z",
+            "length",
+            "width",
+            "height",
+            "yaw",
+            "score",
+        )
     ]
 )
 
@@ -175,7 +184,9 @@ def write_perception(
             columns["frame"].append(frame)
             columns["bbox"].append([x0, y0, x1 - x0, y1 - y0])
             columns["score"].append(float(det.scores[d]))
-            columns["keypoints"].append(np.asarray(det.keypoints[d], np.float32).reshape(-1).tolist())
+            columns["keypoints"].append(
+                np.asarray(det.keypoints[d], np.float32).reshape(-1).tolist()
+            )
             columns["mask_counts"].append(rle_to_string(rle_encode(mask)) if mask.any() else "")
     pq.write_table(pa.table(columns, schema=DETECTION_SCHEMA), tmp / DETECTIONS_FILE)
     has_lidar = lidar is not None
@@ -233,7 +244,9 @@ def _read_table(path: Path, schema: pa.Schema) -> dict[str, np.ndarray]:
             values = column.to_pylist()
             bad = [i for i, item in enumerate(values) if item is None or len(item) != size]
             if bad:
-                raise _fail(path, None, f"row {bad[0]}: column {field.name!r} must hold {size} numbers")
+                raise _fail(
+                    path, None, f"row {bad[0]}: column {field.name!r} must hold {size} numbers"
+                )
             out[field.name] = np.asarray(values, np.float64).reshape(len(values), size)
         elif field.name == "mask_counts":
             out[field.name] = np.asarray([s or "" for s in column.to_pylist()], dtype=object)
@@ -254,7 +267,9 @@ class PrecomputedPerception:
         self.root = Path(root)
         meta_path = self.root / META_FILE
         if not meta_path.is_file():
-            raise _fail(meta_path, None, "file is missing (not a precomputed perception directory?)")
+            raise _fail(
+                meta_path, None, "file is missing (not a precomputed perception directory?)"
+            )
         try:
             meta = json.loads(meta_path.read_text())
         except json.JSONDecodeError as error:
@@ -263,10 +278,14 @@ class PrecomputedPerception:
             raise _fail(meta_path, None, f"'format' must be {FORMAT_NAME!r}")
         if meta.get("version") != FORMAT_VERSION:
             version = meta.get("version")
-            raise _fail(meta_path, None, f"version {version!r} unsupported, expected {FORMAT_VERSION}")
+            raise _fail(
+                meta_path, None, f"version {version!r} unsupported, expected {FORMAT_VERSION}"
+            )
         for key in ("image_width", "image_height"):
             if not isinstance(meta.get(key), int) or meta[key] <= 0:
-                raise _fail(meta_path, None, f"{key} must be a positive integer, got {meta.get(key)!r}")
+                raise _fail(
+                    meta_path, None, f"{key} must be a positive integer, got {meta.get(key)!r}"
+                )
         frames = meta.get("frames")
         if not isinstance(frames, list) or not all(isinstance(f, int) and f >= 0 for f in frames):
             raise _fail(meta_path, None, "'frames' must be a list of non-negative integers")
@@ -293,14 +312,19 @@ class PrecomputedPerception:
             bad = ~np.isfinite(values).all(axis=1)
             if bad.any():
                 i = int(np.flatnonzero(bad)[0])
-                raise _fail(path, int(frame[i]), f"row {i}: {name} has NaN/inf: {table[name][i].tolist()}")
+                raise _fail(
+                    path, int(frame[i]), f"row {i}: {name} has NaN/inf: {table[name][i].tolist()}"
+                )
         bbox, tol = table["bbox"], 1.0
         bad = (bbox[:, 2] <= 0) | (bbox[:, 3] <= 0) | (bbox[:, 0] < -tol) | (bbox[:, 1] < -tol)
-        bad |= (bbox[:, 0] + bbox[:, 2] > self.width + tol) | (bbox[:, 1] + bbox[:, 3] > self.height + tol)
+        bad |= (bbox[:, 0] + bbox[:, 2] > self.width + tol) | (
+            bbox[:, 1] + bbox[:, 3] > self.height + tol
+        )
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             raise _fail(
-                path, int(frame[i]),
+                path,
+                int(frame[i]),
                 f"row {i}: bbox [x, y, w, h] = {bbox[i].tolist()} must have w, h > 0 and lie in the "
                 f"{self.width} x {self.height} image",
             )
@@ -334,12 +358,16 @@ class PrecomputedPerception:
         bad = (values[:, 7] < 0) | (values[:, 7] > 1)
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
-            raise _fail(path, int(table["frame"][i]), f"row {i}: score {values[i, 7]} outside [0, 1]")
+            raise _fail(
+                path, int(table["frame"][i]), f"row {i}: score {values[i, 7]} outside [0, 1]"
+            )
         return table
 
     def _require_frame(self, frame_index: int) -> None:
         if frame_index not in self.frames:
-            raise _fail(self.root / META_FILE, frame_index, "frame not in this sequence's perception files")
+            raise _fail(
+                self.root / META_FILE, frame_index, "frame not in this sequence's perception files"
+            )
 
     def semantic(self, frame_index: int) -> np.ndarray:
         """(H, W) uint8 Cityscapes train ids of a frame (all 255 when the files have none)."""
@@ -356,14 +384,18 @@ class PrecomputedPerception:
         except OSError as error:
             raise _fail(path, frame_index, f"not a readable PNG ({error})") from error
         if mode != "L" or semantic.dtype != np.uint8:
-            raise _fail(path, frame_index, f"PNG mode {mode!r}, expected 8-bit grayscale 'L' of train ids")
+            raise _fail(
+                path, frame_index, f"PNG mode {mode!r}, expected 8-bit grayscale 'L' of train ids"
+            )
         if semantic.shape != (self.height, self.width):
             got = f"{semantic.shape[1]} x {semantic.shape[0]}"
             raise _fail(path, frame_index, f"image is {got}, expected {self.width} x {self.height}")
         bad = (semantic > 18) & (semantic != CITYSCAPES_IGNORE)
         if bad.any():
             r, c = np.argwhere(bad)[0]
-            message = f"pixel (u={c}, v={r}) = {semantic[r, c]}: not a Cityscapes train id (0-18 or 255)"
+            message = (
+                f"pixel (u={c}, v={r}) = {semantic[r, c]}: not a Cityscapes train id (0-18 or 255)"
+            )
             raise _fail(path, frame_index, message)
         return semantic
 
@@ -383,7 +415,9 @@ class PrecomputedPerception:
             except ValueError as error:
                 raise _fail(path, frame_index, f"row {row}: mask_counts: {error}") from error
         return {
-            "boxes_xyxy": np.concatenate([bbox[:, :2], bbox[:, :2] + bbox[:, 2:]], axis=1).astype(np.float32),
+            "boxes_xyxy": np.concatenate([bbox[:, :2], bbox[:, :2] + bbox[:, 2:]], axis=1).astype(
+                np.float32
+            ),
             "scores": table["score"][rows].astype(np.float32),
             "keypoints": table["keypoints"][rows].reshape(-1, NUM_KEYPOINTS, 3).astype(np.float32),
             "masks": masks,
@@ -394,13 +428,21 @@ class PrecomputedPerception:
         """A frame's LiDAR boxes as the fields of LidarDetections (empty when the files have none)."""
         self._require_frame(frame_index)
         if self._lidar is None:
-            return {"centers": np.zeros((0, 3), np.float32), "sizes": np.zeros((0, 3), np.float32),
-                    "yaws": np.zeros(0, np.float32), "scores": np.zeros(0, np.float32)}
+            return {
+                "centers": np.zeros((0, 3), np.float32),
+                "sizes": np.zeros((0, 3), np.float32),
+                "yaws": np.zeros(0, np.float32),
+                "scores": np.zeros(0, np.float32),
+            }
         t = self._lidar
         rows = np.flatnonzero(t["frame"] == frame_index)
 
         def stack(names: tuple[str, ...]) -> np.ndarray:
-            return np.stack([t[n][rows] for n in names], axis=1).astype(np.float32).reshape(-1, len(names))
+            return (
+                np.stack([t[n][rows] for n in names], axis=1)
+                .astype(np.float32)
+                .reshape(-1, len(names))
+            )
 
         return {
             "centers": stack(("center_x", "center_y", "center_z")),

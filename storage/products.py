@@ -49,8 +49,9 @@ def _dim(symbol: int | str, sizes: dict[str, int]) -> tuple[str, int] | None:
     return base, int(plus or 0)
 
 
-def check_arrays(kind: str, where: str, arrays: dict[str, np.ndarray],
-                 specs: dict[str, ArraySpec]) -> dict[str, int]:
+def check_arrays(
+    kind: str, where: str, arrays: dict[str, np.ndarray], specs: dict[str, ArraySpec]
+) -> dict[str, int]:
     """Check ``arrays`` against ``specs`` (all present, dtype, ndim, consistent symbolic sizes).
 
     Returns the sizes found for each symbol; raises ProductError naming ``where`` and the field.
@@ -58,28 +59,38 @@ def check_arrays(kind: str, where: str, arrays: dict[str, np.ndarray],
     missing = sorted(set(specs) - set(arrays))
     extra = sorted(set(arrays) - set(specs))
     if missing or extra:
-        raise ProductError(f"{where}: {kind} has missing field(s) {missing} / unknown field(s) {extra}")
+        raise ProductError(
+            f"{where}: {kind} has missing field(s) {missing} / unknown field(s) {extra}"
+        )
     sizes: dict[str, int] = {}
     for name, spec in specs.items():
         a = arrays[name]
         if not isinstance(a, np.ndarray) or a.dtype != spec.dtype:
-            raise ProductError(f"{where}: {kind}.{name} must be a {spec.dtype} array, got "
-                               f"{getattr(a, 'dtype', type(a).__name__)}")
+            raise ProductError(
+                f"{where}: {kind}.{name} must be a {spec.dtype} array, got "
+                f"{getattr(a, 'dtype', type(a).__name__)}"
+            )
         if a.ndim != len(spec.shape):
-            raise ProductError(f"{where}: {kind}.{name} must have shape {spec.shape}, got {a.shape}")
+            raise ProductError(
+                f"{where}: {kind}.{name} must have shape {spec.shape}, got {a.shape}"
+            )
         for axis, (symbol, size) in enumerate(zip(spec.shape, a.shape)):
             dim = _dim(symbol, sizes)
             if dim is None:
                 if size != symbol:
-                    raise ProductError(f"{where}: {kind}.{name} must have shape {spec.shape}, "
-                                       f"got {a.shape} (axis {axis})")
+                    raise ProductError(
+                        f"{where}: {kind}.{name} must have shape {spec.shape}, "
+                        f"got {a.shape} (axis {axis})"
+                    )
                 continue
             base, offset = dim
             if base not in sizes:
                 sizes[base] = size - offset
             elif sizes[base] + offset != size:
-                raise ProductError(f"{where}: {kind}.{name} has {size} along axis {axis}, expected "
-                                   f"{symbol} = {sizes[base] + offset} as in the other fields")
+                raise ProductError(
+                    f"{where}: {kind}.{name} has {size} along axis {axis}, expected "
+                    f"{symbol} = {sizes[base] + offset} as in the other fields"
+                )
     return sizes
 
 
@@ -103,21 +114,28 @@ class Product:
     @classmethod
     def empty(cls: type[P], **sizes: int) -> P:
         """A product whose row dimensions are 0 (other symbols from ``sizes``, e.g. H=480)."""
+
         def size(symbol):
             if isinstance(symbol, int):
                 return symbol
             base, offset = _dim(symbol, {})
             return sizes.get(base, 0) + offset
-        return cls(**{name: np.zeros(tuple(size(s) for s in spec.shape), spec.dtype)
-                      for name, spec in cls.specs().items()})
+
+        return cls(
+            **{
+                name: np.zeros(tuple(size(s) for s in spec.shape), spec.dtype)
+                for name, spec in cls.specs().items()
+            }
+        )
 
     @classmethod
     def concat(cls: type[P], parts: list[P]) -> P:
         """Rows of several products of a row-indexed kind (every field's first axis is the row)."""
         if not parts:
             return cls.empty()
-        return cls(**{name: np.concatenate([getattr(p, name) for p in parts])
-                      for name in cls.specs()})
+        return cls(
+            **{name: np.concatenate([getattr(p, name) for p in parts]) for name in cls.specs()}
+        )
 
     def take(self: P, rows: np.ndarray) -> P:
         """The given rows of a row-indexed product."""
@@ -125,8 +143,9 @@ class Product:
 
     def write(self, folder: Path, name: str | None = None) -> Path:
         """Store as ``folder/<name>.npz`` (written aside and renamed: never half a file)."""
-        return save_npz_deterministic(product_path(folder, name or self.NAME), compressed=True,
-                                      **self.arrays())
+        return save_npz_deterministic(
+            product_path(folder, name or self.NAME), compressed=True, **self.arrays()
+        )
 
     @classmethod
     def read(cls: type[P], folder: Path, name: str | None = None) -> P:
@@ -157,13 +176,21 @@ class Detections(Product):
     boxes_xyxy: np.ndarray = array(np.float32, ("D", 4), "2D person boxes (u0, v0, u1, v1), pixels")
     scores: np.ndarray = array(np.float32, ("D",), "detection scores in [0, 1]")
     keypoints: np.ndarray = array(np.float32, ("D", 17, 3), "COCO-17 (u, v) pixels and confidence")
-    mask_labels: np.ndarray = array(np.uint16, ("H", "W"), "instance masks: detection k is label k + 1, 0 none")
+    mask_labels: np.ndarray = array(
+        np.uint16, ("H", "W"), "instance masks: detection k is label k + 1, 0 none"
+    )
     semantic: np.ndarray = array(np.uint8, ("H", "W"), "Cityscapes train ids, 255 ignore")
-    lidar_centers: np.ndarray = array(np.float32, ("M", 3), "LiDAR pedestrian box centres, LiDAR frame, m")
-    lidar_sizes: np.ndarray = array(np.float32, ("M", 3), "box (l, w, h), l along the box x axis, m")
+    lidar_centers: np.ndarray = array(
+        np.float32, ("M", 3), "LiDAR pedestrian box centres, LiDAR frame, m"
+    )
+    lidar_sizes: np.ndarray = array(
+        np.float32, ("M", 3), "box (l, w, h), l along the box x axis, m"
+    )
     lidar_yaws: np.ndarray = array(np.float32, ("M",), "box yaw about LiDAR z, rad")
     lidar_scores: np.ndarray = array(np.float32, ("M",), "LiDAR box scores")
-    gt_index: np.ndarray = array(np.int64, ("D",), "oracle only: ground-truth row, -1 false positive; -2 unknown")
+    gt_index: np.ndarray = array(
+        np.int64, ("D",), "oracle only: ground-truth row, -1 false positive; -2 unknown"
+    )
 
     @staticmethod
     def file_name(raw_frame: int) -> str:
@@ -186,14 +213,22 @@ class Tracks(Product):
     keypoints: np.ndarray = array(np.float32, ("R", 17, 3), "COCO-17 (u, v, confidence)")
     lidar_box: np.ndarray = array(np.int64, ("R",), "matched LiDAR box row of the frame, -1 none")
     gt_index: np.ndarray = array(np.int64, ("R",), "the detection's gt_index")
-    points_in_image: np.ndarray = array(np.int64, ("R",), "how many of the person's points are in the image")
-    points_offsets: np.ndarray = array(np.int64, ("R+1",), "row r's points start at points_offsets[r]")
+    points_in_image: np.ndarray = array(
+        np.int64, ("R",), "how many of the person's points are in the image"
+    )
+    points_offsets: np.ndarray = array(
+        np.int64, ("R+1",), "row r's points start at points_offsets[r]"
+    )
     points_index: np.ndarray = array(np.int64, ("P",), "point indices into the frame's sweep")
 
     def points_of(self, row: int, in_image_only: bool = False) -> np.ndarray:
         """Indices of row ``row``'s points in its frame's sweep."""
         lo = int(self.points_offsets[row])
-        hi = lo + int(self.points_in_image[row]) if in_image_only else int(self.points_offsets[row + 1])
+        hi = (
+            lo + int(self.points_in_image[row])
+            if in_image_only
+            else int(self.points_offsets[row + 1])
+        )
         return self.points_index[lo:hi]
 
 
@@ -209,14 +244,22 @@ class Bodies(Product):
     global_orient: np.ndarray = array(np.float32, ("R", 3), "root axis-angle, LiDAR frame, rad")
     body_pose: np.ndarray = array(np.float32, ("R", 69), "23 joint axis-angles, rad")
     transl: np.ndarray = array(np.float32, ("R", 3), "SMPL translation, LiDAR frame, m")
-    velocity_base: np.ndarray = array(np.float32, ("R", 2), "pelvis velocity (vx, vy), base frame, m/s")
+    velocity_base: np.ndarray = array(
+        np.float32, ("R", 2), "pelvis velocity (vx, vy), base frame, m/s"
+    )
     loss_j: np.ndarray = array(np.float32, ("R",), "final L_J")
     loss_3d: np.ndarray = array(np.float32, ("R",), "final L_3D")
     loss_total: np.ndarray = array(np.float32, ("R",), "final objective")
-    chamfer_m: np.ndarray = array(np.float32, ("R",), "mean distance of the person's points to the fitted mesh's vertices, m")
-    reproj_px: np.ndarray = array(np.float32, ("R",), "mean reprojection error of the confident keypoints, px (NaN: none)")
+    chamfer_m: np.ndarray = array(
+        np.float32, ("R",), "mean distance of the person's points to the fitted mesh's vertices, m"
+    )
+    reproj_px: np.ndarray = array(
+        np.float32, ("R",), "mean reprojection error of the confident keypoints, px (NaN: none)"
+    )
     num_points: np.ndarray = array(np.int64, ("R",), "LiDAR points the fit used")
-    shift_m: np.ndarray = array(np.float32, ("R",), "how far the fit moved the root from its initial estimate, m")
+    shift_m: np.ndarray = array(
+        np.float32, ("R",), "how far the fit moved the root from its initial estimate, m"
+    )
 
 
 #: the map stage's folder of tile products (StaticMapProduct, OccupancyMapProduct)
@@ -267,20 +310,35 @@ class MapTiles(Product):
     tile_m: np.ndarray = array(np.float64, (), "tile edge, m")
     static_voxel_size_m: np.ndarray = array(np.float64, (), "the static map's voxel edge, m")
     occupancy_voxel_size_m: np.ndarray = array(np.float64, (), "the occupancy map's voxel edge, m")
-    static_tiles: np.ndarray = array(np.int64, ("S", 2), "(tx, ty) of every StaticMapProduct tile, ascending")
+    static_tiles: np.ndarray = array(
+        np.int64, ("S", 2), "(tx, ty) of every StaticMapProduct tile, ascending"
+    )
     static_voxels: np.ndarray = array(np.int64, ("S",), "voxels in that tile")
-    occupancy_tiles: np.ndarray = array(np.int64, ("O", 2), "(tx, ty) of every OccupancyMapProduct tile, ascending")
+    occupancy_tiles: np.ndarray = array(
+        np.int64, ("O", 2), "(tx, ty) of every OccupancyMapProduct tile, ascending"
+    )
     occupancy_voxels: np.ndarray = array(np.int64, ("O",), "voxels in that tile")
 
     @classmethod
-    def of(cls, tile_m: float, static_voxel_size_m: float, occupancy_voxel_size_m: float,
-           static: list[tuple[tuple[int, int], int]], occupancy: list[tuple[tuple[int, int], int]]) -> "MapTiles":
+    def of(
+        cls,
+        tile_m: float,
+        static_voxel_size_m: float,
+        occupancy_voxel_size_m: float,
+        static: list[tuple[tuple[int, int], int]],
+        occupancy: list[tuple[tuple[int, int], int]],
+    ) -> MapTiles:
         """The index of (tile, voxels) lists (any order; tiles of no voxel are left out)."""
         s, o = sorted(t for t in static if t[1]), sorted(t for t in occupancy if t[1])
-        return cls(np.array(tile_m, np.float64), np.array(static_voxel_size_m, np.float64),
-                   np.array(occupancy_voxel_size_m, np.float64), np.array([t for t, _ in s], np.int64).reshape(-1, 2),
-                   np.array([n for _, n in s], np.int64), np.array([t for t, _ in o], np.int64).reshape(-1, 2),
-                   np.array([n for _, n in o], np.int64))
+        return cls(
+            np.array(tile_m, np.float64),
+            np.array(static_voxel_size_m, np.float64),
+            np.array(occupancy_voxel_size_m, np.float64),
+            np.array([t for t, _ in s], np.int64).reshape(-1, 2),
+            np.array([n for _, n in s], np.int64),
+            np.array([t for t, _ in o], np.int64).reshape(-1, 2),
+            np.array([n for _, n in o], np.int64),
+        )
 
     def has(self, kind: str, tile) -> bool:
         tiles = self.static_tiles if kind == "static" else self.occupancy_tiles
@@ -302,11 +360,14 @@ class KeepMasks(Product):
         return f"keep_{int(window)}"
 
     @classmethod
-    def of(cls, frames: list[int], masks: list[np.ndarray]) -> "KeepMasks":
+    def of(cls, frames: list[int], masks: list[np.ndarray]) -> KeepMasks:
         sizes = [len(m) for m in masks]
         bits = np.concatenate(masks).astype(bool) if masks else np.zeros(0, bool)
-        return cls(np.asarray(frames, np.int64).reshape(-1), np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
-                   np.packbits(bits))
+        return cls(
+            np.asarray(frames, np.int64).reshape(-1),
+            np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
+            np.packbits(bits),
+        )
 
     def mask(self, row: int) -> np.ndarray:
         a, b = int(self.offsets[row]), int(self.offsets[row + 1])
@@ -337,14 +398,24 @@ class FusedFrames(Product):
     NAME: ClassVar[str] = "frames"
     frame: np.ndarray = array(np.int64, ("F",), "raw frame number")
     stamp_ns: np.ndarray = array(np.int64, ("F",), "Unix time of the sweep, ns")
-    class_counts: np.ndarray = array(np.int64, ("F", 10), "voxels per class id among voxels with mask_lidar = 1")
+    class_counts: np.ndarray = array(
+        np.int64, ("F", 10), "voxels per class id among voxels with mask_lidar = 1"
+    )
     T_world_from_base: np.ndarray = array(np.float64, ("F", 4, 4), "robot pose, m")
 
 
 #: every product type, for the schema documentation test
-PRODUCTS: tuple[type[Product], ...] = (Detections, Tracks, Bodies, StaticMapProduct,
-                                       OccupancyMapProduct, MapTiles, KeepMasks, WindowVotesProduct,
-                                       FusedFrames)
+PRODUCTS: tuple[type[Product], ...] = (
+    Detections,
+    Tracks,
+    Bodies,
+    StaticMapProduct,
+    OccupancyMapProduct,
+    MapTiles,
+    KeepMasks,
+    WindowVotesProduct,
+    FusedFrames,
+)
 
 
 def masks_to_labels(masks: np.ndarray) -> np.ndarray:

@@ -92,7 +92,10 @@ def publish_sequence(staged: StagedSequence, keep_old_versions: bool = False) ->
     for staged_file in sorted(staged.tables_dir.glob("*.parquet")):
         publish_partition(staged.root, staged_file.stem, staged.sequence, staged_file)
     if target.exists():
-        atomic_write_bytes(seq_dir / CURRENT_FILE, json.dumps({"version": staged.version}, indent=1, sort_keys=True).encode())
+        atomic_write_bytes(
+            seq_dir / CURRENT_FILE,
+            json.dumps({"version": staged.version}, indent=1, sort_keys=True).encode(),
+        )
     if not keep_old_versions:
         for old in seq_dir.glob("*.zarr"):
             if old != target and target.exists():
@@ -117,8 +120,12 @@ def withdraw_sequence(root: str | os.PathLike, sequence: str, error: str, row: d
         part = partition_dir(root, name, sequence)
         had |= part.exists()
         shutil.rmtree(part, ignore_errors=True)
-    write_partition(root, "sequences", sequence, [{**row, "status": "failed", "error": error, "num_frames": 0,
-                                                   "occupancy_version": None}])
+    write_partition(
+        root,
+        "sequences",
+        sequence,
+        [{**row, "status": "failed", "error": error, "num_frames": 0, "occupancy_version": None}],
+    )
     return had
 
 
@@ -126,7 +133,9 @@ def discard(staged: StagedSequence | str | os.PathLike) -> None:
     """Remove a staging directory (a failed or abandoned write); published data is untouched."""
     path = staged.staging_dir if isinstance(staged, StagedSequence) else Path(staged)
     if not path.name.startswith(TMP_PREFIX):
-        raise StoreError(f"discard: {path} is not a staging directory (name must start {TMP_PREFIX!r})")
+        raise StoreError(
+            f"discard: {path} is not a staging directory (name must start {TMP_PREFIX!r})"
+        )
     shutil.rmtree(path, ignore_errors=True)
 
 
@@ -139,7 +148,9 @@ def discard_stale(root: str | os.PathLike) -> list[Path]:
 
 
 @contextlib.contextmanager
-def sequence_writer(root: str | os.PathLike, sequence: str, version: str) -> Iterator[StagedSequence]:
+def sequence_writer(
+    root: str | os.PathLike, sequence: str, version: str
+) -> Iterator[StagedSequence]:
     """``with sequence_writer(out, seq, key) as staged: ...`` publishes on success, discards on error."""
     staged = stage_sequence(root, sequence, version)
     try:

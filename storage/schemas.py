@@ -24,11 +24,18 @@ def _f(name: str, t: pa.DataType, doc: str, nullable: bool = True) -> pa.Field:
     return pa.field(name, t, nullable=nullable, metadata={"doc": doc})
 
 
-PARTITION_FIELD = pa.field("sequence", pa.string(), nullable=False, metadata={"doc": "sequence name"})
+PARTITION_FIELD = pa.field(
+    "sequence", pa.string(), nullable=False, metadata={"doc": "sequence name"}
+)
 
 FRAMES = pa.schema(
     [
-        _f("frame", pa.int32(), "frame index within the sequence (0..F-1), the zarr frame axis", False),
+        _f(
+            "frame",
+            pa.int32(),
+            "frame index within the sequence (0..F-1), the zarr frame axis",
+            False,
+        ),
         _f("raw_frame", pa.int32(), "CODa frame number (before the 5 Hz stride)", False),
         _f("stamp_ns", pa.int64(), "Unix time of the LiDAR sweep, integer ns", False),
         _f("T_world_from_lidar", _vec(16), "4x4 float64 row-major, m"),
@@ -47,7 +54,12 @@ FRAMES = pa.schema(
 
 INSTANCES = pa.schema(
     [
-        _f("track_id", pa.int32(), "pedestrian track id (the per-voxel id in zarr `instances`)", False),
+        _f(
+            "track_id",
+            pa.int32(),
+            "pedestrian track id (the per-voxel id in zarr `instances`)",
+            False,
+        ),
         _f("frame", pa.int32(), "frame index within the sequence", False),
         _f("box2d_xyxy", _vec(4, pa.float32()), "cam0 box x0 y0 x1 y1, pixels"),
         _f("box3d_center", _vec(3), "box centre, base frame, m"),

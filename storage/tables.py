@@ -25,7 +25,9 @@ from storage.schemas import PARTITION_FIELD, TABLE_NAMES, dataset_schema, file_s
 PARTITION_FILE = "data.parquet"
 
 
-def to_table(name: str, data: pa.Table | Mapping[str, Any] | Sequence[Mapping[str, Any]]) -> pa.Table:
+def to_table(
+    name: str, data: pa.Table | Mapping[str, Any] | Sequence[Mapping[str, Any]]
+) -> pa.Table:
     """Conform rows (list of dicts), columns (dict of lists / arrays) or a Table to the schema.
 
     Missing nullable columns become nulls; unknown columns, missing required ones or values of the
@@ -39,12 +41,16 @@ def to_table(name: str, data: pa.Table | Mapping[str, Any] | Sequence[Mapping[st
         columns = dict(data)
     else:
         rows = list(data)
-        keys = {k for row in rows for k in row} if rows else set(schema.names)  # no rows: empty table
+        keys = (
+            {k for row in rows for k in row} if rows else set(schema.names)
+        )  # no rows: empty table
         columns = {k: [row.get(k) for row in rows] for k in sorted(keys)}
     columns.pop("sequence", None)  # lives in the partition path
     unknown = set(columns) - set(schema.names)
     if unknown:
-        raise StoreError(f"table {name!r}: unknown columns {sorted(unknown)}, expected {schema.names}")
+        raise StoreError(
+            f"table {name!r}: unknown columns {sorted(unknown)}, expected {schema.names}"
+        )
     lengths = {k: len(v) for k, v in columns.items()}
     if len(set(lengths.values())) > 1:
         raise StoreError(f"table {name!r}: columns differ in length: {lengths}")
@@ -60,9 +66,15 @@ def to_table(name: str, data: pa.Table | Mapping[str, Any] | Sequence[Mapping[st
         if isinstance(value, np.ndarray) and value.ndim > 1:
             value = list(value.reshape(len(value), -1))
         try:
-            arrays.append(pa.array(value, type=field.type) if not isinstance(value, (pa.Array, pa.ChunkedArray)) else value.cast(field.type))
+            arrays.append(
+                pa.array(value, type=field.type)
+                if not isinstance(value, (pa.Array, pa.ChunkedArray))
+                else value.cast(field.type)
+            )
         except (pa.ArrowInvalid, pa.ArrowTypeError, TypeError, ValueError) as exc:
-            raise StoreError(f"table {name!r}: column {field.name!r} does not fit {field.type}: {exc}") from exc
+            raise StoreError(
+                f"table {name!r}: column {field.name!r} does not fit {field.type}: {exc}"
+            ) from exc
     return pa.Table.from_arrays(arrays, schema=schema)
 
 
@@ -78,7 +90,9 @@ def partition_dir(root: str | os.PathLike, name: str, sequence: str) -> Path:
     return Path(root) / TABLES_DIR / name / f"sequence={sequence}"
 
 
-def publish_partition(root: str | os.PathLike, name: str, sequence: str, source: str | os.PathLike) -> Path:
+def publish_partition(
+    root: str | os.PathLike, name: str, sequence: str, source: str | os.PathLike
+) -> Path:
     """Move a written Parquet file onto the partition ``name/sequence=<seq>`` atomically."""
     part = partition_dir(root, name, sequence)
     part.mkdir(parents=True, exist_ok=True)
@@ -103,8 +117,9 @@ def write_partition(root: str | os.PathLike, name: str, sequence: str, data: Any
     return part / PARTITION_FILE
 
 
-
-def read_table(root: str | os.PathLike, name: str, sequence: str | Sequence[str] | None = None) -> pa.Table:
+def read_table(
+    root: str | os.PathLike, name: str, sequence: str | Sequence[str] | None = None
+) -> pa.Table:
     """The table ``name`` (all sequences or the given ones) with the latest schema.
 
     Sorted by sequence then by the table's natural key (frame / track_id, frame).
@@ -134,7 +149,5 @@ def list_partitions(root: str | os.PathLike, name: str) -> list[str]:
     if not base.is_dir():
         return []
     return sorted(
-        p.name.split("=", 1)[1]
-        for p in base.glob("sequence=*")
-        if (p / PARTITION_FILE).is_file()
+        p.name.split("=", 1)[1] for p in base.glob("sequence=*") if (p / PARTITION_FILE).is_file()
     )

@@ -174,11 +174,45 @@ SMPL_JOINT_NAMES: tuple[str, ...] = (
     "right_hand",
 )
 SMPL_PARENTS: tuple[int, ...] = (
-    -1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21,
+    -1,
+    0,
+    0,
+    0,
+    1,
+    2,
+    3,
+    4,
+    5,
+    6,
+    7,
+    8,
+    9,
+    9,
+    9,
+    12,
+    13,
+    14,
+    16,
+    17,
+    18,
+    19,
+    20,
+    21,
 )
 #: COCO-17 index -> SMPL joint index for the body keypoints that correspond directly.
 COCO_TO_SMPL_JOINT: dict[int, int] = {
-    5: 16, 6: 17, 7: 18, 8: 19, 9: 20, 10: 21, 11: 1, 12: 2, 13: 4, 14: 5, 15: 7, 16: 8,
+    5: 16,
+    6: 17,
+    7: 18,
+    8: 19,
+    9: 20,
+    10: 21,
+    11: 1,
+    12: 2,
+    13: 4,
+    14: 5,
+    15: 7,
+    16: 8,
 }
 #: COCO-17 face keypoints given by SMPL vertex ids (official SMPL topology).
 COCO_TO_SMPL_VERTEX: dict[int, int] = {0: 332, 1: 2800, 2: 6260, 3: 583, 4: 4071}

@@ -23,14 +23,29 @@ def instance_colors(ids: np.ndarray) -> np.ndarray:
     x = 1.0 - np.abs(hue % 2.0 - 1.0)
     one, zero = np.ones_like(hue), np.zeros_like(hue)
     sector = hue.astype(np.int64) % 6
-    rgb = np.select([sector[:, None] == k for k in range(6)], [
-        np.stack(c, axis=1) for c in ((one, x, zero), (x, one, zero), (zero, one, x), (zero, x, one),
-                                      (x, zero, one), (one, zero, x))])
+    rgb = np.select(
+        [sector[:, None] == k for k in range(6)],
+        [
+            np.stack(c, axis=1)
+            for c in (
+                (one, x, zero),
+                (x, one, zero),
+                (zero, one, x),
+                (zero, x, one),
+                (x, zero, one),
+                (one, zero, x),
+            )
+        ],
+    )
     return (255 * rgb * level[:, None]).astype(np.uint8)
 
 
-def bev_image(occupancy: np.ndarray, instance: np.ndarray | None = None,
-              visible: np.ndarray | None = None, scale: int = 8) -> np.ndarray:
+def bev_image(
+    occupancy: np.ndarray,
+    instance: np.ndarray | None = None,
+    visible: np.ndarray | None = None,
+    scale: int = 8,
+) -> np.ndarray:
     """Top-down view of a semantic grid.
 
     occupancy (X, Y, Z) uint8 class ids (9 free); instance (X, Y, Z) uint16 pedestrian ids or
@@ -72,8 +87,14 @@ def depth_colors(depth: np.ndarray, max_depth: float = 30.0) -> np.ndarray:
     return (255 * np.stack([r, g, b], axis=1)).astype(np.uint8)
 
 
-def draw_points(image: np.ndarray, points_lidar: np.ndarray, K: np.ndarray, T_cam_from_lidar: np.ndarray,
-                max_depth: float = 30.0, radius: int = 1) -> np.ndarray:
+def draw_points(
+    image: np.ndarray,
+    points_lidar: np.ndarray,
+    K: np.ndarray,
+    T_cam_from_lidar: np.ndarray,
+    max_depth: float = 30.0,
+    radius: int = 1,
+) -> np.ndarray:
     """Project LiDAR points onto an image, coloured by camera depth.
 
     image (H, W, 3) uint8; points_lidar (N, 3) float32 m (zeros = no return, skipped); K (3, 3);
@@ -114,6 +135,6 @@ def side_by_side(images: list[np.ndarray], height: int, gap: int = 8) -> np.ndar
     out = np.full((height, width, 3), 255, dtype=np.uint8)
     x = 0
     for p in parts:
-        out[:, x: x + p.shape[1]] = p
+        out[:, x : x + p.shape[1]] = p
         x += p.shape[1] + gap
     return out

@@ -21,7 +21,9 @@ def _slowed(stage: str, run, control: Path):
         if switch.exists():
             cfg = json.loads(switch.read_text())
             if cfg["stage"] == stage:
-                marker = control / f"started-{stage}-{ctx.sequence}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+                marker = (
+                    control / f"started-{stage}-{ctx.sequence}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+                )
                 marker.write_text(str(os.getpid()))
                 time.sleep(float(cfg["seconds"]))
         return run(ctx)

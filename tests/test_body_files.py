@@ -22,7 +22,32 @@ from storage.body_files import (
 
 def _tiny_params(rng: np.random.Generator, V: int = 30) -> dict[str, np.ndarray]:
     kt = np.zeros((2, 24), dtype=np.int64)
-    kt[0] = [2**32 - 1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21]
+    kt[0] = [
+        2**32 - 1,
+        0,
+        0,
+        0,
+        1,
+        2,
+        3,
+        4,
+        5,
+        6,
+        7,
+        8,
+        9,
+        9,
+        9,
+        12,
+        13,
+        14,
+        16,
+        17,
+        18,
+        19,
+        20,
+        21,
+    ]
     kt[1] = np.arange(24)
     w = rng.random((V, 24))
     reg = rng.random((24, V)) * (rng.random((24, V)) < 0.2)
@@ -146,7 +171,9 @@ def test_pose_prior_round_trip(tmp_path):
     with open(path, "rb") as fh:  # plain pickle sees the documented layout
         assert sorted(pickle.load(fh)) == ["covars", "means", "weights"]
     bad = tmp_path / "bad.pkl"
-    bad.write_bytes(pickle.dumps({"means": prior["means"], "weights": prior["weights"]}, protocol=2))
+    bad.write_bytes(
+        pickle.dumps({"means": prior["means"], "weights": prior["weights"]}, protocol=2)
+    )
     with pytest.raises(BodyFileError, match="covars"):
         load_pose_prior(bad)
 
@@ -199,15 +226,24 @@ def test_smplx_poses_our_bodies_like_our_model(tmp_path):
     params = default_body_params()
     path = tmp_path / "procedural_smpl.pkl"
     save_body_model_pkl(path, params)
-    model = smplx.SMPL(model_path=str(path), vertex_ids=smplx_vertex_ids(params), use_hands=False,
-                       use_feet_keypoints=False, dtype=torch.float64)
+    model = smplx.SMPL(
+        model_path=str(path),
+        vertex_ids=smplx_vertex_ids(params),
+        use_hands=False,
+        use_feet_keypoints=False,
+        dtype=torch.float64,
+    )
     rng = np.random.default_rng(0)
-    betas, go, pose, transl = (torch.as_tensor(rng.normal(0, s, (2, n))) for s, n in
-                               ((0.8, 10), (0.5, 3), (0.2, 69), (1.0, 3)))
+    betas, go, pose, transl = (
+        torch.as_tensor(rng.normal(0, s, (2, n)))
+        for s, n in ((0.8, 10), (0.5, 3), (0.2, 69), (1.0, 3))
+    )
     out = model(betas=betas, global_orient=go, body_pose=pose, transl=transl)
     ours = BodyModel(params).double()(betas, go, pose, transl)
     assert out.vertices.shape == (2, 6470, 3)
     np.testing.assert_allclose(out.vertices.detach().numpy(), ours.vertices.numpy(), atol=1e-9)
     np.testing.assert_allclose(out.joints[:, :24].detach().numpy(), ours.joints.numpy(), atol=1e-9)
-    np.testing.assert_array_equal(out.joints[:, 24:29].detach().numpy(),
-                                  out.vertices[:, params["coco_vertex_ids"][[0, 2, 1, 4, 3]]].detach().numpy())
+    np.testing.assert_array_equal(
+        out.joints[:, 24:29].detach().numpy(),
+        out.vertices[:, params["coco_vertex_ids"][[0, 2, 1, 4, 3]]].detach().numpy(),
+    )

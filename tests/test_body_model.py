@@ -35,10 +35,14 @@ def _edges(faces):
 
 def test_axis_angle_round_trip_and_orthonormal():
     g = torch.Generator().manual_seed(0)
-    axis = torch.nn.functional.normalize(torch.randn(500, 3, generator=g, dtype=torch.float64), dim=1)
+    axis = torch.nn.functional.normalize(
+        torch.randn(500, 3, generator=g, dtype=torch.float64), dim=1
+    )
     angle = torch.rand(500, 1, generator=g, dtype=torch.float64) * (math.pi - 1e-3)
     aa = axis * angle
-    aa[:5] = torch.tensor([[0.0, 0, 0], [1e-9, 0, 0], [0, 1e-5, 0], [0, 0, 3e-4], [1e-3, -2e-3, 5e-4]])
+    aa[:5] = torch.tensor(
+        [[0.0, 0, 0], [1e-9, 0, 0], [0, 1e-5, 0], [0, 0, 3e-4], [1e-3, -2e-3, 5e-4]]
+    )
     R = axis_angle_to_matrix(aa)
     eye = torch.eye(3, dtype=torch.float64)
     assert torch.allclose(R @ R.transpose(-1, -2), eye.expand_as(R), atol=1e-12)
@@ -138,10 +142,14 @@ def test_skinning_weights_and_regressor(params):
 
 def test_zero_pose_reproduces_template_plus_shape(params, model64):
     B = 2
-    betas = torch.tensor([[0.0] * 10, [1.0, -0.5, 0.3, 0, 0.2, 0, 0, 0, 0, 0.7]], dtype=torch.float64)
+    betas = torch.tensor(
+        [[0.0] * 10, [1.0, -0.5, 0.3, 0, 0.2, 0, 0, 0, 0, 0.7]], dtype=torch.float64
+    )
     zero = torch.zeros(B, 3, dtype=torch.float64)
     out = model64(betas, zero, torch.zeros(B, 69, dtype=torch.float64), zero)
-    expected = params["v_template"][None] + np.einsum("bl,vcl->bvc", betas.numpy(), params["shapedirs"])
+    expected = params["v_template"][None] + np.einsum(
+        "bl,vcl->bvc", betas.numpy(), params["shapedirs"]
+    )
     np.testing.assert_allclose(out.vertices.numpy(), expected, atol=1e-9)
     J = np.einsum("jv,bvc->bjc", params["J_regressor"], expected)
     np.testing.assert_allclose(out.joints.numpy(), J, atol=1e-9)
@@ -196,7 +204,9 @@ def test_global_rigid_motion_is_rigid(model64):
     R2 = axis_angle_to_matrix(torch.tensor([0.1, 0.7, -0.2], dtype=torch.float64))
     t2 = torch.tensor([3.0, -1.0, 0.25], dtype=torch.float64)
     new_R, new_t = rigid_transform_params(R, t, J0, R2, t2)
-    again = model64(betas, new_R, axis_angle_to_matrix(pose.reshape(B, 23, 3)), new_t, pose2rot=False)
+    again = model64(
+        betas, new_R, axis_angle_to_matrix(pose.reshape(B, 23, 3)), new_t, pose2rot=False
+    )
     torch.testing.assert_close(again.vertices, moved.vertices @ R2.T + t2)
 
 

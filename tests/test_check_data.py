@@ -21,7 +21,7 @@ def _row(text: str, seq: str) -> str:
     """The table row of a sequence (the lines between the header's dashes and the blank line)."""
     lines = text.splitlines()
     start = next(i for i, line in enumerate(lines) if line.startswith("---"))
-    table = lines[start + 1: lines.index("", start)]
+    table = lines[start + 1 : lines.index("", start)]
     return next(line for line in table if line.split()[0] == seq)
 
 
@@ -36,7 +36,9 @@ def test_good_download_is_ready(tmp_path, capsys):
         assert "5ch" in row and "1224x1024 f731 b0.198 R,P" in row and "rows 0.00px" in row
         assert "ground +0.00m" in row and "ns, <= 99.9 ms" in row and "ok (3 read)" in row
         assert row.endswith("OK") and "day (metadata)" in row
-    assert "2 sequence(s): ready to run" in text and "BLOCKING" not in text and "warning" not in text
+    assert (
+        "2 sequence(s): ready to run" in text and "BLOCKING" not in text and "warning" not in text
+    )
     assert main(["check-data", "--data", str(tmp_path)]) == 0
     assert "ready to run" in capsys.readouterr().out
 
@@ -52,12 +54,19 @@ def test_damaged_download_is_blocked(tmp_path):
     code, text = _check(tmp_path)
     assert code == 1 and _row(text, "0").endswith("BLOCKED")
     # the reader could not open sequence 0: its calibration is gone; say which file
-    assert "0: BLOCKING: cannot be read:" in text and "calib_cam0_intrinsics.yaml: calibration file is missing" in text
+    assert (
+        "0: BLOCKING: cannot be read:" in text
+        and "calib_cam0_intrinsics.yaml: calibration file is missing" in text
+    )
     (tmp_path / "calibrations/0/calib_cam0_intrinsics.yaml").write_text(
-        (tmp_path / "calibrations/1/calib_cam0_intrinsics.yaml").read_text())
+        (tmp_path / "calibrations/1/calib_cam0_intrinsics.yaml").read_text()
+    )
     code, text = _check(tmp_path)
     assert code == 1
-    assert "0: BLOCKING: 3d_comp sweep truncated or not an OS1-128 sweep: 3d_comp_os1_0_2.bin: 5000 bytes (frame 2)" in text
+    assert (
+        "0: BLOCKING: 3d_comp sweep truncated or not an OS1-128 sweep: 3d_comp_os1_0_2.bin: 5000 bytes (frame 2)"
+        in text
+    )
     assert "0: BLOCKING: 2d_rect cam1: 1 of 4 selected frames have no file (first: frame 4)" in text
     assert "2 bad" in _row(text, "0")
     # sequence 1 runs (warnings only): zero intensity and the default base calibration said
@@ -71,7 +80,9 @@ def test_damaged_download_is_blocked(tmp_path):
 
 def test_deep_reads_every_file(tmp_path):
     make_coda(tmp_path, seq=0, frames=10, image_size=SIZE)
-    path = tmp_path / "3d_comp/os1/0/3d_comp_os1_0_2.bin"  # not among the 3 sampled sweeps (0, 4, 8)
+    path = (
+        tmp_path / "3d_comp/os1/0/3d_comp_os1_0_2.bin"
+    )  # not among the 3 sampled sweeps (0, 4, 8)
     raw = np.fromfile(path, np.float32).reshape(POINTS, 5)
     raw[5, 0] = np.nan
     raw.tofile(path)
@@ -100,16 +111,22 @@ def test_wrong_lidar_source_names_the_fix(tmp_path, lidar):
 
 def test_reader_warnings_reach_the_run_summary(tmp_path):
     # a missing calib_os1_to_base.yaml is allowed (dataset.lidar_height_m) but said after the run
-    from flows.pipeline.run import RunReport, summary_table
     from flows.pipeline.plan import plan_run
+    from flows.pipeline.run import RunReport, summary_table
     from storage.manifest import FileHasher, Manifest
 
     make_coda(tmp_path / "data", seq=0, frames=2, base_file=False)
-    cfg = load_config(overrides={"dataset.root": str(tmp_path / "data"), "output.root": str(tmp_path / "out")})
+    cfg = load_config(
+        overrides={"dataset.root": str(tmp_path / "data"), "output.root": str(tmp_path / "out")}
+    )
     plans = plan_run(cfg, Manifest.load(tmp_path / "out"), FileHasher(None))
     assert not plans[0].error and len(plans[0].warnings) == 1
     text = summary_table(RunReport(tmp_path / "out", plans))
-    assert "WARNING 0: " in text and "calib_os1_to_base.yaml is missing" in text and "0.9 m above the ground" in text
+    assert (
+        "WARNING 0: " in text
+        and "calib_os1_to_base.yaml is missing" in text
+        and "0.9 m above the ground" in text
+    )
 
 
 def test_config_lighting_per_sequence_overrides_the_metadata(tmp_path):

@@ -22,9 +22,19 @@ def _estimates(n=3, seed=0):
     transl = np.stack([rng.uniform(-1, 1, n), rng.uniform(-0.5, 0.5, n), rng.uniform(3, 12, n)], 1)
     center = rng.uniform(200, 1500, (n, 2))
     size = rng.uniform(100, 400, n)
-    return dict(frame=np.arange(n) // 2, det_index=np.arange(n) % 2, rotmats=rot,
-                betas=rng.normal(size=(n, 10)), cam_crop=params_to_cliff_camera(transl, center, size, K),
-                bbox_center=center, bbox_size=size), aa, transl
+    return (
+        dict(
+            frame=np.arange(n) // 2,
+            det_index=np.arange(n) % 2,
+            rotmats=rot,
+            betas=rng.normal(size=(n, 10)),
+            cam_crop=params_to_cliff_camera(transl, center, size, K),
+            bbox_center=center,
+            bbox_size=size,
+        ),
+        aa,
+        transl,
+    )
 
 
 def test_round_trip_crop_camera_and_transl_rows(tmp_path):
@@ -43,8 +53,16 @@ def test_round_trip_crop_camera_and_transl_rows(tmp_path):
     assert got["frame"].tolist() == [0, 0, 1, 1] and got["det_index"].tolist() == [0, 1, 0, 1]
     assert got["has_transl"].tolist() == [False, True, False, True]
     np.testing.assert_allclose(got["rotmats"], est["rotmats"], atol=1e-6)
-    p = cliff_to_params(got["rotmats"], got["betas"], got["cam_crop"], got["bbox_center"], got["bbox_size"],
-                        K, got["transl"], got["has_transl"])
+    p = cliff_to_params(
+        got["rotmats"],
+        got["betas"],
+        got["cam_crop"],
+        got["bbox_center"],
+        got["bbox_size"],
+        K,
+        got["transl"],
+        got["has_transl"],
+    )
     # both placements land on the same translations (float32 storage)
     np.testing.assert_allclose(p.transl, transl, rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(p.global_orient, aa[:, 0], atol=1e-4)
@@ -54,15 +72,21 @@ def test_round_trip_crop_camera_and_transl_rows(tmp_path):
 def _write_table(path, est, **changes):
     n = len(est["frame"])
     cols = {
-        "frame": est["frame"].tolist(), "det_index": est["det_index"].tolist(),
-        "rotmats": est["rotmats"].reshape(n, 216).tolist(), "betas": est["betas"].tolist(),
-        "cam_crop": est["cam_crop"].tolist(), "bbox_center": est["bbox_center"].tolist(),
-        "bbox_size": est["bbox_size"].tolist(), "transl": [None] * n,
+        "frame": est["frame"].tolist(),
+        "det_index": est["det_index"].tolist(),
+        "rotmats": est["rotmats"].reshape(n, 216).tolist(),
+        "betas": est["betas"].tolist(),
+        "cam_crop": est["cam_crop"].tolist(),
+        "bbox_center": est["bbox_center"].tolist(),
+        "bbox_size": est["bbox_size"].tolist(),
+        "transl": [None] * n,
     }
     for key, (row, value) in changes.items():
         cols[key][row] = value
     types = {"frame": pa.int64(), "det_index": pa.int64(), "bbox_size": pa.float32()}
-    table = pa.table({k: pa.array(v, type=types.get(k, pa.list_(pa.float32()))) for k, v in cols.items()})
+    table = pa.table(
+        {k: pa.array(v, type=types.get(k, pa.list_(pa.float32()))) for k, v in cols.items()}
+    )
     pq.write_table(table, path)
     return path
 
@@ -73,17 +97,20 @@ def _bad_rotation():
     return R
 
 
-@pytest.mark.parametrize("changes, message", [
-    ({"rotmats": (1, [0.0] * 215)}, "rotmats must hold 216 numbers"),
-    ({"betas": (2, [0.0] * 9)}, "betas must hold 10 numbers"),
-    ({"betas": (1, [float("nan")] + [0.0] * 9)}, "betas has NaN/inf"),
-    ({"cam_crop": (0, [0.5, float("inf"), 0.0])}, "cam_crop has NaN/inf"),
-    ({"cam_crop": (0, [-0.5, 0.0, 0.0])}, "must be > 0"),
-    ({"cam_crop": (2, None)}, "needs transl, or all of"),
-    ({"transl": (1, [0.0, 0.0, 5.0])}, "both transl and crop-camera"),
-    ({"det_index": (1, 0), "frame": (1, 0)}, "duplicate of row 0"),
-    ({"det_index": (2, -1)}, "det_index >= 0"),
-])
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        ({"rotmats": (1, [0.0] * 215)}, "rotmats must hold 216 numbers"),
+        ({"betas": (2, [0.0] * 9)}, "betas must hold 10 numbers"),
+        ({"betas": (1, [float("nan")] + [0.0] * 9)}, "betas has NaN/inf"),
+        ({"cam_crop": (0, [0.5, float("inf"), 0.0])}, "cam_crop has NaN/inf"),
+        ({"cam_crop": (0, [-0.5, 0.0, 0.0])}, "must be > 0"),
+        ({"cam_crop": (2, None)}, "needs transl, or all of"),
+        ({"transl": (1, [0.0, 0.0, 5.0])}, "both transl and crop-camera"),
+        ({"det_index": (1, 0), "frame": (1, 0)}, "duplicate of row 0"),
+        ({"det_index": (2, -1)}, "det_index >= 0"),
+    ],
+)
 def test_bad_file_errors_name_file_row_and_value(tmp_path, changes, message):
     est, _, _ = _estimates(3)
     path = _write_table(tmp_path / "cliff.parquet", est, **changes)
@@ -100,7 +127,9 @@ def test_non_rotation_and_reflection_are_rejected(tmp_path):
         rot = est["rotmats"].copy()
         rot[2, 5] = R
         path = _write_table(tmp_path / "cliff.parquet", {**est, "rotmats": rot})
-        with pytest.raises(CliffFileError, match=r"row 2 \(frame 1, det_index 0\): rotmats\[5\] is not a rotation") as err:
+        with pytest.raises(
+            CliffFileError, match=r"row 2 \(frame 1, det_index 0\): rotmats\[5\] is not a rotation"
+        ) as err:
             read_cliff_estimates(path)
         assert what in str(err.value)
 
@@ -117,10 +146,26 @@ def test_missing_file_column_and_unreadable_file(tmp_path):
 
 
 def test_empty_file_is_normal(tmp_path):
-    path = write_cliff_estimates(tmp_path / "cliff.parquet", np.zeros(0), np.zeros(0), np.zeros((0, 24, 3, 3)),
-                                 np.zeros((0, 10)), np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0))
+    path = write_cliff_estimates(
+        tmp_path / "cliff.parquet",
+        np.zeros(0),
+        np.zeros(0),
+        np.zeros((0, 24, 3, 3)),
+        np.zeros((0, 10)),
+        np.zeros((0, 3)),
+        np.zeros((0, 2)),
+        np.zeros(0),
+    )
     got = read_cliff_estimates(path)
     assert got["rotmats"].shape == (0, 24, 3, 3) and got["betas"].shape == (0, 10)
-    p = cliff_to_params(got["rotmats"], got["betas"], got["cam_crop"], got["bbox_center"], got["bbox_size"], K,
-                        got["transl"], got["has_transl"])
+    p = cliff_to_params(
+        got["rotmats"],
+        got["betas"],
+        got["cam_crop"],
+        got["bbox_center"],
+        got["bbox_size"],
+        K,
+        got["transl"],
+        got["has_transl"],
+    )
     assert len(p) == 0

@@ -18,13 +18,25 @@ from tasks.metrics.coda_labels import (
 def test_semantic_table():
     # coda-devkit helpers/constants.py: 25 terrain ids, 0 Unlabeled .. 24 Unknown
     assert len(CODA_SEMANTIC_NAMES) == 25
-    assert (CODA_SEMANTIC_IDS["Concrete"], CODA_SEMANTIC_IDS["Road Pavement"], CODA_SEMANTIC_IDS["Short Vegetation"],
-            CODA_SEMANTIC_IDS["Unknown"]) == (1, 10, 11, 24)
+    assert (
+        CODA_SEMANTIC_IDS["Concrete"],
+        CODA_SEMANTIC_IDS["Road Pavement"],
+        CODA_SEMANTIC_IDS["Short Vegetation"],
+        CODA_SEMANTIC_IDS["Unknown"],
+    ) == (1, 10, 11, 24)
     ids = np.arange(256, dtype=np.uint8)
     got = semantic_to_classes(ids)
     assert got[0] == got[24] == C.UNLABELED and np.all(got[25:] == C.UNLABELED)
-    assert got[1] == got[10] == got[18] == C.ROAD and got[2] == got[9] == C.TERRAIN and got[11] == C.VEGETATION
-    assert set(got[1:24].tolist()) == {C.ROAD, C.TERRAIN, C.VEGETATION}  # every terrain id has a class
+    assert (
+        got[1] == got[10] == got[18] == C.ROAD
+        and got[2] == got[9] == C.TERRAIN
+        and got[11] == C.VEGETATION
+    )
+    assert set(got[1:24].tolist()) == {
+        C.ROAD,
+        C.TERRAIN,
+        C.VEGETATION,
+    }  # every terrain id has a class
 
 
 def test_box_table():
@@ -38,10 +50,14 @@ def test_box_table():
 def test_points_in_boxes_rotated_with_bottom_slab():
     yaw = np.pi / 2
     R = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
-    pts = np.array([[5.0, 0.9, 0.0],    # inside: l = 2 lies along y after the 90 deg yaw
-                    [5.9, 0.0, 0.0],    # outside: w = 0.5 along x
-                    [5.0, 0.0, -0.85],  # in the bottom 0.1 m (box z -0.9 .. 0.9): left out
-                    [5.0, 0.0, -0.75]])  # above the slab
+    pts = np.array(
+        [
+            [5.0, 0.9, 0.0],  # inside: l = 2 lies along y after the 90 deg yaw
+            [5.9, 0.0, 0.0],  # outside: w = 0.5 along x
+            [5.0, 0.0, -0.85],  # in the bottom 0.1 m (box z -0.9 .. 0.9): left out
+            [5.0, 0.0, -0.75],
+        ]
+    )  # above the slab
     inside = points_in_boxes(pts, [[5.0, 0.0, 0.0]], [[2.0, 0.5, 1.8]], [R], bottom_exclude_m=0.1)
     assert inside.tolist() == [True, False, False, True]
     assert points_in_boxes(pts, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3))).sum() == 0

@@ -39,11 +39,18 @@ def test_reads_frames_at_5hz(tmp_path):
     assert frame.points_lidar.dtype == np.float32 and frame.points_lidar.shape == (2000, 3)
     assert frame.stamp_ns == seq.info.stamps_ns[1] == round((1.6e9 + 0.2) * 1e9)
     np.testing.assert_allclose(frame.T_world_from_lidar[:3, 3], [0.2, 0, 0])
-    assert frame.boxes[0].track_id == 3 and frame.boxes[0].occlusion == "Light" and frame.box_problems == ()
+    assert (
+        frame.boxes[0].track_id == 3
+        and frame.boxes[0].occlusion == "Light"
+        and frame.box_problems == ()
+    )
     assert frame.semantic_labels is not None and frame.semantic_labels.shape == (2000,)
     assert frame.intensity_present
     assert seq.info.calibration.cam0.width == 1224
-    assert seq.info.calibration.T_base_from_lidar[2, 3] == 0.9 and not seq.info.calibration.base_is_default
+    assert (
+        seq.info.calibration.T_base_from_lidar[2, 3] == 0.9
+        and not seq.info.calibration.base_is_default
+    )
     assert list_sequences(tmp_path) == ["3"]
     assert any(p.suffix == ".bin" for p in seq.info.files) and seq.info.warnings == ()
 
@@ -69,11 +76,17 @@ def test_four_channels_png_images_and_dense_pose_fallback(tmp_path):
 def test_3d_comp_is_the_default_and_3d_raw_a_choice(tmp_path):
     make_coda(tmp_path, frames=2)
     assert CodaSequence(tmp_path, 0).lidar_source == "3d_comp"
-    with pytest.raises(CodaFormatError, match=r"no 3d_raw sweeps for sequence 0; found 3d_comp/os1/0: "
-                                              r"set dataset.lidar_source: 3d_comp"):
+    with pytest.raises(
+        CodaFormatError,
+        match=r"no 3d_raw sweeps for sequence 0; found 3d_comp/os1/0: "
+        r"set dataset.lidar_source: 3d_comp",
+    ):
         CodaSequence(tmp_path, 0, lidar_source="3d_raw")
     make_coda(tmp_path / "raw", frames=2, lidar_source="3d_raw")
-    assert CodaSequence(tmp_path / "raw", 0, lidar_source="3d_raw").frame(0).points_lidar.shape[0] == 2000
+    assert (
+        CodaSequence(tmp_path / "raw", 0, lidar_source="3d_raw").frame(0).points_lidar.shape[0]
+        == 2000
+    )
 
 
 def test_split_style_sparse_frames(tmp_path):
@@ -89,10 +102,16 @@ def test_split_style_sparse_frames(tmp_path):
     np.testing.assert_allclose(frame.T_world_from_lidar[:3, 3], [2.3, 0, 0])
     assert [f.index for f in seq.frames()] == list(seq.info.frame_indices)  # every frame reads
     # the metadata lists select the same way (here: only the frames of ObjectTracking)
-    meta = {"ObjectTracking": {"training": [f"3d_bbox/os1/0/3d_bbox_os1_0_{f}.json" for f in (4, 5, 35)]}}
+    meta = {
+        "ObjectTracking": {
+            "training": [f"3d_bbox/os1/0/3d_bbox_os1_0_{f}.json" for f in (4, 5, 35)]
+        }
+    }
     make_coda(tmp_path / "m", frames=40, present=present, metadata=meta)
     by_meta = CodaSequence(tmp_path / "m", 0, frame_stride=2, frames="metadata")
-    assert by_meta.info.frame_indices == (4, 35) and by_meta.info.selection.startswith("metadata: 3")
+    assert by_meta.info.frame_indices == (4, 35) and by_meta.info.selection.startswith(
+        "metadata: 3"
+    )
 
 
 def test_stride_keeps_a_frame_every_k_raw_frames():
@@ -103,8 +122,12 @@ def test_stride_keeps_a_frame_every_k_raw_frames():
 
 def test_frames_beyond_the_timestamps_are_an_error(tmp_path):
     make_coda(tmp_path, frames=4)
-    (tmp_path / "3d_comp/os1/0/3d_comp_os1_0_0.bin").rename(tmp_path / "3d_comp/os1/0/3d_comp_os1_0_9.bin")
-    with pytest.raises(CodaFormatError, match=r"3d_comp_os1_0_9\.bin \(frame 9\): frame number beyond the 4 lines"):
+    (tmp_path / "3d_comp/os1/0/3d_comp_os1_0_0.bin").rename(
+        tmp_path / "3d_comp/os1/0/3d_comp_os1_0_9.bin"
+    )
+    with pytest.raises(
+        CodaFormatError, match=r"3d_comp_os1_0_9\.bin \(frame 9\): frame number beyond the 4 lines"
+    ):
         CodaSequence(tmp_path, 0)
 
 
@@ -115,8 +138,12 @@ def _devkit_map(cv2, K, D, R, P, size=(1224, 1024)):
 def _bilinear(m, u, v):
     u0, v0 = np.floor(u).astype(int), np.floor(v).astype(int)
     a, b = u - u0, v - v0
-    return ((1 - a) * (1 - b) * m[v0, u0] + a * (1 - b) * m[v0, u0 + 1] + (1 - a) * b * m[v0 + 1, u0]
-            + a * b * m[v0 + 1, u0 + 1])
+    return (
+        (1 - a) * (1 - b) * m[v0, u0]
+        + a * (1 - b) * m[v0, u0 + 1]
+        + (1 - a) * b * m[v0 + 1, u0]
+        + a * b * m[v0 + 1, u0 + 1]
+    )
 
 
 def _project(K, T, pts):
@@ -144,10 +171,18 @@ def test_2d_rect_projection_is_exact(tmp_path):
         mapx, mapy = _devkit_map(cv2, K_raw, D, R, P)
         uv, z = _project(cam.K, cam.T_cam_from_lidar, pts)
         ok = (z > 1) & (uv[:, 0] > 10) & (uv[:, 0] < 1200) & (uv[:, 1] > 10) & (uv[:, 1] < 1000)
-        raw_uv, _ = cv2.projectPoints(pts[ok], cv2.Rodrigues(T_raw[:3, :3])[0], T_raw[:3, 3], K_raw, D)
+        raw_uv, _ = cv2.projectPoints(
+            pts[ok], cv2.Rodrigues(T_raw[:3, :3])[0], T_raw[:3, 3], K_raw, D
+        )
         raw_uv = raw_uv.reshape(-1, 2)
-        err = np.hypot(_bilinear(mapx, *uv[ok].T) - raw_uv[:, 0], _bilinear(mapy, *uv[ok].T) - raw_uv[:, 1])
-        assert ok.sum() > 500 and np.median(err) < 0.02 and err.max() < 0.2, (name, np.median(err), err.max())
+        err = np.hypot(
+            _bilinear(mapx, *uv[ok].T) - raw_uv[:, 0], _bilinear(mapy, *uv[ok].T) - raw_uv[:, 1]
+        )
+        assert ok.sum() > 500 and np.median(err) < 0.02 and err.max() < 0.2, (
+            name,
+            np.median(err),
+            err.max(),
+        )
         # the old projection (camera_matrix, raw extrinsic) is far off on these rectified images
         old_uv, _ = _project(K_raw, T_raw, pts[ok])
         assert np.median(np.hypot(*(old_uv - uv[ok]).T)) > 5.0
@@ -160,34 +195,60 @@ def test_stereo_rows_agree_and_cam1_comes_from_cam0_to_cam1(tmp_path):
     calib = CodaSequence(tmp_path, 0).info.calibration
     st = stereo_calibration()
     np.testing.assert_allclose(calib.T_cam1_from_cam0, st["T01"], atol=1e-12)
-    np.testing.assert_allclose(calib.cameras["cam1"].raw.T_cam_from_lidar, st["cam1"][4], atol=1e-12)
+    np.testing.assert_allclose(
+        calib.cameras["cam1"].raw.T_cam_from_lidar, st["cam1"][4], atol=1e-12
+    )
     pts = np.c_[np.linspace(3, 30, 50), np.linspace(-4, 4, 50), np.linspace(-1, 2, 50)]
     v0 = _project(calib.cameras["cam0"].K, calib.cameras["cam0"].T_cam_from_lidar, pts)[0][:, 1]
     v1 = _project(calib.cameras["cam1"].K, calib.cameras["cam1"].T_cam_from_lidar, pts)[0][:, 1]
     assert np.abs(v0 - v1).max() < 1e-6  # rectified: a point sits on the same row in both images
     # an explicit os1 -> cam1 file wins over the derived one
     path = tmp_path / "calibrations/0/calib_os1_to_cam1.yaml"
-    path.write_text(yaml.safe_dump({"extrinsic_matrix": {"rows": 4, "cols": 4,
-                                                         "data": np.eye(4).reshape(-1).tolist()}}))
-    np.testing.assert_allclose(CodaSequence(tmp_path, 0).info.calibration.cameras["cam1"].raw.T_cam_from_lidar,
-                               np.eye(4))
+    path.write_text(
+        yaml.safe_dump(
+            {"extrinsic_matrix": {"rows": 4, "cols": 4, "data": np.eye(4).reshape(-1).tolist()}}
+        )
+    )
+    np.testing.assert_allclose(
+        CodaSequence(tmp_path, 0).info.calibration.cameras["cam1"].raw.T_cam_from_lidar, np.eye(4)
+    )
 
 
 def test_extrinsic_forms(tmp_path):
     rt = tmp_path / "rt.yaml"
-    rt.write_text(yaml.safe_dump({"extrinsic_matrix": {"R": {"rows": 3, "cols": 3, "data": np.eye(3).ravel().tolist()},
-                                                       "T": [0.1, 0.2, 0.3]}}))
+    rt.write_text(
+        yaml.safe_dump(
+            {
+                "extrinsic_matrix": {
+                    "R": {"rows": 3, "cols": 3, "data": np.eye(3).ravel().tolist()},
+                    "T": [0.1, 0.2, 0.3],
+                }
+            }
+        )
+    )
     T, P = read_extrinsic(rt)
     np.testing.assert_allclose(T[:3, 3], [0.1, 0.2, 0.3])
     assert P is None
     full = tmp_path / "full.yaml"
-    full.write_text(yaml.safe_dump({"extrinsic_matrix": {"rows": 4, "cols": 4, "data": T_CAM0_FROM_OS1.ravel().tolist()},
-                                    "projection_matrix": {"rows": 3, "cols": 4, "data": list(range(12))}}))
+    full.write_text(
+        yaml.safe_dump(
+            {
+                "extrinsic_matrix": {
+                    "rows": 4,
+                    "cols": 4,
+                    "data": T_CAM0_FROM_OS1.ravel().tolist(),
+                },
+                "projection_matrix": {"rows": 3, "cols": 4, "data": list(range(12))},
+            }
+        )
+    )
     T, P = read_extrinsic(full)
     assert P.shape == (3, 4) and T[0, 3] == 0.03
     bad = tmp_path / "bad.yaml"
     bad.write_text(yaml.safe_dump({"extrinsic_matrix": {"R": {"data": [1.0] * 9}, "T": [0, 0, 0]}}))
-    with pytest.raises(CodaFormatError, match=r"bad\.yaml: extrinsic_matrix rotation is not orthonormal"):
+    with pytest.raises(
+        CodaFormatError, match=r"bad\.yaml: extrinsic_matrix rotation is not orthonormal"
+    ):
         read_extrinsic(bad)
 
 
@@ -208,23 +269,30 @@ def test_2d_raw_uses_the_raw_camera_with_a_warning(tmp_path):
         CodaSequence(tmp_path, 0, frame_stride=1).frame(0)
 
 
-@pytest.mark.parametrize("config, meta, expected", [
-    (None, {"lighting": "dark"}, ("night", "metadata")),
-    (None, {"lighting": "normal"}, ("day", "metadata")),
-    (None, {}, ("day", "default")),
-    ("night", {"lighting": "normal"}, ("night", "config")),
-    ("day", {"lighting": "dark"}, ("day", "config")),
-])
+@pytest.mark.parametrize(
+    "config, meta, expected",
+    [
+        (None, {"lighting": "dark"}, ("night", "metadata")),
+        (None, {"lighting": "normal"}, ("day", "metadata")),
+        (None, {}, ("day", "default")),
+        ("night", {"lighting": "normal"}, ("night", "config")),
+        ("day", {"lighting": "dark"}, ("day", "config")),
+    ],
+)
 def test_day_night_from_config_then_metadata(tmp_path, config, meta, expected):
     make_coda(tmp_path, frames=1)
     (tmp_path / "metadata/0.json").write_text(json.dumps(meta))
     info = CodaSequence(tmp_path, 0, lighting=config).info
-    assert (info.lighting, info.lighting_source) == expected and info.is_night == (expected[0] == "night")
+    assert (info.lighting, info.lighting_source) == expected and info.is_night == (
+        expected[0] == "night"
+    )
 
 
 def test_missing_base_calibration_uses_the_default_and_warns(tmp_path):
     make_coda(tmp_path, frames=1, base_file=False)
-    with pytest.raises(CodaFormatError, match=r"calib_os1_to_base\.yaml: calibration file is missing"):
+    with pytest.raises(
+        CodaFormatError, match=r"calib_os1_to_base\.yaml: calibration file is missing"
+    ):
         CodaSequence(tmp_path, 0)  # no default given: required
     info = CodaSequence(tmp_path, 0, lidar_height_m=0.75).info
     assert info.calibration.base_is_default
@@ -237,9 +305,15 @@ def test_missing_base_calibration_uses_the_default_and_warns(tmp_path):
 
 def test_bad_boxes_are_skipped_counted_and_reported(tmp_path):
     # Regression (issue 18): one zero-size box or an empty instanceId failed the whole sequence.
-    boxes = [pedestrian_box(3), pedestrian_box(4, l=0.0), pedestrian_box(5, instanceId=""),
-             {"classId": "Car"}, pedestrian_box(6, cX=float("nan")), pedestrian_box(7, instanceId="Pedestrian:x"),
-             pedestrian_box(8)]
+    boxes = [
+        pedestrian_box(3),
+        pedestrian_box(4, l=0.0),
+        pedestrian_box(5, instanceId=""),
+        {"classId": "Car"},
+        pedestrian_box(6, cX=float("nan")),
+        pedestrian_box(7, instanceId="Pedestrian:x"),
+        pedestrian_box(8),
+    ]
     make_coda(tmp_path, frames=1, boxes=boxes)
     frame = CodaSequence(tmp_path, 0, frame_stride=1).frame(0)
     assert [b.track_id for b in frame.boxes] == [3, 8]
@@ -257,7 +331,9 @@ def test_unreadable_box_file_fails_its_frame(tmp_path):
     path = tmp_path / "3d_bbox/os1/0/3d_bbox_os1_0_0.json"
     path.write_text('{"3dbbox": [')
     seq = CodaSequence(tmp_path, 0, frame_stride=1)
-    with pytest.raises(CodaFrameError, match=r"3d_bbox_os1_0_0\.json \(frame 0\): invalid JSON") as err:
+    with pytest.raises(
+        CodaFrameError, match=r"3d_bbox_os1_0_0\.json \(frame 0\): invalid JSON"
+    ) as err:
         seq.frame(0)
     assert err.value.frame == 0 and err.value.path == path and err.value.sequence == "0"
     assert seq.frame(1).index == 1  # the other frames still read
@@ -285,7 +361,9 @@ def test_truncated_bin_is_a_frame_error(tmp_path):
     path.write_bytes(path.read_bytes()[:-100])
     seq = CodaSequence(tmp_path, 0, frame_stride=1)  # listing frames reads no sweep
     assert seq.info.frame_indices == (0, 1)
-    with pytest.raises(CodaFrameError, match=r"3d_comp_os1_0_0\.bin \(frame 0\): \d+ bytes .*truncated") as err:
+    with pytest.raises(
+        CodaFrameError, match=r"3d_comp_os1_0_0\.bin \(frame 0\): \d+ bytes .*truncated"
+    ) as err:
         seq.frame(0)
     assert (err.value.path, err.value.frame, err.value.sequence) == (path, 0, "0")
     assert seq.frame(1).index == 1
@@ -296,7 +374,9 @@ def test_bad_channel_count(tmp_path, channels):
     make_coda(tmp_path, frames=1)
     path = tmp_path / "3d_comp/os1/0/3d_comp_os1_0_0.bin"
     np.zeros((POINTS, channels), np.float32).tofile(path)
-    with pytest.raises(CodaFormatError, match=rf"{channels} channels inferred .* expected 4 .* or 5"):
+    with pytest.raises(
+        CodaFormatError, match=rf"{channels} channels inferred .* expected 4 .* or 5"
+    ):
         read_lidar_bin(path, frame=0)
 
 
@@ -307,7 +387,9 @@ def test_nan_points(tmp_path):
     raw[17, 1] = np.nan
     raw[99, 0] = np.inf
     raw.tofile(path)
-    with pytest.raises(CodaFormatError, match=r"\(frame 0\): 2 points have NaN or inf values \(first at point 17"):
+    with pytest.raises(
+        CodaFormatError, match=r"\(frame 0\): 2 points have NaN or inf values \(first at point 17"
+    ):
         CodaSequence(tmp_path, 0, frame_stride=1).frame(0)
 
 
@@ -317,7 +399,10 @@ def test_missing_calibration_key(tmp_path):
     data = yaml.safe_load(path.read_text())
     del data["camera_matrix"]
     path.write_text(yaml.safe_dump(data))
-    with pytest.raises(CodaFormatError, match=r"calib_cam0_intrinsics\.yaml: calibration key 'camera_matrix' is missing"):
+    with pytest.raises(
+        CodaFormatError,
+        match=r"calib_cam0_intrinsics\.yaml: calibration key 'camera_matrix' is missing",
+    ):
         CodaSequence(tmp_path, 0)
 
 
@@ -328,7 +413,9 @@ def test_missing_rectification_falls_back_with_a_warning(tmp_path):
     del data["rectification_matrix"], data["projection_matrix"]
     path.write_text(yaml.safe_dump(data))
     info = CodaSequence(tmp_path, 0).info
-    np.testing.assert_allclose(info.calibration.cam0.K, np.asarray(data["camera_matrix"]["data"]).reshape(3, 3))
+    np.testing.assert_allclose(
+        info.calibration.cam0.K, np.asarray(data["camera_matrix"]["data"]).reshape(3, 3)
+    )
     assert any("no rectification_matrix / projection_matrix" in w for w in info.warnings)
     assert not np.allclose(info.calibration.cam0.K, K_RECT)
 
@@ -345,7 +432,9 @@ def test_pose_lines_do_not_match_frames(tmp_path):
     make_coda(tmp_path, frames=4)
     path = tmp_path / "poses/dense_global/0.txt"
     path.write_text("".join(path.read_text().splitlines(keepends=True)[:3]))
-    with pytest.raises(CodaFormatError, match=r"0\.txt: 3 pose lines but .*timestamps/0\.txt has 4 frames"):
+    with pytest.raises(
+        CodaFormatError, match=r"0\.txt: 3 pose lines but .*timestamps/0\.txt has 4 frames"
+    ):
         CodaSequence(tmp_path, 0)
 
 
@@ -365,7 +454,9 @@ def test_non_monotonic_timestamps(tmp_path):
     stamps = path.read_text().split()
     stamps[2], stamps[3] = stamps[3], stamps[2]
     path.write_text("\n".join(stamps))
-    with pytest.raises(CodaFormatError, match=r"timestamps are not strictly increasing: line 4 .* \(frame 3\)"):
+    with pytest.raises(
+        CodaFormatError, match=r"timestamps are not strictly increasing: line 4 .* \(frame 3\)"
+    ):
         CodaSequence(tmp_path, 0)
 
 
@@ -378,5 +469,7 @@ def test_unknown_sequence(tmp_path):
 def test_missing_image(tmp_path):
     make_coda(tmp_path, frames=1)
     (tmp_path / "2d_rect/cam1/0/2d_rect_cam1_0_0.jpg").unlink()
-    with pytest.raises(CodaFrameError, match=r"2d_rect_cam1_0_0\.png \(frame 0\): image is missing"):
+    with pytest.raises(
+        CodaFrameError, match=r"2d_rect_cam1_0_0\.png \(frame 0\): image is missing"
+    ):
         CodaSequence(tmp_path, 0, frame_stride=1).frame(0)

@@ -5,10 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from pydantic import ValidationError
 
 from configs.schema import Config, ConfigError, config_hash, load_config
-from tasks.fit.weights import FIT_PRESETS
 from tasks import conventions
+from tasks.fit.weights import FIT_PRESETS
 
 CONFIGS = sorted((Path(__file__).resolve().parents[1] / "configs").glob("*.yaml"))
 
@@ -32,18 +33,29 @@ def test_paper_presets():
     assert FIT_PRESETS["humanm3"].w == -1.0 and FIT_PRESETS["3dpw"].lambda_3d == 800
     cfg = load_config(overrides={"fit.preset": "sloper4d"})
     assert cfg.fit.weights.lambda_occ == 55 and cfg.fit.weights.j_conf == 0.7
-    mine = {"rho": 50, "lambda_theta": 1, "lambda_a": 2, "lambda_beta": 3, "lambda_3d": 4,
-            "lambda_occ": 5, "w": 0.1, "j_conf": 0.5}
-    cfg = load_config(overrides={"fit.presets": {"mine": mine}, "fit.preset": "mine",
-                                 "fit.confidence_power": 1.0})
+    mine = {
+        "rho": 50,
+        "lambda_theta": 1,
+        "lambda_a": 2,
+        "lambda_beta": 3,
+        "lambda_3d": 4,
+        "lambda_occ": 5,
+        "w": 0.1,
+        "j_conf": 0.5,
+    }
+    cfg = load_config(
+        overrides={"fit.presets": {"mine": mine}, "fit.preset": "mine", "fit.confidence_power": 1.0}
+    )
     w = cfg.fit.weights
     assert (w.rho_px, w.lambda_occ, w.conf_power, w.square_lambdas) == (50, 5, 1.0, True)
 
 
 def test_misspelled_nested_key_is_reported_with_its_path(tmp_path):
     bad = tmp_path / "bad.yaml"
-    bad.write_text("extends: %s\nfuse:\n  grid:\n    voxel_sise_m: 0.1\ntrack:\n  max_age: -3\n"
-                   % (CONFIGS[0].parent / "default.yaml"))
+    bad.write_text(
+        "extends: %s\nfuse:\n  grid:\n    voxel_sise_m: 0.1\ntrack:\n  max_age: -3\n"
+        % (CONFIGS[0].parent / "default.yaml")
+    )
     with pytest.raises(ConfigError) as info:
         load_config(bad)
     paths = [p for p, _ in info.value.errors]
@@ -51,14 +63,17 @@ def test_misspelled_nested_key_is_reported_with_its_path(tmp_path):
     assert "unknown key" in str(info.value)
 
 
-@pytest.mark.parametrize("override, message", [
-    ({"fuse.grid.voxel_size_m": 0.07}, "not a multiple of voxel_size_m"),
-    ({"fit.preset": "nope"}, "preset 'nope' is not one of"),
-    ({"detect.image_provider": "precomputed"}, "precomputed_dir is required"),
-    ({"fit.init_provider": "precomputed"}, "fit.init_dir is required"),
-    ({"dataset.rate_hz": 3.0}, "must be a whole number"),
-    ({"map.cityscapes_to_class": {10: "sky"}}, "is not an occupied class"),
-])
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ({"fuse.grid.voxel_size_m": 0.07}, "not a multiple of voxel_size_m"),
+        ({"fit.preset": "nope"}, "preset 'nope' is not one of"),
+        ({"detect.image_provider": "precomputed"}, "precomputed_dir is required"),
+        ({"fit.init_provider": "precomputed"}, "fit.init_dir is required"),
+        ({"dataset.rate_hz": 3.0}, "must be a whole number"),
+        ({"map.cityscapes_to_class": {10: "sky"}}, "is not an occupied class"),
+    ],
+)
 def test_cross_field_rules(override, message):
     with pytest.raises(ConfigError, match=message):
         load_config(overrides=override)
@@ -66,14 +81,16 @@ def test_cross_field_rules(override, message):
 
 def test_frozen_and_hash_changes_with_content():
     cfg = load_config()
-    with pytest.raises(Exception):
+    with pytest.raises(ValidationError):
         cfg.fuse.grid.voxel_size_m = 0.1  # type: ignore[misc]
     assert config_hash(cfg) == config_hash(load_config())
     assert config_hash(cfg) != config_hash(load_config(overrides={"fuse.grid.voxel_size_m": 0.1}))
 
 
 def _yaml_leaves(tree, prefix=""):
-    if isinstance(tree, dict) and not prefix.endswith(("cityscapes_to_class", "presets", "lighting")):
+    if isinstance(tree, dict) and not prefix.endswith(
+        ("cityscapes_to_class", "presets", "lighting")
+    ):
         for k, v in tree.items():
             yield from _yaml_leaves(v, f"{prefix}.{k}" if prefix else str(k))
     else:
@@ -105,9 +122,14 @@ def test_kernel_sections_take_their_defaults_from_the_kernels():
     from tasks.track.offline import OfflineParams, WorldCheck
 
     cfg = load_config()
-    for section, kernel in ((cfg.detect.oracle, OracleNoise), (cfg.map, MapParams),
-                            (cfg.map.freespace, FreeSpaceParams), (cfg.track.world_check, WorldCheck),
-                            (cfg.track, OfflineParams), (cfg.fuse, FuseSettings)):
+    for section, kernel in (
+        (cfg.detect.oracle, OracleNoise),
+        (cfg.map, MapParams),
+        (cfg.map.freespace, FreeSpaceParams),
+        (cfg.track.world_check, WorldCheck),
+        (cfg.track, OfflineParams),
+        (cfg.fuse, FuseSettings),
+    ):
         assert section.to(kernel) == kernel(), kernel.__name__
         assert {f.name for f in dataclasses.fields(kernel)} <= set(type(section).model_fields)
 
@@ -118,7 +140,9 @@ def test_no_kernel_repeats_a_config_default_as_a_keyword_default():
     but a literal with a config setting's name and default value would be a third copy."""
     import ast
 
-    defaults = {(k.split(".")[-1], repr(v)) for k, v in _yaml_leaves(load_config().model_dump(mode="json"))}
+    defaults = {
+        (k.split(".")[-1], repr(v)) for k, v in _yaml_leaves(load_config().model_dump(mode="json"))
+    }
     coincidences = {  # same name and value, another setting (documented at the function)
         ("icp.py", "icp_align", "min_points"),  # ICP's own minimum correspondences
         ("oracle.py", "oracle_lidar_detections", "min_points"),  # the oracle's visibility
@@ -128,8 +152,12 @@ def test_no_kernel_repeats_a_config_default_as_a_keyword_default():
         ("blazepose.py", "weighted_nms", "iou_threshold"),  # BlazePose's own detector NMS
         ("cliff.py", "__init__", "batch_size"),  # crops per CLIFF run
         ("segmentation.py", "__init__", "input_size"),  # Mask2Former's input (None: the export's)
-        ("sensors.py", "make_rig", "lidar_height_m"),  # the simulated robot (the reader's fallback for
-                                                        # a missing calib_os1_to_base.yaml is a setting)
+        (
+            "sensors.py",
+            "make_rig",
+            "lidar_height_m",
+        ),  # the simulated robot (the reader's fallback for
+        # a missing calib_os1_to_base.yaml is a setting)
     }
     found = []
     for path in sorted((Path(__file__).resolve().parents[1] / "tasks").rglob("*.py")):
@@ -137,14 +165,19 @@ def test_no_kernel_repeats_a_config_default_as_a_keyword_default():
             if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 continue
             args = node.args.posonlyargs + node.args.args
-            pairs = list(zip(args[len(args) - len(node.args.defaults):], node.args.defaults))
-            pairs += [(a, d) for a, d in zip(node.args.kwonlyargs, node.args.kw_defaults) if d is not None]
+            pairs = list(zip(args[len(args) - len(node.args.defaults) :], node.args.defaults))
+            pairs += [
+                (a, d) for a, d in zip(node.args.kwonlyargs, node.args.kw_defaults) if d is not None
+            ]
             for arg, default in pairs:
                 try:
                     value = ast.literal_eval(default)
                 except ValueError:
                     continue  # not a literal: e.g. a dataclass attribute
-                if (arg.arg != "seed" and (arg.arg, repr(value)) in defaults
-                        and (path.name, node.name, arg.arg) not in coincidences):
+                if (
+                    arg.arg != "seed"
+                    and (arg.arg, repr(value)) in defaults
+                    and (path.name, node.name, arg.arg) not in coincidences
+                ):
                     found.append(f"{path.name}:{node.name}({arg.arg}={value!r})")
     assert not found, found

@@ -29,10 +29,18 @@ def test_report_sections_and_gt_bodies_near_perfect(built, tmp_path):
     data, out = built
     res = evaluate(out, None, tmp_path / "report", sample_frames=2)  # gt root from the manifest
     md = (tmp_path / "report" / "report.md").read_text()
-    for title in ("Semantic occupancy", "Static semantic voxels", "Pedestrian voxels (vs GT 3D boxes)",
-                  "Pedestrian voxels (vs LiDAR body GT)", "Detection robustness", "Tracking", "Pedestrian velocity (AVE)",
-                  "Pedestrian velocity (AVE) per limb group", "Notes",
-                  "Sample frames"):
+    for title in (
+        "Semantic occupancy",
+        "Static semantic voxels",
+        "Pedestrian voxels (vs GT 3D boxes)",
+        "Pedestrian voxels (vs LiDAR body GT)",
+        "Detection robustness",
+        "Tracking",
+        "Pedestrian velocity (AVE)",
+        "Pedestrian velocity (AVE) per limb group",
+        "Notes",
+        "Sample frames",
+    ):
         assert title in md, title
     saved = json.loads((tmp_path / "report" / "results.json").read_text())
     assert saved["pedestrian_lidar"]["all"] == res["pedestrian_lidar"]["all"]
@@ -102,7 +110,9 @@ def test_coda_labels_reproduce_the_synthetic_figures(built, tmp_path):
     syn = evaluate(out, None, tmp_path / "syn", sample_frames=0)
     coda = evaluate(out, None, tmp_path / "coda", labels="coda")
     assert coda["labels"]["frames"] == coda["labels"]["frames with 3d_semantic"] == 2
-    assert coda["labels"]["pedestrian boxes"] > 0 and coda["labels"]["boxes skipped (malformed)"] == 0
+    assert (
+        coda["labels"]["pedestrian boxes"] > 0 and coda["labels"]["boxes skipped (malformed)"] == 0
+    )
     assert set(coda["static"]["per_class_iou"]) == {"road", "terrain"}
     for cls in ("road", "terrain"):
         s, c = syn["static"]["per_class_iou"][cls], coda["static"]["per_class_iou"][cls]

@@ -32,7 +32,9 @@ def rz(yaw: float, t=(0.0, 0.0, 0.0)) -> np.ndarray:
 
 
 T_BASE_FROM_LIDAR = rz(0.1, (0.2, 0.0, 0.8))
-T_CAM0_FROM_LIDAR = np.array([[0, -1, 0, 0.05], [0, 0, -1, -0.1], [1, 0, 0, 0.0], [0, 0, 0, 1]], dtype=np.float64)
+T_CAM0_FROM_LIDAR = np.array(
+    [[0, -1, 0, 0.05], [0, 0, -1, -0.1], [1, 0, 0, 0.0], [0, 0, 0, 1]], dtype=np.float64
+)
 K = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
 BOX_CENTER_BASE = np.array([4.0, 1.0, 0.9])
 BOX_SIZE_LWH = np.array([0.6, 0.5, 1.8])
@@ -48,7 +50,10 @@ def write_sweep(path: Path, frame: int) -> None:
     ang = np.linspace(-np.pi, np.pi, 1024, endpoint=False)
     raw[:1024, 0], raw[:1024, 1], raw[:1024, 3] = 8 * np.cos(ang), 8 * np.sin(ang), 7.0
     # 10 points inside the pedestrian box (given in base, stored in the LiDAR frame)
-    inside_base = BOX_CENTER_BASE + np.c_[np.linspace(-0.1, 0.1, 10), np.zeros(10), np.linspace(-0.5, 0.5, 10)]
+    inside_base = (
+        BOX_CENTER_BASE
+        + np.c_[np.linspace(-0.1, 0.1, 10), np.zeros(10), np.linspace(-0.5, 0.5, 10)]
+    )
     inside_lidar = (np.c_[inside_base, np.ones(10)] @ np.linalg.inv(T_BASE_FROM_LIDAR).T)[:, :3]
     raw[5000:5010, :3] = inside_lidar
     raw[5000:5010, 3] = frame
@@ -60,8 +65,17 @@ def build_tiny_dataset(root: Path, src: Path) -> Path:
     """2 sequences x 4 frames of 48x48x24, fake CODa .bin / .png sources under ``src``."""
     for si, seq in enumerate(SEQS):
         with pub.sequence_writer(root, seq, "k1") as staged:
-            layout = occ.create_store(staged.store_path, NF, GRID, 2, {"voxel_size_m": 0.2,
-                                      "range_min": [0.4, -4.8, -1.0], "range_max": [10.0, 4.8, 3.8]})
+            layout = occ.create_store(
+                staged.store_path,
+                NF,
+                GRID,
+                2,
+                {
+                    "voxel_size_m": 0.2,
+                    "range_min": [0.4, -4.8, -1.0],
+                    "range_max": [10.0, 4.8, 3.8],
+                },
+            )
             sem = np.full((NF, *GRID), FREE, np.uint8)
             sem[:, :, :, 4] = ROAD
             sem[:, 18:21, 28:31, 5:14] = PEDESTRIAN
@@ -69,8 +83,15 @@ def build_tiny_dataset(root: Path, src: Path) -> Path:
             mask = np.zeros((NF, *GRID), np.uint8)
             mask[:, :, :, :12] = 1
             for start, stop in layout.write_units():
-                occ.write_frames(staged.store_path, start, {"semantics": sem[start:stop],
-                                 "mask_lidar": mask[start:stop], "mask_camera": mask[start:stop] * 0 + 1})
+                occ.write_frames(
+                    staged.store_path,
+                    start,
+                    {
+                        "semantics": sem[start:stop],
+                        "mask_lidar": mask[start:stop],
+                        "mask_camera": mask[start:stop] * 0 + 1,
+                    },
+                )
             rows = []
             for f in range(NF):
                 raw = 2 * f
@@ -80,17 +101,55 @@ def build_tiny_dataset(root: Path, src: Path) -> Path:
                 (src / cam).parent.mkdir(parents=True, exist_ok=True)
                 Image.fromarray(np.full((H, W, 3), f * 20, np.uint8)).save(src / cam)
                 Twb = T_world_from_base(si, f)
-                rows.append({"frame": f, "raw_frame": raw, "stamp_ns": 1_675_000_000_000_000_000 + si * 10**12 + f * 200_000_000,
-                             "T_world_from_lidar": (Twb @ T_BASE_FROM_LIDAR).ravel(), "T_world_from_base": Twb.ravel(),
-                             "lidar_path": lidar, "cam0_path": cam, "class_counts": [0] * 10, "is_night": False})
+                rows.append(
+                    {
+                        "frame": f,
+                        "raw_frame": raw,
+                        "stamp_ns": 1_675_000_000_000_000_000 + si * 10**12 + f * 200_000_000,
+                        "T_world_from_lidar": (Twb @ T_BASE_FROM_LIDAR).ravel(),
+                        "T_world_from_base": Twb.ravel(),
+                        "lidar_path": lidar,
+                        "cam0_path": cam,
+                        "class_counts": [0] * 10,
+                        "is_night": False,
+                    }
+                )
             pub.stage_table(staged, "frames", rows)
-            pub.stage_table(staged, "instances", [
-                {"track_id": 7, "frame": f, "box3d_center": BOX_CENTER_BASE, "box3d_size": BOX_SIZE_LWH,
-                 "box3d_yaw": BOX_YAW, "vx": 1.0 if f % 2 else 0.0, "vy": 0.0} for f in range(NF)])
-            pub.stage_table(staged, "sequences", [{
-                "fingerprint": f"fp{si}", "config_hash": "c", "code_version": "0.1.0", "status": "ok",
-                "num_frames": NF, "occupancy_version": "k1", "K": K.ravel(), "T_cam0_from_lidar": T_CAM0_FROM_LIDAR.ravel(),
-                "T_base_from_lidar": T_BASE_FROM_LIDAR.ravel(), "image_width": W, "image_height": H}])
+            pub.stage_table(
+                staged,
+                "instances",
+                [
+                    {
+                        "track_id": 7,
+                        "frame": f,
+                        "box3d_center": BOX_CENTER_BASE,
+                        "box3d_size": BOX_SIZE_LWH,
+                        "box3d_yaw": BOX_YAW,
+                        "vx": 1.0 if f % 2 else 0.0,
+                        "vy": 0.0,
+                    }
+                    for f in range(NF)
+                ],
+            )
+            pub.stage_table(
+                staged,
+                "sequences",
+                [
+                    {
+                        "fingerprint": f"fp{si}",
+                        "config_hash": "c",
+                        "code_version": "0.1.0",
+                        "status": "ok",
+                        "num_frames": NF,
+                        "occupancy_version": "k1",
+                        "K": K.ravel(),
+                        "T_cam0_from_lidar": T_CAM0_FROM_LIDAR.ravel(),
+                        "T_base_from_lidar": T_BASE_FROM_LIDAR.ravel(),
+                        "image_width": W,
+                        "image_height": H,
+                    }
+                ],
+            )
     return root
 
 
@@ -114,13 +173,20 @@ def test_occ3d_labels_and_annotations(tiny):
     assert rec["timestamp"] == (1_675_000_000_000_000_000 + 10**12 + 2 * 200_000_000) // 1000
     np.testing.assert_allclose(rec["ego_pose"]["translation"], T_world_from_base(1, 2)[:3, 3])
     cam = rec["camera_sensor"]["CAM_FRONT"]
-    assert cam["intrinsic"] == K.tolist() and cam["img_path"].startswith("samples/CAM_FRONT/coda-s1__CAM_FRONT__")
+    assert cam["intrinsic"] == K.tolist() and cam["img_path"].startswith(
+        "samples/CAM_FRONT/coda-s1__CAM_FRONT__"
+    )
     # the way Occ3D / FlashOcc loaders read labels
     labels = np.load(base / "occ3d" / "gts" / "coda-s1" / tok2 / "labels.npz")
     sem, ml, mc = labels["semantics"], labels["mask_lidar"], labels["mask_camera"]
     assert sem.shape == ml.shape == mc.shape == GRID
     assert sem.dtype == ml.dtype == mc.dtype == np.uint8
-    assert sem[0, 0, 0] == 12 and sem[19, 29, 8] == PEDESTRIAN and sem[5, 5, 4] == ROAD and sem[5, 5, 20] == FREE
+    assert (
+        sem[0, 0, 0] == 12
+        and sem[19, 29, 8] == PEDESTRIAN
+        and sem[5, 5, 4] == ROAD
+        and sem[5, 5, 20] == FREE
+    )
     assert ml[:, :, :12].all() and not ml[:, :, 12:].any() and mc.all()
     assert rec["gt_path"] == f"gts/coda-s1/{tok2}/labels.npz"
     # deterministic: a second export is byte-identical
@@ -143,7 +209,9 @@ def test_quaternion_round_trip():
         got = quat_wxyz_from_matrix(R)
         np.testing.assert_allclose(Quaternion(got).rotation_matrix, R, atol=1e-12)
         assert got[0] >= 0
-    np.testing.assert_allclose(quat_wxyz_from_matrix(np.diag([1.0, -1.0, -1.0])), [0, 1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(
+        quat_wxyz_from_matrix(np.diag([1.0, -1.0, -1.0])), [0, 1, 0, 0], atol=1e-12
+    )
 
 
 def test_nuscenes_export_loads_in_devkit(tiny):
@@ -192,7 +260,9 @@ def test_nuscenes_export_loads_in_devkit(tiny):
     again = base / "nusc2"
     export_nuscenes(root, again, version="v1.0-mini")
     for name in ("sample", "sample_annotation", "ego_pose", "sample_data"):
-        assert (out / "v1.0-mini" / f"{name}.json").read_bytes() == (again / "v1.0-mini" / f"{name}.json").read_bytes()
+        assert (out / "v1.0-mini" / f"{name}.json").read_bytes() == (
+            again / "v1.0-mini" / f"{name}.json"
+        ).read_bytes()
 
 
 def test_nuscenes_export_names_missing_source(tiny, tmp_path):
@@ -207,12 +277,23 @@ def test_plain_pickle_holds_only_numpy_ndarray_and_bytearray():
 
     from storage.plain_pickle import dumps_plain, pickle_globals
 
-    obj = {"infos": [{"a": np.arange(6, dtype=np.float32).reshape(2, 3), "names": np.array(["pedestrian"]),
-                      "empty": np.zeros((0, 9)), "flag": np.array([True, False]), "t": (1, 2.5, "x", None)}],
-           "view": np.eye(4)[:, ::2]}
+    obj = {
+        "infos": [
+            {
+                "a": np.arange(6, dtype=np.float32).reshape(2, 3),
+                "names": np.array(["pedestrian"]),
+                "empty": np.zeros((0, 9)),
+                "flag": np.array([True, False]),
+                "t": (1, 2.5, "x", None),
+            }
+        ],
+        "view": np.eye(4)[:, ::2],
+    }
     data = dumps_plain(obj)
     assert pickle_globals(data) == {("numpy", "ndarray"), ("builtins", "bytearray")}
-    assert ("numpy._core.multiarray", "_reconstruct") in pickle_globals(pickle.dumps(np.zeros(2)))  # the trap
+    assert ("numpy._core.multiarray", "_reconstruct") in pickle_globals(
+        pickle.dumps(np.zeros(2))
+    )  # the trap
     back = pickle.loads(data)
     for k in ("a", "names", "empty", "flag"):
         np.testing.assert_array_equal(back["infos"][0][k], obj["infos"][0][k])

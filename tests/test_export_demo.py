@@ -40,8 +40,14 @@ def demo(synthetic_root, tmp_path_factory, prefect_harness):
     cwd = os.getcwd()
     os.chdir(work)
     try:
-        cfg = load_config(overrides={"dataset.root": "demo-data", "output.root": "demo-out", "fit.iterations": 5,
-                                     "export.val_sequences": ["1"]})
+        cfg = load_config(
+            overrides={
+                "dataset.root": "demo-data",
+                "output.root": "demo-out",
+                "fit.iterations": 5,
+                "export.val_sequences": ["1"],
+            }
+        )
         report = rebuild_dataset(cfg, progress=False)
         assert not report.failed
         common = ["--out", "demo-out", "--set", "export.val_sequences=['1']"]
@@ -57,8 +63,10 @@ def demo(synthetic_root, tmp_path_factory, prefect_harness):
 def test_published_paths_are_relative_and_masks_nested(demo):
     work, cfg = demo
     frames = read_table(work / "demo-out", "frames").to_pylist()
-    assert frames and all(not Path(r["lidar_path"]).is_absolute() and not r["lidar_path"].startswith("demo-data")
-                          for r in frames)
+    assert frames and all(
+        not Path(r["lidar_path"]).is_absolute() and not r["lidar_path"].startswith("demo-data")
+        for r in frames
+    )
     assert all((work / "demo-data" / r["cam0_path"]).is_file() for r in frames)
     ds = open_dataset(work / "demo-out")
     for seq in ds.sequences:
@@ -93,6 +101,7 @@ def test_nuscenes_export_of_the_demo_loads_in_the_devkit(demo):
 # LoadAnnotationsBEVDepth, LoadOccGTFromFile, PointToMultiViewDepth and its EgoPoseDataset
 # (Yzichen/FlashOCC, projects/mmdet3d_plugin/datasets); mmcv's pkl loading is pickle.load.
 
+
 def _load_annotations(ann_file: Path, load_interval: int = 1) -> tuple[list[dict], dict]:
     with open(ann_file, "rb") as f:  # our own file
         data = pickle.load(f)
@@ -102,8 +111,12 @@ def _load_annotations(ann_file: Path, load_interval: int = 1) -> tuple[list[dict
 
 def _get_data_info(infos: list[dict], index: int, prototype: str, adj_ids=(1, 2, 1)) -> dict:
     info = infos[index]
-    d = {"sample_idx": info["token"], "pts_filename": info["lidar_path"], "sweeps": info["sweeps"],
-         "timestamp": info["timestamp"] / 1e6}
+    d = {
+        "sample_idx": info["token"],
+        "pts_filename": info["lidar_path"],
+        "sweeps": info["sweeps"],
+        "timestamp": info["timestamp"] / 1e6,
+    }
     if "ann_infos" in info:
         d["ann_infos"] = info["ann_infos"]
     if prototype == "mmcv":
@@ -117,7 +130,7 @@ def _get_data_info(infos: list[dict], index: int, prototype: str, adj_ids=(1, 2,
             rt[3, :3] = -lidar2cam_t
             intrinsic = cam["cam_intrinsic"]
             viewpad = np.eye(4)
-            viewpad[:intrinsic.shape[0], :intrinsic.shape[1]] = intrinsic
+            viewpad[: intrinsic.shape[0], : intrinsic.shape[1]] = intrinsic
             lidar2img.append(viewpad @ rt.T)
         d.update(img_filename=paths, lidar2img=lidar2img)
     else:
@@ -148,8 +161,10 @@ def _T(translation, rotation) -> np.ndarray:
 
 def _sensor_transforms(info: dict, cam: str) -> tuple[np.ndarray, np.ndarray]:
     c = info["cams"][cam]
-    return (_T(c["sensor2ego_translation"], c["sensor2ego_rotation"]),
-            _T(c["ego2global_translation"], c["ego2global_rotation"]))
+    return (
+        _T(c["sensor2ego_translation"], c["sensor2ego_rotation"]),
+        _T(c["ego2global_translation"], c["ego2global_rotation"]),
+    )
 
 
 def _lidar2img_depth_chain(info: dict, cam: str) -> np.ndarray:
@@ -167,16 +182,23 @@ def test_training_infos_read_like_flashocc(demo):
     root = work / "data" / "nuscenes"
     meta = json.loads((root / "nuscenes_metadata.json").read_text())
     assert json.loads((root / "occ3d_metadata.json").read_text())["grid"] == meta["grid"]
-    assert meta["num_classes"] == 10 and meta["free_class"] == 9 and meta["class_names"][9] == "free"
+    assert (
+        meta["num_classes"] == 10 and meta["free_class"] == 9 and meta["class_names"][9] == "free"
+    )
     g = cfg.fuse.grid
-    assert meta["grid"]["range_min"] == list(g.range_min) and meta["grid"]["voxel_size_m"] == g.voxel_size_m
+    assert (
+        meta["grid"]["range_min"] == list(g.range_min)
+        and meta["grid"]["voxel_size_m"] == g.voxel_size_m
+    )
     assert meta["flashocc"]["grid_config"]["x"] == [g.range_min[0], g.range_max[0], g.voxel_size_m]
     assert meta["flashocc"]["Dz"] == meta["grid"]["shape"][2] == 24
     assert meta["train_scenes"] == ["coda-0"] and meta["val_scenes"] == ["coda-1"]
 
     ds = open_dataset(work / "demo-out")
     seq_rows = {s: ds.table("sequences", s).to_pylist()[0] for s in ds.sequences}
-    frame_rows = {(s, r["frame"]): r for s in ds.sequences for r in ds.table("frames", s).to_pylist()}
+    frame_rows = {
+        (s, r["frame"]): r for s in ds.sequences for r in ds.table("frames", s).to_pylist()
+    }
     boxes = {(s, r["frame"]): [] for s in ds.sequences for r in ds.table("frames", s).to_pylist()}
     for s in ds.sequences:
         for r in ds.table("instances", s).to_pylist():
@@ -186,14 +208,19 @@ def test_training_infos_read_like_flashocc(demo):
     for split, seqs in (("train", ["0"]), ("val", ["1"])):
         path = root / f"mobileocc_infos_{split}.pkl"
         # plain data: numpy 1.x unpickles it too (no numpy._core globals)
-        assert pickle_globals(path.read_bytes()) <= {("numpy", "ndarray"), ("builtins", "bytearray")}
+        assert pickle_globals(path.read_bytes()) <= {
+            ("numpy", "ndarray"),
+            ("builtins", "bytearray"),
+        }
         infos, metadata = _load_annotations(path)
         assert metadata["version"] == "v1.0-trainval" and metadata["num_classes"] == 10
         assert {i["scene_name"] for i in infos} == {f"coda-{s}" for s in seqs}
         assert [i["timestamp"] for i in infos] == sorted(i["timestamp"] for i in infos)
         for index, info in enumerate(infos):
             seq = info["scene_name"].split("-", 1)[1]
-            frame = next(f for (s, f) in frame_rows if s == seq and sample_token(s, f) == info["token"])
+            frame = next(
+                f for (s, f) in frame_rows if s == seq and sample_token(s, f) == info["token"]
+            )
             row, srow = frame_rows[(seq, frame)], seq_rows[seq]
             K = np.asarray(srow["K"]).reshape(3, 3)
             T_cam_from_lidar = np.asarray(srow["T_cam0_from_lidar"]).reshape(4, 4)
@@ -204,20 +231,31 @@ def test_training_infos_read_like_flashocc(demo):
             expected = P @ T_cam_from_lidar
             d = _get_data_info(infos, index, "mmcv")
             np.testing.assert_allclose(d["lidar2img"][0], expected, atol=1e-9)
-            assert Image.open(d["img_filename"][0]).size == (srow["image_width"], srow["image_height"])
-            pts = np.fromfile(d["pts_filename"], np.float32).reshape(-1, 5)  # LoadPointsFromFile load_dim=5
+            assert Image.open(d["img_filename"][0]).size == (
+                srow["image_width"],
+                srow["image_height"],
+            )
+            pts = np.fromfile(d["pts_filename"], np.float32).reshape(
+                -1, 5
+            )  # LoadPointsFromFile load_dim=5
             assert len(pts) > 1000
             d = _get_data_info(infos, index, "bevdet4d")
             assert all(a["scene_token"] == info["scene_token"] for a in d["adjacent"])
-            np.testing.assert_allclose(_lidar2img_depth_chain(d["curr"], "CAM_FRONT"), expected, atol=1e-9)
+            np.testing.assert_allclose(
+                _lidar2img_depth_chain(d["curr"], "CAM_FRONT"), expected, atol=1e-9
+            )
             cam2ego, ego2global = _sensor_transforms(d["curr"], "CAM_FRONT")
             np.testing.assert_allclose(ego2global, T_world_from_base, atol=1e-9)
-            np.testing.assert_allclose(cam2ego, T_base_from_lidar @ np.linalg.inv(T_cam_from_lidar), atol=1e-9)
+            np.testing.assert_allclose(
+                cam2ego, T_base_from_lidar @ np.linalg.inv(T_cam_from_lidar), atol=1e-9
+            )
             # EgoPoseDataset.get_global_pose: global from lidar
             np.testing.assert_allclose(
                 _T(info["ego2global_translation"], info["ego2global_rotation"])
                 @ _T(info["lidar2ego_translation"], info["lidar2ego_rotation"]),
-                np.asarray(row["T_world_from_lidar"]).reshape(4, 4), atol=1e-9)
+                np.asarray(row["T_world_from_lidar"]).reshape(4, 4),
+                atol=1e-9,
+            )
             # LoadOccGTFromFile
             labels = np.load(os.path.join(d["occ_gt_path"], "labels.npz"))
             assert labels["semantics"].shape == tuple(meta["grid"]["shape"])
@@ -231,7 +269,9 @@ def test_training_infos_read_like_flashocc(demo):
             for b, k in zip(ann_boxes, kept):
                 r = ours[k]
                 v = [r["vx"] or 0.0, r["vy"] or 0.0]
-                np.testing.assert_allclose(b, [*r["box3d_center"], *r["box3d_size"], r["box3d_yaw"], *v], atol=1e-5)
+                np.testing.assert_allclose(
+                    b, [*r["box3d_center"], *r["box3d_size"], r["box3d_yaw"], *v], atol=1e-5
+                )
             # get_ann_info: LiDAR-frame boxes; back to base they are ours
             ann = _get_ann_info(info)
             assert ann["gt_bboxes_3d"].shape == (int(info["valid_flag"].sum()), 9)
@@ -255,8 +295,19 @@ def test_gt_export_holds_exact_labels_with_the_dataset_masks(demo):
             tok = sample_token(seq, r["frame"])
             gt = np.load(work / "gt-occ3d" / "gts" / f"coda-{seq}" / tok / "labels.npz")
             ours = np.load(work / "data" / "nuscenes" / "gts" / f"coda-{seq}" / tok / "labels.npz")
-            np.testing.assert_array_equal(gt["semantics"], read_frame_gt(work / "demo-data", int(seq), r["raw_frame"]).occupancy)
+            np.testing.assert_array_equal(
+                gt["semantics"],
+                read_frame_gt(work / "demo-data", int(seq), r["raw_frame"]).occupancy,
+            )
             np.testing.assert_array_equal(gt["mask_camera"], ours["mask_camera"])
             np.testing.assert_array_equal(gt["mask_lidar"], ours["mask_lidar"])
-    assert json.loads((work / "gt-occ3d" / "occ3d_metadata.json").read_text())["labels"] == "ground-truth"
-    assert main(["export", "--out", str(work / "demo-out"), "--format", "nuscenes", "--gt", "--to", "x"]) == 2
+    assert (
+        json.loads((work / "gt-occ3d" / "occ3d_metadata.json").read_text())["labels"]
+        == "ground-truth"
+    )
+    assert (
+        main(
+            ["export", "--out", str(work / "demo-out"), "--format", "nuscenes", "--gt", "--to", "x"]
+        )
+        == 2
+    )

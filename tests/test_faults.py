@@ -24,8 +24,11 @@ from flows.pipeline.dag import STAGES
 from flows.pipeline.run import rebuild_dataset
 from storage.manifest import Manifest
 
-pytestmark = [pytest.mark.usefixtures("prefect_harness"), pytest.mark.xdist_group("prefect"),
-              pytest.mark.slow]
+pytestmark = [
+    pytest.mark.usefixtures("prefect_harness"),
+    pytest.mark.xdist_group("prefect"),
+    pytest.mark.slow,
+]
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -39,7 +42,9 @@ MAP_SPLIT = {"map.tile_m": 6.4, "map.region_tiles": 1, "map.window_frames": 1}
 
 
 def _config(data: Path, out: Path, **overrides):
-    return load_config(overrides={"dataset.root": str(data), "output.root": str(out), **MAP_SPLIT, **overrides})
+    return load_config(
+        overrides={"dataset.root": str(data), "output.root": str(out), **MAP_SPLIT, **overrides}
+    )
 
 
 def _run(cfg, **kw):
@@ -52,15 +57,26 @@ def _published(out: Path) -> dict:
     result = {}
     for (seq, stage), rec in sorted(manifest.rows.items()):
         if rec.status != "done":  # a stage that fails, fails the same way everywhere
-            result[(seq, stage)] = {"key": rec.key, "status": rec.status,
-                                    "error": rec.error.replace(str(out), "OUT")}
+            result[(seq, stage)] = {
+                "key": rec.key,
+                "status": rec.status,
+                "error": rec.error.replace(str(out), "OUT"),
+            }
             continue
         folder = out / rec.location
-        files = {str(p.relative_to(folder)): p.read_bytes()
-                 for p in sorted(folder.rglob("*")) if p.is_file()}
-        result[(seq, stage)] = {"key": rec.key, "status": rec.status, "location": rec.location,
-                                "summary": json.dumps(rec.summary, sort_keys=True).encode(),
-                                "parts": rec.parts, "files": files}
+        files = {
+            str(p.relative_to(folder)): p.read_bytes()
+            for p in sorted(folder.rglob("*"))
+            if p.is_file()
+        }
+        result[(seq, stage)] = {
+            "key": rec.key,
+            "status": rec.status,
+            "location": rec.location,
+            "summary": json.dumps(rec.summary, sort_keys=True).encode(),
+            "parts": rec.parts,
+            "files": files,
+        }
     return result
 
 
@@ -78,26 +94,54 @@ class Cluster:
 
     def _spawn(self, *args: str) -> subprocess.Popen:
         log = open(self.control / f"log-{len(self.procs)}.txt", "wb")
-        proc = subprocess.Popen([str(BIN / "dask"), *args], cwd=ROOT, env=self.env, stdout=log,
-                                stderr=subprocess.STDOUT, start_new_session=True)
+        proc = subprocess.Popen(
+            [str(BIN / "dask"), *args],
+            cwd=ROOT,
+            env=self.env,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
         self.procs.append(proc)
         return proc
 
     def start(self, workers: int = 2) -> Cluster:
         from distributed import Client
 
-        self._spawn("scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-                    "--scheduler-file", str(self.scheduler_file))
+        self._spawn(
+            "scheduler",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            "0",
+            "--no-dashboard",
+            "--scheduler-file",
+            str(self.scheduler_file),
+        )
         deadline = time.time() + 120
         while not self.scheduler_file.exists():
             if time.time() > deadline:  # a start-up timeout, not a speed check
                 pytest.fail("the dask scheduler did not write its scheduler file in 120 s")
             time.sleep(0.2)
-        self.workers = [self._spawn("worker", "--scheduler-file", str(self.scheduler_file),
-                                    "--nworkers", "1", "--nthreads", "1", "--no-dashboard",
-                                    "--memory-limit", "0", "--local-directory", str(self.control),
-                                    "--preload", str(ROOT / "tests" / "slow_stage_preload.py"))
-                        for _ in range(workers)]
+        self.workers = [
+            self._spawn(
+                "worker",
+                "--scheduler-file",
+                str(self.scheduler_file),
+                "--nworkers",
+                "1",
+                "--nthreads",
+                "1",
+                "--no-dashboard",
+                "--memory-limit",
+                "0",
+                "--local-directory",
+                str(self.control),
+                "--preload",
+                str(ROOT / "tests" / "slow_stage_preload.py"),
+            )
+            for _ in range(workers)
+        ]
         self.client = Client(scheduler_file=str(self.scheduler_file), timeout=120)
         self.client.wait_for_workers(workers, timeout=180)
         return self
@@ -143,8 +187,12 @@ def api_url(prefect_harness):
 @pytest.fixture(scope="module")
 def cluster(api_url, tmp_path_factory):
     control = tmp_path_factory.mktemp("dask-cluster")
-    env = {**os.environ, "MOBILEOCC_TEST_FAULTS": str(control), "PREFECT_API_URL": api_url,
-           "PYTHONPATH": str(ROOT)}
+    env = {
+        **os.environ,
+        "MOBILEOCC_TEST_FAULTS": str(control),
+        "PREFECT_API_URL": api_url,
+        "PYTHONPATH": str(ROOT),
+    }
     c = Cluster(control, env)
     try:
         yield c.start(workers=2)
@@ -157,8 +205,15 @@ def dataset(tmp_path_factory):
     from flows.commands.simulate import simulate
 
     root = tmp_path_factory.mktemp("data")
-    simulate(root, sequences=len(SEQUENCES), frames=4, seed=7, pedestrians=3, crowd="uncrowded",
-             progress=False)
+    simulate(
+        root,
+        sequences=len(SEQUENCES),
+        frames=4,
+        seed=7,
+        pedestrians=3,
+        crowd="uncrowded",
+        progress=False,
+    )
     return root
 
 
@@ -177,8 +232,18 @@ def reference(dataset, tmp_path_factory):
 
 
 def _on_cluster(cluster, dataset, out, sequences=SEQUENCES, **kw):
-    return _run(_config(dataset, out, **{"dask.runner": "dask", "dask.address": cluster.address,
-                                         "dataset.sequences": list(sequences)}), **kw)
+    return _run(
+        _config(
+            dataset,
+            out,
+            **{
+                "dask.runner": "dask",
+                "dask.address": cluster.address,
+                "dataset.sequences": list(sequences),
+            },
+        ),
+        **kw,
+    )
 
 
 def test_real_cluster_matches_thread_runner(cluster, dataset, reference, tmp_path):
@@ -240,11 +305,26 @@ def test_one_worker_or_two_give_the_same_bytes(cluster, dataset, reference, tmp_
 
 
 def _cli(dataset: Path, out: Path, address: str, env: dict) -> subprocess.Popen:
-    return subprocess.Popen([str(BIN / "mobileocc"), "rebuild", "--data", str(dataset), "--out",
-                             str(out), "--address", address, "--quiet",
-                             "--set", f"dataset.sequences={json.dumps(list(ONE))}",
-                             *(a for k, v in MAP_SPLIT.items() for a in ("--set", f"{k}={v}"))],
-                            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    return subprocess.Popen(
+        [
+            str(BIN / "mobileocc"),
+            "rebuild",
+            "--data",
+            str(dataset),
+            "--out",
+            str(out),
+            "--address",
+            address,
+            "--quiet",
+            "--set",
+            f"dataset.sequences={json.dumps(list(ONE))}",
+            *(a for k, v in MAP_SPLIT.items() for a in ("--set", f"{k}={v}")),
+        ],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
 
 
 def test_whole_run_killed_and_resumed(cluster, dataset, reference, api_url, tmp_path):

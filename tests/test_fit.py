@@ -32,8 +32,15 @@ def scene():
     g = generate_pose_prior()
     prior = GMMPosePrior(g["means"], g["covars"], g["weights"])
     rng = np.random.default_rng(7)
-    sp = synthesize_persons(model, sample_plausible_poses(2, rng), SENSORS["ouster-64"], rng,
-                            distance_m=(4.0, 6.0), occlusion_prob=0.0, max_points=400)
+    sp = synthesize_persons(
+        model,
+        sample_plausible_poses(2, rng),
+        SENSORS["ouster-64"],
+        rng,
+        distance_m=(4.0, 6.0),
+        occlusion_prob=0.0,
+        max_points=400,
+    )
     truth = BodyParams(sp.truth_betas, sp.truth_global_orient, sp.truth_body_pose, sp.truth_transl)
     init = oracle_initial_estimate(model, truth, rng)
     return model, prior, sp, truth, init
@@ -44,8 +51,17 @@ def _fit(scene, rows=slice(None), device="cpu", **kw):
     args = dict(iterations=25, lr=0.03)
     args.update(kw)
     prior = prior if device == "cpu" else copy.deepcopy(prior).to(device)
-    return fit_persons(model, prior, init.take(rows), sp.keypoints[rows], K, sp.T_cam_from_lidar,
-                       *ragged_points(sp.points_lidar[rows], sp.point_mask[rows]), device=device, **args)
+    return fit_persons(
+        model,
+        prior,
+        init.take(rows),
+        sp.keypoints[rows],
+        K,
+        sp.T_cam_from_lidar,
+        *ragged_points(sp.points_lidar[rows], sp.point_mask[rows]),
+        device=device,
+        **args,
+    )
 
 
 def test_simulated_sweep_lies_on_the_body_inside_the_frustum(scene):
@@ -64,7 +80,12 @@ def test_frustum_rays_and_noise_free_range_on_a_plane():
     spec = LidarSpec(16, 360, range_noise_std_m=0.0, angle_noise_std_deg=0.0, dropout=0.0)
     dirs = frustum_ray_directions(spec, K, (1920, 1080))
     uv = (dirs / dirs[:, 2:3]) @ K.T
-    assert (uv[:, 0] >= 0).all() and (uv[:, 0] < 1920).all() and (uv[:, 1] >= 0).all() and (uv[:, 1] < 1080).all()
+    assert (
+        (uv[:, 0] >= 0).all()
+        and (uv[:, 0] < 1920).all()
+        and (uv[:, 1] >= 0).all()
+        and (uv[:, 1] < 1080).all()
+    )
     elev = np.round(np.degrees(np.arcsin(-dirs[:, 1])), 3)
     rows, counts = np.unique(elev, return_counts=True)
     assert len(rows) == 16  # every beam of the 45 deg fan is inside the 57 deg tall image
@@ -79,7 +100,9 @@ def test_frustum_rays_and_noise_free_range_on_a_plane():
 
 def test_oracle_moves_the_root_along_its_camera_ray(scene):
     model, _, _, truth, _ = scene
-    init = oracle_initial_estimate(model, truth, np.random.default_rng(1), pose_std_rad=0.0, betas_std=0.0, orient_std_deg=0.0)
+    init = oracle_initial_estimate(
+        model, truth, np.random.default_rng(1), pose_std_rad=0.0, betas_std=0.0, orient_std_deg=0.0
+    )
     with torch.no_grad():
         j0 = model.rest_joints(torch.as_tensor(truth.betas))[:, 0].numpy()
     r_true, r_init = j0 + truth.transl, j0 + init.transl
@@ -91,7 +114,12 @@ def test_oracle_moves_the_root_along_its_camera_ray(scene):
 def test_fit_from_perturbed_start_reduces_mpjpe(scene):
     model, _, sp, _, init = scene
     with torch.no_grad():
-        o = model(*(torch.as_tensor(a) for a in (init.betas, init.global_orient, init.body_pose, init.transl)))
+        o = model(
+            *(
+                torch.as_tensor(a)
+                for a in (init.betas, init.global_orient, init.body_pose, init.transl)
+            )
+        )
     before = mean_error_mm(o.joints.numpy(), sp.truth_joints)
     r = _fit(scene)
     after = mean_error_mm(r.joints, sp.truth_joints)
@@ -105,8 +133,18 @@ def test_fit_from_the_truth_stays_put_with_the_vertex_cap(scene, cap, bound_mm):
     # towards the sensor (~30 mm at Ouster-128 on the benchmark): visible vertices without a
     # nearby return (between scan lines, self-occluded) were dragged onto the nearest return
     model, prior, sp, truth, _ = scene
-    r = fit_persons(model, prior, truth, sp.keypoints, K, sp.T_cam_from_lidar,
-                    *ragged_points(sp.points_lidar, sp.point_mask), iterations=60, nn_every=5, chamfer_vertex_max_m=cap)
+    r = fit_persons(
+        model,
+        prior,
+        truth,
+        sp.keypoints,
+        K,
+        sp.T_cam_from_lidar,
+        *ragged_points(sp.points_lidar, sp.point_mask),
+        iterations=60,
+        nn_every=5,
+        chamfer_vertex_max_m=cap,
+    )
     ray = sp.truth_joints[:, 0] / np.linalg.norm(sp.truth_joints[:, 0], axis=1, keepdims=True)
     towards_mm = -((r.joints[:, 0] - sp.truth_joints[:, 0]) * ray).sum(1) * 1000
     if bound_mm is not None:
@@ -119,7 +157,15 @@ def test_fit_is_deterministic_and_handles_a_person_without_points(scene):
     model, prior, sp, _, init = scene
     mask = sp.point_mask.copy()
     mask[1] = False  # second person: no LiDAR returns -> no ICP, no L_3D
-    args = (model, prior, init, sp.keypoints, K, sp.T_cam_from_lidar, *ragged_points(sp.points_lidar, mask))
+    args = (
+        model,
+        prior,
+        init,
+        sp.keypoints,
+        K,
+        sp.T_cam_from_lidar,
+        *ragged_points(sp.points_lidar, mask),
+    )
     a = fit_persons(*args, iterations=5, seed=3)
     b = fit_persons(*args, iterations=5, seed=3)
     assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.betas, b.betas)
@@ -138,7 +184,9 @@ def test_cliff_conversion_round_trip():
     ty = transl[:, 1] - 2 * (center[:, 1] - K[1, 2]) / (s * size)
     p = cliff_to_params(R, rng.normal(size=(2, 10)), np.stack([s, tx, ty], 1), center, size, K)
     assert np.allclose(p.transl, transl, atol=1e-5)
-    assert np.allclose(p.global_orient, [[np.pi, 0, 0]] * 2, atol=1e-5) and np.allclose(p.body_pose, 0, atol=1e-6)
+    assert np.allclose(p.global_orient, [[np.pi, 0, 0]] * 2, atol=1e-5) and np.allclose(
+        p.body_pose, 0, atol=1e-6
+    )
     with pytest.raises(ValueError, match="rotmats"):
         cliff_to_params(R[:, :10], np.zeros((2, 10)), np.zeros((2, 3)), center, size, K)
 
@@ -148,8 +196,14 @@ def test_a_persons_fit_does_not_depend_on_its_batch(scene):
     # and stop differ), a person's fit is the same up to float rounding of batched products
     both = _fit(scene, iterations=30, nn_every=5, chamfer_vertex_max_m=0.03, converge_rtol=1e-2)
     for b in range(2):
-        alone = _fit(scene, rows=slice(b, b + 1), iterations=30, nn_every=5, chamfer_vertex_max_m=0.03,
-                     converge_rtol=1e-2)
+        alone = _fit(
+            scene,
+            rows=slice(b, b + 1),
+            iterations=30,
+            nn_every=5,
+            chamfer_vertex_max_m=0.03,
+            converge_rtol=1e-2,
+        )
         assert alone.residuals["steps"][0] == both.residuals["steps"][b]
         assert np.abs(alone.vertices[0] - both.vertices[b]).max() < 1e-4  # 0.1 mm
 
@@ -183,8 +237,11 @@ def test_fit_rejects_mismatched_inputs(scene):
 def test_drop_far_fits_keeps_rows_aligned():
     from tasks.fit.batch import drop_far_fits
 
-    out = {"rows": np.array([4, 7, 9]), "transl": np.arange(9.0).reshape(3, 3),
-           "shift_m": np.array([0.2, 2.5, 1.5])}
+    out = {
+        "rows": np.array([4, 7, 9]),
+        "transl": np.arange(9.0).reshape(3, 3),
+        "shift_m": np.array([0.2, 2.5, 1.5]),
+    }
     kept, dropped = drop_far_fits(out, 1.5)
     assert dropped == 1 and kept["rows"].tolist() == [4, 9]
     assert kept["transl"].tolist() == [[0.0, 1.0, 2.0], [6.0, 7.0, 8.0]]

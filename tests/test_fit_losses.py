@@ -41,7 +41,9 @@ def test_reprojection_zero_at_exact_projection_and_confidence_power():
     kp2[0, 0, 0] += 10.0  # 10 px error on a keypoint with confidence 0.5
     expect = 0.5**2 * (1e4 * 100 / (1e4 + 100))
     assert L.reprojection_loss(X, kp2, K, conf_power=2.0).item() == pytest.approx(expect, rel=1e-5)
-    assert L.reprojection_loss(X, kp2, K, conf_power=1.0).item() == pytest.approx(2 * expect, rel=1e-5)
+    assert L.reprojection_loss(X, kp2, K, conf_power=1.0).item() == pytest.approx(
+        2 * expect, rel=1e-5
+    )
 
 
 def _chamfer(v, vm, p, pm, cap=None, method="auto"):
@@ -57,7 +59,9 @@ def test_chamfer_known_value_masks_and_minimum():
     pm = torch.tensor([[True, True, True, False]])
     # v->p: 0.01, 0.01 -> mean 0.01; p->v: 0.01, 0.01, 0.25 + 0.01 -> mean 0.28/3
     for method in ("grid", "brute"):
-        assert _chamfer(v, vm, p, pm, method=method).item() == pytest.approx(0.01 + 0.28 / 3, rel=1e-5)
+        assert _chamfer(v, vm, p, pm, method=method).item() == pytest.approx(
+            0.01 + 0.28 / 3, rel=1e-5
+        )
     same = _chamfer(v, vm, v.clone(), vm)
     assert same.item() == 0.0
 
@@ -171,8 +175,8 @@ def _icp(vertices, points, **kw):
     V = torch.zeros(B, n, 3, dtype=torch.float64)
     vm = torch.zeros(B, n, dtype=torch.bool)
     for b, v in enumerate(vertices):
-        V[b, :len(v)] = torch.as_tensor(v)
-        vm[b, :len(v)] = True
+        V[b, : len(v)] = torch.as_tensor(v)
+        vm[b, : len(v)] = True
     P = torch.as_tensor(np.concatenate(points))
     person = torch.repeat_interleave(torch.arange(B), torch.tensor([len(p) for p in points]))
     return icp_align(V, vm, P, person, **kw)
@@ -212,7 +216,11 @@ def test_icp_matches_open3d_registration():
         u = rng.normal(size=(3000, 3))
         surf = u / np.linalg.norm(u, axis=1, keepdims=True) * np.array([0.25, 0.8, 0.15])
         front = surf[surf[:, 2] < 0.05]
-        p = front[rng.choice(len(front), 400, replace=False)] + rng.normal(0, 0.01, (400, 3)) + [0.0, 0.0, 5.0 + k]
+        p = (
+            front[rng.choice(len(front), 400, replace=False)]
+            + rng.normal(0, 0.01, (400, 3))
+            + [0.0, 0.0, 5.0 + k]
+        )
         v = (front[:1200] @ _rot([0, 1, 0], 8.0 * (k + 1)).T) + [0.03 * k, 0.02, 5.2 + k]
         verts.append(v)
         pts.append(p)
@@ -224,8 +232,13 @@ def test_icp_matches_open3d_registration():
         dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[k]))
         for radius in (0.3, 0.1):
             reg = o3d.pipelines.registration.registration_icp(
-                src, dst, radius, T, o3d.pipelines.registration.TransformationEstimationPointToPoint(),
-                o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=30))
+                src,
+                dst,
+                radius,
+                T,
+                o3d.pipelines.registration.TransformationEstimationPointToPoint(),
+                o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=30),
+            )
             if reg.fitness > 0:
                 T = np.asarray(reg.transformation)
         assert res.used_icp[k]
@@ -245,7 +258,9 @@ def test_metrics_analytic():
     assert mpere(verts * 1.1, verts, faces)[0] == pytest.approx(0.1)
     s = np.array([0, 0, 0.01])
     m = fit_metrics(gt + s, gt + s, gt, gt, faces)
-    assert m["mpjpe"] == pytest.approx([10.0, 10.0]) and m["mpjpe_root"] == pytest.approx([0, 0], abs=1e-9)
+    assert m["mpjpe"] == pytest.approx([10.0, 10.0]) and m["mpjpe_root"] == pytest.approx(
+        [0, 0], abs=1e-9
+    )
 
 
 def test_chamfer_targets_grid_matches_brute_force_and_sums():
@@ -257,13 +272,19 @@ def test_chamfer_targets_grid_matches_brute_force_and_sums():
     vm = torch.rand(K, N, generator=g) > 0.3
     vm[2] = False  # no vertex: takes no part
     counts = torch.tensor([40, 25, 10])
-    p = torch.rand(int(counts.sum()), 3, generator=g, dtype=torch.float64) * torch.tensor([0.6, 2.0, 0.4]) + 4.0
+    p = (
+        torch.rand(int(counts.sum()), 3, generator=g, dtype=torch.float64)
+        * torch.tensor([0.6, 2.0, 0.4])
+        + 4.0
+    )
     p[:3] += 3.0  # far outliers: every shell empty, the full scan finds them
     person = torch.repeat_interleave(torch.arange(K), counts)
     a = L.chamfer_targets(v, vm, p, person, method="grid")
     b = L.chamfer_targets(v, vm, p, person, method="brute")
-    for x, y in zip((a.vertex_target, a.point_count, a.point_mean, a.point_rest),
-                    (b.vertex_target, b.point_count, b.point_mean, b.point_rest)):
+    for x, y in zip(
+        (a.vertex_target, a.point_count, a.point_mean, a.point_rest),
+        (b.vertex_target, b.point_count, b.point_mean, b.point_rest),
+    ):
         assert torch.allclose(x, y, atol=1e-9)
     d = torch.cdist(p[:40], v[0][vm[0]])
     near = v[0][vm[0]][d.argmin(1)]
@@ -278,9 +299,11 @@ def test_grid_nearest_is_exact_on_wide_and_degenerate_sets():
     from tasks.fit.nearest import nearest_indices
 
     rng = np.random.default_rng(4)
-    for data in (rng.normal(size=(500, 3)) * [5.0, 0.1, 0.1],  # wide: cells grow
-                 np.zeros((7, 3)),  # one cell, all tied: lowest index
-                 rng.normal(size=(1, 3))):
+    for data in (
+        rng.normal(size=(500, 3)) * [5.0, 0.1, 0.1],  # wide: cells grow
+        np.zeros((7, 3)),  # one cell, all tied: lowest index
+        rng.normal(size=(1, 3)),
+    ):
         q = rng.normal(size=(300, 3)) * 3.0
         d = ((q[:, None] - data[None]) ** 2).sum(-1)
         assert np.array_equal(nearest_indices(q, data), d.argmin(1))

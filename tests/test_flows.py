@@ -21,8 +21,14 @@ pytestmark = [pytest.mark.usefixtures("prefect_harness"), pytest.mark.xdist_grou
 
 def _config(data: Path, out: Path, **overrides):
     # few fit iterations: these tests are about orchestration, not fit quality
-    return load_config(overrides={"dataset.root": str(data), "output.root": str(out),
-                                  "fit.iterations": 5, **overrides})
+    return load_config(
+        overrides={
+            "dataset.root": str(data),
+            "output.root": str(out),
+            "fit.iterations": 5,
+            **overrides,
+        }
+    )
 
 
 def _run(cfg, **kw):
@@ -76,7 +82,15 @@ def test_thread_runner_and_cache_consequences(dataset, tmp_path):
     assert _ran(_run(finer)) == {("0", "map"), ("0", "fuse"), ("0", "export")}
 
     # a sequence added -> only it runs
-    for sub in ("3d_comp/os1", "2d_rect/cam0", "2d_rect/cam1", "3d_bbox/os1", "3d_semantic/os1", "calibrations", "gt"):
+    for sub in (
+        "3d_comp/os1",
+        "2d_rect/cam0",
+        "2d_rect/cam1",
+        "3d_bbox/os1",
+        "3d_semantic/os1",
+        "calibrations",
+        "gt",
+    ):
         src = dataset / sub / "1"
         dst = dataset / sub / "2"
         shutil.copytree(src, dst)
@@ -96,7 +110,9 @@ def test_bad_sequence_fails_alone(dataset, tmp_path):
     report = _run(_config(dataset, out, **{"detect.max_failed_frame_share": 0}))
     failed = report.failed
     assert [(o["sequence"], o["stage"]) for o in failed] == [("0", "detect")]
-    assert "3d_comp_os1_0_2.bin (frame 2)" in failed[0]["error"] and "truncated" in failed[0]["error"]
+    assert (
+        "3d_comp_os1_0_2.bin (frame 2)" in failed[0]["error"] and "truncated" in failed[0]["error"]
+    )
     assert all(report.outcomes[("1", st)]["status"] == "done" for st in STAGES)
     assert report.outcomes[("0", "fuse")]["status"] == "skipped"
     manifest = Manifest.load(out)
@@ -124,7 +140,8 @@ def test_dask_process_runner_matches_thread_runner(dataset, tmp_path):
     threads = _run(_config(dataset, tmp_path / "a"))
     dask = _run(_config(dataset, tmp_path / "b", **{"dask.runner": "dask", "dask.workers": 2}))
     assert {k: o["status"] for k, o in dask.outcomes.items()} == {
-        k: o["status"] for k, o in threads.outcomes.items()}
+        k: o["status"] for k, o in threads.outcomes.items()
+    }
     ma, mb = Manifest.load(tmp_path / "a"), Manifest.load(tmp_path / "b")
     assert {k: r.key for k, r in ma.rows.items()} == {k: r.key for k, r in mb.rows.items()}
     for (seq, stage), rec in ma.rows.items():
@@ -156,28 +173,53 @@ def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle
         enough = tracks["points_in_image"] >= oracle_cfg.fit.min_points  # others are not fitted
         rows = np.flatnonzero((tracks["gt_index"] >= 0) & enough)
         few[seq] = int(((tracks["gt_index"] >= 0) & ~enough).sum())
-        batches = [rows[a:a + 2] for a in range(0, len(rows), 2)]  # the stage's batches
+        batches = [rows[a : a + 2] for a in range(0, len(rows), 2)]  # the stage's batches
         opened = source(oracle_cfg).open(sequence_ref(oracle_cfg, seq))
-        provider = init_provider(fit_inputs(oracle_cfg).init, opened,
-                                 body_model(fit_inputs(oracle_cfg).body, tmp_path / "oracle"),
-                                 opened.info.calibration.cameras[oracle_cfg.dataset.camera])
+        provider = init_provider(
+            fit_inputs(oracle_cfg).init,
+            opened,
+            body_model(fit_inputs(oracle_cfg).body, tmp_path / "oracle"),
+            opened.info.calibration.cameras[oracle_cfg.dataset.camera],
+        )
         est = [provider.estimates(typed, b) for b in batches]
-        go, bp, tr, betas = (np.concatenate([getattr(e, k) for e in est]) for k in
-                             ("global_orient", "body_pose", "transl", "betas"))
-        rot = axis_angle_to_matrix(torch.as_tensor(np.concatenate([go[:, None], bp.reshape(-1, 23, 3)], 1),
-                                                   dtype=torch.float64)).numpy()
+        go, bp, tr, betas = (
+            np.concatenate([getattr(e, k) for e in est])
+            for k in ("global_orient", "body_pose", "transl", "betas")
+        )
+        rot = axis_angle_to_matrix(
+            torch.as_tensor(
+                np.concatenate([go[:, None], bp.reshape(-1, 23, 3)], 1), dtype=torch.float64
+            )
+        ).numpy()
         box = tracks["boxes_xyxy"][rows].astype(np.float64)  # CLIFF's crop: the detection's box
         center, size = (box[:, :2] + box[:, 2:]) / 2, (box[:, 2:] - box[:, :2]).max(1)
         K = _camera_K(oracle_cfg, seq)
-        write_cliff_estimates(cliff_path(init_dir, seq), tracks["frame"][rows], tracks["det_index"][rows], rot,
-                              betas, params_to_cliff_camera(tr, center, size, K), center, size)
-    cliff_cfg = _config(dataset, tmp_path / "cliff-out", **{
-        "fit.batch_persons": 2, "fit.init_provider": "precomputed", "fit.init_dir": str(init_dir)})
+        write_cliff_estimates(
+            cliff_path(init_dir, seq),
+            tracks["frame"][rows],
+            tracks["det_index"][rows],
+            rot,
+            betas,
+            params_to_cliff_camera(tr, center, size, K),
+            center,
+            size,
+        )
+    cliff_cfg = _config(
+        dataset,
+        tmp_path / "cliff-out",
+        **{
+            "fit.batch_persons": 2,
+            "fit.init_provider": "precomputed",
+            "fit.init_dir": str(init_dir),
+        },
+    )
     report = _run(cliff_cfg)
     assert all(o["status"] == "done" for o in report.outcomes.values())
     for seq in ("0", "1"):
-        bodies = [Bodies.read(next((tmp_path / out / "stages" / "fit" / seq).iterdir())).arrays()
-                  for out in ("oracle", "cliff-out")]
+        bodies = [
+            Bodies.read(next((tmp_path / out / "stages" / "fit" / seq).iterdir())).arrays()
+            for out in ("oracle", "cliff-out")
+        ]
         assert len(bodies[0]["frame"]) > 0
         for key in ("frame", "track_id", "det_index"):
             assert np.array_equal(bodies[0][key], bodies[1][key])
@@ -188,14 +230,16 @@ def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle
         assert np.all(bodies[0]["num_points"] >= oracle_cfg.fit.min_points)
         summary = report.outcomes[(seq, "fit")]["summary"]
         assert np.all(bodies[1]["shift_m"] <= cliff_cfg.fit.max_shift_m)
-        assert summary["fitted"] == len(bodies[1]["frame"]) and summary["dropped_far_from_estimate"] >= 0
+        assert (
+            summary["fitted"] == len(bodies[1]["frame"])
+            and summary["dropped_far_from_estimate"] >= 0
+        )
 
 
 def _camera_K(cfg, seq):
     from flows.pipeline.inputs import sequence_ref, source
 
     return source(cfg).open(sequence_ref(cfg, seq)).info.calibration.cameras[cfg.dataset.camera].K
-
 
 
 def test_warm_start_carries_a_tracks_fit_into_its_next_frame(tmp_path, monkeypatch):
@@ -213,7 +257,9 @@ def test_warm_start_carries_a_tracks_fit_into_its_next_frame(tmp_path, monkeypat
     from tasks.fit.init_oracle import BodyParams
     from tasks.fit.reframe import reframe_params
 
-    cfg = load_config(overrides={"output.root": str(tmp_path), "fit.batch_persons": 2, "fit.warm_start": True})
+    cfg = load_config(
+        overrides={"output.root": str(tmp_path), "fit.batch_persons": 2, "fit.warm_start": True}
+    )
     inputs = fit_inputs(cfg)
     model = fit_stage.body_model(inputs.body, tmp_path)
     rng = np.random.default_rng(0)
@@ -227,25 +273,44 @@ def test_warm_start_carries_a_tracks_fit_into_its_next_frame(tmp_path, monkeypat
     T_cam = np.eye(4)
     T_cam[:3, :3] = [[0, -1, 0], [0, 0, -1], [1, 0, 0]]
     camera = SimpleNamespace(T_cam_from_lidar=T_cam, K=np.eye(3))
-    info = SimpleNamespace(frame_indices=[10, 12, 14, 16], poses=np.stack([pose(0.1 * k, 0.7 * k) for k in range(4)]),
-                           calibration=SimpleNamespace(cameras={cfg.dataset.camera: camera}))
+    info = SimpleNamespace(
+        frame_indices=[10, 12, 14, 16],
+        poses=np.stack([pose(0.1 * k, 0.7 * k) for k in range(4)]),
+        calibration=SimpleNamespace(cameras={cfg.dataset.camera: camera}),
+    )
     # track 1 in frames 10, 12, 14; track 2 in 12; track 3 in 10 and 14 (a gap)
-    tracks = SimpleNamespace(frame=np.array([10, 10, 12, 12, 14, 14]), track_id=np.array([1, 3, 1, 2, 1, 3]))
+    tracks = SimpleNamespace(
+        frame=np.array([10, 10, 12, 12, 14, 14]), track_id=np.array([1, 3, 1, 2, 1, 3])
+    )
     n = len(tracks.frame)
-    est = BodyParams(rng.normal(0, 0.5, (n, 10)).astype(np.float32), rng.normal(0, 0.3, (n, 3)).astype(np.float32),
-                     rng.normal(0, 0.2, (n, 69)).astype(np.float32),
-                     (rng.normal(0, 0.5, (n, 3)) + [0, 0, 6]).astype(np.float32))
+    est = BodyParams(
+        rng.normal(0, 0.5, (n, 10)).astype(np.float32),
+        rng.normal(0, 0.3, (n, 3)).astype(np.float32),
+        rng.normal(0, 0.2, (n, 69)).astype(np.float32),
+        (rng.normal(0, 0.5, (n, 3)) + [0, 0, 6]).astype(np.float32),
+    )
 
     def identity_fit(ref, inputs, out_root, tracks_dir, rows, init):
         lidar = reframe_params(model, init, np.linalg.inv(T_cam))
-        return {"rows": np.asarray(rows), "betas": lidar.betas, "global_orient": lidar.global_orient,
-                "body_pose": lidar.body_pose, "transl": lidar.transl}
+        return {
+            "rows": np.asarray(rows),
+            "betas": lidar.betas,
+            "global_orient": lidar.global_orient,
+            "body_pose": lidar.body_pose,
+            "transl": lidar.transl,
+        }
 
     provider = SimpleNamespace(estimates=lambda tracks, rows: est.take(np.asarray(rows)))
     monkeypatch.setattr(fit_stage, "fit_batch", identity_fit)
     monkeypatch.setattr(fit_stage, "init_provider", lambda *a: provider)
-    ctx = SimpleNamespace(inputs=inputs, out_root=tmp_path, ref=None, sequence="0", runtime=Runtime(),
-                          upstream={"track": tmp_path})
+    ctx = SimpleNamespace(
+        inputs=inputs,
+        out_root=tmp_path,
+        ref=None,
+        sequence="0",
+        runtime=Runtime(),
+        upstream={"track": tmp_path},
+    )
     parts = fit_stage._warm_started(ctx, SimpleNamespace(info=info), tracks, np.arange(n), None)
     out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     order = np.argsort(out["rows"])
@@ -253,10 +318,21 @@ def test_warm_start_carries_a_tracks_fit_into_its_next_frame(tmp_path, monkeypat
     for k in order:
         r = int(out["rows"][k])
         p = info.frame_indices.index(int(tracks.frame[r]))
-        body = BodyParams(*(out[f][k:k + 1] for f in ("betas", "global_orient", "body_pose", "transl")))
+        body = BodyParams(
+            *(out[f][k : k + 1] for f in ("betas", "global_orient", "body_pose", "transl"))
+        )
         with torch.no_grad():
             w = reframe_params(model, body, info.poses[p])
-            world[r] = model(*(torch.as_tensor(getattr(w, f)) for f in ("betas", "global_orient", "body_pose", "transl"))).vertices[0].numpy()
+            world[r] = (
+                model(
+                    *(
+                        torch.as_tensor(getattr(w, f))
+                        for f in ("betas", "global_orient", "body_pose", "transl")
+                    )
+                )
+                .vertices[0]
+                .numpy()
+            )
     # track 1: frame 12 and 14 start from frame 10's body (same world pose, up to float32 round trips)
     assert np.abs(world[2] - world[0]).max() < 1e-4 and np.abs(world[4] - world[0]).max() < 1e-4
     # track 2 (new) and track 3 after a gap: their own estimates, not track 1's or their earlier body
@@ -282,7 +358,11 @@ def test_labels_at_the_sensor_rate_end_to_end(dataset, tmp_path):
     report = _run(cfg)
     assert all(o["status"] == "done" for o in report.outcomes.values()), report.failed
     inputs = track_inputs(cfg)
-    assert (inputs.tracker.max_age, inputs.tracker.delta_t, inputs.offline.stitch_max_gap) == (60, 6, 20)
+    assert (inputs.tracker.max_age, inputs.tracker.delta_t, inputs.offline.stitch_max_gap) == (
+        60,
+        6,
+        20,
+    )
     frames = read_table(out, "frames").to_pandas()
     assert frames["raw_frame"].tolist() == [0, 1, 2, 3]  # every sensor frame, not every 2nd
     tracks = Tracks.read(out / Manifest.load(out).get("0", "track").location)
@@ -293,8 +373,11 @@ def test_labels_at_the_sensor_rate_end_to_end(dataset, tmp_path):
     assert ped.any()
     speeds = np.linalg.norm(arrays["velocity"][ped].astype(np.float32), axis=1)
     # per-vertex velocities: the voxels of a person in a frame do not all move alike
-    spread = [len(np.unique(arrays["velocity"][k][arrays["instances"][k] == i], axis=0))
-              for k in range(4) for i in np.unique(arrays["instances"][k][ped[k]])]
+    spread = [
+        len(np.unique(arrays["velocity"][k][arrays["instances"][k] == i], axis=0))
+        for k in range(4)
+        for i in np.unique(arrays["instances"][k][ped[k]])
+    ]
     assert max(spread) > 1 and np.isfinite(speeds).all()
     results = evaluate(out, dataset, tmp_path / "report", sample_frames=0)
     assert results["meta"]["frames"] == 4 and "tracking" in results

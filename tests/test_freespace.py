@@ -37,8 +37,15 @@ def test_wall_axis_aligned_rays_exact_states():
             for kx in range(15):
                 assert lo[(kx, ky, kz)] == pytest.approx(MISS)
             assert lo[(15, ky, kz)] == pytest.approx(HIT)
-    q = np.array([[1.5, ys[0], zs[0]], [3.15, ys[0], zs[0]], [3.3, ys[0], zs[0]], [1.5, 2.0, 0.1],
-                  [-0.1, ys[0], zs[0]]])
+    q = np.array(
+        [
+            [1.5, ys[0], zs[0]],
+            [3.15, ys[0], zs[0]],
+            [3.3, ys[0], zs[0]],
+            [1.5, 2.0, 0.1],
+            [-0.1, ys[0], zs[0]],
+        ]
+    )
     np.testing.assert_array_equal(m.query(q), [0, 1, -1, -1, -1])
 
 
@@ -145,8 +152,9 @@ def test_agreement_with_octomap(discretize):
     tree = octomap.OcTree(RES)
     for pts, origin in scans:
         ours.insert_scan(pts, origin, max_range_m=10.0, discretize=discretize)
-        tree.insertPointCloud(pts.astype(np.float64), origin.astype(np.float64), maxrange=10.0,
-                              discretize=discretize)
+        tree.insertPointCloud(
+            pts.astype(np.float64), origin.astype(np.float64), maxrange=10.0, discretize=discretize
+        )
     spec = GridSpec((0.4, -4.8, -1.0), (10.0, 4.8, 3.8), RES)
     centres = spec.centers().reshape(-1, 3).astype(np.float64)
     for yaw, t in ((0.0, (-5.0, 0.0, 0.0)), (0.7, (-4.3, -1.1, 0.33))):
@@ -167,7 +175,9 @@ def test_threads_and_paths_give_identical_maps():
     def build(threads: int, force_sparse: bool) -> dict:
         m = OccupancyMap(RES, threads=threads, initial_blocks=1)  # pool growth mid-apply too
         dense, used = m._insert_dense, []
-        m._insert_dense = lambda *args: used.append(False if force_sparse else dense(*args)) or used[-1]
+        m._insert_dense = lambda *args: (
+            used.append(False if force_sparse else dense(*args)) or used[-1]
+        )
         for k, (pts, origin) in enumerate(scans):
             m.insert_scan(pts, origin, max_range_m=-1.0 if k else 8.0)
         m.insert_scan(np.concatenate([scans[0][0], far[0]]), scans[0][1], max_range_m=-1.0)

@@ -7,8 +7,15 @@ import pytest
 
 from tasks.conventions import FREE, OTHER_STRUCTURE, PEDESTRIAN, ROAD, TERRAIN, VEGETATION
 from tasks.occupancy.freespace import OccupancyMap
-from tasks.occupancy.fuse import (CameraView, FrameGrids, PedestrianMesh, fuse_frame,
-                                  surface_points, voxelize_labels, voxelize_mesh)
+from tasks.occupancy.fuse import (
+    CameraView,
+    FrameGrids,
+    PedestrianMesh,
+    fuse_frame,
+    surface_points,
+    voxelize_labels,
+    voxelize_mesh,
+)
 from tasks.occupancy.grid import GridError, GridSpec
 from tasks.occupancy.synthetic import box_mesh
 from tasks.occupancy.visibility import camera_mask, lidar_mask
@@ -53,13 +60,17 @@ def test_box_on_plane_static_voxels_exact():
     plane = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 0.05)], 1)
     box = SPEC.center_of(np.array(sorted(_idx_box((10, 5, 1), (12, 7, 4)))))
     pts = np.concatenate([plane, box])
-    lab = np.concatenate([np.full(len(plane), ROAD), np.full(len(box), OTHER_STRUCTURE)]).astype(np.uint8)
+    lab = np.concatenate([np.full(len(plane), ROAD), np.full(len(box), OTHER_STRUCTURE)]).astype(
+        np.uint8
+    )
     # a yawed pose: give the points in the world, the grid in the base frame
     yaw, t = 0.4, np.array([5.0, -2.0, 0.3])
     R = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
-    g = fuse_frame(SPEC, T, static_points_world=(pts @ R.T + t).astype(np.float32), static_labels=lab)
+    g = fuse_frame(
+        SPEC, T, static_points_world=(pts @ R.T + t).astype(np.float32), static_labels=lab
+    )
     assert isinstance(g, FrameGrids)
     assert g.semantics.shape == SPEC.shape and g.semantics.dtype == np.uint8
     assert (g.semantics[:, :, 0] == ROAD).all()
@@ -79,9 +90,13 @@ def test_pedestrian_volume_filled_and_over_static():
     v2, f2 = _box((0.52, -0.48, 0.52), (1.48, 0.48, 1.48))
     assert {tuple(i) for i in voxelize_mesh(SPEC, v2, f2)} == _idx_box((5, 5, 5), (14, 14, 14))
     static = SPEC.center_of([[11, 9, 3], [20, 9, 3]]).astype(np.float32)
-    g = fuse_frame(SPEC, np.eye(4), static_points_world=static,
-                   static_labels=np.array([VEGETATION, VEGETATION], np.uint8),
-                   pedestrians=[PedestrianMesh(7, v, f, np.array([0.5, -1.25]))])
+    g = fuse_frame(
+        SPEC,
+        np.eye(4),
+        static_points_world=static,
+        static_labels=np.array([VEGETATION, VEGETATION], np.uint8),
+        pedestrians=[PedestrianMesh(7, v, f, np.array([0.5, -1.25]))],
+    )
     ped = {tuple(i) for i in np.argwhere(g.semantics == PEDESTRIAN)}
     assert ped == expected
     assert g.semantics[20, 9, 3] == VEGETATION and g.semantics[11, 9, 3] == PEDESTRIAN
@@ -100,8 +115,12 @@ def _reference_voxels(spec, v, f):
     idx = np.argwhere(np.ones(spec.shape, bool))
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
-    occ = scene.compute_occupancy(o3d.core.Tensor(spec.center_of(idx).astype(np.float32)), nsamples=3)
-    return {tuple(i) for i in surf[spec.in_bounds(surf)]} | {tuple(i) for i in idx[occ.numpy() > 0.5]}
+    occ = scene.compute_occupancy(
+        o3d.core.Tensor(spec.center_of(idx).astype(np.float32)), nsamples=3
+    )
+    return {tuple(i) for i in surf[spec.in_bounds(surf)]} | {
+        tuple(i) for i in idx[occ.numpy() > 0.5]
+    }
 
 
 @pytest.mark.parametrize("shape", ["sphere", "torus", "yawed_box"])
@@ -111,10 +130,16 @@ def test_voxelize_mesh_equals_surface_plus_inside_centres(shape):
     import open3d as o3d
 
     if shape == "sphere":
-        m = o3d.geometry.TriangleMesh.create_sphere(radius=0.55, resolution=24).translate((1.3, 0.1, 1.0))
+        m = o3d.geometry.TriangleMesh.create_sphere(radius=0.55, resolution=24).translate(
+            (1.3, 0.1, 1.0)
+        )
     elif shape == "torus":
-        m = o3d.geometry.TriangleMesh.create_torus(torus_radius=0.5, tube_radius=0.2).translate((1.5, -0.05, 1.0))
-        m.rotate(o3d.geometry.get_rotation_matrix_from_xyz((0.3, 0.2, 0.0)), center=(1.5, -0.05, 1.0))
+        m = o3d.geometry.TriangleMesh.create_torus(torus_radius=0.5, tube_radius=0.2).translate(
+            (1.5, -0.05, 1.0)
+        )
+        m.rotate(
+            o3d.geometry.get_rotation_matrix_from_xyz((0.3, 0.2, 0.0)), center=(1.5, -0.05, 1.0)
+        )
     else:
         m = box_mesh((2.8, 0.7, 0.9), (0.5, 0.9, 1.2), yaw=0.5)  # crosses the grid's x and y ends
     v, f = np.asarray(m.vertices), np.asarray(m.triangles)
@@ -133,10 +158,26 @@ def test_voxelize_mesh_column_through_a_shared_edge():
     spec = GridSpec((0.0, 0.0, 0.0), (4.0, 4.0, 4.0), 0.25)
     c = lambda i: (i + 0.5) * 0.25  # noqa: E731 - voxel centres
     lo, hi = (c(2), c(2), 0.3), (c(12), c(12), 2.7)
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    corners = np.array(
+        [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+    )
     # 12 outward faces; the top (z = hi) and bottom faces are split along the xy diagonal
-    faces = np.array([[0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3], [0, 1, 3], [0, 3, 2],
-                      [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6]])
+    faces = np.array(
+        [
+            [0, 2, 6],
+            [0, 6, 4],
+            [1, 5, 7],
+            [1, 7, 3],
+            [0, 1, 3],
+            [0, 3, 2],
+            [4, 6, 7],
+            [4, 7, 5],
+            [0, 4, 5],
+            [0, 5, 1],
+            [2, 3, 7],
+            [2, 7, 6],
+        ]
+    )
     got = {tuple(i) for i in voxelize_mesh(spec, corners, faces)}
     inside = _idx_box((3, 3, 2), (11, 11, 9))  # centres strictly inside: z 0.375 .. 2.375
     assert inside <= got
@@ -153,7 +194,11 @@ def test_surface_points_cover_triangle():
     v = np.array([[0, 0, 0], [1.0, 0, 0], [0, 1.0, 0]])
     p = surface_points(v, np.array([[0, 1, 2]]), 0.1)
     assert len(p) == 3 + 16 * 17 // 2  # vertices + lattice with k = ceil(sqrt(2) / 0.1) = 15
-    assert np.allclose(p[:, 2], 0) and (p[:, :2] >= -1e-12).all() and (p[:, :2].sum(1) <= 1 + 1e-12).all()
+    assert (
+        np.allclose(p[:, 2], 0)
+        and (p[:, :2] >= -1e-12).all()
+        and (p[:, :2].sum(1) <= 1 + 1e-12).all()
+    )
     rng = np.random.default_rng(0)
     q = rng.dirichlet(np.ones(3), 500) @ v
     d = np.linalg.norm(q[:, None] - p[None], axis=2).min(1)
@@ -182,7 +227,9 @@ def test_camera_mask_occlusion_and_frustum(method):
     assert m[16, 10, 10] == 0 and m[29, 10, 10] == 0  # behind it
     assert m[5, 0, 10] == 0  # outside the narrow frustum
     assert m[15, 11, 10] == 1 or method == "rays"  # beside the blocker (too oblique for few rays)
-    free = camera_mask(SPEC, np.zeros(SPEC.shape, bool), cam.K, 20, 20, cam.T_base_from_cam, 1, method)
+    free = camera_mask(
+        SPEC, np.zeros(SPEC.shape, bool), cam.K, 20, 20, cam.T_base_from_cam, 1, method
+    )
     assert free[16, 10, 10] == 1 and free[29, 10, 10] == 1  # the same voxels without the blocker
 
 
@@ -201,9 +248,17 @@ def test_fuse_frame_states_and_masks():
     wall = np.stack([np.full(ys.size, 2.05), ys.ravel(), zs.ravel()], 1)
     occ_map.insert_scan(wall, np.array([-0.5, 0.05, 1.05]))
     labels = np.full(len(wall), OTHER_STRUCTURE, np.uint8)
-    g = fuse_frame(SPEC, np.eye(4), static_points_world=wall.astype(np.float32), static_labels=labels,
-                   occupancy=occ_map, lidar_points_base=wall, lidar_origin_base=np.array([-0.5, 0.05, 1.05]),
-                   camera=_camera(), pixel_stride=1)
+    g = fuse_frame(
+        SPEC,
+        np.eye(4),
+        static_points_world=wall.astype(np.float32),
+        static_labels=labels,
+        occupancy=occ_map,
+        lidar_points_base=wall,
+        lidar_origin_base=np.array([-0.5, 0.05, 1.05]),
+        camera=_camera(),
+        pixel_stride=1,
+    )
     np.testing.assert_array_equal(g.occupancy_state, occ_map.query_grid(SPEC, np.eye(4)))
     assert (g.occupancy_state[20] == 1).all() and (g.semantics[20] == OTHER_STRUCTURE).all()
     assert (g.occupancy_state[21:] == -1).all()  # beyond the hit layer: never observed

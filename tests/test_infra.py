@@ -24,7 +24,7 @@ pytestmark = [pytest.mark.usefixtures("prefect_harness"), pytest.mark.xdist_grou
 
 
 def _sbatch(script: str) -> list[str]:
-    return [line[len("#SBATCH "):] for line in script.splitlines() if line.startswith("#SBATCH ")]
+    return [line[len("#SBATCH ") :] for line in script.splitlines() if line.startswith("#SBATCH ")]
 
 
 def _worker_line(script: str) -> str:
@@ -51,7 +51,9 @@ def test_slurm_job_scripts_render_gpu_pool_apart():
     # both pools join the same scheduler and report to the same Prefect API
     for script in (cpu, gpu):
         assert "tcp://10.0.0.1:8786" in _worker_line(script)
-        assert "export PREFECT_API_URL=http://prefect.example.internal:4200/api" in script.splitlines()
+        assert (
+            "export PREFECT_API_URL=http://prefect.example.internal:4200/api" in script.splitlines()
+        )
         assert _worker_line(script).startswith("/opt/mobileocc/.venv/bin/python ")
 
 
@@ -79,8 +81,10 @@ def test_kubernetes_resources_render_fixed_gpu_group():
     assert gpu_container["resources"]["limits"]["nvidia.com/gpu"] == 1
     args = gpu_container["args"]
     assert args[args.index("--resources") + 1] == "GPU=1"
-    assert {"name": "PREFECT_API_URL", "value": "http://prefect-server.prefect.svc:4200/api"} in \
-        gpu_container["env"]
+    assert {
+        "name": "PREFECT_API_URL",
+        "value": "http://prefect-server.prefect.svc:4200/api",
+    } in gpu_container["env"]
 
     # only the default (CPU) group autoscales: the autoscaler names the cluster, the GPU group is fixed
     assert autoscaler["spec"] == {"cluster": "mobileocc", "minimum": 1, "maximum": 20}
@@ -95,7 +99,9 @@ def test_cluster_spec_errors_name_the_field():
         cluster_spec_from_dict({"kind": "kubernetes", "gpu": {"gpus": 1, "adapt_maximum": 4}})
     with pytest.raises(ClusterSpecError, match="kind 'pbs'"):
         cluster_spec_from_dict({"kind": "pbs"})
-    with pytest.raises(ClusterSpecError, match="cores \\(6\\) must be a multiple of processes \\(4\\)"):
+    with pytest.raises(
+        ClusterSpecError, match="cores \\(6\\) must be a multiple of processes \\(4\\)"
+    ):
         cluster_spec_from_dict({"kind": "slurm", "cpu": {"cores": 6, "processes": 4}})
 
 
@@ -104,8 +110,10 @@ def test_prefect_yaml_entrypoints_import():
 
     data = yaml.safe_load((INFRA / "prefect.yaml").read_text())
     entry = {d["name"]: d["entrypoint"] for d in data["deployments"]}
-    assert entry == {"rebuild": "flows.pipeline.run:rebuild_dataset",
-                     "sequence": "flows.pipeline.run:process_sequence"}
+    assert entry == {
+        "rebuild": "flows.pipeline.run:rebuild_dataset",
+        "sequence": "flows.pipeline.run:process_sequence",
+    }
     assert load_flow_from_entrypoint(entry["rebuild"]).name == "rebuild-dataset"
     assert load_flow_from_entrypoint(entry["sequence"]).name == "process-sequence"
     # the file also validates against the schema `prefect deploy` uses (a private module: optional)
@@ -115,7 +123,9 @@ def test_prefect_yaml_entrypoints_import():
         return
     model = PrefectYamlModel.model_validate(data)
     assert [(d.name, d.work_pool.name) for d in model.deployments] == [
-        ("rebuild", "mobileocc"), ("sequence", "mobileocc")]
+        ("rebuild", "mobileocc"),
+        ("sequence", "mobileocc"),
+    ]
 
 
 def test_duplicate_trigger_returns_the_same_flow_run(tmp_path):
@@ -130,8 +140,9 @@ def test_duplicate_trigger_returns_the_same_flow_run(tmp_path):
 
     ids = apply_deployments(tags=("mobileocc", "test"))
     assert len(set(ids)) == 2
-    cfg = load_config(overrides={"dataset.root": str(tmp_path / "data"),
-                                 "output.root": str(tmp_path / "out")})
+    cfg = load_config(
+        overrides={"dataset.root": str(tmp_path / "data"), "output.root": str(tmp_path / "out")}
+    )
     key = default_idempotency_key(cfg, window=str(tmp_path))
     first = trigger_rebuild(cfg, idempotency_key=key)
     again = trigger_rebuild(cfg, idempotency_key=key)
@@ -148,7 +159,9 @@ def test_duplicate_trigger_returns_the_same_flow_run(tmp_path):
 
         runs = client.read_flow_runs(
             deployment_filter=DeploymentFilter(id=DeploymentFilterId(any_=[dep.id])),
-            sort=FlowRunSort.ID_DESC, limit=100)
+            sort=FlowRunSort.ID_DESC,
+            limit=100,
+        )
         assert len(runs) == 2  # three triggers, two keys
         assert sum(r.idempotency_key == key for r in runs) == 1
 
@@ -158,13 +171,20 @@ def test_local_cluster_from_spec_has_a_gpu_pool():
 
     from flows.deploy.clusters import build_cluster
 
-    spec = cluster_spec_from_dict({"kind": "local", "cpu": {"jobs": 1, "cores": 1, "memory": "1GiB"},
-                                   "gpu": {"jobs": 1, "cores": 1, "gpus": 1, "memory": "1GiB"}})
+    spec = cluster_spec_from_dict(
+        {
+            "kind": "local",
+            "cpu": {"jobs": 1, "cores": 1, "memory": "1GiB"},
+            "gpu": {"jobs": 1, "cores": 1, "gpus": 1, "memory": "1GiB"},
+        }
+    )
     with build_cluster(spec) as handle, Client(handle.address) as client:
         client.wait_for_workers(2, timeout=120)
         workers = client.scheduler_info(n_workers=-1)["workers"].values()
         assert sorted((w["name"], w["resources"]) for w in workers) == [
-            ("cpu-0-0", {}), ("gpu-0-0", {"GPU": 1})]
+            ("cpu-0-0", {}),
+            ("gpu-0-0", {"GPU": 1}),
+        ]
         on = client.submit(_worker_name, resources={"GPU": 1}, pure=False).result()
         assert on == "gpu-0-0"
 
@@ -176,14 +196,18 @@ def test_cluster_up_writes_the_address_and_releases_it(tmp_path):
 
     from flows.deploy.clusters import hold_cluster
 
-    spec = cluster_spec_from_dict({"kind": "local", "cpu": {"jobs": 1, "cores": 2, "processes": 2, "memory": "2GiB"}})
+    spec = cluster_spec_from_dict(
+        {"kind": "local", "cpu": {"jobs": 1, "cores": 2, "processes": 2, "memory": "2GiB"}}
+    )
     seen = {}
 
     def probe(address: str) -> None:  # runs while the cluster is held
         seen["file"] = (tmp_path / "address").read_text().strip()
         with Client(address, timeout=60) as client:
             client.wait_for_workers(2, timeout=120)
-            seen["threads"] = sorted(w["nthreads"] for w in client.scheduler_info(n_workers=-1)["workers"].values())
+            seen["threads"] = sorted(
+                w["nthreads"] for w in client.scheduler_info(n_workers=-1)["workers"].values()
+            )
 
     address = hold_cluster(spec, tmp_path / "address", wait=probe)
     assert address.startswith("tcp://") and seen == {"file": address, "threads": [1, 1]}
@@ -222,17 +246,30 @@ def test_slurm_cluster_from_spec_with_a_stand_in_sbatch(tmp_path, monkeypatch):
 
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir()
-    for name, text in (("sbatch", FAKE_SBATCH), ("scancel", FAKE_SCANCEL), ("squeue", "#!/bin/bash\n")):
+    for name, text in (
+        ("sbatch", FAKE_SBATCH),
+        ("scancel", FAKE_SCANCEL),
+        ("squeue", "#!/bin/bash\n"),
+    ):
         (bin_dir / name).write_text(text)
         (bin_dir / name).chmod(0o755)
     monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
-    spec = cluster_spec_from_dict({
-        "kind": "slurm", "python": sys.executable, "local_directory": str(tmp_path),
-        "job_script_prologue": [f"cd {Path(__file__).resolve().parents[1]}"],
-        "cpu": {"jobs": 1, "cores": 1, "memory": "1GiB"},
-        "gpu": {"jobs": 1, "cores": 1, "memory": "1GiB", "gpus": 1}})
+    spec = cluster_spec_from_dict(
+        {
+            "kind": "slurm",
+            "python": sys.executable,
+            "local_directory": str(tmp_path),
+            "job_script_prologue": [f"cd {Path(__file__).resolve().parents[1]}"],
+            "cpu": {"jobs": 1, "cores": 1, "memory": "1GiB"},
+            "gpu": {"jobs": 1, "cores": 1, "memory": "1GiB", "gpus": 1},
+        }
+    )
     with build_cluster(spec) as handle, Client(handle.address) as client:
         client.wait_for_workers(2, timeout=120)
         workers = client.scheduler_info(n_workers=-1)["workers"].values()
         assert sorted((w["resources"] for w in workers), key=len) == [{}, {"GPU": 1}]
-        assert client.submit(_worker_name, resources={"GPU": 1}, pure=False).result().startswith("mobileocc-gpu")
+        assert (
+            client.submit(_worker_name, resources={"GPU": 1}, pure=False)
+            .result()
+            .startswith("mobileocc-gpu")
+        )

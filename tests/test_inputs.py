@@ -16,14 +16,23 @@ import pytest
 
 from configs.schema import ConfigError, load_config
 from flows.pipeline.dag import STAGES
-from flows.pipeline.inputs import (PER_SEQUENCE_KEYS, RUNTIME_KEYS, dataset_export_inputs, inputs_hash,
-                                   sequence_ref, stage_inputs)
+from flows.pipeline.inputs import (
+    PER_SEQUENCE_KEYS,
+    RUNTIME_KEYS,
+    dataset_export_inputs,
+    inputs_hash,
+    sequence_ref,
+    stage_inputs,
+)
 from flows.pipeline.plan import unit_keys
 
 #: leaves only read when a provider the default config does not choose is chosen (each checked
 #: below with that provider)
 PROVIDER_ONLY = {
-    "detect.precomputed_dir": {"detect.image_provider": "precomputed", "detect.precomputed_dir": "/p"},
+    "detect.precomputed_dir": {
+        "detect.image_provider": "precomputed",
+        "detect.precomputed_dir": "/p",
+    },
     "fit.init_dir": {"fit.init_provider": "precomputed", "fit.init_dir": "/c"},
     "fuse.gt_min_points": {"fuse.body_source": "ground-truth"},
     "fit.cliff_path": {"fit.init_provider": "cliff", "fit.cliff_path": "/m.onnx"},
@@ -31,9 +40,15 @@ PROVIDER_ONLY = {
     "detect.image_provider": {"detect.precomputed_dir": "/p"},
     "fit.init_provider": {"fit.init_dir": "/c", "fit.cliff_path": "/m.onnx"},
     # a model kind that needs a file, or masks that do not come with BlazePose's keypoints
-    "detect.models.detector.kind": {"detect.image_provider": "models", "detect.models.detector.path": "/d.onnx"},
-    "detect.models.keypoints.kind": {"detect.image_provider": "models", "detect.models.masks.kind": "none",
-                                     "detect.models.keypoints.path": "/k.onnx"},
+    "detect.models.detector.kind": {
+        "detect.image_provider": "models",
+        "detect.models.detector.path": "/d.onnx",
+    },
+    "detect.models.keypoints.kind": {
+        "detect.image_provider": "models",
+        "detect.models.masks.kind": "none",
+        "detect.models.keypoints.path": "/k.onnx",
+    },
 }
 #: every leaf under these prefixes is read only with the provider chosen
 PROVIDER_PREFIXES = {"detect.models.": {"detect.image_provider": "models"}}
@@ -59,24 +74,67 @@ def _candidates(value: Any) -> list[Any]:
     if isinstance(value, int):
         return [value + 1, value - 1, value * 2]
     if isinstance(value, float):
-        return [round(value * 1.1 + 0.01, 6), round(value * 0.9, 6), value + 1.0, round(value / 2, 6)]
+        return [
+            round(value * 1.1 + 0.01, 6),
+            round(value * 0.9, 6),
+            value + 1.0,
+            round(value / 2, 6),
+        ]
     if isinstance(value, str):
-        return ["3d_comp", "3d_raw", "2d_raw", "cam1", "unknown", "metadata", "rays", "zbuffer", "ground-truth",
-                "oracle", "none", "precomputed", "lidar-clusters", "cpu", "cuda", "v1.0-mini", "3dpw",
-                "thread", "dask", "yolox", "person", value + "x"]
+        return [
+            "3d_comp",
+            "3d_raw",
+            "2d_raw",
+            "cam1",
+            "unknown",
+            "metadata",
+            "rays",
+            "zbuffer",
+            "ground-truth",
+            "oracle",
+            "none",
+            "precomputed",
+            "lidar-clusters",
+            "cpu",
+            "cuda",
+            "v1.0-mini",
+            "3dpw",
+            "thread",
+            "dask",
+            "yolox",
+            "person",
+            value + "x",
+        ]
     if value is None:
         return ["/x", 0.05, 2, 0.5, [256, 512]]
     if isinstance(value, list):
         if value and all(isinstance(v, int) and not isinstance(v, bool) for v in value):
             return [[value[0] + 1, *value[1:]], [*value[:-1], value[-1] + 1]]
         if value and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
-            return [[value[0] + 0.2, *value[1:]], [value[0] - 0.2, *value[1:]],
-                    [*value[:-1], round(value[-1] * 0.9, 6)], [*value[:-1], value[-1] + 0.1]]
+            return [
+                [value[0] + 0.2, *value[1:]],
+                [value[0] - 0.2, *value[1:]],
+                [*value[:-1], round(value[-1] * 0.9, 6)],
+                [*value[:-1], value[-1] + 0.1],
+            ]
         return [value[:-1], value + ["nuscenes"], ["0"], ["terrain"]]
     if isinstance(value, dict):
-        return [{**value, 10: "terrain"}, {}, {"mine": {"rho": 100, "lambda_theta": 1, "lambda_a": 1,
-                                                        "lambda_beta": 1, "lambda_3d": 1, "lambda_occ": 1,
-                                                        "w": 0.2, "j_conf": 0.5}}]
+        return [
+            {**value, 10: "terrain"},
+            {},
+            {
+                "mine": {
+                    "rho": 100,
+                    "lambda_theta": 1,
+                    "lambda_a": 1,
+                    "lambda_beta": 1,
+                    "lambda_3d": 1,
+                    "lambda_occ": 1,
+                    "w": 0.2,
+                    "j_conf": 0.5,
+                }
+            },
+        ]
     raise AssertionError(f"no mutation for {value!r}")
 
 
@@ -104,7 +162,9 @@ def _check_keys_follow_inputs(base_cfg, mutated, key: str) -> bool:
     for stage, upstream in STAGES.items():
         expected = h0[stage] != h1[stage] or any(k0[u] != k1[u] for u in upstream)
         assert (k0[stage] != k1[stage]) == expected, (key, stage)
-    exports = inputs_hash(dataset_export_inputs(base_cfg)) != inputs_hash(dataset_export_inputs(mutated))
+    exports = inputs_hash(dataset_export_inputs(base_cfg)) != inputs_hash(
+        dataset_export_inputs(mutated)
+    )
     return exports or any(h0[s] != h1[s] for s in STAGES)
 
 
@@ -120,7 +180,9 @@ def test_every_leaf_changes_exactly_the_keys_of_the_stages_that_read_it():
             if mutated is not None:
                 assert _state(mutated) == _state(base_cfg), f"runtime setting {key} changed a key"
             continue
-        extra = PROVIDER_ONLY.get(key) or next((v for k, v in PROVIDER_PREFIXES.items() if key.startswith(k)), None)
+        extra = PROVIDER_ONLY.get(key) or next(
+            (v for k, v in PROVIDER_PREFIXES.items() if key.startswith(k)), None
+        )
         cfg = load_config(overrides=extra) if extra else base_cfg
         leaves = _leaves(cfg.model_dump(mode="json"))
         mutated = _mutate(leaves, key, extra)
@@ -135,8 +197,13 @@ def test_every_leaf_changes_exactly_the_keys_of_the_stages_that_read_it():
 
 def test_scale_min_hits_is_in_the_track_key_at_10_hz():
     """At the gates' own rate min_hits is the same either way (the key too); at 10 Hz it doubles."""
-    at = {hz: [load_config(overrides={"dataset.rate_hz": hz, "track.scale_min_hits": s}) for s in (False, True)]
-          for hz in (5.0, 10.0)}
+    at = {
+        hz: [
+            load_config(overrides={"dataset.rate_hz": hz, "track.scale_min_hits": s})
+            for s in (False, True)
+        ]
+        for hz in (5.0, 10.0)
+    }
     assert _state(at[5.0][0])[1]["track"] == _state(at[5.0][1])[1]["track"]
     assert _state(at[10.0][0])[1]["track"] != _state(at[10.0][1])[1]["track"]
 
@@ -151,10 +218,20 @@ def test_the_old_slice_table_misses_the_map_stages_iou_and_the_inputs_do_not():
 
 
 def test_a_chosen_custom_preset_is_in_the_fit_key():
-    mine = {"rho": 100, "lambda_theta": 1, "lambda_a": 1, "lambda_beta": 1, "lambda_3d": 300,
-            "lambda_occ": 1, "w": 0.2, "j_conf": 0.5}
+    mine = {
+        "rho": 100,
+        "lambda_theta": 1,
+        "lambda_a": 1,
+        "lambda_beta": 1,
+        "lambda_3d": 300,
+        "lambda_occ": 1,
+        "w": 0.2,
+        "j_conf": 0.5,
+    }
     a = load_config(overrides={"fit.presets": {"mine": mine}, "fit.preset": "mine"})
-    b = load_config(overrides={"fit.presets": {"mine": {**mine, "lambda_3d": 301}}, "fit.preset": "mine"})
+    b = load_config(
+        overrides={"fit.presets": {"mine": {**mine, "lambda_3d": 301}}, "fit.preset": "mine"}
+    )
     c = load_config(overrides={"fit.presets": {"mine": mine, "other": mine}, "fit.preset": "mine"})
     assert _state(a)[1]["fit"] != _state(b)[1]["fit"]
     assert _state(a)[1]["fit"] == _state(c)[1]["fit"]
@@ -162,9 +239,15 @@ def test_a_chosen_custom_preset_is_in_the_fit_key():
 
 def test_provider_settings_only_count_for_the_chosen_provider():
     """Oracle noise does not rerun a detect stage that reads precomputed files, and vice versa."""
-    pre = {"detect.image_provider": "precomputed", "detect.precomputed_dir": "/p",
-           "detect.lidar_provider": "precomputed"}
-    a, b = load_config(overrides=pre), load_config(overrides={**pre, "detect.oracle.box_jitter": 0.2})
+    pre = {
+        "detect.image_provider": "precomputed",
+        "detect.precomputed_dir": "/p",
+        "detect.lidar_provider": "precomputed",
+    }
+    a, b = (
+        load_config(overrides=pre),
+        load_config(overrides={**pre, "detect.oracle.box_jitter": 0.2}),
+    )
     assert _state(a)[1]["detect"] == _state(b)[1]["detect"]
     a, b = load_config(), load_config(overrides={"detect.oracle.box_jitter": 0.2})
     assert _state(a)[1]["detect"] != _state(b)[1]["detect"]
@@ -183,4 +266,6 @@ def test_a_sequences_own_settings_rerun_it_alone():
     assert _state(a) == _state(b)
     files = "files-fingerprint"
     assert sequence_ref(b, "7").fingerprint(files) != sequence_ref(a, "7").fingerprint(files)
-    assert sequence_ref(b, "8").fingerprint(files) == sequence_ref(a, "8").fingerprint(files) == files
+    assert (
+        sequence_ref(b, "8").fingerprint(files) == sequence_ref(a, "8").fingerprint(files) == files
+    )

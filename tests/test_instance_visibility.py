@@ -59,8 +59,16 @@ def test_half_occluded_and_half_outside_the_image():
 
 
 def test_visibility_bins():
-    assert [visibility_token(f) for f in (0.0, 0.39, 0.4, 0.59, 0.6, 0.79, 0.8, 1.0)] == \
-        ["1", "1", "2", "2", "3", "3", "4", "4"]
+    assert [visibility_token(f) for f in (0.0, 0.39, 0.4, 0.59, 0.6, 0.79, 0.8, 1.0)] == [
+        "1",
+        "1",
+        "2",
+        "2",
+        "3",
+        "3",
+        "4",
+        "4",
+    ]
 
 
 def test_shape_mismatch_is_an_error():
@@ -76,8 +84,17 @@ def test_a_person_beyond_the_grid_is_drawn_from_its_box():
     assert pts.shape == (2 * 3 * 9, 3)
     np.testing.assert_allclose(pts.mean(0), [12.0, 0.0, 0.0], atol=1e-12)
     occ, inst = _grids()
-    assert visible_fractions(LO, VS, occ, inst, [5], K, W, H, T_BASE_FROM_CAM, outside={5: pts})[0] == 1.0
+    assert (
+        visible_fractions(LO, VS, occ, inst, [5], K, W, H, T_BASE_FROM_CAM, outside={5: pts})[0]
+        == 1.0
+    )
     occ[45, 15:25, 10:30] = True  # a wall at the grid's far end hides it
-    assert visible_fractions(LO, VS, occ, inst, [5], K, W, H, T_BASE_FROM_CAM, outside={5: pts})[0] == 0.0
+    assert (
+        visible_fractions(LO, VS, occ, inst, [5], K, W, H, T_BASE_FROM_CAM, outside={5: pts})[0]
+        == 0.0
+    )
     inst[25, 18:22, 15:25] = 5  # with voxels in the grid, its box points are not used
-    assert visible_fractions(LO, VS, occ, inst, [5], K, W, H, T_BASE_FROM_CAM, outside={5: pts})[0] == 1.0
+    assert (
+        visible_fractions(LO, VS, occ, inst, [5], K, W, H, T_BASE_FROM_CAM, outside={5: pts})[0]
+        == 1.0
+    )

@@ -9,12 +9,24 @@ import pytest
 
 from tasks import conventions as C
 from tasks.metrics._common import MetricInputError, PRCounts
-from tasks.metrics.bev import (DIFF_CORRECT, DIFF_EXTRA, DIFF_FREE, DIFF_MISSED, DIFF_UNKNOWN,
-                               DIFF_WRONG_CLASS, bev_difference, bev_top_labels)
+from tasks.metrics.bev import (
+    DIFF_CORRECT,
+    DIFF_EXTRA,
+    DIFF_FREE,
+    DIFF_MISSED,
+    DIFF_UNKNOWN,
+    DIFF_WRONG_CLASS,
+    bev_difference,
+    bev_top_labels,
+)
 from tasks.metrics.detection import DetectionCounts, detection_counts, detection_table, match_boxes
 from tasks.metrics.occupancy import OccupancyMetric, occupancy_scores
-from tasks.metrics.pedestrian import (box_voxel_masks, pedestrian_box_counts, pedestrian_lidar_counts,
-                                      voxelize_points)
+from tasks.metrics.pedestrian import (
+    box_voxel_masks,
+    pedestrian_box_counts,
+    pedestrian_lidar_counts,
+    voxelize_points,
+)
 from tasks.metrics.static import static_counts
 from tasks.metrics.tracking import HOTA_ALPHAS, tracking_scores
 from tasks.metrics.velocity import velocity_errors, voxel_velocity_errors
@@ -28,6 +40,7 @@ def col(values) -> np.ndarray:
 
 
 # ---- occupancy (Occ3D) -------------------------------------------------------------------------
+
 
 def test_occupancy_iou_by_hand():
     gt, pred = col([P, P, ROAD, FREE]), col([P, ROAD, ROAD, ROAD])
@@ -66,20 +79,30 @@ def test_occupancy_rejects_bad_input():
 
 # ---- static voxels vs labelled points -----------------------------------------------------------
 
+
 def test_static_by_hand():
     labels = col([ROAD, C.VEGETATION, FREE])  # 1 m voxels from x = 0
     T, V = C.TERRAIN, C.VEGETATION
-    pts = [(0.5, 0.5, 0.5)] * 4 + [(1.5, 0.5, 0.5)] * 3 + [(2.5, 0.5, 0.5)] * 2 + [(0.2, 0.2, 0.2), (9, 0, 0)]
+    pts = (
+        [(0.5, 0.5, 0.5)] * 4
+        + [(1.5, 0.5, 0.5)] * 3
+        + [(2.5, 0.5, 0.5)] * 2
+        + [(0.2, 0.2, 0.2), (9, 0, 0)]
+    )
     cls = [ROAD, ROAD, ROAD, T] + [T, T, V] + [ROAD, ROAD] + [C.UNLABELED, ROAD]
     s = static_counts(labels, (0, 0, 0), 1.0, np.array(pts, np.float32), np.array(cls, np.uint8))
     d = s.as_dict(classes=[ROAD, V, T])
-    assert d["per_class_iou"]["road"] == pytest.approx(3 / 6)  # TP 3, FN 2 (free voxel), FP 1 terrain
+    assert d["per_class_iou"]["road"] == pytest.approx(
+        3 / 6
+    )  # TP 3, FN 2 (free voxel), FP 1 terrain
     assert d["per_class_iou"]["vegetation"] == pytest.approx(1 / 3)  # TP 1, FP 2 terrain
     assert d["per_class_iou"]["terrain"] == 0.0
     assert d["miou"] == pytest.approx(5 / 18)
     assert d["coverage"] == pytest.approx(7 / 9)
     assert d["point_accuracy"] == pytest.approx(4 / 7)
-    assert d["voxel_accuracy"] == pytest.approx(1 / 2)  # voxel 0 majority road = road; voxel 1 terrain != veg
+    assert d["voxel_accuracy"] == pytest.approx(
+        1 / 2
+    )  # voxel 0 majority road = road; voxel 1 terrain != veg
     assert d["num_points_ignored"] == 2 and d["num_points"] == 9
     both = (s + s).as_dict(classes=[ROAD, V, T])
     assert both["miou"] == pytest.approx(5 / 18) and both["num_voxels"] == 4
@@ -92,6 +115,7 @@ def test_static_rejects_free_gt_class():
 
 # ---- pedestrian voxels --------------------------------------------------------------------------
 
+
 def box_case():
     pred = np.full((6, 6, 4), FREE, np.uint8)
     pred[1:3, 1:3, 1] = P  # 4 body voxels inside the box
@@ -99,24 +123,40 @@ def box_case():
     pred[4, 4, 1] = P  # outside every box
     pred[1, 1, 2] = C.OTHER_STRUCTURE  # occupied box voxel not labelled pedestrian
     # box x, y in [1, 3], z in [0, 3]; voxel centres at k + 0.5; bottom 0.6 m -> layer z = 0
-    return pred, dict(range_min=(0, 0, 0), voxel_size_m=1.0, centers=[(2, 2, 1.5)], sizes=[(2, 2, 3)], yaws=[0.0])
+    return pred, dict(
+        range_min=(0, 0, 0), voxel_size_m=1.0, centers=[(2, 2, 1.5)], sizes=[(2, 2, 3)], yaws=[0.0]
+    )
 
 
 def test_pedestrian_boxes_by_hand():
     pred, box = box_case()
-    body, bottom = box_voxel_masks(pred.shape, box["range_min"], 1.0, box["centers"], box["sizes"], box["yaws"], 0.6)
+    body, bottom = box_voxel_masks(
+        pred.shape, box["range_min"], 1.0, box["centers"], box["sizes"], box["yaws"], 0.6
+    )
     assert body.sum() == 8 and bottom.sum() == 4 and bottom[1:3, 1:3, 0].all()
     c = pedestrian_box_counts(pred, **box, bottom_exclude_m=0.6)
     assert (c.pred_matched, c.pred_total, c.ref_matched, c.ref_total) == (4, 5, 4, 5)
-    assert c.precision == pytest.approx(0.8) and c.recall == pytest.approx(0.8) and c.f1 == pytest.approx(0.8)
+    assert (
+        c.precision == pytest.approx(0.8)
+        and c.recall == pytest.approx(0.8)
+        and c.f1 == pytest.approx(0.8)
+    )
     visible = np.ones(pred.shape, bool)
     visible[4, 4, 1] = False  # the stray pedestrian voxel is not camera-visible
-    assert pedestrian_box_counts(pred, **box, visible=visible, bottom_exclude_m=0.6).precision == 1.0
+    assert (
+        pedestrian_box_counts(pred, **box, visible=visible, bottom_exclude_m=0.6).precision == 1.0
+    )
 
 
 def test_rotated_box_voxels():
-    kw = dict(shape=(7, 7, 1), range_min=(0, 0, 0), voxel_size_m=1.0, centers=[(3.5, 3.5, 0.5)],
-              sizes=[(3.8, 0.8, 0.8)], bottom_exclude_m=0.0)
+    kw = dict(
+        shape=(7, 7, 1),
+        range_min=(0, 0, 0),
+        voxel_size_m=1.0,
+        centers=[(3.5, 3.5, 0.5)],
+        sizes=[(3.8, 0.8, 0.8)],
+        bottom_exclude_m=0.0,
+    )
     along_x, _ = box_voxel_masks(yaws=[0.0], **kw)
     along_y, _ = box_voxel_masks(yaws=[math.pi / 2], **kw)
     assert np.argwhere(along_x).tolist() == [[2, 3, 0], [3, 3, 0], [4, 3, 0]]
@@ -127,7 +167,9 @@ def test_pedestrian_lidar_tolerance():
     pred = np.full((5, 5, 5), FREE, np.uint8)
     pred[2, 2, 3] = P  # one voxel from the GT voxel (2, 2, 2)
     pred[4, 4, 4] = P  # two voxels away from it
-    gt = voxelize_points(np.array([[2.5, 2.5, 2.5], [0.1, 0.1, 0.1], [7.0, 0, 0]]), (0, 0, 0), 1.0, (5, 5, 5))
+    gt = voxelize_points(
+        np.array([[2.5, 2.5, 2.5], [0.1, 0.1, 0.1], [7.0, 0, 0]]), (0, 0, 0), 1.0, (5, 5, 5)
+    )
     assert np.argwhere(gt).tolist() == [[0, 0, 0], [2, 2, 2]]
     c = pedestrian_lidar_counts(pred, gt)
     assert (c.pred_matched, c.pred_total, c.ref_matched, c.ref_total) == (1, 2, 1, 2)
@@ -147,6 +189,7 @@ def test_pr_counts_micro_average():
 
 
 # ---- detection robustness -----------------------------------------------------------------------
+
 
 def test_detection_counts_two_boxes_and_threshold():
     gt = [[0, 0, 10, 10], [20, 0, 30, 10], [40, 0, 50, 10]]
@@ -168,19 +211,32 @@ def test_hungarian_beats_greedy():
 
 def test_detection_rates_match_paper_table():
     crowded, night = DetectionCounts(480, 6, 6, 5), DetectionCounts(40, 12, 3, 1)
-    assert [round(100 * v, 1) for v in (crowded.recall, crowded.precision, crowded.miss_vis)] == [98.8, 99.0, 1.2]
-    assert [round(100 * v, 1) for v in (night.recall, night.precision, night.miss_vis)] == [76.9, 97.6, 23.1]
+    assert [round(100 * v, 1) for v in (crowded.recall, crowded.precision, crowded.miss_vis)] == [
+        98.8,
+        99.0,
+        1.2,
+    ]
+    assert [round(100 * v, 1) for v in (night.recall, night.precision, night.miss_vis)] == [
+        76.9,
+        97.6,
+        23.1,
+    ]
 
 
 def test_detection_table_groups_conditions():
     box = [[0, 0, 10, 10]]
-    frames = [("crowded", box, [True], box), ("night", box, [True], []), ("crowded", box, [False], [])]
+    frames = [
+        ("crowded", box, [True], box),
+        ("night", box, [True], []),
+        ("crowded", box, [False], []),
+    ]
     t = detection_table(frames)
     assert list(t) == ["crowded", "night"]
     assert t["crowded"] == DetectionCounts(1, 0, 1, 0) and t["night"] == DetectionCounts(0, 1, 0, 0)
 
 
 # ---- tracking -----------------------------------------------------------------------------------
+
 
 def B(x):
     return [x, 0.0, x + 10.0, 10.0]
@@ -230,6 +286,7 @@ def test_tracking_empty_frames_and_bad_ids():
 
 # ---- velocity -----------------------------------------------------------------------------------
 
+
 def test_ave_three_voxels():
     gt, pred = col([P, P, P]), col([P, P, FREE])
     v_gt = np.array([[1, 0], [0, 2], [3, 4]], float).reshape(3, 1, 1, 2)
@@ -244,6 +301,7 @@ def test_ave_three_voxels():
 
 # ---- BEV summaries ------------------------------------------------------------------------------
 
+
 def test_bev_top_and_difference():
     g = np.full((2, 2, 3), FREE, np.uint8)
     g[0, 0, 0], g[0, 0, 2] = ROAD, P  # top is the pedestrian
@@ -256,9 +314,14 @@ def test_bev_top_and_difference():
     pred = g.copy()
     pred[0, 1, 0] = FREE  # missed road
     pred[1, 0, 1] = C.TRUCK  # wrong class
-    pred[1, 0, 2] = C.TRUCK  # and one extra voxel above it: 1 wrong, 1 extra -> wrong class (tie order)
+    pred[1, 0, 2] = (
+        C.TRUCK
+    )  # and one extra voxel above it: 1 wrong, 1 extra -> wrong class (tie order)
     pred[1, 1, 0] = ROAD  # in an unseen column
-    assert bev_difference(pred, g, mask).tolist() == [[DIFF_CORRECT, DIFF_MISSED], [DIFF_WRONG_CLASS, DIFF_UNKNOWN]]
+    assert bev_difference(pred, g, mask).tolist() == [
+        [DIFF_CORRECT, DIFF_MISSED],
+        [DIFF_WRONG_CLASS, DIFF_UNKNOWN],
+    ]
     pred[0, 0, 1] = C.CAR  # extra under the pedestrian
     pred[0, 0, 2] = FREE  # pedestrian missed: 1 missed, 1 extra -> missed
     assert bev_difference(pred, g, mask)[0, 0] == DIFF_MISSED
@@ -274,8 +337,9 @@ def test_person_point_counts_hand_made():
 
     inst = np.array([0, 7, 7, 7, 7, 9, 9, 0])
     # person 7: 3 of its 4 points and one background point; person 9: both points; a false positive
-    c = person_point_counts(inst, [np.array([1, 2, 3, 0]), np.array([5, 6]), np.array([7])],
-                            np.array([7, 9, -1]))
+    c = person_point_counts(
+        inst, [np.array([1, 2, 3, 0]), np.array([5, 6]), np.array([7])], np.array([7, 9, -1])
+    )
     assert (c.pred_matched, c.pred_total, c.ref_matched, c.ref_total) == (5, 7, 5, 6)
     assert c.precision == pytest.approx(5 / 7) and c.recall == pytest.approx(5 / 6)
 
@@ -287,8 +351,8 @@ def test_pck_and_mask_iou():
     gt[0, :, 2] = 2
     gt[0, 0, 2] = 1  # occluded: not counted
     pred = np.zeros((1, 17, 3))
-    pred[0, 1:9, 0] = 9.9    # within 0.1 x 100 px
-    pred[0, 9:, 0] = 10.1    # outside
+    pred[0, 1:9, 0] = 9.9  # within 0.1 x 100 px
+    pred[0, 9:, 0] = 10.1  # outside
     assert pck_counts(pred, gt, np.array([100.0])) == (8, 16)
     a = np.zeros((2, 4, 4), bool)
     b = np.zeros((2, 4, 4), bool)

@@ -11,24 +11,51 @@ import pytest
 import torch
 
 from storage.model_files import ModelFileError, extract_bundled_models, open_onnx
-from tasks.perception.models.blazepose import (BLAZEPOSE_TO_COCO, BlazePoseLandmarks, decode_detections,
-                                               regions_from_keypoints, ssd_anchors, weighted_nms)
+from tasks.perception.models.blazepose import (
+    BLAZEPOSE_TO_COCO,
+    BlazePoseLandmarks,
+    decode_detections,
+    regions_from_keypoints,
+    ssd_anchors,
+    weighted_nms,
+)
 from tasks.perception.models.cliff import CliffEstimator
 from tasks.perception.models.composite import ModelPerception
 from tasks.perception.models.detector import DecodedBoxesDetector, Detections, YoloxDetector
-from tasks.perception.models.image import apply_affine, crop_affine, invert_affine, letterbox, nms, warp_crops
+from tasks.perception.models.image import (
+    apply_affine,
+    crop_affine,
+    invert_affine,
+    letterbox,
+    nms,
+    warp_crops,
+)
 from tasks.perception.models.keypoints import TopDownKeypoints, refine_dark_udp
 from tasks.perception.models.runner import ModelContractError
-from tasks.perception.models.segmentation import (QueryInstanceMasks, SemanticSegmenter, assign_masks,
-                                                  semantic_person_masks)
+from tasks.perception.models.segmentation import (
+    QueryInstanceMasks,
+    SemanticSegmenter,
+    assign_masks,
+    semantic_person_masks,
+)
 
 
-def export(module: torch.nn.Module, args: tuple, path, inputs: list[str], outputs: list[str], dynamic=None):
+def export(
+    module: torch.nn.Module, args: tuple, path, inputs: list[str], outputs: list[str], dynamic=None
+):
     """torch.onnx.export of a small module (the TorchScript exporter: no onnxscript needed)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        torch.onnx.export(module.eval(), args, str(path), input_names=inputs, output_names=outputs,
-                          dynamic_axes=dynamic, opset_version=17, dynamo=False)
+        torch.onnx.export(
+            module.eval(),
+            args,
+            str(path),
+            input_names=inputs,
+            output_names=outputs,
+            dynamic_axes=dynamic,
+            opset_version=17,
+            dynamo=False,
+        )
     return open_onnx(path, "cpu")
 
 
@@ -56,22 +83,28 @@ def image(h=96, w=128, rgb=(10, 20, 30)):
 
 # ---- detection ------------------------------------------------------------------------------
 
+
 def yolox_rows(C=1):
     """Raw YOLOX rows of a 64 x 64 input (strides 8, 16, 32: 64 + 16 + 4 rows), 5 + C values."""
     rows = np.zeros((84, 5 + C), np.float32)
     rows[:, 4] = 0.01  # background objectness
-    a = 2 * 8 + 3      # stride 8, cell (gx 3, gy 2)
-    rows[a] = [0.5, 0.5, np.log(2), np.log(4), 0.9, 0.8][:5 + C]
-    b = 2 * 8 + 4      # the neighbour cell, almost the same box, lower score: NMS drops it
-    rows[b] = [-0.4, 0.5, np.log(2), np.log(4), 0.8, 0.8][:5 + C]
+    a = 2 * 8 + 3  # stride 8, cell (gx 3, gy 2)
+    rows[a] = [0.5, 0.5, np.log(2), np.log(4), 0.9, 0.8][: 5 + C]
+    b = 2 * 8 + 4  # the neighbour cell, almost the same box, lower score: NMS drops it
+    rows[b] = [-0.4, 0.5, np.log(2), np.log(4), 0.8, 0.8][: 5 + C]
     c = 64 + 1 * 4 + 2  # stride 16, cell (2, 1): a separate, weaker box
-    rows[c] = [0.0, 0.0, 0.0, 0.0, 0.5, 0.9][:5 + C]
+    rows[c] = [0.0, 0.0, 0.0, 0.0, 0.5, 0.9][: 5 + C]
     return rows
 
 
 def test_yolox_grid_decoding_letterbox_and_nms(tmp_path):
-    runner = export(Const(yolox_rows()[None]), (torch.zeros(1, 3, 64, 64),), tmp_path / "yolox.onnx",
-                    ["images"], ["output"])
+    runner = export(
+        Const(yolox_rows()[None]),
+        (torch.zeros(1, 3, 64, 64),),
+        tmp_path / "yolox.onnx",
+        ["images"],
+        ["output"],
+    )
     det = YoloxDetector(runner, score_threshold=0.3, nms_iou=0.45)(image(96, 128))
     # letterbox ratio min(64/96, 64/128) = 0.5; row a: centre ((0.5+3)8, (0.5+2)8) = (28, 20) in the
     # input, size (2*8, 4*8) = (16, 32) -> image centre (56, 40), size (32, 64)
@@ -83,13 +116,22 @@ def test_yolox_grid_decoding_letterbox_and_nms(tmp_path):
 def test_yolox_decoded_export_and_contract(tmp_path):
     rows = np.zeros((3, 6), np.float32)
     rows[0] = [28, 20, 16, 32, 0.9, 0.8]  # already decoded (--decode_in_inference)
-    runner = export(Const(rows[None]), (torch.zeros(1, 3, 64, 64),), tmp_path / "y.onnx", ["images"], ["output"])
+    runner = export(
+        Const(rows[None]), (torch.zeros(1, 3, 64, 64),), tmp_path / "y.onnx", ["images"], ["output"]
+    )
     det = YoloxDetector(runner, decoded=True)(image(96, 128))
     np.testing.assert_allclose(det.boxes_xyxy, [[40, 8, 72, 72]], atol=1e-4)
-    with pytest.raises(ValueError, match="rows"):  # a decoded export read as raw: the row count says so
+    with pytest.raises(
+        ValueError, match="rows"
+    ):  # a decoded export read as raw: the row count says so
         YoloxDetector(runner)(image(96, 128))
-    bad = export(Const(np.zeros((1, 17, 8, 6))), (torch.zeros(1, 3, 64, 64),), tmp_path / "bad.onnx",
-                 ["images"], ["heatmaps"])
+    bad = export(
+        Const(np.zeros((1, 17, 8, 6))),
+        (torch.zeros(1, 3, 64, 64),),
+        tmp_path / "bad.onnx",
+        ["images"],
+        ["heatmaps"],
+    )
     with pytest.raises(ModelContractError, match=r"bad\.onnx: not a YOLOX export"):
         YoloxDetector(bad)
 
@@ -118,7 +160,9 @@ def test_decoded_boxes_form(tmp_path):
     dets = np.array([[[8, 4, 24, 36, 0.9], [8, 4, 24, 36, 0.95], [0, 0, 10, 10, 0.2]]], np.float32)
     labels = np.array([[0, 2, 0]], np.float32)
     m = Const(dets, labels)
-    runner = export(m, (torch.zeros(1, 3, 64, 64),), tmp_path / "d.onnx", ["input"], ["dets", "labels"])
+    runner = export(
+        m, (torch.zeros(1, 3, 64, 64),), tmp_path / "d.onnx", ["input"], ["dets", "labels"]
+    )
     out = DecodedBoxesDetector(runner, score_threshold=0.3)(image(96, 128))
     # class 2 dropped, score 0.2 dropped; input box / 0.5
     np.testing.assert_allclose(out.boxes_xyxy, [[16, 8, 48, 72]])
@@ -140,15 +184,20 @@ def test_letterbox_centred_and_mapping_back():
 
 # ---- crops and keypoints --------------------------------------------------------------------
 
+
 def test_crop_affine_standard_udp_and_rotation():
     A = crop_affine([[115, 80]], [[56.25, 75]], (32, 24))
-    np.testing.assert_allclose(apply_affine(A, [[[115, 80], [115 - 28.125, 80 - 37.5]]]), [[[12, 16], [0, 0]]])
+    np.testing.assert_allclose(
+        apply_affine(A, [[[115, 80], [115 - 28.125, 80 - 37.5]]]), [[[12, 16], [0, 0]]]
+    )
     U = crop_affine([[115, 80]], [[56.25, 75]], (32, 24), udp=True)
     np.testing.assert_allclose(apply_affine(U, [[[115 + 28.125, 80 + 37.5]]]), [[[23, 31]]])
     R = crop_affine([[0, 0]], [[10, 10]], (10, 10), rotation=[np.pi / 2])
     # the region's x axis points down the image (+v): image (0, 1) is 1 px along the crop's +x
     np.testing.assert_allclose(apply_affine(R, [[[0, 1]]]), [[[6, 5]]], atol=1e-12)
-    np.testing.assert_allclose(apply_affine(invert_affine(R), apply_affine(R, [[[3.0, -2.0]]])), [[[3, -2]]])
+    np.testing.assert_allclose(
+        apply_affine(invert_affine(R), apply_affine(R, [[[3.0, -2.0]]])), [[[3, -2]]]
+    )
 
 
 def test_warp_crops_samples_bilinearly():
@@ -165,7 +214,7 @@ def gaussian_maps(n, h, w, centres, sigma=1.5):
     for i in range(n):
         for k in range(17):
             cx, cy = centres[i][k]
-            hm[i, k] = np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * sigma ** 2))
+            hm[i, k] = np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * sigma**2))
     return hm
 
 
@@ -181,8 +230,14 @@ def test_vitpose_udp_heatmaps_to_image_keypoints(tmp_path):
     rng = np.random.default_rng(0)
     centres = rng.uniform(3, 8, size=(2, 17, 2))
     maps = gaussian_maps(2, h, w, centres)
-    runner = export(Const(maps), (torch.zeros(2, 3, 64, 48),), tmp_path / "vitpose.onnx", ["input"], ["heatmaps"],
-                    dynamic={"input": {0: "n"}, "heatmaps": {0: "n"}})
+    runner = export(
+        Const(maps),
+        (torch.zeros(2, 3, 64, 48),),
+        tmp_path / "vitpose.onnx",
+        ["input"],
+        ["heatmaps"],
+        dynamic={"input": {0: "n"}, "heatmaps": {0: "n"}},
+    )
     boxes = np.array([[100, 50, 130, 110], [20, 30, 60, 70]], np.float32)
     kp = TopDownKeypoints(runner, "heatmap", udp=True)(image(200, 300), boxes)
     for i, (x0, y0, x1, y1) in enumerate(boxes):
@@ -199,10 +254,14 @@ def test_vitpose_udp_heatmaps_to_image_keypoints(tmp_path):
 def test_vitpose_classic_quarter_offset(tmp_path):
     maps = np.zeros((1, 17, 16, 12), np.float32)
     maps[0, :, 5, 4] = 0.8
-    maps[0, :, 5, 5] = 0.3   # right neighbour higher: +0.25 in x
-    maps[0, :, 4, 4] = 0.2   # upper neighbour higher: -0.25 in y
-    runner = export(Const(maps), (torch.zeros(1, 3, 64, 48),), tmp_path / "hm.onnx", ["input"], ["heatmaps"])
-    kp = TopDownKeypoints(runner, "heatmap", udp=False)(image(200, 300), np.array([[100, 50, 130, 110]]))
+    maps[0, :, 5, 5] = 0.3  # right neighbour higher: +0.25 in x
+    maps[0, :, 4, 4] = 0.2  # upper neighbour higher: -0.25 in y
+    runner = export(
+        Const(maps), (torch.zeros(1, 3, 64, 48),), tmp_path / "hm.onnx", ["input"], ["heatmaps"]
+    )
+    kp = TopDownKeypoints(runner, "heatmap", udp=False)(
+        image(200, 300), np.array([[100, 50, 130, 110]])
+    )
     # heatmap (4.25, 4.75) -> input x4 -> (17, 19); standard crop: centre (115, 80), size (56.25, 75)
     want = np.array([17, 19]) * [56.25 / 48, 75 / 64] + [115 - 28.125, 80 - 37.5]
     np.testing.assert_allclose(kp[0, :, :2], np.broadcast_to(want, (17, 2)), atol=1e-4)
@@ -214,8 +273,13 @@ def test_rtmpose_simcc(tmp_path):
     sy = np.zeros((1, 17, 128), np.float32)
     sx[0, :, 30], sy[0, :, 101] = 0.9, 0.7
     sx[0, 3, 30] = -0.1  # a keypoint whose response is <= 0 has confidence 0
-    runner = export(Const(sx, sy), (torch.zeros(1, 3, 64, 48),), tmp_path / "rtm.onnx", ["input"],
-                    ["simcc_x", "simcc_y"])
+    runner = export(
+        Const(sx, sy),
+        (torch.zeros(1, 3, 64, 48),),
+        tmp_path / "rtm.onnx",
+        ["input"],
+        ["simcc_x", "simcc_y"],
+    )
     kp = TopDownKeypoints(runner, "simcc")(image(200, 300), np.array([[100, 50, 130, 110]]))
     want = np.array([15, 50.5]) * [56.25 / 48, 75 / 64] + [115 - 28.125, 80 - 37.5]
     ok = np.arange(17) != 3
@@ -226,7 +290,9 @@ def test_rtmpose_simcc(tmp_path):
 
 def test_keypoints_of_no_box_and_wrong_export(tmp_path):
     maps = np.zeros((1, 17, 16, 12), np.float32)
-    runner = export(Const(maps), (torch.zeros(1, 3, 64, 48),), tmp_path / "hm.onnx", ["input"], ["heatmaps"])
+    runner = export(
+        Const(maps), (torch.zeros(1, 3, 64, 48),), tmp_path / "hm.onnx", ["input"], ["heatmaps"]
+    )
     assert TopDownKeypoints(runner, "heatmap")(image(), np.zeros((0, 4))).shape == (0, 17, 3)
     with pytest.raises(ModelContractError, match="RTMPose"):
         TopDownKeypoints(runner, "simcc")
@@ -234,11 +300,14 @@ def test_keypoints_of_no_box_and_wrong_export(tmp_path):
 
 # ---- semantics and masks --------------------------------------------------------------------
 
+
 def test_semantic_logits_resized_and_argmaxed(tmp_path):
     logits = np.zeros((1, 19, 4, 4), np.float32)
-    logits[0, 11, :, :2] = 5.0   # left half person
-    logits[0, 0, :, 2:] = 5.0    # right half road
-    runner = export(Const(logits), (torch.zeros(1, 3, 8, 8),), tmp_path / "seg.onnx", ["input"], ["logits"])
+    logits[0, 11, :, :2] = 5.0  # left half person
+    logits[0, 0, :, 2:] = 5.0  # right half road
+    runner = export(
+        Const(logits), (torch.zeros(1, 3, 8, 8),), tmp_path / "seg.onnx", ["input"], ["logits"]
+    )
     sem = SemanticSegmenter(runner)(image(6, 8))
     assert sem.dtype == np.uint8 and sem.shape == (6, 8)
     assert np.all(sem[:, :4] == 11) and np.all(sem[:, 4:] == 0)
@@ -246,26 +315,35 @@ def test_semantic_logits_resized_and_argmaxed(tmp_path):
 
 def test_mask2former_queries_to_boxes(tmp_path):
     cls = np.full((1, 3, 3), -5.0, np.float32)
-    cls[0, 0, 0] = 5.0   # query 0: person
-    cls[0, 1, 2] = 5.0   # query 1: no object
-    cls[0, 2, 0] = 5.0   # query 2: person
+    cls[0, 0, 0] = 5.0  # query 0: person
+    cls[0, 1, 2] = 5.0  # query 1: no object
+    cls[0, 2, 0] = 5.0  # query 2: person
     masks = np.full((1, 3, 8, 8), -5.0, np.float32)
     masks[0, 0, 1:5, 2:4] = 5.0
     masks[0, 2, 4:8, 5:7] = 5.0
-    runner = export(Const(cls, masks), (torch.zeros(1, 3, 32, 32),), tmp_path / "m2f.onnx", ["pixel_values"],
-                    ["class_queries_logits", "masks_queries_logits"])
-    boxes = np.array([[10, 8, 13, 15], [4, 2, 7, 9], [0, 0, 2, 2]], np.float32)  # q2's, q0's, nobody's
+    runner = export(
+        Const(cls, masks),
+        (torch.zeros(1, 3, 32, 32),),
+        tmp_path / "m2f.onnx",
+        ["pixel_values"],
+        ["class_queries_logits", "masks_queries_logits"],
+    )
+    boxes = np.array(
+        [[10, 8, 13, 15], [4, 2, 7, 9], [0, 0, 2, 2]], np.float32
+    )  # q2's, q0's, nobody's
     got = QueryInstanceMasks(runner, person_class=0)(image(16, 16), boxes)
     want = np.zeros((3, 16, 16), bool)
-    want[0, 8:16, 10:14] = True   # query 2 doubled (bilinear edges fall between pixels)
-    want[1, 2:10, 4:8] = True     # query 0 doubled
+    want[0, 8:16, 10:14] = True  # query 2 doubled (bilinear edges fall between pixels)
+    want[1, 2:10, 4:8] = True  # query 0 doubled
     np.testing.assert_array_equal(got, want)
 
 
 def test_semantic_person_fallback_nearest_box_wins():
     sem = np.zeros((10, 10), np.uint8)
     sem[2:9, 2:8] = 11
-    boxes = np.array([[2, 2, 5, 8], [4, 3, 7, 6]], np.float32)  # box 0 reaches lower: it owns the overlap
+    boxes = np.array(
+        [[2, 2, 5, 8], [4, 3, 7, 6]], np.float32
+    )  # box 0 reaches lower: it owns the overlap
     got = semantic_person_masks(sem, boxes)
     assert got[0, 4, 4] and not got[1, 4, 4]
     assert got[1, 4, 6] and not got[0, 4, 6]
@@ -284,6 +362,7 @@ def test_assign_masks_one_query_per_box():
 
 # ---- CLIFF ----------------------------------------------------------------------------------
 
+
 class CliffProbe(torch.nn.Module):
     """Identity rotations, betas[:3] = bbox_info (so the test sees what went in), a fixed camera."""
 
@@ -296,24 +375,40 @@ class CliffProbe(torch.nn.Module):
 
 
 def test_cliff_inputs_and_conversion(tmp_path):
-    runner = export(CliffProbe(), (torch.zeros(2, 3, 64, 48), torch.zeros(2, 3)), tmp_path / "cliff.onnx",
-                    ["img", "bbox_info"], ["pred_rotmat", "pred_betas", "pred_cam"],
-                    dynamic={"img": {0: "n"}, "bbox_info": {0: "n"}, "pred_rotmat": {0: "n"},
-                             "pred_betas": {0: "n"}, "pred_cam": {0: "n"}})
+    runner = export(
+        CliffProbe(),
+        (torch.zeros(2, 3, 64, 48), torch.zeros(2, 3)),
+        tmp_path / "cliff.onnx",
+        ["img", "bbox_info"],
+        ["pred_rotmat", "pred_betas", "pred_cam"],
+        dynamic={
+            "img": {0: "n"},
+            "bbox_info": {0: "n"},
+            "pred_rotmat": {0: "n"},
+            "pred_betas": {0: "n"},
+            "pred_cam": {0: "n"},
+        },
+    )
     K = np.array([[700.0, 0, 600], [0, 700, 500], [0, 0, 1]])
     boxes = np.array([[500, 300, 560, 460], [100, 200, 220, 300]], np.float32)
     est = CliffEstimator(runner)(image(1000, 1200), boxes, K)
     c = (boxes[:, :2] + boxes[:, 2:]) / 2
     b = np.maximum((boxes[:, 2] - boxes[:, 0]) * 64 / 48, boxes[:, 3] - boxes[:, 1]) * 1.1
-    info = np.stack([(c[:, 0] - 600) / 700 * 2.8, (c[:, 1] - 500) / 700 * 2.8, (b - 0.24 * 700) / (0.06 * 700)], 1)
+    info = np.stack(
+        [(c[:, 0] - 600) / 700 * 2.8, (c[:, 1] - 500) / 700 * 2.8, (b - 0.24 * 700) / (0.06 * 700)],
+        1,
+    )
     np.testing.assert_allclose(est.betas[:, :3], info, rtol=1e-5)
     sb = 0.8 * b
-    want_t = np.stack([0.1 + 2 * (c[:, 0] - 600) / sb, -0.2 + 2 * (c[:, 1] - 500) / sb, 2 * 700 / sb], 1)
+    want_t = np.stack(
+        [0.1 + 2 * (c[:, 0] - 600) / sb, -0.2 + 2 * (c[:, 1] - 500) / sb, 2 * 700 / sb], 1
+    )
     np.testing.assert_allclose(est.transl, want_t, rtol=1e-5)
     np.testing.assert_allclose(est.body_pose, 0, atol=1e-6)
 
 
 # ---- BlazePose ------------------------------------------------------------------------------
+
 
 def test_blazepose_anchors_and_detection_decoding():
     anchors = ssd_anchors()
@@ -329,7 +424,9 @@ def test_blazepose_anchors_and_detection_decoding():
     scores[10] = 2.0
     boxes, kps, s = decode_detections(raw, scores, anchors, 0.5)
     a = anchors[10]
-    np.testing.assert_allclose(boxes, [[a[0] + 0.1 - 0.1, a[1] - 0.1 - 0.05, a[0] + 0.1 + 0.1, a[1] - 0.1 + 0.05]])
+    np.testing.assert_allclose(
+        boxes, [[a[0] + 0.1 - 0.1, a[1] - 0.1 - 0.05, a[0] + 0.1 + 0.1, a[1] - 0.1 + 0.05]]
+    )
     np.testing.assert_allclose(kps[0, 1], a + [0, -0.2])
     np.testing.assert_allclose(s, [1 / (1 + np.exp(-2.0))])
 
@@ -343,7 +440,9 @@ def test_blazepose_weighted_nms_and_regions():
     np.testing.assert_allclose(s, [0.6, 0.5])
     reg = regions_from_keypoints(np.array([[100.0, 200.0]]), np.array([[100.0, 100.0]]))
     np.testing.assert_allclose([reg.side[0], reg.rotation[0]], [250.0, 0.0], atol=1e-12)
-    reg = regions_from_keypoints(np.array([[100.0, 200.0]]), np.array([[200.0, 200.0]]))  # lying: kp1 to the right
+    reg = regions_from_keypoints(
+        np.array([[100.0, 200.0]]), np.array([[200.0, 200.0]])
+    )  # lying: kp1 to the right
     np.testing.assert_allclose(reg.rotation, [np.pi / 2])
 
 
@@ -354,8 +453,13 @@ def test_blazepose_landmarks_on_a_fake_runner():
     class Fake:
         source = "fake"
         input_shapes = {"input_1": (1, 256, 256, 3)}
-        output_shapes = {"Identity": (1, 195), "Identity_1": (1, 1), "Identity_2": (1, 256, 256, 1),
-                         "Identity_3": (1, 64, 64, 39), "Identity_4": (1, 117)}
+        output_shapes = {
+            "Identity": (1, 195),
+            "Identity_1": (1, 1),
+            "Identity_2": (1, 256, 256, 1),
+            "Identity_3": (1, 64, 64, 39),
+            "Identity_4": (1, 117),
+        }
 
         def __init__(self, flag):
             self.flag = flag
@@ -364,12 +468,16 @@ def test_blazepose_landmarks_on_a_fake_runner():
             lm = np.zeros((39, 5), np.float32)
             lm[:, 0] = np.arange(39) * 4 + 32.5  # x in crop pixels (corner convention)
             lm[:, 1] = 128.5
-            lm[:, 3] = 3.0                        # visibility logit
+            lm[:, 3] = 3.0  # visibility logit
             seg = np.full((1, 256, 256, 1), -8.0, np.float32)
             seg[0, 64:192, 96:160] = 8.0
-            return {"Identity": lm.reshape(1, 195), "Identity_1": np.array([[self.flag]], np.float32),
-                    "Identity_2": seg, "Identity_3": np.full((1, 64, 64, 39), -8.0, np.float32),
-                    "Identity_4": np.zeros((1, 117), np.float32)}
+            return {
+                "Identity": lm.reshape(1, 195),
+                "Identity_1": np.array([[self.flag]], np.float32),
+                "Identity_2": seg,
+                "Identity_3": np.full((1, 64, 64, 39), -8.0, np.float32),
+                "Identity_4": np.zeros((1, 117), np.float32),
+            }
 
     box = np.array([[100, 100, 164, 228]], np.float32)  # 64 x 128: the square region is 160 x 160
     kp, masks, flag = BlazePoseLandmarks(Fake(0.9))(image(300, 300), box)
@@ -388,21 +496,39 @@ def test_blazepose_landmarks_on_a_fake_runner():
     assert masks[0][inside].all() and not masks[0][outside].any()
     kp, _, _ = BlazePoseLandmarks(Fake(0.2))(image(300, 300), box)
     assert np.all(kp[0, :, 2] == 0)  # no pose in the region: no confidence
-    comp = ModelPerception(blazepose=BlazePoseLandmarks(Fake(0.2)))(image(300, 300), Detections(box, np.ones(1, np.float32)))
+    comp = ModelPerception(blazepose=BlazePoseLandmarks(Fake(0.2)))(
+        image(300, 300), Detections(box, np.ones(1, np.float32))
+    )
     assert len(comp) == 0 and comp.semantic.shape == (300, 300) and np.all(comp.semantic == 255)
 
 
 # ---- composite and files --------------------------------------------------------------------
 
+
 def test_composite_yolox_vitpose_semantic_fallback(tmp_path):
-    yolox = YoloxDetector(export(Const(yolox_rows()[None]), (torch.zeros(1, 3, 64, 64),), tmp_path / "y.onnx",
-                                 ["images"], ["output"]))
+    yolox = YoloxDetector(
+        export(
+            Const(yolox_rows()[None]),
+            (torch.zeros(1, 3, 64, 64),),
+            tmp_path / "y.onnx",
+            ["images"],
+            ["output"],
+        )
+    )
     maps = gaussian_maps(1, 16, 12, [np.full((17, 2), 5.0)])
-    vit = TopDownKeypoints(export(Const(maps), (torch.zeros(1, 3, 64, 48),), tmp_path / "v.onnx", ["input"],
-                                  ["heatmaps"]), "heatmap")
+    vit = TopDownKeypoints(
+        export(
+            Const(maps), (torch.zeros(1, 3, 64, 48),), tmp_path / "v.onnx", ["input"], ["heatmaps"]
+        ),
+        "heatmap",
+    )
     logits = np.zeros((1, 19, 4, 4), np.float32)
     logits[0, 11] = 5.0
-    seg = SemanticSegmenter(export(Const(logits), (torch.zeros(1, 3, 8, 8),), tmp_path / "s.onnx", ["input"], ["logits"]))
+    seg = SemanticSegmenter(
+        export(
+            Const(logits), (torch.zeros(1, 3, 8, 8),), tmp_path / "s.onnx", ["input"], ["logits"]
+        )
+    )
     out = ModelPerception(detector=yolox, keypoints=vit, semantic=seg)(image(96, 128))
     assert len(out) == 2 and out.keypoints.shape == (2, 17, 3) and np.all(out.semantic == 11)
     # the semantic person pixels of each box (box 0 [40, 72] x [8, 72] reaches lower: it owns the overlap)
@@ -418,7 +544,9 @@ def test_model_file_errors_name_the_file(tmp_path):
     with pytest.raises(ModelFileError, match="junk.onnx: not a loadable ONNX model"):
         open_onnx(junk)
     with pytest.raises(ModelFileError, match="device 'cuda'"):
-        runner = export(Const(np.zeros((1, 2))), (torch.zeros(1, 3, 4, 4),), tmp_path / "c.onnx", ["x"], ["y"])
+        runner = export(
+            Const(np.zeros((1, 2))), (torch.zeros(1, 3, 4, 4),), tmp_path / "c.onnx", ["x"], ["y"]
+        )
         open_onnx(runner.source, "cuda")
 
 

@@ -26,18 +26,24 @@ def test_matches_brute_force_on_a_sweep_like_cloud(leaf_size):
     expected = _brute(src, qry)
     np.testing.assert_array_equal(nearest_indices(src, qry, leaf_size=leaf_size), expected)
     order = rng.permutation(len(qry))
-    np.testing.assert_array_equal(nearest_indices(src, qry[order], leaf_size=leaf_size), expected[order])
+    np.testing.assert_array_equal(
+        nearest_indices(src, qry[order], leaf_size=leaf_size), expected[order]
+    )
 
 
 def test_ties_take_the_lowest_index_and_threads_do_not_matter():
     # a lattice: many queries are equidistant from several sources, and sources repeat
-    g = np.stack(np.meshgrid(np.arange(6.0), np.arange(6.0), np.arange(3.0), indexing="ij"), -1).reshape(-1, 3)
+    g = np.stack(
+        np.meshgrid(np.arange(6.0), np.arange(6.0), np.arange(3.0), indexing="ij"), -1
+    ).reshape(-1, 3)
     src = np.concatenate([g, g[::7]])  # duplicates come after their first copy
     qry = np.concatenate([g + 0.5, g[::-1] + [0.5, 0.0, 0.0], g])
     qry = np.tile(qry, (40, 1))  # enough rows to be split over threads
     expected = _brute(src, qry)
     for threads in (1, 2, 3):
-        np.testing.assert_array_equal(nearest_indices(src, qry, threads=threads, leaf_size=4), expected)
+        np.testing.assert_array_equal(
+            nearest_indices(src, qry, threads=threads, leaf_size=4), expected
+        )
 
 
 def test_single_source_and_empty_queries():

@@ -19,7 +19,12 @@ from storage.npzio import save_npz_deterministic
 from tasks.conventions import FREE
 
 GRID = (12, 10, 6)
-ATTRS = {"range_min": [0.4, -4.8, -1.0], "range_max": [10.0, 4.8, 3.8], "voxel_size_m": 0.2, "config_hash": "c0"}
+ATTRS = {
+    "range_min": [0.4, -4.8, -1.0],
+    "range_max": [10.0, 4.8, 3.8],
+    "voxel_size_m": 0.2,
+    "config_hash": "c0",
+}
 
 
 def make_frames(n: int, grid=GRID, seed: int = 0) -> dict[str, np.ndarray]:
@@ -33,7 +38,13 @@ def make_frames(n: int, grid=GRID, seed: int = 0) -> dict[str, np.ndarray]:
     mask[:, : grid[0] // 2] = 1
     vel = np.zeros((n, *grid, 2), np.float16)
     vel[:, 2:4, 3:5, 1:4] = (1.25, -0.5)
-    return {"semantics": sem, "instances": inst, "mask_lidar": mask, "mask_camera": mask * 0 + mask, "velocity": vel}
+    return {
+        "semantics": sem,
+        "instances": inst,
+        "mask_lidar": mask,
+        "mask_camera": mask * 0 + mask,
+        "velocity": vel,
+    }
 
 
 def test_round_trip_attrs_and_metadata(tmp_path):
@@ -52,7 +63,11 @@ def test_round_trip_attrs_and_metadata(tmp_path):
         np.testing.assert_array_equal(back[name], value)
     np.testing.assert_array_equal(occ.read_frames(path, 4)["instances"], data["instances"][4:5])
     attrs = occ.read_attrs(path)
-    assert attrs["voxel_size_m"] == 0.2 and attrs["frame"] == "base" and attrs["class_names"][9] == "free"
+    assert (
+        attrs["voxel_size_m"] == 0.2
+        and attrs["frame"] == "base"
+        and attrs["class_names"][9] == "free"
+    )
     assert attrs["skip_empty_chunks"] is False  # coarse default: a 3-frame chunk is never all fill
     # another tool opens it directly, with dimension names and zstd in the metadata
     meta = json.loads((path / "velocity" / "zarr.json").read_text())
@@ -112,7 +127,9 @@ def test_fine_grid_uses_shards_and_optionally_skips_empty_chunks(tmp_path):
         sizes[skip] = (path / "semantics" / "c" / "1" / "0" / "0" / "0").stat().st_size
     assert sizes[True] < sizes[False] < 20_000
     occ.create_store(tmp_path / "default.zarr", 1, grid, 1, ATTRS)
-    assert occ.read_attrs(tmp_path / "default.zarr")["skip_empty_chunks"] is False  # measured default
+    assert (
+        occ.read_attrs(tmp_path / "default.zarr")["skip_empty_chunks"] is False
+    )  # measured default
 
 
 def test_chunk_choice():
@@ -139,7 +156,9 @@ def test_concurrent_process_writers_equal_one_writer(tmp_path):
         _write_unit(job)
     ctx = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=2, mp_context=ctx) as pool:
-        done = list(pool.map(_write_unit, [(str(many), s, e, 0) for s, e in reversed(layout.write_units())]))
+        done = list(
+            pool.map(_write_unit, [(str(many), s, e, 0) for s, e in reversed(layout.write_units())])
+        )
     assert sorted(done) == [0, 2, 4, 6, 8]
     a, b = occ.read_frames(one), occ.read_frames(many)
     for name in a:

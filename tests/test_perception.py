@@ -7,8 +7,13 @@ import pytest
 
 from tasks.perception.lidar_clusters import detect_pedestrians_lidar, ground_height
 from tasks.perception.oracle import OracleNoise, oracle_image_perception, oracle_lidar_detections
-from tasks.perception.person_points import (PersonPointParams, associate_lidar_boxes, in_image_first, person_point_indices,
-                                            project_points)
+from tasks.perception.person_points import (
+    PersonPointParams,
+    associate_lidar_boxes,
+    in_image_first,
+    person_point_indices,
+    project_points,
+)
 from tasks.perception.types import ImagePerception, LidarDetections, box_corners
 
 W, H = 640, 480
@@ -19,16 +24,27 @@ GROUND_Z = -1.5
 
 
 def _plane(rng, n, x, y, z):
-    return np.stack([rng.uniform(*x, n) if isinstance(x, tuple) else np.full(n, x),
-                     rng.uniform(*y, n) if isinstance(y, tuple) else np.full(n, y),
-                     rng.uniform(*z, n) if isinstance(z, tuple) else np.full(n, z)], axis=1)
+    return np.stack(
+        [
+            rng.uniform(*x, n) if isinstance(x, tuple) else np.full(n, x),
+            rng.uniform(*y, n) if isinstance(y, tuple) else np.full(n, y),
+            rng.uniform(*z, n) if isinstance(z, tuple) else np.full(n, z),
+        ],
+        axis=1,
+    )
 
 
 def _cylinder(rng, n, cx, cy, radius, z0, z1, front_only=True):
     # front_only: the half facing the sensor at the origin
     facing = np.arctan2(-cy, -cx)
-    angle = facing + rng.uniform(-np.pi / 2, np.pi / 2, n) if front_only else rng.uniform(-np.pi, np.pi, n)
-    return np.stack([cx + radius * np.cos(angle), cy + radius * np.sin(angle), rng.uniform(z0, z1, n)], axis=1)
+    angle = (
+        facing + rng.uniform(-np.pi / 2, np.pi / 2, n)
+        if front_only
+        else rng.uniform(-np.pi, np.pi, n)
+    )
+    return np.stack(
+        [cx + radius * np.cos(angle), cy + radius * np.sin(angle), rng.uniform(z0, z1, n)], axis=1
+    )
 
 
 def _hidden_by(points, cx, cy, radius, z0, z1):
@@ -51,12 +67,16 @@ def _scene(seed=0):
     post_cyl = (4.5, 0.5, 0.04, GROUND_Z, GROUND_Z + 1.2)
     person = _cylinder(rng, 600, *person_cyl)
     post = _cylinder(rng, 150, *post_cyl)
-    background = np.concatenate([
-        _plane(rng, 4000, 7.0, (-3, 3), (GROUND_Z, 1.5)),  # wall
-        _plane(rng, 4000, (1.0, 7.0), (-3, 3), GROUND_Z),  # ground
-    ])
+    background = np.concatenate(
+        [
+            _plane(rng, 4000, 7.0, (-3, 3), (GROUND_Z, 1.5)),  # wall
+            _plane(rng, 4000, (1.0, 7.0), (-3, 3), GROUND_Z),  # ground
+        ]
+    )
     person = person[~_hidden_by(person, *post_cyl)]
-    background = background[~_hidden_by(background, *person_cyl) & ~_hidden_by(background, *post_cyl)]
+    background = background[
+        ~_hidden_by(background, *person_cyl) & ~_hidden_by(background, *post_cyl)
+    ]
     points = np.concatenate([person, post, background]).astype(np.float32)
     return points, np.arange(len(person))
 
@@ -85,15 +105,26 @@ def test_types_validate_and_empty():
     assert len(empty) == 0 and empty.masks.shape == (0, H, W) and empty.image_size == (W, H)
     assert len(LidarDetections.empty()) == 0
     with pytest.raises(ValueError, match=r"masks: expected shape \(1, 480, 640\)"):
-        ImagePerception(np.zeros((1, 4), np.float32), np.zeros(1, np.float32), np.zeros((1, 17, 3), np.float32),
-                        np.zeros((1, 10, 10), bool), np.zeros((H, W), np.uint8))
+        ImagePerception(
+            np.zeros((1, 4), np.float32),
+            np.zeros(1, np.float32),
+            np.zeros((1, 17, 3), np.float32),
+            np.zeros((1, 10, 10), bool),
+            np.zeros((H, W), np.uint8),
+        )
     with pytest.raises(ValueError, match="scores: expected a numpy array of dtype float32"):
-        LidarDetections(np.zeros((1, 3), np.float32), np.zeros((1, 3), np.float32), np.zeros(1, np.float32),
-                        np.zeros(1, np.float64))
+        LidarDetections(
+            np.zeros((1, 3), np.float32),
+            np.zeros((1, 3), np.float32),
+            np.zeros(1, np.float32),
+            np.zeros(1, np.float64),
+        )
 
 
 def test_box_corners_and_projection():
-    corners = box_corners(np.array([[1.0, 2.0, 3.0]]), np.array([[4.0, 2.0, 1.0]]), np.array([np.pi / 2]))
+    corners = box_corners(
+        np.array([[1.0, 2.0, 3.0]]), np.array([[4.0, 2.0, 1.0]]), np.array([np.pi / 2])
+    )
     np.testing.assert_allclose(corners[0].min(axis=0), [0, 0, 2.5], atol=1e-12)
     np.testing.assert_allclose(corners[0].max(axis=0), [2, 4, 3.5], atol=1e-12)
     uv, depth = project_points(np.array([[10.0, -1.0, 0.5], [-1.0, 0, 0]]), K, T_CAM_FROM_LIDAR)
@@ -105,7 +136,9 @@ def test_box_corners_and_projection():
 
 
 def _gt_frame(count=4):
-    boxes = np.array([[40 + 140 * p, 100, 100 + 140 * p, 280] for p in range(count)], np.float64).reshape(-1, 4)
+    boxes = np.array(
+        [[40 + 140 * p, 100, 100 + 140 * p, 280] for p in range(count)], np.float64
+    ).reshape(-1, 4)
     instance = np.zeros((H, W), np.uint16)
     for p, (u0, v0, u1, v1) in enumerate(boxes.astype(int)):
         instance[v0:v1, u0 + 5 : u1 - 5] = 10 + p
@@ -117,8 +150,12 @@ def _gt_frame(count=4):
     semantic = np.full((H, W), 0, np.uint8)
     semantic[instance > 0] = 11
     return dict(
-        gt_boxes_xyxy=boxes, gt_keypoints=keypoints, visible_fraction=np.ones(count),
-        distance_m=np.full(count, 8.0), gt_track_ids=10 + np.arange(count), instance_image=instance,
+        gt_boxes_xyxy=boxes,
+        gt_keypoints=keypoints,
+        visible_fraction=np.ones(count),
+        distance_m=np.full(count, 8.0),
+        gt_track_ids=10 + np.arange(count),
+        instance_image=instance,
         semantic_image=semantic,
     )
 
@@ -145,7 +182,9 @@ def test_oracle_night_lowers_recall_and_noise_is_bounded():
     day = night = 0
     for seed in range(150):
         day += (oracle_image_perception(**gt, rng=np.random.default_rng(seed))[1] >= 0).sum()
-        night += (oracle_image_perception(**gt, rng=np.random.default_rng(seed), night=True)[1] >= 0).sum()
+        night += (
+            oracle_image_perception(**gt, rng=np.random.default_rng(seed), night=True)[1] >= 0
+        ).sum()
     assert day / 600 > 0.96
     assert 0.70 < night / 600 < 0.84  # paper: 76.9 %
     det, gt_index = oracle_image_perception(**gt, rng=np.random.default_rng(3))
@@ -164,11 +203,21 @@ def test_oracle_night_lowers_recall_and_noise_is_bounded():
 def test_oracle_misses_grow_with_occlusion_and_distance():
     gt = _gt_frame()
     found = {}
-    for name, vis, dist in (("clear", 1.0, 5.0), ("far", 1.0, 40.0), ("occluded", 0.3, 5.0),
-                            ("occluded_far", 0.3, 40.0), ("barely", 0.1, 5.0)):
+    for name, vis, dist in (
+        ("clear", 1.0, 5.0),
+        ("far", 1.0, 40.0),
+        ("occluded", 0.3, 5.0),
+        ("occluded_far", 0.3, 40.0),
+        ("barely", 0.1, 5.0),
+    ):
         case = {**gt, "visible_fraction": np.full(4, vis), "distance_m": np.full(4, dist)}
-        found[name] = sum((oracle_image_perception(**case, rng=np.random.default_rng(s))[1] >= 0).sum()
-                          for s in range(100)) / 400
+        found[name] = (
+            sum(
+                (oracle_image_perception(**case, rng=np.random.default_rng(s))[1] >= 0).sum()
+                for s in range(100)
+            )
+            / 400
+        )
     # calibrated curve (oracle.py): 0.99, 0.89, 0.88, 0.80, 0.51 expected
     assert found["clear"] > 0.97
     assert found["far"] < found["clear"] - 0.05 and found["occluded"] < found["clear"] - 0.05
@@ -180,25 +229,40 @@ def test_oracle_misses_grow_with_occlusion_and_distance():
 
 def test_oracle_empty_frame_and_false_positives():
     gt = {**_gt_frame(0), "instance_image": np.zeros((H, W), np.uint16)}
-    det, gt_index = oracle_image_perception(**gt, rng=np.random.default_rng(0), noise=OracleNoise(fp_per_frame=0))
+    det, gt_index = oracle_image_perception(
+        **gt, rng=np.random.default_rng(0), noise=OracleNoise(fp_per_frame=0)
+    )
     assert len(det) == 0 and det.masks.shape == (0, H, W) and gt_index.shape == (0,)
-    det, gt_index = oracle_image_perception(**gt, rng=np.random.default_rng(0), noise=OracleNoise(fp_per_frame=5))
+    det, gt_index = oracle_image_perception(
+        **gt, rng=np.random.default_rng(0), noise=OracleNoise(fp_per_frame=5)
+    )
     assert len(det) > 0 and (gt_index == -1).all()
-    widths, heights = det.boxes_xyxy[:, 2] - det.boxes_xyxy[:, 0], det.boxes_xyxy[:, 3] - det.boxes_xyxy[:, 1]
-    assert ((widths / heights) < 0.55).all() and (det.scores <= 0.75).all() and det.masks.any(axis=(1, 2)).all()
+    widths, heights = (
+        det.boxes_xyxy[:, 2] - det.boxes_xyxy[:, 0],
+        det.boxes_xyxy[:, 3] - det.boxes_xyxy[:, 1],
+    )
+    assert (
+        ((widths / heights) < 0.55).all()
+        and (det.scores <= 0.75).all()
+        and det.masks.any(axis=(1, 2)).all()
+    )
 
 
 def test_oracle_keypoints_without_projection_get_low_confidence():
     gt = _gt_frame(1)
     gt["gt_keypoints"][0, 3, :2] = np.nan
-    det, _ = oracle_image_perception(**gt, rng=np.random.default_rng(0), noise=OracleNoise(day_recall=1.0))
+    det, _ = oracle_image_perception(
+        **gt, rng=np.random.default_rng(0), noise=OracleNoise(day_recall=1.0)
+    )
     assert np.isfinite(det.keypoints).all() and det.keypoints[0, 3, 2] <= 0.15
 
 
 def test_oracle_lidar():
     centers = np.array([[5.0, 0, -0.6], [80.0, 0, -0.6], [6.0, 2.0, -0.6]])
     sizes = np.tile([0.5, 0.6, 1.8], (3, 1))
-    det, index = oracle_lidar_detections(centers, sizes, np.zeros(3), np.array([100, 100, 2]), np.random.default_rng(0))
+    det, index = oracle_lidar_detections(
+        centers, sizes, np.zeros(3), np.array([100, 100, 2]), np.random.default_rng(0)
+    )
     assert index.tolist() == [0]  # far one out of range, one with too few points
     np.testing.assert_allclose(det.centers[0], centers[0], atol=0.3)
 
@@ -216,11 +280,15 @@ def test_lidar_clusters_find_person_next_to_wall_reject_wall_and_pole():
     person = _cylinder(rng, 400, 6.0, 0.5, 0.22, GROUND_Z + 0.02, GROUND_Z + 1.75, front_only=False)
     pole = _cylinder(rng, 400, 4.0, -2.0, 0.1, GROUND_Z, GROUND_Z + 4.0, front_only=False)
     short_post = _cylinder(rng, 100, 3.0, 2.0, 0.05, GROUND_Z, GROUND_Z + 0.6, front_only=False)
-    points = np.concatenate([
-        person, pole, short_post,
-        _plane(rng, 4000, 7.0, (-3, 3), (GROUND_Z, 1.5)),
-        _plane(rng, 6000, (1.0, 9.0), (-4, 4), GROUND_Z + rng.normal(0, 0.02, 6000)),
-    ]).astype(np.float32)
+    points = np.concatenate(
+        [
+            person,
+            pole,
+            short_post,
+            _plane(rng, 4000, 7.0, (-3, 3), (GROUND_Z, 1.5)),
+            _plane(rng, 6000, (1.0, 9.0), (-4, 4), GROUND_Z + rng.normal(0, 0.02, 6000)),
+        ]
+    ).astype(np.float32)
     det = detect_pedestrians_lidar(points)
     assert len(det) == 1
     np.testing.assert_allclose(det.centers[0, :2], [6.0, 0.5], atol=0.1)
@@ -248,11 +316,21 @@ def test_person_points_expected_range_picks_the_right_layer():
     points, truth = _scene()
     mask = _mask_of(points[truth], K, T_CAM_FROM_LIDAR)
     box = _box_of(mask)[None]
-    (found,) = person_point_indices(points, K, T_CAM_FROM_LIDAR, (W, H), box, mask[None], np.array([6.0]))
+    (found,) = person_point_indices(
+        points, K, T_CAM_FROM_LIDAR, (W, H), box, mask[None], np.array([6.0])
+    )
     assert np.isin(found, truth).mean() >= 0.95
     # told the person stands at the wall, it returns the wall layer instead: the prior matters
-    (backdrop,) = person_point_indices(points, K, T_CAM_FROM_LIDAR, (W, H), box, mask[None], np.array([7.0]),
-                                        params=PersonPointParams(range_sigma_frac=0.02))
+    (backdrop,) = person_point_indices(
+        points,
+        K,
+        T_CAM_FROM_LIDAR,
+        (W, H),
+        box,
+        mask[None],
+        np.array([7.0]),
+        params=PersonPointParams(range_sigma_frac=0.02),
+    )
     assert np.isin(backdrop, truth).mean() < 0.05
 
 
@@ -266,7 +344,9 @@ def test_person_points_grow_past_the_image_side():
     uv, _ = project_points(points, K, T_CAM_FROM_LIDAR)
     in_image = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
     truth = np.flatnonzero(owner == 0)
-    assert 0.3 < in_image[truth].mean() < 0.7 and not in_image[owner == 1].any()  # the scene is as meant
+    assert (
+        0.3 < in_image[truth].mean() < 0.7 and not in_image[owner == 1].any()
+    )  # the scene is as meant
     mask = _mask_of(points[truth[in_image[truth]]], K, T_CAM_FROM_LIDAR)
     box = _box_of(mask)[None]
     (found,) = person_point_indices(points, K, T_CAM_FROM_LIDAR, (W, H), box, mask[None])
@@ -275,9 +355,16 @@ def test_person_points_grow_past_the_image_side():
     assert not np.isin(found, np.flatnonzero(owner == 1)).any()
     (ordered,), count = in_image_first(points, [found], K, T_CAM_FROM_LIDAR, (W, H), 0.5)
     assert sorted(ordered.tolist()) == found.tolist() and 0 < count[0] < found.size
-    assert in_image[ordered[:count[0]]].all() and not in_image[ordered[count[0]:]].any()
-    (image_only,) = person_point_indices(points, K, T_CAM_FROM_LIDAR, (W, H), box, mask[None],
-                                          params=PersonPointParams(edge_grow_m=0))
+    assert in_image[ordered[: count[0]]].all() and not in_image[ordered[count[0] :]].any()
+    (image_only,) = person_point_indices(
+        points,
+        K,
+        T_CAM_FROM_LIDAR,
+        (W, H),
+        box,
+        mask[None],
+        params=PersonPointParams(edge_grow_m=0),
+    )
     assert np.isin(truth, image_only).mean() < 0.75
     assert in_image[image_only].all()
 
@@ -294,9 +381,13 @@ def test_associate_lidar_boxes():
     box = _box_of(_mask_of(points[truth], K, T_CAM_FROM_LIDAR))
     centers = np.array([[12.0, -3, -0.6], [6.0, 0.5, GROUND_Z + 0.875], [-5.0, 0, 0]])
     sizes = np.tile([0.45, 0.45, 1.75], (3, 1))
-    matched = associate_lidar_boxes(np.stack([box, [0, 0, 5, 5]]), centers, sizes, np.zeros(3), K, T_CAM_FROM_LIDAR, 0.3)
+    matched = associate_lidar_boxes(
+        np.stack([box, [0, 0, 5, 5]]), centers, sizes, np.zeros(3), K, T_CAM_FROM_LIDAR, 0.3
+    )
     assert matched.tolist() == [1, -1]
-    assert associate_lidar_boxes(np.zeros((0, 4)), centers, sizes, np.zeros(3), K, T_CAM_FROM_LIDAR, 0.3).shape == (0,)
+    assert associate_lidar_boxes(
+        np.zeros((0, 4)), centers, sizes, np.zeros(3), K, T_CAM_FROM_LIDAR, 0.3
+    ).shape == (0,)
 
 
 # --- benchmark (not a test: run it by hand, see the function's docstring) -------------------------
@@ -309,7 +400,9 @@ def _raycast_sweep(persons, beams=128, columns=1024, wall_radius_m=15.0):
     elevation = np.deg2rad(np.linspace(-22.5, 22.5, beams))
     azimuth = np.linspace(-np.pi, np.pi, columns, endpoint=False)
     el, az = np.meshgrid(elevation, azimuth, indexing="ij")
-    d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1).reshape(-1, 3)
+    d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1).reshape(
+        -1, 3
+    )
     horizontal = np.linalg.norm(d[:, :2], axis=1)
     t = wall_radius_m / horizontal
     t = np.where(d[:, 2] < 0, np.minimum(t, GROUND_Z / np.minimum(d[:, 2], -1e-9)), t)
@@ -348,7 +441,9 @@ def bench_track_and_person_points(frames: int = 30, width: int = 1224, height: i
     from scipy import ndimage
 
     masks = np.stack([ndimage.binary_dilation(m, iterations=4) for m in masks])
-    boxes = np.stack([[*np.argwhere(m)[:, ::-1].min(0), *np.argwhere(m)[:, ::-1].max(0) + 1] for m in masks]).astype(np.float32)
+    boxes = np.stack(
+        [[*np.argwhere(m)[:, ::-1].min(0), *np.argwhere(m)[:, ::-1].max(0) + 1] for m in masks]
+    ).astype(np.float32)
     scores = np.full(len(persons), 0.9, np.float32)
     tracker = PedestrianTracker()
     start = time.perf_counter()
@@ -373,11 +468,24 @@ def test_oracle_never_detects_a_person_without_a_box():
     kps[1] = np.nan
     inst = np.zeros((h, w), np.uint16)
     inst[5:35, 10:20] = 1
-    noise = OracleNoise(day_recall=1.0, occlusion_miss=0.0, distance_miss=0.0, min_visible_fraction=0.0,
-                        fp_per_frame=0.0)
-    out, gt_index = oracle_image_perception(boxes, kps, np.array([1.0, 0.0]), np.array([5.0, 5.0]),
-                                            np.array([1, 2]), inst, np.zeros((h, w), np.uint8),
-                                            np.random.default_rng(0), noise=noise)
+    noise = OracleNoise(
+        day_recall=1.0,
+        occlusion_miss=0.0,
+        distance_miss=0.0,
+        min_visible_fraction=0.0,
+        fp_per_frame=0.0,
+    )
+    out, gt_index = oracle_image_perception(
+        boxes,
+        kps,
+        np.array([1.0, 0.0]),
+        np.array([5.0, 5.0]),
+        np.array([1, 2]),
+        inst,
+        np.zeros((h, w), np.uint8),
+        np.random.default_rng(0),
+        noise=noise,
+    )
     assert gt_index.tolist() == [0]
 
 

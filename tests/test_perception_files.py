@@ -42,8 +42,11 @@ def _frame(rng: np.random.Generator, count: int) -> ImagePerception:
     semantic = rng.integers(0, 19, (H, W)).astype(np.uint8)
     semantic[0] = 255
     return ImagePerception(
-        boxes_xyxy=boxes, scores=rng.uniform(0, 1, count).astype(np.float32), keypoints=keypoints,
-        masks=masks, semantic=semantic,
+        boxes_xyxy=boxes,
+        scores=rng.uniform(0, 1, count).astype(np.float32),
+        keypoints=keypoints,
+        masks=masks,
+        semantic=semantic,
     )
 
 
@@ -118,7 +121,9 @@ def test_reader_satisfies_protocol_through_adapter(tmp_path):
 def written(tmp_path):
     rng = np.random.default_rng(3)
     images = [(0, _frame(rng, 2)), (1, _frame(rng, 1))]
-    return write_perception(tmp_path / "seq", W, H, images, [(0, _lidar(rng, 1)), (1, _lidar(rng, 1))])
+    return write_perception(
+        tmp_path / "seq", W, H, images, [(0, _lidar(rng, 1)), (1, _lidar(rng, 1))]
+    )
 
 
 def _rewrite(path, column, row, value):
@@ -126,7 +131,12 @@ def _rewrite(path, column, row, value):
     values = table.column(column).to_pylist()
     values[row] = value
     index = table.column_names.index(column)
-    pq.write_table(table.set_column(index, table.schema.field(column), pa.array(values, table.schema.field(column).type)), path)
+    pq.write_table(
+        table.set_column(
+            index, table.schema.field(column), pa.array(values, table.schema.field(column).type)
+        ),
+        path,
+    )
 
 
 @pytest.mark.parametrize(
@@ -150,13 +160,20 @@ def test_bad_detection_rows(written, column, row, value, pattern):
 def test_bad_mask_rle(written):
     _rewrite(written / DETECTIONS_FILE, "mask_counts", 0, rle_to_string([5, 5]))
     reader = PrecomputedPerception(written)
-    with pytest.raises(PerceptionFileError, match=r"frame 0: row 0: mask_counts: RLE counts sum to 10, expected 30 x 40"):
+    with pytest.raises(
+        PerceptionFileError,
+        match=r"frame 0: row 0: mask_counts: RLE counts sum to 10, expected 30 x 40",
+    ):
         reader.image(0)
 
 
 @pytest.mark.parametrize(
     "column,value,pattern",
-    [("length", 0.0, r"frame 0: row 0: box size"), ("score", -0.5, r"score -0.5"), ("yaw", float("inf"), "NaN/inf")],
+    [
+        ("length", 0.0, r"frame 0: row 0: box size"),
+        ("score", -0.5, r"score -0.5"),
+        ("yaw", float("inf"), "NaN/inf"),
+    ],
 )
 def test_bad_lidar_rows(written, column, value, pattern):
     _rewrite(written / LIDAR_FILE, column, 0, value)
@@ -169,7 +186,9 @@ def test_bad_semantic_png(written):
     reader = PrecomputedPerception(written)
     path = written / "semantic" / "000001.png"
     Image.fromarray(np.zeros((H, W + 1), np.uint8)).save(path)
-    with pytest.raises(PerceptionFileError, match=r"000001.png: frame 1: image is 41 x 30, expected 40 x 30"):
+    with pytest.raises(
+        PerceptionFileError, match=r"000001.png: frame 1: image is 41 x 30, expected 40 x 30"
+    ):
         reader.image(1)
     bad = np.zeros((H, W), np.uint8)
     bad[3, 4] = 40
@@ -215,7 +234,9 @@ def test_missing_column(written):
 
 def test_sequence_without_any_detection(tmp_path):
     empty = ImagePerception.empty(W, H)
-    root = write_perception(tmp_path / "s", W, H, [(0, empty), (1, empty)], [(0, LidarDetections.empty())])
+    root = write_perception(
+        tmp_path / "s", W, H, [(0, empty), (1, empty)], [(0, LidarDetections.empty())]
+    )
     reader = PrecomputedPerception(root)
     got = ImagePerception(**reader.image(1))
     assert len(got) == 0 and got.masks.shape == (0, H, W) and (got.semantic == 255).all()

@@ -28,7 +28,9 @@ def store(tmp_path):
 def _plan(config, out: Path, verify: bool = False):
     costs = PlanCosts()
     manifest = Manifest.load(out)
-    plans = plan_run(config, manifest, FingerprintCache(out / ".cache" / "sequences", verify), costs=costs)
+    plans = plan_run(
+        config, manifest, FingerprintCache(out / ".cache" / "sequences", verify), costs=costs
+    )
     return plans, costs, manifest
 
 
@@ -39,8 +41,16 @@ def _all_done(plans, out: Path) -> None:
         for stage, unit in plan.units.items():
             folder = stage_dir(out, stage, plan.sequence, unit.key)
             folder.mkdir(parents=True)
-            manifest.put(StageRecord(plan.sequence, stage, unit.key, "done", str(folder.relative_to(out)),
-                                     parts=unit.parts))
+            manifest.put(
+                StageRecord(
+                    plan.sequence,
+                    stage,
+                    unit.key,
+                    "done",
+                    str(folder.relative_to(out)),
+                    parts=unit.parts,
+                )
+            )
     manifest.save()
 
 
@@ -57,8 +67,12 @@ def _opened_under(root: Path, monkeypatch) -> list[str]:
         if isinstance(path, (str, os.PathLike)) and os.path.abspath(path).startswith(prefix):
             opened.append(os.fspath(path))
 
-    monkeypatch.setattr(builtins, "open", lambda file, *a, **k: (note(file), real_open(file, *a, **k))[1])
-    monkeypatch.setattr(os, "open", lambda path, *a, **k: (note(path), real_os_open(path, *a, **k))[1])
+    monkeypatch.setattr(
+        builtins, "open", lambda file, *a, **k: (note(file), real_open(file, *a, **k))[1]
+    )
+    monkeypatch.setattr(
+        os, "open", lambda path, *a, **k: (note(path), real_os_open(path, *a, **k))[1]
+    )
     return opened
 
 
@@ -73,8 +87,12 @@ def test_an_unchanged_dataset_is_planned_without_opening_a_file(store, monkeypat
     assert _stale(again) == {}
     assert [p.fingerprint for p in again] == [p.fingerprint for p in plans]
     # with nothing to hash, the command line plans without a task runner
-    assert plan_without_hashing(config, Manifest.load(out), FingerprintCache(out / ".cache" / "sequences")) \
+    assert (
+        plan_without_hashing(
+            config, Manifest.load(out), FingerprintCache(out / ".cache" / "sequences")
+        )
         is not None
+    )
 
 
 def test_a_changed_file_is_the_only_one_hashed_again(store):
@@ -86,10 +104,18 @@ def test_a_changed_file_is_the_only_one_hashed_again(store):
     raw[-8:-4] = bytes([0, 0, 192, 63])
     sweep.unlink()
     sweep.write_bytes(bytes(raw))  # a new file: new inode and mtime
-    assert plan_without_hashing(config, Manifest.load(out), FingerprintCache(out / ".cache" / "sequences")) is None
+    assert (
+        plan_without_hashing(
+            config, Manifest.load(out), FingerprintCache(out / ".cache" / "sequences")
+        )
+        is None
+    )
     again, costs, _ = _plan(config, out)
     assert costs.memo_hits == 1 and costs.files_hashed == 1
-    assert _stale(again)[("1", "detect")] == "input files changed" and ("0", "detect") not in _stale(again)
+    assert _stale(again)[("1", "detect")] == "input files changed" and (
+        "0",
+        "detect",
+    ) not in _stale(again)
 
 
 def test_verify_sees_an_edit_that_keeps_size_mtime_and_inode(store):
@@ -105,7 +131,10 @@ def test_verify_sees_an_edit_that_keeps_size_mtime_and_inode(store):
     os.utime(sweep, ns=(st.st_atime_ns, st.st_mtime_ns))  # and the old mtime
     assert _stale(_plan(config, out)[0]) == {}
     verified, costs, _ = _plan(config, out, verify=True)
-    assert _stale(verified)[("1", "detect")] == "input files changed" and ("0", "detect") not in _stale(verified)
+    assert _stale(verified)[("1", "detect")] == "input files changed" and (
+        "0",
+        "detect",
+    ) not in _stale(verified)
     assert costs.memo_hits == 0 and costs.files_hashed > 0
 
 
@@ -115,8 +144,15 @@ def test_the_config_and_the_planner_import_no_torch():
     import subprocess
     import sys
 
-    code = ("import sys, configs.schema, flows.pipeline.plan, flows.pipeline.units\n"
-            "print(sorted(m for m in ('torch', 'prefect', 'flows.stages') if m in sys.modules))")
-    run = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[1],
-                         capture_output=True, text=True, check=True)
+    code = (
+        "import sys, configs.schema, flows.pipeline.plan, flows.pipeline.units\n"
+        "print(sorted(m for m in ('torch', 'prefect', 'flows.stages') if m in sys.modules))"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", code],
+        cwd=Path(__file__).resolve().parents[1],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     assert run.stdout.strip() == "[]"

@@ -16,27 +16,43 @@ import pytest
 from configs.schema import load_config
 from flows.pipeline.run import rebuild_dataset
 
-pytestmark = [pytest.mark.usefixtures("prefect_harness"), pytest.mark.xdist_group("prefect"),
-              pytest.mark.slow]
+pytestmark = [
+    pytest.mark.usefixtures("prefect_harness"),
+    pytest.mark.xdist_group("prefect"),
+    pytest.mark.slow,
+]
 
 
 def _config(data: Path, out: Path, **overrides):
-    return load_config(overrides={"dataset.root": str(data), "output.root": str(out), "dataset.sequences": ["0"],
-                                  "fit.iterations": 5, "export.formats": [], **overrides})
+    return load_config(
+        overrides={
+            "dataset.root": str(data),
+            "output.root": str(out),
+            "dataset.sequences": ["0"],
+            "fit.iterations": 5,
+            "export.formats": [],
+            **overrides,
+        }
+    )
 
 
 def _published(out: Path) -> dict[str, str]:
     """sha256 of every published file (Zarr stores and table partitions), by relative path."""
-    files = [p for d in ("occupancy", "tables") for p in sorted((out / d).rglob("*")) if p.is_file()]
+    files = [
+        p for d in ("occupancy", "tables") for p in sorted((out / d).rglob("*")) if p.is_file()
+    ]
     return {str(p.relative_to(out)): hashlib.sha256(p.read_bytes()).hexdigest() for p in files}
 
 
-@pytest.mark.parametrize("setting", [
-    {"track.person_points.assoc_min_iou": 0.9},  # read by track and map
-    {"fuse.camera_pixel_stride": 3},
-    {"fit.iterations": 3},
-    {"map.freespace.prob_hit": 0.75},  # read by map and (the state threshold's map) fuse
-])
+@pytest.mark.parametrize(
+    "setting",
+    [
+        {"track.person_points.assoc_min_iou": 0.9},  # read by track and map
+        {"fuse.camera_pixel_stride": 3},
+        {"fit.iterations": 3},
+        {"map.freespace.prob_hit": 0.75},  # read by map and (the state threshold's map) fuse
+    ],
+)
 def test_reprocess_publishes_what_a_clean_rebuild_does(synthetic_root, tmp_path, setting):
     base = tmp_path / "base"
     assert not rebuild_dataset(_config(synthetic_root, base), progress=False).failed

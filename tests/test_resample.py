@@ -49,7 +49,9 @@ def test_finer_map_is_pushed_as_points_and_empty_map_gives_nothing():
     pts, lab = static_in_grid(fine, SPEC, T, reach_m=3.0)
     near = fine.crop(T[:3, 3], 3.0)
     assert len(pts) == len(near.keys) and set(lab.tolist()) <= {ROAD, OTHER_STRUCTURE, VEGETATION}
-    empty = StaticMap(0.2, np.zeros((0, 3), np.int64), np.zeros(0, np.uint8), np.zeros((0, 9), np.uint16), 0)
+    empty = StaticMap(
+        0.2, np.zeros((0, 3), np.int64), np.zeros(0, np.uint8), np.zeros((0, 9), np.uint16), 0
+    )
     pts, lab = static_in_grid(empty, SPEC, T, reach_m=3.0)
     assert pts.shape == (0, 3) and lab.shape == (0,)
 

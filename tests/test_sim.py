@@ -34,13 +34,17 @@ def runs(tmp_path_factory) -> tuple[Path, Path]:
 @pytest.fixture(scope="module")
 def clean_frame():
     """A noise-free frame (the geometry the ground truth describes), 8 people."""
-    sim = Simulator(SimOptions(seed=11, frames=30, pedestrians=8),
-                    rig=make_rig(noise=LidarNoise(range_std_m=0.0, angle_std_deg=0.0)))
+    sim = Simulator(
+        SimOptions(seed=11, frames=30, pedestrians=8),
+        rig=make_rig(noise=LidarNoise(range_std_m=0.0, angle_std_deg=0.0)),
+    )
     return sim, sim.frame(10)
 
 
 def _files(root: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
+    }
 
 
 def test_same_seed_gives_byte_identical_files(runs):
@@ -70,11 +74,23 @@ def test_fast_mode_changes_only_the_cameras(runs, tmp_path):
     simulate(tmp_path, sequences=1, frames=2, seed=SEED, pedestrians=5, progress=False, fast=True)
     slow = runs[0]
     for f in range(2):
-        for rel in (f"3d_comp/os1/0/3d_comp_os1_0_{f}.bin", f"3d_semantic/os1/0/3d_semantic_os1_0_{f}.bin"):
+        for rel in (
+            f"3d_comp/os1/0/3d_comp_os1_0_{f}.bin",
+            f"3d_semantic/os1/0/3d_semantic_os1_0_{f}.bin",
+        ):
             assert (slow / rel).read_bytes() == (tmp_path / rel).read_bytes()
         a, b = GT.read_frame_gt(slow, 0, f), GT.read_frame_gt(tmp_path, 0, f)
-        for name in ("occupancy", "occupancy_instance", "point_class", "point_instance", "vertices", "joints",
-                     "box_center", "box_size", "T_world_from_lidar"):
+        for name in (
+            "occupancy",
+            "occupancy_instance",
+            "point_class",
+            "point_instance",
+            "vertices",
+            "joints",
+            "box_center",
+            "box_size",
+            "T_world_from_lidar",
+        ):
             assert np.array_equal(getattr(a, name), getattr(b, name)), name
         assert b.cam0_semantic.shape == (512, 612) and b.cam0_instance.shape == (512, 612)
         with Image.open(tmp_path / f"2d_rect/cam1/0/2d_rect_cam1_0_{f}.jpg") as im:
@@ -82,7 +98,9 @@ def test_fast_mode_changes_only_the_cameras(runs, tmp_path):
         # the same people in view, their boxes at half the pixel coordinates (to a pixel)
         seen = ~np.isnan(a.box2d[:, 0])
         assert seen.any() and np.array_equal(seen, ~np.isnan(b.box2d[:, 0]))
-        np.testing.assert_allclose(b.box2d[seen], (a.box2d[seen] + 0.5) * FAST_IMAGE_SCALE - 0.5, atol=1.0)
+        np.testing.assert_allclose(
+            b.box2d[seen], (a.box2d[seen] + 0.5) * FAST_IMAGE_SCALE - 0.5, atol=1.0
+        )
     cam = CodaSequence(tmp_path, 0, frame_stride=1).info.calibration.cameras["cam0"]
     full = make_rig().camera("cam0")
     assert (cam.width, cam.height) == (612, 512)
@@ -96,20 +114,35 @@ def test_written_layout_is_coda(runs):
     root = runs[0]
     names = set(_files(root))
     for f in range(2):
-        for name in (f"3d_comp/os1/0/3d_comp_os1_0_{f}.bin", f"2d_rect/cam0/0/2d_rect_cam0_0_{f}.jpg",
-                     f"2d_rect/cam1/0/2d_rect_cam1_0_{f}.jpg", f"3d_bbox/os1/0/3d_bbox_os1_0_{f}.json",
-                     f"3d_semantic/os1/0/3d_semantic_os1_0_{f}.bin", f"gt/0/gt_0_{f}.npz"):
+        for name in (
+            f"3d_comp/os1/0/3d_comp_os1_0_{f}.bin",
+            f"2d_rect/cam0/0/2d_rect_cam0_0_{f}.jpg",
+            f"2d_rect/cam1/0/2d_rect_cam1_0_{f}.jpg",
+            f"3d_bbox/os1/0/3d_bbox_os1_0_{f}.json",
+            f"3d_semantic/os1/0/3d_semantic_os1_0_{f}.bin",
+            f"gt/0/gt_0_{f}.npz",
+        ):
             assert name in names
         assert (root / f"3d_comp/os1/0/3d_comp_os1_0_{f}.bin").stat().st_size == 131072 * 5 * 4
         assert (root / f"3d_semantic/os1/0/3d_semantic_os1_0_{f}.bin").stat().st_size == 131072
     calib = root / "calibrations/0"
     for cam in ("cam0", "cam1"):
         intr = yaml.safe_load((calib / f"calib_{cam}_intrinsics.yaml").read_text())
-        assert {"image_width", "image_height", "camera_matrix", "distortion_model", "distortion_coefficients",
-                "rectification_matrix", "projection_matrix"} <= set(intr)
+        assert {
+            "image_width",
+            "image_height",
+            "camera_matrix",
+            "distortion_model",
+            "distortion_coefficients",
+            "rectification_matrix",
+            "projection_matrix",
+        } <= set(intr)
         assert (intr["image_width"], intr["image_height"]) == (1224, 1024)
         assert intr["distortion_model"] == "plumb_bob"
-        assert intr["distortion_coefficients"]["rows"] == 1 and intr["distortion_coefficients"]["cols"] == 5
+        assert (
+            intr["distortion_coefficients"]["rows"] == 1
+            and intr["distortion_coefficients"]["cols"] == 5
+        )
         # CODa-faithful: a real rectification (R != I), a projection matrix of its own (P != [K | 0])
         R = np.asarray(intr["rectification_matrix"]["data"]).reshape(3, 3)
         P = np.asarray(intr["projection_matrix"]["data"]).reshape(3, 4)
@@ -129,14 +162,35 @@ def test_written_layout_is_coda(runs):
     meta = json.loads((root / "metadata/0.json").read_text())
     assert meta["synthetic"] is True and meta["lighting"] == "day" and meta["frames"] == 2
     assert meta["sensor"] == "os1-128" and meta["crowd"] == "uncrowded" and "seed" in meta
-    assert meta["ObjectTracking"]["training"] == ["3d_bbox/os1/0/3d_bbox_os1_0_0.json",
-                                                  "3d_bbox/os1/0/3d_bbox_os1_0_1.json"]
+    assert meta["ObjectTracking"]["training"] == [
+        "3d_bbox/os1/0/3d_bbox_os1_0_0.json",
+        "3d_bbox/os1/0/3d_bbox_os1_0_1.json",
+    ]
     boxes = json.loads((root / "3d_bbox/os1/0/3d_bbox_os1_0_0.json").read_text())["3dbbox"]
     peds = [b for b in boxes if b["classId"] == "Pedestrian"]
     assert peds and all(b["instanceId"].startswith("Pedestrian:") for b in peds)
     for b in boxes:
-        assert {"cX", "cY", "cZ", "l", "w", "h", "r", "p", "y", "instanceId", "labelAttributes"} <= set(b)
-        assert b["labelAttributes"]["isOccluded"] in {"None", "Light", "Medium", "Heavy", "Full", "Unknown"}
+        assert {
+            "cX",
+            "cY",
+            "cZ",
+            "l",
+            "w",
+            "h",
+            "r",
+            "p",
+            "y",
+            "instanceId",
+            "labelAttributes",
+        } <= set(b)
+        assert b["labelAttributes"]["isOccluded"] in {
+            "None",
+            "Light",
+            "Medium",
+            "Heavy",
+            "Full",
+            "Unknown",
+        }
 
 
 def test_reader_recovers_the_rendering_camera(runs):
@@ -176,8 +230,16 @@ def test_split_style_writes_blocks_of_frames(tmp_path, monkeypatch):
 
     assert S.split_style_frames(25) == [*range(10), *range(20, 25)]
     monkeypatch.setattr(S, "SPLIT_BLOCK_FRAMES", 2)  # blocks of 2 keep the test small
-    S.simulate(tmp_path, sequences=1, frames=5, seed=SEED, pedestrians=0, progress=False, split_style=True,
-               image_ext=".png")
+    S.simulate(
+        tmp_path,
+        sequences=1,
+        frames=5,
+        seed=SEED,
+        pedestrians=0,
+        progress=False,
+        split_style=True,
+        image_ext=".png",
+    )
     sweeps = sorted(p.name for p in (tmp_path / "3d_comp/os1/0").iterdir())
     assert sweeps == [f"3d_comp_os1_0_{f}.bin" for f in (0, 1, 4)]
     assert len((tmp_path / "timestamps/0.txt").read_text().splitlines()) == 5
@@ -268,7 +330,10 @@ def test_unoccluded_keypoints_fall_in_the_instance_mask(clean_frame):
         mask = f.cam0.instance == p.track_id[k]
         # 1-pixel dilation: joints of limbs seen edge-on sit on the silhouette border.
         grown = mask.copy()
-        grown[1:] |= mask[:-1]; grown[:-1] |= mask[1:]; grown[:, 1:] |= mask[:, :-1]; grown[:, :-1] |= mask[:, 1:]
+        grown[1:] |= mask[:-1]
+        grown[:-1] |= mask[1:]
+        grown[:, 1:] |= mask[:, :-1]
+        grown[:, :-1] |= mask[:, 1:]
         kp = p.keypoints[k]
         vis = kp[:, 2] == 2
         u, v = np.rint(kp[vis, 0]).astype(int), np.rint(kp[vis, 1]).astype(int)
@@ -280,19 +345,29 @@ def test_stored_body_parameters_reproduce_vertices(clean_frame):
     sim, f = clean_frame
     p = f.people
     with torch.no_grad():
-        out = sim.model(torch.as_tensor(p.betas), torch.as_tensor(p.global_orient), torch.as_tensor(p.body_pose),
-                        torch.as_tensor(p.transl))
+        out = sim.model(
+            torch.as_tensor(p.betas),
+            torch.as_tensor(p.global_orient),
+            torch.as_tensor(p.body_pose),
+            torch.as_tensor(p.transl),
+        )
     assert np.abs(out.vertices.numpy() - p.vertices).max() < 1e-3
     assert np.abs(out.joints.numpy() - p.joints).max() < 1e-3
 
 
 def test_occupancy_of_a_box_on_the_road_is_exact():
     grid = GridSpec()
-    box = box_solid([1.2, 0.0, 0.3], [0.4, 0.8, 0.6], 0.0, C.CAR, 1000)  # x 1.0-1.4, y +-0.4, z 0-0.6
+    box = box_solid(
+        [1.2, 0.0, 0.3], [0.4, 0.8, 0.6], 0.0, C.CAR, 1000
+    )  # x 1.0-1.4, y +-0.4, z 0-0.6
     tile = ground_tile(0.0, 3.0, -1.0, 1.0, 0.0, C.ROAD)
-    inp = G.OccupancyInput([(tile.vertices, tile.faces, C.ROAD, True), (box.vertices, box.faces, C.CAR, False)],
-                           [(box.planes, C.CAR, box.vertices.min(0), box.vertices.max(0))], [],
-                           np.zeros((0, 3), np.int64), np.zeros(48 * 48 * 24, np.int32))
+    inp = G.OccupancyInput(
+        [(tile.vertices, tile.faces, C.ROAD, True), (box.vertices, box.faces, C.CAR, False)],
+        [(box.planes, C.CAR, box.vertices.min(0), box.vertices.max(0))],
+        [],
+        np.zeros((0, 3), np.int64),
+        np.zeros(48 * 48 * 24, np.int32),
+    )
     sem, inst = G.occupancy_grid(inp, grid)
     expected = np.full(grid.shape, C.FREE, np.uint8)
     # Road (closed cubes: an edge or the plane on a voxel face counts for both neighbours):
@@ -305,9 +380,14 @@ def test_occupancy_of_a_box_on_the_road_is_exact():
 
 
 def test_bad_ground_truth_field_is_rejected(tmp_path):
-    arrays = {"grid_range_min": np.zeros(3), "grid_voxel_size_m": np.float64(0.2), "grid_shape": np.ones(3, np.int64),
-              "person_faces": np.zeros((1, 3), np.int64), "keypoint_vertex_ids": np.zeros(5, np.int64),
-              "T_base_from_lidar": np.eye(4, dtype=np.float32)}
+    arrays = {
+        "grid_range_min": np.zeros(3),
+        "grid_voxel_size_m": np.float64(0.2),
+        "grid_shape": np.ones(3, np.int64),
+        "person_faces": np.zeros((1, 3), np.int64),
+        "keypoint_vertex_ids": np.zeros(5, np.int64),
+        "T_base_from_lidar": np.eye(4, dtype=np.float32),
+    }
     with pytest.raises(GT.GTFormatError, match="T_base_from_lidar"):
         GT.write_sequence_gt(tmp_path, 0, arrays)
 
@@ -329,12 +409,19 @@ def test_lidar_on_a_flat_ground_hits_at_the_analytic_range():
     from tasks.sim.sensors import MeshSet, cast_lidar, lidar_directions
 
     tile = ground_tile(-50, 50, -50, 50, 0.0, C.ROAD)
-    meshes = MeshSet(tile.vertices.astype(np.float32), tile.faces.astype(np.uint32), np.array([C.ROAD] * 2, np.uint8),
-                     np.zeros(2, np.uint16), np.ones((2, 3), np.float32))
+    meshes = MeshSet(
+        tile.vertices.astype(np.float32),
+        tile.faces.astype(np.uint32),
+        np.array([C.ROAD] * 2, np.uint8),
+        np.zeros(2, np.uint16),
+        np.ones((2, 3), np.float32),
+    )
     T = np.eye(4)
     T[2, 3] = 0.9
     noise = LidarNoise(range_std_m=0.0, angle_std_deg=0.0, dropout=0.0)
-    sweep = cast_lidar(meshes.raycasting_scene(), meshes, T, "os1-32", noise, np.random.default_rng(0))
+    sweep = cast_lidar(
+        meshes.raycasting_scene(), meshes, T, "os1-32", noise, np.random.default_rng(0)
+    )
     dirs = lidar_directions().reshape(-1, 3)
     rows = np.repeat(np.arange(128), 1024)
     expect_hit = (dirs[:, 2] < 0) & (rows % 4 == 0) & (0.9 / np.maximum(-dirs[:, 2], 1e-9) <= 90.0)

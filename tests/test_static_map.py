@@ -6,12 +6,27 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tasks.conventions import (CAR, CITYSCAPES_TO_CLASS, CITYSCAPES_TRAIN_IDS, OTHER_STRUCTURE,
-                               PEDESTRIAN, ROAD, TERRAIN, UNLABELED, VEGETATION)
+from tasks.conventions import (
+    CAR,
+    CITYSCAPES_TO_CLASS,
+    CITYSCAPES_TRAIN_IDS,
+    OTHER_STRUCTURE,
+    PEDESTRIAN,
+    ROAD,
+    TERRAIN,
+    UNLABELED,
+    VEGETATION,
+)
 from tasks.occupancy.freespace import OccupancyMap
-from tasks.occupancy.static_map import (StaticMapError, StaticSemanticMap, lift_image_semantics,
-                                        pedestrian_boxes_for_masking, pedestrian_point_mask,
-                                        points_in_boxes, project_points)
+from tasks.occupancy.static_map import (
+    StaticMapError,
+    StaticSemanticMap,
+    lift_image_semantics,
+    pedestrian_boxes_for_masking,
+    pedestrian_point_mask,
+    points_in_boxes,
+    project_points,
+)
 
 VS = 0.2
 
@@ -35,11 +50,24 @@ def test_max_voting_ties_and_pedestrian_votes():
     # keep-mask: these 5 votes for the road are dropped by the caller's pedestrian mask
     m.add_sweep(_at([[1, 1, 1]], 5), np.full(5, ROAD, np.uint8), keep=np.zeros(5, bool))
     res = m.finalize(ground_classes=())
-    assert _labels(res) == {(1, 1, 1): OTHER_STRUCTURE, (2, 1, 1): OTHER_STRUCTURE,
-                            (3, 1, 1): VEGETATION}
+    assert _labels(res) == {
+        (1, 1, 1): OTHER_STRUCTURE,
+        (2, 1, 1): OTHER_STRUCTURE,
+        (3, 1, 1): VEGETATION,
+    }
     keys, counts = m.counts()
     assert counts.dtype == np.uint16 and counts.shape == (4, 9)
-    assert counts[[tuple(k) for k in keys].index((1, 1, 1))].tolist() == [0, 0, 3, 0, 0, 0, 0, 0, 3 - 1]
+    assert counts[[tuple(k) for k in keys].index((1, 1, 1))].tolist() == [
+        0,
+        0,
+        3,
+        0,
+        0,
+        0,
+        0,
+        0,
+        3 - 1,
+    ]
 
 
 def test_ground_consistency_rejects_far_ground_votes():
@@ -50,8 +78,7 @@ def test_ground_consistency_rejects_far_ground_votes():
     far = [[3, 3, 2]]  # centre 0.5: 0.4 m above -> road votes rejected, the wall votes decide
     far_only = [[4, 4, 7]]  # centre 1.5: only road votes -> dropped
     below = [[5, 5, -2]]  # centre -0.3: 0.4 m below
-    m.add_sweep(_at(near + far + far_only + below, 4),
-                np.full(16, TERRAIN, np.uint8))
+    m.add_sweep(_at(near + far + far_only + below, 4), np.full(16, TERRAIN, np.uint8))
     m.add_sweep(_at(far, 1), np.full(1, OTHER_STRUCTURE, np.uint8))
     res = m.finalize(ground_tolerance_m=0.3, ground_cell_m=1.0)
     lab = _labels(res)
@@ -67,8 +94,10 @@ def test_ground_consistency_rejects_far_ground_votes():
 
 def test_merges_across_flushes_equal_one_merge():
     rng = np.random.default_rng(0)
-    sweeps = [(rng.uniform(-2, 2, (500, 3)).astype(np.float32), rng.integers(0, 9, 500).astype(np.uint8))
-              for _ in range(6)]
+    sweeps = [
+        (rng.uniform(-2, 2, (500, 3)).astype(np.float32), rng.integers(0, 9, 500).astype(np.uint8))
+        for _ in range(6)
+    ]
     a, b = StaticSemanticMap(VS, flush_points=300), StaticSemanticMap(VS, flush_points=10**9)
     for p, lab in sweeps:
         a.add_sweep(p, lab)
@@ -83,8 +112,10 @@ def test_crop_to_grid_and_sample_points():
     from tasks.occupancy.grid import GridSpec
 
     m = StaticSemanticMap(VS)
-    m.add_sweep(_at([[0, 0, 0], [20, 0, 0], [-20, 0, 0], [0, 30, 0]], 1),
-                np.array([ROAD, VEGETATION, TERRAIN, OTHER_STRUCTURE], np.uint8))
+    m.add_sweep(
+        _at([[0, 0, 0], [20, 0, 0], [-20, 0, 0], [0, 30, 0]], 1),
+        np.array([ROAD, VEGETATION, TERRAIN, OTHER_STRUCTURE], np.uint8),
+    )
     res = m.finalize(ground_classes=())
     spec = GridSpec((0.0, -1.0, -1.0), (5.0, 1.0, 1.0), 0.1)
     T = np.eye(4)
@@ -131,13 +162,20 @@ def test_nearest_fallback_keeps_ground_and_objects_apart():
     """Out of view, ground points take the nearest in-view ground label and raised points the
     nearest in-view raised label, even where the nearest point overall is of the other level."""
     K, T = _cam()
-    ground = np.stack(np.meshgrid(np.arange(-4.0, 10.0, 0.25), np.arange(-2.0, 3.01, 0.25), [-0.9],
-                                  indexing="ij"), -1).reshape(-1, 3)
-    car = np.stack(np.meshgrid(np.arange(-4.0, 6.0, 0.2), [-2.3], [-0.5, -0.3], indexing="ij"),
-                   -1).reshape(-1, 3)  # a car side 0.4-0.6 m above the ground, mostly beside the robot
+    ground = np.stack(
+        np.meshgrid(
+            np.arange(-4.0, 10.0, 0.25), np.arange(-2.0, 3.01, 0.25), [-0.9], indexing="ij"
+        ),
+        -1,
+    ).reshape(-1, 3)
+    car = np.stack(
+        np.meshgrid(np.arange(-4.0, 6.0, 0.2), [-2.3], [-0.5, -0.3], indexing="ij"), -1
+    ).reshape(-1, 3)  # a car side 0.4-0.6 m above the ground, mostly beside the robot
     pts = np.concatenate([ground, car])
     pix, valid = project_points(pts, K, T, 40, 20)
-    img = np.full((20, 40), CITYSCAPES_TRAIN_IDS["road"], np.uint8)  # the view: road and the car's front
+    img = np.full(
+        (20, 40), CITYSCAPES_TRAIN_IDS["road"], np.uint8
+    )  # the view: road and the car's front
     is_car = np.arange(len(pts)) >= len(ground)
     img[pix[valid & is_car, 1], pix[valid & is_car, 0]] = CITYSCAPES_TRAIN_IDS["car"]
     out = ~valid
@@ -147,7 +185,9 @@ def test_nearest_fallback_keeps_ground_and_objects_apart():
     assert np.all(lab[out & is_car] == CAR)
     assert np.all(lab[out & ~is_car] == ROAD)
     # one level for all (the plain nearest neighbour) labels much of the car's side road
-    plain = lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS, fallback="nearest", ground_tol_m=1e3)
+    plain = lift_image_semantics(
+        pts, img, K, T, CITYSCAPES_TO_CLASS, fallback="nearest", ground_tol_m=1e3
+    )
     assert np.mean(plain[out & is_car] == ROAD) > 0.3
 
 
@@ -155,8 +195,12 @@ def test_lateral_scale_carries_ground_strips_along_the_path():
     """A lawn strip (|y| >= 2 m) beside a road, seen by the camera only ahead: with the lateral
     axis stretched, the out-of-view strip beside the robot is labelled terrain, not road."""
     K, T = _cam()
-    ground = np.stack(np.meshgrid(np.arange(-4.0, 10.0, 0.25), np.arange(-3.0, 3.01, 0.25), [-0.9],
-                                  indexing="ij"), -1).reshape(-1, 3)
+    ground = np.stack(
+        np.meshgrid(
+            np.arange(-4.0, 10.0, 0.25), np.arange(-3.0, 3.01, 0.25), [-0.9], indexing="ij"
+        ),
+        -1,
+    ).reshape(-1, 3)
     lawn = np.abs(ground[:, 1]) >= 2.0
     pix, valid = project_points(ground, K, T, 40, 20)
     img = np.full((20, 40), CITYSCAPES_TRAIN_IDS["road"], np.uint8)
@@ -203,10 +247,12 @@ def test_one_projection_serves_every_per_sweep_kernel():
     assert 50 < proj[1].sum() < 350
     np.testing.assert_array_equal(
         lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS, projection=proj),
-        lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS))
+        lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS),
+    )
     np.testing.assert_array_equal(
         pedestrian_point_mask(pts, instance_image=inst, projection=proj),
-        pedestrian_point_mask(pts, K=K, T_cam_from_lidar=T, instance_image=inst))
+        pedestrian_point_mask(pts, K=K, T_cam_from_lidar=T, instance_image=inst),
+    )
     wide = project_points(pts, K * [[2], [2], [1]], T, 80, 40)
     with pytest.raises(StaticMapError, match="80 x 40|40 x 20"):
         lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS, projection=wide)
@@ -217,8 +263,17 @@ def test_one_projection_serves_every_per_sweep_kernel():
 def test_project_points_pixel_centres_and_depth():
     K, T = _cam()
     # u = 19.5 - 20 y / x, v = 9.5 - 20 z / x; pixel c spans [c - 0.5, c + 0.5)
-    pts = np.array([[10, 0.0, 0], [10, 0.026, 0], [10, 9.76, 0], [10, 10.26, 0], [0.05, 0, 0],
-                    [-5, 0, 0], [10, 0, -0.26]])
+    pts = np.array(
+        [
+            [10, 0.0, 0],
+            [10, 0.026, 0],
+            [10, 9.76, 0],
+            [10, 10.26, 0],
+            [0.05, 0, 0],
+            [-5, 0, 0],
+            [10, 0, -0.26],
+        ]
+    )
     pix, valid = project_points(pts, K, T, 40, 20)
     assert valid.tolist() == [True, True, True, False, False, False, True]
     assert pix.tolist() == [[20, 10], [19, 10], [0, 10], [0, 0], [0, 0], [0, 0], [20, 10]]
@@ -239,8 +294,9 @@ def test_pedestrian_boxes_for_masking_image_confirms_in_view():
     np.testing.assert_array_equal(out[:, :3], centers[[0, 2]])
     none = pedestrian_boxes_for_masking(np.zeros((0, 4)), centers, sizes, yaws, K, T, 40, 20, 0.5)
     np.testing.assert_array_equal(none[:, :3], centers[[2]])
-    assert pedestrian_boxes_for_masking(det, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), K, T,
-                                        40, 20, 0.5).shape == (0, 7)
+    assert pedestrian_boxes_for_masking(
+        det, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), K, T, 40, 20, 0.5
+    ).shape == (0, 7)
 
 
 def test_ghost_trail_removed_by_pedestrian_boxes():
@@ -259,15 +315,22 @@ def test_ghost_trail_removed_by_pedestrian_boxes():
             pts, _ = raycast(scene + [box_mesh(person[:3], person[3:6], person[6])], origin, dirs)
             # image semantics missing (person outside the camera): the nearest static class
             lab = np.where(pts[:, 2] < 0.05, ROAD, OTHER_STRUCTURE).astype(np.uint8)
-            keep = ~pedestrian_point_mask(pts, boxes_lidar=np.array([person]), box_margin_m=0.1) \
-                if remove else np.ones(len(pts), bool)
+            keep = (
+                ~pedestrian_point_mask(pts, boxes_lidar=np.array([person]), box_margin_m=0.1)
+                if remove
+                else np.ones(len(pts), bool)
+            )
             smap.add_sweep(pts, lab, keep)
             omap.insert_scan(pts[keep], origin, max_range_m=20.0)
         res = smap.finalize()
         c = res.centers()
         corridor = (np.abs(c[:, 0] - 4.0) < 0.6) & (np.abs(c[:, 1]) < 3.5) & (c[:, 2] > 0.25)
-        xs, ys, zs = np.meshgrid(np.arange(3.5, 4.5, VS), np.arange(-3.4, 3.4, VS),
-                                 np.arange(0.3, 1.7, VS), indexing="ij")
+        xs, ys, zs = np.meshgrid(
+            np.arange(3.5, 4.5, VS),
+            np.arange(-3.4, 3.4, VS),
+            np.arange(0.3, 1.7, VS),
+            indexing="ij",
+        )
         occ = omap.query(np.stack([xs, ys, zs], -1).reshape(-1, 3) + VS / 2)
         return int(corridor.sum()), int((occ == 1).sum()), int((occ == 0).sum())
 
@@ -282,8 +345,13 @@ def test_merge_static_maps_primary_wins_and_fallback_fills():
 
     counts = np.zeros((1, 9), np.uint16)
     cam = StaticMap(0.2, np.array([[0, 0, 0]]), np.array([2], np.uint8), counts, 1)
-    fallback = StaticMap(0.2, np.array([[0, 0, 0], [5, 0, 0]]), np.array([8, 4], np.uint8),
-                         np.zeros((2, 9), np.uint16), 2)
+    fallback = StaticMap(
+        0.2,
+        np.array([[0, 0, 0], [5, 0, 0]]),
+        np.array([8, 4], np.uint8),
+        np.zeros((2, 9), np.uint16),
+        2,
+    )
     merged = merge_static_maps(cam, fallback)
     assert merged.keys.tolist() == [[0, 0, 0], [5, 0, 0]]
     assert merged.labels.tolist() == [2, 4]  # the camera's label stays; the fallback fills the rest
@@ -297,6 +365,8 @@ def test_lookup_labels_resamples_an_offset_grid_without_holes():
 
     keys = np.array([[i, 0, -1] for i in range(10)])  # a 2 m strip of road, 0.2 m voxels
     road = StaticMap(0.2, keys, np.full(10, 4, np.uint8), np.zeros((10, 9), np.uint16), 0)
-    centres = np.stack([0.2 + 0.2 * np.arange(9), np.full(9, 0.1), np.full(9, -0.1)], 1)  # offset 0.1
+    centres = np.stack(
+        [0.2 + 0.2 * np.arange(9), np.full(9, 0.1), np.full(9, -0.1)], 1
+    )  # offset 0.1
     assert lookup_labels(road, centres).tolist() == [4] * 9
     assert lookup_labels(road, np.array([[5.0, 0.1, -0.1]])).tolist() == [255]

@@ -61,7 +61,9 @@ def test_racing_processes_never_hold_the_lock_together(left_behind, tmp_path):
         out = tmp_path / f"out{trial}"
         out.mkdir()
         if left_behind != "none":
-            (out / ".lock").write_text('{"host": "x", "pid": 999999999}' if left_behind == "dead pid" else "")
+            (out / ".lock").write_text(
+                '{"host": "x", "pid": 999999999}' if left_behind == "dead pid" else ""
+            )
         queue, start_at = ctx.Queue(), time.time() + 0.5
         procs = [ctx.Process(target=_contend, args=(str(out), start_at, queue)) for _ in range(12)]
         for p in procs:
@@ -69,18 +71,31 @@ def test_racing_processes_never_hold_the_lock_together(left_behind, tmp_path):
         results = [queue.get(timeout=180) for _ in procs]
         for p in procs:
             p.join(timeout=60)
-        assert all(overlaps == 0 for _, _, overlaps in results), results  # -1: did not get it 30 times
+        assert all(overlaps == 0 for _, _, overlaps in results), (
+            results
+        )  # -1: did not get it 30 times
         assert sum(refused for _, refused, _ in results) > 0  # they did race
         assert not (out / ".lock").exists() and not (out / "inside").exists()
 
 
 def test_a_killed_holder_leaves_no_lock(tmp_path):
-    code = ("import sys\nfrom storage.manifest import run_lock\n"
-            "with run_lock(sys.argv[1]):\n    print('in', flush=True)\n    sys.stdin.read()\n")
-    holder = subprocess.Popen([sys.executable, "-c", code, str(tmp_path)], cwd=ROOT, stdin=subprocess.PIPE,
-                              stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    code = (
+        "import sys\nfrom storage.manifest import run_lock\n"
+        "with run_lock(sys.argv[1]):\n    print('in', flush=True)\n    sys.stdin.read()\n"
+    )
+    holder = subprocess.Popen(
+        [sys.executable, "-c", code, str(tmp_path)],
+        cwd=ROOT,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
     assert holder.stdout.readline().strip() == "in"
-    with pytest.raises(StoreLockedError, match=f"in use by another run .*pid {holder.pid}"), run_lock(tmp_path):
+    with (
+        pytest.raises(StoreLockedError, match=f"in use by another run .*pid {holder.pid}"),
+        run_lock(tmp_path),
+    ):
         pass
     os.kill(holder.pid, signal.SIGKILL)
     holder.wait()
@@ -90,8 +105,15 @@ def test_a_killed_holder_leaves_no_lock(tmp_path):
 
 
 def _row(seq: str, stage: str, status: str = "done") -> StageRecord:
-    return StageRecord(seq, stage, key=f"k-{seq}-{stage}", status=status, location=f"stages/{stage}/{seq}/k",
-                       summary={"frames": [0, 2]}, parts={"code": "1"})
+    return StageRecord(
+        seq,
+        stage,
+        key=f"k-{seq}-{stage}",
+        status=status,
+        location=f"stages/{stage}/{seq}/k",
+        summary={"frames": [0, 2]},
+        parts={"code": "1"},
+    )
 
 
 def test_the_journal_survives_a_kill_and_compacts(tmp_path):

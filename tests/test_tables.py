@@ -34,7 +34,9 @@ def frame_rows(n: int, offset: int = 0) -> list[dict]:
 def test_schema_versions_and_metadata():
     for name in schemas.TABLE_NAMES:
         fs = schemas.file_schema(name)
-        assert fs.metadata[b"mobileocc.schema_version"] == str(schemas.SCHEMA_VERSIONS[name]).encode()
+        assert (
+            fs.metadata[b"mobileocc.schema_version"] == str(schemas.SCHEMA_VERSIONS[name]).encode()
+        )
         assert "sequence" not in fs.names
         assert schemas.dataset_schema(name).names[0] == "sequence"
     inst = schemas.file_schema("instances")
@@ -52,7 +54,9 @@ def test_round_trip_two_partitions_and_direct_readers(tmp_path):
     assert t.num_rows == 5 and t.schema.field("sequence").type == pa.string()
     assert t.column("sequence").to_pylist() == ["a"] * 3 + ["b"] * 2
     assert t.column("raw_frame").to_pylist() == [0, 2, 4, 100, 102]
-    np.testing.assert_array_equal(np.asarray(t.column("T_world_from_lidar")[1].as_py()).reshape(4, 4), np.eye(4) + 1)
+    np.testing.assert_array_equal(
+        np.asarray(t.column("T_world_from_lidar")[1].as_py()).reshape(4, 4), np.eye(4) + 1
+    )
     assert t.column("cam1_path").null_count == 5
     b = tables.read_table(tmp_path, "frames", "b")
     assert b.num_rows == 2 and set(b.column("sequence").to_pylist()) == {"b"}
@@ -118,8 +122,14 @@ def test_instances_and_sequences_columns(tmp_path):
     assert t.column("track_id").to_pylist() == [1, 3]  # sorted by track, frame
     assert len(t.column("keypoints")[0].as_py()) == 51 and t.column("betas").null_count == 2
     seq = {
-        "fingerprint": ["f"], "config_hash": ["c"], "code_version": ["0.1.0"], "status": ["ok"],
-        "num_frames": [4], "K": [np.eye(3).ravel()], "image_width": [1224], "image_height": [1024],
+        "fingerprint": ["f"],
+        "config_hash": ["c"],
+        "code_version": ["0.1.0"],
+        "status": ["ok"],
+        "num_frames": [4],
+        "K": [np.eye(3).ravel()],
+        "image_width": [1224],
+        "image_height": [1024],
     }
     tables.write_partition(tmp_path, "sequences", "s", seq)
     row = tables.read_table(tmp_path, "sequences").to_pylist()[0]

@@ -12,7 +12,9 @@ def _box(cx: float, cy: float = 200.0, w: float = 40.0, h: float = 100.0) -> lis
     return [cx - w / 2, cy - h / 2, cx + w / 2, cy + h / 2]
 
 
-def _run(tracker: PedestrianTracker, frames: list[list[list[float]]], scores=None) -> list[np.ndarray]:
+def _run(
+    tracker: PedestrianTracker, frames: list[list[list[float]]], scores=None
+) -> list[np.ndarray]:
     out = []
     for f, boxes in enumerate(frames):
         s = np.full(len(boxes), 0.9) if scores is None else np.asarray(scores[f])
@@ -113,18 +115,28 @@ from tasks.track.offline import OfflineParams, backfill_ids, stitch_ids, track_o
 
 def _offline(frames, scores=None, backfill=True, stitch_max_gap=0, stitch_max_distance=0.5, **kw):
     tracker_kw = {k: kw.pop(k) for k in list(kw) if k in ("max_age", "min_hits", "iou_threshold")}
-    s = [np.full(len(b), 0.9) if scores is None else np.asarray(scores[f]) for f, b in enumerate(frames)]
+    s = [
+        np.full(len(b), 0.9) if scores is None else np.asarray(scores[f])
+        for f, b in enumerate(frames)
+    ]
     boxes = [np.asarray(b, np.float32).reshape(-1, 4) for b in frames]
-    offline = OfflineParams(backfill=backfill, stitch_max_gap=stitch_max_gap,
-                            stitch_max_distance=stitch_max_distance)
+    offline = OfflineParams(
+        backfill=backfill, stitch_max_gap=stitch_max_gap, stitch_max_distance=stitch_max_distance
+    )
     return track_offline(boxes, s, PedestrianTracker(TrackerParams(**tracker_kw)), offline, **kw)
 
 
 def test_backfill_gives_first_frames_and_frame_zero_their_id():
     # A from frame 0; B appears at frame 5. Online, frame 0 and B's first two frames are tentative.
-    frames = [[_box(100 + 5 * f)] + ([_box(900 - 5 * f, cy=400)] if f >= 5 else []) for f in range(12)]
+    frames = [
+        [_box(100 + 5 * f)] + ([_box(900 - 5 * f, cy=400)] if f >= 5 else []) for f in range(12)
+    ]
     online = _run(PedestrianTracker(), frames)
-    assert online[0].tolist() == [-1] and online[5].tolist() == [1, -1] and online[6].tolist() == [1, -1]
+    assert (
+        online[0].tolist() == [-1]
+        and online[5].tolist() == [1, -1]
+        and online[6].tolist() == [1, -1]
+    )
     ids = _offline(frames, backfill=True)
     assert ids[0].tolist() == [1]
     assert [row.tolist() for row in ids[5:]] == [[1, 2]] * 7
@@ -142,14 +154,18 @@ def test_backfill_leaves_unconfirmed_tracklets_alone():
 def test_tracklet_keys_follow_rows_and_skip_low_scores():
     tracker = PedestrianTracker()
     for f in range(4):
-        tracker.update(np.asarray([_box(100 + 5 * f), _box(600, cy=400)], np.float32), np.array([0.9, 0.3]))
+        tracker.update(
+            np.asarray([_box(100 + 5 * f), _box(600, cy=400)], np.float32), np.array([0.9, 0.3])
+        )
     assert [k.tolist() for k in tracker.tracklet_keys] == [[0, -1]] * 4
     assert tracker.confirmed_ids == {0: 1}
 
 
 def test_stitching_joins_a_walker_hidden_longer_than_max_age():
     # hidden for frames 10..17 (8 frames) with max_age 3: OC-SORT drops the track and starts anew
-    frames = [[_box(600, cy=300)] + ([] if 10 <= f < 18 else [_box(100 + 8 * f)]) for f in range(30)]
+    frames = [
+        [_box(600, cy=300)] + ([] if 10 <= f < 18 else [_box(100 + 8 * f)]) for f in range(30)
+    ]
     plain = _offline(frames, max_age=3, backfill=True, stitch_max_gap=0)
     assert len(set(np.concatenate(plain).tolist()) - {-1}) == 3
     ids = _offline(frames, max_age=3, backfill=True, stitch_max_gap=10, stitch_max_distance=0.5)
@@ -164,7 +180,10 @@ def test_stitching_joins_a_walker_hidden_longer_than_max_age():
 def test_stitching_does_not_join_different_people():
     # A walks right and leaves at frame 10 near x = 150; B appears at frame 14 at x = 800 walking
     # left: the gap is short but neither extrapolation lands near the other
-    frames = [[_box(100 + 5 * f)] if f < 10 else ([_box(870 - 5 * f)] if f >= 14 else []) for f in range(25)]
+    frames = [
+        [_box(100 + 5 * f)] if f < 10 else ([_box(870 - 5 * f)] if f >= 14 else [])
+        for f in range(25)
+    ]
     ids = _offline(frames, backfill=True, stitch_max_gap=10, stitch_max_distance=0.5)
     assert ids[0].tolist() == [1] and ids[14].tolist() == [2] and ids[24].tolist() == [2]
 
@@ -193,8 +212,14 @@ def test_stitch_ids_chains_and_never_overlaps_in_time():
 
 def test_offline_ids_are_deterministic():
     rng = np.random.default_rng(3)
-    frames = [[_box(100 + 7 * f + rng.normal(0, 2), cy=200 + 40 * k) for k in range(4)
-               if rng.random() > 0.2] for f in range(40)]
+    frames = [
+        [
+            _box(100 + 7 * f + rng.normal(0, 2), cy=200 + 40 * k)
+            for k in range(4)
+            if rng.random() > 0.2
+        ]
+        for f in range(40)
+    ]
     first = _offline(frames, backfill=True, stitch_max_gap=10, stitch_max_distance=0.5)
     second = _offline(frames, backfill=True, stitch_max_gap=10, stitch_max_distance=0.5)
     assert [r.tolist() for r in first] == [r.tolist() for r in second]
@@ -224,8 +249,17 @@ def _refine(ids, boxes, positions, tentative=frozenset()):
     times = np.arange(len(ids)) * _DT
     split, clean, parent = split_tracks(ids, positions, times)
     provisional = {frag for frag, p in parent.items() if p in tentative}
-    return stitch_ids(split, boxes, 10, 0.5, 1.5, positions=clean, times_s=times, parent=parent,
-                      provisional=provisional)
+    return stitch_ids(
+        split,
+        boxes,
+        10,
+        0.5,
+        1.5,
+        positions=clean,
+        times_s=times,
+        parent=parent,
+        provisional=provisional,
+    )
 
 
 def test_world_positions_undo_a_swap_between_people_overlapping_in_the_image():
@@ -298,12 +332,26 @@ def test_tentative_fragments_join_a_confirmed_track_or_are_dropped():
     a = _walk(8.0, 0.0, -1.4, range(14))
     # A confirmed on frames 0..9, missed 10..11, seen again on 12..13 by a tracklet that never got
     # min_hits (id 50, provisional); a lone provisional tracklet (id 51) elsewhere.
-    ids = [np.array([1]) if f < 10 else np.array([50, 51]) if f >= 12 else np.zeros(0, np.int64)
-           for f in range(14)]
-    boxes = [np.array([_box(300)]) if f < 10 else np.array([_box(600), _box(900)]) if f >= 12
-             else np.zeros((0, 4)) for f in range(14)]
-    positions = [np.array([a[f]]) if f < 10 else np.array([a[f], [20.0, 5.0]]) if f >= 12
-                 else np.zeros((0, 2)) for f in range(14)]
+    ids = [
+        np.array([1]) if f < 10 else np.array([50, 51]) if f >= 12 else np.zeros(0, np.int64)
+        for f in range(14)
+    ]
+    boxes = [
+        np.array([_box(300)])
+        if f < 10
+        else np.array([_box(600), _box(900)])
+        if f >= 12
+        else np.zeros((0, 4))
+        for f in range(14)
+    ]
+    positions = [
+        np.array([a[f]])
+        if f < 10
+        else np.array([a[f], [20.0, 5.0]])
+        if f >= 12
+        else np.zeros((0, 2))
+        for f in range(14)
+    ]
     out = _refine(ids, boxes, positions, tentative={50, 51})
     assert out[12].tolist() == [1, -1] and out[13].tolist() == [1, -1]
 
@@ -311,7 +359,9 @@ def test_tentative_fragments_join_a_confirmed_track_or_are_dropped():
 def test_person_world_xy_is_the_median_point_in_the_world_and_needs_min_points():
     from tasks.track.product import person_world_xy
 
-    points = np.array([[5.0, 1.0, 0.5], [5.2, 1.1, 1.0], [5.1, 0.9, 1.5], [30.0, 9.0, 1.0]], np.float32)
+    points = np.array(
+        [[5.0, 1.0, 0.5], [5.2, 1.1, 1.0], [5.1, 0.9, 1.5], [30.0, 9.0, 1.0]], np.float32
+    )
     T = np.eye(4)
     T[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]  # yaw 90 degrees
     T[:3, 3] = [100.0, 50.0, 0.0]
@@ -346,9 +396,16 @@ def test_gates_keep_their_duration_at_another_rate():
     assert (offline.stitch_max_gap, check.window) == (20, 10)
     assert gates_at_rate(*base, 10.0, GateRate(scale_min_hits=True))[0].min_hits == 6
     tracker, offline, check = gates_at_rate(*base, 2.5)
-    assert (tracker.max_age, tracker.delta_t, offline.stitch_max_gap, check.window) == (15, 2, 5, 3)  # halves up
+    assert (tracker.max_age, tracker.delta_t, offline.stitch_max_gap, check.window) == (
+        15,
+        2,
+        5,
+        3,
+    )  # halves up
     assert gates_at_rate(*base, 10.0, GateRate(gates_rate_hz=10.0)) == base
-    assert frames_at(0, 2.0, 1) == 0 and frames_at(1, 0.1, 1) == 1  # off stays off; never below the minimum
+    assert (
+        frames_at(0, 2.0, 1) == 0 and frames_at(1, 0.1, 1) == 1
+    )  # off stays off; never below the minimum
     with pytest.raises(ValueError, match="rates must be > 0"):
         gates_at_rate(*base, 0.0)
 
@@ -357,13 +414,18 @@ def test_a_walker_hidden_for_1_6_s_is_joined_at_5_and_at_10_hz():
     """The same scene sampled at 5 and 10 Hz (a walker at 40 px/s hidden from 2.0 to 3.6 s, beside
     a standing person): with the gates scaled to the rate the walker keeps one id at both; at
     10 Hz with the 5 Hz frame counts the gap (17 frames) is longer than stitch_max_gap (10)."""
+
     def ids_at(rate, scaled):
-        frames = [[_box(600, cy=300)] + ([] if 2.0 <= f / rate < 3.6 else [_box(100 + 40 * f / rate)])
-                  for f in range(int(6 * rate))]
+        frames = [
+            [_box(600, cy=300)] + ([] if 2.0 <= f / rate < 3.6 else [_box(100 + 40 * f / rate)])
+            for f in range(int(6 * rate))
+        ]
         base = (TrackerParams(max_age=3), OfflineParams(stitch_max_gap=10), WorldCheck())
         tracker, offline, _ = gates_at_rate(*base, rate) if scaled else base
         boxes = [np.asarray(b, np.float32).reshape(-1, 4) for b in frames]
-        ids = track_offline(boxes, [np.full(len(b), 0.9) for b in boxes], PedestrianTracker(tracker), offline)
+        ids = track_offline(
+            boxes, [np.full(len(b), 0.9) for b in boxes], PedestrianTracker(tracker), offline
+        )
         return set(np.concatenate(ids).tolist()) - {-1}
 
     assert ids_at(5.0, True) == {1, 2} and ids_at(10.0, True) == {1, 2}

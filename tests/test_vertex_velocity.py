@@ -8,7 +8,13 @@ import open3d as o3d
 import pytest
 
 from tasks.conventions import PEDESTRIAN
-from tasks.occupancy.fuse import PedestrianMesh, fuse_frame, mesh_voxel_velocity, surface_points, voxelize_mesh
+from tasks.occupancy.fuse import (
+    PedestrianMesh,
+    fuse_frame,
+    mesh_voxel_velocity,
+    surface_points,
+    voxelize_mesh,
+)
 from tasks.occupancy.grid import GridSpec
 from tasks.track.velocity import track_neighbours, vertex_velocities_in_base
 
@@ -43,7 +49,7 @@ def test_rotating_limb_voxels_take_the_mean_velocity_of_their_surface():
     # velocity at the mean of its surface points (computed here the slow way, in numpy)
     pts = surface_points(v, f, 0.5 * SPEC.voxel_size_m)
     flat = SPEC.flat_index(SPEC.index_of(pts))
-    for (i, vv) in zip(SPEC.flat_index(idx), vel):
+    for i, vv in zip(SPEC.flat_index(idx), vel):
         here = pts[flat == i]
         expect = _swing_velocity(here)[:, :2].mean(0) if len(here) else None
         if expect is not None:
@@ -71,28 +77,41 @@ def test_voxels_without_surface_take_the_nearest_vertex():
     surface = {tuple(i) for i in pts}
     inner = np.array([k for k, i in enumerate(idx) if tuple(i) not in surface])
     assert len(inner) > 20
-    nearest = np.argmin(np.linalg.norm(spec.center_of(idx[inner])[:, None] - v[None], axis=2), axis=1)
+    nearest = np.argmin(
+        np.linalg.norm(spec.center_of(idx[inner])[:, None] - v[None], axis=2), axis=1
+    )
     np.testing.assert_allclose(vel[inner], vel_v[nearest])
     far = np.array([[0, 0, 0]])
     got_idx, got = mesh_voxel_velocity(spec, v, f, vel_v, voxels=far)
     np.testing.assert_array_equal(got_idx, far)
-    np.testing.assert_allclose(got[0], vel_v[np.argmin(np.linalg.norm(spec.center_of(far) - v, axis=1))])
+    np.testing.assert_allclose(
+        got[0], vel_v[np.argmin(np.linalg.norm(spec.center_of(far) - v, axis=1))]
+    )
 
 
 def test_fuse_frame_writes_per_voxel_velocity_of_a_swinging_limb():
     v, f = _limb()
     vel_v = _swing_velocity(v)[:, :2]
-    g = fuse_frame(SPEC, np.eye(4), static_points_world=np.zeros((0, 3), np.float32),
-                   static_labels=np.zeros(0, np.uint8),
-                   pedestrians=[PedestrianMesh(3, v, f, np.array([0.4, 0.0]), vel_v)],
-                   velocity_dtype=np.float32)
+    g = fuse_frame(
+        SPEC,
+        np.eye(4),
+        static_points_world=np.zeros((0, 3), np.float32),
+        static_labels=np.zeros(0, np.uint8),
+        pedestrians=[PedestrianMesh(3, v, f, np.array([0.4, 0.0]), vel_v)],
+        velocity_dtype=np.float32,
+    )
     idx, vel = mesh_voxel_velocity(SPEC, v, f, vel_v)
     ped = np.argwhere(g.semantics == PEDESTRIAN)
     np.testing.assert_array_equal(ped, idx)
     np.testing.assert_allclose(g.velocity[tuple(idx.T)], vel, atol=1e-6)
     # per person: every voxel the person's velocity
-    g1 = fuse_frame(SPEC, np.eye(4), static_points_world=np.zeros((0, 3), np.float32),
-                    static_labels=np.zeros(0, np.uint8), pedestrians=[PedestrianMesh(3, v, f, np.array([0.5, -0.25]))])
+    g1 = fuse_frame(
+        SPEC,
+        np.eye(4),
+        static_points_world=np.zeros((0, 3), np.float32),
+        static_labels=np.zeros(0, np.uint8),
+        pedestrians=[PedestrianMesh(3, v, f, np.array([0.5, -0.25]))],
+    )
     np.testing.assert_array_equal(g1.velocity[tuple(idx.T)], [[0.5, -0.25]] * len(idx))
 
 
@@ -120,10 +139,16 @@ def test_central_difference_of_a_swinging_limb_with_the_robot_moving():
     exact = _swing_velocity(frames[1][1]) @ R_base_from_world.T
     np.testing.assert_allclose(got, exact * np.sin(OMEGA * dt) / (OMEGA * dt), atol=1e-9)
     # one-sided at a track's end: the chord from this frame to the next
-    end = vertex_velocities_in_base([None, lidar[1], lidar[2]], poses, stamps, T_base_from_lidar, np.zeros(3))
-    np.testing.assert_allclose(end, (frames[2][1] - frames[1][1]) / dt @ R_base_from_world.T, atol=1e-9)
+    end = vertex_velocities_in_base(
+        [None, lidar[1], lidar[2]], poses, stamps, T_base_from_lidar, np.zeros(3)
+    )
+    np.testing.assert_allclose(
+        end, (frames[2][1] - frames[1][1]) / dt @ R_base_from_world.T, atol=1e-9
+    )
     # no neighbour: the fallback (the person's velocity) on every vertex
-    alone = vertex_velocities_in_base([None, lidar[1], None], poses, stamps, T_base_from_lidar, [0.5, -0.2, 0.0])
+    alone = vertex_velocities_in_base(
+        [None, lidar[1], None], poses, stamps, T_base_from_lidar, [0.5, -0.2, 0.0]
+    )
     np.testing.assert_allclose(alone, np.broadcast_to([0.5, -0.2, 0.0], alone.shape))
 
 
@@ -157,12 +182,26 @@ def test_tracked_bodies_translate_rigidly_and_fall_back_across_gaps():
     t_lw = np.stack([np.linalg.inv(poses[p])[:3, 3] for p in frames])
     import torch
 
-    J0 = model.rest_joints(torch.zeros(1, 10))[0, 0].detach().numpy().astype(np.float64)  # root joint
+    J0 = (
+        model.rest_joints(torch.zeros(1, 10))[0, 0].detach().numpy().astype(np.float64)
+    )  # root joint
     world_t = np.array([2.0, 0.0, 0.0]) + walk * stamps[frames, None]
     go = np.stack([_axis_angle(R) for R in R_lw])
     transl = np.einsum("kij,kj->ki", R_lw, J0 + world_t) + t_lw - J0
-    bodies = TrackedBodies(model, betas, go, pose, transl, np.full(4, 7), frames, np.tile([0.3, 0.0], (4, 1)),
-                           stamps, poses, T_base_from_lidar, max_gap_s=0.25)
+    bodies = TrackedBodies(
+        model,
+        betas,
+        go,
+        pose,
+        transl,
+        np.full(4, 7),
+        frames,
+        np.tile([0.3, 0.0], (4, 1)),
+        stamps,
+        poses,
+        T_base_from_lidar,
+        max_gap_s=0.25,
+    )
     for position in (0, 1, 2):
         rows, _, vel = bodies.frame(position)
         assert rows.tolist() == [position]

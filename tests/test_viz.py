@@ -18,7 +18,9 @@ def test_bev_shows_highest_voxel_with_x_up_and_y_left():
     img = viz.bev_image(occ, inst, scale=2)
     assert img.shape == (8, 6, 3) and img.dtype == np.uint8
     assert np.array_equal(img[7, 5], C.CLASS_COLORS[C.CAR])  # top layer: full brightness
-    assert np.array_equal(img[0, 0], (viz.instance_colors(np.array([7]))[0] * (0.55 + 0.45 * 2 / 5)).astype(np.uint8))
+    assert np.array_equal(
+        img[0, 0], (viz.instance_colors(np.array([7]))[0] * (0.55 + 0.45 * 2 / 5)).astype(np.uint8)
+    )
     assert np.array_equal(img[0, 5], C.CLASS_COLORS[C.FREE])
 
 

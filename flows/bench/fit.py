@@ -87,23 +87,40 @@ def bench_fit(
             idx = slice(s, min(persons, s + chunk))
             t0 = time.perf_counter()
             r = fit_persons(
-                model, prior, init.take(idx), sp.keypoints[idx], sp.K, sp.T_cam_from_lidar,
-                *ragged_points(sp.points_lidar[idx], sp.point_mask[idx]), w, iterations=its,
-                lr=settings.learning_rate, device=device, seed=seed, nn_every=settings.nn_every,
-                chamfer_vertex_max_m=settings.chamfer_vertex_max_m, converge_rtol=settings.converge_rtol,
+                model,
+                prior,
+                init.take(idx),
+                sp.keypoints[idx],
+                sp.K,
+                sp.T_cam_from_lidar,
+                *ragged_points(sp.points_lidar[idx], sp.point_mask[idx]),
+                w,
+                iterations=its,
+                lr=settings.learning_rate,
+                device=device,
+                seed=seed,
+                nn_every=settings.nn_every,
+                chamfer_vertex_max_m=settings.chamfer_vertex_max_m,
+                converge_rtol=settings.converge_rtol,
                 **extra,
             )
             if count:
                 fit_time += time.perf_counter() - t0
                 fit_count += idx.stop - idx.start
             outs.append(r)
-        return np.concatenate([r.vertices for r in outs]), np.concatenate([r.joints for r in outs]), outs
+        return (
+            np.concatenate([r.vertices for r in outs]),
+            np.concatenate([r.joints for r in outs]),
+            outs,
+        )
 
     for si, sensor in enumerate(sensors):
         rng = np.random.default_rng(seed + 1000 * si)
         poses = sample_plausible_poses(persons, rng)
         sp = synthesize_persons(model, poses, SENSORS[sensor], rng)
-        truth = BodyParams(sp.truth_betas, sp.truth_global_orient, sp.truth_body_pose, sp.truth_transl)
+        truth = BodyParams(
+            sp.truth_betas, sp.truth_global_orient, sp.truth_body_pose, sp.truth_transl
+        )
         init = oracle_initial_estimate(model, truth, rng)
         occ = sp.occluded_limb >= 0
         table: dict = {}
@@ -120,20 +137,42 @@ def bench_fit(
             v, j, _ = run_fits(sp, init, w, extra)
             record(name, v, j)
         with torch.no_grad():
-            o = model(*(torch.as_tensor(a) for a in (init.betas, init.global_orient, init.body_pose, init.transl)))
+            o = model(
+                *(
+                    torch.as_tensor(a)
+                    for a in (init.betas, init.global_orient, init.body_pose, init.transl)
+                )
+            )
         record("Initial estimate", o.vertices.numpy(), o.joints.numpy())
         if warm_start:
-            table.update(_warm_start_rows(model, prior, sp, truth, init, weights, rng, run_fits, fit_metrics, sensor,
-                                          sorted({30, 60, iterations})))
+            table.update(
+                _warm_start_rows(
+                    model,
+                    prior,
+                    sp,
+                    truth,
+                    init,
+                    weights,
+                    rng,
+                    run_fits,
+                    fit_metrics,
+                    sensor,
+                    sorted({30, 60, iterations}),
+                )
+            )
         results[sensor] = table
         _print_table(sensor, table, persons, int(occ.sum()))
     results["person_fits_per_s"] = fit_count / max(fit_time, 1e-9)
-    print(f"person-fits/s (full pipeline incl. ICP, {device}, {iterations} it, chunk {chunk}): "
-          f"{results['person_fits_per_s']:.2f}")
+    print(
+        f"person-fits/s (full pipeline incl. ICP, {device}, {iterations} it, chunk {chunk}): "
+        f"{results['person_fits_per_s']:.2f}"
+    )
     return results
 
 
-def _warm_start_rows(model, prior, sp, truth, init, weights, rng, run_fits, fit_metrics, sensor, counts):
+def _warm_start_rows(
+    model, prior, sp, truth, init, weights, rng, run_fits, fit_metrics, sensor, counts
+):
     """Second frame 0.2 s later: the person walked ~0.25 m and the pose drifted a little; fit it
     from the first frame's fit (warm) and from a fresh oracle estimate (cold), each with every
     iteration count in ``counts`` (iterations to converge)."""
@@ -145,21 +184,40 @@ def _warm_start_rows(model, prior, sp, truth, init, weights, rng, run_fits, fit_
 
     B = len(truth)
     _, _, first = run_fits(sp, init, weights, {"count": False})
-    prev = BodyParams(*(np.concatenate([getattr(r, k) for r in first]) for k in ("betas", "global_orient", "body_pose", "transl")))
+    prev = BodyParams(
+        *(
+            np.concatenate([getattr(r, k) for r in first])
+            for k in ("betas", "global_orient", "body_pose", "transl")
+        )
+    )
     # frame 2 ground truth: same person, moved and re-posed slightly; new sweep and keypoints
     pose2 = truth.body_pose + rng.normal(0.0, 0.05, truth.body_pose.shape).astype(np.float32)
     sp2 = synthesize_persons(model, pose2, SENSORS[sensor], rng)
     # keep the identity: same shape and heading as frame 1, shifted by a step
     step = rng.normal(0.0, 0.15, (B, 3)) * np.array([1.0, 0.0, 1.0])
-    truth2 = BodyParams(truth.betas, truth.global_orient, pose2, (truth.transl + step).astype(np.float32))
+    truth2 = BodyParams(
+        truth.betas, truth.global_orient, pose2, (truth.transl + step).astype(np.float32)
+    )
     with torch.no_grad():
-        o = model(*(torch.as_tensor(a) for a in (truth2.betas, truth2.global_orient, truth2.body_pose, truth2.transl)))
+        o = model(
+            *(
+                torch.as_tensor(a)
+                for a in (truth2.betas, truth2.global_orient, truth2.body_pose, truth2.transl)
+            )
+        )
     sp2 = _resimulate(model, sp2, o.vertices.numpy(), o.joints.numpy(), sensor, rng)
     rows = {}
     for name, start in (("warm", prev), ("cold", oracle_initial_estimate(model, truth2, rng))):
         with torch.no_grad():
-            s = model(*(torch.as_tensor(a) for a in (start.betas, start.global_orient, start.body_pose, start.transl)))
-        m = fit_metrics(s.vertices.numpy(), s.joints.numpy(), o.vertices.numpy(), o.joints.numpy(), model.faces)
+            s = model(
+                *(
+                    torch.as_tensor(a)
+                    for a in (start.betas, start.global_orient, start.body_pose, start.transl)
+                )
+            )
+        m = fit_metrics(
+            s.vertices.numpy(), s.joints.numpy(), o.vertices.numpy(), o.joints.numpy(), model.faces
+        )
         rows[f"frame 2, {name} start, 0 it"] = {k: float(np.mean(x)) for k, x in m.items()}
         for its in counts:
             v, j, _ = run_fits(sp2, start, weights, {"count": False, "iterations": its})
@@ -184,7 +242,9 @@ def _resimulate(model, sp, verts, joints, sensor, rng):
     from tasks.fit.optimize import model_keypoints
 
     B, P = sp.point_mask.shape
-    kp3 = model_keypoints(torch.as_tensor(joints), torch.as_tensor(verts), model.keypoint_vertex_ids).numpy()
+    kp3 = model_keypoints(
+        torch.as_tensor(joints), torch.as_tensor(verts), model.keypoint_vertex_ids
+    ).numpy()
     uvw = kp3 @ sp.K.T
     kp = sp.keypoints.copy()
     kp[..., :2] = uvw[..., :2] / uvw[..., 2:3] + rng.normal(0.0, 3.0, (B, 17, 2))
@@ -197,14 +257,30 @@ def _resimulate(model, sp, verts, joints, sensor, rng):
             p = p[rng.choice(len(p), P, replace=False)]
         pts[b, : len(p)] = p @ R_CAM_FROM_LIDAR
         mask[b, : len(p)] = True
-    return dataclasses.replace(sp, keypoints=kp, points_lidar=pts, point_mask=mask,
-                               truth_vertices=verts, truth_joints=joints)
+    return dataclasses.replace(
+        sp,
+        keypoints=kp,
+        points_lidar=pts,
+        point_mask=mask,
+        truth_vertices=verts,
+        truth_joints=joints,
+    )
 
 
 #: the arrays of a simulated person pool (tasks.fit.lidar_sim.SyntheticPersons and the oracle's
 #: initial estimates) that the throughput and agreement runs need
-POOL_FIELDS = ("keypoints", "K", "points_lidar", "point_mask", "T_cam_from_lidar", "truth_joints",
-               "init_betas", "init_global_orient", "init_body_pose", "init_transl")
+POOL_FIELDS = (
+    "keypoints",
+    "K",
+    "points_lidar",
+    "point_mask",
+    "T_cam_from_lidar",
+    "truth_joints",
+    "init_betas",
+    "init_global_orient",
+    "init_body_pose",
+    "init_transl",
+)
 
 
 def simulated_pool(pool: int, sensor: str, seed: int, **synthesize) -> dict:
@@ -219,16 +295,31 @@ def simulated_pool(pool: int, sensor: str, seed: int, **synthesize) -> dict:
     from tasks.fit.lidar_sim import SENSORS, synthesize_persons
 
     model, rng = default_body_model(), np.random.default_rng(seed)
-    sp = synthesize_persons(model, sample_plausible_poses(pool, rng), SENSORS[sensor], rng, **synthesize)
-    init = oracle_initial_estimate(model, BodyParams(sp.truth_betas, sp.truth_global_orient,
-                                                     sp.truth_body_pose, sp.truth_transl), rng)
+    sp = synthesize_persons(
+        model, sample_plausible_poses(pool, rng), SENSORS[sensor], rng, **synthesize
+    )
+    init = oracle_initial_estimate(
+        model,
+        BodyParams(sp.truth_betas, sp.truth_global_orient, sp.truth_body_pose, sp.truth_transl),
+        rng,
+    )
     arrays = {k: getattr(sp, k) for k in POOL_FIELDS if not k.startswith("init_")}
-    arrays.update({f"init_{k}": getattr(init, k) for k in ("betas", "global_orient", "body_pose", "transl")})
+    arrays.update(
+        {f"init_{k}": getattr(init, k) for k in ("betas", "global_orient", "body_pose", "transl")}
+    )
     return arrays
 
 
-def bench_throughput(persons: int, device: str, weights, settings, pool: int = 64,
-                     sensor: str = "ouster-128", seed: int = 0, pool_arrays: dict | None = None) -> dict:
+def bench_throughput(
+    persons: int,
+    device: str,
+    weights,
+    settings,
+    pool: int = 64,
+    sensor: str = "ouster-128",
+    seed: int = 0,
+    pool_arrays: dict | None = None,
+) -> dict:
     """Person-fits/s of ``fit_persons`` on one batch of ``persons`` on ``device``.
 
     ``pool`` distinct persons are simulated (or given as ``pool_arrays``, :func:`simulated_pool`)
@@ -263,42 +354,81 @@ def bench_throughput(persons: int, device: str, weights, settings, pool: int = 6
     rep = np.arange(persons) % n
     init = init0.take(rep)
     pts, counts = ragged_points(a["points_lidar"][rep], a["point_mask"][rep])
-    args = {"weights": weights, "iterations": iterations, "device": device, "nn_every": settings.nn_every,
-            "chamfer_vertex_max_m": settings.chamfer_vertex_max_m, "lr": settings.learning_rate,
-            "converge_rtol": settings.converge_rtol}
+    args = {
+        "weights": weights,
+        "iterations": iterations,
+        "device": device,
+        "nn_every": settings.nn_every,
+        "chamfer_vertex_max_m": settings.chamfer_vertex_max_m,
+        "lr": settings.learning_rate,
+        "converge_rtol": settings.converge_rtol,
+    }
     w = min(4, persons)
     warm_pts, warm_counts = ragged_points(a["points_lidar"][rep[:w]], a["point_mask"][rep[:w]])
-    fit_persons(model, prior, init.take(slice(0, w)), a["keypoints"][rep[:w]], a["K"], a["T_cam_from_lidar"],
-                warm_pts, warm_counts, **{**args, "iterations": min(iterations, 6)})
+    fit_persons(
+        model,
+        prior,
+        init.take(slice(0, w)),
+        a["keypoints"][rep[:w]],
+        a["K"],
+        a["T_cam_from_lidar"],
+        warm_pts,
+        warm_counts,
+        **{**args, "iterations": min(iterations, 6)},
+    )
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
     sync()
     t0 = time.perf_counter()
-    r = fit_persons(model, prior, init, a["keypoints"][rep], a["K"], a["T_cam_from_lidar"], pts, counts, **args)
+    r = fit_persons(
+        model, prior, init, a["keypoints"][rep], a["K"], a["T_cam_from_lidar"], pts, counts, **args
+    )
     sync()
     wall = time.perf_counter() - t0
     # the ICP alone, as the fit runs it: the initial meshes' visible vertices of the same batch
     dev_model = model.to(device) if device != "cpu" else model
     kp = torch.as_tensor(a["keypoints"][rep], device=device)
     with torch.no_grad():
-        o = dev_model(*(torch.as_tensor(getattr(init, k), device=device) for k in
-                        ("betas", "global_orient", "body_pose", "transl")))
-        vis = visibility_masks(o.vertices, dev_model.faces_tensor, torch.as_tensor(vertex_parts(model.lbs_weights), device=device),
-                               kp[..., 2], w=weights.w, j_conf=weights.j_conf)
+        o = dev_model(
+            *(
+                torch.as_tensor(getattr(init, k), device=device)
+                for k in ("betas", "global_orient", "body_pose", "transl")
+            )
+        )
+        vis = visibility_masks(
+            o.vertices,
+            dev_model.faces_tensor,
+            torch.as_tensor(vertex_parts(model.lbs_weights), device=device),
+            kp[..., 2],
+            w=weights.w,
+            j_conf=weights.j_conf,
+        )
     T = torch.as_tensor(a["T_cam_from_lidar"], dtype=torch.float64, device=device)
-    p_cam = (torch.as_tensor(pts, dtype=torch.float64, device=device) @ T[:3, :3].T + T[:3, 3]).float()
-    person = torch.repeat_interleave(torch.arange(persons, device=device), torch.as_tensor(counts, device=device))
+    p_cam = (
+        torch.as_tensor(pts, dtype=torch.float64, device=device) @ T[:3, :3].T + T[:3, 3]
+    ).float()
+    person = torch.repeat_interleave(
+        torch.arange(persons, device=device), torch.as_tensor(counts, device=device)
+    )
     sync()
     t1 = time.perf_counter()
     icp_align(o.vertices, vis.vertex_mask, p_cam, person)
     sync()
     icp_s = time.perf_counter() - t1
-    out = {"device": device, "device_name": torch.cuda.get_device_name() if device.startswith("cuda") else "cpu",
-           "torch_threads": torch.get_num_threads(), "persons": persons, "distinct_persons": n,
-           "iterations": iterations, "nn_every": settings.nn_every, "wall_s": round(wall, 3),
-           "fits_per_s": round(persons / wall, 2), "icp_s": round(icp_s, 3),
-           "mpjpe_mm": round(float(mean_error_mm(r.joints, a["truth_joints"][rep]).mean()), 2),
-           "mean_steps": float(r.residuals["steps"].mean())}
+    out = {
+        "device": device,
+        "device_name": torch.cuda.get_device_name() if device.startswith("cuda") else "cpu",
+        "torch_threads": torch.get_num_threads(),
+        "persons": persons,
+        "distinct_persons": n,
+        "iterations": iterations,
+        "nn_every": settings.nn_every,
+        "wall_s": round(wall, 3),
+        "fits_per_s": round(persons / wall, 2),
+        "icp_s": round(icp_s, 3),
+        "mpjpe_mm": round(float(mean_error_mm(r.joints, a["truth_joints"][rep]).mean()), 2),
+        "mean_steps": float(r.residuals["steps"].mean()),
+    }
     if device.startswith("cuda"):
         out["peak_memory_gb"] = round(torch.cuda.max_memory_allocated() / 2**30, 2)
     return out
@@ -327,14 +457,30 @@ def device_agreement(pool_arrays: dict, device: str, weights, iterations: int = 
 
     def fit(dev):
         p = prior if dev == "cpu" else copy.deepcopy(prior).to(dev)
-        return fit_persons(model, p, init, a["keypoints"], a["K"], a["T_cam_from_lidar"], pts, counts, device=dev, **kw)
+        return fit_persons(
+            model,
+            p,
+            init,
+            a["keypoints"],
+            a["K"],
+            a["T_cam_from_lidar"],
+            pts,
+            counts,
+            device=dev,
+            **kw,
+        )
 
     c, d1, d2 = fit("cpu"), fit(device), fit(device)
-    return {"persons": len(counts), "iterations": iterations,
-            "max_vertex_diff_m": float(np.abs(c.vertices - d1.vertices).max()),
-            "steps_equal": bool(np.array_equal(c.residuals["steps"], d1.residuals["steps"])),
-            "max_icp_fitness_diff": float(np.abs(c.residuals["icp_fitness"] - d1.residuals["icp_fitness"]).max()),
-            "device_runs_identical": bool(np.array_equal(d1.vertices, d2.vertices))}
+    return {
+        "persons": len(counts),
+        "iterations": iterations,
+        "max_vertex_diff_m": float(np.abs(c.vertices - d1.vertices).max()),
+        "steps_equal": bool(np.array_equal(c.residuals["steps"], d1.residuals["steps"])),
+        "max_icp_fitness_diff": float(
+            np.abs(c.residuals["icp_fitness"] - d1.residuals["icp_fitness"]).max()
+        ),
+        "device_runs_identical": bool(np.array_equal(d1.vertices, d2.vertices)),
+    }
 
 
 def _print_table(sensor: str, table: dict, persons: int, occluded: int) -> None:
@@ -342,16 +488,25 @@ def _print_table(sensor: str, table: dict, persons: int, occluded: int) -> None:
     print(f"\n{sensor}: {persons} persons ({occluded} with an occluded limb); mm, MPERE unitless")
     print(f"{'method':24s}" + "".join(f"{c:>11s}" for c in cols))
     for name, m in table.items():
-        print(f"{name:24s}" + "".join(f"{m[c]:11.1f}" if c != "mpere" else f"{m[c]:11.3f}" for c in cols))
+        print(
+            f"{name:24s}"
+            + "".join(f"{m[c]:11.1f}" if c != "mpere" else f"{m[c]:11.3f}" for c in cols)
+        )
     print("std over persons:")
     for name, m in table.items():
         if "std" in m:
             o = m["std"]
-            print(f"  {name:22s}" + "".join(f"{o[c]:11.1f}" if c != "mpere" else f"{o[c]:11.3f}" for c in cols))
+            print(
+                f"  {name:22s}"
+                + "".join(f"{o[c]:11.1f}" if c != "mpere" else f"{o[c]:11.3f}" for c in cols)
+            )
     for name, m in table.items():
         if "occluded_subset" in m:
             o = m["occluded_subset"]
-            print(f"  occluded subset, {name:18s}" + "".join(f"{o[c]:11.1f}" if c != "mpere" else f"{o[c]:11.3f}" for c in cols))
+            print(
+                f"  occluded subset, {name:18s}"
+                + "".join(f"{o[c]:11.1f}" if c != "mpere" else f"{o[c]:11.3f}" for c in cols)
+            )
 
 
 def main(argv=None) -> None:
@@ -361,30 +516,61 @@ def main(argv=None) -> None:
     from tasks.fit.settings import FitSettings
 
     ap = argparse.ArgumentParser(prog="mobileocc bench fit", description=__doc__.splitlines()[0])
-    ap.add_argument("--config", default=None, help="the fit settings of this config (default: configs/default.yaml)")
-    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                    help="override a config key, e.g. --set fit.iterations=60 (repeatable)")
+    ap.add_argument(
+        "--config",
+        default=None,
+        help="the fit settings of this config (default: configs/default.yaml)",
+    )
+    ap.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config key, e.g. --set fit.iterations=60 (repeatable)",
+    )
     ap.add_argument("--persons", type=int, default=32)
     ap.add_argument("--sensors", default="ouster-32,ouster-64,ouster-128")
     ap.add_argument("--no-ablations", action="store_true")
-    ap.add_argument("--ablation-sensors", default=None,
-                    help="comma-separated sensors that get the ablation rows (default: all)")
+    ap.add_argument(
+        "--ablation-sensors",
+        default=None,
+        help="comma-separated sensors that get the ablation rows (default: all)",
+    )
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--warm-start", action="store_true")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--json", default=None, help="also write the results (means, stds) to this file")
-    ap.add_argument("--throughput", action="store_true",
-                    help="only speed: fits/s of one batch of --persons on --device, one JSON line")
+    ap.add_argument(
+        "--json", default=None, help="also write the results (means, stds) to this file"
+    )
+    ap.add_argument(
+        "--throughput",
+        action="store_true",
+        help="only speed: fits/s of one batch of --persons on --device, one JSON line",
+    )
     ap.add_argument("--pool", type=int, default=64, help="--throughput: distinct simulated persons")
-    ap.add_argument("--save-pool", default=None,
-                    help="simulate the --pool persons (and their initial estimates), save them to this .npz, exit")
-    ap.add_argument("--pool-file", default=None,
-                    help="--throughput / --agreement: persons saved by --save-pool (no simulator needed)")
-    ap.add_argument("--agreement", action="store_true",
-                    help="fit the pool on the CPU and on --device (twice); print how they agree, one JSON line")
-    ap.add_argument("--threads", type=int, default=None,
-                    help="torch intra-op threads (default: torch's, every core); on a shared CPU 1 per "
-                         "process avoids OpenMP spin-waiting")
+    ap.add_argument(
+        "--save-pool",
+        default=None,
+        help="simulate the --pool persons (and their initial estimates), save them to this .npz, exit",
+    )
+    ap.add_argument(
+        "--pool-file",
+        default=None,
+        help="--throughput / --agreement: persons saved by --save-pool (no simulator needed)",
+    )
+    ap.add_argument(
+        "--agreement",
+        action="store_true",
+        help="fit the pool on the CPU and on --device (twice); print how they agree, one JSON line",
+    )
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch intra-op threads (default: torch's, every core); on a shared CPU 1 per "
+        "process avoids OpenMP spin-waiting",
+    )
     a = ap.parse_args(argv)
     overrides = {}
     for item in a.overrides:
@@ -412,20 +598,47 @@ def main(argv=None) -> None:
     if a.agreement:
         import json
 
-        print(json.dumps(device_agreement(pool_arrays or simulated_pool(a.pool, sensor, a.seed), a.device, weights)))
+        print(
+            json.dumps(
+                device_agreement(
+                    pool_arrays or simulated_pool(a.pool, sensor, a.seed), a.device, weights
+                )
+            )
+        )
         return
     if a.throughput:
         import json
 
-        print(json.dumps(bench_throughput(a.persons, a.device, weights, settings, a.pool, sensor, a.seed, pool_arrays)))
+        print(
+            json.dumps(
+                bench_throughput(
+                    a.persons, a.device, weights, settings, a.pool, sensor, a.seed, pool_arrays
+                )
+            )
+        )
         return
-    results = bench_fit(a.persons, weights, settings, tuple(a.sensors.split(",")), not a.no_ablations, a.device,
-                        seed=a.seed, warm_start=a.warm_start,
-                        ablation_sensors=None if a.ablation_sensors is None else tuple(a.ablation_sensors.split(",")))
-    results["settings"] = {"preset": fit.preset, "weights": dataclasses.asdict(weights),
-                           "fit": dataclasses.asdict(settings)}
+    results = bench_fit(
+        a.persons,
+        weights,
+        settings,
+        tuple(a.sensors.split(",")),
+        not a.no_ablations,
+        a.device,
+        seed=a.seed,
+        warm_start=a.warm_start,
+        ablation_sensors=None
+        if a.ablation_sensors is None
+        else tuple(a.ablation_sensors.split(",")),
+    )
+    results["settings"] = {
+        "preset": fit.preset,
+        "weights": dataclasses.asdict(weights),
+        "fit": dataclasses.asdict(settings),
+    }
     if a.json:
         import json
         from pathlib import Path
 
-        Path(a.json).write_text(json.dumps({"argv": argv if argv is not None else sys.argv[1:], **results}, indent=1))
+        Path(a.json).write_text(
+            json.dumps({"argv": argv if argv is not None else sys.argv[1:], **results}, indent=1)
+        )

@@ -38,21 +38,28 @@ def _peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def _write_detections(folder: Path, raw_frames: list[int], K: np.ndarray, height: int, width: int) -> None:
+def _write_detections(
+    folder: Path, raw_frames: list[int], K: np.ndarray, height: int, width: int
+) -> None:
     """One Detections product (rows below the horizon road, above building, nobody), hard-linked
     as every frame's, and the detect stage's summary."""
     from storage.products import Detections
 
-    semantic = np.where(np.arange(height)[:, None] > K[1, 2], 0, 2).astype(np.uint8) * np.ones((1, width), np.uint8)
+    semantic = np.where(np.arange(height)[:, None] > K[1, 2], 0, 2).astype(np.uint8) * np.ones(
+        (1, width), np.uint8
+    )
     d = Detections.empty(H=height, W=width)
-    first = Detections(**{**d.arrays(), "semantic": semantic}).write(folder, Detections.file_name(raw_frames[0]))
+    first = Detections(**{**d.arrays(), "semantic": semantic}).write(
+        folder, Detections.file_name(raw_frames[0])
+    )
     for raw in raw_frames[1:]:
         target = folder / f"{Detections.file_name(raw)}.npz"
         if not target.exists():
             os.link(first, target)
     # the frames the detect stage produced (the later stages read them from its summary)
-    (folder / "summary.json").write_text(json.dumps({"implemented": True, "frames": list(raw_frames),
-                                                     "failed_frames": []}))
+    (folder / "summary.json").write_text(
+        json.dumps({"implemented": True, "frames": list(raw_frames), "failed_frames": []})
+    )
 
 
 def make_sequences(root: Path, frames: list[int], seed: int = 0) -> dict[int, dict]:
@@ -60,7 +67,13 @@ def make_sequences(root: Path, frames: list[int], seed: int = 0) -> dict[int, di
     under root/detect/<id>; returns {length: {"sequence", "detect_dir", "distinct_sweeps", ...}}."""
     from flows.commands.simulate import _calibration
     from storage import coda_writer as W
-    from tasks.occupancy.synthetic import build_scene, campus_strip, organised_sweep, os1_directions, strip_poses
+    from tasks.occupancy.synthetic import (
+        build_scene,
+        campus_strip,
+        organised_sweep,
+        os1_directions,
+        strip_poses,
+    )
     from tasks.sim.sensors import make_rig
 
     data, rig = Path(root) / "data", make_rig()
@@ -73,17 +86,24 @@ def make_sequences(root: Path, frames: list[int], seed: int = 0) -> dict[int, di
         scene, dirs = build_scene(campus_strip(half * STEP_M, seed)), os1_directions(128, 1024)
         zeros = np.zeros(128 * 1024, np.float32)
         for k in missing:
-            path = W.write_lidar(pool, 0, k, organised_sweep(scene, poses[k], dirs, SWEEP_RANGE_M), zeros, zeros)
+            path = W.write_lidar(
+                pool, 0, k, organised_sweep(scene, poses[k], dirs, SWEEP_RANGE_M), zeros, zeros
+            )
             os.replace(path, pool / f"{k}.bin")
     sim_s = time.perf_counter() - t0
     cam = rig.camera("cam0")
     image = pool / "image.jpg"
     if not image.exists():  # the reader wants each frame's camera files; nothing here reads them
-        os.replace(W.write_image(pool, 0, "cam0", 0, np.full((cam.height, cam.width, 3), 128, np.uint8)), image)
+        os.replace(
+            W.write_image(pool, 0, "cam0", 0, np.full((cam.height, cam.width, 3), 128, np.uint8)),
+            image,
+        )
     out = {}
     for n in frames:
         seq = SEQ_BASE + n
-        order = [k if k < (n + 1) // 2 else n - 1 - k for k in range(n)]  # out, then back the same way
+        order = [
+            k if k < (n + 1) // 2 else n - 1 - k for k in range(n)
+        ]  # out, then back the same way
         for k, src in enumerate(order):
             target = W.lidar_path(data, seq, 2 * k)
             if not target.exists():
@@ -97,11 +117,17 @@ def make_sequences(root: Path, frames: list[int], seed: int = 0) -> dict[int, di
         W.write_calibration(data, seq, _calibration(rig))
         W.write_timestamps(data, seq, stamps)
         W.write_poses(data, seq, stamps, np.repeat(poses[order], 2, axis=0))
-        W.write_metadata(data, seq, {"synthetic": True, "lighting": "day", "generator": "flows.bench.memory"})
+        W.write_metadata(
+            data, seq, {"synthetic": True, "lighting": "day", "generator": "flows.bench.memory"}
+        )
         detect = Path(root) / "detect" / str(seq)
         _write_detections(detect, [2 * k for k in range(n)], cam.K, cam.height, cam.width)
-        out[n] = {"sequence": str(seq), "detect_dir": str(detect), "distinct_sweeps": (n + 1) // 2,
-                  "path_m": round(((n + 1) // 2 - 1) * STEP_M, 1)}
+        out[n] = {
+            "sequence": str(seq),
+            "detect_dir": str(detect),
+            "distinct_sweeps": (n + 1) // 2,
+            "path_m": round(((n + 1) // 2 - 1) * STEP_M, 1),
+        }
     out["simulate_s"] = sim_s
     return out
 
@@ -111,40 +137,57 @@ def _unit(cfg, sequence: str, stage: str):
     from flows.pipeline.inputs import sequence_ref, stage_inputs
     from flows.pipeline.plan import UnitPlan
 
-    return UnitPlan(sequence, stage, f"bench-{stage}-{sequence}", {}, False, "bench",
-                    stage_inputs(cfg)[stage], sequence_ref(cfg, sequence))
+    return UnitPlan(
+        sequence,
+        stage,
+        f"bench-{stage}-{sequence}",
+        {},
+        False,
+        "bench",
+        stage_inputs(cfg)[stage],
+        sequence_ref(cfg, sequence),
+    )
 
 
-def _stage_process(data_root: str, out_root: str, sequence: str, stage: str, upstream: dict,
-                   overrides: dict) -> dict:
+def _stage_process(
+    data_root: str, out_root: str, sequence: str, stage: str, upstream: dict, overrides: dict
+) -> dict:
     """In a fresh process: one stage of one sequence; its peak RSS and its baseline."""
+    import flows.stages  # noqa: F401  (every stage and kernel imported before the baseline)
     from flows.bench.pipeline import make_config
     from flows.pipeline.inputs import runtime, source
     from flows.pipeline.run import execute_unit
 
-    import flows.stages  # noqa: F401  (every stage and kernel imported before the baseline)
-
     cfg = make_config(Path(data_root), Path(out_root), overrides)
     frames = len(source(cfg).open(_unit(cfg, sequence, stage).ref))
     base, c0, t0 = _peak_mb(), time.process_time(), time.perf_counter()
-    outcome = execute_unit(_unit(cfg, sequence, stage), Path(out_root), upstream, "bench", runtime(cfg))
+    outcome = execute_unit(
+        _unit(cfg, sequence, stage), Path(out_root), upstream, "bench", runtime(cfg)
+    )
     if outcome["status"] != "done":
-        raise RuntimeError(f"{stage} of sequence {sequence}: {outcome.get('error')}\n{outcome.get('traceback', '')}")
-    return {"frames": frames, "peak_rss_mb": _peak_mb(), "baseline_rss_mb": base,
-            "stage_rss_mb": _peak_mb() - base, "wall_s": time.perf_counter() - t0,
-            "cpu_s": time.process_time() - c0, "outcome": outcome}
+        raise RuntimeError(
+            f"{stage} of sequence {sequence}: {outcome.get('error')}\n{outcome.get('traceback', '')}"
+        )
+    return {
+        "frames": frames,
+        "peak_rss_mb": _peak_mb(),
+        "baseline_rss_mb": base,
+        "stage_rss_mb": _peak_mb() - base,
+        "wall_s": time.perf_counter() - t0,
+        "cpu_s": time.process_time() - c0,
+        "outcome": outcome,
+    }
 
 
 def _untiled_process(data_root: str, sequence: str, detect_dir: str, overrides: dict) -> dict:
     """In a fresh process: the whole-sequence SequenceMapper over the sequence (the design before
     tiles: both maps whole in memory), peak RSS as :func:`_stage_process`."""
+    import flows.stages  # noqa: F401
     from flows.bench.pipeline import make_config
     from flows.pipeline.inputs import map_inputs, sequence_ref, source
     from storage.products import Detections
     from tasks.conventions import UNLABELED
     from tasks.occupancy.mapping import SequenceMapper
-
-    import flows.stages  # noqa: F401
 
     cfg = make_config(Path(data_root), Path(data_root) / "unused", overrides)
     inp, seq = map_inputs(cfg), source(cfg).open(sequence_ref(cfg, sequence))
@@ -152,21 +195,49 @@ def _untiled_process(data_root: str, sequence: str, detect_dir: str, overrides: 
     lut = np.full(256, UNLABELED, np.uint8)
     lut[[k for k, _ in inp.class_lut]] = [v for _, v in inp.class_lut]
     base, t0 = _peak_mb(), time.perf_counter()
-    mapper = SequenceMapper(inp.settings, inp.freespace, lut, cam.K, cam.T_cam_from_lidar, cam.width, cam.height,
-                            inp.assoc_min_iou)
+    mapper = SequenceMapper(
+        inp.settings,
+        inp.freespace,
+        lut,
+        cam.K,
+        cam.T_cam_from_lidar,
+        cam.width,
+        cam.height,
+        inp.assoc_min_iou,
+    )
     for i in range(len(seq)):
         f = seq.frame(i)
         d = Detections.read(Path(detect_dir), Detections.file_name(f.index))
-        mapper.add_sweep(f.points_lidar, f.T_world_from_lidar, d.semantic, d.mask_labels, d.boxes_xyxy,
-                         d.lidar_centers, d.lidar_sizes, d.lidar_yaws)
+        mapper.add_sweep(
+            f.points_lidar,
+            f.T_world_from_lidar,
+            d.semantic,
+            d.mask_labels,
+            d.boxes_xyxy,
+            d.lidar_centers,
+            d.lidar_sizes,
+            d.lidar_yaws,
+        )
     final, _ = mapper.finish(inp.ground_class_ids)
     keys, _ = mapper.occupancy.to_arrays()
-    return {"frames": len(seq), "peak_rss_mb": _peak_mb(), "baseline_rss_mb": base, "stage_rss_mb": _peak_mb() - base,
-            "wall_s": time.perf_counter() - t0, "static_voxels": len(final.keys), "occupancy_voxels": len(keys)}
+    return {
+        "frames": len(seq),
+        "peak_rss_mb": _peak_mb(),
+        "baseline_rss_mb": base,
+        "stage_rss_mb": _peak_mb() - base,
+        "wall_s": time.perf_counter() - t0,
+        "static_voxels": len(final.keys),
+        "occupancy_voxels": len(keys),
+    }
 
 
-def bench_memory(frames: list[int], work_dir: Path, untiled: bool = False, overrides: dict | None = None,
-                 stages: tuple[str, ...] = ("map", "fuse")) -> dict:
+def bench_memory(
+    frames: list[int],
+    work_dir: Path,
+    untiled: bool = False,
+    overrides: dict | None = None,
+    stages: tuple[str, ...] = ("map", "fuse"),
+) -> dict:
     """Peak RSS (MB) of the map and fuse stages per sequence length (5 Hz frames), each stage run
     in a fresh spawned process on a synthetic sequence of that length (module docstring).
 
@@ -184,22 +255,44 @@ def bench_memory(frames: list[int], work_dir: Path, untiled: bool = False, overr
         seq, detect = made[n]["sequence"], made[n]["detect_dir"]
         outroot = work / "out" / str(n)
         if "map" in stages or "fuse" in stages:
-            m = _spawned(_stage_process, str(work / "data"), str(outroot), seq, "map",
-                         {"detect": {"status": "done", "location": detect}}, overrides)
+            m = _spawned(
+                _stage_process,
+                str(work / "data"),
+                str(outroot),
+                seq,
+                "map",
+                {"detect": {"status": "done", "location": detect}},
+                overrides,
+            )
             out.setdefault("map", {})[n] = {k: v for k, v in m.items() if k != "outcome"} | {
-                "summary": m["outcome"]["summary"]}
+                "summary": m["outcome"]["summary"]
+            }
         if "fuse" in stages:
-            f = _spawned(_stage_process, str(work / "data"), str(outroot), seq, "fuse",
-                         {"map": m["outcome"], "detect": {"status": "done", "location": detect}}, overrides)
+            f = _spawned(
+                _stage_process,
+                str(work / "data"),
+                str(outroot),
+                seq,
+                "fuse",
+                {"map": m["outcome"], "detect": {"status": "done", "location": detect}},
+                overrides,
+            )
             out.setdefault("fuse", {})[n] = {k: v for k, v in f.items() if k != "outcome"}
         if untiled:
-            out.setdefault("untiled_map", {})[n] = _spawned(_untiled_process, str(work / "data"), seq, detect,
-                                                            overrides)
+            out.setdefault("untiled_map", {})[n] = _spawned(
+                _untiled_process, str(work / "data"), seq, detect, overrides
+            )
     lo, hi = frames[0], frames[-1]
-    out["ratio"] = {k: out[k][hi]["peak_rss_mb"] / out[k][lo]["peak_rss_mb"]
-                    for k in ("map", "fuse", "untiled_map") if k in out}
-    out["stage_ratio"] = {k: out[k][hi]["stage_rss_mb"] / max(out[k][lo]["stage_rss_mb"], 1e-9)
-                          for k in ("map", "fuse", "untiled_map") if k in out}
+    out["ratio"] = {
+        k: out[k][hi]["peak_rss_mb"] / out[k][lo]["peak_rss_mb"]
+        for k in ("map", "fuse", "untiled_map")
+        if k in out
+    }
+    out["stage_ratio"] = {
+        k: out[k][hi]["stage_rss_mb"] / max(out[k][lo]["stage_rss_mb"], 1e-9)
+        for k in ("map", "fuse", "untiled_map")
+        if k in out
+    }
     return out
 
 
@@ -208,12 +301,21 @@ def format_table(r: dict) -> str:
     kinds = [k for k in ("map", "fuse", "untiled_map") if k in r]
     lines = [f"{'frames':>7}" + "".join(f"{k + ' peak / +stage MB':>30}" for k in kinds)]
     for n in r["frames"]:
-        lines.append(f"{n:>7}" + "".join(f"{r[k][n]['peak_rss_mb']:>20.0f} / {r[k][n]['stage_rss_mb']:>+7.0f}"
-                                           for k in kinds))
-    lines.append(f"{'ratio':>7}" + "".join(f"{r['ratio'][k]:>20.2f} / {r['stage_ratio'][k]:>7.2f}" for k in kinds))
+        lines.append(
+            f"{n:>7}"
+            + "".join(
+                f"{r[k][n]['peak_rss_mb']:>20.0f} / {r[k][n]['stage_rss_mb']:>+7.0f}" for k in kinds
+            )
+        )
+    lines.append(
+        f"{'ratio':>7}"
+        + "".join(f"{r['ratio'][k]:>20.2f} / {r['stage_ratio'][k]:>7.2f}" for k in kinds)
+    )
     m = r["machine"]
-    lines.append(f"machine: {m['cpu_count']} cpus, load {m['load_avg_1m']:.1f}; ratio = peak({r['frames'][-1]}) / "
-                 f"peak({r['frames'][0]})")
+    lines.append(
+        f"machine: {m['cpu_count']} cpus, load {m['load_avg_1m']:.1f}; ratio = peak({r['frames'][-1]}) / "
+        f"peak({r['frames'][0]})"
+    )
     return "\n".join(lines)
 
 
@@ -221,8 +323,16 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
 
     ap = argparse.ArgumentParser(prog="mobileocc bench memory", description=__doc__.splitlines()[0])
-    ap.add_argument("--work", type=Path, required=True, help="folder for the sequences and outputs (kept)")
-    ap.add_argument("--frames", type=int, nargs="+", default=[200, 1000, 2000], help="sequence lengths, 5 Hz frames")
+    ap.add_argument(
+        "--work", type=Path, required=True, help="folder for the sequences and outputs (kept)"
+    )
+    ap.add_argument(
+        "--frames",
+        type=int,
+        nargs="+",
+        default=[200, 1000, 2000],
+        help="sequence lengths, 5 Hz frames",
+    )
     ap.add_argument("--untiled", action="store_true", help="also the whole-sequence SequenceMapper")
     ap.add_argument("--stages", nargs="+", default=["map", "fuse"], choices=["map", "fuse"])
     ap.add_argument("--json", type=Path, help="write the results here")

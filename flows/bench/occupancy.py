@@ -38,8 +38,12 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def octomap_seconds_per_scan(scans: list[tuple[np.ndarray, np.ndarray]], voxel_size_m: float = 0.2,
-                             max_range_m: float = 20.0, repeats: int = 2) -> dict:
+def octomap_seconds_per_scan(
+    scans: list[tuple[np.ndarray, np.ndarray]],
+    voxel_size_m: float = 0.2,
+    max_range_m: float = 20.0,
+    repeats: int = 2,
+) -> dict:
     """octomap-python's ``insertPointCloud`` over a sequence of scans into one tree (as a map
     grows): seconds per scan, the best of ``repeats`` passes, wall ("wall_s") and process CPU
     ("cpu_s"). scans: (points_world (N, 3), origin_world (3,)) pairs."""
@@ -48,15 +52,20 @@ def octomap_seconds_per_scan(scans: list[tuple[np.ndarray, np.ndarray]], voxel_s
     def run():
         tree = octomap.OcTree(voxel_size_m)
         for pts, origin in scans:
-            tree.insertPointCloud(np.asarray(pts, np.float64), np.asarray(origin, np.float64),
-                                  maxrange=max_range_m)
+            tree.insertPointCloud(
+                np.asarray(pts, np.float64), np.asarray(origin, np.float64), maxrange=max_range_m
+            )
 
     n = max(1, len(scans))
     return {"wall_s": _best(run, repeats, time.perf_counter) / n, "cpu_s": _best(run, repeats) / n}
 
 
-def bench_freespace(quick: bool = False, voxel_size_m: float = 0.2, max_range_m: float = 20.0,
-                    discretize: bool = False) -> dict:
+def bench_freespace(
+    quick: bool = False,
+    voxel_size_m: float = 0.2,
+    max_range_m: float = 20.0,
+    discretize: bool = False,
+) -> dict:
     """Our free-space insertion vs octomap-python on one 131,072-ray OS1-128 scan.
 
     Returns seconds per scan (best of repeats, process CPU time) for both, the speed ratio, and the
@@ -127,8 +136,12 @@ def bench_freespace(quick: bool = False, voxel_size_m: float = 0.2, max_range_m:
     }
 
 
-def bench_map_fuse(quick: bool = False, voxel_size_m: float = 0.2, map_voxel_size_m: float | None = None,
-                   max_range_m: float = 20.0) -> dict:
+def bench_map_fuse(
+    quick: bool = False,
+    voxel_size_m: float = 0.2,
+    map_voxel_size_m: float | None = None,
+    max_range_m: float = 20.0,
+) -> dict:
     """Map stage (pedestrian removal, static-map votes, occupancy insertion) and fuse stage (local
     grid with one body-like mesh, lidar and camera masks) on a synthetic OS1-128 sequence.
 
@@ -172,7 +185,7 @@ def bench_map_fuse(quick: bool = False, voxel_size_m: float = 0.2, map_voxel_siz
     pedestrian_point_mask(frames[0][2][:10], boxes_lidar=frames[0][4][None], box_margin_m=0.1)
 
     def map_stage():
-        for pose, origin, pts, person, world_person in frames:
+        for _pose, origin, pts, _person, world_person in frames:
             keep = ~pedestrian_point_mask(pts, boxes_lidar=world_person[None], box_margin_m=0.1)
             lab = np.where(pts[:, 2] < 0.05, 4, 2).astype(np.uint8)
             smap.add_sweep(pts, lab, keep)
@@ -191,22 +204,31 @@ def bench_map_fuse(quick: bool = False, voxel_size_m: float = 0.2, map_voxel_siz
     T_cam[:3, 3] = (0.2, 0.0, 1.0)
     cam = CameraView(np.array([[700.0, 0, 611.5], [0, 700.0, 511.5], [0, 0, 1]]), 1224, 1024, T_cam)
     fuse_s = []
-    for i, (pose, origin, pts, person, _) in enumerate(frames):
+    for i, (pose, _origin, pts, person, _) in enumerate(frames):
         t0 = time.process_time()
         local = static.crop_to_grid(spec, pose)
         sp, sl = local.sample_points(voxel_size_m)
         pts_base = pts - pose[:3, 3]
-        g = fuse_frame(spec, pose, static_points_world=sp, static_labels=sl,
-                       pedestrians=[PedestrianMesh(1, body_v + person[:3] * [1, 1, 0], body_f,
-                                                   np.array([1.0, -0.5]))],
-                       occupancy=omap, lidar_points_base=pts_base,
-                       lidar_origin_base=np.array([0, 0, lidar_h]), camera=cam)
+        g = fuse_frame(
+            spec,
+            pose,
+            static_points_world=sp,
+            static_labels=sl,
+            pedestrians=[
+                PedestrianMesh(1, body_v + person[:3] * [1, 1, 0], body_f, np.array([1.0, -0.5]))
+            ],
+            occupancy=omap,
+            lidar_points_base=pts_base,
+            lidar_origin_base=np.array([0, 0, lidar_h]),
+            camera=cam,
+        )
         if i > 0 or n_frames == 1:  # the first frame includes JIT / cache loading
             fuse_s.append(time.process_time() - t0)
     counts = {
         "pedestrian_voxels": int((g.semantics == 0).sum()),
         "static_voxels": int(((g.semantics != 0) & (g.semantics != 9)).sum()),
-        "mask_lidar": int(g.mask_lidar.sum()), "mask_camera": int(g.mask_camera.sum()),
+        "mask_lidar": int(g.mask_lidar.sum()),
+        "mask_camera": int(g.mask_camera.sum()),
         "unknown": int((g.occupancy_state == -1).sum()),
     }
     return {
@@ -236,11 +258,14 @@ def _in_subprocess(fn, *args, **kwargs) -> dict:
 def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     quick = "--quick" in argv
-    out = {"freespace": _in_subprocess(bench_freespace, quick),
-           "freespace_discretize": _in_subprocess(bench_freespace, quick, discretize=True)}
+    out = {
+        "freespace": _in_subprocess(bench_freespace, quick),
+        "freespace_discretize": _in_subprocess(bench_freespace, quick, discretize=True),
+    }
     for vs in (0.2, 0.05) if quick else (0.2, 0.05, 0.02):
-        r = out[f"map_fuse_{vs}"] = _in_subprocess(bench_map_fuse, quick, vs,
-                                                   map_voxel_size_m=max(vs, 0.05))
+        r = out[f"map_fuse_{vs}"] = _in_subprocess(
+            bench_map_fuse, quick, vs, map_voxel_size_m=max(vs, 0.05)
+        )
         # the issue's target: map + fuse per frame <= 0.2 x octomap's insertion of one scan
         # (0.2 m, 20 m range; measured above in this run, process CPU seconds on both sides)
         per_frame = 1.0 / r["map_fps"] + 1.0 / r["fuse_fps"]
@@ -253,14 +278,17 @@ def main(argv: list[str] | None = None) -> None:
 def format_table(out: dict) -> str:
     """Headline figures of :func:`main`'s JSON as an aligned text table."""
     fs = out["freespace"]
-    lines = [f"{'measure':<46}{'value':>12}",
-             f"{'free space: octomap / ours (wall, threads)':<46}{fs['speed_ratio']:>12.3g}",
-             f"{'free space: octomap / ours (cpu, 1 thread)':<46}{fs['speed_ratio_1_thread_cpu']:>12.3g}",
-             f"{'octomap insertPointCloud s/scan (cpu)':<46}{fs['octomap_cpu_s']:>12.3g}"]
+    lines = [
+        f"{'measure':<46}{'value':>12}",
+        f"{'free space: octomap / ours (wall, threads)':<46}{fs['speed_ratio']:>12.3g}",
+        f"{'free space: octomap / ours (cpu, 1 thread)':<46}{fs['speed_ratio_1_thread_cpu']:>12.3g}",
+        f"{'octomap insertPointCloud s/scan (cpu)':<46}{fs['octomap_cpu_s']:>12.3g}",
+    ]
     for k, r in out.items():
         if k.startswith("map_fuse_"):
-            lines += [f"{f'{k}: map frames/s':<46}{r['map_fps']:>12.3g}",
-                      f"{f'{k}: fuse frames/s':<46}{r['fuse_fps']:>12.3g}",
-                      f"{f'{k}: (map + fuse) / octomap scan (cpu)':<46}{r['map_fuse_over_octomap_cpu']:>12.3g}"]
+            lines += [
+                f"{f'{k}: map frames/s':<46}{r['map_fps']:>12.3g}",
+                f"{f'{k}: fuse frames/s':<46}{r['fuse_fps']:>12.3g}",
+                f"{f'{k}: (map + fuse) / octomap scan (cpu)':<46}{r['map_fuse_over_octomap_cpu']:>12.3g}",
+            ]
     return "\n".join(lines)
-

@@ -50,17 +50,31 @@ def bench_perception(config, boxes: str = "provider") -> dict:
                 t = time.perf_counter()
                 if boxes == "gt":
                     rows = rows[vis]
-                    image = read_rgb(frame.image_paths[config.dataset.camera], (cam.width, cam.height))
-                    p = model_perception(config.detect.models)(image, Detections(gt.box2d[rows].astype(np.float32),
-                                                                   np.ones(len(rows), np.float32)), gt.cam0_semantic)
+                    image = read_rgb(
+                        frame.image_paths[config.dataset.camera], (cam.width, cam.height)
+                    )
+                    p = model_perception(config.detect.models)(
+                        image,
+                        Detections(
+                            gt.box2d[rows].astype(np.float32), np.ones(len(rows), np.float32)
+                        ),
+                        gt.cam0_semantic,
+                    )
                     det = {"boxes_xyxy": p.boxes_xyxy, "keypoints": p.keypoints, "masks": p.masks}
                     vis = np.ones(len(rows), bool)
                 else:
-                    detect_frames(sequence_ref(config, seq_id), detect_inputs(config), [i], Path(tmp))
-                    d = DetectionsProduct.read(Path(tmp), DetectionsProduct.file_name(frame.index)).arrays()
+                    detect_frames(
+                        sequence_ref(config, seq_id), detect_inputs(config), [i], Path(tmp)
+                    )
+                    d = DetectionsProduct.read(
+                        Path(tmp), DetectionsProduct.file_name(frame.index)
+                    ).arrays()
                     labels = d["mask_labels"]
-                    det = {"boxes_xyxy": d["boxes_xyxy"], "keypoints": d["keypoints"],
-                           "masks": labels[None] == np.arange(1, len(d["scores"]) + 1)[:, None, None]}
+                    det = {
+                        "boxes_xyxy": d["boxes_xyxy"],
+                        "keypoints": d["keypoints"],
+                        "masks": labels[None] == np.arange(1, len(d["scores"]) + 1)[:, None, None],
+                    }
                 seconds += time.perf_counter() - t
                 frames += 1
                 persons += len(rows)
@@ -68,21 +82,33 @@ def bench_perception(config, boxes: str = "provider") -> dict:
                 gi, di = match_boxes(gt.box2d[rows], det["boxes_xyxy"], 0.5)
                 if gi.size:
                     g = rows[gi]
-                    c, n = pck_counts(det["keypoints"][di], gt.keypoints[g], gt.box2d[g, 3] - gt.box2d[g, 1])
+                    c, n = pck_counts(
+                        det["keypoints"][di], gt.keypoints[g], gt.box2d[g, 3] - gt.box2d[g, 1]
+                    )
                     pck[0] += c
                     pck[1] += n
                     truth = gt.cam0_instance[None] == gt.track_id[g][:, None, None]
                     ious.extend(mask_iou(det["masks"][di], truth).tolist())
     ious = np.asarray(ious)
-    return {"provider": config.detect.image_provider, "boxes": boxes, "frames": frames, "gt_persons": persons,
-            "detection": counts.as_dict(), "pck@0.1": pck[0] / max(pck[1], 1), "pck_keypoints": pck[1],
-            "mask_iou_median": float(np.median(ious)) if ious.size else float("nan"),
-            "mask_iou_mean": float(ious.mean()) if ious.size else float("nan"), "matched": int(ious.size),
-            "ms_per_frame": 1000 * seconds / max(frames, 1)}
+    return {
+        "provider": config.detect.image_provider,
+        "boxes": boxes,
+        "frames": frames,
+        "gt_persons": persons,
+        "detection": counts.as_dict(),
+        "pck@0.1": pck[0] / max(pck[1], 1),
+        "pck_keypoints": pck[1],
+        "mask_iou_median": float(np.median(ious)) if ious.size else float("nan"),
+        "mask_iou_mean": float(ious.mean()) if ious.size else float("nan"),
+        "matched": int(ious.size),
+        "ms_per_frame": 1000 * seconds / max(frames, 1),
+    }
 
 
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(prog="mobileocc bench perception", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        prog="mobileocc bench perception", description=__doc__.splitlines()[0]
+    )
     p.add_argument("--data", type=Path, required=True)
     p.add_argument("--config", type=Path, default=None)
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
@@ -98,4 +124,3 @@ def main(argv: list[str] | None = None) -> None:
     print(text)
     if a.json:
         a.json.write_text(text + "\n")
-

@@ -38,12 +38,18 @@ STAGE_ORDER = ("detect", "track", "fit", "map", "fuse", "export")
 
 # ---- running the stages without Prefect ----------------------------------------------------------
 
+
 def make_config(data_root: Path, out_root: Path, overrides: dict | None = None):
     """The default config pointed at ``data_root`` / ``out_root`` with dotted ``overrides``."""
     from configs.schema import load_config
 
-    return load_config(overrides={"dataset.root": str(data_root), "output.root": str(out_root),
-                                  **{k: v for k, v in (overrides or {}).items()}})
+    return load_config(
+        overrides={
+            "dataset.root": str(data_root),
+            "output.root": str(out_root),
+            **{k: v for k, v in (overrides or {}).items()},
+        }
+    )
 
 
 def run_local(config, stages=STAGE_ORDER, sequences: list[str] | None = None) -> dict:
@@ -61,7 +67,9 @@ def run_local(config, stages=STAGE_ORDER, sequences: list[str] | None = None) ->
     out = Path(config.output.root)
     out.mkdir(parents=True, exist_ok=True)
     manifest = Manifest.load(out)
-    manifest.meta.update({"config_hash": config_hash(config), "config": config.model_dump(mode="json")})
+    manifest.meta.update(
+        {"config_hash": config_hash(config), "config": config.model_dump(mode="json")}
+    )
     outcomes: dict = {}
     for plan in plan_run(config, manifest, FileHasher(None), sequences=sequences):
         if plan.error:
@@ -74,8 +82,10 @@ def run_local(config, stages=STAGE_ORDER, sequences: list[str] | None = None) ->
             outcome = execute_unit(plan.units[stage], out, ups, plan.fingerprint, runtime(config))
             _record(manifest, outcome)
             if outcome["status"] != "done":
-                raise RuntimeError(f"sequence {plan.sequence} stage {stage} {outcome['status']}: "
-                                   f"{outcome.get('error')}\n{outcome.get('traceback', '')}")
+                raise RuntimeError(
+                    f"sequence {plan.sequence} stage {stage} {outcome['status']}: "
+                    f"{outcome.get('error')}\n{outcome.get('traceback', '')}"
+                )
             done[stage] = outcome
             outcomes[(plan.sequence, stage)] = outcome
     manifest.save()
@@ -83,6 +93,7 @@ def run_local(config, stages=STAGE_ORDER, sequences: list[str] | None = None) ->
 
 
 # ---- machine description -----------------------------------------------------------------------
+
 
 def machine() -> dict:
     import numpy as np
@@ -99,7 +110,7 @@ def machine() -> dict:
     try:
         for line in Path("/proc/meminfo").read_text().splitlines():
             if line.startswith("MemTotal"):
-                mem_gb = round(int(line.split()[1]) / 1024 ** 2, 1)
+                mem_gb = round(int(line.split()[1]) / 1024**2, 1)
     except OSError:
         pass
     try:
@@ -109,13 +120,23 @@ def machine() -> dict:
         gpu = torch.cuda.get_device_name(0) if cuda else None
     except ImportError:  # pragma: no cover
         torch_v, cuda, gpu = None, False, None
-    return {"cpu_count": os.cpu_count(), "cpu_affinity": len(os.sched_getaffinity(0)),
-            "cpu_model": model, "memory_gb": mem_gb, "load_avg_1m": os.getloadavg()[0],
-            "platform": platform.platform(), "python": platform.python_version(),
-            "numpy": np.__version__, "torch": torch_v, "cuda": cuda, "gpu": gpu}
+    return {
+        "cpu_count": os.cpu_count(),
+        "cpu_affinity": len(os.sched_getaffinity(0)),
+        "cpu_model": model,
+        "memory_gb": mem_gb,
+        "load_avg_1m": os.getloadavg()[0],
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "torch": torch_v,
+        "cuda": cuda,
+        "gpu": gpu,
+    }
 
 
 # ---- measurements ------------------------------------------------------------------------------
+
 
 def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -136,9 +157,12 @@ def _stage_in_process(data_root: str, out_root: str, overrides: dict, stages: tu
     for stage in stages:
         c0, t0 = time.process_time(), time.perf_counter()
         outcomes = run_local(cfg, stages=_with_upstream(stage))
-        res[stage] = {"wall_s": sum(o["seconds"] for (s, st), o in outcomes.items() if st == stage),
-                      "cpu_s": time.process_time() - c0, "total_wall_s": time.perf_counter() - t0,
-                      "peak_rss_mb": _peak_rss_mb()}
+        res[stage] = {
+            "wall_s": sum(o["seconds"] for (s, st), o in outcomes.items() if st == stage),
+            "cpu_s": time.process_time() - c0,
+            "total_wall_s": time.perf_counter() - t0,
+            "peak_rss_mb": _peak_rss_mb(),
+        }
     return res
 
 
@@ -162,15 +186,27 @@ def _fuse_fanout(data_root: str, out_root: str, overrides: dict, n_workers: int)
     man = Manifest.load(Path(out_root))
     seq = cfg.dataset.sequences[0] if isinstance(cfg.dataset.sequences, list) else "0"
     ups = {s: Path(out_root) / man.get(seq, s).location for s in ("detect", "map")}
-    with LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None) as cl, \
-            Client(cl) as client:
+    with (
+        LocalCluster(
+            n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as cl,
+        Client(cl) as client,
+    ):
+
         def unit():
             work = Path(tempfile.mkdtemp(dir=out_root))
             try:
-                run_fuse(StageContext(sequence_ref(cfg, seq), inputs, Path(out_root), work, ups, key="bench"))
+                run_fuse(
+                    StageContext(
+                        sequence_ref(cfg, seq), inputs, Path(out_root), work, ups, key="bench"
+                    )
+                )
             finally:
                 shutil.rmtree(work, ignore_errors=True)
-        client.run(lambda: __import__("flows.stages.fuse"))  # imports on every worker, outside the timing
+
+        client.run(
+            lambda: __import__("flows.stages.fuse")
+        )  # imports on every worker, outside the timing
         t0 = time.perf_counter()
         client.submit(unit, pure=False).result()
         wall = time.perf_counter() - t0
@@ -192,18 +228,26 @@ def _octomap_same_scans(data_root: str, out_root: str, overrides: dict) -> dict:
     scans = []
     for i in range(len(seq)):
         f = seq.frame(i)
-        scans.append((transform_points(f.T_world_from_lidar, f.points_lidar), f.T_world_from_lidar[:3, 3]))
+        scans.append(
+            (transform_points(f.T_world_from_lidar, f.points_lidar), f.T_world_from_lidar[:3, 3])
+        )
     fs = cfg.map.freespace
-    return {"scans": len(scans), "points_per_scan": float(np.mean([len(p) for p, _ in scans])),
-            "voxel_size_m": fs.voxel_size_m, "max_range_m": fs.max_range_m,
-            **octomap_seconds_per_scan(scans, fs.voxel_size_m, fs.max_range_m)}
+    return {
+        "scans": len(scans),
+        "points_per_scan": float(np.mean([len(p) for p, _ in scans])),
+        "voxel_size_m": fs.voxel_size_m,
+        "max_range_m": fs.max_range_m,
+        **octomap_seconds_per_scan(scans, fs.voxel_size_m, fs.max_range_m),
+    }
 
 
 #: code whose functions the stage breakdown names (time in libraries is charged to the caller)
 _OWN_CODE = ("/tasks/", "/storage/", "/flows/stages/")
 
 
-def _stage_costs(data_root: str, out_root: str, overrides: dict, stages=("map", "fuse"), top: int = 6) -> dict:
+def _stage_costs(
+    data_root: str, out_root: str, overrides: dict, stages=("map", "fuse"), top: int = 6
+) -> dict:
     """Rerun stages (their upstream products reused) under cProfile timing process CPU: per stage
     the functions of our code with the most CPU, each charged with its own plus that of the
     library calls it makes (numpy, scipy, torch, zlib; a wait on its worker threads is charged
@@ -223,12 +267,18 @@ def _stage_costs(data_root: str, out_root: str, overrides: dict, stages=("map", 
     frames = len(open_sequence(cfg, seq))
     result = {}
     for stage in stages:
-        ups = {u: Path(out_root) / man.get(seq, u).location for u in STAGES[stage] if man.get(seq, u)}
+        ups = {
+            u: Path(out_root) / man.get(seq, u).location for u in STAGES[stage] if man.get(seq, u)
+        }
 
         def context(work: Path, key: str) -> StageContext:
-            return StageContext(sequence_ref(cfg, seq), INPUTS[stage](cfg), Path(out_root), work, ups, key=key)
+            return StageContext(
+                sequence_ref(cfg, seq), INPUTS[stage](cfg), Path(out_root), work, ups, key=key
+            )
 
-        STAGE_FUNCTIONS[stage](context(Path(tempfile.mkdtemp(dir=out_root)), "warm-up"))  # JIT caches, imports
+        STAGE_FUNCTIONS[stage](
+            context(Path(tempfile.mkdtemp(dir=out_root)), "warm-up")
+        )  # JIT caches, imports
         work = Path(tempfile.mkdtemp(dir=out_root))
         prof = cProfile.Profile(time.process_time)
         t0, c0 = time.perf_counter(), time.process_time()
@@ -238,8 +288,15 @@ def _stage_costs(data_root: str, out_root: str, overrides: dict, stages=("map", 
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         costs = _charge_to_own_code(pstats.Stats(prof))
         ranked = sorted(costs.items(), key=lambda kv: -kv[1])[:top]
-        result[stage] = {"frames": frames, "profiled_wall_s": wall, "profiled_cpu_s": cpu, "top": [
-            {"function": name, "cpu_s_per_frame": sec / frames, "share": sec / cpu} for name, sec in ranked]}
+        result[stage] = {
+            "frames": frames,
+            "profiled_wall_s": wall,
+            "profiled_cpu_s": cpu,
+            "top": [
+                {"function": name, "cpu_s_per_frame": sec / frames, "share": sec / cpu}
+                for name, sec in ranked
+            ],
+        }
     return result
 
 
@@ -304,11 +361,19 @@ def _fit_rate(data_root: str, out_root: str, overrides: dict, device: str) -> di
     t0 = time.perf_counter()
     fit_batch(*args, rows)
     wall = time.perf_counter() - t0
-    return {"device": device, "persons": len(rows), "iterations": cfg.fit.iterations, "wall_s": wall,
-            "fits_per_s": len(rows) / wall, "peak_rss_mb": _peak_rss_mb()}
+    return {
+        "device": device,
+        "persons": len(rows),
+        "iterations": cfg.fit.iterations,
+        "wall_s": wall,
+        "fits_per_s": len(rows) / wall,
+        "peak_rss_mb": _peak_rss_mb(),
+    }
 
 
-def bench(quick: bool, json_path: Path | None, workers: int = 2, work_dir: Path | None = None) -> dict:
+def bench(
+    quick: bool, json_path: Path | None, workers: int = 2, work_dir: Path | None = None
+) -> dict:
     """Measure everything listed in the module docstring; print a table; write JSON when asked.
 
     The pipeline runs with the default config (fit iterations and all) on a demo-like crowded
@@ -322,18 +387,30 @@ def bench(quick: bool, json_path: Path | None, workers: int = 2, work_dir: Path 
     raw_frames = 20 if quick else 60
     work = Path(tempfile.mkdtemp(prefix="mobileocc-bench-", dir=work_dir))
     started = time.perf_counter()
-    result: dict = {"quick": quick, "machine": machine(),
-                    "how_measured": {
-                        "frames_per_s": "frames at 5 Hz / wall seconds of the stage's execute_unit (one "
-                                        "process, frame fan-out inline); CPU seconds beside it",
-                        "peak_rss_mb": "resource.getrusage(RUSAGE_SELF).ru_maxrss of a fresh spawned process "
-                                       "that ran the stage (and its cached upstream) only",
-                        "speedup": "wall of the fuse stage with frame chunks on a LocalCluster of 1 vs N "
-                                   "worker processes (1 thread each), after a warm-up run"}}
+    result: dict = {
+        "quick": quick,
+        "machine": machine(),
+        "how_measured": {
+            "frames_per_s": "frames at 5 Hz / wall seconds of the stage's execute_unit (one "
+            "process, frame fan-out inline); CPU seconds beside it",
+            "peak_rss_mb": "resource.getrusage(RUSAGE_SELF).ru_maxrss of a fresh spawned process "
+            "that ran the stage (and its cached upstream) only",
+            "speedup": "wall of the fuse stage with frame chunks on a LocalCluster of 1 vs N "
+            "worker processes (1 thread each), after a warm-up run",
+        },
+    }
     try:
         data = work / "data"
         t0 = time.perf_counter()
-        simulate(data, sequences=1, frames=raw_frames, seed=11, pedestrians=8, crowd="crowded", progress=False)
+        simulate(
+            data,
+            sequences=1,
+            frames=raw_frames,
+            seed=11,
+            pedestrians=8,
+            crowd="crowded",
+            progress=False,
+        )
         result["simulate_s"] = time.perf_counter() - t0
         frames = raw_frames // 2
         over = {"output.frames_per_chunk": 2}  # several write units, for the fan-out figures
@@ -341,25 +418,48 @@ def bench(quick: bool, json_path: Path | None, workers: int = 2, work_dir: Path 
         out02 = work / "out-0.2"
         per = _spawned(_stage_in_process, str(data), str(out02), over, STAGE_ORDER)
         for st, v in per.items():
-            stages[st] = {**v, "frames": frames, "frames_per_s": frames / v["wall_s"] if v["wall_s"] else None}
+            stages[st] = {
+                **v,
+                "frames": frames,
+                "frames_per_s": frames / v["wall_s"] if v["wall_s"] else None,
+            }
         total = sum(v["wall_s"] for v in per.values())
         result["stages_0.2m"] = stages
-        result["end_to_end_0.2m"] = {"frames": frames, "wall_s": total, "frames_per_s": frames / total}
+        result["end_to_end_0.2m"] = {
+            "frames": frames,
+            "wall_s": total,
+            "frames_per_s": frames / total,
+        }
         # fuse at 0.05 m (map and earlier are the same stage keys -> reused from the 0.2 m run)
         out005 = work / "out-0.05"
-        shutil.copytree(out02, out005, ignore=shutil.ignore_patterns("fuse", "export", "occupancy", "tables"))
+        shutil.copytree(
+            out02, out005, ignore=shutil.ignore_patterns("fuse", "export", "occupancy", "tables")
+        )
         (out005 / "manifest.json").unlink(missing_ok=True)
         fine = {**over, "fuse.grid.voxel_size_m": 0.05}
         per_fine = _spawned(_stage_in_process, str(data), str(out005), fine, ("fuse",))
         f = per_fine["fuse"]
-        result["fuse_0.05m"] = {**f, "frames": frames, "frames_per_s": frames / f["wall_s"],
-                                "note": "includes detect/track/fit/map rerun in the same process when their "
-                                        "keys were not found (see total_wall_s); wall_s is fuse alone"}
+        result["fuse_0.05m"] = {
+            **f,
+            "frames": frames,
+            "frames_per_s": frames / f["wall_s"],
+            "note": "includes detect/track/fit/map rerun in the same process when their "
+            "keys were not found (see total_wall_s); wall_s is fuse alone",
+        }
         # person fits
-        fitted = json.loads(next((out02 / "stages" / "fit").glob("*/*/summary.json")).read_text()).get("fitted", 0)
-        fits = {"cpu": {"device": "cpu", "persons": fitted, "iterations": make_config(data, out02).fit.iterations,
-                        "wall_s": per["fit"]["wall_s"],
-                        "fits_per_s": fitted / per["fit"]["wall_s"], "source": "the fit stage run above"}}
+        fitted = json.loads(
+            next((out02 / "stages" / "fit").glob("*/*/summary.json")).read_text()
+        ).get("fitted", 0)
+        fits = {
+            "cpu": {
+                "device": "cpu",
+                "persons": fitted,
+                "iterations": make_config(data, out02).fit.iterations,
+                "wall_s": per["fit"]["wall_s"],
+                "fits_per_s": fitted / per["fit"]["wall_s"],
+                "source": "the fit stage run above",
+            }
+        }
         if torch.cuda.is_available():
             fits["cuda"] = _spawned(_fit_rate, str(data), str(out02), over, "cuda")
             fits["cuda_over_cpu"] = fits["cuda"]["fits_per_s"] / fits["cpu"]["fits_per_s"]
@@ -367,8 +467,13 @@ def bench(quick: bool, json_path: Path | None, workers: int = 2, work_dir: Path 
         # fan-out speed-up of fuse
         one = _fuse_fanout(str(data), str(out02), over, 1)
         many = _fuse_fanout(str(data), str(out02), over, workers)
-        result["fuse_fanout"] = {"1": one, str(workers): many, "speedup": one["wall_s"] / many["wall_s"],
-                                 "frames": frames, "chunks": -(-frames // 2)}
+        result["fuse_fanout"] = {
+            "1": one,
+            str(workers): many,
+            "speedup": one["wall_s"] / many["wall_s"],
+            "frames": frames,
+            "chunks": -(-frames // 2),
+        }
         result["freespace_vs_octomap"] = _spawned(bench_freespace, quick)
         # the issue's target: map + fuse per frame <= 0.2 x octomap's insertPointCloud of the
         # same scan (the bench sequence's sweeps, same run): wall seconds on both sides, and
@@ -377,13 +482,20 @@ def bench(quick: bool, json_path: Path | None, workers: int = 2, work_dir: Path 
         map_fuse = (per["map"]["wall_s"] + per["fuse"]["wall_s"]) / frames
         map_fuse_cpu = (per["map"]["cpu_s"] + per["fuse"]["cpu_s"]) / frames
         result["map_fuse_vs_octomap"] = {
-            "map_s_per_frame": per["map"]["wall_s"] / frames, "fuse_s_per_frame": per["fuse"]["wall_s"] / frames,
-            "map_fuse_s_per_frame": map_fuse, "map_fuse_frames_per_s": 1.0 / map_fuse,
-            "octomap_insert_s_per_scan": octo["wall_s"], "ratio": map_fuse / octo["wall_s"],
-            "map_fuse_cpu_s_per_frame": map_fuse_cpu, "octomap_insert_cpu_s_per_scan": octo["cpu_s"],
-            "ratio_cpu": map_fuse_cpu / octo["cpu_s"], "octomap": octo, "target_ratio": 0.2,
+            "map_s_per_frame": per["map"]["wall_s"] / frames,
+            "fuse_s_per_frame": per["fuse"]["wall_s"] / frames,
+            "map_fuse_s_per_frame": map_fuse,
+            "map_fuse_frames_per_s": 1.0 / map_fuse,
+            "octomap_insert_s_per_scan": octo["wall_s"],
+            "ratio": map_fuse / octo["wall_s"],
+            "map_fuse_cpu_s_per_frame": map_fuse_cpu,
+            "octomap_insert_cpu_s_per_scan": octo["cpu_s"],
+            "ratio_cpu": map_fuse_cpu / octo["cpu_s"],
+            "octomap": octo,
+            "target_ratio": 0.2,
             "note": "stage seconds include the stage's fixed costs (process start-up of its kernels, "
-                    "sequence-level reads and writes) spread over the bench's few frames"}
+            "sequence-level reads and writes) spread over the bench's few frames",
+        }
         result["stage_costs"] = _spawned(_stage_costs, str(data), str(out02), over)
         result["store_vs_numpy"] = _spawned(bench_store, quick)
     finally:
@@ -400,36 +512,70 @@ def bench(quick: bool, json_path: Path | None, workers: int = 2, work_dir: Path 
 def format_table(r: dict) -> str:
     """The headline figures as an aligned text table."""
     m = r["machine"]
-    lines = [f"machine: {m['cpu_model']} x{m['cpu_count']} cpus, {m['memory_gb']} GB, python {m['python']}, "
-             f"numpy {m['numpy']}, torch {m['torch']} (cuda {m['cuda']}), load {m['load_avg_1m']:.1f}",
-             f"{'measure':<34}{'value':>14}  {'detail'}"]
+    lines = [
+        f"machine: {m['cpu_model']} x{m['cpu_count']} cpus, {m['memory_gb']} GB, python {m['python']}, "
+        f"numpy {m['numpy']}, torch {m['torch']} (cuda {m['cuda']}), load {m['load_avg_1m']:.1f}",
+        f"{'measure':<34}{'value':>14}  {'detail'}",
+    ]
 
     def row(name, value, detail=""):
         v = "n/a" if value is None else (f"{value:.3g}" if isinstance(value, float) else str(value))
         lines.append(f"{name:<34}{v:>14}  {detail}")
 
     for st, v in r.get("stages_0.2m", {}).items():
-        row(f"{st} frames/s (0.2 m)", v["frames_per_s"], f"wall {v['wall_s']:.1f} s, peak RSS {v['peak_rss_mb']:.0f} MB")
+        row(
+            f"{st} frames/s (0.2 m)",
+            v["frames_per_s"],
+            f"wall {v['wall_s']:.1f} s, peak RSS {v['peak_rss_mb']:.0f} MB",
+        )
     if "end_to_end_0.2m" in r:
-        row("end to end frames/s (0.2 m)", r["end_to_end_0.2m"]["frames_per_s"], f"{r['end_to_end_0.2m']['frames']} frames")
+        row(
+            "end to end frames/s (0.2 m)",
+            r["end_to_end_0.2m"]["frames_per_s"],
+            f"{r['end_to_end_0.2m']['frames']} frames",
+        )
     if "fuse_0.05m" in r:
-        row("fuse frames/s (0.05 m)", r["fuse_0.05m"]["frames_per_s"], f"peak RSS {r['fuse_0.05m']['peak_rss_mb']:.0f} MB")
+        row(
+            "fuse frames/s (0.05 m)",
+            r["fuse_0.05m"]["frames_per_s"],
+            f"peak RSS {r['fuse_0.05m']['peak_rss_mb']:.0f} MB",
+        )
     for dev, v in r.get("person_fits", {}).items():
         if isinstance(v, dict):
-            row(f"person fits/s ({dev})", v.get("fits_per_s"), f"{v.get('persons')} persons, {v.get('iterations')} iterations")
+            row(
+                f"person fits/s ({dev})",
+                v.get("fits_per_s"),
+                f"{v.get('persons')} persons, {v.get('iterations')} iterations",
+            )
     mf = r.get("map_fuse_vs_octomap")
     if mf:
-        row("(map + fuse) / octomap scan, wall", mf["ratio"], f"{mf['map_fuse_s_per_frame']:.3f} s/frame vs octomap "
-            f"{mf['octomap_insert_s_per_scan']:.3f} s/scan (target <= {mf['target_ratio']})")
-        row("(map + fuse) / octomap scan, cpu", mf["ratio_cpu"], f"{mf['map_fuse_cpu_s_per_frame']:.3f} s/frame vs "
-            f"octomap {mf['octomap_insert_cpu_s_per_scan']:.3f} s/scan")
+        row(
+            "(map + fuse) / octomap scan, wall",
+            mf["ratio"],
+            f"{mf['map_fuse_s_per_frame']:.3f} s/frame vs octomap "
+            f"{mf['octomap_insert_s_per_scan']:.3f} s/scan (target <= {mf['target_ratio']})",
+        )
+        row(
+            "(map + fuse) / octomap scan, cpu",
+            mf["ratio_cpu"],
+            f"{mf['map_fuse_cpu_s_per_frame']:.3f} s/frame vs "
+            f"octomap {mf['octomap_insert_cpu_s_per_scan']:.3f} s/scan",
+        )
     for st, v in (r.get("stage_costs") or {}).items():
         for item in v["top"]:
-            row(f"{st} cost cpu s/frame", item["cpu_s_per_frame"], f"{item['function']} ({100 * item['share']:.0f} %)")
+            row(
+                f"{st} cost cpu s/frame",
+                item["cpu_s_per_frame"],
+                f"{item['function']} ({100 * item['share']:.0f} %)",
+            )
     if "fuse_fanout" in r:
         fo = r["fuse_fanout"]
-        row("fuse fan-out speed-up 1 -> N", fo["speedup"], f"{fo['1']['wall_s']:.1f} s -> "
-            f"{[v for k, v in fo.items() if k not in ('1', 'speedup', 'frames', 'chunks')][0]['wall_s']:.1f} s")
+        row(
+            "fuse fan-out speed-up 1 -> N",
+            fo["speedup"],
+            f"{fo['1']['wall_s']:.1f} s -> "
+            f"{[v for k, v in fo.items() if k not in ('1', 'speedup', 'frames', 'chunks')][0]['wall_s']:.1f} s",
+        )
     fs = r.get("freespace_vs_octomap") or {}
     for k, v in fs.items():
         if isinstance(v, (int, float)) and not isinstance(v, bool):
@@ -438,7 +584,11 @@ def format_table(r: dict) -> str:
     for part, d in st.items():
         if isinstance(d, dict):
             for k, v in d.items():
-                if isinstance(v, (int, float)) and not isinstance(v, bool) and ("ratio" in k or "per_s" in k or "speed" in k):
+                if (
+                    isinstance(v, (int, float))
+                    and not isinstance(v, bool)
+                    and ("ratio" in k or "per_s" in k or "speed" in k)
+                ):
                     row(f"store {part} {k}", float(v))
     row("bench wall s", r.get("bench_wall_s"))
     return "\n".join(lines)
@@ -456,28 +606,57 @@ def main(argv: list[str] | None = None) -> None:  # pragma: no cover - the CLI c
     p.add_argument("--quick", action="store_true")
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--workers", type=int, default=2)
-    g = p.add_argument_group("--scale: long sequences, many sequences, a loopback cluster, the 116k-frame "
-                             "projection (flows/bench/scale.py, docs/scale.md)")
+    g = p.add_argument_group(
+        "--scale: long sequences, many sequences, a loopback cluster, the 116k-frame "
+        "projection (flows/bench/scale.py, docs/scale.md)"
+    )
     g.add_argument("--scale", action="store_true", help="run the scale benchmark instead")
-    g.add_argument("--frames", type=ints, default=list(scale.DEFAULT_FRAMES),
-                   help="5 Hz frames of the long-sequence runs (default %(default)s; the issue's 200,1000,2000 "
-                        "take hours here)")
-    g.add_argument("--sequences", type=ints, default=list(scale.DEFAULT_SEQUENCES),
-                   help="sequences of the planning datasets (default %(default)s)")
-    g.add_argument("--cluster-workers", type=ints, default=list(scale.DEFAULT_CLUSTER_WORKERS),
-                   help="worker counts of the loopback Dask cluster (default %(default)s)")
-    g.add_argument("--memory-frames", type=ints, default=list(scale.MEMORY_FRAMES),
-                   help="5 Hz frames of the memory part's sequences (default %(default)s)")
-    g.add_argument("--parts", default=",".join(scale.PARTS), help="which parts (default %(default)s)")
-    g.add_argument("--sim-frames", type=int, default=2000, help="raw frames of the simulator's long sequence")
+    g.add_argument(
+        "--frames",
+        type=ints,
+        default=list(scale.DEFAULT_FRAMES),
+        help="5 Hz frames of the long-sequence runs (default %(default)s; the issue's 200,1000,2000 "
+        "take hours here)",
+    )
+    g.add_argument(
+        "--sequences",
+        type=ints,
+        default=list(scale.DEFAULT_SEQUENCES),
+        help="sequences of the planning datasets (default %(default)s)",
+    )
+    g.add_argument(
+        "--cluster-workers",
+        type=ints,
+        default=list(scale.DEFAULT_CLUSTER_WORKERS),
+        help="worker counts of the loopback Dask cluster (default %(default)s)",
+    )
+    g.add_argument(
+        "--memory-frames",
+        type=ints,
+        default=list(scale.MEMORY_FRAMES),
+        help="5 Hz frames of the memory part's sequences (default %(default)s)",
+    )
+    g.add_argument(
+        "--parts", default=",".join(scale.PARTS), help="which parts (default %(default)s)"
+    )
+    g.add_argument(
+        "--sim-frames", type=int, default=2000, help="raw frames of the simulator's long sequence"
+    )
     a = p.parse_args(argv)
     if a.scale:
         parts = tuple(v.strip() for v in a.parts.split(",") if v.strip())
         unknown = sorted(set(parts) - set(scale.PARTS))
         if unknown:
             p.error(f"--parts: unknown {unknown}; expected some of {list(scale.PARTS)}")
-        scale.bench_scale(a.frames, a.sequences, a.cluster_workers, parts, a.json, sim_long_frames=a.sim_frames,
-                          sim_workers=a.workers, memory_frames=a.memory_frames)
+        scale.bench_scale(
+            a.frames,
+            a.sequences,
+            a.cluster_workers,
+            parts,
+            a.json,
+            sim_long_frames=a.sim_frames,
+            sim_workers=a.workers,
+            memory_frames=a.memory_frames,
+        )
         return
     bench(a.quick, a.json, a.workers)
-

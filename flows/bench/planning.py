@@ -48,13 +48,16 @@ def replicate_sequence(src_root: Path, dst_root: Path, source_id: int, ids: list
     per id of ``ids`` (the id replaced in directory and file names; the metadata's frame lists
     rewritten). Returns the number of links made."""
     sid = str(source_id)
-    files = [p for p in Path(src_root).rglob("*") if p.is_file() and sid in str(p.relative_to(src_root))]
+    files = [
+        p for p in Path(src_root).rglob("*") if p.is_file() and sid in str(p.relative_to(src_root))
+    ]
     links = 0
     for new in ids:
         for p in files:
             rel = str(p.relative_to(src_root))
-            target = Path(dst_root) / rel.replace(f"/{sid}/", f"/{new}/").replace(f"_{sid}_", f"_{new}_") \
-                .replace(f"/{sid}.", f"/{new}.")
+            target = Path(dst_root) / rel.replace(f"/{sid}/", f"/{new}/").replace(
+                f"_{sid}_", f"_{new}_"
+            ).replace(f"/{sid}.", f"/{new}.")
             target.parent.mkdir(parents=True, exist_ok=True)
             if p.parent.name == "metadata":
                 text = p.read_text().replace(f"/{sid}/", f"/{new}/").replace(f"_{sid}_", f"_{new}_")
@@ -79,27 +82,74 @@ def _cli(argv: list[str]) -> tuple[int, float, str]:
 def _command(argv: list[str]) -> tuple[int, float, str]:
     """(exit code, wall seconds, stdout) of ``mobileocc <argv>`` as a new process (this checkout)."""
     root = Path(__file__).resolve().parents[2]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")]),
+    }
     t0 = time.perf_counter()
-    run = subprocess.run([sys.executable, "-m", "flows.cli", *argv], cwd=root, env=env, capture_output=True,
-                         text=True)
+    run = subprocess.run(
+        [sys.executable, "-m", "flows.cli", *argv],
+        cwd=root,
+        env=env,
+        capture_output=True,
+        text=True,
+    )
     return run.returncode, time.perf_counter() - t0, run.stdout
 
 
 def _summaries(frames: int) -> dict[str, dict]:
     """Stage summaries shaped like a real run's (their size is what the manifest carries)."""
     raws = list(range(0, 2 * frames, 2))
-    return {"detect": {"implemented": True, "frames": raws, "failed_frames": [], "image_provider": "oracle",
-                       "lidar_provider": "lidar-clusters", "detections": 31, "lidar_boxes": 28},
-            "track": {"implemented": True, "tracks": 4, "tracked_detections": 29, "mean_person_points": 151.3},
-            "fit": {"implemented": True, "fitted": 25, "batches": 1, "skipped_without_estimate": 2,
-                    "skipped_few_points": 2, "dropped_far_from_estimate": 0, "device": "cpu", "preset": "ut_campus"},
-            "map": {"implemented": True, "static_voxels": 91234, "camera_labelled_voxels": 40211,
-                    "occupancy_voxels": 250119, "points_kept": 1200345, "points_removed": 2311,
-                    "ground_votes_rejected": 12},
-            "fuse": {"implemented": True, "frames": frames, "grid_shape": [48, 48, 24], "voxel_size_m": 0.2,
-                     "body_source": "fit", "pedestrian_meshes": 25},
-            "export": {"implemented": True, "frames": frames, "instances": 29, "occupancy_version": "x"}}
+    return {
+        "detect": {
+            "implemented": True,
+            "frames": raws,
+            "failed_frames": [],
+            "image_provider": "oracle",
+            "lidar_provider": "lidar-clusters",
+            "detections": 31,
+            "lidar_boxes": 28,
+        },
+        "track": {
+            "implemented": True,
+            "tracks": 4,
+            "tracked_detections": 29,
+            "mean_person_points": 151.3,
+        },
+        "fit": {
+            "implemented": True,
+            "fitted": 25,
+            "batches": 1,
+            "skipped_without_estimate": 2,
+            "skipped_few_points": 2,
+            "dropped_far_from_estimate": 0,
+            "device": "cpu",
+            "preset": "ut_campus",
+        },
+        "map": {
+            "implemented": True,
+            "static_voxels": 91234,
+            "camera_labelled_voxels": 40211,
+            "occupancy_voxels": 250119,
+            "points_kept": 1200345,
+            "points_removed": 2311,
+            "ground_votes_rejected": 12,
+        },
+        "fuse": {
+            "implemented": True,
+            "frames": frames,
+            "grid_shape": [48, 48, 24],
+            "voxel_size_m": 0.2,
+            "body_source": "fit",
+            "pedestrian_meshes": 25,
+        },
+        "export": {
+            "implemented": True,
+            "frames": frames,
+            "instances": 29,
+            "occupancy_version": "x",
+        },
+    }
 
 
 def _complete_store(config, out: Path) -> int:
@@ -115,9 +165,19 @@ def _complete_store(config, out: Path) -> int:
         for stage, unit in plan.units.items():
             folder = stage_dir(out, stage, plan.sequence, unit.key)
             folder.mkdir(parents=True, exist_ok=True)
-            manifest.put(StageRecord(plan.sequence, stage, unit.key, "done", str(folder.relative_to(out)),
-                                     seconds=1.0, finished_at=time.time(), summary=summaries[stage],
-                                     parts=unit.parts))
+            manifest.put(
+                StageRecord(
+                    plan.sequence,
+                    stage,
+                    unit.key,
+                    "done",
+                    str(folder.relative_to(out)),
+                    seconds=1.0,
+                    finished_at=time.time(),
+                    summary=summaries[stage],
+                    parts=unit.parts,
+                )
+            )
     manifest.meta.update({"config": config.model_dump(mode="json")})
     manifest.save()
     return len(manifest.rows)
@@ -138,10 +198,15 @@ def _manifest_costs(out: Path) -> dict:
         manifest.record(rec)
     append_ms = (time.perf_counter() - t0) / len(rows) * 1e3
     (out / JOURNAL).unlink(missing_ok=True)
-    return {"rows": len(manifest.rows), "manifest_mb": (out / MANIFEST).stat().st_size / 1e6,
-            "manifest_load_s": load_s, "manifest_save_s": save_s, "journal_append_ms": append_ms,
-            "full_rewrite_per_unit_run_s": save_s * len(manifest.rows),
-            "journal_per_unit_run_s": append_ms / 1e3 * len(manifest.rows) + save_s}
+    return {
+        "rows": len(manifest.rows),
+        "manifest_mb": (out / MANIFEST).stat().st_size / 1e6,
+        "manifest_load_s": load_s,
+        "manifest_save_s": save_s,
+        "journal_append_ms": append_ms,
+        "full_rewrite_per_unit_run_s": save_s * len(manifest.rows),
+        "journal_per_unit_run_s": append_ms / 1e3 * len(manifest.rows) + save_s,
+    }
 
 
 def _opened_during(fn, root: Path) -> tuple[int, object]:
@@ -182,8 +247,16 @@ def bench_planning(sequences: list[int], work_dir: Path | str) -> dict:
     work.mkdir(parents=True, exist_ok=True)
     source = work / "source"
     if not (source / "timestamps").is_dir():
-        simulate(source, sequences=1, frames=RAW_FRAMES, seed=3, pedestrians=2, crowd="uncrowded", progress=False,
-                 first_id=SOURCE_ID)
+        simulate(
+            source,
+            sequences=1,
+            frames=RAW_FRAMES,
+            seed=3,
+            pedestrians=2,
+            crowd="uncrowded",
+            progress=False,
+            first_id=SOURCE_ID,
+        )
     result: dict = {"machine": machine(), "raw_frames": RAW_FRAMES, "sizes": {}}
     for n in sequences:
         data, out = work / f"data-{n}", work / f"out-{n}"
@@ -195,16 +268,27 @@ def bench_planning(sequences: list[int], work_dir: Path | str) -> dict:
         args = ["--data", str(data), "--out", str(out), "--set", "export.formats=[]"]
         costs = PlanCosts()
         t0 = time.perf_counter()
-        plans = plan_run(config, Manifest.load(out), FingerprintCache(out / ".cache" / "sequences"), costs=costs)
+        plans = plan_run(
+            config, Manifest.load(out), FingerprintCache(out / ".cache" / "sequences"), costs=costs
+        )
         first = time.perf_counter() - t0
         assert not any(p.error for p in plans), [p.error for p in plans if p.error][:3]
         rows = _complete_store(config, out)
-        figures = {"sequences": n, "units": rows, "first_plan_s": first, "files_hashed": costs.files_hashed,
-                   "bytes_hashed": costs.bytes_hashed, "hash_mb_per_s": costs.hash_mb_per_s,
-                   "unique_mb": sum(f.stat().st_size for f in source.rglob("*") if f.is_file()) / 1e6}
+        figures = {
+            "sequences": n,
+            "units": rows,
+            "first_plan_s": first,
+            "files_hashed": costs.files_hashed,
+            "bytes_hashed": costs.bytes_hashed,
+            "hash_mb_per_s": costs.hash_mb_per_s,
+            "unique_mb": sum(f.stat().st_size for f in source.rglob("*") if f.is_file()) / 1e6,
+        }
         figures["startup_s"] = _command(["config", "show"])[1]
-        for name, argv in (("status", ["status", *args]), ("dry_run", ["reprocess", "--dry-run", *args]),
-                           ("rebuild", ["rebuild", "--quiet", *args])):
+        for name, argv in (
+            ("status", ["status", *args]),
+            ("dry_run", ["reprocess", "--dry-run", *args]),
+            ("rebuild", ["rebuild", "--quiet", *args]),
+        ):
             code, seconds, text = _command(argv)
             figures[f"{name}_s"], figures[f"{name}_exit"] = seconds, code
             figures[f"{name}_lines"] = len(text.splitlines())
@@ -217,25 +301,33 @@ def bench_planning(sequences: list[int], work_dir: Path | str) -> dict:
 
 def format_table(result: dict) -> str:
     m = result["machine"]
-    lines = [f"machine: {m['cpu_model']} x{m['cpu_count']}, load {m['load_avg_1m']:.1f}; one sequence of "
-             f"{result['raw_frames']} raw frames replicated by hard links",
-             f"{'sequences':>9} {'first plan':>10} {'MB/s':>6} {'start-up':>8} {'status':>7} {'dry-run':>8} {'rebuild':>8} "
-             f"{'opened':>6} {'manifest':>9} {'load':>6} {'save':>6} {'append':>7} {'rewrite/unit':>12}"]
+    lines = [
+        f"machine: {m['cpu_model']} x{m['cpu_count']}, load {m['load_avg_1m']:.1f}; one sequence of "
+        f"{result['raw_frames']} raw frames replicated by hard links",
+        f"{'sequences':>9} {'first plan':>10} {'MB/s':>6} {'start-up':>8} {'status':>7} {'dry-run':>8} {'rebuild':>8} "
+        f"{'opened':>6} {'manifest':>9} {'load':>6} {'save':>6} {'append':>7} {'rewrite/unit':>12}",
+    ]
     for n, f in sorted(result["sizes"].items()):
-        lines.append(f"{n:>9} {f['first_plan_s']:>9.1f}s {f['hash_mb_per_s'] or 0:>6.0f} {f['startup_s']:>7.1f}s "
-                     f"{f['status_s']:>6.1f}s "
-                     f"{f['dry_run_s']:>7.1f}s {f['rebuild_s']:>7.1f}s {f['files_opened_in_plan']:>6} "
-                     f"{f['manifest_mb']:>7.1f}MB {f['manifest_load_s']:>5.2f}s {f['manifest_save_s']:>5.2f}s "
-                     f"{f['journal_append_ms']:>5.2f}ms {f['full_rewrite_per_unit_run_s']:>11.0f}s")
+        lines.append(
+            f"{n:>9} {f['first_plan_s']:>9.1f}s {f['hash_mb_per_s'] or 0:>6.0f} {f['startup_s']:>7.1f}s "
+            f"{f['status_s']:>6.1f}s "
+            f"{f['dry_run_s']:>7.1f}s {f['rebuild_s']:>7.1f}s {f['files_opened_in_plan']:>6} "
+            f"{f['manifest_mb']:>7.1f}MB {f['manifest_load_s']:>5.2f}s {f['manifest_save_s']:>5.2f}s "
+            f"{f['journal_append_ms']:>5.2f}ms {f['full_rewrite_per_unit_run_s']:>11.0f}s"
+        )
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> None:  # pragma: no cover - a measurement, run by hand
     import argparse
 
-    p = argparse.ArgumentParser(prog="python -m flows.bench.planning", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        prog="python -m flows.bench.planning", description=__doc__.splitlines()[0]
+    )
     p.add_argument("sizes", nargs="*", type=int, default=[10, 100, 1000])
-    p.add_argument("--work", type=Path, default=None, help="working folder (default: a temporary one, removed)")
+    p.add_argument(
+        "--work", type=Path, default=None, help="working folder (default: a temporary one, removed)"
+    )
     p.add_argument("--json", type=Path, default=None)
     a = p.parse_args(argv)
     work = a.work or Path(tempfile.mkdtemp(prefix="mobileocc-bench-planning-"))

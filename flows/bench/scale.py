@@ -47,7 +47,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from flows.bench.planning import SOURCE_ID  # the simulated long sequence's id (a number no copy takes)
+from flows.bench.planning import (
+    SOURCE_ID,  # the simulated long sequence's id (a number no copy takes)
+)
 
 DEFAULT_FRAMES = (10, 20, 40)
 DEFAULT_SEQUENCES = (10, 100, 1000)
@@ -67,7 +69,10 @@ SERIAL_STAGES = ("track", "map")
 
 # ---- datasets made of hard links -------------------------------------------------------------------
 
-def link_sequence(src_root: Path, src_id: int, dst_root: Path, dst_id: int, raw_frames: int | None = None) -> int:
+
+def link_sequence(
+    src_root: Path, src_id: int, dst_root: Path, dst_id: int, raw_frames: int | None = None
+) -> int:
     """Hard-link sequence ``src_id`` of ``src_root`` into ``dst_root`` as ``dst_id``; with
     ``raw_frames``, only the frame files below that raw frame, and the timestamps / poses cut
     there. Text files (timestamps, poses, metadata) are written, not linked. Returns the files."""
@@ -78,19 +83,26 @@ def link_sequence(src_root: Path, src_id: int, dst_root: Path, dst_id: int, raw_
         rel = str(p.relative_to(src_root))
         if not p.is_file() or sid not in rel:
             continue
-        frame = frame_number(p) if p.parent.name == sid and p.parent.parent.name != "calibrations" else None
+        frame = (
+            frame_number(p)
+            if p.parent.name == sid and p.parent.parent.name != "calibrations"
+            else None
+        )
         if p.parent.name == sid and p.parent.parent.name == "gt" and p.name.startswith("gt_"):
             frame = int(p.stem.rsplit("_", 1)[1])
         if raw_frames is not None and frame is not None and frame >= raw_frames:
             continue
-        target = Path(dst_root) / rel.replace(f"/{sid}/", f"/{dst_id}/").replace(f"_{sid}_", f"_{dst_id}_") \
-            .replace(f"/{sid}.", f"/{dst_id}.")
+        target = Path(dst_root) / rel.replace(f"/{sid}/", f"/{dst_id}/").replace(
+            f"_{sid}_", f"_{dst_id}_"
+        ).replace(f"/{sid}.", f"/{dst_id}.")
         target.parent.mkdir(parents=True, exist_ok=True)
         if p.parent.name in ("timestamps", "dense_global"):
             lines = p.read_text().splitlines(keepends=True)
             target.write_text("".join(lines[:raw_frames] if raw_frames is not None else lines))
         elif p.parent.name == "metadata":
-            target.write_text(p.read_text().replace(f"/{sid}/", f"/{dst_id}/").replace(f"_{sid}_", f"_{dst_id}_"))
+            target.write_text(
+                p.read_text().replace(f"/{sid}/", f"/{dst_id}/").replace(f"_{sid}_", f"_{dst_id}_")
+            )
         else:
             os.link(p, target)
         n += 1
@@ -98,6 +110,7 @@ def link_sequence(src_root: Path, src_id: int, dst_root: Path, dst_id: int, raw_
 
 
 # ---- stages with per-stage peak RSS ----------------------------------------------------------------
+
 
 def _rss_mb() -> float:
     with open("/proc/self/statm") as fh:
@@ -108,13 +121,12 @@ def _run_stages_forked(data_root: str, out_root: str, overrides: dict) -> dict:
     """In a fresh (spawned) runner: import everything, plan, then run each stage of the one
     sequence in a forked child; per stage wall / CPU seconds, the child's peak RSS and the
     runner's RSS when it forked (the baseline)."""
+    import flows.stages  # noqa: F401  (every stage module and its kernels, before the forks)
     from flows.bench.pipeline import STAGE_ORDER, make_config
     from flows.pipeline.inputs import runtime
     from flows.pipeline.plan import plan_run
     from flows.pipeline.run import _record, execute_unit
     from storage.manifest import FileHasher, Manifest
-
-    import flows.stages  # noqa: F401  (every stage module and its kernels, before the forks)
 
     cfg = make_config(Path(data_root), Path(out_root), overrides)
     out = Path(out_root)
@@ -138,9 +150,13 @@ def _run_stages_forked(data_root: str, out_root: str, overrides: dict) -> dict:
                 start_rss = _rss_mb()  # what the fork maps of the runner (its anonymous pages)
                 c0, t0 = time.process_time(), time.perf_counter()
                 outcome = execute_unit(plan.units[stage], out, ups, plan.fingerprint, runtime(cfg))
-                msg = {"outcome": outcome, "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
-                       "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-                       "start_rss_mb": start_rss}
+                msg = {
+                    "outcome": outcome,
+                    "wall_s": time.perf_counter() - t0,
+                    "cpu_s": time.process_time() - c0,
+                    "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+                    "start_rss_mb": start_rss,
+                }
                 os.write(w, json.dumps(msg, default=str).encode())
             except BaseException as exc:  # noqa: BLE001 - reported to the runner
                 os.write(w, json.dumps({"error": f"{type(exc).__name__}: {exc}"}).encode())
@@ -153,13 +169,21 @@ def _run_stages_forked(data_root: str, out_root: str, overrides: dict) -> dict:
         os.waitpid(pid, 0)
         msg = json.loads(data.decode() or '{"error": "the stage process died"}')
         if "error" in msg or msg["outcome"]["status"] != "done":
-            raise RuntimeError(f"{data_root} stage {stage}: {msg.get('error') or msg['outcome'].get('error')}")
+            raise RuntimeError(
+                f"{data_root} stage {stage}: {msg.get('error') or msg['outcome'].get('error')}"
+            )
         _record(manifest, msg["outcome"])
         done[stage] = msg["outcome"]
         n = max(1, plan.num_frames)
-        res[stage] = {"wall_s": msg["wall_s"], "cpu_s": msg["cpu_s"], "wall_s_per_frame": msg["wall_s"] / n,
-                      "cpu_s_per_frame": msg["cpu_s"] / n, "peak_rss_mb": msg["peak_rss_mb"],
-                      "baseline_rss_mb": msg["start_rss_mb"], "stage_rss_mb": msg["peak_rss_mb"] - msg["start_rss_mb"]}
+        res[stage] = {
+            "wall_s": msg["wall_s"],
+            "cpu_s": msg["cpu_s"],
+            "wall_s_per_frame": msg["wall_s"] / n,
+            "cpu_s_per_frame": msg["cpu_s"] / n,
+            "peak_rss_mb": msg["peak_rss_mb"],
+            "baseline_rss_mb": msg["start_rss_mb"],
+            "stage_rss_mb": msg["peak_rss_mb"] - msg["start_rss_mb"],
+        }
     return res
 
 
@@ -174,6 +198,7 @@ def _spawned(fn, *args):
 
 # ---- the loopback Dask cluster -------------------------------------------------------------------
 
+
 def _dask_cli() -> list[str]:
     exe = Path(sys.executable).parent / "dask"
     return [str(exe)] if exe.exists() else [sys.executable, "-m", "dask"]
@@ -187,22 +212,58 @@ def loopback_cluster(n_workers: int, work: Path, memory_limit: str = "3GiB", thr
 
     work.mkdir(parents=True, exist_ok=True)
     sched_file = work / f"scheduler-{n_workers}.json"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).resolve().parents[2]),
-                                                         os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)}
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join(
+            [str(Path(__file__).resolve().parents[2]), os.environ.get("PYTHONPATH", "")]
+        ).rstrip(os.pathsep),
+    }
     log = open(work / f"cluster-{n_workers}.log", "w")
-    procs = [subprocess.Popen([*_dask_cli(), "scheduler", "--host", "127.0.0.1", "--port", "0",
-                               "--no-dashboard", "--scheduler-file", str(sched_file)],
-                              stdout=log, stderr=subprocess.STDOUT, env=env)]
+    procs = [
+        subprocess.Popen(
+            [
+                *_dask_cli(),
+                "scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                "0",
+                "--no-dashboard",
+                "--scheduler-file",
+                str(sched_file),
+            ],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env=env,
+        )
+    ]
     try:
         for _ in range(600):
             if sched_file.exists() and sched_file.stat().st_size:
                 break
             time.sleep(0.1)
         address = json.loads(sched_file.read_text())["address"]
-        procs.append(subprocess.Popen([*_dask_cli(), "worker", address, "--nworkers", str(n_workers),
-                                       "--nthreads", str(threads), "--memory-limit", memory_limit, "--no-dashboard",
-                                       "--local-directory", str(work / "dask-worker-space")],
-                                      stdout=log, stderr=subprocess.STDOUT, env=env))
+        procs.append(
+            subprocess.Popen(
+                [
+                    *_dask_cli(),
+                    "worker",
+                    address,
+                    "--nworkers",
+                    str(n_workers),
+                    "--nthreads",
+                    str(threads),
+                    "--memory-limit",
+                    memory_limit,
+                    "--no-dashboard",
+                    "--local-directory",
+                    str(work / "dask-worker-space"),
+                ],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                env=env,
+            )
+        )
         with Client(address, timeout=120) as client:
             client.wait_for_workers(n_workers, timeout=300)
         yield address
@@ -224,15 +285,23 @@ def _rebuild_on(data_root: str, out_root: str, address: str, overrides: dict) ->
     from flows.pipeline.run import rebuild_dataset
     from flows.pipeline.runtime import prefect_api
 
-    cfg = make_config(Path(data_root), Path(out_root), {**overrides, "dask.address": address, "dask.runner": "dask"})
+    cfg = make_config(
+        Path(data_root),
+        Path(out_root),
+        {**overrides, "dask.address": address, "dask.runner": "dask"},
+    )
     with prefect_api():
         t0 = time.perf_counter()
         report = rebuild_dataset(cfg, progress=False)
         wall = time.perf_counter() - t0
     if report.failed:
         raise RuntimeError(f"cluster rebuild failed: {report.failed[0]['error']}")
-    return {"wall_s": wall, "units_s": report.seconds, "frames": sum(p.num_frames for p in report.plans),
-            "sequences": len(report.plans)}
+    return {
+        "wall_s": wall,
+        "units_s": report.seconds,
+        "frames": sum(p.num_frames for p in report.plans),
+        "sequences": len(report.plans),
+    }
 
 
 def _rebuild_with_task_stream(address: str, slots: int, data: str, out: str, over: dict) -> dict:
@@ -246,14 +315,25 @@ def _rebuild_with_task_stream(address: str, slots: int, data: str, out: str, ove
         t0 = time.time()
         run = _spawned(_rebuild_on, data, out, address, over)
         stream = client.get_task_stream(start=t0)
-    compute = sum(ss["stop"] - ss["start"] for t in stream for ss in t.get("startstops", ())
-                  if ss.get("action") == "compute")
+    compute = sum(
+        ss["stop"] - ss["start"]
+        for t in stream
+        for ss in t.get("startstops", ())
+        if ss.get("action") == "compute"
+    )
     run.update(compute_s=compute, tasks=len(stream), busy=compute / (slots * run["units_s"]))
     return run
 
 
-def bench_cluster(src_root: Path, src_id: int, work: Path, workers=DEFAULT_CLUSTER_WORKERS,
-                  sequences: int = CLUSTER_SEQUENCES, frames: int = CLUSTER_FRAMES, threads_check: bool = True) -> dict:
+def bench_cluster(
+    src_root: Path,
+    src_id: int,
+    work: Path,
+    workers=DEFAULT_CLUSTER_WORKERS,
+    sequences: int = CLUSTER_SEQUENCES,
+    frames: int = CLUSTER_FRAMES,
+    threads_check: bool = True,
+) -> dict:
     """Rebuild ``sequences`` copies of a ``frames``-frame sequence on loopback clusters of each
     worker count (one thread each); speed-up and efficiency against one worker. ``threads_check``:
     also one worker of 2 threads (``threads_1x2``), against 2 workers of 1 thread."""
@@ -265,7 +345,9 @@ def bench_cluster(src_root: Path, src_id: int, work: Path, workers=DEFAULT_CLUST
     runs = {}
     for n in workers:
         with loopback_cluster(n, work / "cluster") as address:
-            runs[n] = _rebuild_with_task_stream(address, n, str(data), str(work / f"cluster-out-{n}"), over)
+            runs[n] = _rebuild_with_task_stream(
+                address, n, str(data), str(work / f"cluster-out-{n}"), over
+            )
         runs[n]["load_avg_1m"] = os.getloadavg()[0]
     t1 = runs[min(workers)]["units_s"] * min(workers)
     for n, r in runs.items():
@@ -273,11 +355,18 @@ def bench_cluster(src_root: Path, src_id: int, work: Path, workers=DEFAULT_CLUST
         r["efficiency"] = r["speedup"] / n
         # on dedicated cores a worker computes at one worker's speed: speed-up = N x busy / busy(1)
         r["speedup_dedicated"] = n * r["busy"] / runs[min(workers)]["busy"]
-    res = {"sequences": sequences, "frames_per_sequence": frames, "fit.iterations": LONG_FIT_ITERATIONS,
-           "cores": os.cpu_count(), "runs": runs}
+    res = {
+        "sequences": sequences,
+        "frames_per_sequence": frames,
+        "fit.iterations": LONG_FIT_ITERATIONS,
+        "cores": os.cpu_count(),
+        "runs": runs,
+    }
     if threads_check:
         with loopback_cluster(1, work / "cluster", threads=2) as address:
-            r = _rebuild_with_task_stream(address, 2, str(data), str(work / "cluster-out-1x2"), over)
+            r = _rebuild_with_task_stream(
+                address, 2, str(data), str(work / "cluster-out-1x2"), over
+            )
         r["load_avg_1m"] = os.getloadavg()[0]
         r["speedup"] = t1 / r["units_s"]
         res["threads_1x2"] = r
@@ -285,6 +374,7 @@ def bench_cluster(src_root: Path, src_id: int, work: Path, workers=DEFAULT_CLUST
 
 
 # ---- the projection ------------------------------------------------------------------------------
+
 
 def amdahl_serial_fraction(points: dict[int, float]) -> float:
     """Least-squares serial fraction f of speed-ups {N: S(N)} under S(N) = 1 / (f + (1 - f) / N)
@@ -299,8 +389,14 @@ def amdahl_serial_fraction(points: dict[int, float]) -> float:
     return float(np.clip((x @ y) / (x @ x), 0.0, 1.0))
 
 
-def project(cost: dict, long: dict, cluster: dict | None, frames: int = DATASET_FRAMES,
-            sequence_frames: int = SEQUENCE_FRAMES, workers=PROJECT_WORKERS) -> dict:
+def project(
+    cost: dict,
+    long: dict,
+    cluster: dict | None,
+    frames: int = DATASET_FRAMES,
+    sequence_frames: int = SEQUENCE_FRAMES,
+    workers=PROJECT_WORKERS,
+) -> dict:
     """Projected wall hours of ``frames`` frames on N workers (see the module docstring)."""
     from flows.bench.pipeline import STAGE_ORDER
 
@@ -316,27 +412,51 @@ def project(cost: dict, long: dict, cluster: dict | None, frames: int = DATASET_
     fit_points = {n: s for n, s in measured.items() if n <= cores}
     f = amdahl_serial_fraction(fit_points) if fit_points else 0.0
     longest = max(long, key=int) if long else None
-    serial = sum(long[longest][s]["wall_s_per_frame"] for s in SERIAL_STAGES) if longest else \
-        sum(cost[s]["wall_s_per_frame"] for s in SERIAL_STAGES)
+    serial = (
+        sum(long[longest][s]["wall_s_per_frame"] for s in SERIAL_STAGES)
+        if longest
+        else sum(cost[s]["wall_s_per_frame"] for s in SERIAL_STAGES)
+    )
     critical_h = sequence_frames * serial / 3600
     rows = {}
     for n in workers:
         speedup = measured[n] if n in fit_points else 1.0 / (f + (1 - f) / n)
         hours = frames * per_frame / speedup / 3600
-        rows[n] = {"speedup": speedup, "efficiency": speedup / n, "hours": max(hours, critical_h),
-                   "bound": "critical path" if critical_h > hours else "throughput",
-                   "speedup_source": "measured" if n in fit_points else f"Amdahl f={f:.3f}"}
-    return {"frames": frames, "sequence_frames": sequence_frames, "s_per_frame": per_frame,
-            "cpu_s_per_frame": cpu_per_frame, "wall_s_per_frame": wall_per_frame, "serial_fraction": f,
-            "critical_path_hours": critical_h, "serial_s_per_frame": serial, "workers": rows}
+        rows[n] = {
+            "speedup": speedup,
+            "efficiency": speedup / n,
+            "hours": max(hours, critical_h),
+            "bound": "critical path" if critical_h > hours else "throughput",
+            "speedup_source": "measured" if n in fit_points else f"Amdahl f={f:.3f}",
+        }
+    return {
+        "frames": frames,
+        "sequence_frames": sequence_frames,
+        "s_per_frame": per_frame,
+        "cpu_s_per_frame": cpu_per_frame,
+        "wall_s_per_frame": wall_per_frame,
+        "serial_fraction": f,
+        "critical_path_hours": critical_h,
+        "serial_s_per_frame": serial,
+        "workers": rows,
+    }
 
 
 # ---- the benchmark ---------------------------------------------------------------------------------
 
-def bench_scale(frames=DEFAULT_FRAMES, sequences=DEFAULT_SEQUENCES, cluster_workers=DEFAULT_CLUSTER_WORKERS,
-                parts=PARTS, json_path: Path | None = None, work_dir: Path | None = None,
-                sim_long_frames: int = 2000, sim_sample: int = 6, sim_workers: int = 2,
-                memory_frames=MEMORY_FRAMES) -> dict:
+
+def bench_scale(
+    frames=DEFAULT_FRAMES,
+    sequences=DEFAULT_SEQUENCES,
+    cluster_workers=DEFAULT_CLUSTER_WORKERS,
+    parts=PARTS,
+    json_path: Path | None = None,
+    work_dir: Path | None = None,
+    sim_long_frames: int = 2000,
+    sim_sample: int = 6,
+    sim_workers: int = 2,
+    memory_frames=MEMORY_FRAMES,
+) -> dict:
     """Run the parts listed in the module docstring; print a table; write JSON when asked."""
     from flows.bench.pipeline import machine
     from flows.bench.planning import bench_planning
@@ -346,26 +466,54 @@ def bench_scale(frames=DEFAULT_FRAMES, sequences=DEFAULT_SEQUENCES, cluster_work
     work = Path(tempfile.mkdtemp(prefix="mobileocc-scale-", dir=work_dir))
     started = time.perf_counter()
     frames = sorted(int(f) for f in frames)
-    result: dict = {"machine": machine(), "frames": frames, "sequences": list(sequences),
-                    "cluster_workers": list(cluster_workers), "parts": list(parts)}
+    result: dict = {
+        "machine": machine(),
+        "frames": frames,
+        "sequences": list(sequences),
+        "cluster_workers": list(cluster_workers),
+        "parts": list(parts),
+    }
     try:
         if "simulator" in parts:
-            result["simulator"] = _spawned(bench_simulator, sim_long_frames, sim_sample, sim_workers,
-                                           ("uncrowded", "crowded"), str(work))
+            result["simulator"] = _spawned(
+                bench_simulator,
+                sim_long_frames,
+                sim_sample,
+                sim_workers,
+                ("uncrowded", "crowded"),
+                str(work),
+            )
         src = work / "long-source"
         if {"long", "cost", "cluster"} & set(parts):
             t0 = time.perf_counter()
             raw = 2 * max(frames + [CLUSTER_FRAMES])
-            simulate(src, sequences=1, frames=raw, seed=7, progress=False, first_id=SOURCE_ID, fast=True,
-                     workers=2, frame_step=2)
-            result["long_simulate"] = {"raw_frames": raw, "files_for": raw // 2, "wall_s": time.perf_counter() - t0}
+            simulate(
+                src,
+                sequences=1,
+                frames=raw,
+                seed=7,
+                progress=False,
+                first_id=SOURCE_ID,
+                fast=True,
+                workers=2,
+                frame_step=2,
+            )
+            result["long_simulate"] = {
+                "raw_frames": raw,
+                "files_for": raw // 2,
+                "wall_s": time.perf_counter() - t0,
+            }
         if "long" in parts:
             result["long"] = {}
             for n in frames:
                 data = work / f"long-{n}"
                 link_sequence(src, SOURCE_ID, data, 0, raw_frames=2 * n)
-                result["long"][n] = _spawned(_run_stages_forked, str(data), str(work / f"long-out-{n}"),
-                                             {"fit.iterations": LONG_FIT_ITERATIONS})
+                result["long"][n] = _spawned(
+                    _run_stages_forked,
+                    str(data),
+                    str(work / f"long-out-{n}"),
+                    {"fit.iterations": LONG_FIT_ITERATIONS},
+                )
                 shutil.rmtree(work / f"long-out-{n}", ignore_errors=True)
         if "cost" in parts:
             data = work / "cost-data"
@@ -380,7 +528,9 @@ def bench_scale(frames=DEFAULT_FRAMES, sequences=DEFAULT_SEQUENCES, cluster_work
         if "cluster" in parts:
             result["cluster"] = bench_cluster(src, SOURCE_ID, work, tuple(cluster_workers))
         if "cost" in result:
-            result["projection"] = project(result["cost"], result.get("long", {}), result.get("cluster"))
+            result["projection"] = project(
+                result["cost"], result.get("long", {}), result.get("cluster")
+            )
     finally:
         shutil.rmtree(work, ignore_errors=True)
     result["bench_wall_s"] = time.perf_counter() - started
@@ -398,22 +548,41 @@ def format_scale(r: dict) -> str:
     from flows.bench.simulator import format_simulator
 
     m = r["machine"]
-    lines = [f"machine: {m['cpu_model']} x{m['cpu_count']} cpus, {m['memory_gb']} GB, load {m['load_avg_1m']:.1f}"]
+    lines = [
+        f"machine: {m['cpu_model']} x{m['cpu_count']} cpus, {m['memory_gb']} GB, load {m['load_avg_1m']:.1f}"
+    ]
     if "simulator" in r:
         lines += format_simulator(r["simulator"])
     if "long" in r:
-        lines.append("peak RSS per stage, MB (stage's own = peak - runner baseline), vs 5 Hz frames of one sequence:")
+        lines.append(
+            "peak RSS per stage, MB (stage's own = peak - runner baseline), vs 5 Hz frames of one sequence:"
+        )
         lines.append(f"  {'stage':<8}" + "".join(f"{n:>22}" for n in r["long"]))
         for st in STAGE_ORDER:
-            lines.append(f"  {st:<8}" + "".join(f"{v[st]['peak_rss_mb']:>13.0f} ({v[st]['stage_rss_mb']:>+5.0f})"
-                                               for v in r["long"].values()))
-        lines.append("wall s per frame per stage vs frames (fit at %d iterations here):" % LONG_FIT_ITERATIONS)
+            lines.append(
+                f"  {st:<8}"
+                + "".join(
+                    f"{v[st]['peak_rss_mb']:>13.0f} ({v[st]['stage_rss_mb']:>+5.0f})"
+                    for v in r["long"].values()
+                )
+            )
+        lines.append(
+            f"wall s per frame per stage vs frames (fit at {LONG_FIT_ITERATIONS} iterations here):"
+        )
         for st in STAGE_ORDER:
-            lines.append(f"  {st:<8}" + "".join(f"{v[st]['wall_s_per_frame']:>22.3f}" for v in r["long"].values()))
+            lines.append(
+                f"  {st:<8}"
+                + "".join(f"{v[st]['wall_s_per_frame']:>22.3f}" for v in r["long"].values())
+            )
     if "cost" in r:
         c = r["cost"]
-        lines.append(f"per-frame cost, default settings ({c['frames']} frames): " + ", ".join(
-            f"{st} {c[st]['cpu_s_per_frame']:.2f} CPU / {c[st]['wall_s_per_frame']:.2f} wall s" for st in STAGE_ORDER))
+        lines.append(
+            f"per-frame cost, default settings ({c['frames']} frames): "
+            + ", ".join(
+                f"{st} {c[st]['cpu_s_per_frame']:.2f} CPU / {c[st]['wall_s_per_frame']:.2f} wall s"
+                for st in STAGE_ORDER
+            )
+        )
     if "memory" in r:
         from flows.bench.memory import format_table as format_memory
 
@@ -421,22 +590,34 @@ def format_scale(r: dict) -> str:
         lines.extend("  " + line for line in format_memory(r["memory"]).splitlines())
     if "planning" in r:
         from flows.bench.planning import format_table
+
         lines.append("planning vs sequences (flows/bench/planning.py):")
         lines.extend("  " + line for line in format_table(r["planning"]).splitlines())
     if "cluster" in r:
         cl = r["cluster"]
-        lines.append(f"loopback dask cluster ({cl['sequences']} x {cl['frames_per_sequence']} frames, "
-                     f"{cl['cores']} cores): " + ", ".join(
-                         f"{n} worker(s) {v['units_s']:.0f} s (wall x{v['speedup']:.2f}, busy {v['busy']:.2f}, "
-                         f"dedicated-core x{v['speedup_dedicated']:.2f})" for n, v in cl["runs"].items()))
+        lines.append(
+            f"loopback dask cluster ({cl['sequences']} x {cl['frames_per_sequence']} frames, "
+            f"{cl['cores']} cores): "
+            + ", ".join(
+                f"{n} worker(s) {v['units_s']:.0f} s (wall x{v['speedup']:.2f}, busy {v['busy']:.2f}, "
+                f"dedicated-core x{v['speedup_dedicated']:.2f})"
+                for n, v in cl["runs"].items()
+            )
+        )
         if "threads_1x2" in cl:
-            lines.append(f"  1 worker x 2 threads: {cl['threads_1x2']['units_s']:.0f} s (x{cl['threads_1x2']['speedup']:.2f})")
+            lines.append(
+                f"  1 worker x 2 threads: {cl['threads_1x2']['units_s']:.0f} s (x{cl['threads_1x2']['speedup']:.2f})"
+            )
     if "projection" in r:
         p = r["projection"]
-        lines.append(f"projected wall for {p['frames']} frames ({p['s_per_frame']:.2f} s/frame on one worker; "
-                     f"critical path of a {p['sequence_frames']}-frame sequence {p['critical_path_hours']:.1f} h):")
+        lines.append(
+            f"projected wall for {p['frames']} frames ({p['s_per_frame']:.2f} s/frame on one worker; "
+            f"critical path of a {p['sequence_frames']}-frame sequence {p['critical_path_hours']:.1f} h):"
+        )
         for n, v in p["workers"].items():
-            lines.append(f"  N={n:<4} {v['hours']:>8.1f} h  (speed-up {v['speedup']:.2f}, {v['speedup_source']}, "
-                         f"{v['bound']}-bound)")
+            lines.append(
+                f"  N={n:<4} {v['hours']:>8.1f} h  (speed-up {v['speedup']:.2f}, {v['speedup_source']}, "
+                f"{v['bound']}-bound)"
+            )
     lines.append(f"bench wall {r.get('bench_wall_s', 0):.0f} s")
     return "\n".join(lines)

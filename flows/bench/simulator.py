@@ -21,9 +21,13 @@ import time
 from pathlib import Path
 
 #: the parts a frame's CPU time is split into: (name, owner, attribute)
-_PARTS = (("lidar (BVH build + cast)", "frame", "cast_lidar"), ("cameras", "frame", "render_camera"),
-          ("gt occupancy", "Simulator", "_occupancy"), ("gt people", "Simulator", "_people_gt"),
-          ("posing", "Simulator", "_pose_people"))
+_PARTS = (
+    ("lidar (BVH build + cast)", "frame", "cast_lidar"),
+    ("cameras", "frame", "render_camera"),
+    ("gt occupancy", "Simulator", "_occupancy"),
+    ("gt people", "Simulator", "_people_gt"),
+    ("posing", "Simulator", "_pose_people"),
+)
 
 
 def _profiled_frames(long_frames: int, crowd: str, fast: bool, sample: int, out: Path) -> dict:
@@ -45,6 +49,7 @@ def _profiled_frames(long_frames: int, crowd: str, fast: bool, sample: int, out:
                 return fn(*a, **k)
             finally:
                 spent[name] = spent.get(name, 0.0) + time.process_time() - t0
+
         return wrapper
 
     for name, owner, attr in _PARTS:
@@ -66,12 +71,17 @@ def _profiled_frames(long_frames: int, crowd: str, fast: bool, sample: int, out:
     finally:
         for target, attr, fn in saved:
             setattr(target, attr, fn)
-    return {"cpu_s_per_frame": total / len(idx), "pedestrians": sim.options.num_pedestrians,
-            "parts_cpu_s": {k: v / len(idx) for k, v in sorted(spent.items(), key=lambda kv: -kv[1])},
-            "triangles_static": int(len(sim._static["faces"]))}
+    return {
+        "cpu_s_per_frame": total / len(idx),
+        "pedestrians": sim.options.num_pedestrians,
+        "parts_cpu_s": {k: v / len(idx) for k, v in sorted(spent.items(), key=lambda kv: -kv[1])},
+        "triangles_static": int(len(sim._static["faces"])),
+    }
 
 
-def _pool_frames_per_s(long_frames: int, crowd: str, fast: bool, sample: int, workers: int, out: Path) -> float:
+def _pool_frames_per_s(
+    long_frames: int, crowd: str, fast: bool, sample: int, workers: int, out: Path
+) -> float:
     """Wall frames/s of ``workers`` frame worker processes on ``sample`` frames (after warm-up)."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
@@ -80,32 +90,57 @@ def _pool_frames_per_s(long_frames: int, crowd: str, fast: bool, sample: int, wo
     from tasks.sim import SimOptions
 
     opts = SimOptions(seed=1, frames=long_frames, crowd=crowd)
-    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_limit_threads) as pool:
-        warm = [pool.submit(_write_frames, str(out), 1, opts, fast, [i], [i], ".jpg") for i in range(workers)]
+    with ProcessPoolExecutor(
+        workers, mp_context=mp.get_context("spawn"), initializer=_limit_threads
+    ) as pool:
+        warm = [
+            pool.submit(_write_frames, str(out), 1, opts, fast, [i], [i], ".jpg")
+            for i in range(workers)
+        ]
         for f in warm:
             f.result()
         idx = [int(i) for i in (1 + (long_frames - 2) * (k + 0.5) / sample for k in range(sample))]
         t0 = time.perf_counter()
-        futures = [pool.submit(_write_frames, str(out), 1, opts, fast, [i], [i], ".jpg") for i in idx]
+        futures = [
+            pool.submit(_write_frames, str(out), 1, opts, fast, [i], [i], ".jpg") for i in idx
+        ]
         for f in futures:
             f.result()
         return len(idx) / (time.perf_counter() - t0)
 
 
-def bench_simulator(long_frames: int = 2000, sample: int = 8, workers: int = 2,
-                    crowds: tuple[str, ...] = ("uncrowded", "crowded"), work_dir: str | None = None) -> dict:
+def bench_simulator(
+    long_frames: int = 2000,
+    sample: int = 8,
+    workers: int = 2,
+    crowds: tuple[str, ...] = ("uncrowded", "crowded"),
+    work_dir: str | None = None,
+) -> dict:
     """Default vs fast simulator on a long sequence (see the module docstring)."""
-    result: dict = {"long_frames": long_frames, "sample_frames": sample, "workers": workers, "modes": {}}
+    result: dict = {
+        "long_frames": long_frames,
+        "sample_frames": sample,
+        "workers": workers,
+        "modes": {},
+    }
     work = Path(tempfile.mkdtemp(prefix="mobileocc-simbench-", dir=work_dir))
     try:
         for crowd in crowds:
             for fast in (False, True):
                 name = f"{'fast' if fast else 'default'} {crowd}"
-                row = _profiled_frames(long_frames, crowd, fast, sample, work / name.replace(" ", "-"))
+                row = _profiled_frames(
+                    long_frames, crowd, fast, sample, work / name.replace(" ", "-")
+                )
                 row["frames_per_s_cpu"] = workers / row["cpu_s_per_frame"]
                 row["load_avg_1m_before"] = os.getloadavg()[0]
-                row["frames_per_s_wall"] = _pool_frames_per_s(long_frames, crowd, fast, sample, workers,
-                                                               work / f"pool-{name.replace(' ', '-')}")
+                row["frames_per_s_wall"] = _pool_frames_per_s(
+                    long_frames,
+                    crowd,
+                    fast,
+                    sample,
+                    workers,
+                    work / f"pool-{name.replace(' ', '-')}",
+                )
                 row["load_avg_1m_after"] = os.getloadavg()[0]
                 result["modes"][name] = row
         for crowd in crowds:
@@ -117,11 +152,15 @@ def bench_simulator(long_frames: int = 2000, sample: int = 8, workers: int = 2,
 
 
 def format_simulator(r: dict) -> list[str]:
-    lines = [f"simulator: {r['long_frames']}-raw-frame sequence, {r['sample_frames']} frames sampled, "
-             f"{r['workers']} workers"]
+    lines = [
+        f"simulator: {r['long_frames']}-raw-frame sequence, {r['sample_frames']} frames sampled, "
+        f"{r['workers']} workers"
+    ]
     for name, m in r["modes"].items():
         parts = ", ".join(f"{k} {1000 * v:.0f}" for k, v in m["parts_cpu_s"].items())
-        lines.append(f"  {name:<18} {m['cpu_s_per_frame']:.3f} CPU s/frame -> {m['frames_per_s_cpu']:.1f} frames/s "
-                     f"on {r['workers']} idle cores; measured {m['frames_per_s_wall']:.2f} frames/s wall "
-                     f"(load {m['load_avg_1m_before']:.1f}); ms: {parts}")
+        lines.append(
+            f"  {name:<18} {m['cpu_s_per_frame']:.3f} CPU s/frame -> {m['frames_per_s_cpu']:.1f} frames/s "
+            f"on {r['workers']} idle cores; measured {m['frames_per_s_wall']:.2f} frames/s wall "
+            f"(load {m['load_avg_1m_before']:.1f}); ms: {parts}"
+        )
     return lines

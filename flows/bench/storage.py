@@ -46,16 +46,27 @@ def synthetic_frames(n: int, voxel_size_m: float, seed: int = 0) -> dict[str, np
     vel = np.zeros((n, *shape, 2), np.float16)
     ground = idx(0.0, 2)
     sem[:, :, : idx(0.0, 1), ground] = ROAD
-    sem[:, :, idx(0.0, 1):, ground] = TERRAIN
+    sem[:, :, idx(0.0, 1) :, ground] = TERRAIN
     for f in range(n):
         dx = 0.1 * f
-        sem[f, idx(6 + dx, 0):idx(9.5 + dx, 0), idx(-3.5, 1):idx(-1.8, 1), ground + 1:idx(1.5, 2)] = CAR
-        sem[f, idx(2, 0):idx(9, 0), idx(4.2, 1):idx(4.6, 1), ground + 1:idx(3, 2)] = OTHER_STRUCTURE
-        sem[f, idx(5, 0):idx(5.2, 0), idx(2, 1):idx(2.2, 1), ground + 1:idx(3.5, 2)] = POLE
+        sem[
+            f,
+            idx(6 + dx, 0) : idx(9.5 + dx, 0),
+            idx(-3.5, 1) : idx(-1.8, 1),
+            ground + 1 : idx(1.5, 2),
+        ] = CAR
+        sem[f, idx(2, 0) : idx(9, 0), idx(4.2, 1) : idx(4.6, 1), ground + 1 : idx(3, 2)] = (
+            OTHER_STRUCTURE
+        )
+        sem[f, idx(5, 0) : idx(5.2, 0), idx(2, 1) : idx(2.2, 1), ground + 1 : idx(3.5, 2)] = POLE
         for k in range(3):
             x0, y0 = 2.5 + 2 * k + dx, -1.0 + k
-            box = (f, slice(idx(x0, 0), idx(x0 + 0.5, 0)), slice(idx(y0, 1), idx(y0 + 0.5, 1)),
-                   slice(ground + 1, idx(1.8, 2)))
+            box = (
+                f,
+                slice(idx(x0, 0), idx(x0 + 0.5, 0)),
+                slice(idx(y0, 1), idx(y0 + 0.5, 1)),
+                slice(ground + 1, idx(1.8, 2)),
+            )
             sem[box] = PEDESTRIAN
             inst[box] = k + 1
             vel[box] = (1.2, 0.3 * k)
@@ -69,22 +80,32 @@ def synthetic_frames(n: int, voxel_size_m: float, seed: int = 0) -> dict[str, np
     mask_lidar = np.zeros((n, *shape), np.uint8)
     mask_lidar[:, wedge, : idx(2.5, 2)] = 1
     mask_camera = mask_lidar.copy()
-    mask_camera[:, :, :, idx(1.5, 2):] = 0
-    return {"semantics": sem, "instances": inst, "mask_lidar": mask_lidar, "mask_camera": mask_camera, "velocity": vel}
+    mask_camera[:, :, :, idx(1.5, 2) :] = 0
+    return {
+        "semantics": sem,
+        "instances": inst,
+        "mask_lidar": mask_lidar,
+        "mask_camera": mask_camera,
+        "velocity": vel,
+    }
 
 
 def _dir_bytes(path: Path) -> int:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
 
 
-def _bench_grid(work: Path, voxel_size_m: float, n: int, fpc: int, repeats: int, skip_empty: bool | None = None) -> dict:
+def _bench_grid(
+    work: Path, voxel_size_m: float, n: int, fpc: int, repeats: int, skip_empty: bool | None = None
+) -> dict:
     frames = synthetic_frames(fpc, voxel_size_m)
     grid = frames["semantics"].shape[1:]
     raw_bytes_per_frame = sum(a[0].nbytes for a in frames.values())
     t_store, t_raw = [], []
     for r in range(repeats):
         path = work / f"store-{voxel_size_m}-{r}.zarr"
-        layout = occ.create_store(path, n, grid, fpc, {"voxel_size_m": voxel_size_m}, skip_empty_chunks=skip_empty)
+        layout = occ.create_store(
+            path, n, grid, fpc, {"voxel_size_m": voxel_size_m}, skip_empty_chunks=skip_empty
+        )
         t0 = time.perf_counter()
         for start, stop in layout.write_units():
             occ.write_frames(path, start, {k: v[: stop - start] for k, v in frames.items()})
@@ -131,10 +152,17 @@ def _bench_export(work: Path, n: int) -> dict:
     frames = synthetic_frames(n, 0.2)
     eye = np.eye(4)
     with pub.sequence_writer(root, "s0", "k") as staged:
-        layout = occ.create_store(staged.store_path, n, frames["semantics"].shape[1:], 50, {
-            "voxel_size_m": 0.2, "range_min": RANGE_MIN.tolist(), "range_max": RANGE_MAX.tolist()})
+        layout = occ.create_store(
+            staged.store_path,
+            n,
+            frames["semantics"].shape[1:],
+            50,
+            {"voxel_size_m": 0.2, "range_min": RANGE_MIN.tolist(), "range_max": RANGE_MAX.tolist()},
+        )
         for start, stop in layout.write_units():
-            occ.write_frames(staged.store_path, start, {k: v[start:stop] for k, v in frames.items()})
+            occ.write_frames(
+                staged.store_path, start, {k: v[start:stop] for k, v in frames.items()}
+            )
         rows = []
         for f in range(n):
             raw = np.zeros((131072, 5), np.float32)
@@ -142,15 +170,50 @@ def _bench_export(work: Path, n: int) -> dict:
             (root / "src").mkdir(parents=True, exist_ok=True)
             raw.tofile(root / "src" / f"{f}.bin")
             Image.fromarray(np.zeros((1024, 1224, 3), np.uint8)).save(root / "src" / f"{f}.png")
-            rows.append({"frame": f, "raw_frame": 2 * f, "stamp_ns": 10**18 + f * 2 * 10**8,
-                         "T_world_from_lidar": eye.ravel(), "T_world_from_base": eye.ravel(),
-                         "lidar_path": f"src/{f}.bin", "cam0_path": f"src/{f}.png"})
+            rows.append(
+                {
+                    "frame": f,
+                    "raw_frame": 2 * f,
+                    "stamp_ns": 10**18 + f * 2 * 10**8,
+                    "T_world_from_lidar": eye.ravel(),
+                    "T_world_from_base": eye.ravel(),
+                    "lidar_path": f"src/{f}.bin",
+                    "cam0_path": f"src/{f}.png",
+                }
+            )
         pub.stage_table(staged, "frames", rows)
-        pub.stage_table(staged, "instances", [{"track_id": 1, "frame": f, "box3d_center": [3, 0, 0.9],
-                           "box3d_size": [0.6, 0.5, 1.8], "box3d_yaw": 0.0} for f in range(n)])
-        pub.stage_table(staged, "sequences", [{"fingerprint": "x", "config_hash": "c", "code_version": "0",
-                           "status": "ok", "num_frames": n, "K": np.eye(3).ravel(), "T_cam0_from_lidar": eye.ravel(),
-                           "T_base_from_lidar": eye.ravel(), "image_width": 1224, "image_height": 1024}])
+        pub.stage_table(
+            staged,
+            "instances",
+            [
+                {
+                    "track_id": 1,
+                    "frame": f,
+                    "box3d_center": [3, 0, 0.9],
+                    "box3d_size": [0.6, 0.5, 1.8],
+                    "box3d_yaw": 0.0,
+                }
+                for f in range(n)
+            ],
+        )
+        pub.stage_table(
+            staged,
+            "sequences",
+            [
+                {
+                    "fingerprint": "x",
+                    "config_hash": "c",
+                    "code_version": "0",
+                    "status": "ok",
+                    "num_frames": n,
+                    "K": np.eye(3).ravel(),
+                    "T_cam0_from_lidar": eye.ravel(),
+                    "T_base_from_lidar": eye.ravel(),
+                    "image_width": 1224,
+                    "image_height": 1024,
+                }
+            ],
+        )
     t0 = time.perf_counter()
     export_occ3d(root, work / "occ3d")
     t_occ = time.perf_counter() - t0
@@ -170,5 +233,9 @@ def bench_store(quick: bool = True, work_dir: str | Path | None = None) -> dict:
         export = _bench_export(work, 4 if quick else 20)
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    return {"coarse_0.2m": coarse, "fine_0.02m": fine, "fine_0.02m_no_skip": fine_noskip, "export": export}
-
+    return {
+        "coarse_0.2m": coarse,
+        "fine_0.02m": fine,
+        "fine_0.02m_no_skip": fine_noskip,
+        "export": export,
+    }

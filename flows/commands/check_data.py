@@ -43,7 +43,9 @@ def _figures(facts: SequenceFacts, camera: str) -> dict:
     """Reprojection and ground figures of the sampled sweeps (adds warnings to facts)."""
     seq = facts.seq
     calib = seq.info.calibration
-    pts = np.concatenate(facts.sample_points) if facts.sample_points else np.zeros((0, 3), np.float32)
+    pts = (
+        np.concatenate(facts.sample_points) if facts.sample_points else np.zeros((0, 3), np.float32)
+    )
     pts = pts[:: max(1, len(pts) // MAX_FIGURE_POINTS)]  # evenly spread over the sampled sweeps
     out: dict = {}
     cams = calib.cameras
@@ -51,30 +53,47 @@ def _figures(facts: SequenceFacts, camera: str) -> dict:
     if "cam0" in cams and "cam1" in cams and len(pts):
         out["rows"] = stereo_row_error_px(pts, view(cams["cam0"]), view(cams["cam1"]))
         if out["rows"] > MAX_ROW_ERROR_PX:
-            facts.problem(False, f"a LiDAR point lands {out['rows']:.1f} px apart in rows of the two rectified "
-                                 "images (median): rectification or extrinsics disagree")
+            facts.problem(
+                False,
+                f"a LiDAR point lands {out['rows']:.1f} px apart in rows of the two rectified "
+                "images (median): rectification or extrinsics disagree",
+            )
     if camera in cams and len(pts):
         cam = cams[camera]
         out["in_image"] = in_image_fraction(pts, *view(cam))
         if out["in_image"] < MIN_IN_IMAGE:
-            facts.problem(False, f"only {out['in_image']:.1%} of the sampled points fall in the {camera} image: "
-                                 f"check calib_os1_to_{camera}.yaml")
+            facts.problem(
+                False,
+                f"only {out['in_image']:.1%} of the sampled points fall in the {camera} image: "
+                f"check calib_os1_to_{camera}.yaml",
+            )
         if cam.raw is not None and cam.raw.P_lidar_to_rect is not None:
-            out["file_P"] = projection_difference_px(pts, *view(cam)[:2], cam.raw.P_lidar_to_rect, cam.width, cam.height)
+            out["file_P"] = projection_difference_px(
+                pts, *view(cam)[:2], cam.raw.P_lidar_to_rect, cam.width, cam.height
+            )
             if out["file_P"] > MAX_PROJECTION_DIFF_PX:
-                facts.problem(False, f"calib_os1_to_{camera}.yaml projection_matrix projects {out['file_P']:.1f} px "
-                                     "from the rectified pinhole (median); the reader uses P[:, :3] R T")
+                facts.problem(
+                    False,
+                    f"calib_os1_to_{camera}.yaml projection_matrix projects {out['file_P']:.1f} px "
+                    "from the rectified pinhole (median); the reader uses P[:, :3] R T",
+                )
     if len(pts):
         out["ground"] = ground_height_m(pts, calib.T_base_from_lidar)
         if np.isfinite(out["ground"]) and abs(out["ground"]) > MAX_GROUND_OFFSET_M:
-            facts.problem(False, f"the ground lies at z = {out['ground']:+.2f} m in the base frame (expected ~0): "
-                                 "check calib_os1_to_base.yaml / dataset.lidar_height_m")
+            facts.problem(
+                False,
+                f"the ground lies at z = {out['ground']:+.2f} m in the base frame (expected ~0): "
+                "check calib_os1_to_base.yaml / dataset.lidar_height_m",
+            )
     if calib.T_cam1_from_cam0 is not None and "cam1" in cams and cams["cam1"].raw is not None:
         derived = calib.T_cam1_from_cam0 @ cams["cam0"].raw.T_cam_from_lidar
         gap = float(np.linalg.norm(derived[:3, 3] - cams["cam1"].raw.T_cam_from_lidar[:3, 3]))
         if gap > MAX_EXTRINSIC_MISMATCH_M:
-            facts.problem(False, f"calib_os1_to_cam1.yaml and calib_cam0_to_cam1 @ calib_os1_to_cam0 differ by "
-                                 f"{gap * 100:.1f} cm")
+            facts.problem(
+                False,
+                f"calib_os1_to_cam1.yaml and calib_cam0_to_cam1 @ calib_os1_to_cam0 differ by "
+                f"{gap * 100:.1f} cm",
+            )
     return out
 
 
@@ -101,8 +120,11 @@ def _row(facts: SequenceFacts, fig: dict, camera: str) -> list[str]:
     lidar = "/".join(f"{c}ch" for c in sorted(facts.channels)) or "-"
     labels = f"box {facts.bbox_files} sem {facts.semantic_files}"
     if cam is not None:
-        rect = "R,P" if cam.rectified and cam.raw is not None and not np.allclose(cam.raw.R_rect, np.eye(3)) else \
-            ("P" if cam.rectified else "raw")
+        rect = (
+            "R,P"
+            if cam.rectified and cam.raw is not None and not np.allclose(cam.raw.R_rect, np.eye(3))
+            else ("P" if cam.rectified else "raw")
+        )
         camera_txt = f"{cam.width}x{cam.height} f{cam.K[0, 0]:.0f} b{_baseline_m(calib):.3f} {rect}"
     else:
         camera_txt = "-"
@@ -121,17 +143,44 @@ def _row(facts: SequenceFacts, fig: dict, camera: str) -> list[str]:
         time_txt = f"seconds? (max {facts.time_max_ns:.3g})"
     else:
         time_txt = f"ns, <= {facts.time_max_ns / 1e6:.1f} ms"
-    intensity = f"0 in {len(facts.intensity_zero)}/{facts.frames_read}" if facts.intensity_zero else \
-        f"ok ({facts.frames_read} read)"
+    intensity = (
+        f"0 in {len(facts.intensity_zero)}/{facts.frames_read}"
+        if facts.intensity_zero
+        else f"ok ({facts.frames_read} read)"
+    )
     poses = f"dt {facts.pose_stamp_diff_s * 1e3:.1f} ms"
     light = f"{info.lighting} ({info.lighting_source})"
     status = "BLOCKED" if facts.blocking else ("warn" if facts.problems else "OK")
-    return [facts.sequence, frames, lidar, files, labels, camera_txt, ", ".join(reproj) or "-", time_txt,
-            intensity, poses, light, status]
+    return [
+        facts.sequence,
+        frames,
+        lidar,
+        files,
+        labels,
+        camera_txt,
+        ", ".join(reproj) or "-",
+        time_txt,
+        intensity,
+        poses,
+        light,
+        status,
+    ]
 
 
-HEADER = ["seq", "frames (kept of files/stamps)", "lidar", "files", "labels", "camera (rectified)",
-          "reprojection", "time", "intensity", "poses", "lighting", "status"]
+HEADER = [
+    "seq",
+    "frames (kept of files/stamps)",
+    "lidar",
+    "files",
+    "labels",
+    "camera (rectified)",
+    "reprojection",
+    "time",
+    "intensity",
+    "poses",
+    "lighting",
+    "status",
+]
 
 
 def format_table(rows: list[list[str]]) -> str:
@@ -140,7 +189,9 @@ def format_table(rows: list[list[str]]) -> str:
     return "\n".join([line(HEADER), "  ".join("-" * w for w in widths), *(line(r) for r in rows)])
 
 
-def check_data(config: Config, deep: bool = False, sequences: list[str] | None = None) -> tuple[int, str]:
+def check_data(
+    config: Config, deep: bool = False, sequences: list[str] | None = None
+) -> tuple[int, str]:
     """(exit code, report text) for the dataset of ``config`` (dataset.root, dataset.sequences)."""
     from flows.pipeline.inputs import open_sequence
     from flows.pipeline.plan import selected_sequences
@@ -159,10 +210,20 @@ def check_data(config: Config, deep: bool = False, sequences: list[str] | None =
         for b, msg in facts.problems:
             notes.append(f"  {sid}: {'BLOCKING' if b else 'warning'}: {msg}")
         blocking |= facts.blocking
-    mode = "deep: every file read" if deep else "fast: sizes, 3 sweeps and 1 image header per sequence"
-    text = [f"check-data {root} ({mode}; lidar {config.dataset.lidar_source}, images "
-            f"{config.dataset.image_source}, camera {config.dataset.camera})", "", format_table(rows), ""]
+    mode = (
+        "deep: every file read" if deep else "fast: sizes, 3 sweeps and 1 image header per sequence"
+    )
+    text = [
+        f"check-data {root} ({mode}; lidar {config.dataset.lidar_source}, images "
+        f"{config.dataset.image_source}, camera {config.dataset.camera})",
+        "",
+        format_table(rows),
+        "",
+    ]
     text += ["details:", *notes] if notes else []
     n_block = sum(r[-1] == "BLOCKED" for r in rows)
-    text += ["", f"{len(rows)} sequence(s): " + (f"{n_block} blocked" if blocking else "ready to run")]
+    text += [
+        "",
+        f"{len(rows)} sequence(s): " + (f"{n_block} blocked" if blocking else "ready to run"),
+    ]
     return (1 if blocking else 0), "\n".join(text)

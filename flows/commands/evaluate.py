@@ -39,15 +39,15 @@ import numpy as np
 
 from storage.coda import read_lidar_bin
 from storage.dataset import open_dataset
-from storage.gt import gt_dir, read_frame_gt, read_sequence_gt
-from storage.products import Bodies, Detections, Tracks
-from storage.manifest import Manifest
-from tasks import conventions as C
 from storage.export.common import sequence_info
 from storage.export.nuscenes import visibility_token, visible_fractions_of_boxes
-from tasks.metrics.heading import heading_errors_deg, heading_summary
+from storage.gt import gt_dir, read_frame_gt, read_sequence_gt
+from storage.manifest import Manifest
+from storage.products import Bodies, Detections, Tracks
+from tasks import conventions as C
 from tasks.metrics._common import PRCounts
 from tasks.metrics.detection import DetectionCounts, detection_counts, match_boxes
+from tasks.metrics.heading import heading_errors_deg, heading_summary
 from tasks.metrics.occupancy import OccupancyMetric
 from tasks.metrics.pedestrian import (
     pedestrian_box_counts,
@@ -80,6 +80,7 @@ class EvaluateError(ValueError):
 
 # ---- locating inputs ----------------------------------------------------------------------------
 
+
 def _stage_folder(out: Path, manifest: Manifest, sequence: str, stage: str) -> Path | None:
     """The stage's output folder of ``sequence``: the manifest's record, else the only (or newest)
     key folder under ``OUT/stages/<stage>/<sequence>/`` (runs driven without the manifest)."""
@@ -87,8 +88,18 @@ def _stage_folder(out: Path, manifest: Manifest, sequence: str, stage: str) -> P
     if rec is not None and rec.status == "done" and rec.location and (out / rec.location).is_dir():
         return out / rec.location
     base = out / "stages" / stage / sequence
-    keys = sorted((p for p in base.glob("*") if p.is_dir() and not p.name.startswith(".")
-                   and (p / "summary.json").exists()), key=lambda p: p.stat().st_mtime) if base.is_dir() else []
+    keys = (
+        sorted(
+            (
+                p
+                for p in base.glob("*")
+                if p.is_dir() and not p.name.startswith(".") and (p / "summary.json").exists()
+            ),
+            key=lambda p: p.stat().st_mtime,
+        )
+        if base.is_dir()
+        else []
+    )
     return keys[-1] if keys else None
 
 
@@ -97,15 +108,19 @@ def _gt_root(out: Path, manifest: Manifest, gt: Path | None) -> Path:
         return Path(gt)
     root = ((manifest.meta.get("config") or {}).get("dataset") or {}).get("root")
     if not root:
-        raise EvaluateError(f"{out / 'manifest.json'}: no meta.config.dataset.root recorded; pass --gt GT "
-                            "(the raw data root holding gt/)")
+        raise EvaluateError(
+            f"{out / 'manifest.json'}: no meta.config.dataset.root recorded; pass --gt GT "
+            "(the raw data root holding gt/)"
+        )
     return Path(root)
 
 
 def _boxes_to_base(T_base_from_lidar: np.ndarray, centers, yaws) -> tuple[np.ndarray, np.ndarray]:
     """Box centres (B, 3) and yaws (B,) from the LiDAR frame to the base frame (rotation about z)."""
     R = T_base_from_lidar[:3, :3]
-    return C.transform_points(T_base_from_lidar, centers), np.asarray(yaws, np.float64) + np.arctan2(R[1, 0], R[0, 0])
+    return C.transform_points(T_base_from_lidar, centers), np.asarray(
+        yaws, np.float64
+    ) + np.arctan2(R[1, 0], R[0, 0])
 
 
 def _in_image(points_lidar: np.ndarray, cam) -> np.ndarray:
@@ -122,7 +137,9 @@ def _frustum(shape, range_min, voxel_size_m: float, T_base_from_lidar, cam) -> n
     """(X, Y, Z) bool: voxels whose centre projects into the camera image."""
     idx = np.indices(shape).reshape(3, -1).T
     centres = np.asarray(range_min) + (idx + 0.5) * voxel_size_m
-    return _in_image(C.transform_points(np.linalg.inv(T_base_from_lidar), centres), cam).reshape(shape)
+    return _in_image(C.transform_points(np.linalg.inv(T_base_from_lidar), centres), cam).reshape(
+        shape
+    )
 
 
 def _gt_persons(gtf) -> np.ndarray:
@@ -149,12 +166,17 @@ def _posed(model, params: dict, rows) -> tuple[np.ndarray, np.ndarray]:
     import torch
 
     with torch.no_grad():
-        out = model(*(torch.as_tensor(np.asarray(params[k])[rows], dtype=torch.float32)
-                      for k in ("betas", "global_orient", "body_pose", "transl")))
+        out = model(
+            *(
+                torch.as_tensor(np.asarray(params[k])[rows], dtype=torch.float32)
+                for k in ("betas", "global_orient", "body_pose", "transl")
+            )
+        )
     return out.vertices.numpy(), out.joints.numpy()
 
 
 # ---- per sequence -------------------------------------------------------------------------------
+
 
 class _Totals:
     """Counts of every section, per sequence and summed."""
@@ -169,9 +191,12 @@ class _Totals:
         self.velocity: dict[str, VelocityErrors] = {}
         self.velocity_vertex: dict[str, VelocityErrors] = {}
         #: "vertex" / "person" GT -> limb group -> AVE counts
-        self.limbs: dict[str, dict[str, VelocityErrors]] = {g: {n: VelocityErrors() for n in LIMB_GROUPS}
-                                                             for g in ("vertex", "person")}
-        self.limb_groups: dict[str, np.ndarray | None] = {}  # sequence -> (V,) limb of each GT vertex
+        self.limbs: dict[str, dict[str, VelocityErrors]] = {
+            g: {n: VelocityErrors() for n in LIMB_GROUPS} for g in ("vertex", "person")
+        }
+        self.limb_groups: dict[
+            str, np.ndarray | None
+        ] = {}  # sequence -> (V,) limb of each GT vertex
         self.fit: dict[str, dict[str, list]] = {}
         self.person_points: dict[str, PRCounts] = {}
         self.notes: dict[str, str] = {}
@@ -179,8 +204,16 @@ class _Totals:
         self.samples: list[dict] = []
 
 
-def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: str, tot: _Totals,
-                       sample_positions: set[int], config: dict) -> None:
+def _evaluate_sequence(
+    ds,
+    out: Path,
+    manifest: Manifest,
+    gt_root: Path,
+    seq: str,
+    tot: _Totals,
+    sample_positions: set[int],
+    config: dict,
+) -> None:
     arrays = ds.arrays(seq, lazy="zarr")
     attrs = ds.attrs(seq)
     range_min = np.asarray(attrs["range_min"], np.float64)
@@ -196,12 +229,17 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
     cam = coda.info.calibration.cameras[((config.get("dataset") or {}).get("camera")) or "cam0"]
     T_bl = np.asarray(gseq.T_base_from_lidar, np.float64)
     shape = tuple(arrays["semantics"].shape[1:4])
-    same_grid = (shape == tuple(gseq.grid_shape) and abs(vs - gseq.grid_voxel_size_m) < 1e-9
-                 and np.allclose(range_min, gseq.grid_range_min))
+    same_grid = (
+        shape == tuple(gseq.grid_shape)
+        and abs(vs - gseq.grid_voxel_size_m) < 1e-9
+        and np.allclose(range_min, gseq.grid_range_min)
+    )
     if not same_grid:
-        tot.notes[f"occupancy {seq}"] = (f"grid {shape} at {vs} m differs from the ground truth's "
-                                         f"{tuple(gseq.grid_shape)} at {gseq.grid_voxel_size_m} m: occupancy, "
-                                         "velocity and BEV comparisons skipped")
+        tot.notes[f"occupancy {seq}"] = (
+            f"grid {shape} at {vs} m differs from the ground truth's "
+            f"{tuple(gseq.grid_shape)} at {gseq.grid_voxel_size_m} m: occupancy, "
+            "velocity and BEV comparisons skipped"
+        )
     condition = "night" if coda.info.is_night else _condition(coda.info.metadata)
     min_range = float((config.get("dataset") or {}).get("min_range_m", coda.min_range_m))
     frustum = _frustum(shape, range_min, vs, T_bl, cam)
@@ -210,33 +248,43 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
     track_dir = _stage_folder(out, manifest, seq, "track")
     fit_dir = _stage_folder(out, manifest, seq, "fit")
     tracks = Tracks.read(track_dir).arrays() if track_dir is not None else None
-    bodies = (Bodies.read(fit_dir).arrays()
-              if fit_dir is not None and (fit_dir / "bodies.npz").exists() else None)
+    bodies = (
+        Bodies.read(fit_dir).arrays()
+        if fit_dir is not None and (fit_dir / "bodies.npz").exists()
+        else None
+    )
     if detect_dir is None:
         tot.notes[f"detection {seq}"] = "no detect stage output: detection robustness skipped"
     if tracks is None:
         tot.notes[f"tracking {seq}"] = "no track stage output: tracking skipped"
     if bodies is None or len(bodies.get("frame", ())) == 0:
-        tot.notes[f"fit {seq}"] = "no fit bodies.npz (fit not run or fitted nobody): fit metrics not available"
+        tot.notes[f"fit {seq}"] = (
+            "no fit bodies.npz (fit not run or fitted nobody): fit metrics not available"
+        )
         bodies = None
     model = _body_model(config) if bodies is not None else None
 
     occ = tot.occ.setdefault(seq, OccupancyMetric())
     st, bx, li, ve, pp = StaticCounts(), PRCounts(), PRCounts(), VelocityErrors(), PRCounts()
     vv = VelocityErrors()
-    track_frames, fit_rows = [], {k: [] for k in ("pve", "mpjpe", "pa_mpjpe", "mpere", "heading", "visible",
-                                                   "visible_gt")}
+    track_frames, fit_rows = (
+        [],
+        {k: [] for k in ("pve", "mpjpe", "pa_mpjpe", "mpere", "heading", "visible", "visible_gt")},
+    )
     boxed = [r for r in ds.table("instances", seq).to_pylist() if r["box3d_center"] is not None]
     box_yaw = {(int(r["track_id"]), int(r["frame"])): r["box3d_yaw"] for r in boxed}
-    visible = visible_fractions_of_boxes(ds, seq, sequence_info(ds, seq), boxed)  # the nuScenes export's
+    visible = visible_fractions_of_boxes(
+        ds, seq, sequence_info(ds, seq), boxed
+    )  # the nuScenes export's
     for k, raw in enumerate(raw_frames):
         gtf = read_frame_gt(gt_root, int(seq), raw)
         pred = np.asarray(arrays["semantics"][k])
         mask_cam = np.asarray(arrays["mask_camera"][k]).astype(bool)
         # static semantics vs labelled GT points (pedestrian points out)
         max_range = float((config.get("dataset") or {}).get("max_range_m", np.inf))
-        sweep = read_lidar_bin(coda.path(coda.lidar_source, "os1", raw, ".bin"), min_range, max_range,
-                               frame=raw)
+        sweep = read_lidar_bin(
+            coda.path(coda.lidar_source, "os1", raw, ".bin"), min_range, max_range, frame=raw
+        )
         pcls = gtf.point_class[sweep.index].copy()
         pinst = gtf.point_instance[sweep.index]
         is_ped = (pcls == C.PEDESTRIAN) | ((pinst >= 1) & (pinst < 1000))
@@ -245,10 +293,13 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
         st = st + static_counts(pred, range_min, vs, pts_base, pcls)
         # pedestrian vs boxes and vs LiDAR body points
         centers, yaws = _boxes_to_base(T_bl, gtf.box_center, gtf.box_yaw)
-        bx = bx + pedestrian_box_counts(pred, range_min, vs, centers, gtf.box_size, yaws, visible=mask_cam)
+        bx = bx + pedestrian_box_counts(
+            pred, range_min, vs, centers, gtf.box_size, yaws, visible=mask_cam
+        )
         body_pts = (pinst >= 1) & (pinst < 1000) & _in_image(sweep.points, cam)
-        li = li + pedestrian_lidar_counts(pred, voxelize_points(pts_base[body_pts], range_min, vs, shape),
-                                          region=frustum)
+        li = li + pedestrian_lidar_counts(
+            pred, voxelize_points(pts_base[body_pts], range_min, vs, shape), region=frustum
+        )
         if same_grid:
             occ.update(pred, gtf.occupancy, mask_cam)
             gvel = np.zeros(shape + (2,), np.float32)
@@ -256,29 +307,58 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
                 gvel[gtf.occupancy_instance == tid] = gtf.velocity_base[j]
             pvel = np.asarray(arrays["velocity"][k]).astype(np.float32)
             ve = ve + velocity_errors(pred, pvel, gtf.occupancy, gvel, mask_cam)
-            vv = _vertex_velocity(tot, seq, gseq, gtf, T_bl, GridSpec(tuple(range_min), tuple(
-                range_min + np.asarray(shape) * vs), vs), pred, pvel, gvel, mask_cam, vv)
-            tot.hist["velocity_error"].append(voxel_velocity_errors(pred, pvel, gtf.occupancy, gvel, mask_cam)[0])
+            vv = _vertex_velocity(
+                tot,
+                seq,
+                gseq,
+                gtf,
+                T_bl,
+                GridSpec(tuple(range_min), tuple(range_min + np.asarray(shape) * vs), vs),
+                pred,
+                pvel,
+                gvel,
+                mask_cam,
+                vv,
+            )
+            tot.hist["velocity_error"].append(
+                voxel_velocity_errors(pred, pvel, gtf.occupancy, gvel, mask_cam)[0]
+            )
             if len(tot.samples) < len(sample_positions) + 1 and (seq, k) in sample_positions:
-                tot.samples.append({"title": f"sequence {seq} frame {raw} ({condition})", "pred": pred,
-                                    "gt": gtf.occupancy, "mask": mask_cam, "range_min": range_min,
-                                    "voxel_size_m": vs})
+                tot.samples.append(
+                    {
+                        "title": f"sequence {seq} frame {raw} ({condition})",
+                        "pred": pred,
+                        "gt": gtf.occupancy,
+                        "mask": mask_cam,
+                        "range_min": range_min,
+                        "voxel_size_m": vs,
+                    }
+                )
         persons = _gt_persons(gtf)
         vis = gtf.visible_fraction[persons] >= VISIBLE_FRACTION
         if detect_dir is not None:
             det = Detections.read(detect_dir, Detections.file_name(raw)).arrays()
-            tot.detection[condition] = tot.detection.get(condition, DetectionCounts()) + detection_counts(
-                gtf.box2d[persons], vis, det["boxes_xyxy"])
+            tot.detection[condition] = tot.detection.get(
+                condition, DetectionCounts()
+            ) + detection_counts(gtf.box2d[persons], vis, det["boxes_xyxy"])
         if tracks is not None:
             r = tracks["frame"] == raw
-            track_frames.append((gtf.track_id[persons].astype(np.int64), gtf.box2d[persons],
-                                 tracks["track_id"][r], tracks["boxes_xyxy"][r]))
+            track_frames.append(
+                (
+                    gtf.track_id[persons].astype(np.int64),
+                    gtf.box2d[persons],
+                    tracks["track_id"][r],
+                    tracks["boxes_xyxy"][r],
+                )
+            )
             rows = np.flatnonzero(r & (tracks["gt_index"] >= 0))  # oracle rows know their person
             if rows.size:
                 off = tracks["points_offsets"]
                 pp = pp + person_point_counts(
-                    pinst, [tracks["points_index"][off[j]:off[j + 1]] for j in rows],
-                    gtf.track_id[tracks["gt_index"][rows]])
+                    pinst,
+                    [tracks["points_index"][off[j] : off[j + 1]] for j in rows],
+                    gtf.track_id[tracks["gt_index"][rows]],
+                )
         if bodies is not None and detect_dir is not None:
             rows = np.flatnonzero(bodies["frame"] == raw)
             if rows.size:
@@ -289,16 +369,30 @@ def _evaluate_sequence(ds, out: Path, manifest: Manifest, gt_root: Path, seq: st
                     pv, pj = _posed(model, bodies, rows[fi])
                     from tasks.fit.metrics import fit_metrics
 
-                    m = fit_metrics(pv, pj, gtf.vertices[persons[gi]], gtf.joints[persons[gi]], gseq.person_faces)
+                    m = fit_metrics(
+                        pv,
+                        pj,
+                        gtf.vertices[persons[gi]],
+                        gtf.joints[persons[gi]],
+                        gseq.person_faces,
+                    )
                     for key in ("pve", "mpjpe", "pa_mpjpe", "mpere"):
                         fit_rows[key].append(np.asarray(m[key], np.float64))
-                    _, gt_yaw = _boxes_to_base(T_bl, gtf.box_center[persons[gi]], gtf.box_yaw[persons[gi]])
+                    _, gt_yaw = _boxes_to_base(
+                        T_bl, gtf.box_center[persons[gi]], gtf.box_yaw[persons[gi]]
+                    )
                     pub = [box_yaw.get((int(bodies["track_id"][b]), k)) for b in rows[fi]]
-                    fit_rows["heading"].append(heading_errors_deg(
-                        [y for y in pub if y is not None], [g for y, g in zip(pub, gt_yaw) if y is not None]))
+                    fit_rows["heading"].append(
+                        heading_errors_deg(
+                            [y for y in pub if y is not None],
+                            [g for y, g in zip(pub, gt_yaw) if y is not None],
+                        )
+                    )
                     keys = [(k, int(bodies["track_id"][b])) for b in rows[fi]]  # (frame, track id)
                     fit_rows["visible"].append(np.array([visible.get(key, np.nan) for key in keys]))
-                    fit_rows["visible_gt"].append(gtf.visible_fraction[persons[gi]].astype(np.float64))
+                    fit_rows["visible_gt"].append(
+                        gtf.visible_fraction[persons[gi]].astype(np.float64)
+                    )
     tot.static[seq], tot.boxes[seq], tot.lidar[seq], tot.velocity[seq] = st, bx, li, ve
     if pp.pred_total:
         tot.person_points[seq] = pp
@@ -328,20 +422,44 @@ def _limb_groups(gseq) -> np.ndarray | None:
     return vertex_limb_groups(model.lbs_weights.numpy())
 
 
-def _vertex_velocity(tot: _Totals, seq: str, gseq, gtf, T_bl, spec: GridSpec, pred, pvel, gvel, mask,
-                     vv: VelocityErrors) -> VelocityErrors:
+def _vertex_velocity(
+    tot: _Totals,
+    seq: str,
+    gseq,
+    gtf,
+    T_bl,
+    spec: GridSpec,
+    pred,
+    pvel,
+    gvel,
+    mask,
+    vv: VelocityErrors,
+) -> VelocityErrors:
     """Add one frame's AVE against the per-vertex GT (and per limb group against both GTs)."""
     if seq not in tot.limb_groups:
         tot.limb_groups[seq] = _limb_groups(gseq)
     groups = tot.limb_groups[seq]
     if gtf.vertex_velocity_base is None or groups is None:
         tot.notes[f"velocity per vertex {seq}"] = (
-            "ground truth without vertex_velocity_base (simulated before it existed)" if groups is not None else
-            "the ground truth's body mesh is not the simulator's procedural one: no limb groups")
+            "ground truth without vertex_velocity_base (simulated before it existed)"
+            if groups is not None
+            else "the ground truth's body mesh is not the simulator's procedural one: no limb groups"
+        )
         return vv
-    verts = np.stack([C.transform_points(T_bl, v) for v in gtf.vertices]) if len(gtf.vertices) else gtf.vertices
-    gvv, group = vertex_velocity_grid(spec, gtf.occupancy_instance, gtf.track_id, verts, gseq.person_faces,
-                                      gtf.vertex_velocity_base[..., :2], groups)
+    verts = (
+        np.stack([C.transform_points(T_bl, v) for v in gtf.vertices])
+        if len(gtf.vertices)
+        else gtf.vertices
+    )
+    gvv, group = vertex_velocity_grid(
+        spec,
+        gtf.occupancy_instance,
+        gtf.track_id,
+        verts,
+        gseq.person_faces,
+        gtf.vertex_velocity_base[..., :2],
+        groups,
+    )
     for name, g in (("vertex", gvv), ("person", gvel)):
         per = limb_velocity_errors(pred, pvel, gtf.occupancy, g, group, mask)
         tot.limbs[name] = {n: tot.limbs[name][n] + per[n] for n in LIMB_GROUPS}
@@ -350,14 +468,25 @@ def _vertex_velocity(tot: _Totals, seq: str, gseq, gtf, T_bl, spec: GridSpec, pr
 
 def _limb_table(limbs: dict[str, dict[str, VelocityErrors]]) -> dict:
     """{limb group and "all": AVE-O / AVE-T against the per-vertex and the per-person GT}."""
-    rows = {**{n: (limbs["vertex"][n], limbs["person"][n]) for n in LIMB_GROUPS},
-            "all": tuple(_sum(limbs[g].values()) for g in ("vertex", "person"))}
-    return {n: {"ave_o_vertex_gt": v.ave_o, "ave_t_vertex_gt": v.ave_t, "ave_o_person_gt": p.ave_o,
-                "ave_t_person_gt": p.ave_t, "num_voxels_o": v.n_o, "num_voxels_t": v.n_t}
-            for n, (v, p) in rows.items()}
+    rows = {
+        **{n: (limbs["vertex"][n], limbs["person"][n]) for n in LIMB_GROUPS},
+        "all": tuple(_sum(limbs[g].values()) for g in ("vertex", "person")),
+    }
+    return {
+        n: {
+            "ave_o_vertex_gt": v.ave_o,
+            "ave_t_vertex_gt": v.ave_t,
+            "ave_o_person_gt": p.ave_o,
+            "ave_t_person_gt": p.ave_t,
+            "num_voxels_o": v.n_o,
+            "num_voxels_t": v.n_t,
+        }
+        for n, (v, p) in rows.items()
+    }
 
 
 # ---- entry point --------------------------------------------------------------------------------
+
 
 def _sum(values):
     it = iter(values)
@@ -374,17 +503,28 @@ def visibility_agreement(ours, gt) -> dict:
     ours, gt = np.asarray(ours)[ok], np.asarray(gt)[ok]
     if ours.size == 0:
         return {"boxes": 0}
-    b = np.array([int(visibility_token(v)) for v in ours]) - np.array([int(visibility_token(v)) for v in gt])
-    return {"boxes": int(ours.size), "same_bin_share": float(np.mean(b == 0)),
-            "within_one_bin_share": float(np.mean(np.abs(b) <= 1)), "lower_bin_share": float(np.mean(b < 0)),
-            "median_abs_difference": float(np.median(np.abs(ours - gt)))}
+    b = np.array([int(visibility_token(v)) for v in ours]) - np.array(
+        [int(visibility_token(v)) for v in gt]
+    )
+    return {
+        "boxes": int(ours.size),
+        "same_bin_share": float(np.mean(b == 0)),
+        "within_one_bin_share": float(np.mean(np.abs(b) <= 1)),
+        "lower_bin_share": float(np.mean(b < 0)),
+        "median_abs_difference": float(np.median(np.abs(ours - gt))),
+    }
 
 
 def _fit_row(v: dict) -> dict:
     n = len(v["pve"])
-    mean = (lambda a: float(np.mean(a)) if n else float("nan"))
-    return {"PVE_mm": mean(v["pve"]), "MPJPE_mm": mean(v["mpjpe"]), "PA_MPJPE_mm": mean(v["pa_mpjpe"]),
-            "MPERE": mean(v["mpere"]), "persons": n}
+    mean = lambda a: float(np.mean(a)) if n else float("nan")
+    return {
+        "PVE_mm": mean(v["pve"]),
+        "MPJPE_mm": mean(v["mpjpe"]),
+        "PA_MPJPE_mm": mean(v["pa_mpjpe"]),
+        "MPERE": mean(v["mpere"]),
+        "persons": n,
+    }
 
 
 def _sample_positions(ds, sample_frames: int) -> set:
@@ -395,7 +535,9 @@ def _sample_positions(ds, sample_frames: int) -> set:
         pairs += [(seq, k) for k in range(n)]
     if not pairs or sample_frames <= 0:
         return set()
-    pick = np.unique(np.linspace(0, len(pairs) - 1, min(sample_frames, len(pairs))).round().astype(int))
+    pick = np.unique(
+        np.linspace(0, len(pairs) - 1, min(sample_frames, len(pairs))).round().astype(int)
+    )
     return {pairs[i] for i in pick}
 
 
@@ -414,8 +556,13 @@ def open_for_evaluation(dataset: Path, data: Path | None):
     return out, manifest, config, root, ds
 
 
-def evaluate(dataset: Path, gt: Path | None, report_dir: Path, sample_frames: int = 3,
-             labels: str = "synthetic") -> dict:
+def evaluate(
+    dataset: Path,
+    gt: Path | None,
+    report_dir: Path,
+    sample_frames: int = 3,
+    labels: str = "synthetic",
+) -> dict:
     """Evaluate the dataset at ``dataset`` (OUT) against the ground truth under ``gt`` (the raw data
     root holding ``gt/``; None = the ``dataset.root`` recorded in OUT/manifest.json). Writes
     report.md, results.json and figures/ under ``report_dir``; returns the results dict.
@@ -433,52 +580,85 @@ def evaluate(dataset: Path, gt: Path | None, report_dir: Path, sample_frames: in
     for seq in ds.sequences:
         _evaluate_sequence(ds, out, manifest, gt_root, seq, tot, positions, config)
 
-    results: dict = {"title": "mobileocc label quality",
-                     "meta": {"dataset": str(out), "ground truth": str(gt_root),
-                              "sequences": ", ".join(ds.sequences),
-                              "frames": sum(int(ds.arrays(s, lazy="zarr")["semantics"].shape[0])
-                                            for s in ds.sequences),
-                              "body source": ds.attrs(ds.sequences[0]).get("body_source", "?")}}
+    results: dict = {
+        "title": "mobileocc label quality",
+        "meta": {
+            "dataset": str(out),
+            "ground truth": str(gt_root),
+            "sequences": ", ".join(ds.sequences),
+            "frames": sum(
+                int(ds.arrays(s, lazy="zarr")["semantics"].shape[0]) for s in ds.sequences
+            ),
+            "body source": ds.attrs(ds.sequences[0]).get("body_source", "?"),
+        },
+    }
     if tot.occ:
         results["occupancy"] = _sum_metric(tot.occ).as_dict()
-        results["occupancy_by_sequence"] = {s: _brief(m.compute().as_dict()) for s, m in tot.occ.items()}
+        results["occupancy_by_sequence"] = {
+            s: _brief(m.compute().as_dict()) for s, m in tot.occ.items()
+        }
     if tot.static:
         results["static"] = _sum(tot.static.values()).as_dict()
         results["static_by_sequence"] = {s: _brief(v.as_dict()) for s, v in tot.static.items()}
     if tot.boxes:
-        results["pedestrian_boxes"] = {**{s: v.as_dict() for s, v in tot.boxes.items()},
-                                       "all": _sum(tot.boxes.values()).as_dict()}
-        results["pedestrian_lidar"] = {**{s: v.as_dict() for s, v in tot.lidar.items()},
-                                       "all": _sum(tot.lidar.values()).as_dict()}
+        results["pedestrian_boxes"] = {
+            **{s: v.as_dict() for s, v in tot.boxes.items()},
+            "all": _sum(tot.boxes.values()).as_dict(),
+        }
+        results["pedestrian_lidar"] = {
+            **{s: v.as_dict() for s, v in tot.lidar.items()},
+            "all": _sum(tot.lidar.values()).as_dict(),
+        }
     if tot.detection:
-        results["detection"] = {**{c: v.as_dict() for c, v in tot.detection.items()},
-                                "all": _sum(tot.detection.values()).as_dict()}
+        results["detection"] = {
+            **{c: v.as_dict() for c, v in tot.detection.items()},
+            "all": _sum(tot.detection.values()).as_dict(),
+        }
     if tot.tracking:
-        results["tracking"] = {**{s: v.as_dict() for s, v in tot.tracking.items()},
-                               "all": _sum(tot.tracking.values()).as_dict()}
+        results["tracking"] = {
+            **{s: v.as_dict() for s, v in tot.tracking.items()},
+            "all": _sum(tot.tracking.values()).as_dict(),
+        }
     if tot.person_points:  # the track stage's LiDAR points per person vs per-point GT instances
-        results["person_points"] = {**{s: v.as_dict() for s, v in tot.person_points.items()},
-                                    "all": _sum(tot.person_points.values()).as_dict()}
+        results["person_points"] = {
+            **{s: v.as_dict() for s, v in tot.person_points.items()},
+            "all": _sum(tot.person_points.values()).as_dict(),
+        }
     if tot.fit:
-        allfit = {k: np.concatenate([v[k] for v in tot.fit.values()]) for k in ("pve", "mpjpe", "pa_mpjpe", "mpere")}
+        allfit = {
+            k: np.concatenate([v[k] for v in tot.fit.values()])
+            for k in ("pve", "mpjpe", "pa_mpjpe", "mpere")
+        }
         results["fit"] = {**{s: _fit_row(v) for s, v in tot.fit.items()}, "all": _fit_row(allfit)}
-        results["box_heading"] = heading_summary(np.concatenate([v["heading"] for v in tot.fit.values()]))
-        results["box_visibility"] = visibility_agreement(*(np.concatenate([v[k] for v in tot.fit.values()])
-                                                           for k in ("visible", "visible_gt")))
+        results["box_heading"] = heading_summary(
+            np.concatenate([v["heading"] for v in tot.fit.values()])
+        )
+        results["box_visibility"] = visibility_agreement(
+            *(np.concatenate([v[k] for v in tot.fit.values()]) for k in ("visible", "visible_gt"))
+        )
     if tot.velocity:
-        results["velocity"] = {**{s: v.as_dict() for s, v in tot.velocity.items()},
-                               "all": _sum(tot.velocity.values()).as_dict()}
+        results["velocity"] = {
+            **{s: v.as_dict() for s, v in tot.velocity.items()},
+            "all": _sum(tot.velocity.values()).as_dict(),
+        }
     if tot.velocity_vertex:
-        results["velocity_vertex_gt"] = {**{s: v.as_dict() for s, v in tot.velocity_vertex.items()},
-                                         "all": _sum(tot.velocity_vertex.values()).as_dict()}
+        results["velocity_vertex_gt"] = {
+            **{s: v.as_dict() for s, v in tot.velocity_vertex.items()},
+            "all": _sum(tot.velocity_vertex.values()).as_dict(),
+        }
         results["velocity_by_limb"] = _limb_table(tot.limbs)
     if tot.notes:
         results["notes"] = {k: {"note": v} for k, v in tot.notes.items()}
     hist = {}
     if tot.hist["velocity_error"]:
-        hist["pedestrian voxel velocity error"] = {"values": np.concatenate(tot.hist["velocity_error"]),
-                                                   "xlabel": "|v_pred - v_gt| (m/s), voxels pedestrian in both"}
-    for key, label in (("PVE_mm", "PVE (mm) per fitted person"), ("MPJPE_mm", "MPJPE (mm) per fitted person")):
+        hist["pedestrian voxel velocity error"] = {
+            "values": np.concatenate(tot.hist["velocity_error"]),
+            "xlabel": "|v_pred - v_gt| (m/s), voxels pedestrian in both",
+        }
+    for key, label in (
+        ("PVE_mm", "PVE (mm) per fitted person"),
+        ("MPJPE_mm", "MPJPE (mm) per fitted person"),
+    ):
         if tot.hist[key]:
             hist[f"fit {key}"] = {"values": np.concatenate(tot.hist[key]), "xlabel": label}
     from flows.commands.report import to_jsonable, write_report
@@ -497,4 +677,3 @@ def _sum_metric(metrics: dict[str, OccupancyMetric]):
 def _brief(row: dict) -> dict:
     """A per-sequence row: the summary numbers and per-class IoU."""
     return {k: v for k, v in row.items() if k not in ("num_points_ignored",)}
-

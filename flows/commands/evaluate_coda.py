@@ -46,8 +46,10 @@ def open_recorded_sequence(config: dict, root: Path, sequence: str):
     from flows.pipeline.inputs import open_sequence
 
     cfg = Config.model_validate(config) if config else load_config()
-    return open_sequence(cfg.model_copy(update={"dataset": cfg.dataset.model_copy(update={"root": Path(root)})}),
-                         sequence)
+    return open_sequence(
+        cfg.model_copy(update={"dataset": cfg.dataset.model_copy(update={"root": Path(root)})}),
+        sequence,
+    )
 
 
 def _sum(values, zero):
@@ -57,7 +59,9 @@ def _sum(values, zero):
     return total
 
 
-def evaluate_coda(dataset: Path, data: Path | None, report_dir: Path, sample_frames: int = 0) -> dict:
+def evaluate_coda(
+    dataset: Path, data: Path | None, report_dir: Path, sample_frames: int = 0
+) -> dict:
     """Evaluate the dataset at ``dataset`` (OUT) against the CODa labels of the raw data at
     ``data`` (None: the recorded dataset.root). Writes report.md and results.json under
     ``report_dir``; returns the results dict."""
@@ -72,8 +76,14 @@ def evaluate_coda(dataset: Path, data: Path | None, report_dir: Path, sample_fra
     out, manifest, config, root, ds = open_for_evaluation(dataset, data)
     camera = ((config.get("dataset") or {}).get("camera")) or "cam0"
     static, boxes, lidar = {}, {}, {}
-    labels = {"frames": 0, "frames with 3d_semantic": 0, "frames with 3d_bbox": 0, "pedestrian boxes": 0,
-              "boxes skipped (malformed)": 0, "boxes of unknown class": 0}
+    labels = {
+        "frames": 0,
+        "frames with 3d_semantic": 0,
+        "frames with 3d_bbox": 0,
+        "pedestrian boxes": 0,
+        "boxes skipped (malformed)": 0,
+        "boxes of unknown class": 0,
+    }
     unknown: set[str] = set()
     for seq in ds.sequences:
         coda = open_recorded_sequence(config, root, seq)
@@ -94,7 +104,9 @@ def evaluate_coda(dataset: Path, data: Path | None, report_dir: Path, sample_fra
             pts_base = C.transform_points(T_bl, frame.points_lidar)
             if frame.semantic_labels is not None:
                 labels["frames with 3d_semantic"] += 1
-                st = st + static_counts(pred, range_min, vs, pts_base, semantic_to_classes(frame.semantic_labels))
+                st = st + static_counts(
+                    pred, range_min, vs, pts_base, semantic_to_classes(frame.semantic_labels)
+                )
             if not coda.path("3d_bbox", "os1", raw, ".json").exists():
                 continue
             labels["frames with 3d_bbox"] += 1
@@ -112,8 +124,16 @@ def evaluate_coda(dataset: Path, data: Path | None, report_dir: Path, sample_fra
                 sizes = np.array([b.size for b in peds])
                 rots = np.array([box_rotation(b.rpy) for b in peds])
                 c_base, yaw_base = _boxes_to_base(T_bl, centers, [b.rpy[2] for b in peds])
-                bx = bx + pedestrian_box_counts(pred, range_min, vs, c_base, sizes, yaw_base, visible=mask_cam,
-                                                bottom_exclude_m=BOTTOM_EXCLUDE_M)
+                bx = bx + pedestrian_box_counts(
+                    pred,
+                    range_min,
+                    vs,
+                    c_base,
+                    sizes,
+                    yaw_base,
+                    visible=mask_cam,
+                    bottom_exclude_m=BOTTOM_EXCLUDE_M,
+                )
                 body = points_in_boxes(frame.points_lidar, centers, sizes, rots, BOTTOM_EXCLUDE_M)
                 body &= _in_image(frame.points_lidar, cam)
                 gt_body = voxelize_points(pts_base[body], range_min, vs, shape)
@@ -122,28 +142,46 @@ def evaluate_coda(dataset: Path, data: Path | None, report_dir: Path, sample_fra
             li = li + pedestrian_lidar_counts(pred, gt_body, region=frustum)
         static[seq], boxes[seq], lidar[seq] = st, bx, li
     labels["boxes of unknown class"] = len(unknown)
-    results: dict = {"title": "mobileocc label quality vs CODa labels",
-                     "meta": {"dataset": str(out), "CODa root": str(root), "sequences": ", ".join(ds.sequences),
-                              "labels": "3d_semantic (terrain ids mapped by tasks/metrics/coda_labels.py), "
-                                        "3d_bbox pedestrian boxes"}}
+    results: dict = {
+        "title": "mobileocc label quality vs CODa labels",
+        "meta": {
+            "dataset": str(out),
+            "CODa root": str(root),
+            "sequences": ", ".join(ds.sequences),
+            "labels": "3d_semantic (terrain ids mapped by tasks/metrics/coda_labels.py), "
+            "3d_bbox pedestrian boxes",
+        },
+    }
     all_static = _sum(static.values(), StaticCounts())
     if all_static.num_points:
         results["static"] = all_static.as_dict()
-        results["static_by_sequence"] = {s: {k: v for k, v in c.as_dict().items() if k != "num_points_ignored"}
-                                         for s, c in static.items()}
+        results["static_by_sequence"] = {
+            s: {k: v for k, v in c.as_dict().items() if k != "num_points_ignored"}
+            for s, c in static.items()
+        }
     if labels["pedestrian boxes"]:
-        results["pedestrian_boxes"] = {**{s: v.as_dict() for s, v in boxes.items()},
-                                       "all": _sum(boxes.values(), PRCounts()).as_dict()}
-        results["pedestrian_lidar"] = {**{s: v.as_dict() for s, v in lidar.items()},
-                                       "all": _sum(lidar.values(), PRCounts()).as_dict()}
+        results["pedestrian_boxes"] = {
+            **{s: v.as_dict() for s, v in boxes.items()},
+            "all": _sum(boxes.values(), PRCounts()).as_dict(),
+        }
+        results["pedestrian_lidar"] = {
+            **{s: v.as_dict() for s, v in lidar.items()},
+            "all": _sum(lidar.values(), PRCounts()).as_dict(),
+        }
     results["labels"] = labels
     notes = {}
     if unknown:
-        notes["unknown box classes"] = {"note": ", ".join(sorted(unknown)) + " (not in the mapping: left out)"}
+        notes["unknown box classes"] = {
+            "note": ", ".join(sorted(unknown)) + " (not in the mapping: left out)"
+        }
     if not all_static.num_points:
-        notes["static"] = {"note": "no 3d_semantic file among the published frames: static section skipped"}
+        notes["static"] = {
+            "note": "no 3d_semantic file among the published frames: static section skipped"
+        }
     if not labels["pedestrian boxes"]:
-        notes["pedestrians"] = {"note": "no pedestrian box among the published frames: pedestrian sections skipped"}
+        notes["pedestrians"] = {
+            "note": "no pedestrian box among the published frames: pedestrian sections skipped"
+        }
     if notes:
         results["notes"] = notes
     write_report(report_dir, results, {})

@@ -39,64 +39,112 @@ import numpy as np
 
 from tasks import conventions as C
 
-_PERCENT = {"iou", "miou", "geometric_iou", "precision", "recall", "f1", "coverage", "voxel_accuracy",
-            "point_accuracy", "mota", "idf1", "hota", "deta", "assa", "miss_vis"}
-_LABELS = {"geometric_iou": "IoU (geom.)", "miou": "mIoU", "f1": "F1", "mota": "MOTA", "idf1": "IDF1",
-           "hota": "HOTA", "deta": "DetA", "assa": "AssA", "miss_vis": "Miss_vis %", "ave_o": "AVE-O (m/s)",
-           "ave_t": "AVE-T (m/s)", "coverage": "GT point coverage", "voxel_accuracy": "Voxel-level accuracy",
-           "point_accuracy": "Point-level accuracy", "num_voxels_o": "voxels (O)", "num_voxels_t": "voxels (T)",
-           "pred_total": "pred. voxels", "ref_total": "ref. voxels", "num_objects": "GT boxes",
-           "num_voxels": "voxels", "ave_o_vertex_gt": "AVE-O vs vertex GT", "ave_t_vertex_gt": "AVE-T vs vertex GT",
-           "ave_o_person_gt": "AVE-O vs person GT", "ave_t_person_gt": "AVE-T vs person GT", "PVE_mm": "PVE (mm)", "MPJPE_mm": "MPJPE (mm)", "PA_MPJPE_mm": "PA-MPJPE (mm)"}
-_DIFF_COLORS = np.array([[255, 255, 255],  # free in both
-                         [44, 160, 44],  # correct: green
-                         [255, 165, 0],  # wrong class: orange
-                         [31, 90, 220],  # missed: blue
-                         [220, 30, 30],  # extra: red
-                         [200, 200, 200]], dtype=np.uint8)  # unknown: light grey
+_PERCENT = {
+    "iou",
+    "miou",
+    "geometric_iou",
+    "precision",
+    "recall",
+    "f1",
+    "coverage",
+    "voxel_accuracy",
+    "point_accuracy",
+    "mota",
+    "idf1",
+    "hota",
+    "deta",
+    "assa",
+    "miss_vis",
+}
+_LABELS = {
+    "geometric_iou": "IoU (geom.)",
+    "miou": "mIoU",
+    "f1": "F1",
+    "mota": "MOTA",
+    "idf1": "IDF1",
+    "hota": "HOTA",
+    "deta": "DetA",
+    "assa": "AssA",
+    "miss_vis": "Miss_vis %",
+    "ave_o": "AVE-O (m/s)",
+    "ave_t": "AVE-T (m/s)",
+    "coverage": "GT point coverage",
+    "voxel_accuracy": "Voxel-level accuracy",
+    "point_accuracy": "Point-level accuracy",
+    "num_voxels_o": "voxels (O)",
+    "num_voxels_t": "voxels (T)",
+    "pred_total": "pred. voxels",
+    "ref_total": "ref. voxels",
+    "num_objects": "GT boxes",
+    "num_voxels": "voxels",
+    "ave_o_vertex_gt": "AVE-O vs vertex GT",
+    "ave_t_vertex_gt": "AVE-T vs vertex GT",
+    "ave_o_person_gt": "AVE-O vs person GT",
+    "ave_t_person_gt": "AVE-T vs person GT",
+    "PVE_mm": "PVE (mm)",
+    "MPJPE_mm": "MPJPE (mm)",
+    "PA_MPJPE_mm": "PA-MPJPE (mm)",
+}
+_DIFF_COLORS = np.array(
+    [
+        [255, 255, 255],  # free in both
+        [44, 160, 44],  # correct: green
+        [255, 165, 0],  # wrong class: orange
+        [31, 90, 220],  # missed: blue
+        [220, 30, 30],  # extra: red
+        [200, 200, 200],
+    ],
+    dtype=np.uint8,
+)  # unknown: light grey
 
 _HOW_TO_READ = {
     "static": "Static voxel labels against labelled ground-truth LiDAR points. IoU is per point (a point "
-              "takes its voxel's label); coverage = GT points whose voxel is occupied; the accuracies are "
-              "over covered points / occupied voxels holding GT points (majority GT label). Higher is better.",
+    "takes its voxel's label); coverage = GT points whose voxel is occupied; the accuracies are "
+    "over covered points / occupied voxels holding GT points (majority GT label). Higher is better.",
     "pedestrian_boxes": "Pedestrian voxels against GT 3D boxes, camera-visible voxels only, bottom 0.1 m of each "
-                        "box left out. Precision: labelled pedestrian voxels inside a box; recall: occupied box "
-                        "voxels labelled pedestrian. Boxes hold air and feet, so both are conservative.",
+    "box left out. Precision: labelled pedestrian voxels inside a box; recall: occupied box "
+    "voxels labelled pedestrian. Boxes hold air and feet, so both are conservative.",
     "pedestrian_lidar": "Pedestrian voxels against voxelised LiDAR body points at +-1 voxel tolerance. "
-                        "Precision: pedestrian voxels near a LiDAR body voxel; recall: LiDAR body voxels near "
-                        "a pedestrian voxel. 'all' sums the counts of every sequence.",
+    "Precision: pedestrian voxels near a LiDAR body voxel; recall: LiDAR body voxels near "
+    "a pedestrian voxel. 'all' sums the counts of every sequence.",
     "detection": "Per condition: T matched persons (IoU >= 0.5), M_vis / M_occ missed visible / occluded, W false "
-                 "positives. Recall = T / (T + M_vis), precision = T / (T + W).",
+    "positives. Recall = T / (T + M_vis), precision = T / (T + W).",
     "occupancy": "Occ3D metric over camera-visible voxels: IoU per class, mIoU over the 9 occupied classes "
-                 "(n/a: class in neither grid, left out of the mean), IoU (geom.) = occupied vs free.",
+    "(n/a: class in neither grid, left out of the mean), IoU (geom.) = occupied vs free.",
     "fit": "Body fit errors: PVE / MPJPE in mm (lower is better), PA-MPJPE after similarity alignment, "
-           "MPERE relative edge-length error (unitless).",
+    "MPERE relative edge-length error (unitless).",
     "box_heading": "Published pedestrian box yaw of each fitted person matched to a GT person vs the GT heading, "
-                   "degrees (lower is better); axis off 45 share: boxes whose axis is more than 45 deg off "
-                   "modulo 180 (l and w swapped).",
+    "degrees (lower is better); axis off 45 share: boxes whose axis is more than 45 deg off "
+    "modulo 180 (l and w swapped).",
     "box_visibility": "Visible fraction of each matched fitted person's box in cam0 as the nuScenes export "
-                      "computes it (from the voxel grid) vs the GT visible fraction (mesh silhouette pixels); "
-                      "shares of boxes in the same / a neighbouring nuScenes visibility bin, binned lower.",
+    "computes it (from the voxel grid) vs the GT visible fraction (mesh silhouette pixels); "
+    "shares of boxes in the same / a neighbouring nuScenes visibility bin, binned lower.",
     "tracking": "MOTA = 1 - (misses + false positives + id switches) / GT boxes; IDF1 = identity F1; "
-                "HOTA = sqrt(DetA x AssA) averaged over IoU thresholds 0.05..0.95. Higher is better.",
+    "HOTA = sqrt(DetA x AssA) averaged over IoU thresholds 0.05..0.95. Higher is better.",
     "velocity": "Absolute velocity error of pedestrian voxels (m/s, lower is better): AVE-O over voxels pedestrian "
-                "in both, AVE-T over all GT pedestrian voxels (a missed voxel counts with zero velocity). "
-                "Ground truth: each person's own velocity on all its voxels.",
+    "in both, AVE-T over all GT pedestrian voxels (a missed voxel counts with zero velocity). "
+    "Ground truth: each person's own velocity on all its voxels.",
     "velocity_vertex_gt": "AVE as above against the per-vertex ground truth: each GT pedestrian voxel moves with "
-                          "the mean velocity of the body surface in it (a swinging leg's voxels faster than the "
-                          "torso's).",
+    "the mean velocity of the body surface in it (a swinging leg's voxels faster than the "
+    "torso's).",
     "velocity_by_limb": "AVE per limb group of the GT voxel (the group of its nearest GT vertex, from the body "
-                        "model's skinning weights), against the per-vertex GT and against the per-person GT; "
-                        "m/s, lower is better.",
+    "model's skinning weights), against the per-vertex GT and against the per-person GT; "
+    "m/s, lower is better.",
 }
-_TITLES = {"static": "Static semantic voxels (vs GT LiDAR points)",
-           "pedestrian_boxes": "Pedestrian voxels (vs GT 3D boxes)",
-           "pedestrian_lidar": "Pedestrian voxels (vs LiDAR body GT)",
-           "detection": "Detection robustness", "occupancy": "Semantic occupancy (Occ3D metric)",
-           "fit": "Body fit accuracy", "box_heading": "Pedestrian box heading (vs GT)",
-           "box_visibility": "Pedestrian box visibility (vs GT)", "tracking": "Tracking", "velocity": "Pedestrian velocity (AVE)",
-           "velocity_vertex_gt": "Pedestrian velocity (AVE) vs per-vertex GT",
-           "velocity_by_limb": "Pedestrian velocity (AVE) per limb group"}
+_TITLES = {
+    "static": "Static semantic voxels (vs GT LiDAR points)",
+    "pedestrian_boxes": "Pedestrian voxels (vs GT 3D boxes)",
+    "pedestrian_lidar": "Pedestrian voxels (vs LiDAR body GT)",
+    "detection": "Detection robustness",
+    "occupancy": "Semantic occupancy (Occ3D metric)",
+    "fit": "Body fit accuracy",
+    "box_heading": "Pedestrian box heading (vs GT)",
+    "box_visibility": "Pedestrian box visibility (vs GT)",
+    "tracking": "Tracking",
+    "velocity": "Pedestrian velocity (AVE)",
+    "velocity_vertex_gt": "Pedestrian velocity (AVE) vs per-vertex GT",
+    "velocity_by_limb": "Pedestrian velocity (AVE) per limb group",
+}
 _COLUMNS = {
     "pedestrian_boxes": ["precision", "recall", "f1", "pred_total", "ref_total"],
     "pedestrian_lidar": ["precision", "recall", "f1", "pred_total", "ref_total"],
@@ -113,6 +161,7 @@ class ReportError(ValueError):
 
 
 # ---- JSON ---------------------------------------------------------------------------------------
+
 
 def to_jsonable(value):
     """Plain JSON types: numpy scalars / arrays to Python, NaN / inf to None, tuples to lists."""
@@ -143,6 +192,7 @@ def write_json(path: Path | str, value) -> Path:
 
 
 # ---- Markdown -----------------------------------------------------------------------------------
+
 
 def _fmt(key: str, value) -> str:
     if value is None or (isinstance(value, float) and math.isnan(value)):
@@ -178,7 +228,7 @@ def _as_rows(section: dict) -> dict[str, dict]:
 def _flatten(row: dict) -> dict:
     """Inline per_class_iou into the row (class columns after the summary columns)."""
     out = {k: v for k, v in row.items() if not isinstance(v, dict)}
-    for k, v in row.items():
+    for v in row.values():
         if isinstance(v, dict):
             out.update(v)
     return out
@@ -214,9 +264,17 @@ def _transposed(name: str, section: dict) -> str:
     """Paper layout for the per-sequence P / R / F1 tables: metrics as rows, sequences as columns."""
     seqs = list(section)
     keys = ["precision", "recall", "f1"]
-    rows = [[_label(k) if k != "f1" else "F1"] + [_fmt(k, section[s].get(k)) for s in seqs] for k in keys]
-    counts = [["pred / ref voxels"] + [f"{section[s].get('pred_total', 'n/a')} / {section[s].get('ref_total', 'n/a')}"
-                                       for s in seqs]]
+    rows = [
+        [_label(k) if k != "f1" else "F1"] + [_fmt(k, section[s].get(k)) for s in seqs]
+        for k in keys
+    ]
+    counts = [
+        ["pred / ref voxels"]
+        + [
+            f"{section[s].get('pred_total', 'n/a')} / {section[s].get('ref_total', 'n/a')}"
+            for s in seqs
+        ]
+    ]
     return _table(["Seq"] + [str(s) for s in seqs], rows + counts)
 
 
@@ -229,7 +287,9 @@ def _section_markdown(name: str, section, figure_names: list[str]) -> str:
         parts.append(f"{_fmt(name, section)}")
     elif name == "static":
         parts.append(_static_table(section))
-    elif name in ("pedestrian_boxes", "pedestrian_lidar") and all(isinstance(v, dict) for v in section.values()):
+    elif name in ("pedestrian_boxes", "pedestrian_lidar") and all(
+        isinstance(v, dict) for v in section.values()
+    ):
         parts.append(_transposed(name, section))
     else:
         parts.append(_rows_table(name, section))
@@ -239,6 +299,7 @@ def _section_markdown(name: str, section, figure_names: list[str]) -> str:
 
 
 # ---- figures ------------------------------------------------------------------------------------
+
 
 def _new_figure(w: float, h: float):
     from matplotlib.figure import Figure  # Agg canvas, no pyplot global state
@@ -255,19 +316,35 @@ def _save(fig, path: Path) -> Path:
 
 def _iou_bars(path: Path, per_class: dict, miou, title: str) -> Path:
     names = list(per_class)
-    vals = np.array([np.nan if v is None else float(v) for v in per_class.values()], dtype=np.float64)
-    colors = [C.CLASS_COLORS[C.CLASS_NAMES.index(n)] / 255.0 if n in C.CLASS_NAMES else (0.5, 0.5, 0.5)
-              for n in names]
+    vals = np.array(
+        [np.nan if v is None else float(v) for v in per_class.values()], dtype=np.float64
+    )
+    colors = [
+        C.CLASS_COLORS[C.CLASS_NAMES.index(n)] / 255.0 if n in C.CLASS_NAMES else (0.5, 0.5, 0.5)
+        for n in names
+    ]
     fig = _new_figure(6.5, 3.2)
     ax = fig.subplots()
     x = np.arange(len(names))
     ax.bar(x, np.nan_to_num(100 * vals), color=colors, edgecolor="black", linewidth=0.6)
     for xi, v in zip(x, vals):
-        ax.text(xi, (0 if np.isnan(v) else 100 * v) + 1.5, "n/a" if np.isnan(v) else f"{100 * v:.1f}",
-                ha="center", va="bottom", fontsize=8)
+        ax.text(
+            xi,
+            (0 if np.isnan(v) else 100 * v) + 1.5,
+            "n/a" if np.isnan(v) else f"{100 * v:.1f}",
+            ha="center",
+            va="bottom",
+            fontsize=8,
+        )
     if miou is not None and not (isinstance(miou, float) and math.isnan(miou)):
         ax.axhline(100 * float(miou), color="black", linestyle="--", linewidth=1)
-        ax.text(len(names) - 0.5, 100 * float(miou) + 1.5, f"mIoU {100 * float(miou):.1f}", ha="right", fontsize=8)
+        ax.text(
+            len(names) - 0.5,
+            100 * float(miou) + 1.5,
+            f"mIoU {100 * float(miou):.1f}",
+            ha="right",
+            fontsize=8,
+        )
     ax.set_xticks(x, names, rotation=30, ha="right", fontsize=8)
     ax.set_ylim(0, 110)
     ax.set_ylabel("IoU (%)")
@@ -281,9 +358,19 @@ def _histogram(path: Path, name: str, values, xlabel: str) -> Path:
     fig = _new_figure(5.0, 3.0)
     ax = fig.subplots()
     if len(v):
-        ax.hist(v, bins=min(40, max(5, len(v) // 5)), color="#4c72b0", edgecolor="white", linewidth=0.4)
-        ax.axvline(np.mean(v), color="black", linestyle="--", linewidth=1, label=f"mean {np.mean(v):.3g}")
-        ax.axvline(np.median(v), color="#dd8452", linestyle=":", linewidth=1.5, label=f"median {np.median(v):.3g}")
+        ax.hist(
+            v, bins=min(40, max(5, len(v) // 5)), color="#4c72b0", edgecolor="white", linewidth=0.4
+        )
+        ax.axvline(
+            np.mean(v), color="black", linestyle="--", linewidth=1, label=f"mean {np.mean(v):.3g}"
+        )
+        ax.axvline(
+            np.median(v),
+            color="#dd8452",
+            linestyle=":",
+            linewidth=1.5,
+            label=f"median {np.median(v):.3g}",
+        )
         ax.legend(fontsize=8)
     else:
         ax.text(0.5, 0.5, "no values", ha="center", va="center", transform=ax.transAxes)
@@ -309,7 +396,9 @@ def _bev_triptych(path: Path, sample: dict) -> Path:
     try:
         pred, gt = np.asarray(sample["pred"]), np.asarray(sample["gt"])
     except KeyError as err:
-        raise ReportError(f"figures['bev'] sample {sample.get('title', '?')!r}: missing {err}") from None
+        raise ReportError(
+            f"figures['bev'] sample {sample.get('title', '?')!r}: missing {err}"
+        ) from None
     mask = sample.get("mask")
     gt_top = bev_top_labels(gt, mask)
     pred_top = bev_top_labels(pred, mask)
@@ -323,8 +412,11 @@ def _bev_triptych(path: Path, sample: dict) -> Path:
     flip = lambda a: np.flip(a, axis=(0, 1))  # noqa: E731
     fig = _new_figure(11.0, 4.6)
     axes = fig.subplots(1, 3)
-    panels = [(_class_rgb(pred_top), "prediction"), (_class_rgb(gt_top), "ground truth"),
-              (_DIFF_COLORS[diff], "difference")]
+    panels = [
+        (_class_rgb(pred_top), "prediction"),
+        (_class_rgb(gt_top), "ground truth"),
+        (_DIFF_COLORS[diff], "difference"),
+    ]
     for ax, (img, name) in zip(axes, panels):
         ax.imshow(flip(img), extent=extent, interpolation="nearest")
         ax.set_title(name, fontsize=10)
@@ -332,17 +424,45 @@ def _bev_triptych(path: Path, sample: dict) -> Path:
         ax.tick_params(labelsize=7)
     axes[0].set_ylabel(f"x ({unit}, forward)", fontsize=8)
     present = sorted(set(np.unique(pred_top)) | set(np.unique(gt_top)))
-    cls_handles = [Patch(facecolor=C.CLASS_COLORS[c] / 255.0, edgecolor="black", label=C.CLASS_NAMES[c])
-                   for c in present if c < C.FREE]
-    cls_handles += [Patch(facecolor="white", edgecolor="black", label="free"),
-                    Patch(facecolor=C.UNKNOWN_COLOR / 255.0, edgecolor="black", label="unknown")]
-    diff_handles = [Patch(facecolor=_DIFF_COLORS[k] / 255.0, edgecolor="black",
-                          label=f"{DIFF_NAMES[k]} ({int(np.sum(diff == k))} columns)") for k in (1, 2, 3, 4, 5)]
-    fig.legend(handles=cls_handles, loc="outside lower left", ncol=4, fontsize=7, frameon=False,
-               title="classes (left, middle)", title_fontsize=7)
-    fig.legend(handles=diff_handles, loc="outside lower right", ncol=3, fontsize=7, frameon=False,
-               title="difference (right)", title_fontsize=7)
-    fig.suptitle(f"{sample.get('title', 'sample')}: top-down view, highest occupied voxel per column", fontsize=10)
+    cls_handles = [
+        Patch(facecolor=C.CLASS_COLORS[c] / 255.0, edgecolor="black", label=C.CLASS_NAMES[c])
+        for c in present
+        if c < C.FREE
+    ]
+    cls_handles += [
+        Patch(facecolor="white", edgecolor="black", label="free"),
+        Patch(facecolor=C.UNKNOWN_COLOR / 255.0, edgecolor="black", label="unknown"),
+    ]
+    diff_handles = [
+        Patch(
+            facecolor=_DIFF_COLORS[k] / 255.0,
+            edgecolor="black",
+            label=f"{DIFF_NAMES[k]} ({int(np.sum(diff == k))} columns)",
+        )
+        for k in (1, 2, 3, 4, 5)
+    ]
+    fig.legend(
+        handles=cls_handles,
+        loc="outside lower left",
+        ncol=4,
+        fontsize=7,
+        frameon=False,
+        title="classes (left, middle)",
+        title_fontsize=7,
+    )
+    fig.legend(
+        handles=diff_handles,
+        loc="outside lower right",
+        ncol=3,
+        fontsize=7,
+        frameon=False,
+        title="difference (right)",
+        title_fontsize=7,
+    )
+    fig.suptitle(
+        f"{sample.get('title', 'sample')}: top-down view, highest occupied voxel per column",
+        fontsize=10,
+    )
     return _save(fig, path)
 
 
@@ -351,6 +471,7 @@ def _slug(text: str) -> str:
 
 
 # ---- entry point --------------------------------------------------------------------------------
+
 
 def write_report(report_dir, results: dict, figures: dict | None = None) -> Path:
     """Write ``report.md``, ``results.json`` and ``figures/*.png`` under ``report_dir``.
@@ -369,15 +490,27 @@ def write_report(report_dir, results: dict, figures: dict | None = None) -> Path
     section_figs: dict[str, list[str]] = {}
     for name in ("occupancy", "static"):
         sec = jsonable.get(name)
-        if isinstance(sec, dict) and isinstance(sec.get("per_class_iou"), dict) and sec["per_class_iou"]:
+        if (
+            isinstance(sec, dict)
+            and isinstance(sec.get("per_class_iou"), dict)
+            and sec["per_class_iou"]
+        ):
             fig = f"{name}_class_iou"
-            _iou_bars(fig_dir / f"{fig}.png", sec["per_class_iou"], sec.get("miou"), f"{_TITLES[name]}: IoU per class")
+            _iou_bars(
+                fig_dir / f"{fig}.png",
+                sec["per_class_iou"],
+                sec.get("miou"),
+                f"{_TITLES[name]}: IoU per class",
+            )
             section_figs.setdefault(name, []).append(fig)
 
     md = [f"# {results.get('title', 'mobileocc evaluation report')}", ""]
     meta = results.get("meta") or {}
     md += [f"- **{k}**: {v}" for k, v in jsonable.get("meta", {}).items()] + ([""] if meta else [])
-    md += ["Ratios are percentages; n/a = undefined (nothing to count). Numbers: `results.json`.", ""]
+    md += [
+        "Ratios are percentages; n/a = undefined (nothing to count). Numbers: `results.json`.",
+        "",
+    ]
     for name, section in jsonable.items():
         if name in ("title", "meta"):
             continue
@@ -385,21 +518,33 @@ def write_report(report_dir, results: dict, figures: dict | None = None) -> Path
 
     samples = figures.get("bev") or []
     if samples:
-        md += ["## Sample frames (bird's-eye view)", "",
-               "*How to read this:* each column of the grid seen from above, coloured by its highest occupied "
-               "voxel (grey: never seen, white: free). Difference, voxel by voxel in the column, its most "
-               "frequent error: orange wrong class, blue missed (occupied in ground truth only), red extra "
-               "(occupied in the prediction only); green: every occupied voxel right.", ""]
+        md += [
+            "## Sample frames (bird's-eye view)",
+            "",
+            "*How to read this:* each column of the grid seen from above, coloured by its highest occupied "
+            "voxel (grey: never seen, white: free). Difference, voxel by voxel in the column, its most "
+            "frequent error: orange wrong class, blue missed (occupied in ground truth only), red extra "
+            "(occupied in the prediction only); green: every occupied voxel right.",
+            "",
+        ]
         for k, sample in enumerate(samples):
             fig = f"bev_{k:02d}_{_slug(sample.get('title', 'sample'))}"
             _bev_triptych(fig_dir / f"{fig}.png", sample)
             md += [f"![{sample.get('title', fig)}](figures/{fig}.png)", ""]
     hists = figures.get("histograms") or {}
     if hists:
-        md += ["## Error distributions", "",
-               "*How to read this:* histogram of per-item errors; dashed line mean, dotted line median.", ""]
+        md += [
+            "## Error distributions",
+            "",
+            "*How to read this:* histogram of per-item errors; dashed line mean, dotted line median.",
+            "",
+        ]
         for name, spec in hists.items():
-            values, xlabel = (spec.get("values"), spec.get("xlabel", name)) if isinstance(spec, dict) else (spec, name)
+            values, xlabel = (
+                (spec.get("values"), spec.get("xlabel", name))
+                if isinstance(spec, dict)
+                else (spec, name)
+            )
             fig = f"hist_{_slug(name)}"
             _histogram(fig_dir / f"{fig}.png", name, values, xlabel)
             md += [f"![{name}](figures/{fig}.png)", ""]

@@ -46,7 +46,9 @@ def _calibration(rig):
             P = np.hstack([c.K, np.zeros((3, 1))])
             P[0, 3] = c.K[0, 0] * (c.T_cam_from_lidar @ np.linalg.inv(T0))[0, 3]  # -fx * baseline
             raw = RawCameraCalibration(c.K_raw, c.distortion, c.R_rect, P, R4 @ c.T_cam_from_lidar)
-        cams[c.name] = CameraCalibration(c.name, c.K, np.zeros(5), c.width, c.height, c.T_cam_from_lidar, raw)
+        cams[c.name] = CameraCalibration(
+            c.name, c.K, np.zeros(5), c.width, c.height, c.T_cam_from_lidar, raw
+        )
     return Calibration(cams, rig.T_base_from_lidar)
 
 
@@ -58,11 +60,27 @@ def _boxes(frame) -> list:
     for k, tid in enumerate(p.track_id):
         if np.linalg.norm(p.box_center[k, :2]) > 40.0:
             continue
-        out.append(Box3D(f"Pedestrian:{int(tid)}", "Pedestrian", p.box_center[k], p.box_size[k],
-                         np.array([0.0, 0.0, p.box_yaw[k]]), p.occlusion[k]))
+        out.append(
+            Box3D(
+                f"Pedestrian:{int(tid)}",
+                "Pedestrian",
+                p.box_center[k],
+                p.box_size[k],
+                np.array([0.0, 0.0, p.box_yaw[k]]),
+                p.occlusion[k],
+            )
+        )
     for ob in frame.objects:
-        out.append(Box3D(f"{ob.obj.class_name}:{ob.obj.instance_id}", ob.obj.class_name, ob.center,
-                         ob.obj.size, np.array([0.0, 0.0, ob.yaw]), "Unknown"))
+        out.append(
+            Box3D(
+                f"{ob.obj.class_name}:{ob.obj.instance_id}",
+                ob.obj.class_name,
+                ob.center,
+                ob.obj.size,
+                np.array([0.0, 0.0, ob.yaw]),
+                "Unknown",
+            )
+        )
     return out
 
 
@@ -79,17 +97,37 @@ def write_frame(out: Path, seq: int, frame, stamp_ns: int, image_ext: str = ".jp
     W.write_boxes(out, seq, frame.index, _boxes(frame))
     W.write_semantic(out, seq, frame.index, coda_semantic_ids(s.point_class))
     p = frame.people
-    GT.write_frame_gt(out, seq, frame.index, {
-        "occupancy": frame.occupancy, "occupancy_instance": frame.occupancy_instance,
-        "point_class": s.point_class, "point_instance": s.point_instance,
-        "T_world_from_lidar": frame.T_world_from_lidar, "T_world_from_base": frame.T_world_from_base,
-        "stamp_ns": np.int64(stamp_ns), "cam0_semantic": frame.cam0.cityscapes,
-        "cam0_instance": frame.cam0.instance, "track_id": p.track_id, "betas": p.betas,
-        "global_orient": p.global_orient, "body_pose": p.body_pose, "transl": p.transl,
-        "vertices": p.vertices, "joints": p.joints, "velocity_base": p.velocity_base, "box2d": p.box2d,
-        "keypoints": p.keypoints, "visible_fraction": p.visible_fraction, "box_center": p.box_center,
-        "box_size": p.box_size, "box_yaw": p.box_yaw, "vertex_velocity_base": p.vertex_velocity_base,
-    })
+    GT.write_frame_gt(
+        out,
+        seq,
+        frame.index,
+        {
+            "occupancy": frame.occupancy,
+            "occupancy_instance": frame.occupancy_instance,
+            "point_class": s.point_class,
+            "point_instance": s.point_instance,
+            "T_world_from_lidar": frame.T_world_from_lidar,
+            "T_world_from_base": frame.T_world_from_base,
+            "stamp_ns": np.int64(stamp_ns),
+            "cam0_semantic": frame.cam0.cityscapes,
+            "cam0_instance": frame.cam0.instance,
+            "track_id": p.track_id,
+            "betas": p.betas,
+            "global_orient": p.global_orient,
+            "body_pose": p.body_pose,
+            "transl": p.transl,
+            "vertices": p.vertices,
+            "joints": p.joints,
+            "velocity_base": p.velocity_base,
+            "box2d": p.box2d,
+            "keypoints": p.keypoints,
+            "visible_fraction": p.visible_fraction,
+            "box_center": p.box_center,
+            "box_size": p.box_size,
+            "box_yaw": p.box_yaw,
+            "vertex_velocity_base": p.vertex_velocity_base,
+        },
+    )
 
 
 #: ``--fast``: cameras at this fraction of CODa's 1224 x 1024 (612 x 512, same field of view)
@@ -120,8 +158,9 @@ def _limit_threads() -> int:
 _WORKER_SIM: dict = {}
 
 
-def _write_frames(out: str, seq: int, opts, fast: bool, indices: list[int], stamps_ns: list[int],
-                  image_ext: str) -> int:
+def _write_frames(
+    out: str, seq: int, opts, fast: bool, indices: list[int], stamps_ns: list[int], image_ext: str
+) -> int:
     """Simulate and write ``indices`` of sequence ``seq`` (in a frame worker or in-process)."""
     key = (seq, opts, fast)
     if _WORKER_SIM.get("key") != key:
@@ -134,13 +173,26 @@ def _write_frames(out: str, seq: int, opts, fast: bool, indices: list[int], stam
 
 
 def _chunks(items: list[int], n: int) -> list[list[int]]:
-    return [items[i: i + n] for i in range(0, len(items), n)]
+    return [items[i : i + n] for i in range(0, len(items), n)]
 
 
-def simulate(out: Path, sequences: int, frames: int, seed: int, pedestrians: int | None = None,
-             crowd: str = "uncrowded", night: bool = False, sensor: str = "os1-128",
-             progress: bool = True, first_id: int = 0, image_ext: str = ".jpg",
-             split_style: bool = False, fast: bool = False, workers: int = 1, frame_step: int = 1) -> list[int]:
+def simulate(
+    out: Path,
+    sequences: int,
+    frames: int,
+    seed: int,
+    pedestrians: int | None = None,
+    crowd: str = "uncrowded",
+    night: bool = False,
+    sensor: str = "os1-128",
+    progress: bool = True,
+    first_id: int = 0,
+    image_ext: str = ".jpg",
+    split_style: bool = False,
+    fast: bool = False,
+    workers: int = 1,
+    frame_step: int = 1,
+) -> list[int]:
     """Write ``sequences`` synthetic sequences (ids first_id..first_id+sequences-1) of ``frames``
     raw 10 Hz frames under ``out`` in the CODa layout plus ``gt/``. Returns the sequence ids
     written. Sequence ``s`` is seeded from (seed, s), so a benchmark can add sequences of another
@@ -167,19 +219,29 @@ def simulate(out: Path, sequences: int, frames: int, seed: int, pedestrians: int
     out = Path(out)
     written_frames = split_style_frames(frames) if split_style else list(range(frames))
     written_frames = written_frames[::frame_step]
-    bar = tqdm(total=sequences * len(written_frames), desc="simulate", unit="frame", disable=not progress)
+    bar = tqdm(
+        total=sequences * len(written_frames), desc="simulate", unit="frame", disable=not progress
+    )
     pool = None
     if workers > 1 and sequences * len(written_frames) > 1:
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
 
-        pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_limit_threads)
+        pool = ProcessPoolExecutor(
+            workers, mp_context=mp.get_context("spawn"), initializer=_limit_threads
+        )
     written = []
     threads = _limit_threads()
     try:
         for seq in range(first_id, first_id + sequences):
-            opts = SimOptions(seed=sequence_seed(seed, seq), frames=frames, pedestrians=pedestrians,
-                              crowd=crowd, night=night, sensor=sensor)
+            opts = SimOptions(
+                seed=sequence_seed(seed, seq),
+                frames=frames,
+                pedestrians=pedestrians,
+                crowd=crowd,
+                night=night,
+                sensor=sensor,
+            )
             start_ns = (START_UNIX_S + 3600 * seq) * 1_000_000_000
             stamps = start_ns + FRAME_PERIOD_NS * np.arange(frames, dtype=np.int64)
             if pool is None:
@@ -188,9 +250,19 @@ def simulate(out: Path, sequences: int, frames: int, seed: int, pedestrians: int
                     bar.update(1)
             else:
                 size = max(1, min(16, -(-len(written_frames) // (4 * workers))))
-                futures = [pool.submit(_write_frames, str(out), seq, opts, fast, c,
-                                       [int(stamps[i]) for i in c], image_ext)
-                           for c in _chunks(written_frames, size)]
+                futures = [
+                    pool.submit(
+                        _write_frames,
+                        str(out),
+                        seq,
+                        opts,
+                        fast,
+                        c,
+                        [int(stamps[i]) for i in c],
+                        image_ext,
+                    )
+                    for c in _chunks(written_frames, size)
+                ]
                 from concurrent.futures import as_completed
 
                 for fut in as_completed(futures):
@@ -208,30 +280,59 @@ def simulate(out: Path, sequences: int, frames: int, seed: int, pedestrians: int
     return written
 
 
-def _write_sequence_files(out: Path, seq: int, opts, fast: bool, frames: int, stamps: np.ndarray,
-                          seed: int, written_frames: list[int]) -> None:
+def _write_sequence_files(
+    out: Path,
+    seq: int,
+    opts,
+    fast: bool,
+    frames: int,
+    stamps: np.ndarray,
+    seed: int,
+    written_frames: list[int],
+) -> None:
     """Calibration, timestamps, poses, the sequence's ground truth, then the metadata (last: its
     presence marks a complete sequence)."""
     from storage import coda_writer as W
     from storage import gt as GT
 
-    sim = make_simulator(opts, fast) if _WORKER_SIM.get("key") != (seq, opts, fast) else _WORKER_SIM["sim"]
+    sim = (
+        make_simulator(opts, fast)
+        if _WORKER_SIM.get("key") != (seq, opts, fast)
+        else _WORKER_SIM["sim"]
+    )
     poses = [sim.robot_pose(i)[1] for i in range(frames)]
     W.write_calibration(out, seq, _calibration(sim.rig))
     W.write_timestamps(out, seq, stamps)
     W.write_poses(out, seq, stamps, np.asarray(poses))
-    GT.write_sequence_gt(out, seq, {
-        "grid_range_min": np.asarray(sim.grid.range_min, np.float64),
-        "grid_voxel_size_m": np.float64(sim.grid.voxel_size_m),
-        "grid_shape": np.asarray(sim.grid.shape, np.int64),
-        "person_faces": np.asarray(sim.person_faces, np.int64),
-        "keypoint_vertex_ids": np.asarray(sim.model.keypoint_vertex_ids, np.int64),
-        "T_base_from_lidar": sim.rig.T_base_from_lidar,
-    })
+    GT.write_sequence_gt(
+        out,
+        seq,
+        {
+            "grid_range_min": np.asarray(sim.grid.range_min, np.float64),
+            "grid_voxel_size_m": np.float64(sim.grid.voxel_size_m),
+            "grid_shape": np.asarray(sim.grid.shape, np.int64),
+            "person_faces": np.asarray(sim.person_faces, np.int64),
+            "keypoint_vertex_ids": np.asarray(sim.model.keypoint_vertex_ids, np.int64),
+            "T_base_from_lidar": sim.rig.T_base_from_lidar,
+        },
+    )
     fast_keys = {"simulation": "fast", "image_scale": FAST_IMAGE_SCALE} if fast else {}
-    W.write_metadata(out, seq, {
-        "synthetic": True, "lighting": "night" if opts.night else "day", "crowd": opts.crowd,
-        "seed": opts.seed, "run_seed": int(seed), "frames": frames, "sensor": opts.sensor,
-        "pedestrians": opts.num_pedestrians, "frame_rate_hz": 10.0, "generator": "mobileocc.tasks.sim",
-        "trajectory": seq, **fast_keys, **W.annotation_lists(seq, written_frames, written_frames),
-    })
+    W.write_metadata(
+        out,
+        seq,
+        {
+            "synthetic": True,
+            "lighting": "night" if opts.night else "day",
+            "crowd": opts.crowd,
+            "seed": opts.seed,
+            "run_seed": int(seed),
+            "frames": frames,
+            "sensor": opts.sensor,
+            "pedestrians": opts.num_pedestrians,
+            "frame_rate_hz": 10.0,
+            "generator": "mobileocc.tasks.sim",
+            "trajectory": seq,
+            **fast_keys,
+            **W.annotation_lists(seq, written_frames, written_frames),
+        },
+    )

@@ -95,13 +95,21 @@ def _pool(data: Any, where: str) -> PoolSpec:
     known = {f.name for f in fields(PoolSpec)}
     unknown = sorted(set(data) - known)
     if unknown:
-        raise ClusterSpecError(f"{where}: unknown field(s) {unknown}; expected some of {sorted(known)}")
+        raise ClusterSpecError(
+            f"{where}: unknown field(s) {unknown}; expected some of {sorted(known)}"
+        )
     pool = PoolSpec(**data)
     for name in ("jobs", "cores", "processes"):
-        if not isinstance(getattr(pool, name), int) or getattr(pool, name) < (0 if name == "jobs" else 1):
-            raise ClusterSpecError(f"{where}.{name}: expected a positive integer, got {getattr(pool, name)!r}")
+        if not isinstance(getattr(pool, name), int) or getattr(pool, name) < (
+            0 if name == "jobs" else 1
+        ):
+            raise ClusterSpecError(
+                f"{where}.{name}: expected a positive integer, got {getattr(pool, name)!r}"
+            )
     if pool.cores % pool.processes:
-        raise ClusterSpecError(f"{where}: cores ({pool.cores}) must be a multiple of processes ({pool.processes})")
+        raise ClusterSpecError(
+            f"{where}: cores ({pool.cores}) must be a multiple of processes ({pool.processes})"
+        )
     return pool
 
 
@@ -116,14 +124,18 @@ def cluster_spec_from_dict(data: dict, where: str = "cluster spec") -> ClusterSp
     known = {f.name for f in fields(ClusterSpec)}
     unknown = sorted(set(data) - known)
     if unknown:
-        raise ClusterSpecError(f"{where}: unknown field(s) {unknown}; expected some of {sorted(known)}")
+        raise ClusterSpecError(
+            f"{where}: unknown field(s) {unknown}; expected some of {sorted(known)}"
+        )
     data["cpu"] = _pool(data.get("cpu", {}), f"{where}: cpu")
     if data.get("gpu") is not None:
         data["gpu"] = _pool(data["gpu"], f"{where}: gpu")
         if data["gpu"].gpus < 1:
             raise ClusterSpecError(f"{where}: gpu.gpus must be >= 1 for the GPU pool")
         if data["gpu"].adapt_minimum is not None or data["gpu"].adapt_maximum is not None:
-            raise ClusterSpecError(f"{where}: the GPU pool is fixed; remove gpu.adapt_minimum/maximum")
+            raise ClusterSpecError(
+                f"{where}: the GPU pool is fixed; remove gpu.adapt_minimum/maximum"
+            )
     for key in ("job_extra_directives", "job_script_prologue"):
         data[key] = tuple(data.get(key) or ())
     data["env"] = {str(k): str(v) for k, v in (data.get("env") or {}).items()}
@@ -141,6 +153,7 @@ def load_cluster_spec(path: Path | str) -> ClusterSpec:
 
 # --------------------------------------------------------------------------------------------- SLURM
 
+
 def _gpu_worker_args(pool: PoolSpec) -> list[str]:
     return ["--resources", f"GPU={pool.gpus // pool.processes or 1}"] if pool.gpus else []
 
@@ -154,13 +167,19 @@ def slurm_job_kwargs(spec: ClusterSpec, pool: str = "cpu") -> dict:
     if p.gpus:
         directives.append(f"--gres=gpu:{p.gpus}")
     return {
-        "cores": p.cores, "processes": p.processes, "memory": p.memory, "walltime": p.walltime,
-        "queue": p.queue or spec.queue, "account": spec.account,
+        "cores": p.cores,
+        "processes": p.processes,
+        "memory": p.memory,
+        "walltime": p.walltime,
+        "queue": p.queue or spec.queue,
+        "account": spec.account,
         "job_name": f"{spec.name}-{pool}",
         "job_extra_directives": directives,
         "worker_extra_args": _gpu_worker_args(p),
-        "job_script_prologue": [*(f"export {k}={_shell_quote(v)}" for k, v in sorted(spec.env.items())),
-                                *spec.job_script_prologue],
+        "job_script_prologue": [
+            *(f"export {k}={_shell_quote(v)}" for k, v in sorted(spec.env.items())),
+            *spec.job_script_prologue,
+        ],
         "python": spec.python,
         "local_directory": spec.local_directory,
     }
@@ -172,17 +191,20 @@ def _shell_quote(value: str) -> str:
     return shlex.quote(value)
 
 
-def render_slurm_job_script(spec: ClusterSpec, pool: str = "cpu",
-                            scheduler_address: str = RENDER_SCHEDULER) -> str:
+def render_slurm_job_script(
+    spec: ClusterSpec, pool: str = "cpu", scheduler_address: str = RENDER_SCHEDULER
+) -> str:
     """The sbatch script of one pool's jobs; needs no SLURM installation."""
     from dask_jobqueue.slurm import SLURMJob
 
-    job = SLURMJob(scheduler=scheduler_address, name=f"{spec.name}-{pool}",
-                   **slurm_job_kwargs(spec, pool))
+    job = SLURMJob(
+        scheduler=scheduler_address, name=f"{spec.name}-{pool}", **slurm_job_kwargs(spec, pool)
+    )
     return job.job_script()
 
 
 # ----------------------------------------------------------------------------------------- Kubernetes
+
 
 def _k8s_worker_spec(spec: ClusterSpec, p: PoolSpec) -> dict:
     from dask_kubernetes.operator import make_worker_spec
@@ -190,16 +212,23 @@ def _k8s_worker_spec(spec: ClusterSpec, p: PoolSpec) -> dict:
     limits: dict[str, Any] = {"cpu": str(p.cores), "memory": _k8s_quantity(p.memory)}
     if p.gpus:
         limits["nvidia.com/gpu"] = p.gpus
-    command = (f"dask worker --nworkers {p.processes} --nthreads {p.threads} "
-               f"--memory-limit {_k8s_quantity(p.memory)} --local-directory {spec.local_directory}")
+    command = (
+        f"dask worker --nworkers {p.processes} --nthreads {p.threads} "
+        f"--memory-limit {_k8s_quantity(p.memory)} --local-directory {spec.local_directory}"
+    )
     if p.gpus:
         command += " " + " ".join(_gpu_worker_args(p))
-    worker = make_worker_spec(image=spec.image, n_workers=p.jobs,
-                              resources={"requests": dict(limits), "limits": dict(limits)},
-                              env=dict(sorted(spec.env.items())) or None, worker_command=command)
+    worker = make_worker_spec(
+        image=spec.image,
+        n_workers=p.jobs,
+        resources={"requests": dict(limits), "limits": dict(limits)},
+        env=dict(sorted(spec.env.items())) or None,
+        worker_command=command,
+    )
     if p.gpus:
-        worker["spec"]["tolerations"] = [{"key": "nvidia.com/gpu", "operator": "Exists",
-                                          "effect": "NoSchedule"}]
+        worker["spec"]["tolerations"] = [
+            {"key": "nvidia.com/gpu", "operator": "Exists", "effect": "NoSchedule"}
+        ]
     return worker
 
 
@@ -220,8 +249,12 @@ def render_kubernetes_cluster(spec: ClusterSpec) -> list[dict]:
     """
     from dask_kubernetes.operator import make_cluster_spec
 
-    cluster = make_cluster_spec(name=spec.name, image=spec.image, n_workers=spec.cpu.jobs,
-                                env=dict(sorted(spec.env.items())) or None)
+    cluster = make_cluster_spec(
+        name=spec.name,
+        image=spec.image,
+        n_workers=spec.cpu.jobs,
+        env=dict(sorted(spec.env.items())) or None,
+    )
     cluster["metadata"]["namespace"] = spec.namespace
     cluster["spec"]["worker"] = _k8s_worker_spec(spec, spec.cpu)
     # distributed >= 2024 ships only the `dask` entry point (no `dask-scheduler` script)
@@ -231,18 +264,27 @@ def render_kubernetes_cluster(spec: ClusterSpec) -> list[dict]:
         del scheduler["resources"]
     docs = [cluster]
     if spec.gpu is not None:
-        docs.append({
-            "apiVersion": "kubernetes.dask.org/v1", "kind": "DaskWorkerGroup",
-            "metadata": {"name": f"{spec.name}-gpu", "namespace": spec.namespace},
-            "spec": {"cluster": spec.name, "worker": _k8s_worker_spec(spec, spec.gpu)},
-        })
+        docs.append(
+            {
+                "apiVersion": "kubernetes.dask.org/v1",
+                "kind": "DaskWorkerGroup",
+                "metadata": {"name": f"{spec.name}-gpu", "namespace": spec.namespace},
+                "spec": {"cluster": spec.name, "worker": _k8s_worker_spec(spec, spec.gpu)},
+            }
+        )
     if spec.cpu.adapt_minimum is not None or spec.cpu.adapt_maximum is not None:
-        docs.append({
-            "apiVersion": "kubernetes.dask.org/v1", "kind": "DaskAutoscaler",
-            "metadata": {"name": spec.name, "namespace": spec.namespace},
-            "spec": {"cluster": spec.name, "minimum": spec.cpu.adapt_minimum or 0,
-                     "maximum": spec.cpu.adapt_maximum or spec.cpu.jobs},
-        })
+        docs.append(
+            {
+                "apiVersion": "kubernetes.dask.org/v1",
+                "kind": "DaskAutoscaler",
+                "metadata": {"name": spec.name, "namespace": spec.namespace},
+                "spec": {
+                    "cluster": spec.name,
+                    "minimum": spec.cpu.adapt_minimum or 0,
+                    "maximum": spec.cpu.adapt_maximum or spec.cpu.jobs,
+                },
+            }
+        )
     return docs
 
 
@@ -251,6 +293,7 @@ def render_kubernetes_yaml(spec: ClusterSpec) -> str:
 
 
 # ------------------------------------------------------------------------------------------ building
+
 
 class ClusterHandle:
     """A started cluster: ``address`` for ``dask.address``; ``close()`` releases everything."""
@@ -295,13 +338,20 @@ def _build_local(spec: ClusterSpec) -> ClusterHandle:
             continue
         for j in range(p.jobs):
             for k in range(p.processes):
-                opts = {"nthreads": p.threads, "memory_limit": parse_bytes(p.memory) // p.processes,
-                        "local_directory": spec.local_directory, "env": dict(spec.env)}
+                opts = {
+                    "nthreads": p.threads,
+                    "memory_limit": parse_bytes(p.memory) // p.processes,
+                    "local_directory": spec.local_directory,
+                    "env": dict(spec.env),
+                }
                 if p.gpus:
                     opts["resources"] = {"GPU": p.gpus // p.processes or 1}
                 workers[f"{pool_name}-{j}-{k}"] = {"cls": Nanny, "options": opts}
-    cluster = SpecCluster(workers=workers, scheduler={"cls": Scheduler, "options": {
-        "host": "127.0.0.1", "dashboard_address": None}}, name=spec.name)
+    cluster = SpecCluster(
+        workers=workers,
+        scheduler={"cls": Scheduler, "options": {"host": "127.0.0.1", "dashboard_address": None}},
+        name=spec.name,
+    )
     return ClusterHandle(cluster)
 
 
@@ -311,8 +361,10 @@ def _build_slurm(spec: ClusterSpec) -> ClusterHandle:
 
     cpu = SLURMCluster(**slurm_job_kwargs(spec, "cpu"))
     if spec.cpu.adapt_minimum is not None or spec.cpu.adapt_maximum is not None:
-        cpu.adapt(minimum_jobs=spec.cpu.adapt_minimum or 0,
-                  maximum_jobs=spec.cpu.adapt_maximum or spec.cpu.jobs)
+        cpu.adapt(
+            minimum_jobs=spec.cpu.adapt_minimum or 0,
+            maximum_jobs=spec.cpu.adapt_maximum or spec.cpu.jobs,
+        )
     else:
         cpu.scale(jobs=spec.cpu.jobs)
     gpu_jobs = []
@@ -339,7 +391,9 @@ def _build_kubernetes(spec: ClusterSpec) -> ClusterHandle:
         if doc["kind"] == "DaskWorkerGroup":
             cluster.add_worker_group("gpu", custom_spec=doc["spec"]["worker"])
     if spec.cpu.adapt_minimum is not None or spec.cpu.adapt_maximum is not None:
-        cluster.adapt(minimum=spec.cpu.adapt_minimum or 0, maximum=spec.cpu.adapt_maximum or spec.cpu.jobs)
+        cluster.adapt(
+            minimum=spec.cpu.adapt_minimum or 0, maximum=spec.cpu.adapt_maximum or spec.cpu.jobs
+        )
     return ClusterHandle(cluster)
 
 
@@ -375,8 +429,11 @@ def main(argv: list[str] | None = None) -> int:
     r = sub.add_parser("render", help="print the SLURM job scripts or the Kubernetes resources")
     r.add_argument("spec", type=Path)
     r.add_argument("--scheduler", default=RENDER_SCHEDULER, help="scheduler address (SLURM)")
-    u = sub.add_parser("up", help="start the spec's cluster (both pools, one scheduler), print the scheduler "
-                                  "address and hold the cluster until interrupted")
+    u = sub.add_parser(
+        "up",
+        help="start the spec's cluster (both pools, one scheduler), print the scheduler "
+        "address and hold the cluster until interrupted",
+    )
     u.add_argument("spec", type=Path)
     u.add_argument("--address-file", type=Path, default=None, help="also write the address here")
     args = parser.parse_args(argv)
@@ -398,4 +455,3 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{args.spec}: a local cluster has nothing to render", file=sys.stderr)
         return 1
     return 0
-

@@ -31,13 +31,23 @@ def deployments(tags: tuple[str, ...] = ("mobileocc",)) -> list:
 
     from flows.pipeline.run import process_sequence, rebuild_dataset
 
-    module = EntrypointType.MODULE_PATH  # "flows.pipeline.run:rebuild_dataset", as in infra/prefect.yaml
+    module = (
+        EntrypointType.MODULE_PATH
+    )  # "flows.pipeline.run:rebuild_dataset", as in infra/prefect.yaml
     return [
-        rebuild_dataset.to_deployment(name="rebuild", tags=list(tags), entrypoint_type=module,
-                                      parameters={"progress": False},
-                                      description="Every selected sequence through the six stages"),
-        process_sequence.to_deployment(name="sequence", tags=list(tags), entrypoint_type=module,
-                                       description="One sequence through the six stages"),
+        rebuild_dataset.to_deployment(
+            name="rebuild",
+            tags=list(tags),
+            entrypoint_type=module,
+            parameters={"progress": False},
+            description="Every selected sequence through the six stages",
+        ),
+        process_sequence.to_deployment(
+            name="sequence",
+            tags=list(tags),
+            entrypoint_type=module,
+            description="One sequence through the six stages",
+        ),
     ]
 
 
@@ -53,22 +63,33 @@ def serve(limit: int | None = None) -> None:
     prefect_serve(*deployments(), limit=limit)
 
 
-def default_idempotency_key(config: Config, force: bool = False,
-                            sequences: list[str] | None = None, window: str = "") -> str:
+def default_idempotency_key(
+    config: Config, force: bool = False, sequences: list[str] | None = None, window: str = ""
+) -> str:
     """A key for "this config, these sequences, this window" (e.g. a date or a data version).
 
     Two triggers of the same request within one window start one run; pass a new ``window`` (or
     your own key) to run the same request again later.
     """
-    payload = {"config": config_hash(config), "force": force,
-               "sequences": sorted(sequences) if sequences is not None else None, "window": window}
+    payload = {
+        "config": config_hash(config),
+        "force": force,
+        "sequences": sorted(sequences) if sequences is not None else None,
+        "window": window,
+    }
     digest = hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:24]
     return f"rebuild-{digest}"
 
 
-def trigger_rebuild(config: Config, force: bool = False, sequences: list[str] | None = None,
-                    idempotency_key: str | None = None, deployment: str = REBUILD_DEPLOYMENT,
-                    timeout: float | None = 0, **kwargs: Any):
+def trigger_rebuild(
+    config: Config,
+    force: bool = False,
+    sequences: list[str] | None = None,
+    idempotency_key: str | None = None,
+    deployment: str = REBUILD_DEPLOYMENT,
+    timeout: float | None = 0,
+    **kwargs: Any,
+):
     """Start (or find) a rebuild run of the deployment; returns the FlowRun.
 
     ``timeout=0`` returns at once (the run is scheduled); ``None`` waits for it to finish. With
@@ -76,10 +97,19 @@ def trigger_rebuild(config: Config, force: bool = False, sequences: list[str] | 
     """
     from prefect.deployments import run_deployment
 
-    parameters = {"config": config.model_dump(mode="json"), "force": force,
-                  "sequences": sequences, "progress": False}
-    return run_deployment(deployment, parameters=parameters, timeout=timeout,
-                          idempotency_key=idempotency_key, **kwargs)
+    parameters = {
+        "config": config.model_dump(mode="json"),
+        "force": force,
+        "sequences": sequences,
+        "progress": False,
+    }
+    return run_deployment(
+        deployment,
+        parameters=parameters,
+        timeout=timeout,
+        idempotency_key=idempotency_key,
+        **kwargs,
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -90,7 +120,9 @@ def main(argv: list[str] | None = None) -> int:
     t = sub.add_parser("trigger", help="trigger the rebuild deployment")
     t.add_argument("--config", default=None, help="config YAML (default: configs/default.yaml)")
     t.add_argument("--force", action="store_true")
-    t.add_argument("--key", default=None, help="idempotency key (default: from the config and --window)")
+    t.add_argument(
+        "--key", default=None, help="idempotency key (default: from the config and --window)"
+    )
     t.add_argument("--window", default="", help="part of the default key, e.g. today's date")
     args = parser.parse_args(argv)
     if args.command == "serve":

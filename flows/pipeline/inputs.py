@@ -27,8 +27,8 @@ from configs.schema import Config
 from flows.pipeline.dag import CODE_VERSIONS, STAGES
 from storage.coda import CodaSequence
 from tasks.conventions import CLASS_NAMES
-from tasks.fit.weights import FitWeights
 from tasks.fit.settings import FitSettings
+from tasks.fit.weights import FitWeights
 from tasks.occupancy.grid import GridSpec
 from tasks.occupancy.settings import FreeSpaceParams, FuseSettings, MapParams
 from tasks.perception.lidar_clusters import LidarClusterParams
@@ -48,8 +48,10 @@ def to_jsonable(value: Any) -> Any:
     """Plain JSON of an inputs object: dataclasses (tagged with their type, so two providers with
     the same fields differ), pydantic models, tuples, paths."""
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {"type": type(value).__name__,
-                **{f.name: to_jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}}
+        return {
+            "type": type(value).__name__,
+            **{f.name: to_jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)},
+        }
     if hasattr(value, "model_dump"):
         return value.model_dump(mode="json")
     if isinstance(value, dict):
@@ -83,11 +85,15 @@ class SequenceRef:
     def fingerprint(self, files_fingerprint: str) -> str:
         if self.lighting is None:
             return files_fingerprint
-        return hashlib.sha256(f"{files_fingerprint}/lighting={self.lighting}".encode()).hexdigest()[:32]
+        return hashlib.sha256(f"{files_fingerprint}/lighting={self.lighting}".encode()).hexdigest()[
+            :32
+        ]
 
 
 def sequence_ref(config: Config, sequence: str) -> SequenceRef:
-    return SequenceRef(Path(config.dataset.root), str(sequence), config.dataset.lighting.get(str(sequence)))
+    return SequenceRef(
+        Path(config.dataset.root), str(sequence), config.dataset.lighting.get(str(sequence))
+    )
 
 
 def open_sequence(config: Config, sequence: str) -> CodaSequence:
@@ -114,10 +120,18 @@ class Source:
 
     def open(self, ref: SequenceRef) -> CodaSequence:
         """The sequence ``ref``, read this way."""
-        return CodaSequence(ref.root, ref.sequence, frame_stride=self.frame_stride,
-                            lidar_source=self.lidar_source, image_source=self.image_source,
-                            min_range_m=self.min_range_m, max_range_m=self.max_range_m,
-                            frames=self.frames, lighting=ref.lighting, lidar_height_m=self.lidar_height_m)
+        return CodaSequence(
+            ref.root,
+            ref.sequence,
+            frame_stride=self.frame_stride,
+            lidar_source=self.lidar_source,
+            image_source=self.image_source,
+            min_range_m=self.min_range_m,
+            max_range_m=self.max_range_m,
+            frames=self.frames,
+            lighting=ref.lighting,
+            lidar_height_m=self.lidar_height_m,
+        )
 
 
 @dataclass(frozen=True)
@@ -147,8 +161,16 @@ def runtime(config: Config) -> Runtime:
 
 def source(config: Config) -> Source:
     ds = config.dataset
-    return Source(ds.lidar_source, ds.image_source, ds.camera, ds.frame_stride, ds.min_range_m,
-                  ds.max_range_m, ds.frames, ds.lidar_height_m)
+    return Source(
+        ds.lidar_source,
+        ds.image_source,
+        ds.camera,
+        ds.frame_stride,
+        ds.min_range_m,
+        ds.max_range_m,
+        ds.frames,
+        ds.lidar_height_m,
+    )
 
 
 # ---- providers, each with only its own settings ---------------------------------------------------
@@ -327,67 +349,112 @@ def _provider(name: str, config: Config, seed: int) -> Any:
         return NoProvider()
     if name == "models":
         oracle = det.models.semantic.kind == "oracle"
-        return ModelsProvider(det.models, _provider("oracle", config, seed) if oracle else None,
-                              config.dataset.camera)
+        return ModelsProvider(
+            det.models, _provider("oracle", config, seed) if oracle else None, config.dataset.camera
+        )
     raise ValueError(f"unknown provider {name!r}")  # the schema's Literal types prevent this
 
 
 def _body(config: Config) -> BodyModelFiles:
     f = config.fit
-    return BodyModelFiles(None if f.body_model_path is None else str(f.body_model_path),
-                          None if f.pose_prior_path is None else str(f.pose_prior_path))
+    return BodyModelFiles(
+        None if f.body_model_path is None else str(f.body_model_path),
+        None if f.pose_prior_path is None else str(f.pose_prior_path),
+    )
 
 
 def detect_inputs(config: Config) -> DetectInputs:
     det = config.detect
-    return DetectInputs(source(config), _provider(det.image_provider, config, det.seed),
-                        _provider(det.lidar_provider, config, det.seed), det.max_failed_frame_share)
+    return DetectInputs(
+        source(config),
+        _provider(det.image_provider, config, det.seed),
+        _provider(det.lidar_provider, config, det.seed),
+        det.max_failed_frame_share,
+    )
 
 
 def track_inputs(config: Config) -> TrackInputs:
     t = config.track
-    tracker, offline, check = gates_at_rate(t.to(TrackerParams), t.to(OfflineParams), t.world_check.to(WorldCheck),
-                                            config.dataset.rate_hz, t.to(GateRate))
-    return TrackInputs(source(config), tracker, offline, check, t.person_points.to(PersonPointParams))
+    tracker, offline, check = gates_at_rate(
+        t.to(TrackerParams),
+        t.to(OfflineParams),
+        t.world_check.to(WorldCheck),
+        config.dataset.rate_hz,
+        t.to(GateRate),
+    )
+    return TrackInputs(
+        source(config), tracker, offline, check, t.person_points.to(PersonPointParams)
+    )
 
 
 def fit_inputs(config: Config) -> FitInputs:
     f = config.fit
-    init = {"oracle": lambda: OracleInitProvider(f.seed),
-            "precomputed": lambda: PrecomputedProvider(str(f.init_dir)),
-            "cliff": lambda: CliffProvider(str(f.cliff_path), f.device)}[f.init_provider]()
+    init = {
+        "oracle": lambda: OracleInitProvider(f.seed),
+        "precomputed": lambda: PrecomputedProvider(str(f.init_dir)),
+        "cliff": lambda: CliffProvider(str(f.cliff_path), f.device),
+    }[f.init_provider]()
     return FitInputs(source(config), init, _body(config), f.preset, f.weights, f.to(FitSettings))
 
 
 def map_inputs(config: Config) -> MapInputs:
     m = config.map
     lut = tuple(sorted((int(k), CLASS_NAMES.index(v)) for k, v in m.cityscapes_to_class.items()))
-    return MapInputs(source(config), lut, tuple(CLASS_NAMES.index(c) for c in m.ground_classes),
-                     m.to(MapParams), m.freespace.to(FreeSpaceParams), config.track.person_points.assoc_min_iou)
+    return MapInputs(
+        source(config),
+        lut,
+        tuple(CLASS_NAMES.index(c) for c in m.ground_classes),
+        m.to(MapParams),
+        m.freespace.to(FreeSpaceParams),
+        config.track.person_points.assoc_min_iou,
+    )
 
 
 def fuse_inputs(config: Config) -> FuseInputs:
     fu = config.fuse
-    return FuseInputs(source(config), fu.grid.spec(), fu.body_source, fu.gt_min_points, fu.to(FuseSettings),
-                      config.output.frames_per_chunk,
-                      config.map.freespace.to(FreeSpaceParams), _body(config))
+    return FuseInputs(
+        source(config),
+        fu.grid.spec(),
+        fu.body_source,
+        fu.gt_min_points,
+        fu.to(FuseSettings),
+        config.output.frames_per_chunk,
+        config.map.freespace.to(FreeSpaceParams),
+        _body(config),
+    )
 
 
 def export_inputs(config: Config) -> ExportInputs:
     upstream = {stage: INPUTS[stage](config) for stage in STAGES if stage != "export"}
-    return ExportInputs(source(config), _body(config), inputs_hash([upstream, CODE_VERSIONS]),
-                        CODE_VERSIONS["export"])
+    return ExportInputs(
+        source(config),
+        _body(config),
+        inputs_hash([upstream, CODE_VERSIONS]),
+        CODE_VERSIONS["export"],
+    )
 
 
 def dataset_export_inputs(config: Config) -> DatasetExportInputs:
     ex = config.export
-    return DatasetExportInputs(tuple(ex.formats), ex.nuscenes_version, ex.scene_prefix,
-                               tuple(ex.val_sequences), config.dataset.min_range_m, ex.infos_data_root)
+    return DatasetExportInputs(
+        tuple(ex.formats),
+        ex.nuscenes_version,
+        ex.scene_prefix,
+        tuple(ex.val_sequences),
+        config.dataset.min_range_m,
+        ex.infos_data_root,
+    )
 
 
 #: stage -> the function making its inputs object
-INPUTS = {"detect": detect_inputs, "track": track_inputs, "fit": fit_inputs, "map": map_inputs,
-          "fuse": fuse_inputs, "export": export_inputs}
+INPUTS = {
+    "detect": detect_inputs,
+    "track": track_inputs,
+    "fit": fit_inputs,
+    "map": map_inputs,
+    "fuse": fuse_inputs,
+    "export": export_inputs,
+}
 
 
 def stage_inputs(config: Config) -> dict[str, Any]:

@@ -8,7 +8,8 @@ the deadlock of a task blocking its own worker's thread pool.
 
 from __future__ import annotations
 
-from typing import Any, Callable, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 
 def _on_dask_worker() -> bool:
@@ -41,8 +42,9 @@ def _limited(fn: Callable[..., Any], threads: int, *args: Any) -> Any:
     return fn(*args)
 
 
-def fan_out(fn: Callable[..., Any], args: Sequence[tuple], resources: dict | None = None,
-            threads: int = 1) -> list:
+def fan_out(
+    fn: Callable[..., Any], args: Sequence[tuple], resources: dict | None = None, threads: int = 1
+) -> list:
     """Call ``fn(*a)`` for every ``a`` in ``args``; results in the order of ``args``.
 
     On a Dask worker the calls are submitted to the cluster (each sized to ``threads`` threads:
@@ -52,6 +54,9 @@ def fan_out(fn: Callable[..., Any], args: Sequence[tuple], resources: dict | Non
         from distributed import worker_client
 
         with worker_client() as client:
-            futures = [client.submit(_limited, fn, threads, *a, pure=False, resources=resources) for a in args]
+            futures = [
+                client.submit(_limited, fn, threads, *a, pure=False, resources=resources)
+                for a in args
+            ]
             return client.gather(futures)
     return [fn(*a) for a in args]

@@ -14,15 +14,30 @@ otherwise the sequence is opened (validated) and its changed files hashed.
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Any, Iterator
+from typing import Any
 
 from configs.schema import Config
 from flows.pipeline.dag import CODE_VERSIONS, STAGES
-from flows.pipeline.inputs import SequenceRef, inputs_hash, sequence_ref, source, stage_inputs, to_jsonable
+from flows.pipeline.inputs import (
+    SequenceRef,
+    inputs_hash,
+    sequence_ref,
+    source,
+    stage_inputs,
+    to_jsonable,
+)
 from storage.coda import READER_VERSION, frame_number, sequence_ids, sequence_layout
 from storage.files import InputError, regular_stat
-from storage.manifest import FileHasher, FingerprintCache, Manifest, layout_signature, sequence_fingerprint, stage_key
+from storage.manifest import (
+    FileHasher,
+    FingerprintCache,
+    Manifest,
+    layout_signature,
+    sequence_fingerprint,
+    stage_key,
+)
 
 
 @dataclass
@@ -67,11 +82,15 @@ class PlanCosts:
         return self.bytes_hashed / 1e6 / self.hash_seconds if self.hash_seconds > 0 else None
 
     def line(self) -> str:
-        text = (f"planned {self.sequences} sequence(s) in {self.seconds:.1f} s "
-                f"({self.memo_hits} unchanged by size / mtime / inode")
+        text = (
+            f"planned {self.sequences} sequence(s) in {self.seconds:.1f} s "
+            f"({self.memo_hits} unchanged by size / mtime / inode"
+        )
         if self.files_hashed:
-            text += (f"; hashed {self.files_hashed} file(s), {self.bytes_hashed / 1e6:.1f} MB in "
-                     f"{self.hash_seconds:.1f} s = {self.hash_mb_per_s or 0:.0f} MB/s")
+            text += (
+                f"; hashed {self.files_hashed} file(s), {self.bytes_hashed / 1e6:.1f} MB in "
+                f"{self.hash_seconds:.1f} s = {self.hash_mb_per_s or 0:.0f} MB/s"
+            )
         return text + ")"
 
 
@@ -84,8 +103,9 @@ def selected_sequences(config: Config) -> list[str]:
     return [str(s) for s in config.dataset.sequences]
 
 
-def unit_keys(inputs: dict[str, Any], fingerprint: str,
-              hashes: dict[str, str] | None = None) -> dict[str, tuple[str, dict]]:
+def unit_keys(
+    inputs: dict[str, Any], fingerprint: str, hashes: dict[str, str] | None = None
+) -> dict[str, tuple[str, dict]]:
     """(key, parts) of every stage of a sequence: parts are the key's ingredients (code version,
     inputs hash, fingerprint or upstream keys), kept in the manifest to explain staleness.
     ``hashes``: the inputs hashes, when already computed (they are the same for every sequence)."""
@@ -114,8 +134,14 @@ class NeedsHashing(Exception):
     """Planning without hashing met a sequence whose files changed since its memo."""
 
 
-def sequence_facts(config: Config, ref: SequenceRef, cache: FingerprintCache,
-                   hashing: bool = True, src: Any = None, reader: Any = None) -> tuple[str, int, tuple, bool]:
+def sequence_facts(
+    config: Config,
+    ref: SequenceRef,
+    cache: FingerprintCache,
+    hashing: bool = True,
+    src: Any = None,
+    reader: Any = None,
+) -> tuple[str, int, tuple, bool]:
     """(files fingerprint, frames, reader warnings, taken from the memo) of one sequence.
 
     The stat signature is taken before anything is read, so a file changing meanwhile only makes
@@ -123,9 +149,14 @@ def sequence_facts(config: Config, ref: SequenceRef, cache: FingerprintCache,
     (after opening the sequence, so bad input is still found). ``src`` / ``reader``: the
     config's Source and its JSON, when the caller has them."""
     src = src or source(config)
-    signature = layout_signature(ref.root, sequence_layout(ref.root, ref.sequence, src.lidar_source,
-                                                           src.image_source))
-    reader = {"version": READER_VERSION, "source": reader or to_jsonable(src), "lighting": ref.lighting}
+    signature = layout_signature(
+        ref.root, sequence_layout(ref.root, ref.sequence, src.lidar_source, src.image_source)
+    )
+    reader = {
+        "version": READER_VERSION,
+        "source": reader or to_jsonable(src),
+        "lighting": ref.lighting,
+    }
     memo = cache.load(ref.sequence)
     if cache.hit(memo, reader, signature):
         return memo["fingerprint"], int(memo["num_frames"]), tuple(memo["warnings"]), True
@@ -139,27 +170,44 @@ def sequence_facts(config: Config, ref: SequenceRef, cache: FingerprintCache,
         fingerprint = sequence_fingerprint(ref.root, info.files, hasher)
     finally:
         cache.add_costs(hasher)
-    cache.save(ref.sequence, {"reader": reader, "signature": signature, "fingerprint": fingerprint,
-                              "num_frames": info.num_frames, "warnings": list(info.warnings),
-                              "files": {k: hasher.memo[k] for k in sorted(hasher.used)}})
+    cache.save(
+        ref.sequence,
+        {
+            "reader": reader,
+            "signature": signature,
+            "fingerprint": fingerprint,
+            "num_frames": info.num_frames,
+            "warnings": list(info.warnings),
+            "files": {k: hasher.memo[k] for k in sorted(hasher.used)},
+        },
+    )
     return fingerprint, info.num_frames, info.warnings, False
 
 
-def iter_plans(config: Config, manifest: Manifest, cache: FingerprintCache | FileHasher | None = None,
-               force: bool = False, sequences: list[str] | None = None,
-               costs: PlanCosts | None = None, hashing: bool = True) -> Iterator[SequencePlan]:
+def iter_plans(
+    config: Config,
+    manifest: Manifest,
+    cache: FingerprintCache | FileHasher | None = None,
+    force: bool = False,
+    sequences: list[str] | None = None,
+    costs: PlanCosts | None = None,
+    hashing: bool = True,
+) -> Iterator[SequencePlan]:
     """Plan the selected sequences one at a time: fingerprint, per-stage keys, freshness with a
     reason. A sequence that cannot be listed, opened or hashed gets ``error`` and no units."""
     cache, costs = _as_cache(cache), costs if costs is not None else PlanCosts()
     inputs, src = stage_inputs(config), source(config)
     hashes, reader = {stage: inputs_hash(obj) for stage, obj in inputs.items()}, to_jsonable(src)
-    manifest.remember_inputs({stage: (hashes[stage], to_jsonable(obj)) for stage, obj in inputs.items()})
+    manifest.remember_inputs(
+        {stage: (hashes[stage], to_jsonable(obj)) for stage, obj in inputs.items()}
+    )
     for seq in sequences if sequences is not None else selected_sequences(config):
         t0, plan = time.perf_counter(), SequencePlan(str(seq))
         ref = sequence_ref(config, str(seq))
         try:
-            files_fp, plan.num_frames, plan.warnings, plan.memo_hit = sequence_facts(config, ref, cache, hashing,
-                                                                                     src, reader)
+            files_fp, plan.num_frames, plan.warnings, plan.memo_hit = sequence_facts(
+                config, ref, cache, hashing, src, reader
+            )
         except NeedsHashing:
             raise
         except Exception as exc:  # noqa: BLE001 - whatever breaks on one sequence fails that sequence
@@ -168,11 +216,21 @@ def iter_plans(config: Config, manifest: Manifest, cache: FingerprintCache | Fil
             plan.fingerprint = ref.fingerprint(files_fp)
             runs: set[str] = set()
             for stage, (key, parts) in unit_keys(inputs, plan.fingerprint, hashes).items():
-                reason = _stale_reason(manifest, plan.sequence, stage, key, parts, STAGES[stage], runs, force)
+                reason = _stale_reason(
+                    manifest, plan.sequence, stage, key, parts, STAGES[stage], runs, force
+                )
                 if reason:
                     runs.add(stage)
-                plan.units[stage] = UnitPlan(plan.sequence, stage, key, parts, fresh=not reason, reason=reason,
-                                             inputs=inputs[stage], ref=ref)
+                plan.units[stage] = UnitPlan(
+                    plan.sequence,
+                    stage,
+                    key,
+                    parts,
+                    fresh=not reason,
+                    reason=reason,
+                    inputs=inputs[stage],
+                    ref=ref,
+                )
         costs.sequences += 1
         costs.memo_hits += plan.memo_hit
         costs.seconds += time.perf_counter() - t0
@@ -181,9 +239,14 @@ def iter_plans(config: Config, manifest: Manifest, cache: FingerprintCache | Fil
         yield plan
 
 
-def plan_without_hashing(config: Config, manifest: Manifest, cache: FingerprintCache, force: bool = False,
-                         sequences: list[str] | None = None,
-                         costs: PlanCosts | None = None) -> list[SequencePlan] | None:
+def plan_without_hashing(
+    config: Config,
+    manifest: Manifest,
+    cache: FingerprintCache,
+    force: bool = False,
+    sequences: list[str] | None = None,
+    costs: PlanCosts | None = None,
+) -> list[SequencePlan] | None:
     """The plans when no sequence needs hashing (each is unchanged since its memo, or cannot be
     read at all); None as soon as one does. A run whose plans have no stale unit needs no task
     runner (the CLI then starts no Prefect server)."""
@@ -195,15 +258,28 @@ def plan_without_hashing(config: Config, manifest: Manifest, cache: FingerprintC
         return None
 
 
-def plan_run(config: Config, manifest: Manifest, cache: FingerprintCache | FileHasher | None = None,
-             force: bool = False, sequences: list[str] | None = None,
-             costs: PlanCosts | None = None) -> list[SequencePlan]:
+def plan_run(
+    config: Config,
+    manifest: Manifest,
+    cache: FingerprintCache | FileHasher | None = None,
+    force: bool = False,
+    sequences: list[str] | None = None,
+    costs: PlanCosts | None = None,
+) -> list[SequencePlan]:
     """Plan every selected sequence (:func:`iter_plans`, all at once)."""
     return list(iter_plans(config, manifest, cache, force, sequences, costs))
 
 
-def _stale_reason(manifest: Manifest, seq: str, stage: str, key: str, parts: dict,
-                  upstream: tuple[str, ...], runs: set[str], force: bool) -> str:
+def _stale_reason(
+    manifest: Manifest,
+    seq: str,
+    stage: str,
+    key: str,
+    parts: dict,
+    upstream: tuple[str, ...],
+    runs: set[str],
+    force: bool,
+) -> str:
     if force:
         return "forced (--force)"
     rec = manifest.get(seq, stage)

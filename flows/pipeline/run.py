@@ -30,7 +30,9 @@ from flows.pipeline.units import (  # noqa: F401 - the pipeline's API, as before
 
 
 @task(name="stage", cache_policy=NO_CACHE, task_run_name="{unit.stage}-{unit.sequence}")
-def stage_task(unit: UnitPlan, out_root, upstream: dict[str, dict], fingerprint: str, runtime: Runtime) -> dict:
+def stage_task(
+    unit: UnitPlan, out_root, upstream: dict[str, dict], fingerprint: str, runtime: Runtime
+) -> dict:
     return execute_unit(unit, out_root, upstream, fingerprint, runtime)
 
 
@@ -57,15 +59,34 @@ class PrefectSubmitter(Submitter):
 
 
 @flow(name="run-units", log_prints=True)
-def _run_units_flow(config: Config, force: bool, sequences: list[str] | None, progress: bool,
-                    verify: bool = False, lock_held: bool = False) -> RunReport:
-    return run_units(config, force=force, sequences=sequences, progress=progress, verify=verify,
-                     lock_held=lock_held, submitter=PrefectSubmitter(config))
+def _run_units_flow(
+    config: Config,
+    force: bool,
+    sequences: list[str] | None,
+    progress: bool,
+    verify: bool = False,
+    lock_held: bool = False,
+) -> RunReport:
+    return run_units(
+        config,
+        force=force,
+        sequences=sequences,
+        progress=progress,
+        verify=verify,
+        lock_held=lock_held,
+        submitter=PrefectSubmitter(config),
+    )
 
 
 @flow(name="rebuild-dataset", log_prints=True)
-def rebuild_dataset(config: Config, force: bool = False, sequences: list[str] | None = None,
-                    progress: bool = True, verify: bool = False, lock_held: bool = False) -> RunReport:
+def rebuild_dataset(
+    config: Config,
+    force: bool = False,
+    sequences: list[str] | None = None,
+    progress: bool = True,
+    verify: bool = False,
+    lock_held: bool = False,
+) -> RunReport:
     """Every selected sequence through detect -> track -> fit / map -> fuse -> export, then the
     dataset-level exports of ``export.formats`` when any sequence was (re)published or withdrawn,
     or their settings changed. ``lock_held``: the caller (the CLI) holds the store's lock.

@@ -13,7 +13,7 @@ import contextlib
 import os
 import sys
 import tempfile
-from typing import Iterator
+from collections.abc import Iterator
 
 from configs.schema import Config
 
@@ -30,6 +30,7 @@ def _die_with(parent: int):
         libc.prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
         if os.getppid() != parent:  # the parent died before the line above
             os.kill(os.getpid(), signal.SIGTERM)
+
     return preexec
 
 
@@ -109,7 +110,12 @@ def task_runner(config: Config):
 
     if d.address:
         return DaskTaskRunner(address=d.address)
-    return DaskTaskRunner(cluster_kwargs={
-        "n_workers": d.workers, "threads_per_worker": d.threads_per_worker, "processes": True,
-        "memory_limit": d.memory_limit, "dashboard_address": None,
-    })
+    return DaskTaskRunner(
+        cluster_kwargs={
+            "n_workers": d.workers,
+            "threads_per_worker": d.threads_per_worker,
+            "processes": True,
+            "memory_limit": d.memory_limit,
+            "dashboard_address": None,
+        }
+    )

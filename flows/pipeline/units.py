@@ -25,9 +25,10 @@ import shutil
 import time
 import traceback
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from configs.schema import Config, config_hash
 from flows.pipeline.dag import CODE_VERSIONS, STAGES
@@ -69,13 +70,22 @@ def _error_text(exc: BaseException, where: Path) -> str:
     return f"{type(exc).__name__}: {exc}"
 
 
-def execute_unit(unit: UnitPlan, out_root: Path, upstream: dict[str, dict],
-                 fingerprint: str = "", runtime: Runtime = Runtime()) -> dict:
+def execute_unit(
+    unit: UnitPlan,
+    out_root: Path,
+    upstream: dict[str, dict],
+    fingerprint: str = "",
+    runtime: Runtime = Runtime(),
+) -> dict:
     """Run one (sequence, stage): returns an outcome dict; never raises for a stage error."""
     base = {"sequence": unit.sequence, "stage": unit.stage, "key": unit.key, "parts": unit.parts}
     blocked = [s for s, o in upstream.items() if o["status"] not in ("done", "cached")]
     if blocked:
-        return {**base, "status": "skipped", "error": f"upstream {', '.join(blocked)} did not finish"}
+        return {
+            **base,
+            "status": "skipped",
+            "error": f"upstream {', '.join(blocked)} did not finish",
+        }
     final = stage_dir(out_root, unit.stage, unit.sequence, unit.key)
     location = str(final.relative_to(out_root))
     if (final / "summary.json").exists():  # finished by a run that was killed before recording it
@@ -91,16 +101,33 @@ def execute_unit(unit: UnitPlan, out_root: Path, upstream: dict[str, dict],
     limit_threads(runtime.threads)
     try:
         with staged_output(final) as tmp:
-            ctx = StageContext(unit.ref, unit.inputs, Path(out_root), tmp,
-                               {s: Path(out_root) / o["location"] for s, o in upstream.items()},
-                               key=unit.key, fingerprint=fingerprint, runtime=runtime)
+            ctx = StageContext(
+                unit.ref,
+                unit.inputs,
+                Path(out_root),
+                tmp,
+                {s: Path(out_root) / o["location"] for s, o in upstream.items()},
+                key=unit.key,
+                fingerprint=fingerprint,
+                runtime=runtime,
+            )
             summary = STAGE_FUNCTIONS[unit.stage](ctx)
             (tmp / "summary.json").write_text(json.dumps(summary, sort_keys=True, indent=1))
     except Exception as exc:  # noqa: BLE001 - one bad sequence fails alone, with its error
-        return {**base, "status": "failed", "seconds": time.perf_counter() - started,
-                "error": _error_text(exc, final.parent), "traceback": traceback.format_exc(limit=8)}
-    return {**base, "status": "done", "location": location, "summary": summary,
-            "seconds": time.perf_counter() - started}
+        return {
+            **base,
+            "status": "failed",
+            "seconds": time.perf_counter() - started,
+            "error": _error_text(exc, final.parent),
+            "traceback": traceback.format_exc(limit=8),
+        }
+    return {
+        **base,
+        "status": "done",
+        "location": location,
+        "summary": summary,
+        "seconds": time.perf_counter() - started,
+    }
 
 
 @dataclass
@@ -141,12 +168,24 @@ class RunReport:
     def exit_code(self) -> int:
         """0 when every sequence and frame went through and everything was written; 1 otherwise."""
         bad_export = any(v != "done" for v in self.dataset_exports.values())
-        return int(bool(self.failed or self.skipped or self.failed_frames() or bad_export or self.write_errors))
+        return int(
+            bool(
+                self.failed
+                or self.skipped
+                or self.failed_frames()
+                or bad_export
+                or self.write_errors
+            )
+        )
 
     def ran(self, stage: str | None = None) -> list[tuple[str, str]]:
-        return sorted(k for k, o in self.outcomes.items()
-                      if o["status"] in ("done", "failed") and o.get("ran", True)
-                      and (stage is None or k[1] == stage))
+        return sorted(
+            k
+            for k, o in self.outcomes.items()
+            if o["status"] in ("done", "failed")
+            and o.get("ran", True)
+            and (stage is None or k[1] == stage)
+        )
 
 
 def _record(manifest: Manifest, outcome: dict, report: RunReport | None = None) -> None:
@@ -155,10 +194,17 @@ def _record(manifest: Manifest, outcome: dict, report: RunReport | None = None) 
     if outcome["status"] not in ("done", "failed", "skipped"):
         return
     rec = StageRecord(
-        sequence=outcome["sequence"], stage=outcome["stage"], key=outcome["key"],
-        status=outcome["status"], location=outcome.get("location", ""),
-        error=outcome.get("error", ""), seconds=round(outcome.get("seconds", 0.0), 3),
-        finished_at=time.time(), summary=outcome.get("summary", {}), parts=outcome["parts"])
+        sequence=outcome["sequence"],
+        stage=outcome["stage"],
+        key=outcome["key"],
+        status=outcome["status"],
+        location=outcome.get("location", ""),
+        error=outcome.get("error", ""),
+        seconds=round(outcome.get("seconds", 0.0), 3),
+        finished_at=time.time(),
+        summary=outcome.get("summary", {}),
+        parts=outcome["parts"],
+    )
     try:
         manifest.record(rec)
     except OSError as exc:
@@ -202,14 +248,25 @@ class _Units:
     """Submits units and records their outcomes."""
 
     def __init__(self, config: Config, manifest: Manifest, report: RunReport, submitter: Submitter):
-        self.config, self.manifest, self.report, self.submitter = config, manifest, report, submitter
+        self.config, self.manifest, self.report, self.submitter = (
+            config,
+            manifest,
+            report,
+            submitter,
+        )
         self.results: dict[str, dict[str, Any]] = {}
         self.futures: list = []
         self.on_done: Callable[[dict], None] = lambda outcome: None
 
     def fail_plan(self, plan: SequencePlan) -> None:
-        outcome = {"sequence": plan.sequence, "stage": "detect", "key": "", "parts": {},
-                   "status": "failed", "error": plan.error}
+        outcome = {
+            "sequence": plan.sequence,
+            "stage": "detect",
+            "key": "",
+            "parts": {},
+            "status": "failed",
+            "error": plan.error,
+        }
         self.finish(outcome)
 
     def finish(self, outcome: dict) -> None:
@@ -221,13 +278,27 @@ class _Units:
         mine, unit = self.results.setdefault(plan.sequence, {}), plan.units[stage]
         if unit.fresh:
             rec = self.manifest.get(plan.sequence, stage)
-            mine[stage] = {"sequence": plan.sequence, "stage": stage, "key": unit.key, "parts": unit.parts,
-                           "status": "cached", "location": rec.location, "summary": rec.summary,
-                           "seconds": 0.0, "ran": False}
+            mine[stage] = {
+                "sequence": plan.sequence,
+                "stage": stage,
+                "key": unit.key,
+                "parts": unit.parts,
+                "status": "cached",
+                "location": rec.location,
+                "summary": rec.summary,
+                "seconds": 0.0,
+                "ran": False,
+            }
             self.report.outcomes[(plan.sequence, stage)] = mine[stage]
             return
-        mine[stage] = self.submitter.submit(stage, unit, self.report.out_root, {u: mine[u] for u in STAGES[stage]},
-                                            plan.fingerprint, runtime(self.config))
+        mine[stage] = self.submitter.submit(
+            stage,
+            unit,
+            self.report.out_root,
+            {u: mine[u] for u in STAGES[stage]},
+            plan.fingerprint,
+            runtime(self.config),
+        )
         if isinstance(mine[stage], dict):  # ran here
             self.finish(mine[stage])
         else:
@@ -238,10 +309,16 @@ class _Units:
             self.finish(outcome)
 
 
-def run_units(config: Config, force: bool = False, sequences: list[str] | None = None,
-              progress: bool = True, verify: bool = False,
-              plans: list[SequencePlan] | None = None, lock_held: bool = False,
-              submitter: Submitter | None = None) -> RunReport:
+def run_units(
+    config: Config,
+    force: bool = False,
+    sequences: list[str] | None = None,
+    progress: bool = True,
+    verify: bool = False,
+    plans: list[SequencePlan] | None = None,
+    lock_held: bool = False,
+    submitter: Submitter | None = None,
+) -> RunReport:
     """Plan and run; the body of both flows (which pass a Prefect ``submitter``). Without one
     (``inline``) every unit runs here, in order. ``verify``: hash every input file.
     ``plans``: already made under this run's lock (flows.pipeline.plan.plan_without_hashing).
@@ -252,11 +329,17 @@ def run_units(config: Config, force: bool = False, sequences: list[str] | None =
         report = RunReport(out_root, [])
         report.swept = sweep_temporaries(out_root)
         manifest = Manifest.load(out_root)
-        manifest.meta.update({"config_hash": config_hash(config), "config": config.model_dump(mode="json")})
+        manifest.meta.update(
+            {"config_hash": config_hash(config), "config": config.model_dump(mode="json")}
+        )
         units = _Units(config, manifest, report, submitter or Submitter())
         cache = FingerprintCache(out_root / ".cache" / "sequences", verify)
         with _Progress(report, units, progress, len(ids)) as bars:
-            for plan in plans if plans is not None else iter_plans(config, manifest, cache, force, ids, report.costs):
+            for plan in (
+                plans
+                if plans is not None
+                else iter_plans(config, manifest, cache, force, ids, report.costs)
+            ):
                 report.plans.append(plan)
                 bars.planned()
                 if plan.error:
@@ -302,7 +385,11 @@ def _withdraw_failed(config: Config, report: RunReport) -> None:
         problem = _first_problem(report, plan)
         if problem is None:
             continue
-        row = {"fingerprint": plan.fingerprint, "config_hash": ex.content_hash, "code_version": CODE_VERSIONS["export"]}
+        row = {
+            "fingerprint": plan.fingerprint,
+            "config_hash": ex.content_hash,
+            "code_version": CODE_VERSIONS["export"],
+        }
         try:
             if withdraw_sequence(report.out_root, plan.sequence, problem, row):
                 report.withdrawn.append(plan.sequence)
@@ -316,8 +403,10 @@ def _dataset_exports(config: Config, manifest: Manifest, report: RunReport) -> N
     swapped in, so a failed or killed export leaves the previous one. A failure is reported, not
     raised: the sequences are published."""
     ex = dataset_export_inputs(config)
-    published = report.withdrawn or any(st == "export" and o["status"] == "done" and o.get("ran", True)
-                                        for (_, st), o in report.outcomes.items())
+    published = report.withdrawn or any(
+        st == "export" and o["status"] == "done" and o.get("ran", True)
+        for (_, st), o in report.outcomes.items()
+    )
     key, done = inputs_hash(ex), manifest.meta.setdefault("dataset_exports", {})
     for fmt in ex.formats:
         if not (published or done.get(fmt) != key):
@@ -364,22 +453,35 @@ class _Progress:
     def start(self, units: _Units) -> None:
         if self.plan_bar is not None:
             self.plan_bar.close()
-        todo = {s: sum(1 for p in self.report.plans if not p.error and not p.units[s].fresh) for s in STAGES}
+        todo = {
+            s: sum(1 for p in self.report.plans if not p.error and not p.units[s].fresh)
+            for s in STAGES
+        }
         if not self.enabled or not any(todo.values()):
             return
         from tqdm import tqdm
 
-        self.bars = {s: tqdm(total=todo[s], desc=f"{s:>6}", unit="seq", position=i, leave=True)
-                     for i, s in enumerate(STAGES)}
-        units.on_done = lambda o: self.bars[o["stage"]].update(1) if o["stage"] in self.bars else None
+        self.bars = {
+            s: tqdm(total=todo[s], desc=f"{s:>6}", unit="seq", position=i, leave=True)
+            for i, s in enumerate(STAGES)
+        }
+        units.on_done = lambda o: (
+            self.bars[o["stage"]].update(1) if o["stage"] in self.bars else None
+        )
 
     def __exit__(self, *exc) -> None:
         for bar in [*self.bars.values(), *([self.plan_bar] if self.plan_bar is not None else [])]:
             bar.close()
 
 
-def export_dataset(ex: DatasetExportInputs, out_root: Path, data_root: Path, fmt: str,
-                   target: Path | None = None, gt: bool = False) -> Path:
+def export_dataset(
+    ex: DatasetExportInputs,
+    out_root: Path,
+    data_root: Path,
+    fmt: str,
+    target: Path | None = None,
+    gt: bool = False,
+) -> Path:
     """Export the published dataset (every sequence) for occupancy trainers; ``gt``: Occ3D labels
     from the synthetic ground truth under ``data_root`` instead of the pipeline's."""
     from storage.export.nuscenes import export_nuscenes
@@ -389,12 +491,24 @@ def export_dataset(ex: DatasetExportInputs, out_root: Path, data_root: Path, fmt
     if gt and fmt != "occ3d":
         raise ValueError(f"--gt exports Occ3D labels; it does not apply to --format {fmt}")
     if fmt == "occ3d":
-        export_occ3d(out_root, target, scene_prefix=ex.scene_prefix, val_sequences=ex.val_sequences,
-                     gt_root=Path(data_root) if gt else None)
+        export_occ3d(
+            out_root,
+            target,
+            scene_prefix=ex.scene_prefix,
+            val_sequences=ex.val_sequences,
+            gt_root=Path(data_root) if gt else None,
+        )
     else:
-        export_nuscenes(out_root, target, version=ex.nuscenes_version, scene_prefix=ex.scene_prefix,
-                        source_root=Path(data_root), min_range_m=ex.min_range_m, val_sequences=ex.val_sequences,
-                        **({"infos_data_root": ex.infos_data_root} if ex.infos_data_root else {}))
+        export_nuscenes(
+            out_root,
+            target,
+            version=ex.nuscenes_version,
+            scene_prefix=ex.scene_prefix,
+            source_root=Path(data_root),
+            min_range_m=ex.min_range_m,
+            val_sequences=ex.val_sequences,
+            **({"infos_data_root": ex.infos_data_root} if ex.infos_data_root else {}),
+        )
     return target
 
 
@@ -418,10 +532,17 @@ def summary_table(report: RunReport) -> str:
         secs = sum(o.get("seconds", 0.0) for o in outs)
         lines.append(f"{stage:<8}{ran:>5}{cached:>8}{failed:>8}{skipped:>9}{secs:>10.1f}")
     frames = sum(p.num_frames for p in report.plans)
-    lines.append(f"{len(report.plans)} sequence(s), {frames} frame(s), {report.seconds:.1f} s wall; "
-                 f"{report.costs.line()}")
-    not_impl = sorted({st for (s, st), o in report.outcomes.items()
-                       if o.get("summary", {}).get("implemented") is False})
+    lines.append(
+        f"{len(report.plans)} sequence(s), {frames} frame(s), {report.seconds:.1f} s wall; "
+        f"{report.costs.line()}"
+    )
+    not_impl = sorted(
+        {
+            st
+            for (s, st), o in report.outcomes.items()
+            if o.get("summary", {}).get("implemented") is False
+        }
+    )
     if not_impl:
         lines.append(f"not implemented yet (placeholders): {', '.join(not_impl)}")
     for o in report.failed:
@@ -433,11 +554,15 @@ def summary_table(report: RunReport) -> str:
         lines.append(f"SKIPPED {seq}/{', '.join(stages)}: an upstream stage did not finish")
     for seq, bad in report.failed_frames().items():
         more = f" (+{len(bad) - 3} more)" if len(bad) > 3 else ""
-        lines += [f"FRAME FAILED {seq}/frame {b['frame']}: {_first_line(b['error'])}" for b in bad[:3]]
+        lines += [
+            f"FRAME FAILED {seq}/frame {b['frame']}: {_first_line(b['error'])}" for b in bad[:3]
+        ]
         lines += [f"FRAME FAILED {seq}: {len(bad)} frame(s) left out{more}"] if more else []
     if report.withdrawn:
-        lines.append(f"WITHDRAWN {', '.join(report.withdrawn)}: earlier published data removed (the sequences "
-                     "table marks them failed)")
+        lines.append(
+            f"WITHDRAWN {', '.join(report.withdrawn)}: earlier published data removed (the sequences "
+            "table marks them failed)"
+        )
     for fmt, state in sorted(report.dataset_exports.items()):
         lines.append(f"{fmt} export: {state}")
     lines += [f"WRITE FAILED {e}" for e in report.write_errors]

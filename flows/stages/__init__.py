@@ -8,7 +8,7 @@ now, the flag stays so a future placeholder says so plainly).
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 from flows.stages.common import StageContext, chunks
 from flows.stages.detect import run_detect

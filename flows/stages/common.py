@@ -12,7 +12,12 @@ from typing import Any
 import numpy as np
 
 from flows.pipeline.inputs import BodyModelFiles, Runtime, SequenceRef
-from storage.body_files import load_body_model, load_pose_prior, save_body_model_npz, save_pose_prior_pkl
+from storage.body_files import (
+    load_body_model,
+    load_pose_prior,
+    save_body_model_npz,
+    save_pose_prior_pkl,
+)
 from storage.coda import CodaSequence
 from tasks.body.model import BodyModel
 from tasks.body.prior import GMMPosePrior, generate_pose_prior
@@ -95,13 +100,15 @@ def _load_prior(path: str) -> GMMPosePrior:
 
 def body_model(files: BodyModelFiles, out_root: Path) -> BodyModel:
     """The user's SMPL file, or our procedural model in the same format (loaded once per process)."""
-    path = files.body_model_path or _procedural_file(out_root, PROCEDURAL_MODEL, generate_body_model,
-                                                     save_body_model_npz)
+    path = files.body_model_path or _procedural_file(
+        out_root, PROCEDURAL_MODEL, generate_body_model, save_body_model_npz
+    )
     return _load_model(str(path))
 
 
 def pose_prior(files: BodyModelFiles, out_root: Path) -> GMMPosePrior:
     """The user's gmm_08.pkl, or our generated prior in the same format."""
-    path = files.pose_prior_path or _procedural_file(out_root, PROCEDURAL_PRIOR, generate_pose_prior,
-                                                     save_pose_prior_pkl)
+    path = files.pose_prior_path or _procedural_file(
+        out_root, PROCEDURAL_PRIOR, generate_pose_prior, save_pose_prior_pkl
+    )
     return _load_prior(str(path))

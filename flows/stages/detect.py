@@ -41,7 +41,9 @@ def _perceive(seq, i: int, images, lidars):
         return None, str(exc)
 
 
-def detect_frames(ref: SequenceRef, inputs: DetectInputs, positions: list[int], out_dir: Path) -> list[dict]:
+def detect_frames(
+    ref: SequenceRef, inputs: DetectInputs, positions: list[int], out_dir: Path
+) -> list[dict]:
     """Run the providers on some frames (positions in the sequence); one product per good frame,
     ``{"frame": raw, "error": message}`` for a frame whose input is bad."""
     seq = inputs.source.open(ref)
@@ -55,12 +57,24 @@ def detect_frames(ref: SequenceRef, inputs: DetectInputs, positions: list[int], 
             continue
         frame, lidar, image, gt_index = done
         if image.image_size != (cam.width, cam.height):
-            raise ValueError(f"sequence {ref.sequence} frame {frame.index}: perception image size "
-                             f"{image.image_size} != camera {(cam.width, cam.height)}")
-        Detections(image.boxes_xyxy, image.scores, image.keypoints, masks_to_labels(image.masks),
-                   image.semantic, lidar.centers, lidar.sizes, lidar.yaws, lidar.scores,
-                   np.full(len(image), -2, np.int64) if gt_index is None else np.asarray(gt_index, np.int64),
-                   ).write(out_dir, Detections.file_name(frame.index))
+            raise ValueError(
+                f"sequence {ref.sequence} frame {frame.index}: perception image size "
+                f"{image.image_size} != camera {(cam.width, cam.height)}"
+            )
+        Detections(
+            image.boxes_xyxy,
+            image.scores,
+            image.keypoints,
+            masks_to_labels(image.masks),
+            image.semantic,
+            lidar.centers,
+            lidar.sizes,
+            lidar.yaws,
+            lidar.scores,
+            np.full(len(image), -2, np.int64)
+            if gt_index is None
+            else np.asarray(gt_index, np.int64),
+        ).write(out_dir, Detections.file_name(frame.index))
         rows.append({"frame": frame.index, "detections": len(image), "lidar_boxes": len(lidar)})
     return rows
 
@@ -70,20 +84,39 @@ def check_failed_frames(rows: list[dict], max_share: float) -> list[dict]:
     than ``max_share`` of the frames failed."""
     failed = [r for r in rows if "error" in r]
     if failed and (len(failed) == len(rows) or len(failed) > max_share * len(rows)):
-        first = "; ".join(r["error"] for r in failed[:3]) + (f"; ... ({len(failed) - 3} more)" if len(failed) > 3 else "")
-        raise FramesFailed(f"{len(failed)} of {len(rows)} frame(s) have bad input (more than "
-                           f"detect.max_failed_frame_share = {max_share:g}): {first}")
+        first = "; ".join(r["error"] for r in failed[:3]) + (
+            f"; ... ({len(failed) - 3} more)" if len(failed) > 3 else ""
+        )
+        raise FramesFailed(
+            f"{len(failed)} of {len(rows)} frame(s) have bad input (more than "
+            f"detect.max_failed_frame_share = {max_share:g}): {first}"
+        )
     return failed
 
 
 def run_detect(ctx: StageContext) -> dict:
     n = len(ctx.open())
     resources = {"GPU": 1} if ctx.runtime.gpu_detect else None
-    rows = [r for part in fan_out(detect_frames, [(ctx.ref, ctx.inputs, c, ctx.out_dir) for c in chunks(n, 4)],
-                                  resources, ctx.runtime.threads) for r in part]
-    failed, rows = check_failed_frames(rows, ctx.inputs.max_failed_frame_share), [r for r in rows if "error" not in r]
-    return {"implemented": True, "frames": [r["frame"] for r in rows],
-            "failed_frames": [{"frame": int(r["frame"]), "error": r["error"]} for r in failed],
-            "image_provider": ctx.inputs.image.NAME, "lidar_provider": ctx.inputs.lidar.NAME,
-            "detections": sum(r["detections"] for r in rows),
-            "lidar_boxes": sum(r["lidar_boxes"] for r in rows)}
+    rows = [
+        r
+        for part in fan_out(
+            detect_frames,
+            [(ctx.ref, ctx.inputs, c, ctx.out_dir) for c in chunks(n, 4)],
+            resources,
+            ctx.runtime.threads,
+        )
+        for r in part
+    ]
+    failed, rows = (
+        check_failed_frames(rows, ctx.inputs.max_failed_frame_share),
+        [r for r in rows if "error" not in r],
+    )
+    return {
+        "implemented": True,
+        "frames": [r["frame"] for r in rows],
+        "failed_frames": [{"frame": int(r["frame"]), "error": r["error"]} for r in failed],
+        "image_provider": ctx.inputs.image.NAME,
+        "lidar_provider": ctx.inputs.lidar.NAME,
+        "detections": sum(r["detections"] for r in rows),
+        "lidar_boxes": sum(r["lidar_boxes"] for r in rows),
+    }

@@ -38,50 +38,103 @@ def device(name: str) -> str:
     return ("cuda" if torch.cuda.is_available() else "cpu") if name == "auto" else name
 
 
-def fit_batch(ref: SequenceRef, inputs: FitInputs, out_root: Path, tracks_dir: Path,
-              rows: list[int], init: BodyParams | None = None) -> dict:
+def fit_batch(
+    ref: SequenceRef,
+    inputs: FitInputs,
+    out_root: Path,
+    tracks_dir: Path,
+    rows: list[int],
+    init: BodyParams | None = None,
+) -> dict:
     """Fit some rows of the track product from ``init`` (cam frame; None: the provider's
     estimates); returns their rows (tasks.fit.batch.fit_rows) in the LiDAR frame."""
     seq, s, tracks = inputs.source.open(ref), inputs.settings, _tracks(str(tracks_dir))
     cam = seq.info.calibration.cameras[inputs.source.camera]
-    model, at = body_model(inputs.body, out_root), {raw: i for i, raw in enumerate(seq.info.frame_indices)}
-    sweeps = {raw: seq.frame(at[raw]).points_lidar for raw in np.unique(tracks.frame[rows]).tolist()}
+    model, at = (
+        body_model(inputs.body, out_root),
+        {raw: i for i, raw in enumerate(seq.info.frame_indices)},
+    )
+    sweeps = {
+        raw: seq.frame(at[raw]).points_lidar for raw in np.unique(tracks.frame[rows]).tolist()
+    }
     points = [sweeps[int(tracks.frame[r])][tracks.points_of(r, in_image_only=True)] for r in rows]
     if init is None:
         init = init_provider(inputs.init, seq, model, cam).estimates(tracks, np.asarray(rows))
-    result = fit_persons(model, pose_prior(inputs.body, out_root), init, tracks.keypoints[rows], cam.K,
-                         cam.T_cam_from_lidar, *concat_point_sets(points), weights=inputs.weights,
-                         iterations=s.iterations, lr=s.learning_rate, device=device(s.device), seed=s.seed,
-                         nn_every=s.nn_every, converge_rtol=s.converge_rtol,
-                         chamfer_vertex_max_m=s.chamfer_vertex_max_m)
-    return {"rows": np.asarray(rows, np.int64),
-            **fit_rows(model, result, init, points, tracks.keypoints[rows], cam.K, cam.T_cam_from_lidar,
-                       inputs.weights.j_conf)}
+    result = fit_persons(
+        model,
+        pose_prior(inputs.body, out_root),
+        init,
+        tracks.keypoints[rows],
+        cam.K,
+        cam.T_cam_from_lidar,
+        *concat_point_sets(points),
+        weights=inputs.weights,
+        iterations=s.iterations,
+        lr=s.learning_rate,
+        device=device(s.device),
+        seed=s.seed,
+        nn_every=s.nn_every,
+        converge_rtol=s.converge_rtol,
+        chamfer_vertex_max_m=s.chamfer_vertex_max_m,
+    )
+    return {
+        "rows": np.asarray(rows, np.int64),
+        **fit_rows(
+            model,
+            result,
+            init,
+            points,
+            tracks.keypoints[rows],
+            cam.K,
+            cam.T_cam_from_lidar,
+            inputs.weights.j_conf,
+        ),
+    }
 
 
-def _warm_started(ctx: StageContext, seq, tracks: Tracks, rows: np.ndarray, resources) -> list[dict]:
+def _warm_started(
+    ctx: StageContext, seq, tracks: Tracks, rows: np.ndarray, resources
+) -> list[dict]:
     """Fit frame by frame; a track fitted in the previous frame starts from that fit."""
     inp, step = ctx.inputs, ctx.inputs.settings.batch_persons
     model = body_model(inp.body, ctx.out_root)
     cam = seq.info.calibration.cameras[inp.source.camera]
-    provider, pos = init_provider(inp.init, seq, model, cam), {raw: k for k, raw in enumerate(seq.info.frame_indices)}
-    last: dict[int, tuple[int, BodyParams]] = {}  # track -> (frame position, fit in its LiDAR frame)
+    provider, pos = (
+        init_provider(inp.init, seq, model, cam),
+        {raw: k for k, raw in enumerate(seq.info.frame_indices)},
+    )
+    last: dict[
+        int, tuple[int, BodyParams]
+    ] = {}  # track -> (frame position, fit in its LiDAR frame)
     parts = []
     for f in np.unique(tracks.frame[rows]):
         p, here = pos[int(f)], rows[tracks.frame[rows] == f]
         args = []
         for a in range(0, len(here), step):
-            batch = here[a:a + step]
+            batch = here[a : a + step]
             prev = [last.get(int(tracks.track_id[r])) for r in batch]
             prev = [q[1] if q is not None and q[0] == p - 1 else None for q in prev]
-            init = warm_started(model, provider.estimates(tracks, batch), prev, cam.T_cam_from_lidar,
-                                seq.info.poses[p], seq.info.poses[p - 1] if p else seq.info.poses[p])
+            init = warm_started(
+                model,
+                provider.estimates(tracks, batch),
+                prev,
+                cam.T_cam_from_lidar,
+                seq.info.poses[p],
+                seq.info.poses[p - 1] if p else seq.info.poses[p],
+            )
             args.append((ctx.ref, inp, ctx.out_root, ctx.upstream["track"], batch.tolist(), init))
         for out in fan_out(fit_batch, args, resources, ctx.runtime.threads):
             parts.append(out)
             for k, r in enumerate(out["rows"]):
-                last[int(tracks.track_id[r])] = (p, BodyParams(*(out[n][k:k + 1] for n in (
-                    "betas", "global_orient", "body_pose", "transl"))))
+                last[int(tracks.track_id[r])] = (
+                    p,
+                    BodyParams(
+                        *(
+                            out[n][k : k + 1]
+                            for n in ("betas", "global_orient", "body_pose", "transl")
+                        )
+                    ),
+                )
     return parts
 
 
@@ -91,10 +144,20 @@ def _bodies(seq, tracks: Tracks, out: dict) -> Bodies:
         return Bodies.empty()
     r, pos = out.pop("rows"), {raw: k for k, raw in enumerate(seq.info.frame_indices)}
     at = np.array([pos[int(f)] for f in tracks.frame[r]], np.int64)
-    velocity = velocities_in_base(tracks.track_id[r], seq.info.stamps_ns[at] * 1e-9, out.pop("pelvis_lidar"),
-                                  seq.info.poses[at], seq.info.calibration.T_base_from_lidar)
-    return Bodies(tracks.frame[r], tracks.track_id[r], tracks.det_index[r],
-                  velocity_base=velocity.astype(np.float32), **out)
+    velocity = velocities_in_base(
+        tracks.track_id[r],
+        seq.info.stamps_ns[at] * 1e-9,
+        out.pop("pelvis_lidar"),
+        seq.info.poses[at],
+        seq.info.calibration.T_base_from_lidar,
+    )
+    return Bodies(
+        tracks.frame[r],
+        tracks.track_id[r],
+        tracks.det_index[r],
+        velocity_base=velocity.astype(np.float32),
+        **out,
+    )
 
 
 def run_fit(ctx: StageContext) -> dict:
@@ -107,14 +170,35 @@ def run_fit(ctx: StageContext) -> dict:
     if s.warm_start:
         parts = _warm_started(ctx, seq, tracks, rows, resources)
     else:
-        parts = fan_out(fit_batch, [(ctx.ref, inp, ctx.out_root, ctx.upstream["track"],
-                                     rows[a:a + s.batch_persons].tolist())
-                                    for a in range(0, len(rows), s.batch_persons)], resources, ctx.runtime.threads)
-    out, far = (drop_far_fits({k: np.concatenate([p[k] for p in parts]) for k in parts[0]}, s.max_shift_m)
-                if parts else ({}, 0))
+        parts = fan_out(
+            fit_batch,
+            [
+                (
+                    ctx.ref,
+                    inp,
+                    ctx.out_root,
+                    ctx.upstream["track"],
+                    rows[a : a + s.batch_persons].tolist(),
+                )
+                for a in range(0, len(rows), s.batch_persons)
+            ],
+            resources,
+            ctx.runtime.threads,
+        )
+    out, far = (
+        drop_far_fits({k: np.concatenate([p[k] for p in parts]) for k in parts[0]}, s.max_shift_m)
+        if parts
+        else ({}, 0)
+    )
     bodies = _bodies(seq, tracks, out)
     bodies.write(ctx.out_dir)
-    return {"implemented": True, "fitted": len(bodies.frame), "batches": -(-len(rows) // s.batch_persons),
-            "skipped_without_estimate": int(len(tracks.track_id) - len(rows) - int(few.sum())),
-            "skipped_few_points": int(few.sum()), "dropped_far_from_estimate": far,
-            "device": device(s.device), "preset": inp.preset}
+    return {
+        "implemented": True,
+        "fitted": len(bodies.frame),
+        "batches": -(-len(rows) // s.batch_persons),
+        "skipped_without_estimate": int(len(tracks.track_id) - len(rows) - int(few.sum())),
+        "skipped_few_points": int(few.sum()),
+        "dropped_far_from_estimate": far,
+        "device": device(s.device),
+        "preset": inp.preset,
+    }

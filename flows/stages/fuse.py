@@ -19,7 +19,14 @@ from flows.pipeline.parallel import fan_out
 from flows.stages.common import StageContext, body_model, detected_positions
 from storage.gt import frame_path, read_frame_gt, read_sequence_gt
 from storage.occupancy_store import create_store, write_frames
-from storage.products import TILES, Bodies, FusedFrames, MapTiles, OccupancyMapProduct, StaticMapProduct
+from storage.products import (
+    TILES,
+    Bodies,
+    FusedFrames,
+    MapTiles,
+    OccupancyMapProduct,
+    StaticMapProduct,
+)
 from tasks.body.motion import TrackedBodies
 from tasks.conventions import FREE, transform_points
 from tasks.occupancy.frame import local_grids
@@ -46,10 +53,23 @@ class _People:
         self.faces = np.asarray(self.model.faces)
         b = Bodies.read(fit_dir) if fit_dir is not None else Bodies.empty()
         pos = {raw: k for k, raw in enumerate(seq.info.frame_indices)}
-        gap = inputs.fusion.velocity_max_gap_s if self.per_vertex else 0.0  # per person: no neighbour posed
-        self.bodies = TrackedBodies(self.model, b.betas, b.global_orient, b.body_pose, b.transl, b.track_id,
-                                    np.array([pos[int(f)] for f in b.frame], np.int64), b.velocity_base,
-                                    seq.info.stamps_ns * 1e-9, seq.info.poses, self.T, gap)
+        gap = (
+            inputs.fusion.velocity_max_gap_s if self.per_vertex else 0.0
+        )  # per person: no neighbour posed
+        self.bodies = TrackedBodies(
+            self.model,
+            b.betas,
+            b.global_orient,
+            b.body_pose,
+            b.transl,
+            b.track_id,
+            np.array([pos[int(f)] for f in b.frame], np.int64),
+            b.velocity_base,
+            seq.info.stamps_ns * 1e-9,
+            seq.info.poses,
+            self.T,
+            gap,
+        )
 
     def __call__(self, position: int, frame: int) -> list[PedestrianMesh]:
         if self.inputs.body_source == "ground-truth":
@@ -57,9 +77,16 @@ class _People:
         else:
             rows, verts, vertex_vel = self.bodies.frame(position)
             ids, vel = self.bodies.track_id[rows], self.bodies.velocity_base[rows]
-        return [PedestrianMesh(int(t), transform_points(self.T, v), self.faces, w,
-                               vertex_vel[k, :, :2] if self.per_vertex else None)
-                for k, (t, v, w) in enumerate(zip(ids, verts, vel))]
+        return [
+            PedestrianMesh(
+                int(t),
+                transform_points(self.T, v),
+                self.faces,
+                w,
+                vertex_vel[k, :, :2] if self.per_vertex else None,
+            )
+            for k, (t, v, w) in enumerate(zip(ids, verts, vel))
+        ]
 
     def _ground_truth(self, frame: int):
         """(track ids, vertices LiDAR frame, person velocities, vertex velocities base axes) of
@@ -69,53 +96,99 @@ class _People:
         n = self.inputs.gt_min_points
         observed = (returns >= n) & (gt.visible_fraction > 0) if n else returns >= 0
         if self.per_vertex and gt.vertex_velocity_base is None:
-            raise ValueError(f"{frame_path(self.seq.root, int(self.seq.sequence), frame)}: no vertex_velocity_base "
-                             "(ground truth simulated before it existed): simulate again, or set "
-                             "fuse.velocity: person")
+            raise ValueError(
+                f"{frame_path(self.seq.root, int(self.seq.sequence), frame)}: no vertex_velocity_base "
+                "(ground truth simulated before it existed): simulate again, or set "
+                "fuse.velocity: person"
+            )
         vertex_vel = gt.vertex_velocity_base[observed] if self.per_vertex else None
         return gt.track_id[observed], gt.vertices[observed], gt.velocity_base[observed], vertex_vel
 
 
-def maps_near(map_dir: Path, inputs: FuseInputs, T_world_from_base: np.ndarray) -> tuple[StaticMap, OccupancyMap]:
+def maps_near(
+    map_dir: Path, inputs: FuseInputs, T_world_from_base: np.ndarray
+) -> tuple[StaticMap, OccupancyMap]:
     """The static and occupancy maps of the tiles that a grid at these poses ((F, 4, 4)) can touch:
     a chunk reads a bounded part of the sequence's maps, and its grids equal those of whole maps."""
     index = MapTiles.read(map_dir)
     sv, ov = float(index.static_voxel_size_m), float(index.occupancy_voxel_size_m)
-    tiles = tiles_near_grids(float(index.tile_m), grid_reach_m(inputs.grid), T_world_from_base, max(sv, ov))
-    static = [StaticMapProduct.read(map_dir / TILES, StaticMapProduct.file_name(t)) for t in tiles
-              if index.has("static", t)]
-    occ = [OccupancyMapProduct.read(map_dir / TILES, OccupancyMapProduct.file_name(t)) for t in tiles
-           if index.has("occupancy", t)]
+    tiles = tiles_near_grids(
+        float(index.tile_m), grid_reach_m(inputs.grid), T_world_from_base, max(sv, ov)
+    )
+    static = [
+        StaticMapProduct.read(map_dir / TILES, StaticMapProduct.file_name(t))
+        for t in tiles
+        if index.has("static", t)
+    ]
+    occ = [
+        OccupancyMapProduct.read(map_dir / TILES, OccupancyMapProduct.file_name(t))
+        for t in tiles
+        if index.has("occupancy", t)
+    ]
     keys = np.concatenate([o.keys for o in occ]) if occ else np.empty((0, 3), np.int64)
     logodds = np.concatenate([o.logodds for o in occ]) if occ else np.empty(0, np.float32)
-    return (join_static_tiles(sv, [(p.keys, p.labels, p.counts) for p in static]),
-            load_occupancy_map(inputs.freespace, keys, logodds))
+    return (
+        join_static_tiles(sv, [(p.keys, p.labels, p.counts) for p in static]),
+        load_occupancy_map(inputs.freespace, keys, logodds),
+    )
 
 
-def fuse_chunk(ref: SequenceRef, inputs: FuseInputs, out_root: Path, positions: list[int],
-               store: Path, map_dir: Path, fit_dir: Path | None, start: int,
-               threads: int) -> list[dict]:
+def fuse_chunk(
+    ref: SequenceRef,
+    inputs: FuseInputs,
+    out_root: Path,
+    positions: list[int],
+    store: Path,
+    map_dir: Path,
+    fit_dir: Path | None,
+    start: int,
+    threads: int,
+) -> list[dict]:
     """Fuse some frames (positions in the sequence) and write them as one write unit of the store,
     from index ``start`` of its frame axis (the frames detect produced, in order)."""
     seq = inputs.source.open(ref)
     calib = seq.info.calibration
     cam, T_base_from_lidar = calib.cameras[inputs.source.camera], calib.T_base_from_lidar
-    smap, occupancy = maps_near(map_dir, inputs, seq.info.poses[positions] @ np.linalg.inv(T_base_from_lidar))
+    smap, occupancy = maps_near(
+        map_dir, inputs, seq.info.poses[positions] @ np.linalg.inv(T_base_from_lidar)
+    )
     people = _People(inputs, seq, out_root, fit_dir)
-    camera = (CameraView(cam.K, cam.width, cam.height, T_base_from_lidar @ np.linalg.inv(cam.T_cam_from_lidar))
-              if inputs.fusion.camera_mask else None)
+    camera = (
+        CameraView(
+            cam.K, cam.width, cam.height, T_base_from_lidar @ np.linalg.inv(cam.T_cam_from_lidar)
+        )
+        if inputs.fusion.camera_mask
+        else None
+    )
     stacks, rows = {}, []
     for i in positions:
         frame = seq.frame(i)
         T_world_from_base = frame.T_world_from_lidar @ np.linalg.inv(T_base_from_lidar)
         persons = people(i, frame.index)
-        grids, counts = local_grids(inputs.grid, T_world_from_base, smap, occupancy, persons, frame.points_lidar,
-                                    T_base_from_lidar, camera, inputs.fusion.camera_pixel_stride,
-                                    inputs.fusion.camera_method, threads)
+        grids, counts = local_grids(
+            inputs.grid,
+            T_world_from_base,
+            smap,
+            occupancy,
+            persons,
+            frame.points_lidar,
+            T_base_from_lidar,
+            camera,
+            inputs.fusion.camera_pixel_stride,
+            inputs.fusion.camera_method,
+            threads,
+        )
         for name, value in grids.items():
             stacks.setdefault(name, []).append(value)
-        rows.append({"frame": frame.index, "stamp_ns": frame.stamp_ns, "people": len(persons), "counts": counts,
-                     "T_world_from_base": T_world_from_base})
+        rows.append(
+            {
+                "frame": frame.index,
+                "stamp_ns": frame.stamp_ns,
+                "people": len(persons),
+                "counts": counts,
+                "T_world_from_base": T_world_from_base,
+            }
+        )
     write_frames(store, start, {k: np.stack(v) for k, v in stacks.items()})
     return rows
 
@@ -124,17 +197,50 @@ def run_fuse(ctx: StageContext) -> dict:
     inp, spec = ctx.inputs, ctx.inputs.grid
     fit_dir = ctx.upstream.get("fit") if inp.body_source == "fit" else None
     store, at = ctx.out_dir / "occupancy.zarr", detected_positions(ctx, ctx.open())
-    layout = create_store(store, len(at), spec.shape, inp.frames_per_chunk, {
-        "range_min": list(spec.range_min), "range_max": list(spec.range_max),
-        "voxel_size_m": spec.voxel_size_m, "stage_key": ctx.key, "sequence": ctx.sequence,
-        "body_source": inp.body_source})
-    parts = fan_out(fuse_chunk, [(ctx.ref, inp, ctx.out_root, at[a:b], store, ctx.upstream["map"], fit_dir, a,
-                                  ctx.runtime.threads) for a, b in layout.write_units()],
-                    threads=ctx.runtime.threads)
+    layout = create_store(
+        store,
+        len(at),
+        spec.shape,
+        inp.frames_per_chunk,
+        {
+            "range_min": list(spec.range_min),
+            "range_max": list(spec.range_max),
+            "voxel_size_m": spec.voxel_size_m,
+            "stage_key": ctx.key,
+            "sequence": ctx.sequence,
+            "body_source": inp.body_source,
+        },
+    )
+    parts = fan_out(
+        fuse_chunk,
+        [
+            (
+                ctx.ref,
+                inp,
+                ctx.out_root,
+                at[a:b],
+                store,
+                ctx.upstream["map"],
+                fit_dir,
+                a,
+                ctx.runtime.threads,
+            )
+            for a, b in layout.write_units()
+        ],
+        threads=ctx.runtime.threads,
+    )
     rows = [r for part in parts for r in part]
-    FusedFrames(np.array([r["frame"] for r in rows], np.int64), np.array([r["stamp_ns"] for r in rows], np.int64),
-                np.array([r["counts"] for r in rows], np.int64).reshape(-1, FREE + 1),
-                np.array([r["T_world_from_base"] for r in rows], np.float64).reshape(-1, 4, 4)).write(ctx.out_dir)
-    return {"implemented": True, "frames": len(rows), "grid_shape": list(spec.shape),
-            "voxel_size_m": spec.voxel_size_m, "body_source": inp.body_source,
-            "pedestrian_meshes": sum(r["people"] for r in rows)}
+    FusedFrames(
+        np.array([r["frame"] for r in rows], np.int64),
+        np.array([r["stamp_ns"] for r in rows], np.int64),
+        np.array([r["counts"] for r in rows], np.int64).reshape(-1, FREE + 1),
+        np.array([r["T_world_from_base"] for r in rows], np.float64).reshape(-1, 4, 4),
+    ).write(ctx.out_dir)
+    return {
+        "implemented": True,
+        "frames": len(rows),
+        "grid_shape": list(spec.shape),
+        "voxel_size_m": spec.voxel_size_m,
+        "body_source": inp.body_source,
+        "pedestrian_meshes": sum(r["people"] for r in rows),
+    }

@@ -44,26 +44,60 @@ def model_perception(m) -> ModelPerception:
     d, k, s, mk = m.detector, m.keypoints, m.semantic, m.masks
     detector = None
     if d.kind == "yolox":
-        detector = YoloxDetector(onnx(d.path), d.person_class, d.score_threshold, d.nms_iou, decoded=d.decoded)
+        detector = YoloxDetector(
+            onnx(d.path), d.person_class, d.score_threshold, d.nms_iou, decoded=d.decoded
+        )
     elif d.kind == "decoded-boxes":
         detector = DecodedBoxesDetector(onnx(d.path), d.person_class, d.score_threshold, d.nms_iou)
-    keypoints = (TopDownKeypoints(onnx(k.path), "heatmap" if k.kind == "vitpose" else "simcc", udp=k.udp,
-                                  batch_size=k.batch_size) if k.kind in ("vitpose", "rtmpose") else None)
-    blaze = (BlazePoseLandmarks(_tflite(str(bundled_model(m.bundled_dir, "pose_landmark_full.tflite"))),
-                                box_scale=m.box_scale) if k.kind == "blazepose" else None)
-    masks = (QueryInstanceMasks(onnx(mk.path), mk.person_class, mk.score_threshold)
-             if mk.kind == "mask2former" else None)
-    semantic = SemanticSegmenter(onnx(s.path), input_size=s.input_size) if s.kind == "onnx" else None
-    source = {"mask2former": "masks", "blazepose": "blazepose", "semantic": "semantic", "none": "none"}[mk.kind]
-    return ModelPerception(detector=detector, keypoints=keypoints, masks=masks, semantic=semantic,
-                           blazepose=blaze, min_pose_flag=m.min_pose_flag, mask_source=source)
+    keypoints = (
+        TopDownKeypoints(
+            onnx(k.path),
+            "heatmap" if k.kind == "vitpose" else "simcc",
+            udp=k.udp,
+            batch_size=k.batch_size,
+        )
+        if k.kind in ("vitpose", "rtmpose")
+        else None
+    )
+    blaze = (
+        BlazePoseLandmarks(
+            _tflite(str(bundled_model(m.bundled_dir, "pose_landmark_full.tflite"))),
+            box_scale=m.box_scale,
+        )
+        if k.kind == "blazepose"
+        else None
+    )
+    masks = (
+        QueryInstanceMasks(onnx(mk.path), mk.person_class, mk.score_threshold)
+        if mk.kind == "mask2former"
+        else None
+    )
+    semantic = (
+        SemanticSegmenter(onnx(s.path), input_size=s.input_size) if s.kind == "onnx" else None
+    )
+    source = {
+        "mask2former": "masks",
+        "blazepose": "blazepose",
+        "semantic": "semantic",
+        "none": "none",
+    }[mk.kind]
+    return ModelPerception(
+        detector=detector,
+        keypoints=keypoints,
+        masks=masks,
+        semantic=semantic,
+        blazepose=blaze,
+        min_pose_flag=m.min_pose_flag,
+        mask_source=source,
+    )
 
 
 def lidar_proposals(lidar: LidarDetections, cam) -> Detections:
     """The LiDAR pedestrian boxes of a frame projected into the camera, score 1 (the image
     model's pose flag then scores them)."""
-    boxes, _ = project_lidar_boxes(lidar.centers, lidar.sizes, lidar.yaws, cam.T_cam_from_lidar, cam.K,
-                                   cam.width, cam.height)
+    boxes, _ = project_lidar_boxes(
+        lidar.centers, lidar.sizes, lidar.yaws, cam.T_cam_from_lidar, cam.K, cam.width, cam.height
+    )
     return Detections(boxes, np.ones(len(boxes), np.float32))
 
 

@@ -17,10 +17,22 @@ from typing import Protocol
 
 import numpy as np
 
-from flows.pipeline.inputs import (CliffProvider, LidarClustersProvider, ModelsProvider, NoProvider,
-                                   OracleInitProvider, OracleProvider, PrecomputedProvider)
-from flows.stages.models import cliff_estimator, gt_index_by_boxes, lidar_proposals, model_perception
+from flows.pipeline.inputs import (
+    CliffProvider,
+    LidarClustersProvider,
+    ModelsProvider,
+    NoProvider,
+    OracleInitProvider,
+    OracleProvider,
+    PrecomputedProvider,
+)
 from flows.stages.common import frame_rng, is_night
+from flows.stages.models import (
+    cliff_estimator,
+    gt_index_by_boxes,
+    lidar_proposals,
+    model_perception,
+)
 from storage.cliff_files import cliff_path, read_cliff_estimates
 from storage.coda import CodaSequence
 from storage.gt import read_frame_gt
@@ -36,7 +48,9 @@ from tasks.perception.types import ImagePerception, LidarDetections
 
 
 class ImageProvider(Protocol):
-    def image(self, frame: Frame, lidar: LidarDetections) -> tuple[ImagePerception, np.ndarray | None]:
+    def image(
+        self, frame: Frame, lidar: LidarDetections
+    ) -> tuple[ImagePerception, np.ndarray | None]:
         """The frame's 2D perception (given its LiDAR boxes), and (D,) int64 ground-truth rows
         (synthetic data) or None."""
 
@@ -51,12 +65,23 @@ class OracleImage:
     def __init__(self, spec: OracleProvider, seq: CodaSequence):
         self.spec, self.seq, self.night = spec, seq, is_night(seq)
 
-    def image(self, frame: Frame, lidar: LidarDetections | None = None) -> tuple[ImagePerception, np.ndarray]:
+    def image(
+        self, frame: Frame, lidar: LidarDetections | None = None
+    ) -> tuple[ImagePerception, np.ndarray]:
         gt = read_frame_gt(self.seq.root, int(self.seq.sequence), frame.index)
         rng = frame_rng(self.spec.seed, self.seq.sequence, frame.index, 1)
         return oracle_image_perception(
-            gt.box2d, gt.keypoints, gt.visible_fraction, np.linalg.norm(gt.box_center, axis=1),
-            gt.track_id, gt.cam0_instance, gt.cam0_semantic, rng, night=self.night, noise=self.spec.noise)
+            gt.box2d,
+            gt.keypoints,
+            gt.visible_fraction,
+            np.linalg.norm(gt.box_center, axis=1),
+            gt.track_id,
+            gt.cam0_instance,
+            gt.cam0_semantic,
+            rng,
+            night=self.night,
+            noise=self.spec.noise,
+        )
 
 
 class OracleLidar(OracleImage):
@@ -64,8 +89,9 @@ class OracleLidar(OracleImage):
         gt = read_frame_gt(self.seq.root, int(self.seq.sequence), frame.index)
         counts = np.array([(gt.point_instance == t).sum() for t in gt.track_id], np.int64)
         rng = frame_rng(self.spec.seed, self.seq.sequence, frame.index, 2)
-        return oracle_lidar_detections(gt.box_center, gt.box_size, gt.box_yaw, counts, rng,
-                                       noise=self.spec.noise)[0]
+        return oracle_lidar_detections(
+            gt.box_center, gt.box_size, gt.box_yaw, counts, rng, noise=self.spec.noise
+        )[0]
 
 
 class PrecomputedFiles:
@@ -109,7 +135,9 @@ class ModelsImage:
         self.cam = seq.info.calibration.cameras[spec.camera]
         self.oracle = OracleImage(spec.oracle, seq) if spec.oracle is not None else None
 
-    def image(self, frame: Frame, lidar: LidarDetections) -> tuple[ImagePerception, np.ndarray | None]:
+    def image(
+        self, frame: Frame, lidar: LidarDetections
+    ) -> tuple[ImagePerception, np.ndarray | None]:
         m, cam = self.spec.models, self.cam
         semantic = self.oracle.image(frame)[0].semantic if self.oracle is not None else None
         rgb = read_rgb(frame.image_paths[self.spec.camera], (cam.width, cam.height))
@@ -121,9 +149,17 @@ class ModelsImage:
         return image, gt_index_by_boxes(image.boxes_xyxy, gt.box2d)
 
 
-IMAGE_PROVIDERS = {OracleProvider: OracleImage, PrecomputedProvider: PrecomputedFiles, ModelsProvider: ModelsImage}
-LIDAR_PROVIDERS = {OracleProvider: OracleLidar, PrecomputedProvider: PrecomputedFiles,
-                   LidarClustersProvider: LidarClusters, NoProvider: NoLidar}
+IMAGE_PROVIDERS = {
+    OracleProvider: OracleImage,
+    PrecomputedProvider: PrecomputedFiles,
+    ModelsProvider: ModelsImage,
+}
+LIDAR_PROVIDERS = {
+    OracleProvider: OracleLidar,
+    PrecomputedProvider: PrecomputedFiles,
+    LidarClustersProvider: LidarClusters,
+    NoProvider: NoLidar,
+}
 
 
 def image_provider(spec, seq: CodaSequence) -> ImageProvider:
@@ -149,11 +185,19 @@ class OracleInit:
         for r in rows:
             gt = read_frame_gt(self.seq.root, int(self.seq.sequence), int(tracks.frame[r]))
             g = [int(tracks.gt_index[r])]
-            truths.append(BodyParams(gt.betas[g], gt.global_orient[g], gt.body_pose[g], gt.transl[g]))
-        truth = BodyParams(*(np.concatenate([getattr(t, f) for t in truths]) for f in
-                             ("betas", "global_orient", "body_pose", "transl")))
+            truths.append(
+                BodyParams(gt.betas[g], gt.global_orient[g], gt.body_pose[g], gt.transl[g])
+            )
+        truth = BodyParams(
+            *(
+                np.concatenate([getattr(t, f) for t in truths])
+                for f in ("betas", "global_orient", "body_pose", "transl")
+            )
+        )
         rng = frame_rng(self.spec.seed, self.seq.sequence, int(rows[0]), 3)
-        return oracle_initial_estimate(self.model, reframe_params(self.model, truth, self.camera.T_cam_from_lidar), rng)
+        return oracle_initial_estimate(
+            self.model, reframe_params(self.model, truth, self.camera.T_cam_from_lidar), rng
+        )
 
 
 class PrecomputedCliff:
@@ -163,8 +207,10 @@ class PrecomputedCliff:
     def __init__(self, spec: PrecomputedProvider, seq: CodaSequence, model, camera):
         self.est = read_cliff_estimates(cliff_path(spec.directory, seq.sequence))
         self.K = camera.K
-        self.where = {key: i for i, key in enumerate(zip(self.est["frame"].tolist(),
-                                                         self.est["det_index"].tolist()))}
+        self.where = {
+            key: i
+            for i, key in enumerate(zip(self.est["frame"].tolist(), self.est["det_index"].tolist()))
+        }
 
     def _index(self, tracks: Tracks, rows) -> list[int | None]:
         return [self.where.get((int(tracks.frame[r]), int(tracks.det_index[r]))) for r in rows]
@@ -176,9 +222,16 @@ class PrecomputedCliff:
     def estimates(self, tracks: Tracks, rows: np.ndarray) -> BodyParams:
         i = np.array(self._index(tracks, rows), np.int64)
         e = self.est
-        return cliff_to_params(e["rotmats"][i].reshape(-1, 24, 3, 3), e["betas"][i].reshape(-1, 10),
-                               e["cam_crop"][i].reshape(-1, 3), e["bbox_center"][i].reshape(-1, 2),
-                               e["bbox_size"][i], self.K, e["transl"][i].reshape(-1, 3), e["has_transl"][i])
+        return cliff_to_params(
+            e["rotmats"][i].reshape(-1, 24, 3, 3),
+            e["betas"][i].reshape(-1, 10),
+            e["cam_crop"][i].reshape(-1, 3),
+            e["bbox_center"][i].reshape(-1, 2),
+            e["bbox_size"][i],
+            self.K,
+            e["transl"][i].reshape(-1, 3),
+            e["has_transl"][i],
+        )
 
 
 class CliffModel:
@@ -200,11 +253,19 @@ class CliffModel:
             rgb = read_rgb(frame.image_paths[cam.name], (cam.width, cam.height))
             parts.append((here, cliff(rgb, tracks.boxes_xyxy[here], cam.K)))
         order = np.argsort(np.concatenate([h for h, _ in parts]), kind="stable")
-        return BodyParams(*(np.concatenate([getattr(p, f) for _, p in parts])[order]
-                            for f in ("betas", "global_orient", "body_pose", "transl")))
+        return BodyParams(
+            *(
+                np.concatenate([getattr(p, f) for _, p in parts])[order]
+                for f in ("betas", "global_orient", "body_pose", "transl")
+            )
+        )
 
 
-INIT_PROVIDERS = {OracleInitProvider: OracleInit, PrecomputedProvider: PrecomputedCliff, CliffProvider: CliffModel}
+INIT_PROVIDERS = {
+    OracleInitProvider: OracleInit,
+    PrecomputedProvider: PrecomputedCliff,
+    CliffProvider: CliffModel,
+}
 
 
 def init_provider(spec, seq: CodaSequence, model, camera):

@@ -21,10 +21,20 @@ def _frame(ctx: StageContext, seq, cam, i: int) -> tuple[int, dict, FramePersons
     them would not fit in memory) and persons."""
     inp, frame = ctx.inputs, seq.frame(i)
     d = Detections.read(ctx.upstream["detect"], Detections.file_name(frame.index))
-    persons = frame_persons(frame.points_lidar, frame.T_world_from_lidar, d.boxes_xyxy,
-                            labels_to_masks(d.mask_labels, len(d.scores)), d.lidar_centers,
-                            d.lidar_sizes, d.lidar_yaws, cam.K, cam.T_cam_from_lidar,
-                            (cam.width, cam.height), inp.person_points, inp.world_check.min_points)
+    persons = frame_persons(
+        frame.points_lidar,
+        frame.T_world_from_lidar,
+        d.boxes_xyxy,
+        labels_to_masks(d.mask_labels, len(d.scores)),
+        d.lidar_centers,
+        d.lidar_sizes,
+        d.lidar_yaws,
+        cam.K,
+        cam.T_cam_from_lidar,
+        (cam.width, cam.height),
+        inp.person_points,
+        inp.world_check.min_points,
+    )
     rows = {k: getattr(d, k) for k in ("boxes_xyxy", "scores", "keypoints", "gt_index")}
     return frame.index, rows, persons
 
@@ -34,12 +44,31 @@ def run_track(ctx: StageContext) -> dict:
     cam, at = seq.info.calibration.cameras[inp.source.camera], detected_positions(ctx, seq)
     raws, dets, persons = zip(*(_frame(ctx, seq, cam, i) for i in at)) if at else ((), (), ())
     per = {k: [d[k] for d in dets] for k in ("boxes_xyxy", "scores", "keypoints", "gt_index")}
-    ids = track_offline(per["boxes_xyxy"], per["scores"], PedestrianTracker(inp.tracker), inp.offline,
-                        [p.world_xy for p in persons], seq.info.stamps_ns[at] * 1e-9, inp.world_check)
-    tracks = Tracks(**track_rows(list(raws), ids, list(persons), per["boxes_xyxy"], per["scores"],
-                                 per["keypoints"], per["gt_index"]))
+    ids = track_offline(
+        per["boxes_xyxy"],
+        per["scores"],
+        PedestrianTracker(inp.tracker),
+        inp.offline,
+        [p.world_xy for p in persons],
+        seq.info.stamps_ns[at] * 1e-9,
+        inp.world_check,
+    )
+    tracks = Tracks(
+        **track_rows(
+            list(raws),
+            ids,
+            list(persons),
+            per["boxes_xyxy"],
+            per["scores"],
+            per["keypoints"],
+            per["gt_index"],
+        )
+    )
     tracks.write(ctx.out_dir)
     sizes = np.diff(tracks.points_offsets)
-    return {"implemented": True, "tracks": int(np.unique(tracks.track_id).size),
-            "tracked_detections": int(tracks.track_id.size),
-            "mean_person_points": float(sizes.mean()) if sizes.size else 0.0}
+    return {
+        "implemented": True,
+        "tracks": int(np.unique(tracks.track_id).size),
+        "tracked_detections": int(tracks.track_id.size),
+        "mean_person_points": float(sizes.mean()) if sizes.size else 0.0,
+    }

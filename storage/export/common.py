@@ -60,7 +60,10 @@ def quat_wxyz_from_matrix(R: np.ndarray) -> list[float]:
 def pose_record(T: np.ndarray) -> dict:
     """4x4 pose -> {"translation": [x, y, z], "rotation": [w, x, y, z]}."""
     T = np.asarray(T, dtype=np.float64).reshape(4, 4)
-    return {"translation": [float(v) for v in T[:3, 3]], "rotation": quat_wxyz_from_matrix(T[:3, :3])}
+    return {
+        "translation": [float(v) for v in T[:3, 3]],
+        "rotation": quat_wxyz_from_matrix(T[:3, :3]),
+    }
 
 
 def mat4(values) -> np.ndarray:
@@ -87,11 +90,15 @@ class SequenceExportInfo:
 def sequence_info(ds: Dataset, sequence: str) -> SequenceExportInfo:
     seqs = ds.table("sequences", sequence).to_pylist()
     if len(seqs) != 1:
-        raise ValueError(f"dataset {ds.root}: sequences table has {len(seqs)} rows for {sequence!r}, expected 1")
+        raise ValueError(
+            f"dataset {ds.root}: sequences table has {len(seqs)} rows for {sequence!r}, expected 1"
+        )
     row = seqs[0]
     for key in ("K", "T_cam0_from_lidar", "T_base_from_lidar", "image_width", "image_height"):
         if row[key] is None:
-            raise ValueError(f"dataset {ds.root}: sequence {sequence!r} has no {key} in the sequences table")
+            raise ValueError(
+                f"dataset {ds.root}: sequence {sequence!r} has no {key} in the sequences table"
+            )
     frames = ds.table("frames", sequence).to_pylist()
     return SequenceExportInfo(
         sequence=sequence,
@@ -117,7 +124,9 @@ def source_relative(path: str | os.PathLike, source_root: str | os.PathLike) -> 
             raise ValueError(f"source file {p} is not under the dataset root {root}") from None
 
 
-def resolve(path: str | None, source_root: Path | None, what: str, sequence: str, frame: int) -> Path:
+def resolve(
+    path: str | None, source_root: Path | None, what: str, sequence: str, frame: int
+) -> Path:
     """A source path from the frames table (relative to the raw data root), made absolute against
     ``source_root``; an absolute path (tables written by other tools) is taken as it is."""
     if not path:
@@ -126,8 +135,10 @@ def resolve(path: str | None, source_root: Path | None, what: str, sequence: str
     if not p.is_absolute() and source_root is not None:
         p = Path(source_root) / p
     if not p.is_file():
-        raise FileNotFoundError(f"sequence {sequence!r} frame {frame}: {what} file {p} does not exist "
-                                f"(frames table path {path!r}, source root {source_root})")
+        raise FileNotFoundError(
+            f"sequence {sequence!r} frame {frame}: {what} file {p} does not exist "
+            f"(frames table path {path!r}, source root {source_root})"
+        )
     return p
 
 
@@ -159,8 +170,18 @@ def recorded_source_root(dataset_root: str | os.PathLike) -> Path | None:
 
 #: FlashOcc / BEVDet's nuScenes detection classes (their configs' ``class_names``): the label
 #: index of a box in the training infos' ``ann_infos`` is its position here
-DETECTION_CLASSES = ("car", "truck", "construction_vehicle", "bus", "trailer", "barrier", "motorcycle",
-                     "bicycle", "pedestrian", "traffic_cone")
+DETECTION_CLASSES = (
+    "car",
+    "truck",
+    "construction_vehicle",
+    "bus",
+    "trailer",
+    "barrier",
+    "motorcycle",
+    "bicycle",
+    "pedestrian",
+    "traffic_cone",
+)
 
 
 def grid_metadata(ds: Dataset, sequences: list[str]) -> dict:
@@ -175,29 +196,49 @@ def grid_metadata(ds: Dataset, sequences: list[str]) -> dict:
     for seq in sequences:
         a = ds.attrs(seq)
         shape = [int(n) for n in ds.arrays(seq, lazy="zarr")["semantics"].shape[1:4]]
-        grid = {"range_min": [float(v) for v in a["range_min"]], "range_max": [float(v) for v in a["range_max"]],
-                "voxel_size_m": float(a["voxel_size_m"]), "shape": shape,
-                "class_names": list(a["class_names"]), "free_class": int(a["free_class"])}
+        grid = {
+            "range_min": [float(v) for v in a["range_min"]],
+            "range_max": [float(v) for v in a["range_max"]],
+            "voxel_size_m": float(a["voxel_size_m"]),
+            "shape": shape,
+            "class_names": list(a["class_names"]),
+            "free_class": int(a["free_class"]),
+        }
         if first is None:
             first = (seq, grid)
         elif grid != first[1]:
-            raise ValueError(f"dataset {ds.root}: sequences {first[0]!r} and {seq!r} have different grids or "
-                             f"class tables ({first[1]} vs {grid}); export them separately")
+            raise ValueError(
+                f"dataset {ds.root}: sequences {first[0]!r} and {seq!r} have different grids or "
+                f"class tables ({first[1]} vs {grid}); export them separately"
+            )
     g = first[1]
     lo, hi, vs = g["range_min"], g["range_max"], g["voxel_size_m"]
     return {
-        "grid": {"frame": "base (the robot base on the ground, = the nuScenes ego frame)",
-                 "axis_order": ["x", "y", "z"], "range_min": lo, "range_max": hi, "voxel_size_m": vs,
-                 "shape": g["shape"], "index": "floor((p - range_min) / voxel_size_m)"},
+        "grid": {
+            "frame": "base (the robot base on the ground, = the nuScenes ego frame)",
+            "axis_order": ["x", "y", "z"],
+            "range_min": lo,
+            "range_max": hi,
+            "voxel_size_m": vs,
+            "shape": g["shape"],
+            "index": "floor((p - range_min) / voxel_size_m)",
+        },
         "class_names": g["class_names"],
         "num_classes": len(g["class_names"]),
         "free_class": g["free_class"],
         "unknown": "not a class: voxels with mask_camera == 0 (camera view) or mask_lidar == 0 (LiDAR) "
-                   "are unknown; semantics holds the free id there",
+        "are unknown; semantics holds the free id there",
         "flashocc": {
-            "grid_config": {"x": [lo[0], hi[0], vs], "y": [lo[1], hi[1], vs], "z": [lo[2], hi[2], hi[2] - lo[2]]},
-            "Dz": g["shape"][2], "num_classes": len(g["class_names"]), "free_index": g["free_class"],
-            "cams": [CAM_CHANNEL], "detection_classes": list(DETECTION_CLASSES),
+            "grid_config": {
+                "x": [lo[0], hi[0], vs],
+                "y": [lo[1], hi[1], vs],
+                "z": [lo[2], hi[2], hi[2] - lo[2]],
+            },
+            "Dz": g["shape"][2],
+            "num_classes": len(g["class_names"]),
+            "free_index": g["free_class"],
+            "cams": [CAM_CHANNEL],
+            "detection_classes": list(DETECTION_CLASSES),
         },
     }
 

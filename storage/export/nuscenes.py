@@ -55,8 +55,19 @@ from tasks.conventions import CLASS_NAMES, FREE, PEDESTRIAN, ROAD, TERRAIN
 from tasks.occupancy.instance_visibility import box_lattice, visible_fractions
 
 TABLES = (
-    "category", "attribute", "visibility", "instance", "sensor", "calibrated_sensor", "ego_pose",
-    "log", "scene", "sample", "sample_data", "sample_annotation", "map",
+    "category",
+    "attribute",
+    "visibility",
+    "instance",
+    "sensor",
+    "calibrated_sensor",
+    "ego_pose",
+    "log",
+    "scene",
+    "sample",
+    "sample_data",
+    "sample_annotation",
+    "map",
 )
 #: our class id -> nuScenes-style category name (index = our class id)
 CATEGORY_NAMES = (
@@ -72,7 +83,12 @@ CATEGORY_NAMES = (
 )
 VERSIONS = ("v1.0-trainval", "v1.0-mini", "v1.0-test")
 #: nuScenes visibility levels: (token, level, lower bound of the visible fraction)
-VISIBILITY_LEVELS = (("1", "v0-40", 0.0), ("2", "v40-60", 0.4), ("3", "v60-80", 0.6), ("4", "v80-100", 0.8))
+VISIBILITY_LEVELS = (
+    ("1", "v0-40", 0.0),
+    ("2", "v40-60", 0.4),
+    ("3", "v60-80", 0.6),
+    ("4", "v80-100", 0.8),
+)
 #: where FlashOcc's configs keep the nuScenes data (``data_root``), relative to its checkout
 INFOS_DATA_ROOT = "./data/nuscenes"
 INFOS_PREFIX = "mobileocc"
@@ -117,7 +133,12 @@ def _points_in_box(points_base: np.ndarray, center, size_lwh, yaw: float) -> int
 
 def _static_tables(log_tokens: list[str], map_token: str) -> dict[str, list]:
     category = [
-        {"token": token("category", name), "name": name, "description": f"mobileocc class {CLASS_NAMES[i]}", "index": i}
+        {
+            "token": token("category", name),
+            "name": name,
+            "description": f"mobileocc class {CLASS_NAMES[i]}",
+            "index": i,
+        }
         for i, name in enumerate(CATEGORY_NAMES)
     ]
     attribute = [
@@ -128,19 +149,37 @@ def _static_tables(log_tokens: list[str], map_token: str) -> dict[str, list]:
         )
     ]
     visibility = [
-        {"token": tok, "level": level,
-         "description": f"visibility of the instance is {level} % (visible fraction of its cam0 silhouette)"}
+        {
+            "token": tok,
+            "level": level,
+            "description": f"visibility of the instance is {level} % (visible fraction of its cam0 silhouette)",
+        }
         for tok, level, _ in VISIBILITY_LEVELS
     ]
     sensor = [
         {"token": token("sensor", CAM_CHANNEL), "channel": CAM_CHANNEL, "modality": "camera"},
         {"token": token("sensor", LIDAR_CHANNEL), "channel": LIDAR_CHANNEL, "modality": "lidar"},
     ]
-    maps = [{"token": map_token, "category": "semantic_prior", "filename": f"maps/{map_token}.png", "log_tokens": log_tokens}]
-    return {"category": category, "attribute": attribute, "visibility": visibility, "sensor": sensor, "map": maps}
+    maps = [
+        {
+            "token": map_token,
+            "category": "semantic_prior",
+            "filename": f"maps/{map_token}.png",
+            "log_tokens": log_tokens,
+        }
+    ]
+    return {
+        "category": category,
+        "attribute": attribute,
+        "visibility": visibility,
+        "sensor": sensor,
+        "map": maps,
+    }
 
 
-def visible_fractions_of_boxes(ds, seq: str, info, rows: list[dict]) -> dict[tuple[int, int], float]:
+def visible_fractions_of_boxes(
+    ds, seq: str, info, rows: list[dict]
+) -> dict[tuple[int, int], float]:
     """(frame, track_id) -> visible fraction in cam0 of each instances-table row with a box
     (``rows``), from the published grids of ``seq`` (``info``: its :func:`sequence_info`); a person
     with no voxel in the grid is drawn as the voxel centres of its box."""
@@ -160,13 +199,28 @@ def visible_fractions_of_boxes(ds, seq: str, info, rows: list[dict]) -> dict[tup
             sem, inst = grids["semantics"][f - start], grids["instances"][f - start]
             ids = [int(r["track_id"]) for r in by_frame[f]]
             present = set(np.unique(inst).tolist())
-            outside = {int(r["track_id"]): box_lattice(r["box3d_center"], r["box3d_size"], float(r["box3d_yaw"] or 0.0), vs)
-                       for r in by_frame[f] if int(r["track_id"]) not in present}
+            outside = {
+                int(r["track_id"]): box_lattice(
+                    r["box3d_center"], r["box3d_size"], float(r["box3d_yaw"] or 0.0), vs
+                )
+                for r in by_frame[f]
+                if int(r["track_id"]) not in present
+            }
             # flat ground (road, terrain) lies under people: its voxels stand for a surface at z ~ 0
             # and would hide their feet; it does not occlude them
             occluders = ~np.isin(sem, (FREE, *FLAT_GROUND))
-            frac = visible_fractions(attrs["range_min"], vs, occluders, inst, ids, info.K, info.width, info.height,
-                                     info.T_base_from_cam0, outside=outside)
+            frac = visible_fractions(
+                attrs["range_min"],
+                vs,
+                occluders,
+                inst,
+                ids,
+                info.K,
+                info.width,
+                info.height,
+                info.T_base_from_cam0,
+                outside=outside,
+            )
             out.update({(f, i): float(v) for i, v in zip(ids, frac)})
     return out
 
@@ -195,7 +249,9 @@ def export_nuscenes(
     Returns the table directory ``out_dir/version``.
     """
     if version not in VERSIONS and not version.startswith("v1.0-"):
-        raise ValueError(f"export_nuscenes: version {version!r} must look like v1.0-<name>, e.g. one of {VERSIONS}")
+        raise ValueError(
+            f"export_nuscenes: version {version!r} must look like v1.0-<name>, e.g. one of {VERSIONS}"
+        )
     ds = open_dataset(dataset_root)
     out = Path(out_dir)
     if source_root is None:
@@ -204,15 +260,20 @@ def export_nuscenes(
     chosen = list(ds.sequences if sequences is None else sequences)
     val = set(val_sequences)
     if val - set(chosen):
-        raise ValueError(f"export_nuscenes: val_sequences {sorted(val - set(chosen))} are not among the "
-                         f"exported sequences {chosen}")
+        raise ValueError(
+            f"export_nuscenes: val_sequences {sorted(val - set(chosen))} are not among the "
+            f"exported sequences {chosen}"
+        )
     metadata = grid_metadata(ds, chosen)
     map_token = token("map", scene_prefix)
     log_tokens = [token("log", seq) for seq in chosen]
     t = {name: [] for name in TABLES}
     t.update(_static_tables(log_tokens, map_token))
     ped_category = token("category", CATEGORY_NAMES[PEDESTRIAN])
-    attr_moving, attr_standing = token("attribute", "pedestrian.moving"), token("attribute", "pedestrian.standing")
+    attr_moving, attr_standing = (
+        token("attribute", "pedestrian.moving"),
+        token("attribute", "pedestrian.standing"),
+    )
     infos: dict[str, list] = {"train": [], "val": []}
     prefix = infos_data_root.rstrip("/")
 
@@ -222,15 +283,30 @@ def export_nuscenes(
         cs_cam = token("calibrated_sensor", seq, CAM_CHANNEL)
         cs_lidar = token("calibrated_sensor", seq, LIDAR_CHANNEL)
         t["calibrated_sensor"] += [
-            {"token": cs_cam, "sensor_token": token("sensor", CAM_CHANNEL), **pose_record(info.T_base_from_cam0),
-             "camera_intrinsic": info.K.tolist()},
-            {"token": cs_lidar, "sensor_token": token("sensor", LIDAR_CHANNEL), **pose_record(info.T_base_from_lidar),
-             "camera_intrinsic": []},
+            {
+                "token": cs_cam,
+                "sensor_token": token("sensor", CAM_CHANNEL),
+                **pose_record(info.T_base_from_cam0),
+                "camera_intrinsic": info.K.tolist(),
+            },
+            {
+                "token": cs_lidar,
+                "sensor_token": token("sensor", LIDAR_CHANNEL),
+                **pose_record(info.T_base_from_lidar),
+                "camera_intrinsic": [],
+            },
         ]
         first_stamp = int(info.frames[0]["stamp_ns"]) if info.frames else 0
         date = np.datetime64(first_stamp, "ns").astype("datetime64[D]")
-        t["log"].append({"token": log_tok, "logfile": f"{scene_prefix}_{seq}", "vehicle": "mobile-robot",
-                         "date_captured": str(date), "location": "ut-campus"})
+        t["log"].append(
+            {
+                "token": log_tok,
+                "logfile": f"{scene_prefix}_{seq}",
+                "vehicle": "mobile-robot",
+                "date_captured": str(date),
+                "location": "ut-campus",
+            }
+        )
         frames = info.frames
         samples = [sample_token(seq, r["frame"]) for r in frames]
         sd_cam = [token("sample_data", seq, r["frame"], CAM_CHANNEL) for r in frames]
@@ -241,14 +317,26 @@ def export_nuscenes(
         for i, row in enumerate(frames):
             f = int(row["frame"])
             stamp_us = int(row["stamp_ns"]) // 1000
-            prev_s, next_s = (samples[i - 1] if i else ""), (samples[i + 1] if i + 1 < len(samples) else "")
-            t["sample"].append({"token": samples[i], "timestamp": stamp_us, "prev": prev_s, "next": next_s,
-                                "scene_token": token("scene", seq)})
+            prev_s, next_s = (
+                (samples[i - 1] if i else ""),
+                (samples[i + 1] if i + 1 < len(samples) else ""),
+            )
+            t["sample"].append(
+                {
+                    "token": samples[i],
+                    "timestamp": stamp_us,
+                    "prev": prev_s,
+                    "next": next_s,
+                    "scene_token": token("scene", seq),
+                }
+            )
             T_wb = mat4(row["T_world_from_base"])
             base_by_frame[f] = T_wb
             # one ego pose per sample_data, as nuScenes does (both share the sweep stamp here)
-            for sd_list, channel in ((sd_cam, CAM_CHANNEL), (sd_lidar, LIDAR_CHANNEL)):
-                t["ego_pose"].append({"token": sd_list[i], "timestamp": stamp_us, **pose_record(T_wb)})
+            for sd_list in (sd_cam, sd_lidar):
+                t["ego_pose"].append(
+                    {"token": sd_list[i], "timestamp": stamp_us, **pose_record(T_wb)}
+                )
             img_src = resolve(row["cam0_path"], src_root, "cam0 image", seq, f)
             img_rel = sample_file_name(scene, CAM_CHANNEL, stamp_us, img_src.suffix)
             link_or_copy(img_src, out / img_rel)
@@ -260,30 +348,63 @@ def export_nuscenes(
             files_by_frame[f] = (img_rel, lidar_rel)
             pts_h = np.c_[sweep[:, :3].astype(np.float64), np.ones(len(sweep))]
             points_by_frame[f] = (pts_h @ info.T_base_from_lidar.T)[:, :3]
-            for sd_list, channel, cs, rel, fmt, w, h in (
-                (sd_cam, CAM_CHANNEL, cs_cam, img_rel, img_src.suffix.lstrip("."), info.width, info.height),
-                (sd_lidar, LIDAR_CHANNEL, cs_lidar, lidar_rel, "pcd", 0, 0),
+            for sd_list, cs, rel, fmt, w, h in (
+                (sd_cam, cs_cam, img_rel, img_src.suffix.lstrip("."), info.width, info.height),
+                (sd_lidar, cs_lidar, lidar_rel, "pcd", 0, 0),
             ):
-                t["sample_data"].append({
-                    "token": sd_list[i], "sample_token": samples[i], "ego_pose_token": sd_list[i],
-                    "calibrated_sensor_token": cs, "timestamp": stamp_us, "fileformat": fmt,
-                    "is_key_frame": True, "height": h, "width": w, "filename": rel,
-                    "prev": sd_list[i - 1] if i else "", "next": sd_list[i + 1] if i + 1 < len(sd_list) else "",
-                })
-        t["scene"].append({
-            "token": token("scene", seq), "log_token": log_tok, "nbr_samples": len(samples),
-            "first_sample_token": samples[0] if samples else "", "last_sample_token": samples[-1] if samples else "",
-            "name": scene, "description": f"mobileocc sequence {seq}",
-        })
-        rows = [r for r in ds.table("instances", seq).to_pylist()
-                if r["box3d_center"] is not None and r["box3d_size"] is not None and r["frame"] in base_by_frame]
+                t["sample_data"].append(
+                    {
+                        "token": sd_list[i],
+                        "sample_token": samples[i],
+                        "ego_pose_token": sd_list[i],
+                        "calibrated_sensor_token": cs,
+                        "timestamp": stamp_us,
+                        "fileformat": fmt,
+                        "is_key_frame": True,
+                        "height": h,
+                        "width": w,
+                        "filename": rel,
+                        "prev": sd_list[i - 1] if i else "",
+                        "next": sd_list[i + 1] if i + 1 < len(sd_list) else "",
+                    }
+                )
+        t["scene"].append(
+            {
+                "token": token("scene", seq),
+                "log_token": log_tok,
+                "nbr_samples": len(samples),
+                "first_sample_token": samples[0] if samples else "",
+                "last_sample_token": samples[-1] if samples else "",
+                "name": scene,
+                "description": f"mobileocc sequence {seq}",
+            }
+        )
+        rows = [
+            r
+            for r in ds.table("instances", seq).to_pylist()
+            if r["box3d_center"] is not None
+            and r["box3d_size"] is not None
+            and r["frame"] in base_by_frame
+        ]
         visible = visible_fractions_of_boxes(ds, seq, info, rows)
-        boxes = _annotations(t, rows, seq, base_by_frame, points_by_frame, visible, ped_category,
-                             attr_moving, attr_standing, moving_speed_mps)
+        boxes = _annotations(
+            t,
+            rows,
+            seq,
+            base_by_frame,
+            points_by_frame,
+            visible,
+            ped_category,
+            attr_moving,
+            attr_standing,
+            moving_speed_mps,
+        )
         split = "val" if seq in val else "train"
         for i, row in enumerate(frames):
             f = int(row["frame"])
-            infos[split].append(_info(info, scene, seq, row, sd_cam[i], files_by_frame[f], boxes.get(f, []), prefix))
+            infos[split].append(
+                _info(info, scene, seq, row, sd_cam[i], files_by_frame[f], boxes.get(f, []), prefix)
+            )
 
     # a tiny all-zero semantic prior: the devkit needs the file, nothing reads its content here
     mask = out / t["map"][0]["filename"]
@@ -295,19 +416,33 @@ def export_nuscenes(
         tmp = table_dir / f".tmp-{name}.json"
         tmp.write_text(json.dumps(t[name], indent=0, sort_keys=True, allow_nan=False))
         os.replace(tmp, table_dir / f"{name}.json")
-    meta = {**metadata, "version": version, "scene_prefix": scene_prefix,
-            "train_scenes": [scene_name(scene_prefix, s) for s in chosen if s not in val],
-            "val_scenes": [scene_name(scene_prefix, s) for s in chosen if s in val],
-            "infos": {split: f"{INFOS_PREFIX}_infos_{split}.pkl" for split in infos},
-            "infos_data_root": prefix}
+    meta = {
+        **metadata,
+        "version": version,
+        "scene_prefix": scene_prefix,
+        "train_scenes": [scene_name(scene_prefix, s) for s in chosen if s not in val],
+        "val_scenes": [scene_name(scene_prefix, s) for s in chosen if s in val],
+        "infos": {split: f"{INFOS_PREFIX}_infos_{split}.pkl" for split in infos},
+        "infos_data_root": prefix,
+    }
     for split, records in infos.items():
         write_bytes(out / meta["infos"][split], dumps_plain({"infos": records, "metadata": meta}))
     write_json(out / METADATA_FILE, meta)
     return table_dir
 
 
-def _annotations(t, rows, seq, base_by_frame, points_by_frame, visible, ped_category, attr_moving,
-                 attr_standing, moving_speed_mps) -> dict[int, list[dict]]:
+def _annotations(
+    t,
+    rows,
+    seq,
+    base_by_frame,
+    points_by_frame,
+    visible,
+    ped_category,
+    attr_moving,
+    attr_standing,
+    moving_speed_mps,
+) -> dict[int, list[dict]]:
     """Append instance / sample_annotation records; returns per frame the boxes in the base frame
     (for the training infos)."""
     tracks: dict[int, list[dict]] = {}
@@ -318,8 +453,15 @@ def _annotations(t, rows, seq, base_by_frame, points_by_frame, visible, ped_cate
         track = sorted(tracks[track_id], key=lambda r: r["frame"])
         inst = token("instance", seq, track_id)
         anns = [token("sample_annotation", seq, track_id, r["frame"]) for r in track]
-        t["instance"].append({"token": inst, "category_token": ped_category, "nbr_annotations": len(anns),
-                              "first_annotation_token": anns[0], "last_annotation_token": anns[-1]})
+        t["instance"].append(
+            {
+                "token": inst,
+                "category_token": ped_category,
+                "nbr_annotations": len(anns),
+                "first_annotation_token": anns[0],
+                "last_annotation_token": anns[-1],
+            }
+        )
         for k, r in enumerate(track):
             f = int(r["frame"])
             T_wb = base_by_frame[f]
@@ -328,27 +470,56 @@ def _annotations(t, rows, seq, base_by_frame, points_by_frame, visible, ped_cate
             R_w = T_wb[:3, :3] @ _rot_z(yaw)
             l, w, h = (float(v) for v in r["box3d_size"])
             v_base = None
-            if r["vx"] is not None and r["vy"] is not None and np.isfinite([r["vx"], r["vy"]]).all():
+            if (
+                r["vx"] is not None
+                and r["vy"] is not None
+                and np.isfinite([r["vx"], r["vy"]]).all()
+            ):
                 v_base = np.array([float(r["vx"]), float(r["vy"]), 0.0])
             moving = v_base is not None and np.hypot(v_base[0], v_base[1]) > moving_speed_mps
             n_pts = _points_in_box(points_by_frame[f], r["box3d_center"], (l, w, h), yaw)
             fraction = visible.get((f, track_id), 0.0)
-            t["sample_annotation"].append({
-                "token": anns[k], "sample_token": sample_token(seq, f), "instance_token": inst,
-                "visibility_token": visibility_token(fraction),
-                "attribute_tokens": [attr_moving if moving else attr_standing],
-                "translation": [float(v) for v in center_w], "size": [w, l, h], "rotation": quat_wxyz_from_matrix(R_w),
-                "prev": anns[k - 1] if k else "", "next": anns[k + 1] if k + 1 < len(anns) else "",
-                "num_lidar_pts": n_pts, "num_radar_pts": 0,
-                "velocity": None if v_base is None else [float(v) for v in T_wb[:3, :3] @ v_base],
-            })
-            boxes.setdefault(f, []).append({"center": np.asarray(r["box3d_center"], np.float64), "lwh": (l, w, h),
-                                            "yaw": yaw, "velocity": v_base, "num_lidar_pts": n_pts})
+            t["sample_annotation"].append(
+                {
+                    "token": anns[k],
+                    "sample_token": sample_token(seq, f),
+                    "instance_token": inst,
+                    "visibility_token": visibility_token(fraction),
+                    "attribute_tokens": [attr_moving if moving else attr_standing],
+                    "translation": [float(v) for v in center_w],
+                    "size": [w, l, h],
+                    "rotation": quat_wxyz_from_matrix(R_w),
+                    "prev": anns[k - 1] if k else "",
+                    "next": anns[k + 1] if k + 1 < len(anns) else "",
+                    "num_lidar_pts": n_pts,
+                    "num_radar_pts": 0,
+                    "velocity": None
+                    if v_base is None
+                    else [float(v) for v in T_wb[:3, :3] @ v_base],
+                }
+            )
+            boxes.setdefault(f, []).append(
+                {
+                    "center": np.asarray(r["box3d_center"], np.float64),
+                    "lwh": (l, w, h),
+                    "yaw": yaw,
+                    "velocity": v_base,
+                    "num_lidar_pts": n_pts,
+                }
+            )
     return boxes
 
 
-def _info(info, scene: str, seq: str, row: dict, cam_sd_token: str, files: tuple[str, str],
-          boxes: list[dict], prefix: str) -> dict:
+def _info(
+    info,
+    scene: str,
+    seq: str,
+    row: dict,
+    cam_sd_token: str,
+    files: tuple[str, str],
+    boxes: list[dict],
+    prefix: str,
+) -> dict:
     """One training-info record (mmdet3d nuScenes converter + BEVDet's ann_infos / occ_path)."""
     img_rel, lidar_rel = files
     T_wb = mat4(row["T_world_from_base"])
@@ -356,7 +527,11 @@ def _info(info, scene: str, seq: str, row: dict, cam_sd_token: str, files: tuple
     T_lidar_from_cam = np.linalg.inv(T_bl) @ info.T_base_from_cam0
     R_lb = T_bl[:3, :3].T  # lidar from base
     stamp_us = int(row["stamp_ns"]) // 1000
-    ego, lidar2ego, cam2ego = pose_record(T_wb), pose_record(T_bl), pose_record(info.T_base_from_cam0)
+    ego, lidar2ego, cam2ego = (
+        pose_record(T_wb),
+        pose_record(T_bl),
+        pose_record(info.T_base_from_cam0),
+    )
     n = len(boxes)
     gt_boxes = np.zeros((n, 7))
     gt_velocity = np.zeros((n, 2))
@@ -365,7 +540,9 @@ def _info(info, scene: str, seq: str, row: dict, cam_sd_token: str, files: tuple
     for k, b in enumerate(boxes):
         c_lidar = R_lb @ (b["center"] - T_bl[:3, 3])
         R = R_lb @ _rot_z(b["yaw"])
-        v = b["velocity"] if b["velocity"] is not None else np.zeros(3)  # unknown: 0, as the loaders make NaN
+        v = (
+            b["velocity"] if b["velocity"] is not None else np.zeros(3)
+        )  # unknown: 0, as the loaders make NaN
         gt_boxes[k] = [*c_lidar, *b["lwh"], np.arctan2(R[1, 0], R[0, 0])]
         gt_velocity[k] = (R_lb @ v)[:2]
         num_pts[k] = b["num_lidar_pts"]
@@ -378,17 +555,25 @@ def _info(info, scene: str, seq: str, row: dict, cam_sd_token: str, files: tuple
         "timestamp": stamp_us,
         "lidar_path": f"{prefix}/{lidar_rel}",
         "sweeps": [],
-        "lidar2ego_translation": lidar2ego["translation"], "lidar2ego_rotation": lidar2ego["rotation"],
-        "ego2global_translation": ego["translation"], "ego2global_rotation": ego["rotation"],
-        "cams": {CAM_CHANNEL: {
-            "data_path": f"{prefix}/{img_rel}", "type": CAM_CHANNEL, "sample_data_token": cam_sd_token,
-            "sensor2ego_translation": cam2ego["translation"], "sensor2ego_rotation": cam2ego["rotation"],
-            "ego2global_translation": ego["translation"], "ego2global_rotation": ego["rotation"],
-            "timestamp": stamp_us,
-            "sensor2lidar_rotation": np.ascontiguousarray(T_lidar_from_cam[:3, :3]),
-            "sensor2lidar_translation": T_lidar_from_cam[:3, 3].copy(),
-            "cam_intrinsic": info.K.copy(),
-        }},
+        "lidar2ego_translation": lidar2ego["translation"],
+        "lidar2ego_rotation": lidar2ego["rotation"],
+        "ego2global_translation": ego["translation"],
+        "ego2global_rotation": ego["rotation"],
+        "cams": {
+            CAM_CHANNEL: {
+                "data_path": f"{prefix}/{img_rel}",
+                "type": CAM_CHANNEL,
+                "sample_data_token": cam_sd_token,
+                "sensor2ego_translation": cam2ego["translation"],
+                "sensor2ego_rotation": cam2ego["rotation"],
+                "ego2global_translation": ego["translation"],
+                "ego2global_rotation": ego["rotation"],
+                "timestamp": stamp_us,
+                "sensor2lidar_rotation": np.ascontiguousarray(T_lidar_from_cam[:3, :3]),
+                "sensor2lidar_translation": T_lidar_from_cam[:3, 3].copy(),
+                "cam_intrinsic": info.K.copy(),
+            }
+        },
         "gt_boxes": gt_boxes,
         "gt_names": np.array(["pedestrian"] * n, dtype="<U10"),
         "gt_velocity": gt_velocity,

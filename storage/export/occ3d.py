@@ -58,7 +58,9 @@ def export_occ3d(
     val = set(val_sequences)
     unknown = val - set(ds.sequences)
     if unknown:
-        raise ValueError(f"export_occ3d: val_sequences {sorted(unknown)} are not in the dataset {list(ds.sequences)}")
+        raise ValueError(
+            f"export_occ3d: val_sequences {sorted(unknown)} are not in the dataset {list(ds.sequences)}"
+        )
     chosen = list(ds.sequences if sequences is None else sequences)
     metadata = grid_metadata(ds, chosen)
     scene_infos: dict[str, dict] = {}
@@ -115,9 +117,16 @@ def export_occ3d(
     tmp = path.with_name(".tmp-annotations.json")
     tmp.write_text(json.dumps(annotations, indent=1, sort_keys=True))
     os.replace(tmp, path)
-    write_json(out / METADATA_FILE, {**metadata, "scene_prefix": scene_prefix,
-                                     "train_split": annotations["train_split"], "val_split": annotations["val_split"],
-                                     "labels": "ground-truth" if gt_root is not None else "pipeline"})
+    write_json(
+        out / METADATA_FILE,
+        {
+            **metadata,
+            "scene_prefix": scene_prefix,
+            "train_split": annotations["train_split"],
+            "val_split": annotations["val_split"],
+            "labels": "ground-truth" if gt_root is not None else "pipeline",
+        },
+    )
     return path
 
 
@@ -127,19 +136,27 @@ def _gt_reader(gt_root, sequence: str, grid: dict):
     from storage.gt import gt_dir, read_frame_gt, read_sequence_gt
 
     if not sequence.isdigit():
-        raise ValueError(f"export_occ3d: sequence {sequence!r} has no synthetic ground truth (ids are integers)")
+        raise ValueError(
+            f"export_occ3d: sequence {sequence!r} has no synthetic ground truth (ids are integers)"
+        )
     seq_id = int(sequence)
     gseq = read_sequence_gt(Path(gt_root), seq_id)
-    same = (list(gseq.grid_shape) == grid["shape"] and abs(gseq.grid_voxel_size_m - grid["voxel_size_m"]) < 1e-9
-            and np.allclose(gseq.grid_range_min, grid["range_min"]))
+    same = (
+        list(gseq.grid_shape) == grid["shape"]
+        and abs(gseq.grid_voxel_size_m - grid["voxel_size_m"]) < 1e-9
+        and np.allclose(gseq.grid_range_min, grid["range_min"])
+    )
     if not same:
         raise ValueError(
             f"export_occ3d: ground truth {gt_dir(Path(gt_root), seq_id) / 'sequence.npz'} has grid "
             f"{tuple(gseq.grid_shape)} at {gseq.grid_voxel_size_m} m from {gseq.grid_range_min.tolist()}, the dataset "
             f"{tuple(grid['shape'])} at {grid['voxel_size_m']} m from {grid['range_min']}: rebuild with the ground "
-            "truth's grid to export it")
+            "truth's grid to export it"
+        )
 
     def semantics(raw_frame: int) -> np.ndarray:
-        return np.ascontiguousarray(read_frame_gt(Path(gt_root), seq_id, raw_frame).occupancy, dtype=np.uint8)
+        return np.ascontiguousarray(
+            read_frame_gt(Path(gt_root), seq_id, raw_frame).occupancy, dtype=np.uint8
+        )
 
     return semantics

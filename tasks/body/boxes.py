@@ -51,9 +51,13 @@ def body_forward(global_orient: np.ndarray) -> np.ndarray:
     return _rotvec_to_matrix(global_orient) @ TEMPLATE_FORWARD
 
 
-def upright_box(vertices: np.ndarray, global_orient: np.ndarray | None = None,
-                velocity_xy: np.ndarray | None = None, min_horizontal: float = 0.25,
-                min_speed_mps: float = 0.1) -> UprightBox:
+def upright_box(
+    vertices: np.ndarray,
+    global_orient: np.ndarray | None = None,
+    velocity_xy: np.ndarray | None = None,
+    min_horizontal: float = 0.25,
+    min_speed_mps: float = 0.1,
+) -> UprightBox:
     """The tight upright box around ``vertices`` with l along the body's heading.
 
     vertices: (V, 3) float metres, z up (e.g. the base frame), V >= 1, finite.
@@ -65,8 +69,10 @@ def upright_box(vertices: np.ndarray, global_orient: np.ndarray | None = None,
     """
     v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     if len(v) == 0 or not np.all(np.isfinite(v)):
-        raise ValueError(f"upright_box: need finite vertices, got {len(v)} with "
-                         f"{int((~np.isfinite(v)).any(axis=1).sum())} non-finite")
+        raise ValueError(
+            f"upright_box: need finite vertices, got {len(v)} with "
+            f"{int((~np.isfinite(v)).any(axis=1).sum())} non-finite"
+        )
     direction, source = None, HEADING_FROM_FOOTPRINT
     if global_orient is not None and np.all(np.isfinite(global_orient)):
         f = body_forward(global_orient)
@@ -80,7 +86,11 @@ def upright_box(vertices: np.ndarray, global_orient: np.ndarray | None = None,
         xy = v[:, :2] - v[:, :2].mean(0)
         vals, vecs = np.linalg.eigh(xy.T @ xy)
         # the footprint's major axis is the shoulder line; facing is its normal (sign unknown)
-        direction = np.array([-vecs[1, 1], vecs[0, 1]]) if vals[1] > vals[0] * (1 + 1e-9) else np.array([1.0, 0.0])
+        direction = (
+            np.array([-vecs[1, 1], vecs[0, 1]])
+            if vals[1] > vals[0] * (1 + 1e-9)
+            else np.array([1.0, 0.0])
+        )
     yaw = float(np.arctan2(direction[1], direction[0]))
     c, s = np.cos(yaw), np.sin(yaw)
     # box-local coordinates: x along the heading, y to its left

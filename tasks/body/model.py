@@ -33,7 +33,15 @@ NUM_BODY_JOINTS = 23
 NUM_POSE_FEATURES = NUM_BODY_JOINTS * 9
 #: Official SMPL vertex ids of the COCO face keypoints (nose, l_eye, r_eye, l_ear, r_ear).
 OFFICIAL_COCO_VERTEX_IDS = np.array([COCO_TO_SMPL_VERTEX[i] for i in range(5)], dtype=np.int64)
-REQUIRED_KEYS = ("v_template", "f", "shapedirs", "posedirs", "weights", "kintree_table", "J_regressor")
+REQUIRED_KEYS = (
+    "v_template",
+    "f",
+    "shapedirs",
+    "posedirs",
+    "weights",
+    "kintree_table",
+    "J_regressor",
+)
 
 
 class BodyModelError(ValueError):
@@ -57,8 +65,14 @@ def _parents_from_kintree(kintree_table: np.ndarray) -> np.ndarray:
     parents = np.full(NUM_JOINTS, -1, dtype=np.int64)
     for parent, child in zip(kt[0], kt[1]):
         parents[child] = -1 if parent >= 2**31 - 1 or parent < 0 else parent
-    if parents[0] != -1 or np.any(parents[1:] < 0) or np.any(parents[1:] >= np.arange(1, NUM_JOINTS)):
-        raise BodyModelError(f"kintree_table: not a tree rooted at joint 0: parents {parents.tolist()}")
+    if (
+        parents[0] != -1
+        or np.any(parents[1:] < 0)
+        or np.any(parents[1:] >= np.arange(1, NUM_JOINTS))
+    ):
+        raise BodyModelError(
+            f"kintree_table: not a tree rooted at joint 0: parents {parents.tolist()}"
+        )
     return parents
 
 
@@ -75,7 +89,9 @@ def validate_body_params(params: dict[str, np.ndarray]) -> None:
     }
     for key, shape in expect.items():
         if tuple(np.shape(params[key])) != shape:
-            raise BodyModelError(f"{key}: expected shape {shape}, got {tuple(np.shape(params[key]))}")
+            raise BodyModelError(
+                f"{key}: expected shape {shape}, got {tuple(np.shape(params[key]))}"
+            )
     sd = np.shape(params["shapedirs"])
     if len(sd) != 3 or sd[:2] != (V, 3):
         raise BodyModelError(f"shapedirs: expected shape ({V}, 3, B), got {sd}")
@@ -110,7 +126,9 @@ class BodyModel(torch.nn.Module):
         else:
             ids = OFFICIAL_COCO_VERTEX_IDS.copy()
         if ids.shape != (5,) or ids.min() < 0 or ids.max() >= self.num_vertices:
-            raise BodyModelError(f"coco_vertex_ids: expected 5 ids in [0, {self.num_vertices}), got {ids}")
+            raise BodyModelError(
+                f"coco_vertex_ids: expected 5 ids in [0, {self.num_vertices}), got {ids}"
+            )
         self.keypoint_vertex_ids = ids
         posedirs = np.asarray(params["posedirs"], dtype=np.float64)
         # (V, 3, 207) -> (207, V * 3) so that pose_features @ posedirs gives flat offsets.
@@ -120,7 +138,8 @@ class BodyModel(torch.nn.Module):
         self.register_buffer("shapedirs", torch.tensor(shapedirs, dtype=f32))
         self.register_buffer("posedirs", torch.tensor(posedirs_flat, dtype=f32))
         self.register_buffer(
-            "J_regressor", torch.tensor(np.asarray(params["J_regressor"], dtype=np.float64), dtype=f32)
+            "J_regressor",
+            torch.tensor(np.asarray(params["J_regressor"], dtype=np.float64), dtype=f32),
         )
         self.register_buffer(
             "lbs_weights", torch.tensor(np.asarray(params["weights"], dtype=np.float64), dtype=f32)
@@ -128,8 +147,11 @@ class BodyModel(torch.nn.Module):
         J_regressor = np.asarray(params["J_regressor"], dtype=np.float64)
         # float64 on purpose: the joints' shape basis, formed once (see rest_joints)
         self.register_buffer("J_template", torch.tensor(J_regressor @ v_template), persistent=False)
-        self.register_buffer("J_shapedirs", torch.tensor(np.einsum("jv,vcl->jcl", J_regressor, shapedirs)),
-                             persistent=False)
+        self.register_buffer(
+            "J_shapedirs",
+            torch.tensor(np.einsum("jv,vcl->jcl", J_regressor, shapedirs)),
+            persistent=False,
+        )
         self.register_buffer("faces_tensor", torch.tensor(self.faces), persistent=False)
         self.register_buffer("_eye3", torch.eye(3, dtype=f32), persistent=False)
         self._parents_clamped = np.maximum(self.parents, 0)
@@ -139,9 +161,15 @@ class BodyModel(torch.nn.Module):
         self._num_levels = int(depth.max())
         for d in range(1, self._num_levels + 1):
             at_depth = depth == d
-            self.register_buffer(f"_level{d}_joints", torch.tensor(np.flatnonzero(at_depth)), persistent=False)
-            self.register_buffer(f"_level{d}_parents", torch.tensor(self.parents[at_depth]), persistent=False)
-        self.register_buffer("_parents_clamped_t", torch.tensor(self._parents_clamped), persistent=False)
+            self.register_buffer(
+                f"_level{d}_joints", torch.tensor(np.flatnonzero(at_depth)), persistent=False
+            )
+            self.register_buffer(
+                f"_level{d}_parents", torch.tensor(self.parents[at_depth]), persistent=False
+            )
+        self.register_buffer(
+            "_parents_clamped_t", torch.tensor(self._parents_clamped), persistent=False
+        )
 
     def rest_joints(self, betas: Tensor) -> Tensor:
         """betas (B, L<=num_betas) -> rest-pose joints (B, 24, 3), metres, template frame.
@@ -152,7 +180,8 @@ class BodyModel(torch.nn.Module):
             raise ValueError(f"betas: expected (B, <= {self.num_betas}), got {tuple(betas.shape)}")
         L = betas.shape[1]
         return self.J_template.to(betas)[None] + torch.einsum(
-            "jcl,bl->bjc", self.J_shapedirs[:, :, :L].to(betas), betas)
+            "jcl,bl->bjc", self.J_shapedirs[:, :, :L].to(betas), betas
+        )
 
     def select_vertices(self, vertex_ids: Tensor) -> VertexSubset:
         """The model's per-vertex data at vertex_ids (B, N) long (a different subset per person),
@@ -193,12 +222,17 @@ class BodyModel(torch.nn.Module):
         if pose_offsets is None:
             pose_offsets = self._pose_offsets(rot)
         elif pose_offsets.shape != (B, self.num_vertices, 3):
-            raise ValueError(f"pose_offsets: expected ({B}, {self.num_vertices}, 3), got {tuple(pose_offsets.shape)}")
+            raise ValueError(
+                f"pose_offsets: expected ({B}, {self.num_vertices}, 3), got {tuple(pose_offsets.shape)}"
+            )
         # Shape blend shapes of every vertex as one matrix product (B, L) x (L, 3V): cheaper than
         # gathering per-person rows of the basis (memory-bound) for a vertex subset.
         L = betas.shape[1]
-        v_posed = (self.v_template.to(dtype)[None] + pose_offsets.to(dtype)
-                   + torch.einsum("bl,vcl->bvc", betas, self.shapedirs[:, :, :L].to(dtype)))
+        v_posed = (
+            self.v_template.to(dtype)[None]
+            + pose_offsets.to(dtype)
+            + torch.einsum("bl,vcl->bvc", betas, self.shapedirs[:, :, :L].to(dtype))
+        )
         A = A.reshape(B, NUM_JOINTS, 12)
         if vertex_subset is None:
             T = torch.einsum("vj,bjk->bvk", self.lbs_weights.to(dtype), A)  # (B, V, 12)
@@ -239,14 +273,18 @@ class BodyModel(torch.nn.Module):
                     f"global_orient / body_pose: expected ({B}, 3) / ({B}, 69) axis-angle, got "
                     f"{tuple(global_orient.shape)} / {tuple(body_pose.shape)}"
                 )
-            aa = torch.cat((global_orient.reshape(B, 1, 3), body_pose.reshape(B, NUM_BODY_JOINTS, 3)), dim=1)
+            aa = torch.cat(
+                (global_orient.reshape(B, 1, 3), body_pose.reshape(B, NUM_BODY_JOINTS, 3)), dim=1
+            )
             return axis_angle_to_matrix(aa)
         if body_pose.numel() != B * NUM_BODY_JOINTS * 9 or global_orient.numel() != B * 9:
             raise ValueError(
                 f"global_orient / body_pose: expected ({B}, 3, 3) / ({B}, 23, 3, 3) rotation "
                 f"matrices, got {tuple(global_orient.shape)} / {tuple(body_pose.shape)}"
             )
-        return torch.cat((global_orient.reshape(B, 1, 3, 3), body_pose.reshape(B, NUM_BODY_JOINTS, 3, 3)), dim=1)
+        return torch.cat(
+            (global_orient.reshape(B, 1, 3, 3), body_pose.reshape(B, NUM_BODY_JOINTS, 3, 3)), dim=1
+        )
 
     def _kinematics(self, rot: Tensor, J: Tensor) -> tuple[Tensor, Tensor]:
         """Forward kinematics, G_j = G_parent(j) [R_j | J_j - J_parent(j)], one tree level at a

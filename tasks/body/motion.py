@@ -30,17 +30,34 @@ class TrackedBodies:
     are kept for the next, so each row is posed about once.
     """
 
-    def __init__(self, model, betas, global_orient, body_pose, transl, track_id, position, velocity_base,
-                 stamps_s, T_world_from_lidar, T_base_from_lidar, max_gap_s: float):
+    def __init__(
+        self,
+        model,
+        betas,
+        global_orient,
+        body_pose,
+        transl,
+        track_id,
+        position,
+        velocity_base,
+        stamps_s,
+        T_world_from_lidar,
+        T_base_from_lidar,
+        max_gap_s: float,
+    ):
         self.model = model
-        self.params = tuple(np.asarray(a, np.float32) for a in (betas, global_orient, body_pose, transl))
+        self.params = tuple(
+            np.asarray(a, np.float32) for a in (betas, global_orient, body_pose, transl)
+        )
         self.track_id = np.asarray(track_id, np.int64).reshape(-1)
         self.position = np.asarray(position, np.int64).reshape(-1)
         self.velocity_base = np.asarray(velocity_base, np.float64).reshape(-1, 2)
         self.stamps_s = np.asarray(stamps_s, np.float64).reshape(-1)
         self.T_world_from_lidar = np.asarray(T_world_from_lidar, np.float64).reshape(-1, 4, 4)
         self.T_base_from_lidar = np.asarray(T_base_from_lidar, np.float64)
-        self.prev, self.next = track_neighbours(self.track_id, self.stamps_s[self.position], max_gap_s)
+        self.prev, self.next = track_neighbours(
+            self.track_id, self.stamps_s[self.position], max_gap_s
+        )
         self._posed: dict[int, np.ndarray] = {}
 
     def _pose(self, rows: np.ndarray) -> dict[int, np.ndarray]:
@@ -60,12 +77,20 @@ class TrackedBodies:
         near = np.concatenate([self.prev[rows], self.next[rows]])
         posed = self._pose(np.unique(np.concatenate([rows, near[near >= 0]])))
         nv = self.model.v_template.shape[0]
-        verts = np.stack([posed[int(r)] for r in rows]) if len(rows) else np.zeros((0, nv, 3), np.float32)
+        verts = (
+            np.stack([posed[int(r)] for r in rows])
+            if len(rows)
+            else np.zeros((0, nv, 3), np.float32)
+        )
         vel = np.zeros((len(rows), nv, 3))
         for k, r in enumerate(rows):
             trio = [self.prev[r], r, self.next[r]]
             at = [self.position[q] if q >= 0 else position for q in trio]
             vel[k] = vertex_velocities_in_base(
-                [posed[int(q)] if q >= 0 else None for q in trio], self.T_world_from_lidar[at],
-                self.stamps_s[at], self.T_base_from_lidar, np.r_[self.velocity_base[r], 0.0])
+                [posed[int(q)] if q >= 0 else None for q in trio],
+                self.T_world_from_lidar[at],
+                self.stamps_s[at],
+                self.T_base_from_lidar,
+                np.r_[self.velocity_base[r], 0.0],
+            )
         return rows, verts, vel

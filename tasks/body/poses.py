@@ -13,7 +13,16 @@ import numpy as np
 
 # Joint ids (see tasks.conventions.SMPL_JOINT_NAMES).
 L_HIP, R_HIP, SPINE1, L_KNEE, R_KNEE, SPINE2, L_ANKLE, R_ANKLE, SPINE3 = 1, 2, 3, 4, 5, 6, 7, 8, 9
-NECK, L_COLLAR, R_COLLAR, HEAD, L_SHOULDER, R_SHOULDER, L_ELBOW, R_ELBOW = 12, 13, 14, 15, 16, 17, 18, 19
+NECK, L_COLLAR, R_COLLAR, HEAD, L_SHOULDER, R_SHOULDER, L_ELBOW, R_ELBOW = (
+    12,
+    13,
+    14,
+    15,
+    16,
+    17,
+    18,
+    19,
+)
 L_WRIST, R_WRIST = 20, 21
 
 
@@ -48,7 +57,9 @@ def _arm(side: int, lower: float, swing: float, abduct: float = 0.0) -> np.ndarr
     return _matrix_to_rotvec(R)
 
 
-def _arms_down(pose: np.ndarray, lower: float, swing_l: float, swing_r: float, elbow: float) -> None:
+def _arms_down(
+    pose: np.ndarray, lower: float, swing_l: float, swing_r: float, elbow: float
+) -> None:
     _set(pose, L_COLLAR, [0.0, 0.0, -0.12])
     _set(pose, R_COLLAR, [0.0, 0.0, 0.12])
     _set(pose, L_SHOULDER, _arm(+1, lower, swing_l))
@@ -123,7 +134,9 @@ def arm_swing_pose(phase: float, rng: np.random.Generator) -> np.ndarray:
     return pose
 
 
-def sample_plausible_poses(n: int, rng: np.random.Generator, jitter_rad: float = 0.06) -> np.ndarray:
+def sample_plausible_poses(
+    n: int, rng: np.random.Generator, jitter_rad: float = 0.06
+) -> np.ndarray:
     """(n, 69) float64 poses: 50 % gait (random phase, speed 0.6-2.0 m/s), 25 % standing, 25 %
     arm swings, each with Gaussian joint jitter of std ``jitter_rad`` on every coordinate."""
     kinds = rng.choice(3, size=n, p=[0.5, 0.25, 0.25])

@@ -6,12 +6,15 @@ import numpy as np
 import torch
 
 
-def posed_vertices(model, betas: np.ndarray, global_orient: np.ndarray, body_pose: np.ndarray,
-                   transl: np.ndarray) -> np.ndarray:
+def posed_vertices(
+    model, betas: np.ndarray, global_orient: np.ndarray, body_pose: np.ndarray, transl: np.ndarray
+) -> np.ndarray:
     """Vertices (B, V, 3) float32 of B bodies (SMPL parameters (B, 10), (B, 3), (B, 69), (B, 3)),
     in the frame the parameters are expressed in."""
     if len(betas) == 0:
         return np.zeros((0, model.v_template.shape[0], 3), np.float32)
     with torch.no_grad():
-        out = model(*(torch.as_tensor(np.asarray(a)) for a in (betas, global_orient, body_pose, transl)))
+        out = model(
+            *(torch.as_tensor(np.asarray(a)) for a in (betas, global_orient, body_pose, transl))
+        )
     return out.vertices.numpy()

@@ -56,7 +56,9 @@ def fit_pose_prior(
     """
     X = np.asarray(poses, dtype=np.float64)
     if X.ndim != 2 or X.shape[0] < n_components * 2:
-        raise ValueError(f"fit_pose_prior: expected (N >= {2 * n_components}, d) poses, got {X.shape}")
+        raise ValueError(
+            f"fit_pose_prior: expected (N >= {2 * n_components}, d) poses, got {X.shape}"
+        )
     if not np.all(np.isfinite(X)):
         raise ValueError("fit_pose_prior: poses contain non-finite values")
     N, d = X.shape
@@ -69,7 +71,9 @@ def fit_pose_prior(
     C = np.array(centers)
     for _ in range(10):
         lab = ((X[:, None, :] - C[None]) ** 2).sum(-1).argmin(1)
-        C = np.array([X[lab == k].mean(0) if np.any(lab == k) else C[k] for k in range(n_components)])
+        C = np.array(
+            [X[lab == k].mean(0) if np.any(lab == k) else C[k] for k in range(n_components)]
+        )
     resp = np.eye(n_components)[lab]
 
     prev = -np.inf
@@ -127,7 +131,11 @@ class GMMPosePrior(torch.nn.Module):
         covars = np.asarray(covars, dtype=np.float64)
         weights = np.asarray(weights, dtype=np.float64).reshape(-1)
         K = weights.shape[0]
-        if means.ndim != 2 or means.shape[0] != K or covars.shape != (K, means.shape[1], means.shape[1]):
+        if (
+            means.ndim != 2
+            or means.shape[0] != K
+            or covars.shape != (K, means.shape[1], means.shape[1])
+        ):
             raise ValueError(
                 f"GMMPosePrior: inconsistent shapes means {means.shape}, covars {covars.shape}, "
                 f"weights {weights.shape}; expected (K, d), (K, d, d), (K,)"

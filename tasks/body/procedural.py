@@ -177,8 +177,12 @@ def marching_tetrahedra(values: np.ndarray, origin: np.ndarray, step: float):
     ci, cj, ck = np.meshgrid(np.arange(nx - 1), np.arange(ny - 1), np.arange(nz - 1), indexing="ij")
     base = np.stack((ci.ravel(), cj.ravel(), ck.ravel()), axis=1)
     corner_in = np.stack(
-        [inside[base[:, 0] + dx, base[:, 1] + dy, base[:, 2] + dz]
-         for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)],
+        [
+            inside[base[:, 0] + dx, base[:, 1] + dy, base[:, 2] + dz]
+            for dx in (0, 1)
+            for dy in (0, 1)
+            for dz in (0, 1)
+        ],
         axis=1,
     )
     mixed = corner_in.any(1) & ~corner_in.all(1)
@@ -189,7 +193,11 @@ def marching_tetrahedra(values: np.ndarray, origin: np.ndarray, step: float):
     tets = ids.reshape(-1, 4)
     tin = f[tets] < 0
     cnt = tin.sum(1)
-    tets, tin, cnt = tets[(cnt > 0) & (cnt < 4)], tin[(cnt > 0) & (cnt < 4)], cnt[(cnt > 0) & (cnt < 4)]
+    tets, tin, cnt = (
+        tets[(cnt > 0) & (cnt < 4)],
+        tin[(cnt > 0) & (cnt < 4)],
+        cnt[(cnt > 0) & (cnt < 4)],
+    )
 
     edge_a: list[np.ndarray] = []
     edge_b: list[np.ndarray] = []
@@ -217,7 +225,7 @@ def marching_tetrahedra(values: np.ndarray, origin: np.ndarray, step: float):
     s = st[cnt == 2]
     a, b, c, d = s[:, 0], s[:, 1], s[:, 2], s[:, 3]
     for quad_tri in (((a, c), (a, d), (b, d)), ((a, c), (b, d), (b, c))):
-        for (u, w) in quad_tri:
+        for u, w in quad_tri:
             edge_a.append(u)
             edge_b.append(w)
         tri_in.append(a)
@@ -334,7 +342,9 @@ def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray
 
 def _skinning_weights(verts: np.ndarray, J: np.ndarray, sigma: float = 0.02) -> np.ndarray:
     segs = _bone_segments(J)
-    dist = np.stack([np.min([_segment_distance(verts, a, b) for a, b in s], axis=0) for s in segs], 1)
+    dist = np.stack(
+        [np.min([_segment_distance(verts, a, b) for a, b in s], axis=0) for s in segs], 1
+    )
     # Torso bones are thick: compare distances relative to a per-bone radius.
     radius = np.full(NUM_JOINTS, 0.05)
     radius[[0, 3, 6, 9]] = 0.12
@@ -421,7 +431,9 @@ def _shape_dirs(v: np.ndarray, normals: np.ndarray, W: np.ndarray, J: np.ndarray
     return D
 
 
-def _pose_dirs(verts: np.ndarray, faces: np.ndarray, W: np.ndarray, bulge_m: float = 0.01) -> np.ndarray:
+def _pose_dirs(
+    verts: np.ndarray, faces: np.ndarray, W: np.ndarray, bulge_m: float = 0.01
+) -> np.ndarray:
     """(V, 3, 207): offset = bulge_m * mask_j(v) * (1 - cos angle_j) * normal(v) per joint j."""
     V = len(verts)
     n = _vertex_normals(verts, faces)
@@ -475,8 +487,13 @@ def generate_body_model(seed: int = 0) -> dict[str, np.ndarray]:
     tree = cKDTree(verts)
     # Face keypoints (nose, l_eye, r_eye, l_ear, r_ear): nearest vertices to points on the head.
     targets = np.array(
-        [[0.0, 0.445, 0.14], [0.032, 0.475, 0.13], [-0.032, 0.475, 0.13],
-         [0.08, 0.45, 0.03], [-0.08, 0.45, 0.03]]
+        [
+            [0.0, 0.445, 0.14],
+            [0.032, 0.475, 0.13],
+            [-0.032, 0.475, 0.13],
+            [0.08, 0.45, 0.03],
+            [-0.08, 0.45, 0.03],
+        ]
     ) + (J[15] - REST_JOINTS[15])
     coco_ids = tree.query(targets)[1].astype(np.int64)
     return {

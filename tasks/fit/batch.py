@@ -14,13 +14,22 @@ from tasks.fit.reframe import reframe_params
 def concat_point_sets(points: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """B point sets (N_b, 3) -> the fit's ragged layout: points (sum N_b, 3) float32 one set after
     another, and counts (B,) int64."""
-    flat = np.concatenate([np.asarray(p, np.float32).reshape(-1, 3) for p in points] or [np.zeros((0, 3), np.float32)])
+    flat = np.concatenate(
+        [np.asarray(p, np.float32).reshape(-1, 3) for p in points] or [np.zeros((0, 3), np.float32)]
+    )
     return flat, np.array([len(p) for p in points], np.int64)
 
 
-def fit_rows(model, result: FitResult, init: BodyParams, points_lidar: list[np.ndarray],
-             keypoints: np.ndarray, K: np.ndarray, T_cam_from_lidar: np.ndarray,
-             min_confidence: float) -> dict[str, np.ndarray]:
+def fit_rows(
+    model,
+    result: FitResult,
+    init: BodyParams,
+    points_lidar: list[np.ndarray],
+    keypoints: np.ndarray,
+    K: np.ndarray,
+    T_cam_from_lidar: np.ndarray,
+    min_confidence: float,
+) -> dict[str, np.ndarray]:
     """A batch's fits as rows in the LiDAR frame: parameters, pelvis (R, 3) float64, the final
     loss terms, chamfer_m / reproj_px (:func:`tasks.fit.quality.fit_residuals`), num_points and
     shift_m (how far the fit moved the root translation from the initial estimate, m)."""
@@ -29,18 +38,29 @@ def fit_rows(model, result: FitResult, init: BodyParams, points_lidar: list[np.n
     R, t = T_lidar_from_cam[:3, :3], T_lidar_from_cam[:3, 3]
     T = np.asarray(T_cam_from_lidar, np.float64)
     points_cam = [np.asarray(p, np.float64) @ T[:3, :3].T + T[:3, 3] for p in points_lidar]
-    kp_model = model_keypoints(torch.as_tensor(result.joints), torch.as_tensor(result.vertices),
-                               model.keypoint_vertex_ids).numpy()
-    chamfer, reproj = fit_residuals(result.vertices, kp_model, points_cam, keypoints, K, min_confidence)
+    kp_model = model_keypoints(
+        torch.as_tensor(result.joints), torch.as_tensor(result.vertices), model.keypoint_vertex_ids
+    ).numpy()
+    chamfer, reproj = fit_residuals(
+        result.vertices, kp_model, points_cam, keypoints, K, min_confidence
+    )
     res = result.residuals
-    return {"betas": lidar.betas, "global_orient": lidar.global_orient, "body_pose": lidar.body_pose,
-            "transl": lidar.transl,
-            "pelvis_lidar": result.joints[:, 0].astype(np.float64) @ R.T + t,
-            "loss_j": np.asarray(res["L_J"], np.float32), "loss_3d": np.asarray(res["L_3D"], np.float32),
-            "loss_total": np.asarray(res["total"], np.float32), "chamfer_m": chamfer, "reproj_px": reproj,
-            "num_points": np.array([len(p) for p in points_lidar], np.int64),
-            "shift_m": np.linalg.norm(np.asarray(result.transl, np.float64)
-                                      - np.asarray(init.transl, np.float64), axis=1).astype(np.float32)}
+    return {
+        "betas": lidar.betas,
+        "global_orient": lidar.global_orient,
+        "body_pose": lidar.body_pose,
+        "transl": lidar.transl,
+        "pelvis_lidar": result.joints[:, 0].astype(np.float64) @ R.T + t,
+        "loss_j": np.asarray(res["L_J"], np.float32),
+        "loss_3d": np.asarray(res["L_3D"], np.float32),
+        "loss_total": np.asarray(res["total"], np.float32),
+        "chamfer_m": chamfer,
+        "reproj_px": reproj,
+        "num_points": np.array([len(p) for p in points_lidar], np.int64),
+        "shift_m": np.linalg.norm(
+            np.asarray(result.transl, np.float64) - np.asarray(init.transl, np.float64), axis=1
+        ).astype(np.float32),
+    }
 
 
 def drop_far_fits(out: dict, max_shift_m: float | None) -> tuple[dict, int]:

@@ -83,7 +83,10 @@ def icp_align(
     vm = vertex_mask & ok[:, None]
     T0 = torch.eye(4, dtype=f64, device=dev).repeat(B, 1, 1)
     if center_init:
-        p_mean = torch.zeros(B, 3, dtype=f64, device=dev).index_add_(0, point_person, P) / n_pts.clamp(min=1)[:, None]
+        p_mean = (
+            torch.zeros(B, 3, dtype=f64, device=dev).index_add_(0, point_person, P)
+            / n_pts.clamp(min=1)[:, None]
+        )
         v_mean = (V * vm[..., None]).sum(1) / n_src.clamp(min=1)[:, None]
         T0[:, :3, 3] = torch.where(ok[:, None], p_mean - v_mean, torch.zeros_like(p_mean))
     T = T0.clone()
@@ -91,7 +94,9 @@ def icp_align(
     rmse = torch.zeros(B, dtype=f64, device=dev)
     pairs = _PairSearch(P, point_person, B)
     for radius in max_correspondence_m:
-        T_stage, fit_stage, rmse_stage = _icp_stage(V, vm, P, pairs, T, radius, max_iterations, relative_change)
+        T_stage, fit_stage, rmse_stage = _icp_stage(
+            V, vm, P, pairs, T, radius, max_iterations, relative_change
+        )
         found = fit_stage > 0
         T = torch.where(found[:, None, None], T_stage, T)
         fitness, rmse = fit_stage, rmse_stage
@@ -114,14 +119,20 @@ class _PairSearch:
             self.bounds = np.searchsorted(person[self.order], np.arange(B + 1))
             self.sorted = np.ascontiguousarray(points.numpy()[self.order])
 
-    def __call__(self, src: torch.Tensor, mask: torch.Tensor, radius: float) -> tuple[torch.Tensor, torch.Tensor]:
+    def __call__(
+        self, src: torch.Tensor, mask: torch.Tensor, radius: float
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """src (B, N, 3) float64, mask (B, N) -> index into points (B, N) (-1: none), d2 (B, N)."""
         if self.points.device.type == "cpu":
             from tasks.fit.nearest import pairs_within
 
-            idx, d2 = pairs_within(np.ascontiguousarray(src.numpy()), mask.numpy(), self.sorted, self.bounds, radius)
+            idx, d2 = pairs_within(
+                np.ascontiguousarray(src.numpy()), mask.numpy(), self.sorted, self.bounds, radius
+            )
             idx = torch.from_numpy(idx)
-            return torch.where(idx >= 0, torch.from_numpy(self.order)[idx.clamp(min=0)], idx), torch.from_numpy(d2)
+            return torch.where(
+                idx >= 0, torch.from_numpy(self.order)[idx.clamp(min=0)], idx
+            ), torch.from_numpy(d2)
         return _pairs_brute(src, mask, self.points, self.person, radius)
 
 
@@ -185,7 +196,9 @@ def _icp_stage(V, vm, P, pairs, T, radius, max_iterations, relative_change):
         hit = torch.where(active[:, None], hit_n, hit)
         fit = torch.where(active, fit_n, fit)
         rmse = torch.where(active, rmse_n, rmse)
-        settled = ((prev_fit - fit).abs() < relative_change) & ((prev_rmse - rmse).abs() < relative_change)
+        settled = ((prev_fit - fit).abs() < relative_change) & (
+            (prev_rmse - rmse).abs() < relative_change
+        )
         active = active & ~settled
     return T, fit, rmse
 
@@ -199,7 +212,11 @@ def _kabsch(src: torch.Tensor, dst: torch.Tensor, w: torch.Tensor) -> torch.Tens
     H = ((src - cs[:, None]) * wf).transpose(1, 2) @ (dst - cd[:, None])  # (B, 3, 3)
     U, _, Vh = torch.linalg.svd(H)
     d = torch.sign(torch.linalg.det(Vh.transpose(1, 2) @ U.transpose(1, 2)))
-    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), torch.where(d == 0, torch.ones_like(d), d)], -1))
+    D = torch.diag_embed(
+        torch.stack(
+            [torch.ones_like(d), torch.ones_like(d), torch.where(d == 0, torch.ones_like(d), d)], -1
+        )
+    )
     R = Vh.transpose(1, 2) @ D @ U.transpose(1, 2)
     T = torch.eye(4, dtype=src.dtype, device=src.device).repeat(src.shape[0], 1, 1)
     has = w.any(1)

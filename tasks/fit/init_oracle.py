@@ -25,14 +25,20 @@ class BodyParams:
     def __len__(self) -> int:
         return int(self.betas.shape[0])
 
-    def take(self, idx) -> "BodyParams":
+    def take(self, idx) -> BodyParams:
         """Rows ``idx`` of every array."""
-        return BodyParams(self.betas[idx], self.global_orient[idx], self.body_pose[idx], self.transl[idx])
+        return BodyParams(
+            self.betas[idx], self.global_orient[idx], self.body_pose[idx], self.transl[idx]
+        )
 
 
 def _rest_root(model, betas: np.ndarray) -> np.ndarray:
     with torch.no_grad():
-        return model.rest_joints(torch.as_tensor(betas, dtype=torch.float32))[:, 0].numpy().astype(np.float64)
+        return (
+            model.rest_joints(torch.as_tensor(betas, dtype=torch.float32))[:, 0]
+            .numpy()
+            .astype(np.float64)
+        )
 
 
 def oracle_initial_estimate(
@@ -56,7 +62,9 @@ def oracle_initial_estimate(
     body_pose = truth.body_pose + rng.normal(0.0, pose_std_rad, truth.body_pose.shape)
     axis = rng.normal(size=(B, 3))
     axis /= np.linalg.norm(axis, axis=1, keepdims=True)
-    noise_R = axis_angle_to_matrix(torch.as_tensor(axis * np.radians(rng.normal(0.0, orient_std_deg, (B, 1)))))
+    noise_R = axis_angle_to_matrix(
+        torch.as_tensor(axis * np.radians(rng.normal(0.0, orient_std_deg, (B, 1))))
+    )
     R_true = axis_angle_to_matrix(torch.as_tensor(truth.global_orient, dtype=torch.float64))
     global_orient = matrix_to_axis_angle(noise_R @ R_true).numpy()
     root = _rest_root(model, truth.betas) + truth.transl  # posed root joint, cam frame
@@ -64,10 +72,14 @@ def oracle_initial_estimate(
     root_new = root * (1.0 + rng.normal(0.0, depth_std_m, (B, 1)) / dist)
     transl = root_new - _rest_root(model, betas)
     f32 = np.float32
-    return BodyParams(betas.astype(f32), global_orient.astype(f32), body_pose.astype(f32), transl.astype(f32))
+    return BodyParams(
+        betas.astype(f32), global_orient.astype(f32), body_pose.astype(f32), transl.astype(f32)
+    )
 
 
-def cliff_to_params(rotmats, betas, pred_cam_crop, bbox_center, bbox_size, K, transl=None, use_transl=None) -> BodyParams:
+def cliff_to_params(
+    rotmats, betas, pred_cam_crop, bbox_center, bbox_size, K, transl=None, use_transl=None
+) -> BodyParams:
     """Convert CLIFF outputs of N persons to our parameters (pure function, no file reading).
 
     rotmats (N, 24, 3, 3) joint rotations (cam frame for the root); betas (N, 10);
@@ -84,7 +96,9 @@ def cliff_to_params(rotmats, betas, pred_cam_crop, bbox_center, bbox_size, K, tr
     b = np.asarray(bbox_size, dtype=np.float64)
     K = np.asarray(K, dtype=np.float64)
     if R.dim() != 4 or R.shape[1:] != (24, 3, 3) or cam.shape != (R.shape[0], 3):
-        raise ValueError(f"cliff_to_params: expected rotmats (N, 24, 3, 3) and cam (N, 3), got {tuple(R.shape)}, {cam.shape}")
+        raise ValueError(
+            f"cliff_to_params: expected rotmats (N, 24, 3, 3) and cam (N, 3), got {tuple(R.shape)}, {cam.shape}"
+        )
     aa = matrix_to_axis_angle(R).numpy()
     f = K[0, 0]
     sb = cam[:, 0] * b + 1e-9
@@ -113,4 +127,11 @@ def params_to_cliff_camera(transl, bbox_center, bbox_size, K) -> np.ndarray:
     b = np.asarray(bbox_size, dtype=np.float64)
     K = np.asarray(K, dtype=np.float64)
     sb = 2.0 * K[0, 0] / t[:, 2]
-    return np.stack([sb / b, t[:, 0] - 2.0 * (c[:, 0] - K[0, 2]) / sb, t[:, 1] - 2.0 * (c[:, 1] - K[1, 2]) / sb], 1)
+    return np.stack(
+        [
+            sb / b,
+            t[:, 0] - 2.0 * (c[:, 0] - K[0, 2]) / sb,
+            t[:, 1] - 2.0 * (c[:, 1] - K[1, 2]) / sb,
+        ],
+        1,
+    )

@@ -158,24 +158,36 @@ def synthesize_persons(
     from tasks.fit.visibility import vertex_parts
 
     B = body_pose.shape[0]
-    K = np.array([[1000.0, 0, image_size[0] / 2], [0, 1000.0, image_size[1] / 2], [0, 0, 1]]) if K is None else np.asarray(K, float)
+    K = (
+        np.array([[1000.0, 0, image_size[0] / 2], [0, 1000.0, image_size[1] / 2], [0, 0, 1]])
+        if K is None
+        else np.asarray(K, float)
+    )
     betas = rng.normal(0.0, betas_std, (B, 10))
     yaw = rng.uniform(0.0, 2 * np.pi, B)
     Rg = _yaw_upright(yaw)
     go = matrix_to_axis_angle(torch.as_tensor(Rg)).numpy()
     with torch.no_grad():
-        o = model(torch.as_tensor(betas, dtype=torch.float32), torch.as_tensor(go, dtype=torch.float32),
-                  torch.as_tensor(body_pose, dtype=torch.float32), torch.zeros(B, 3))
+        o = model(
+            torch.as_tensor(betas, dtype=torch.float32),
+            torch.as_tensor(go, dtype=torch.float32),
+            torch.as_tensor(body_pose, dtype=torch.float32),
+            torch.zeros(B, 3),
+        )
     v0 = o.vertices.double().numpy()
     dist = rng.uniform(*distance_m, B)
     half_fov = np.arctan(image_size[0] / 2 / K[0, 0])
     az = rng.uniform(-0.7, 0.7, B) * half_fov
     h = rng.uniform(*camera_height_m, B)
     root = o.joints[:, 0].double().numpy()
-    transl = np.stack([dist * np.sin(az) - root[:, 0], h - v0[:, :, 1].max(1), dist * np.cos(az) - root[:, 2]], 1)
+    transl = np.stack(
+        [dist * np.sin(az) - root[:, 0], h - v0[:, :, 1].max(1), dist * np.cos(az) - root[:, 2]], 1
+    )
     verts = v0 + transl[:, None]
     joints = o.joints.double().numpy() + transl[:, None]
-    kp3 = model_keypoints(torch.as_tensor(joints), torch.as_tensor(verts), model.keypoint_vertex_ids).numpy()
+    kp3 = model_keypoints(
+        torch.as_tensor(joints), torch.as_tensor(verts), model.keypoint_vertex_ids
+    ).numpy()
     uvw = kp3 @ K.T
     uv = uvw[..., :2] / uvw[..., 2:3] + rng.normal(0.0, keypoint_noise_px, (B, 17, 2))
     conf = rng.uniform(0.75, 1.0, (B, 17))
@@ -202,7 +214,16 @@ def synthesize_persons(
     T[:3, :3] = R_CAM_FROM_LIDAR
     f32 = np.float32
     return SyntheticPersons(
-        betas.astype(f32), go.astype(f32), np.asarray(body_pose, f32), transl.astype(f32),
-        verts.astype(f32), joints.astype(f32), np.concatenate([uv, conf[..., None]], -1).astype(f32),
-        K, pts, mask, T, occluded,
+        betas.astype(f32),
+        go.astype(f32),
+        np.asarray(body_pose, f32),
+        transl.astype(f32),
+        verts.astype(f32),
+        joints.astype(f32),
+        np.concatenate([uv, conf[..., None]], -1).astype(f32),
+        K,
+        pts,
+        mask,
+        T,
+        occluded,
     )

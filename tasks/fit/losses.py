@@ -21,7 +21,9 @@ HYPEREXTENSION_IDS: tuple[int, ...] = (52, 55, 9, 12)
 HYPEREXTENSION_SIGNS: tuple[float, ...] = (1.0, -1.0, -1.0, -1.0)
 
 
-def project_points(points_cam: torch.Tensor, K: torch.Tensor, min_depth_m: float = 1e-3) -> torch.Tensor:
+def project_points(
+    points_cam: torch.Tensor, K: torch.Tensor, min_depth_m: float = 1e-3
+) -> torch.Tensor:
     """Pinhole projection. points_cam (B, N, 3) float, cam frame, m; K (B, 3, 3) or (3, 3).
 
     Returns pixels (B, N, 2) (u right, v down). Depth is clamped at ``min_depth_m`` so that a
@@ -90,8 +92,14 @@ class ChamferTargets:
 
     def take(self, rows: torch.Tensor) -> ChamferTargets:
         """The targets of some persons, rows (k,) int64."""
-        return ChamferTargets(self.vertex_mask[rows], self.vertex_target[rows], self.point_count[rows],
-                              self.point_mean[rows], self.point_rest[rows], self.num_points[rows])
+        return ChamferTargets(
+            self.vertex_mask[rows],
+            self.vertex_target[rows],
+            self.point_count[rows],
+            self.point_mean[rows],
+            self.point_rest[rows],
+            self.num_points[rows],
+        )
 
 
 @torch.no_grad()
@@ -120,7 +128,9 @@ def chamfer_targets(
     if method == "grid" or (method == "auto" and dev.type == "cpu"):
         target, count, mean, rest = _targets_grid(vertices, vm, points, point_person, pm)
     else:
-        target, count, mean, rest = _targets_brute(vertices, vm, points, point_person, pm, chunk_elements)
+        target, count, mean, rest = _targets_brute(
+            vertices, vm, points, point_person, pm, chunk_elements
+        )
     f = vertices.dtype
     return ChamferTargets(vm, target.to(f), count.to(f), mean.to(f), rest.to(f), num_points.to(f))
 
@@ -136,8 +146,12 @@ def _targets_grid(vertices, vm, points, point_person, pm):
     keep = pm.cpu().numpy()[order]
     order = order[keep]
     bounds = np.searchsorted(person[order], np.arange(K + 1))
-    out = chamfer_pairs(vertices.detach().cpu().double().numpy(), vm.cpu().numpy(),
-                        np.ascontiguousarray(points.cpu().double().numpy()[order]), bounds)
+    out = chamfer_pairs(
+        vertices.detach().cpu().double().numpy(),
+        vm.cpu().numpy(),
+        np.ascontiguousarray(points.cpu().double().numpy()[order]),
+        bounds,
+    )
     return tuple(torch.from_numpy(a).to(dev) for a in out)
 
 
@@ -172,7 +186,9 @@ def _targets_brute(vertices, vm, points, point_person, pm, chunk_elements):
         d = torch.cdist(a[s:e], b[s:e])  # only compared, never differentiated
         target[s:e] = torch.gather(pad[s:e], 1, d.argmin(2)[..., None].expand(-1, -1, 3))
         near = d.argmin(1)  # (k, P_max) nearest vertex of each point
-        onehot = ((near[:, None, :] == ar[None, :, None]) & pad_mask[s:e, None, :]).to(f)  # (k, N, P_max)
+        onehot = ((near[:, None, :] == ar[None, :, None]) & pad_mask[s:e, None, :]).to(
+            f
+        )  # (k, N, P_max)
         count[s:e] = onehot.sum(2)
         mean[s:e] = (onehot @ pad[s:e]) / count[s:e].clamp(min=1.0)[..., None]
         near_mean = torch.gather(mean[s:e], 1, near[..., None].expand(-1, -1, 3))
@@ -207,7 +223,9 @@ def chamfer_loss(
         d_vp = d_vp.clamp(max=float(vertex_max_m) ** 2)
     nv = vm.sum(1)
     term_v = (d_vp * vm).sum(1) / nv.clamp(min=1.0)
-    term_p = ((_sq_norm(vertices - t.point_mean) * t.point_count).sum(1) + t.point_rest) / t.num_points.clamp(min=1.0)
+    term_p = (
+        (_sq_norm(vertices - t.point_mean) * t.point_count).sum(1) + t.point_rest
+    ) / t.num_points.clamp(min=1.0)
     return torch.where((nv > 0) & (t.num_points > 0), term_v + term_p, torch.zeros_like(term_v))
 
 

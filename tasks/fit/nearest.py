@@ -105,8 +105,9 @@ def _nearest_one(q, data, lo, cell, dims, start, order, max_d2=np.inf):
                 while dz <= r:
                     z = c0[2] + dz
                     if 0 <= z < dims[2] and _box_d2(q, lo, cell, x, y, z) <= best:
-                        best, best_i = _scan_cell(q, data, start, order, (x * dims[1] + y) * dims[2] + z,
-                                                  best, best_i)
+                        best, best_i = _scan_cell(
+                            q, data, start, order, (x * dims[1] + y) * dims[2] + z, best, best_i
+                        )
                     dz = dz + 1 if edge or r == 0 else dz + 2 * r
         if best_i >= 0 and best <= (r * cell) ** 2:
             return best_i, best
@@ -145,7 +146,7 @@ def chamfer_pairs(vertices, vertex_mask, points, bounds):
     mean = np.zeros((K, N, 3))
     rest = np.zeros(K)
     for k in range(K):
-        pk = points[bounds[k]:bounds[k + 1]]
+        pk = points[bounds[k] : bounds[k + 1]]
         ids = np.flatnonzero(vertex_mask[k])
         if len(ids) == 0 or pk.shape[0] == 0:
             continue
@@ -166,7 +167,11 @@ def chamfer_pairs(vertices, vertex_mask, points, bounds):
                     mean[k, n, c] /= count[k, n]
         for s in range(pk.shape[0]):
             n = ids[j[s]]
-            rest[k] += (pk[s, 0] - mean[k, n, 0]) ** 2 + (pk[s, 1] - mean[k, n, 1]) ** 2 + (pk[s, 2] - mean[k, n, 2]) ** 2
+            rest[k] += (
+                (pk[s, 0] - mean[k, n, 0]) ** 2
+                + (pk[s, 1] - mean[k, n, 1]) ** 2
+                + (pk[s, 2] - mean[k, n, 2]) ** 2
+            )
     return target, count, mean, rest
 
 
@@ -184,7 +189,7 @@ def pairs_within(queries, query_mask, points, bounds, max_m):
     for k in range(K):
         if bounds[k + 1] == bounds[k]:
             continue
-        pk = points[bounds[k]:bounds[k + 1]]
+        pk = points[bounds[k] : bounds[k + 1]]
         lo, cell, dims, start, order = _build_grid(pk)
         for n in range(N):
             if query_mask[k, n]:

@@ -45,8 +45,12 @@ from tasks.fit.visibility import Visibility, vertex_parts, visibility_masks
 
 _COCO_JOINT_IDX = [COCO_TO_SMPL_JOINT[i] for i in range(5, 17)]
 #: layout of the packed parameter rows (B, 85): betas, global_orient, body_pose, transl
-_SLICES = {"betas": slice(0, 10), "global_orient": slice(10, 13), "body_pose": slice(13, 82),
-           "transl": slice(82, 85)}
+_SLICES = {
+    "betas": slice(0, 10),
+    "global_orient": slice(10, 13),
+    "body_pose": slice(13, 82),
+    "transl": slice(82, 85),
+}
 _ADAM_BETAS = (0.9, 0.999)
 _ADAM_EPS = 1e-8
 
@@ -71,7 +75,9 @@ class FitResult:
         return BodyParams(self.betas, self.global_orient, self.body_pose, self.transl)
 
 
-def model_keypoints(joints: torch.Tensor, vertices: torch.Tensor, keypoint_vertex_ids) -> torch.Tensor:
+def model_keypoints(
+    joints: torch.Tensor, vertices: torch.Tensor, keypoint_vertex_ids
+) -> torch.Tensor:
     """COCO-17 keypoints of the model (B, 17, 3): face points from vertices, body from joints."""
     ids = torch.as_tensor(np.asarray(keypoint_vertex_ids), device=vertices.device, dtype=torch.long)
     return torch.cat([vertices[:, ids], joints[:, _COCO_JOINT_IDX]], dim=1)
@@ -137,16 +143,28 @@ def fit_persons(
     f32 = torch.float32
     kp = torch.as_tensor(kp_np, dtype=f32, device=dev)
     Kt = torch.as_tensor(np.asarray(K), dtype=f32, device=dev).expand(B, 3, 3)
-    kw = None if keypoint_weights is None else torch.as_tensor(np.asarray(keypoint_weights), dtype=f32, device=dev)
+    kw = (
+        None
+        if keypoint_weights is None
+        else torch.as_tensor(np.asarray(keypoint_weights), dtype=f32, device=dev)
+    )
     vis_fn = _visibility_fn(model, kp[..., 2], weights, use_visibility)
-    x = torch.cat([torch.as_tensor(np.asarray(getattr(init, k)), dtype=f32, device=dev).reshape(B, -1)
-                   for k in _SLICES], 1)
+    x = torch.cat(
+        [
+            torch.as_tensor(np.asarray(getattr(init, k)), dtype=f32, device=dev).reshape(B, -1)
+            for k in _SLICES
+        ],
+        1,
+    )
 
     icp_fitness = np.zeros(B)
     if use_icp:
-        x, icp_fitness = _align_rigidly(model, x, vis_fn(_posed(model, x).vertices), pts,
-                                        icp_max_rotation_deg, min_points)
-    problem = _Problem.build(model, prior, x, vis_fn, pts, kp, Kt, kw, weights, chamfer_vertex_max_m)
+        x, icp_fitness = _align_rigidly(
+            model, x, vis_fn(_posed(model, x).vertices), pts, icp_max_rotation_deg, min_points
+        )
+    problem = _Problem.build(
+        model, prior, x, vis_fn, pts, kp, Kt, kw, weights, chamfer_vertex_max_m
+    )
     x, steps = _optimize(problem, x, iterations, lr, nn_every, converge_rtol)
 
     with torch.no_grad():
@@ -157,18 +175,26 @@ def fit_persons(
     residuals["visible_vertices"] = problem.visible_count.cpu().numpy().astype(np.float64)
     residuals["steps"] = steps.cpu().numpy().astype(np.float64)
     rows = {k: x[:, s].cpu().numpy().astype(np.float32) for k, s in _SLICES.items()}
-    return FitResult(vertices=full.vertices.cpu().numpy().astype(np.float32),
-                     joints=full.joints.cpu().numpy().astype(np.float32), residuals=residuals, **rows)
+    return FitResult(
+        vertices=full.vertices.cpu().numpy().astype(np.float32),
+        joints=full.joints.cpu().numpy().astype(np.float32),
+        residuals=residuals,
+        **rows,
+    )
 
 
 def _check_inputs(B: int, keypoints: np.ndarray, points: np.ndarray, counts: np.ndarray) -> None:
     if keypoints.shape != (B, 17, 3):
-        raise ValueError(f"fit_persons: keypoints has shape {keypoints.shape}, expected ({B}, 17, 3)")
+        raise ValueError(
+            f"fit_persons: keypoints has shape {keypoints.shape}, expected ({B}, 17, 3)"
+        )
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"fit_persons: points has shape {points.shape}, expected (P, 3)")
     if counts.shape != (B,) or (counts < 0).any() or counts.sum() != len(points):
-        raise ValueError(f"fit_persons: counts {counts.tolist()} must be {B} non-negative numbers "
-                         f"summing to the {len(points)} points")
+        raise ValueError(
+            f"fit_persons: counts {counts.tolist()} must be {B} non-negative numbers "
+            f"summing to the {len(points)} points"
+        )
 
 
 def _posed(model, x: torch.Tensor, vertex_subset=None):
@@ -186,15 +212,20 @@ class _PersonPoints:
     has: torch.Tensor
 
     @staticmethod
-    def build(points_lidar: np.ndarray, counts: np.ndarray, T_cam_from_lidar, min_points: int, dev) -> _PersonPoints:
+    def build(
+        points_lidar: np.ndarray, counts: np.ndarray, T_cam_from_lidar, min_points: int, dev
+    ) -> _PersonPoints:
         B = len(counts)
         person = np.repeat(np.arange(B), counts)
         T = np.broadcast_to(np.asarray(T_cam_from_lidar, dtype=np.float64), (B, 4, 4))[person]
         cam = np.einsum("pij,pj->pi", T[:, :3, :3], points_lidar.astype(np.float64)) + T[:, :3, 3]
         has = counts >= max(min_points, 1)
         keep = has[person]
-        return _PersonPoints(torch.as_tensor(cam[keep], dtype=torch.float32, device=dev),
-                             torch.as_tensor(person[keep], device=dev), torch.as_tensor(has, device=dev))
+        return _PersonPoints(
+            torch.as_tensor(cam[keep], dtype=torch.float32, device=dev),
+            torch.as_tensor(person[keep], device=dev),
+            torch.as_tensor(has, device=dev),
+        )
 
 
 def _visibility_fn(model, conf: torch.Tensor, weights: L.FitWeights, use_visibility: bool):
@@ -206,24 +237,40 @@ def _visibility_fn(model, conf: torch.Tensor, weights: L.FitWeights, use_visibil
         if use_visibility:
             return visibility_masks(verts, faces, parts, conf, w=weights.w, j_conf=weights.j_conf)
         ones = torch.ones(verts.shape[:2], dtype=torch.bool, device=verts.device)
-        return Visibility(ones, torch.zeros(verts.shape[0], 24, dtype=torch.bool, device=verts.device), ones)
+        return Visibility(
+            ones, torch.zeros(verts.shape[0], 24, dtype=torch.bool, device=verts.device), ones
+        )
 
     return visibility
 
 
-def _align_rigidly(model, x: torch.Tensor, vis: Visibility, pts: _PersonPoints, max_rotation_deg: float,
-                   min_points: int) -> tuple[torch.Tensor, np.ndarray]:
+def _align_rigidly(
+    model,
+    x: torch.Tensor,
+    vis: Visibility,
+    pts: _PersonPoints,
+    max_rotation_deg: float,
+    min_points: int,
+) -> tuple[torch.Tensor, np.ndarray]:
     """Steps 1-2: ICP of each person's visible vertices onto its points; returns the packed rows
     with global_orient and transl moved by the rigid motion, and the ICP fitness (B,)."""
     with torch.no_grad():
         verts = _posed(model, x).vertices
         j0 = model.rest_joints(x[:, _SLICES["betas"]])[:, 0]
     idx, valid = _visible_index(vis.vertex_mask & pts.has[:, None])
-    res = icp_align(torch.gather(verts, 1, idx[..., None].expand(-1, -1, 3)), valid, pts.xyz, pts.person,
-                    max_rotation_deg=max_rotation_deg, min_points=min_points)
+    res = icp_align(
+        torch.gather(verts, 1, idx[..., None].expand(-1, -1, 3)),
+        valid,
+        pts.xyz,
+        pts.person,
+        max_rotation_deg=max_rotation_deg,
+        min_points=min_points,
+    )
     Rg = axis_angle_to_matrix(x[:, _SLICES["global_orient"]].double()).cpu().numpy()
     tr = x[:, _SLICES["transl"]].double().cpu().numpy()
-    Rg, tr = rigid_update_params(Rg, tr, j0.double().cpu().numpy(), res.T[:, :3, :3], res.T[:, :3, 3])
+    Rg, tr = rigid_update_params(
+        Rg, tr, j0.double().cpu().numpy(), res.T[:, :3, :3], res.T[:, :3, 3]
+    )
     x = x.clone()
     x[:, _SLICES["global_orient"]] = matrix_to_axis_angle(torch.as_tensor(Rg)).to(x)
     x[:, _SLICES["transl"]] = torch.as_tensor(tr).to(x)
@@ -246,9 +293,18 @@ class _Problem:
     first, then the visible set of the aligned mesh), occluded joints, initial rotations,
     keypoints, and the current Chamfer targets. Rows can be dropped (:meth:`keep`)."""
 
-    def __init__(self, model, prior, weights, cap, subset, occluded, R0, kp, Kt, kw, pts, vertex_mask):
+    def __init__(
+        self, model, prior, weights, cap, subset, occluded, R0, kp, Kt, kw, pts, vertex_mask
+    ):
         self.model, self.prior, self.weights, self.cap = model, prior, weights, cap
-        self.subset, self.occluded, self.R0, self.kp, self.Kt, self.kw = subset, occluded, R0, kp, Kt, kw
+        self.subset, self.occluded, self.R0, self.kp, self.Kt, self.kw = (
+            subset,
+            occluded,
+            R0,
+            kp,
+            Kt,
+            kw,
+        )
         self.pts, self.vertex_mask = pts, vertex_mask
         self.targets: L.ChamferTargets | None = None
         self.offsets: torch.Tensor | None = None  # pose blend shapes, (k, V, 3)
@@ -266,8 +322,20 @@ class _Problem:
         kp_ids = torch.as_tensor(np.asarray(model.keypoint_vertex_ids), device=dev).expand(B, -1)
         ids = torch.cat([kp_ids, order], 1)
         vertex_mask = torch.cat([torch.zeros_like(kp_ids, dtype=torch.bool), valid], 1)
-        problem = _Problem(model, prior, weights, cap, model.select_vertices(ids), vis.occluded_joints, R0,
-                           kp, Kt, kw, pts, vertex_mask)
+        problem = _Problem(
+            model,
+            prior,
+            weights,
+            cap,
+            model.select_vertices(ids),
+            vis.occluded_joints,
+            R0,
+            kp,
+            Kt,
+            kw,
+            pts,
+            vertex_mask,
+        )
         problem.visible_count = vis.vertex_mask.sum(1)
         return problem
 
@@ -277,9 +345,20 @@ class _Problem:
         new_index[rows] = torch.arange(len(rows), device=rows.device)
         p = self.pts
         on = new_index[p.person] >= 0
-        out = _Problem(self.model, self.prior, self.weights, self.cap, self.subset.take(rows),
-                       self.occluded[rows], self.R0[rows], self.kp[rows], self.Kt[rows], self.kw,
-                       _PersonPoints(p.xyz[on], new_index[p.person[on]], p.has[rows]), self.vertex_mask[rows])
+        out = _Problem(
+            self.model,
+            self.prior,
+            self.weights,
+            self.cap,
+            self.subset.take(rows),
+            self.occluded[rows],
+            self.R0[rows],
+            self.kp[rows],
+            self.Kt[rows],
+            self.kw,
+            _PersonPoints(p.xyz[on], new_index[p.person[on]], p.has[rows]),
+            self.vertex_mask[rows],
+        )
         out.targets = None if self.targets is None else self.targets.take(rows)
         out.offsets = None if self.offsets is None else self.offsets[rows]
         out.visible_count = self.visible_count[rows]
@@ -294,30 +373,51 @@ class _Problem:
         w = self.weights
         if refresh or self.offsets is None:
             with torch.no_grad():
-                self.offsets = self.model.pose_offsets(x[:, _SLICES["global_orient"]], x[:, _SLICES["body_pose"]])
-        o = self.model(*(x[:, s] for s in _SLICES.values()), vertex_subset=self.subset, pose_offsets=self.offsets)
+                self.offsets = self.model.pose_offsets(
+                    x[:, _SLICES["global_orient"]], x[:, _SLICES["body_pose"]]
+                )
+        o = self.model(
+            *(x[:, s] for s in _SLICES.values()),
+            vertex_subset=self.subset,
+            pose_offsets=self.offsets,
+        )
         if refresh or self.targets is None:
-            self.targets = L.chamfer_targets(o.vertices.detach(), self.vertex_mask, self.pts.xyz,
-                                             self.pts.person)
+            self.targets = L.chamfer_targets(
+                o.vertices.detach(), self.vertex_mask, self.pts.xyz, self.pts.person
+            )
         bp = x[:, _SLICES["body_pose"]]
         k = x.shape[0]
         keypoints = torch.cat([o.vertices[:, :5], o.joints[:, _COCO_JOINT_IDX]], dim=1)
         R = axis_angle_to_matrix(x[:, 10:82].reshape(k, 24, 3))
         t = {
-            "L_J": L.reprojection_loss(keypoints, self.kp, self.Kt, w.rho_px, w.conf_power, self.kw),
+            "L_J": L.reprojection_loss(
+                keypoints, self.kp, self.Kt, w.rho_px, w.conf_power, self.kw
+            ),
             "L_3D": L.chamfer_loss(o.vertices, self.targets, vertex_max_m=self.cap),
             "L_theta": self.prior(bp),
             "L_a": L.hyperextension_loss(bp),
             "L_beta": L.shape_loss(x[:, _SLICES["betas"]]),
             "L_occ": L.occlusion_pose_loss(R, self.R0, self.occluded),
         }
-        t["total"] = (t["L_J"] + w.scale("3d") * t["L_3D"] + w.scale("theta") * t["L_theta"]
-                      + w.scale("a") * t["L_a"] + w.scale("beta") * t["L_beta"] + w.scale("occ") * t["L_occ"])
+        t["total"] = (
+            t["L_J"]
+            + w.scale("3d") * t["L_3D"]
+            + w.scale("theta") * t["L_theta"]
+            + w.scale("a") * t["L_a"]
+            + w.scale("beta") * t["L_beta"]
+            + w.scale("occ") * t["L_occ"]
+        )
         return o, t
 
 
-def _optimize(problem: _Problem, x: torch.Tensor, iterations: int, lr: float, nn_every: int,
-              converge_rtol: float | None) -> tuple[torch.Tensor, torch.Tensor]:
+def _optimize(
+    problem: _Problem,
+    x: torch.Tensor,
+    iterations: int,
+    lr: float,
+    nn_every: int,
+    converge_rtol: float | None,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Adam on the packed rows x (B, 85) (torch.optim.Adam's update, written out so that rows
     can leave the batch with their moments). Returns the final rows and the steps per person."""
     B = x.shape[0]

@@ -24,8 +24,13 @@ def reframe_params(model, params: BodyParams, T_new_from_old: np.ndarray) -> Bod
     with torch.no_grad():
         J0 = model.rest_joints(betas)[:, 0].double()
     R_go = axis_angle_to_matrix(torch.as_tensor(params.global_orient, dtype=torch.float64))
-    new_R, new_t = rigid_transform_params(R_go, torch.as_tensor(params.transl, dtype=torch.float64),
-                                          J0, T[:3, :3], T[:3, 3])
+    new_R, new_t = rigid_transform_params(
+        R_go, torch.as_tensor(params.transl, dtype=torch.float64), J0, T[:3, :3], T[:3, 3]
+    )
     f32 = np.float32
-    return BodyParams(params.betas.astype(f32), matrix_to_axis_angle(new_R).numpy().astype(f32),
-                      params.body_pose.astype(f32), new_t.numpy().astype(f32))
+    return BodyParams(
+        params.betas.astype(f32),
+        matrix_to_axis_angle(new_R).numpy().astype(f32),
+        params.body_pose.astype(f32),
+        new_t.numpy().astype(f32),
+    )

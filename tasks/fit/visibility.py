@@ -50,7 +50,11 @@ SMPL_PART_TO_COCO: tuple[tuple[int, ...], ...] = (
 
 def vertex_parts(skin_weights) -> np.ndarray:
     """part(v) = argmax_j weights[v, j]. skin_weights (V, 24) -> (V,) int64 in [0, 24)."""
-    w = skin_weights.detach().cpu().numpy() if torch.is_tensor(skin_weights) else np.asarray(skin_weights)
+    w = (
+        skin_weights.detach().cpu().numpy()
+        if torch.is_tensor(skin_weights)
+        else np.asarray(skin_weights)
+    )
     return np.argmax(w, axis=1).astype(np.int64)
 
 
@@ -73,7 +77,9 @@ class Visibility:
     front_vertex_mask: torch.Tensor
 
 
-def front_facing_faces(vertices: torch.Tensor, faces: torch.Tensor, w: float, camera_center=None) -> torch.Tensor:
+def front_facing_faces(
+    vertices: torch.Tensor, faces: torch.Tensor, w: float, camera_center=None
+) -> torch.Tensor:
     """Backface test per face. vertices (B, V, 3) cam frame (m); faces (F, 3) long.
 
     camera_center (3,) or (B, 3), default the origin of the cam frame. Returns (B, F) bool,
@@ -83,8 +89,10 @@ def front_facing_faces(vertices: torch.Tensor, faces: torch.Tensor, w: float, ca
     n = torch.linalg.cross(v1 - v0, v2 - v0)
     n = n / n.norm(dim=-1, keepdim=True).clamp(min=1e-12)
     c = (v0 + v1 + v2) / 3.0
-    o = torch.zeros(3, dtype=vertices.dtype, device=vertices.device) if camera_center is None else torch.as_tensor(
-        camera_center, dtype=vertices.dtype, device=vertices.device
+    o = (
+        torch.zeros(3, dtype=vertices.dtype, device=vertices.device)
+        if camera_center is None
+        else torch.as_tensor(camera_center, dtype=vertices.dtype, device=vertices.device)
     )
     if o.dim() == 2:
         o = o[:, None, :]
@@ -120,14 +128,18 @@ def visibility_masks(
     front_v = torch.zeros(B, V, dtype=torch.int32, device=vertices.device)
     for k in range(3):
         # "any front face" scattered onto the face's vertices
-        front_v.scatter_reduce_(1, faces[:, k].expand(B, -1), front_f.to(torch.int32), reduce="amax")
+        front_v.scatter_reduce_(
+            1, faces[:, k].expand(B, -1), front_f.to(torch.int32), reduce="amax"
+        )
     front_v = front_v > 0
     if keypoint_conf is None:
         occluded = torch.zeros(B, 24, dtype=torch.bool, device=vertices.device)
     else:
         conf = keypoint_conf.to(vertices.device)
         m = part_keypoint_matrix(vertices.device)  # (24, 17)
-        part_max = torch.where(m[None], conf[:, None, :], torch.full_like(conf[:, None, :], -1.0)).amax(-1)
+        part_max = torch.where(
+            m[None], conf[:, None, :], torch.full_like(conf[:, None, :], -1.0)
+        ).amax(-1)
         occluded = part_max < j_conf
     vis = front_v & ~occluded[:, parts]
     return Visibility(vertex_mask=vis, occluded_joints=occluded, front_vertex_mask=front_v)

@@ -29,7 +29,9 @@ def check_label_grid(name: str, grid, shape: tuple[int, ...] | None = None) -> n
         raise MetricInputError(f"{name}: expected integer class ids, got dtype {a.dtype}")
     if a.size and (a.min() < 0 or a.max() > C.FREE):
         bad = a[(a < 0) | (a > C.FREE)][0]
-        raise MetricInputError(f"{name}: class id {int(bad)} outside 0..{C.FREE} (0 pedestrian .. 9 free)")
+        raise MetricInputError(
+            f"{name}: class id {int(bad)} outside 0..{C.FREE} (0 pedestrian .. 9 free)"
+        )
     return a
 
 
@@ -39,7 +41,9 @@ def check_mask(name: str, mask, shape: tuple[int, ...]) -> np.ndarray:
         return np.ones(shape, dtype=bool)
     m = np.asarray(mask)
     if m.shape != tuple(shape):
-        raise MetricInputError(f"{name}: mask shape {m.shape} differs from the grid shape {tuple(shape)}")
+        raise MetricInputError(
+            f"{name}: mask shape {m.shape} differs from the grid shape {tuple(shape)}"
+        )
     return m.astype(bool)
 
 
@@ -57,9 +61,13 @@ class PRCounts:
     ref_matched: int = 0
     ref_total: int = 0
 
-    def __add__(self, other: "PRCounts") -> "PRCounts":
-        return PRCounts(self.pred_matched + other.pred_matched, self.pred_total + other.pred_total,
-                        self.ref_matched + other.ref_matched, self.ref_total + other.ref_total)
+    def __add__(self, other: PRCounts) -> PRCounts:
+        return PRCounts(
+            self.pred_matched + other.pred_matched,
+            self.pred_total + other.pred_total,
+            self.ref_matched + other.ref_matched,
+            self.ref_total + other.ref_total,
+        )
 
     @property
     def precision(self) -> float:
@@ -77,6 +85,12 @@ class PRCounts:
         return 2 * p * r / (p + r)
 
     def as_dict(self) -> dict:
-        return {"precision": self.precision, "recall": self.recall, "f1": self.f1,
-                "pred_matched": int(self.pred_matched), "pred_total": int(self.pred_total),
-                "ref_matched": int(self.ref_matched), "ref_total": int(self.ref_total)}
+        return {
+            "precision": self.precision,
+            "recall": self.recall,
+            "f1": self.f1,
+            "pred_matched": int(self.pred_matched),
+            "pred_total": int(self.pred_total),
+            "ref_matched": int(self.ref_matched),
+            "ref_total": int(self.ref_total),
+        }

@@ -13,7 +13,14 @@ from tasks.metrics._common import check_label_grid, check_mask
 
 #: codes of :func:`bev_difference`
 DIFF_FREE, DIFF_CORRECT, DIFF_WRONG_CLASS, DIFF_MISSED, DIFF_EXTRA, DIFF_UNKNOWN = 0, 1, 2, 3, 4, 5
-DIFF_NAMES: tuple[str, ...] = ("free in both", "correct", "wrong class", "missed", "extra", "unknown")
+DIFF_NAMES: tuple[str, ...] = (
+    "free in both",
+    "correct",
+    "wrong class",
+    "missed",
+    "extra",
+    "unknown",
+)
 
 
 def bev_top_labels(grid: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
@@ -47,10 +54,18 @@ def bev_difference(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = N
     pred = check_label_grid("pred", pred, gt.shape)
     m = check_mask("mask", mask, gt.shape)
     g_occ, p_occ = (gt != C.FREE) & m, (pred != C.FREE) & m
-    counts = np.stack([(g_occ & p_occ & (gt != pred)).sum(2), (g_occ & ~p_occ).sum(2), (~g_occ & p_occ & m).sum(2)])
+    counts = np.stack(
+        [
+            (g_occ & p_occ & (gt != pred)).sum(2),
+            (g_occ & ~p_occ).sum(2),
+            (~g_occ & p_occ & m).sum(2),
+        ]
+    )
     out = np.full(gt.shape[:2], DIFF_FREE, dtype=np.uint8)
     out[g_occ.any(2)] = DIFF_CORRECT
     err = counts.max(0) > 0
-    out[err] = (np.array([DIFF_WRONG_CLASS, DIFF_MISSED, DIFF_EXTRA], np.uint8)[np.argmax(counts, axis=0)])[err]
+    out[err] = (
+        np.array([DIFF_WRONG_CLASS, DIFF_MISSED, DIFF_EXTRA], np.uint8)[np.argmax(counts, axis=0)]
+    )[err]
     out[~m.any(2)] = DIFF_UNKNOWN
     return out

@@ -17,15 +17,19 @@ from __future__ import annotations
 import numpy as np
 
 
-def project(points: np.ndarray, K: np.ndarray, T_cam_from_lidar: np.ndarray,
-            min_depth_m: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+def project(
+    points: np.ndarray, K: np.ndarray, T_cam_from_lidar: np.ndarray, min_depth_m: float = 0.5
+) -> tuple[np.ndarray, np.ndarray]:
     """(N, 2) float64 pixels (u, v) and (N,) bool in front (depth > min_depth_m) of points (N, 3)
     in the LiDAR frame, for the pinhole K (3, 3), T_cam_from_lidar (4, 4)."""
     T = np.asarray(T_cam_from_lidar, np.float64)
     pc = np.asarray(points, np.float64) @ T[:3, :3].T + T[:3, 3]
     front = pc[:, 2] > min_depth_m
     z = np.where(front, pc[:, 2], 1.0)
-    uv = pc[:, :2] / z[:, None] @ np.asarray(K, np.float64)[:2, :2].T + np.asarray(K, np.float64)[:2, 2]
+    uv = (
+        pc[:, :2] / z[:, None] @ np.asarray(K, np.float64)[:2, :2].T
+        + np.asarray(K, np.float64)[:2, 2]
+    )
     return uv, front
 
 
@@ -41,7 +45,9 @@ def in_image_fraction(points: np.ndarray, K, T_cam_from_lidar, width: int, heigh
     return float(np.mean(_inside(uv, front, width, height)))
 
 
-def stereo_row_error_px(points: np.ndarray, left: tuple, right: tuple, min_depth_m: float = 2.0) -> float:
+def stereo_row_error_px(
+    points: np.ndarray, left: tuple, right: tuple, min_depth_m: float = 2.0
+) -> float:
     """Median |v_left - v_right| (px) of points (N, 3) seen by both cameras, each given as
     (K (3, 3), T_cam_from_lidar (4, 4), width, height) of its rectified image; NaN if none."""
     (K0, T0, w0, h0), (K1, T1, w1, h1) = left, right
@@ -51,21 +57,30 @@ def stereo_row_error_px(points: np.ndarray, left: tuple, right: tuple, min_depth
     return float(np.median(np.abs(uv0[both, 1] - uv1[both, 1]))) if both.any() else float("nan")
 
 
-def projection_difference_px(points: np.ndarray, K, T_cam_from_lidar, P_lidar_to_image: np.ndarray,
-                             width: int, height: int) -> float:
+def projection_difference_px(
+    points: np.ndarray, K, T_cam_from_lidar, P_lidar_to_image: np.ndarray, width: int, height: int
+) -> float:
     """Median pixel distance between the pinhole (K, T) and a 3 x 4 matrix projecting LiDAR points
     straight to pixels, over points (N, 3) that land in the image; NaN if none."""
     uv, front = project(points, K, T_cam_from_lidar)
     ok = _inside(uv, front, width, height)
     if not ok.any():
         return float("nan")
-    h = np.c_[np.asarray(points, np.float64)[ok], np.ones(int(ok.sum()))] @ np.asarray(P_lidar_to_image, np.float64).T
+    h = (
+        np.c_[np.asarray(points, np.float64)[ok], np.ones(int(ok.sum()))]
+        @ np.asarray(P_lidar_to_image, np.float64).T
+    )
     other = h[:, :2] / h[:, 2:3]
     return float(np.median(np.linalg.norm(other - uv[ok], axis=1)))
 
 
-def ground_height_m(points: np.ndarray, T_base_from_lidar: np.ndarray, near_m: float = 2.0, far_m: float = 15.0,
-                    bin_m: float = 0.05) -> float:
+def ground_height_m(
+    points: np.ndarray,
+    T_base_from_lidar: np.ndarray,
+    near_m: float = 2.0,
+    far_m: float = 15.0,
+    bin_m: float = 0.05,
+) -> float:
     """Height (m, base frame) of the ground seen in a sweep: the most populated ``bin_m`` layer among
     points (N, 3) LiDAR frame within near_m..far_m horizontally and in the lower half of their
     heights; ~0 when T_base_from_lidar (4, 4) is right. NaN with too few points."""

@@ -51,21 +51,58 @@ from tasks import conventions as C
 
 #: CODa 3d_semantic id -> name (coda-devkit helpers/constants.py SEM_CLASS_TO_ID, inverted)
 CODA_SEMANTIC_NAMES: tuple[str, ...] = (
-    "Unlabeled", "Concrete", "Grass", "Rocks", "Speedway Bricks", "Red Bricks", "Pebble Pavement",
-    "Light Marble Tiling", "Dark Marble Tiling", "Dirt Paths", "Road Pavement", "Short Vegetation",
-    "Porcelain Tile", "Metal Grates", "Blond Marble Tiling", "Wood Panel", "Patterned Tile", "Carpet",
-    "Crosswalk", "Dome Mat", "Stairs", "Door Mat", "Threshold", "Metal Floor", "Unknown",
+    "Unlabeled",
+    "Concrete",
+    "Grass",
+    "Rocks",
+    "Speedway Bricks",
+    "Red Bricks",
+    "Pebble Pavement",
+    "Light Marble Tiling",
+    "Dark Marble Tiling",
+    "Dirt Paths",
+    "Road Pavement",
+    "Short Vegetation",
+    "Porcelain Tile",
+    "Metal Grates",
+    "Blond Marble Tiling",
+    "Wood Panel",
+    "Patterned Tile",
+    "Carpet",
+    "Crosswalk",
+    "Dome Mat",
+    "Stairs",
+    "Door Mat",
+    "Threshold",
+    "Metal Floor",
+    "Unknown",
 )
 CODA_SEMANTIC_IDS: dict[str, int] = {name: i for i, name in enumerate(CODA_SEMANTIC_NAMES)}
 
 _SEMANTIC_TO_CLASS: dict[str, int] = {
-    "Concrete": C.ROAD, "Grass": C.TERRAIN, "Rocks": C.TERRAIN, "Speedway Bricks": C.ROAD,
-    "Red Bricks": C.ROAD, "Pebble Pavement": C.ROAD, "Light Marble Tiling": C.ROAD,
-    "Dark Marble Tiling": C.ROAD, "Dirt Paths": C.TERRAIN, "Road Pavement": C.ROAD,
-    "Short Vegetation": C.VEGETATION, "Porcelain Tile": C.ROAD, "Metal Grates": C.ROAD,
-    "Blond Marble Tiling": C.ROAD, "Wood Panel": C.ROAD, "Patterned Tile": C.ROAD, "Carpet": C.ROAD,
-    "Crosswalk": C.ROAD, "Dome Mat": C.ROAD, "Stairs": C.ROAD, "Door Mat": C.ROAD,
-    "Threshold": C.ROAD, "Metal Floor": C.ROAD,
+    "Concrete": C.ROAD,
+    "Grass": C.TERRAIN,
+    "Rocks": C.TERRAIN,
+    "Speedway Bricks": C.ROAD,
+    "Red Bricks": C.ROAD,
+    "Pebble Pavement": C.ROAD,
+    "Light Marble Tiling": C.ROAD,
+    "Dark Marble Tiling": C.ROAD,
+    "Dirt Paths": C.TERRAIN,
+    "Road Pavement": C.ROAD,
+    "Short Vegetation": C.VEGETATION,
+    "Porcelain Tile": C.ROAD,
+    "Metal Grates": C.ROAD,
+    "Blond Marble Tiling": C.ROAD,
+    "Wood Panel": C.ROAD,
+    "Patterned Tile": C.ROAD,
+    "Carpet": C.ROAD,
+    "Crosswalk": C.ROAD,
+    "Dome Mat": C.ROAD,
+    "Stairs": C.ROAD,
+    "Door Mat": C.ROAD,
+    "Threshold": C.ROAD,
+    "Metal Floor": C.ROAD,
 }
 
 #: (256,) uint8 lookup CODa 3d_semantic id -> our class id (UNLABELED: ignored or not a CODa id)
@@ -79,20 +116,56 @@ _TWO_WHEELER = ("Bike", "Motorcycle", "Scooter", "Segway", "Skateboard")
 _VEGETATION = ("Tree", "Freestanding Plant")
 _POLE = ("Pole", "Traffic Light", "Traffic Sign", "Bollard")
 _OTHER_STRUCTURE = (
-    "Canopy", "Bike Rack", "Construction Barrier", "Parking Kiosk", "Mailbox", "Fire Hydrant",
-    "Informational Sign", "Door", "Fence", "Railing", "Cone", "Chair", "Bench", "Table", "Trash Can",
-    "Newspaper Dispenser", "Room Label", "Stanchion", "Sanitizer Dispenser", "Condiment Dispenser",
-    "Vending Machine", "Emergency Aid Kit", "Fire Extinguisher", "Computer", "Television", "Other",
-    "Fire Alarm", "ATM", "Cart", "Couch", "Traffic Arm", "Wall Sign", "Floor Sign", "Door Switch",
-    "Emergency Phone", "Dumpster", "Vacuum Cleaner", "Water Fountain",
+    "Canopy",
+    "Bike Rack",
+    "Construction Barrier",
+    "Parking Kiosk",
+    "Mailbox",
+    "Fire Hydrant",
+    "Informational Sign",
+    "Door",
+    "Fence",
+    "Railing",
+    "Cone",
+    "Chair",
+    "Bench",
+    "Table",
+    "Trash Can",
+    "Newspaper Dispenser",
+    "Room Label",
+    "Stanchion",
+    "Sanitizer Dispenser",
+    "Condiment Dispenser",
+    "Vending Machine",
+    "Emergency Aid Kit",
+    "Fire Extinguisher",
+    "Computer",
+    "Television",
+    "Other",
+    "Fire Alarm",
+    "ATM",
+    "Cart",
+    "Couch",
+    "Traffic Arm",
+    "Wall Sign",
+    "Floor Sign",
+    "Door Switch",
+    "Emergency Phone",
+    "Dumpster",
+    "Vacuum Cleaner",
+    "Water Fountain",
 )
 
 #: CODa 3d_bbox classId -> our class id (UNLABELED: no class of ours, e.g. Horse)
 CODA_BOX_CLASS_TO_CLASS: dict[str, int] = {
-    "Pedestrian": C.PEDESTRIAN, "Horse": C.UNLABELED,
-    **{n: C.CAR for n in _CAR}, **{n: C.TRUCK for n in _TRUCK},
-    **{n: C.TWO_WHEELER for n in _TWO_WHEELER}, **{n: C.VEGETATION for n in _VEGETATION},
-    **{n: C.POLE for n in _POLE}, **{n: C.OTHER_STRUCTURE for n in _OTHER_STRUCTURE},
+    "Pedestrian": C.PEDESTRIAN,
+    "Horse": C.UNLABELED,
+    **{n: C.CAR for n in _CAR},
+    **{n: C.TRUCK for n in _TRUCK},
+    **{n: C.TWO_WHEELER for n in _TWO_WHEELER},
+    **{n: C.VEGETATION for n in _VEGETATION},
+    **{n: C.POLE for n in _POLE},
+    **{n: C.OTHER_STRUCTURE for n in _OTHER_STRUCTURE},
 }
 
 
@@ -106,8 +179,13 @@ def box_class(class_name: str) -> int | None:
     return CODA_BOX_CLASS_TO_CLASS.get(class_name)
 
 
-def points_in_boxes(points: np.ndarray, centers: np.ndarray, sizes: np.ndarray, rotations: np.ndarray,
-                    bottom_exclude_m: float = 0.0) -> np.ndarray:
+def points_in_boxes(
+    points: np.ndarray,
+    centers: np.ndarray,
+    sizes: np.ndarray,
+    rotations: np.ndarray,
+    bottom_exclude_m: float = 0.0,
+) -> np.ndarray:
     """(N,) bool: points inside any oriented box, above the bottom ``bottom_exclude_m`` of it.
 
     points: (N, 3) metres; centers (B, 3) metres, sizes (B, 3) (l, w, h) metres along the box's own
@@ -117,9 +195,14 @@ def points_in_boxes(points: np.ndarray, centers: np.ndarray, sizes: np.ndarray, 
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     inside = np.zeros(len(pts), dtype=bool)
-    for c, s, R in zip(np.asarray(centers, np.float64).reshape(-1, 3), np.asarray(sizes, np.float64).reshape(-1, 3),
-                       np.asarray(rotations, np.float64).reshape(-1, 3, 3)):
+    for c, s, R in zip(
+        np.asarray(centers, np.float64).reshape(-1, 3),
+        np.asarray(sizes, np.float64).reshape(-1, 3),
+        np.asarray(rotations, np.float64).reshape(-1, 3, 3),
+    ):
         local = (pts - c) @ R  # R^T (p - c) for row vectors
         half = s / 2.0
-        inside |= np.all(np.abs(local) <= half, axis=1) & (local[:, 2] >= -half[2] + bottom_exclude_m)
+        inside |= np.all(np.abs(local) <= half, axis=1) & (
+            local[:, 2] >= -half[2] + bottom_exclude_m
+        )
     return inside

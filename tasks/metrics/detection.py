@@ -22,8 +22,12 @@ def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """IoU of axis-aligned boxes. a (N, 4), b (M, 4) as (x1, y1, x2, y2) (pixels or metres) -> (N, M)."""
     a = np.asarray(a, dtype=np.float64).reshape(-1, 4)
     b = np.asarray(b, dtype=np.float64).reshape(-1, 4)
-    iw = np.clip(np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None)
-    ih = np.clip(np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None)
+    iw = np.clip(
+        np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None
+    )
+    ih = np.clip(
+        np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None
+    )
     inter = iw * ih
     area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
     area_b = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
@@ -32,8 +36,9 @@ def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
 
 
-def match_boxes(gt_boxes: np.ndarray, det_boxes: np.ndarray, iou_threshold: float = 0.5
-                ) -> tuple[np.ndarray, np.ndarray]:
+def match_boxes(
+    gt_boxes: np.ndarray, det_boxes: np.ndarray, iou_threshold: float = 0.5
+) -> tuple[np.ndarray, np.ndarray]:
     """One-to-one matches maximising total IoU, pairs below ``iou_threshold`` dropped.
 
     gt_boxes (G, 4), det_boxes (D, 4) as (x1, y1, x2, y2). Returns (gt_index (K,), det_index (K,)) int64.
@@ -57,9 +62,10 @@ class DetectionCounts:
     M_occ: int = 0
     W: int = 0
 
-    def __add__(self, other: "DetectionCounts") -> "DetectionCounts":
-        return DetectionCounts(self.T + other.T, self.M_vis + other.M_vis, self.M_occ + other.M_occ,
-                               self.W + other.W)
+    def __add__(self, other: DetectionCounts) -> DetectionCounts:
+        return DetectionCounts(
+            self.T + other.T, self.M_vis + other.M_vis, self.M_occ + other.M_occ, self.W + other.W
+        )
 
     @property
     def recall(self) -> float:
@@ -74,12 +80,20 @@ class DetectionCounts:
         return ratio(self.M_vis, self.T + self.M_vis)
 
     def as_dict(self) -> dict:
-        return {"T": int(self.T), "M_vis": int(self.M_vis), "M_occ": int(self.M_occ), "W": int(self.W),
-                "recall": self.recall, "precision": self.precision, "miss_vis": self.miss_vis}
+        return {
+            "T": int(self.T),
+            "M_vis": int(self.M_vis),
+            "M_occ": int(self.M_occ),
+            "W": int(self.W),
+            "recall": self.recall,
+            "precision": self.precision,
+            "miss_vis": self.miss_vis,
+        }
 
 
-def detection_counts(gt_boxes: np.ndarray, gt_visible: np.ndarray, det_boxes: np.ndarray,
-                     iou_threshold: float = 0.5) -> DetectionCounts:
+def detection_counts(
+    gt_boxes: np.ndarray, gt_visible: np.ndarray, det_boxes: np.ndarray, iou_threshold: float = 0.5
+) -> DetectionCounts:
     """Counts of one frame. gt_boxes (G, 4) and det_boxes (D, 4) (x1, y1, x2, y2) pixels in the same
     image; gt_visible (G,) bool, False for an occluded person."""
     gt_boxes = np.asarray(gt_boxes, dtype=np.float64).reshape(-1, 4)
@@ -90,7 +104,9 @@ def detection_counts(gt_boxes: np.ndarray, gt_visible: np.ndarray, det_boxes: np
     gi, di = match_boxes(gt_boxes, det_boxes, iou_threshold)
     missed = np.ones(len(gt_boxes), dtype=bool)
     missed[gi] = False
-    return DetectionCounts(len(gi), int(np.sum(missed & vis)), int(np.sum(missed & ~vis)), len(det_boxes) - len(gi))
+    return DetectionCounts(
+        len(gi), int(np.sum(missed & vis)), int(np.sum(missed & ~vis)), len(det_boxes) - len(gi)
+    )
 
 
 def detection_table(frames, iou_threshold: float = 0.5) -> dict[str, DetectionCounts]:
@@ -99,5 +115,6 @@ def detection_table(frames, iou_threshold: float = 0.5) -> dict[str, DetectionCo
     table: dict[str, DetectionCounts] = {}
     for condition, gt_boxes, gt_visible, det_boxes in frames:
         table[condition] = table.get(condition, DetectionCounts()) + detection_counts(
-            gt_boxes, gt_visible, det_boxes, iou_threshold)
+            gt_boxes, gt_visible, det_boxes, iou_threshold
+        )
     return table

@@ -16,7 +16,16 @@ def heading_summary(errors_deg) -> dict:
     (modulo 180 deg: l / w swapped), and the count. NaN figures when there are no boxes."""
     e = np.asarray(errors_deg, np.float64).reshape(-1)
     if e.size == 0:
-        return {"boxes": 0, "median_deg": float("nan"), "p90_deg": float("nan"), "axis_off_45_share": float("nan")}
+        return {
+            "boxes": 0,
+            "median_deg": float("nan"),
+            "p90_deg": float("nan"),
+            "axis_off_45_share": float("nan"),
+        }
     axis = np.minimum(e, 180.0 - e)
-    return {"boxes": int(e.size), "median_deg": float(np.median(e)), "p90_deg": float(np.percentile(e, 90)),
-            "axis_off_45_share": float(np.mean(axis > 45.0))}
+    return {
+        "boxes": int(e.size),
+        "median_deg": float(np.median(e)),
+        "p90_deg": float(np.percentile(e, 90)),
+        "axis_off_45_share": float(np.mean(axis > 45.0)),
+    }

@@ -10,7 +10,9 @@ from __future__ import annotations
 import numpy as np
 
 
-def pck_counts(pred: np.ndarray, gt: np.ndarray, ref_size: np.ndarray, alpha: float = 0.1) -> tuple[int, int]:
+def pck_counts(
+    pred: np.ndarray, gt: np.ndarray, ref_size: np.ndarray, alpha: float = 0.1
+) -> tuple[int, int]:
     """Correct and counted keypoints of K matched persons.
 
     pred (K, J, >=2) px; gt (K, J, 3) px + flag (2 = visible); ref_size (K,) px. Returns

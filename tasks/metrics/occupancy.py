@@ -44,7 +44,9 @@ class OccupancyMetric:
 
     def __init__(self, num_classes: int = C.NUM_CLASSES, free_class: int = C.FREE) -> None:
         if free_class != num_classes - 1:
-            raise ValueError(f"free_class must be the last class ({num_classes - 1}), got {free_class}")
+            raise ValueError(
+                f"free_class must be the last class ({num_classes - 1}), got {free_class}"
+            )
         self.num_classes = num_classes
         self.free_class = free_class
         self.confusion = np.zeros((num_classes, num_classes), dtype=np.int64)
@@ -60,8 +62,9 @@ class OccupancyMetric:
         m = check_mask("mask", mask, gt.shape)
         g = gt[m].astype(np.int64)
         p = pred[m].astype(np.int64)
-        self.confusion += np.bincount(g * self.num_classes + p,
-                                      minlength=self.num_classes ** 2).reshape(self.num_classes, self.num_classes)
+        self.confusion += np.bincount(
+            g * self.num_classes + p, minlength=self.num_classes**2
+        ).reshape(self.num_classes, self.num_classes)
 
     def compute(self) -> OccupancyScores:
         """Scores of everything added so far (NaN everywhere when nothing was added)."""
@@ -81,7 +84,9 @@ class OccupancyMetric:
         return OccupancyScores(occ.copy(), miou, geo, cm.copy(), int(cm.sum()))
 
 
-def occupancy_scores(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> OccupancyScores:
+def occupancy_scores(
+    pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None
+) -> OccupancyScores:
     """Occ3D scores of a single frame (see :class:`OccupancyMetric` for the arrays)."""
     metric = OccupancyMetric()
     metric.update(pred, gt, mask)

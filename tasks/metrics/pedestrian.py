@@ -35,14 +35,17 @@ def _check_boxes(centers, sizes, yaws) -> tuple[np.ndarray, np.ndarray, np.ndarr
     s = np.asarray(sizes, dtype=np.float64).reshape(-1, 3)
     y = np.asarray(yaws, dtype=np.float64).reshape(-1)
     if not (len(c) == len(s) == len(y)):
-        raise MetricInputError(f"boxes: {len(c)} centers, {len(s)} sizes and {len(y)} yaws differ in number")
+        raise MetricInputError(
+            f"boxes: {len(c)} centers, {len(s)} sizes and {len(y)} yaws differ in number"
+        )
     if np.any(s <= 0):
         raise MetricInputError(f"boxes: sizes must be > 0, got {s[np.any(s <= 0, axis=1)][0]}")
     return c, s, y
 
 
-def box_voxel_masks(shape, range_min, voxel_size_m: float, centers, sizes, yaws,
-                    bottom_exclude_m: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+def box_voxel_masks(
+    shape, range_min, voxel_size_m: float, centers, sizes, yaws, bottom_exclude_m: float = 0.1
+) -> tuple[np.ndarray, np.ndarray]:
     """Voxels whose centre lies in some box, split at ``bottom_exclude_m`` above each box bottom.
 
     shape: (X, Y, Z) voxels; range_min: (3,) m grid corner; centers (B, 3) m and sizes (B, 3)
@@ -75,9 +78,17 @@ def box_voxel_masks(shape, range_min, voxel_size_m: float, centers, sizes, yaws,
     return body, bottom
 
 
-def pedestrian_box_counts(pred: np.ndarray, range_min, voxel_size_m: float, centers, sizes, yaws,
-                          visible: np.ndarray | None = None, reference_occupied: np.ndarray | None = None,
-                          bottom_exclude_m: float = 0.1) -> PRCounts:
+def pedestrian_box_counts(
+    pred: np.ndarray,
+    range_min,
+    voxel_size_m: float,
+    centers,
+    sizes,
+    yaws,
+    visible: np.ndarray | None = None,
+    reference_occupied: np.ndarray | None = None,
+    bottom_exclude_m: float = 0.1,
+) -> PRCounts:
     """Pedestrian voxels of one frame vs its GT pedestrian boxes (definitions in the module doc).
 
     pred: (X, Y, Z) uint8 class ids (0 pedestrian, 9 free) in the grid frame; range_min (3,) m;
@@ -87,28 +98,43 @@ def pedestrian_box_counts(pred: np.ndarray, range_min, voxel_size_m: float, cent
     """
     pred = check_label_grid("pred", pred)
     vis = check_mask("visible", visible, pred.shape)
-    occ = (pred != C.FREE) if reference_occupied is None else check_mask("reference_occupied",
-                                                                          reference_occupied, pred.shape)
-    body, bottom = box_voxel_masks(pred.shape, range_min, voxel_size_m, centers, sizes, yaws, bottom_exclude_m)
+    occ = (
+        (pred != C.FREE)
+        if reference_occupied is None
+        else check_mask("reference_occupied", reference_occupied, pred.shape)
+    )
+    body, bottom = box_voxel_masks(
+        pred.shape, range_min, voxel_size_m, centers, sizes, yaws, bottom_exclude_m
+    )
     ped = (pred == C.PEDESTRIAN) & vis
     ref = body & vis & occ
-    return PRCounts(int(np.sum(ped & body)), int(np.sum(ped & ~bottom)),
-                    int(np.sum(ref & ped)), int(np.sum(ref)))
+    return PRCounts(
+        int(np.sum(ped & body)),
+        int(np.sum(ped & ~bottom)),
+        int(np.sum(ref & ped)),
+        int(np.sum(ref)),
+    )
 
 
 def voxelize_points(points, range_min, voxel_size_m: float, shape) -> np.ndarray:
     """(N, 3) metres in the grid frame -> (X, Y, Z) bool, True where a point falls (outside ignored)."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     shape = tuple(int(v) for v in shape)
-    idx = np.floor((pts - np.asarray(range_min, dtype=np.float64)) / float(voxel_size_m)).astype(np.int64)
+    idx = np.floor((pts - np.asarray(range_min, dtype=np.float64)) / float(voxel_size_m)).astype(
+        np.int64
+    )
     idx = idx[np.all((idx >= 0) & (idx < np.asarray(shape)), axis=1)]
     grid = np.zeros(shape, dtype=bool)
     grid[idx[:, 0], idx[:, 1], idx[:, 2]] = True
     return grid
 
 
-def pedestrian_lidar_counts(pred: np.ndarray, gt_body: np.ndarray, region: np.ndarray | None = None,
-                            tolerance_voxels: int = 1) -> PRCounts:
+def pedestrian_lidar_counts(
+    pred: np.ndarray,
+    gt_body: np.ndarray,
+    region: np.ndarray | None = None,
+    tolerance_voxels: int = 1,
+) -> PRCounts:
     """Pedestrian voxels of one frame vs LiDAR body ground truth at +-``tolerance_voxels``.
 
     pred: (X, Y, Z) uint8 class ids (pedestrian = 0); gt_body: (X, Y, Z) bool voxelised LiDAR body
@@ -124,14 +150,19 @@ def pedestrian_lidar_counts(pred: np.ndarray, gt_body: np.ndarray, region: np.nd
     if tolerance_voxels == 0:
         near_gt, near_ped = gt, ped
     else:
-        st = np.ones((3, 3, 3), dtype=bool)  # 26-neighbourhood: +-1 voxel per axis, centre to centre
+        st = np.ones(
+            (3, 3, 3), dtype=bool
+        )  # 26-neighbourhood: +-1 voxel per axis, centre to centre
         near_gt = ndimage.binary_dilation(gt, structure=st, iterations=tolerance_voxels)
         near_ped = ndimage.binary_dilation(ped, structure=st, iterations=tolerance_voxels)
-    return PRCounts(int(np.sum(ped & near_gt)), int(np.sum(ped)), int(np.sum(gt & near_ped)), int(np.sum(gt)))
+    return PRCounts(
+        int(np.sum(ped & near_gt)), int(np.sum(ped)), int(np.sum(gt & near_ped)), int(np.sum(gt))
+    )
 
 
-def person_point_counts(point_instance: np.ndarray, extracted: list[np.ndarray],
-                        gt_ids: np.ndarray) -> PRCounts:
+def person_point_counts(
+    point_instance: np.ndarray, extracted: list[np.ndarray], gt_ids: np.ndarray
+) -> PRCounts:
     """Person-point extraction against per-point ground-truth instances.
 
     point_instance: (N,) int GT instance id of every point of the sweep. extracted: per tracked

@@ -38,10 +38,13 @@ class StaticCounts:
     voxels_correct: int = 0
     num_points_ignored: int = 0
 
-    def __add__(self, other: "StaticCounts") -> "StaticCounts":
-        return StaticCounts(self.confusion + other.confusion, self.voxels_evaluated + other.voxels_evaluated,
-                            self.voxels_correct + other.voxels_correct,
-                            self.num_points_ignored + other.num_points_ignored)
+    def __add__(self, other: StaticCounts) -> StaticCounts:
+        return StaticCounts(
+            self.confusion + other.confusion,
+            self.voxels_evaluated + other.voxels_evaluated,
+            self.voxels_correct + other.voxels_correct,
+            self.num_points_ignored + other.num_points_ignored,
+        )
 
     def per_class_iou(self, classes=None) -> dict[str, float]:
         """IoU per class id in ``classes`` (default: the classes present in the GT points)."""
@@ -75,14 +78,21 @@ class StaticCounts:
     def as_dict(self, classes=None) -> dict:
         iou = self.per_class_iou(classes)
         vals = [v for v in iou.values() if not np.isnan(v)]
-        return {"per_class_iou": iou, "miou": float(np.mean(vals)) if vals else float("nan"),
-                "coverage": self.coverage, "voxel_accuracy": self.voxel_accuracy,
-                "point_accuracy": self.point_accuracy, "num_points": self.num_points,
-                "num_voxels": int(self.voxels_evaluated), "num_points_ignored": int(self.num_points_ignored)}
+        return {
+            "per_class_iou": iou,
+            "miou": float(np.mean(vals)) if vals else float("nan"),
+            "coverage": self.coverage,
+            "voxel_accuracy": self.voxel_accuracy,
+            "point_accuracy": self.point_accuracy,
+            "num_points": self.num_points,
+            "num_voxels": int(self.voxels_evaluated),
+            "num_points_ignored": int(self.num_points_ignored),
+        }
 
 
-def static_counts(labels: np.ndarray, range_min, voxel_size_m: float, points: np.ndarray,
-                  gt_classes: np.ndarray) -> StaticCounts:
+def static_counts(
+    labels: np.ndarray, range_min, voxel_size_m: float, points: np.ndarray, gt_classes: np.ndarray
+) -> StaticCounts:
     """Counts of one frame (or one accumulated map) against its labelled GT points.
 
     labels: (X, Y, Z) uint8 class ids (9 free) of the grid; range_min: (3,) metres, the grid's
@@ -95,12 +105,18 @@ def static_counts(labels: np.ndarray, range_min, voxel_size_m: float, points: np
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise MetricInputError(f"points: expected (N, 3) metres, got shape {pts.shape}")
     if cls.shape != (len(pts),):
-        raise MetricInputError(f"gt_classes: expected ({len(pts)},) class ids, got shape {cls.shape}")
+        raise MetricInputError(
+            f"gt_classes: expected ({len(pts)},) class ids, got shape {cls.shape}"
+        )
     labelled = cls != C.UNLABELED
     if np.any(cls[labelled] >= C.FREE):
-        raise MetricInputError(f"gt_classes: class id {int(cls[labelled][cls[labelled] >= C.FREE][0])} "
-                               f"is not an occupied class (0..{C.FREE - 1}) or {C.UNLABELED}")
-    idx = np.floor((pts - np.asarray(range_min, dtype=np.float64)) / float(voxel_size_m)).astype(np.int64)
+        raise MetricInputError(
+            f"gt_classes: class id {int(cls[labelled][cls[labelled] >= C.FREE][0])} "
+            f"is not an occupied class (0..{C.FREE - 1}) or {C.UNLABELED}"
+        )
+    idx = np.floor((pts - np.asarray(range_min, dtype=np.float64)) / float(voxel_size_m)).astype(
+        np.int64
+    )
     inside = np.all((idx >= 0) & (idx < np.asarray(labels.shape)), axis=1)
     keep = labelled & inside
     idx, g = idx[keep], cls[keep].astype(np.int64)
@@ -108,10 +124,16 @@ def static_counts(labels: np.ndarray, range_min, voxel_size_m: float, points: np
     confusion = np.bincount(g * _N + p, minlength=_N * _N).reshape(_N, _N)
     # voxel level: majority GT class per occupied voxel holding points
     occ = p != C.FREE
-    flat = np.ravel_multi_index(tuple(idx[occ].T), labels.shape) if occ.any() else np.zeros(0, np.int64)
+    flat = (
+        np.ravel_multi_index(tuple(idx[occ].T), labels.shape)
+        if occ.any()
+        else np.zeros(0, np.int64)
+    )
     vox, inv = np.unique(flat, return_inverse=True)
     votes = np.zeros((len(vox), _N), dtype=np.int64)
     np.add.at(votes, (inv, g[occ]), 1)
     majority = np.argmax(votes, axis=1)
     vox_label = labels.reshape(-1)[vox]
-    return StaticCounts(confusion, int(len(vox)), int(np.sum(vox_label == majority)), int(np.sum(~keep)))
+    return StaticCounts(
+        confusion, int(len(vox)), int(np.sum(vox_label == majority)), int(np.sum(~keep))
+    )

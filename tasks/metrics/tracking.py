@@ -46,8 +46,10 @@ class TrackingScores:
     hota_fp: np.ndarray
     hota_ass_sum: np.ndarray
 
-    def __add__(self, other: "TrackingScores") -> "TrackingScores":
-        return TrackingScores(*(getattr(self, f) + getattr(other, f) for f in self.__dataclass_fields__))
+    def __add__(self, other: TrackingScores) -> TrackingScores:
+        return TrackingScores(
+            *(getattr(self, f) + getattr(other, f) for f in self.__dataclass_fields__)
+        )
 
     @property
     def mota(self) -> float:
@@ -83,9 +85,17 @@ class TrackingScores:
         return float(np.mean(self.assa_per_alpha))
 
     def as_dict(self) -> dict:
-        return {"mota": self.mota, "idf1": self.idf1, "hota": self.hota, "deta": self.deta, "assa": self.assa,
-                "num_objects": int(self.num_objects), "misses": int(self.misses),
-                "false_positives": int(self.false_positives), "switches": int(self.switches)}
+        return {
+            "mota": self.mota,
+            "idf1": self.idf1,
+            "hota": self.hota,
+            "deta": self.deta,
+            "assa": self.assa,
+            "num_objects": int(self.num_objects),
+            "misses": int(self.misses),
+            "false_positives": int(self.false_positives),
+            "switches": int(self.switches),
+        }
 
 
 def _frames(frames) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
@@ -95,8 +105,10 @@ def _frames(frames) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray
         gb = np.asarray(gb, dtype=np.float64).reshape(-1, 4)
         pb = np.asarray(pb, dtype=np.float64).reshape(-1, 4)
         if len(gi) != len(gb) or len(pi) != len(pb):
-            raise MetricInputError(f"frame {k}: {len(gi)} GT ids for {len(gb)} boxes, "
-                                   f"{len(pi)} predicted ids for {len(pb)} boxes")
+            raise MetricInputError(
+                f"frame {k}: {len(gi)} GT ids for {len(gb)} boxes, "
+                f"{len(pi)} predicted ids for {len(pb)} boxes"
+            )
         for name, ids in (("GT", gi), ("predicted", pi)):
             if len(np.unique(ids)) != len(ids):
                 raise MetricInputError(f"frame {k}: repeated {name} ids {ids.tolist()}")
@@ -112,7 +124,15 @@ def _clear_and_identity(frames, iou_threshold: float) -> dict:
         dist = 1.0 - box_iou(gb, pb)
         dist[dist > 1.0 - iou_threshold + _EPS] = np.nan  # IoU below the threshold: never pair
         acc.update(gi.tolist(), pi.tolist(), dist)
-    names = ["num_objects", "num_misses", "num_false_positives", "num_switches", "idtp", "idfp", "idfn"]
+    names = [
+        "num_objects",
+        "num_misses",
+        "num_false_positives",
+        "num_switches",
+        "idtp",
+        "idfp",
+        "idfn",
+    ]
     summary = mm.metrics.create().compute(acc, metrics=names, name="seq")
     return {n: int(summary[n].iloc[0]) for n in names}
 
@@ -165,6 +185,16 @@ def tracking_scores(frames, iou_threshold: float = 0.5) -> TrackingScores:
     fr = _frames(frames)
     clear = _clear_and_identity(fr, iou_threshold)
     tp, fn, fp, ass_sum = _hota_counts(fr, HOTA_ALPHAS)
-    return TrackingScores(clear["num_objects"], clear["num_misses"], clear["num_false_positives"],
-                          clear["num_switches"], clear["idtp"], clear["idfp"], clear["idfn"],
-                          tp, fn, fp, ass_sum)
+    return TrackingScores(
+        clear["num_objects"],
+        clear["num_misses"],
+        clear["num_false_positives"],
+        clear["num_switches"],
+        clear["idtp"],
+        clear["idfp"],
+        clear["idfn"],
+        tp,
+        fn,
+        fp,
+        ass_sum,
+    )

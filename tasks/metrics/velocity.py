@@ -25,9 +25,13 @@ class VelocityErrors:
     sum_t: float = 0.0
     n_t: int = 0
 
-    def __add__(self, other: "VelocityErrors") -> "VelocityErrors":
-        return VelocityErrors(self.sum_o + other.sum_o, self.n_o + other.n_o,
-                              self.sum_t + other.sum_t, self.n_t + other.n_t)
+    def __add__(self, other: VelocityErrors) -> VelocityErrors:
+        return VelocityErrors(
+            self.sum_o + other.sum_o,
+            self.n_o + other.n_o,
+            self.sum_t + other.sum_t,
+            self.n_t + other.n_t,
+        )
 
     @property
     def ave_o(self) -> float:
@@ -38,13 +42,21 @@ class VelocityErrors:
         return ratio(self.sum_t, self.n_t)
 
     def as_dict(self) -> dict:
-        return {"ave_o": self.ave_o, "ave_t": self.ave_t, "num_voxels_o": int(self.n_o),
-                "num_voxels_t": int(self.n_t)}
+        return {
+            "ave_o": self.ave_o,
+            "ave_t": self.ave_t,
+            "num_voxels_o": int(self.n_o),
+            "num_voxels_t": int(self.n_t),
+        }
 
 
-def voxel_velocity_errors(pred: np.ndarray, pred_velocity: np.ndarray, gt: np.ndarray,
-                          gt_velocity: np.ndarray, mask: np.ndarray | None = None
-                          ) -> tuple[np.ndarray, np.ndarray]:
+def voxel_velocity_errors(
+    pred: np.ndarray,
+    pred_velocity: np.ndarray,
+    gt: np.ndarray,
+    gt_velocity: np.ndarray,
+    mask: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-voxel errors (m/s) for histograms: (errors over both-pedestrian voxels (K,),
     errors over all GT pedestrian voxels (M,)) float64, C order over [x, y, z].
 
@@ -57,8 +69,10 @@ def voxel_velocity_errors(pred: np.ndarray, pred_velocity: np.ndarray, gt: np.nd
     vp = np.asarray(pred_velocity, dtype=np.float64)
     vg = np.asarray(gt_velocity, dtype=np.float64)
     if vp.shape != vg.shape or vp.shape[:3] != gt.shape or vp.ndim != 4:
-        raise MetricInputError(f"velocities: expected (X, Y, Z, D) = {gt.shape} + (D,) for both, "
-                               f"got pred {vp.shape} and gt {vg.shape}")
+        raise MetricInputError(
+            f"velocities: expected (X, Y, Z, D) = {gt.shape} + (D,) for both, "
+            f"got pred {vp.shape} and gt {vg.shape}"
+        )
     gt_ped = (gt == C.PEDESTRIAN) & m
     both = gt_ped & (pred == C.PEDESTRIAN)
     err_o = np.linalg.norm(vp[both] - vg[both], axis=-1)
@@ -79,7 +93,9 @@ def velocity_errors(pred, pred_velocity, gt, gt_velocity, mask=None) -> Velocity
 LIMB_GROUPS = ("legs", "arms", "torso")
 #: SMPL joint (tasks.conventions.SMPL_JOINT_NAMES) -> index into LIMB_GROUPS: hips, knees, ankles and
 #: feet are legs; shoulders, elbows, wrists and hands arms; pelvis, spine, neck, collars and head torso
-SMPL_JOINT_LIMB = np.array([2, 0, 0, 2, 0, 0, 2, 0, 0, 2, 0, 0, 2, 2, 2, 2, 1, 1, 1, 1, 1, 1, 1, 1], np.int64)
+SMPL_JOINT_LIMB = np.array(
+    [2, 0, 0, 2, 0, 0, 2, 0, 0, 2, 0, 0, 2, 2, 2, 2, 1, 1, 1, 1, 1, 1, 1, 1], np.int64
+)
 
 
 def vertex_limb_groups(lbs_weights: np.ndarray) -> np.ndarray:
@@ -90,9 +106,15 @@ def vertex_limb_groups(lbs_weights: np.ndarray) -> np.ndarray:
     return SMPL_JOINT_LIMB[np.argmax(w, axis=1)]
 
 
-def vertex_velocity_grid(spec, instance_grid: np.ndarray, track_ids: np.ndarray, vertices: np.ndarray,
-                         faces: np.ndarray, vertex_velocity: np.ndarray, vertex_group: np.ndarray
-                         ) -> tuple[np.ndarray, np.ndarray]:
+def vertex_velocity_grid(
+    spec,
+    instance_grid: np.ndarray,
+    track_ids: np.ndarray,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    vertex_velocity: np.ndarray,
+    vertex_group: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
     """Ground-truth velocity and limb group of every pedestrian voxel from per-vertex velocities.
 
     spec: the grid (tasks.occupancy.grid.GridSpec, base frame). instance_grid (X, Y, Z) int: the
@@ -122,10 +144,13 @@ def vertex_velocity_grid(spec, instance_grid: np.ndarray, track_ids: np.ndarray,
     return out, group
 
 
-def limb_velocity_errors(pred, pred_velocity, gt, gt_velocity, group: np.ndarray,
-                         mask=None) -> dict[str, VelocityErrors]:
+def limb_velocity_errors(
+    pred, pred_velocity, gt, gt_velocity, group: np.ndarray, mask=None
+) -> dict[str, VelocityErrors]:
     """AVE counts of one frame per limb group (LIMB_GROUPS; group (X, Y, Z) int, the group of
     each ground-truth pedestrian voxel, -1 elsewhere); arrays as in :func:`voxel_velocity_errors`."""
     m = np.ones(np.shape(gt), bool) if mask is None else np.asarray(mask, bool)
-    return {name: velocity_errors(pred, pred_velocity, gt, gt_velocity, m & (np.asarray(group) == g))
-            for g, name in enumerate(LIMB_GROUPS)}
+    return {
+        name: velocity_errors(pred, pred_velocity, gt, gt_velocity, m & (np.asarray(group) == g))
+        for g, name in enumerate(LIMB_GROUPS)
+    }

@@ -11,10 +11,19 @@ from tasks.occupancy.resample import grid_reach_m, static_in_grid
 from tasks.occupancy.static_map import StaticMap
 
 
-def local_grids(spec: GridSpec, T_world_from_base: np.ndarray, static: StaticMap, occupancy,
-                people: list[PedestrianMesh], points_lidar: np.ndarray, T_base_from_lidar: np.ndarray,
-                camera: CameraView | None, pixel_stride: int | None, camera_method: str,
-                threads: int | None = None) -> tuple[dict[str, np.ndarray], np.ndarray]:
+def local_grids(
+    spec: GridSpec,
+    T_world_from_base: np.ndarray,
+    static: StaticMap,
+    occupancy,
+    people: list[PedestrianMesh],
+    points_lidar: np.ndarray,
+    T_base_from_lidar: np.ndarray,
+    camera: CameraView | None,
+    pixel_stride: int | None,
+    camera_method: str,
+    threads: int | None = None,
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """The dataset's grids of one frame (arrays of storage/SCHEMA.md) and its class counts.
 
     mask_lidar is the union of this frame's LiDAR rays (traversed or hit voxels) and the voxels
@@ -26,13 +35,26 @@ def local_grids(spec: GridSpec, T_world_from_base: np.ndarray, static: StaticMap
     :func:`tasks.occupancy.fuse.fuse_frame` (threads: for its rays; the grids do not depend on it).
     """
     static_pts, static_labels = static_in_grid(static, spec, T_world_from_base, grid_reach_m(spec))
-    grids = fuse_frame(spec, T_world_from_base, static_points_world=static_pts, static_labels=static_labels,
-                       pedestrians=people, occupancy=occupancy,
-                       lidar_points_base=transform_points(T_base_from_lidar, points_lidar),
-                       lidar_origin_base=T_base_from_lidar[:3, 3], camera=camera,
-                       pixel_stride=pixel_stride, camera_method=camera_method, threads=threads)
+    grids = fuse_frame(
+        spec,
+        T_world_from_base,
+        static_points_world=static_pts,
+        static_labels=static_labels,
+        pedestrians=people,
+        occupancy=occupancy,
+        lidar_points_base=transform_points(T_base_from_lidar, points_lidar),
+        lidar_origin_base=T_base_from_lidar[:3, 3],
+        camera=camera,
+        pixel_stride=pixel_stride,
+        camera_method=camera_method,
+        threads=threads,
+    )
     mask_lidar = grids.mask_lidar.astype(bool) | (grids.occupancy_state >= 0)
     counts = np.bincount(grids.semantics[mask_lidar], minlength=FREE + 1).astype(np.int64)
-    return {"semantics": grids.semantics, "instances": grids.instances,
-            "mask_lidar": mask_lidar.astype(np.uint8), "mask_camera": grids.mask_camera & mask_lidar,
-            "velocity": grids.velocity.astype(np.float16)}, counts
+    return {
+        "semantics": grids.semantics,
+        "instances": grids.instances,
+        "mask_lidar": mask_lidar.astype(np.uint8),
+        "mask_camera": grids.mask_camera & mask_lidar,
+        "velocity": grids.velocity.astype(np.float16),
+    }, counts

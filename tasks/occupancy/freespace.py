@@ -46,9 +46,7 @@ def _logit(p: float) -> float:
 
 @njit(cache=True, inline="always")
 def _block_key(kx, ky, kz):
-    return (
-        (((kx >> 3) + 1048576) << 42) | (((ky >> 3) + 1048576) << 21) | ((kz >> 3) + 1048576)
-    )
+    return (((kx >> 3) + 1048576) << 42) | (((ky >> 3) + 1048576) << 21) | ((kz >> 3) + 1048576)
 
 
 @njit(cache=True, inline="always")
@@ -168,8 +166,31 @@ def _ray_end(ox, oy, oz, px, py, pz, max_range):
 
 
 @njit(cache=True, inline="always")
-def _walk_ray(ox, oy, oz, ex, ey, ez, length, res, scan_id, hkeys, hvals, bkeys, nused, bstamp,
-              touched, ntouched, fbits, ckeys, crows, dense, b0, nb, rb):
+def _walk_ray(
+    ox,
+    oy,
+    oz,
+    ex,
+    ey,
+    ez,
+    length,
+    res,
+    scan_id,
+    hkeys,
+    hvals,
+    bkeys,
+    nused,
+    bstamp,
+    touched,
+    ntouched,
+    fbits,
+    ckeys,
+    crows,
+    dense,
+    b0,
+    nb,
+    rb,
+):
     """Set the free bit of every voxel on the ray origin -> end, end voxel excluded: the 3D DDA
     of OctoMap's computeRayKeys (the origin voxel is on the ray). Returns 0 when done, -1 when
     the block pool is full, -2 when a voxel is outside the dense box.
@@ -229,7 +250,9 @@ def _walk_ray(ox, oy, oz, ex, ey, ez, length, res, scan_id, hkeys, hvals, bkeys,
                 if ckeys[slot] == bk:
                     b = crows[slot]
                 else:
-                    b = _touch_block(hkeys, hvals, bkeys, nused, bstamp, touched, ntouched, bk, scan_id)
+                    b = _touch_block(
+                        hkeys, hvals, bkeys, nused, bstamp, touched, ntouched, bk, scan_id
+                    )
                     if b < 0:
                         return -1
                     ckeys[slot] = bk
@@ -261,8 +284,28 @@ def _walk_ray(ox, oy, oz, ex, ey, ez, length, res, scan_id, hkeys, hvals, bkeys,
 
 
 @njit(cache=True, inline="always")
-def _mark_endpoints(points, i0, ox, oy, oz, max_range, res, scan_id, hkeys, hvals, bkeys, nused,
-                    bstamp, touched, ntouched, hbits, dense, b0, nb, rb):
+def _mark_endpoints(
+    points,
+    i0,
+    ox,
+    oy,
+    oz,
+    max_range,
+    res,
+    scan_id,
+    hkeys,
+    hvals,
+    bkeys,
+    nused,
+    bstamp,
+    touched,
+    ntouched,
+    hbits,
+    dense,
+    b0,
+    nb,
+    rb,
+):
     """Set the hit bit of the voxel of every endpoint points[i0:] within max_range. Returns -1
     when done, else the endpoint where the pool ran out (-1 - i: outside the dense box)."""
     inv = 1.0 / res
@@ -272,7 +315,10 @@ def _mark_endpoints(points, i0, ox, oy, oz, max_range, res, scan_id, hkeys, hval
         px = points[i, 0]
         py = points[i, 1]
         pz = points[i, 2]
-        if max_range >= 0.0 and math.sqrt((px - ox) ** 2 + (py - oy) ** 2 + (pz - oz) ** 2) > max_range:
+        if (
+            max_range >= 0.0
+            and math.sqrt((px - ox) ** 2 + (py - oy) ** 2 + (pz - oz) ** 2) > max_range
+        ):
             continue
         kx = np.int64(math.floor(px * inv))
         ky = np.int64(math.floor(py * inv))
@@ -297,8 +343,28 @@ def _mark_endpoints(points, i0, ox, oy, oz, max_range, res, scan_id, hkeys, hval
 
 
 @njit(cache=True, nogil=True)
-def _mark_scan(points, origin, max_range, res, scan_id, hkeys, hvals, bkeys, nused, bstamp,
-               touched, ntouched, fbits, hbits, phase0, ray0, dense, b0, nb, rb):
+def _mark_scan(
+    points,
+    origin,
+    max_range,
+    res,
+    scan_id,
+    hkeys,
+    hvals,
+    bkeys,
+    nused,
+    bstamp,
+    touched,
+    ntouched,
+    fbits,
+    hbits,
+    phase0,
+    ray0,
+    dense,
+    b0,
+    nb,
+    rb,
+):
     """Mark one scan's voxels in per-block bitsets: fbits = on a ray, hbits = holds an endpoint.
 
     Phase 0 walks the rays, phase 1 marks the endpoints (within max_range). Returns (phase, ray)
@@ -316,13 +382,58 @@ def _mark_scan(points, origin, max_range, res, scan_id, hkeys, hvals, bkeys, nus
     crows = np.zeros(1024, dtype=np.int64)
     n = points.shape[0]
     for i in range(ray0 if phase0 == 0 else n, n):
-        ex, ey, ez, length = _ray_end(ox, oy, oz, points[i, 0], points[i, 1], points[i, 2], max_range)
-        status = _walk_ray(ox, oy, oz, ex, ey, ez, length, res, scan_id, hkeys, hvals, bkeys, nused,
-                           bstamp, touched, ntouched, fbits, ckeys, crows, dense, b0, nb, rb)
+        ex, ey, ez, length = _ray_end(
+            ox, oy, oz, points[i, 0], points[i, 1], points[i, 2], max_range
+        )
+        status = _walk_ray(
+            ox,
+            oy,
+            oz,
+            ex,
+            ey,
+            ez,
+            length,
+            res,
+            scan_id,
+            hkeys,
+            hvals,
+            bkeys,
+            nused,
+            bstamp,
+            touched,
+            ntouched,
+            fbits,
+            ckeys,
+            crows,
+            dense,
+            b0,
+            nb,
+            rb,
+        )
         if status < 0:
             return (3 if status == -2 else 0), i
-    stop = _mark_endpoints(points, 0 if phase0 == 0 else ray0, ox, oy, oz, max_range, res, scan_id,
-                           hkeys, hvals, bkeys, nused, bstamp, touched, ntouched, hbits, dense, b0, nb, rb)
+    stop = _mark_endpoints(
+        points,
+        0 if phase0 == 0 else ray0,
+        ox,
+        oy,
+        oz,
+        max_range,
+        res,
+        scan_id,
+        hkeys,
+        hvals,
+        bkeys,
+        nused,
+        bstamp,
+        touched,
+        ntouched,
+        hbits,
+        dense,
+        b0,
+        nb,
+        rb,
+    )
     if stop >= 0:
         return 1, stop
     if stop < -1:
@@ -365,8 +476,9 @@ def _apply_marks(touched, ntouched, fbits, hbits, logodds, hit, miss, lo_min, lo
 
 
 @njit(cache=True)
-def _apply_dense(fbits, hbits, b0, nb, row0, hkeys, hvals, bkeys, nused, logodds, hit, miss,
-                 lo_min, lo_max):
+def _apply_dense(
+    fbits, hbits, b0, nb, row0, hkeys, hvals, bkeys, nused, logodds, hit, miss, lo_min, lo_max
+):
     """Apply the union of per-thread dense marks (T, rows, 8) to the map, from box row ``row0``.
 
     Returns the row where the block pool ran out (grow and resume there), or -1 when done.
@@ -536,8 +648,10 @@ def _region_blocks(region) -> np.ndarray:
     """(bx0, bx1, by0, by1) blocks of a region given in voxel keys (multiples of 8)."""
     r = np.asarray(region, dtype=np.int64).reshape(-1)
     if r.shape != (4,) or np.any(r % 8) or r[0] >= r[1] or r[2] >= r[3]:
-        raise OccupancyError(f"region must be (kx0, kx1, ky0, ky1) with kx0 < kx1, ky0 < ky1, "
-                             f"multiples of 8 voxels; got {tuple(region)}")
+        raise OccupancyError(
+            f"region must be (kx0, kx1, ky0, ky1) with kx0 < kx1, ky0 < ky1, "
+            f"multiples of 8 voxels; got {tuple(region)}"
+        )
     return r >> _BLOCK_SHIFT
 
 
@@ -575,8 +689,13 @@ class OccupancyMap:
     ) -> None:
         if not voxel_size_m > 0:
             raise OccupancyError(f"voxel_size_m must be > 0, got {voxel_size_m}")
-        for name, p in (("prob_hit", prob_hit), ("prob_miss", prob_miss), ("clamp_min", clamp_min),
-                        ("clamp_max", clamp_max), ("occupancy_threshold", occupancy_threshold)):
+        for name, p in (
+            ("prob_hit", prob_hit),
+            ("prob_miss", prob_miss),
+            ("clamp_min", clamp_min),
+            ("clamp_max", clamp_max),
+            ("occupancy_threshold", occupancy_threshold),
+        ):
             if not 0.0 < p < 1.0:
                 raise OccupancyError(f"{name} must be in (0, 1), got {p}")
         if not (prob_miss < 0.5 < prob_hit and clamp_min < clamp_max):
@@ -613,9 +732,14 @@ class OccupancyMap:
     def _grow(self) -> None:
         n = self._logodds.shape[0]
         self._logodds = np.concatenate(
-            [self._logodds, np.full((n, _BLOCK_CELLS), np.nan, dtype=np.float32)])
-        self._fbits = np.concatenate([self._fbits, np.zeros((n, _BLOCK_CELLS // 64), dtype=np.uint64)])
-        self._hbits = np.concatenate([self._hbits, np.zeros((n, _BLOCK_CELLS // 64), dtype=np.uint64)])
+            [self._logodds, np.full((n, _BLOCK_CELLS), np.nan, dtype=np.float32)]
+        )
+        self._fbits = np.concatenate(
+            [self._fbits, np.zeros((n, _BLOCK_CELLS // 64), dtype=np.uint64)]
+        )
+        self._hbits = np.concatenate(
+            [self._hbits, np.zeros((n, _BLOCK_CELLS // 64), dtype=np.uint64)]
+        )
         self._bstamp = np.concatenate([self._bstamp, np.full(n, -1, dtype=np.int32)])
         self._touched = np.concatenate([self._touched, np.zeros(n, dtype=np.int64)])
         self._bkeys = np.concatenate([self._bkeys, np.full(n, -1, dtype=np.int64)])
@@ -627,8 +751,16 @@ class OccupancyMap:
     @property
     def memory_bytes(self) -> int:
         """Bytes held by the block pool and its hash table (allocated capacity)."""
-        arrays = (self._logodds, self._fbits, self._hbits, self._bstamp, self._touched,
-                  self._bkeys, self._hkeys, self._hvals)
+        arrays = (
+            self._logodds,
+            self._fbits,
+            self._hbits,
+            self._bstamp,
+            self._touched,
+            self._bkeys,
+            self._hkeys,
+            self._hvals,
+        )
         return sum(a.nbytes for a in arrays)
 
     def insert_scan(
@@ -678,25 +810,53 @@ class OccupancyMap:
             self._insert_sparse(pts, origin, float(max_range_m), rb)
         self.num_scans += 1
 
-    def _insert_sparse(self, pts: np.ndarray, origin: np.ndarray, max_range_m: float,
-                       rb: np.ndarray = _EVERYWHERE) -> None:
+    def _insert_sparse(
+        self, pts: np.ndarray, origin: np.ndarray, max_range_m: float, rb: np.ndarray = _EVERYWHERE
+    ) -> None:
         """One thread, marks straight in the map's block pool (any extent)."""
         scan_id = np.int32(self.num_scans % (2**31 - 1))
         phase, ray = 0, 0
         while True:
             phase, ray = _mark_scan(
-                pts, origin, max_range_m, self.voxel_size_m, scan_id, self._hkeys,
-                self._hvals, self._bkeys, self._nused, self._bstamp, self._touched,
-                self._ntouched, self._fbits, self._hbits, phase, ray, False, _NO_BOX, _NO_BOX, rb,
+                pts,
+                origin,
+                max_range_m,
+                self.voxel_size_m,
+                scan_id,
+                self._hkeys,
+                self._hvals,
+                self._bkeys,
+                self._nused,
+                self._bstamp,
+                self._touched,
+                self._ntouched,
+                self._fbits,
+                self._hbits,
+                phase,
+                ray,
+                False,
+                _NO_BOX,
+                _NO_BOX,
+                rb,
             )
             if phase == 2:
                 break
             self._grow()
-        _apply_marks(self._touched, self._ntouched, self._fbits, self._hbits, self._logodds, self._hit,
-                     self._miss, self._lo_min, self._lo_max)
+        _apply_marks(
+            self._touched,
+            self._ntouched,
+            self._fbits,
+            self._hbits,
+            self._logodds,
+            self._hit,
+            self._miss,
+            self._lo_min,
+            self._lo_max,
+        )
 
-    def _insert_dense(self, pts: np.ndarray, origin: np.ndarray, max_range_m: float,
-                      rb: np.ndarray = _EVERYWHERE) -> bool:
+    def _insert_dense(
+        self, pts: np.ndarray, origin: np.ndarray, max_range_m: float, rb: np.ndarray = _EVERYWHERE
+    ) -> bool:
         """Rays split over threads, each marking a private dense box of blocks around the scan
         (cut to the region rb); the union is then applied once. False (nothing changed) when the
         box would be too big."""
@@ -717,9 +877,26 @@ class OccupancyMap:
         def mark(t: int) -> bool:
             for lo, hi in chunks[t::threads]:
                 phase, _ = _mark_scan(
-                    pts[lo:hi], origin, max_range_m, self.voxel_size_m, scan_id, self._hkeys,
-                    self._hvals, self._bkeys, self._nused, self._bstamp, self._touched,
-                    self._ntouched, fbits[t], hbits[t], 0, 0, True, b0, nb, rb,
+                    pts[lo:hi],
+                    origin,
+                    max_range_m,
+                    self.voxel_size_m,
+                    scan_id,
+                    self._hkeys,
+                    self._hvals,
+                    self._bkeys,
+                    self._nused,
+                    self._bstamp,
+                    self._touched,
+                    self._ntouched,
+                    fbits[t],
+                    hbits[t],
+                    0,
+                    0,
+                    True,
+                    b0,
+                    nb,
+                    rb,
                 )
                 if phase != 2:
                     return False
@@ -733,9 +910,22 @@ class OccupancyMap:
             return False
         row = 0
         while True:
-            row = _apply_dense(fbits, hbits, b0, nb, row, self._hkeys, self._hvals, self._bkeys,
-                               self._nused, self._logodds, self._hit, self._miss, self._lo_min,
-                               self._lo_max)
+            row = _apply_dense(
+                fbits,
+                hbits,
+                b0,
+                nb,
+                row,
+                self._hkeys,
+                self._hvals,
+                self._bkeys,
+                self._nused,
+                self._logodds,
+                self._hit,
+                self._miss,
+                self._lo_min,
+                self._lo_max,
+            )
             if row < 0:
                 return True
             self._grow()
@@ -746,9 +936,12 @@ class OccupancyMap:
         1 occupied (octomap-python's ``getLabels``)."""
         # float32 like OctoMap's point3d, so a point on a voxel face lands where OctoMap puts it.
         pts = np.ascontiguousarray(
-            np.asarray(points_world).reshape(-1, 3).astype(np.float32).astype(np.float64))
+            np.asarray(points_world).reshape(-1, 3).astype(np.float32).astype(np.float64)
+        )
         out = np.empty(len(pts), dtype=np.int8)
-        _query_points(pts, self.voxel_size_m, self._hkeys, self._hvals, self._logodds, self._thres, out)
+        _query_points(
+            pts, self.voxel_size_m, self._hkeys, self._hvals, self._logodds, self._thres, out
+        )
         return out
 
     def query_grid(self, spec, T_world_from_grid: np.ndarray) -> np.ndarray:
@@ -763,9 +956,21 @@ class OccupancyMap:
             raise OccupancyError(f"T_world_from_grid must be (4, 4), got {T.shape}")
         nx, ny, nz = spec.shape
         out = np.empty((nx, ny, nz), dtype=np.int8)
-        _query_grid(np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), spec.origin,
-                    spec.voxel_size_m, nx, ny, nz, self.voxel_size_m, self._hkeys, self._hvals, self._logodds,
-                    self._thres, out)
+        _query_grid(
+            np.ascontiguousarray(T[:3, :3]),
+            np.ascontiguousarray(T[:3, 3]),
+            spec.origin,
+            spec.voxel_size_m,
+            nx,
+            ny,
+            nz,
+            self.voxel_size_m,
+            self._hkeys,
+            self._hvals,
+            self._logodds,
+            self._thres,
+            out,
+        )
         return out
 
     # -- persistence (storage/ writes these arrays) ----------------------------------------------
@@ -775,8 +980,9 @@ class OccupancyMap:
         return _export(self._bkeys, self._logodds, int(self._nused[0]))
 
     @classmethod
-    def from_arrays(cls, voxel_size_m: float, keys: np.ndarray, logodds: np.ndarray,
-                    **params) -> "OccupancyMap":
+    def from_arrays(
+        cls, voxel_size_m: float, keys: np.ndarray, logodds: np.ndarray, **params
+    ) -> OccupancyMap:
         """Rebuild a map from :meth:`to_arrays` output (scan count restarts at 0)."""
         keys = np.ascontiguousarray(np.asarray(keys, dtype=np.int64).reshape(-1, 3))
         vals = np.ascontiguousarray(np.asarray(logodds, dtype=np.float32).reshape(-1))
@@ -793,14 +999,27 @@ class OccupancyMap:
 
     def __getstate__(self):
         keys, vals = self.to_arrays()
-        return {"voxel_size_m": self.voxel_size_m, "params": self.params, "keys": keys,
-                "logodds": vals, "num_scans": self.num_scans, "threads": self.threads}
+        return {
+            "voxel_size_m": self.voxel_size_m,
+            "params": self.params,
+            "keys": keys,
+            "logodds": vals,
+            "num_scans": self.num_scans,
+            "threads": self.threads,
+        }
 
     def __setstate__(self, state):
         ph, pm, cmin, cmax, thr = state["params"]
-        other = OccupancyMap.from_arrays(state["voxel_size_m"], state["keys"], state["logodds"],
-                                         prob_hit=ph, prob_miss=pm, clamp_min=cmin,
-                                         clamp_max=cmax, occupancy_threshold=thr,
-                                         threads=state.get("threads"))
+        other = OccupancyMap.from_arrays(
+            state["voxel_size_m"],
+            state["keys"],
+            state["logodds"],
+            prob_hit=ph,
+            prob_miss=pm,
+            clamp_min=cmin,
+            clamp_max=cmax,
+            occupancy_threshold=thr,
+            threads=state.get("threads"),
+        )
         self.__dict__.update(other.__dict__)
         self.num_scans = state["num_scans"]

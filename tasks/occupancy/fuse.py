@@ -9,9 +9,8 @@ LiDAR rays) and ``mask_camera`` (voxels seen from cam0 up to the first occupied 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
@@ -128,16 +127,24 @@ def _mark_surface(v, f, origin, vs, shape, g0, occ, vel, sums, counts):
                 wa = i / k
                 wb = j / k
                 wc = (k - i - j) / k
-                lx, ly, lz, ok = _local_index((wa * v[a, 0] + wb * v[b, 0]) + wc * v[c, 0],
-                                              (wa * v[a, 1] + wb * v[b, 1]) + wc * v[c, 1],
-                                              (wa * v[a, 2] + wb * v[b, 2]) + wc * v[c, 2],
-                                              origin, vs, shape, g0, occ)
+                lx, ly, lz, ok = _local_index(
+                    (wa * v[a, 0] + wb * v[b, 0]) + wc * v[c, 0],
+                    (wa * v[a, 1] + wb * v[b, 1]) + wc * v[c, 1],
+                    (wa * v[a, 2] + wb * v[b, 2]) + wc * v[c, 2],
+                    origin,
+                    vs,
+                    shape,
+                    g0,
+                    occ,
+                )
                 if ok:
                     occ[lx, ly, lz] = 1
                     if nd:
                         counts[lx, ly, lz] += 1
                         for d in range(nd):
-                            sums[lx, ly, lz, d] += (wa * vel[a, d] + wb * vel[b, d]) + wc * vel[c, d]
+                            sums[lx, ly, lz, d] += (wa * vel[a, d] + wb * vel[b, d]) + wc * vel[
+                                c, d
+                            ]
 
 
 @njit(cache=True, inline="always")
@@ -203,8 +210,11 @@ def _column_crossings(v, f, cx, cy, vs, counts, zs, fill):
                 y = cy[j]
                 if y < ymin or y > ymax:
                     continue
-                if not (_covers(v, a, b, c, x, y) and _covers(v, b, c, a, x, y)
-                        and _covers(v, c, a, b, x, y)):
+                if not (
+                    _covers(v, a, b, c, x, y)
+                    and _covers(v, b, c, a, x, y)
+                    and _covers(v, c, a, b, x, y)
+                ):
                     continue
                 col = i * ny + j
                 if fill:  # the face's plane at (x, y): n . (p - a) = 0
@@ -248,8 +258,13 @@ def voxelize_mesh(spec: GridSpec, vertices: np.ndarray, faces: np.ndarray) -> np
     return _voxelize(spec, vertices, faces)[0]
 
 
-def mesh_voxel_velocity(spec: GridSpec, vertices: np.ndarray, faces: np.ndarray, vertex_velocity: np.ndarray,
-                        voxels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def mesh_voxel_velocity(
+    spec: GridSpec,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    vertex_velocity: np.ndarray,
+    voxels: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """The velocity of the voxels of a moving closed mesh (a body whose vertices move apart).
 
     Each voxel takes the mean velocity of the body surface inside it: the points of
@@ -268,8 +283,10 @@ def mesh_voxel_velocity(spec: GridSpec, vertices: np.ndarray, faces: np.ndarray,
     """
     vel = np.asarray(vertex_velocity, dtype=np.float64)
     if vel.ndim != 2 or len(vel) != len(np.asarray(vertices).reshape(-1, 3)):
-        raise FuseError(f"vertex_velocity must be (V, D) with V = {len(np.asarray(vertices).reshape(-1, 3))} "
-                        f"vertices, got {vel.shape}")
+        raise FuseError(
+            f"vertex_velocity must be (V, D) with V = {len(np.asarray(vertices).reshape(-1, 3))} "
+            f"vertices, got {vel.shape}"
+        )
     own, g0, sums, counts = _voxelize(spec, vertices, faces, vel)
     idx = own if voxels is None else np.asarray(voxels, dtype=np.int64).reshape(-1, 3)
     out = np.zeros((len(idx), vel.shape[1]), dtype=np.float64)
@@ -290,22 +307,37 @@ def mesh_voxel_velocity(spec: GridSpec, vertices: np.ndarray, faces: np.ndarray,
     return idx, out
 
 
-def _voxelize(spec: GridSpec, vertices: np.ndarray, faces: np.ndarray, vertex_velocity: np.ndarray | None = None):
+def _voxelize(
+    spec: GridSpec,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    vertex_velocity: np.ndarray | None = None,
+):
     """:func:`voxelize_mesh`'s voxels, and with vertex_velocity (V, D) the surface points'
     velocity sums (local grid + (D,)) and counts (local grid) whose voxel (0, 0, 0) is grid voxel
     g0: (voxels (M, 3) int64, g0 (3,), sums, counts)."""
     v = np.ascontiguousarray(np.asarray(vertices, dtype=np.float64).reshape(-1, 3))
     f = np.ascontiguousarray(np.asarray(faces, dtype=np.int64).reshape(-1, 3))
-    vel = (np.zeros((len(v), 0)) if vertex_velocity is None
-           else np.ascontiguousarray(np.asarray(vertex_velocity, dtype=np.float64)))
-    nothing = (np.empty((0, 3), dtype=np.int64), np.zeros(3, np.int64), np.zeros((0, 0, 0, vel.shape[1])),
-               np.zeros((0, 0, 0), np.int64))
+    vel = (
+        np.zeros((len(v), 0))
+        if vertex_velocity is None
+        else np.ascontiguousarray(np.asarray(vertex_velocity, dtype=np.float64))
+    )
+    nothing = (
+        np.empty((0, 3), dtype=np.int64),
+        np.zeros(3, np.int64),
+        np.zeros((0, 0, 0, vel.shape[1])),
+        np.zeros((0, 0, 0), np.int64),
+    )
     if not len(v):
         return nothing
     if len(f) and (f.min() < 0 or f.max() >= len(v)):
         raise FuseError(f"faces index vertices 0..{len(v) - 1}, got {f.min()}..{f.max()}")
     shape = np.asarray(spec.shape, dtype=np.int64)
-    vmin, vmax = spec.index_of(v.min(axis=0, keepdims=True))[0], spec.index_of(v.max(axis=0, keepdims=True))[0]
+    vmin, vmax = (
+        spec.index_of(v.min(axis=0, keepdims=True))[0],
+        spec.index_of(v.max(axis=0, keepdims=True))[0],
+    )
     # the local grid: the mesh box one voxel wider (rounding of lattice points), inside the grid
     g0 = np.maximum(vmin - 1, 0)
     g1 = np.minimum(vmax + 1, shape - 1)
@@ -319,8 +351,12 @@ def _voxelize(spec: GridSpec, vertices: np.ndarray, faces: np.ndarray, vertex_ve
     lo, hi = np.maximum(vmin, 0), np.minimum(vmax, shape - 1)
     if len(f) and np.all(hi >= lo):
         v32 = v.astype(np.float32).astype(np.float64)  # open3d's float32 mesh and centres
-        cx, cy, cz = ((spec.origin[a] + (np.arange(lo[a], hi[a] + 1) + 0.5) * spec.voxel_size_m)
-                      .astype(np.float32).astype(np.float64) for a in range(3))
+        cx, cy, cz = (
+            (spec.origin[a] + (np.arange(lo[a], hi[a] + 1) + 0.5) * spec.voxel_size_m)
+            .astype(np.float32)
+            .astype(np.float64)
+            for a in range(3)
+        )
         counts = np.zeros(len(cx) * len(cy) + 1, dtype=np.int64)
         _column_crossings(v32, f, cx, cy, spec.voxel_size_m, counts, np.empty(0), False)
         starts = np.cumsum(counts)
@@ -330,7 +366,9 @@ def _voxelize(spec: GridSpec, vertices: np.ndarray, faces: np.ndarray, vertex_ve
     return np.argwhere(occ) + g0, g0, sums, samples
 
 
-def voxelize_labels(spec: GridSpec, points: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def voxelize_labels(
+    spec: GridSpec, points: np.ndarray, labels: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Majority label per voxel (ties: the lower class id).
 
     points: (N, 3) float metres, grid frame; labels: (N,) uint8 (UNLABELED ignored).
@@ -394,7 +432,9 @@ def fuse_frame(
     if len(sp) != len(np.asarray(static_labels).reshape(-1)):
         raise FuseError(f"{len(sp)} static points but {len(static_labels)} labels")
     T_base_from_world = np.linalg.inv(T)
-    sp_base = sp @ T_base_from_world[:3, :3].T.astype(np.float32) + T_base_from_world[:3, 3].astype(np.float32)
+    sp_base = sp @ T_base_from_world[:3, :3].T.astype(np.float32) + T_base_from_world[:3, 3].astype(
+        np.float32
+    )
     flat, lab = voxelize_labels(spec, sp_base, static_labels)
     semantics[flat] = lab
     # pedestrians over static
@@ -407,8 +447,12 @@ def fuse_frame(
             idx = voxelize_mesh(spec, ped.vertices_base, ped.faces)
             vel = np.asarray(ped.velocity_base, dtype=np.float64).reshape(2)
         else:
-            idx, vel = mesh_voxel_velocity(spec, ped.vertices_base, ped.faces,
-                                           np.asarray(ped.vertex_velocity_base).reshape(-1, 2))
+            idx, vel = mesh_voxel_velocity(
+                spec,
+                ped.vertices_base,
+                ped.faces,
+                np.asarray(ped.vertex_velocity_base).reshape(-1, 2),
+            )
         if not len(idx):
             continue
         f = spec.flat_index(idx)
@@ -418,8 +462,11 @@ def fuse_frame(
     semantics = semantics.reshape(spec.shape)
     instances = instances.reshape(spec.shape)
     velocity = velocity.reshape(*spec.shape, 2)
-    state = (occupancy.query_grid(spec, T) if occupancy is not None
-             else np.full(spec.shape, -1, dtype=np.int8))
+    state = (
+        occupancy.query_grid(spec, T)
+        if occupancy is not None
+        else np.full(spec.shape, -1, dtype=np.int8)
+    )
     if lidar_points_base is not None:
         if lidar_origin_base is None:
             raise FuseError("lidar_points_base needs lidar_origin_base")
@@ -430,8 +477,17 @@ def fuse_frame(
         method = camera_method
         if method == "auto":
             method = "rays" if spec.voxel_size_m >= 0.1 else "zbuffer"
-        m_cam = camera_mask(spec, semantics != FREE, camera.K, camera.width, camera.height,
-                            camera.T_base_from_cam, pixel_stride, method, threads)
+        m_cam = camera_mask(
+            spec,
+            semantics != FREE,
+            camera.K,
+            camera.width,
+            camera.height,
+            camera.T_base_from_cam,
+            pixel_stride,
+            method,
+            threads,
+        )
     else:
         m_cam = np.zeros(spec.shape, dtype=np.uint8)
     return FrameGrids(semantics, instances, m_lidar, m_cam, velocity, state)

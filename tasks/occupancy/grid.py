@@ -28,7 +28,9 @@ class GridSpec:
         lo = np.asarray(self.range_min, dtype=np.float64)
         hi = np.asarray(self.range_max, dtype=np.float64)
         if lo.shape != (3,) or hi.shape != (3,):
-            raise GridError(f"range_min/range_max must have 3 values, got {self.range_min}, {self.range_max}")
+            raise GridError(
+                f"range_min/range_max must have 3 values, got {self.range_min}, {self.range_max}"
+            )
         if not self.voxel_size_m > 0:
             raise GridError(f"voxel_size_m must be > 0, got {self.voxel_size_m}")
         if np.any(hi <= lo):
@@ -88,7 +90,9 @@ class GridSpec:
         fine grid compute centres on the fly instead.
         """
         axes = [
-            (self.range_min[a] + (np.arange(n, dtype=np.float64) + 0.5) * self.voxel_size_m).astype(np.float32)
+            (self.range_min[a] + (np.arange(n, dtype=np.float64) + 0.5) * self.voxel_size_m).astype(
+                np.float32
+            )
             for a, n in enumerate(self.shape)
         ]
         gx, gy, gz = np.meshgrid(*axes, indexing="ij")
@@ -98,4 +102,3 @@ class GridSpec:
         """(N,) int64 C-order flat indices of (N, 3) in-bounds voxel indices."""
         idx = np.asarray(index, dtype=np.int64).reshape(-1, 3)
         return np.ravel_multi_index((idx[:, 0], idx[:, 1], idx[:, 2]), self.shape)
-

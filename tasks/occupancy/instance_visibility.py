@@ -38,15 +38,22 @@ def _footprint(bx, by, bz, R, t, fx, fy, cx, cy, vs):
     v = fy * y / z + cy
     hu = 0.5 * vs * fx / z
     hv = 0.5 * vs * fy / z
-    return (math.sqrt(x * x + y * y + z * z), int(math.floor(u - hu + 0.5)), int(math.floor(u + hu + 0.5)),
-            int(math.floor(v - hv + 0.5)), int(math.floor(v + hv + 0.5)))
+    return (
+        math.sqrt(x * x + y * y + z * z),
+        int(math.floor(u - hu + 0.5)),
+        int(math.floor(u + hu + 0.5)),
+        int(math.floor(v - hv + 0.5)),
+        int(math.floor(v + hv + 0.5)),
+    )
 
 
 @njit(cache=True)
 def _nearest_id(centres, occ_id, vs, R, t, fx, fy, cx, cy, zbuf, idbuf):
     H, W = zbuf.shape
     for n in range(centres.shape[0]):
-        d, u0, u1, v0, v1 = _footprint(centres[n, 0], centres[n, 1], centres[n, 2], R, t, fx, fy, cx, cy, vs)
+        d, u0, u1, v0, v1 = _footprint(
+            centres[n, 0], centres[n, 1], centres[n, 2], R, t, fx, fy, cx, cy, vs
+        )
         if d < 0:
             continue
         for pv in range(max(v0, 0), min(v1, H - 1) + 1):
@@ -63,7 +70,9 @@ def _silhouette_area(centres, vs, R, t, fx, fy, cx, cy):
     rects = np.empty((n, 4), np.int64)
     m = 0
     for k in range(n):
-        d, u0, u1, v0, v1 = _footprint(centres[k, 0], centres[k, 1], centres[k, 2], R, t, fx, fy, cx, cy, vs)
+        d, u0, u1, v0, v1 = _footprint(
+            centres[k, 0], centres[k, 1], centres[k, 2], R, t, fx, fy, cx, cy, vs
+        )
         if d >= 0 and u1 >= u0 and v1 >= v0:
             rects[m, 0], rects[m, 1], rects[m, 2], rects[m, 3] = u0, u1, v0, v1
             m += 1
@@ -73,7 +82,9 @@ def _silhouette_area(centres, vs, R, t, fx, fy, cx, cy):
     vmin, vmax = rects[:m, 2].min(), rects[:m, 3].max()
     canvas = np.zeros((vmax - vmin + 1, umax - umin + 1), np.uint8)
     for k in range(m):
-        canvas[rects[k, 2] - vmin:rects[k, 3] - vmin + 1, rects[k, 0] - umin:rects[k, 1] - umin + 1] = 1
+        canvas[
+            rects[k, 2] - vmin : rects[k, 3] - vmin + 1, rects[k, 0] - umin : rects[k, 1] - umin + 1
+        ] = 1
     return int(canvas.sum())
 
 
@@ -81,17 +92,29 @@ def box_lattice(center, size_lwh, yaw: float, pitch_m: float) -> np.ndarray:
     """(M, 3) float64 points filling an upright box (centre (3,), size l w h, yaw about z) at
     ``pitch_m`` spacing (cell centres; at least one cell per side): the voxel centres the box
     would take in a grid of that voxel size."""
-    axes = [(np.arange(n) + 0.5) * (s / n) - s / 2 for s, n in
-            ((float(v), max(1, int(np.ceil(float(v) / pitch_m)))) for v in size_lwh)]
+    axes = [
+        (np.arange(n) + 0.5) * (s / n) - s / 2
+        for s, n in ((float(v), max(1, int(np.ceil(float(v) / pitch_m)))) for v in size_lwh)
+    ]
     local = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     c, s = np.cos(yaw), np.sin(yaw)
     R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     return local @ R.T + np.asarray(center, np.float64)
 
 
-def visible_fractions(range_min, voxel_size_m: float, occupied: np.ndarray, instances: np.ndarray,
-                      ids, K: np.ndarray, width: int, height: int, T_base_from_cam: np.ndarray,
-                      outside: dict | None = None, oversample: int = 4) -> np.ndarray:
+def visible_fractions(
+    range_min,
+    voxel_size_m: float,
+    occupied: np.ndarray,
+    instances: np.ndarray,
+    ids,
+    K: np.ndarray,
+    width: int,
+    height: int,
+    T_base_from_cam: np.ndarray,
+    outside: dict | None = None,
+    oversample: int = 4,
+) -> np.ndarray:
     """Visible fraction of each instance (see the module docstring).
 
     range_min: (3,) m, lower corner of the grid, base frame; voxel_size_m: edge, m.
@@ -106,14 +129,19 @@ def visible_fractions(range_min, voxel_size_m: float, occupied: np.ndarray, inst
     occupied = np.asarray(occupied).astype(bool)
     instances = np.asarray(instances)
     if occupied.shape != instances.shape or occupied.ndim != 3:
-        raise ValueError(f"occupied {occupied.shape} and instances {instances.shape} must be the same (X, Y, Z)")
+        raise ValueError(
+            f"occupied {occupied.shape} and instances {instances.shape} must be the same (X, Y, Z)"
+        )
     ids = np.asarray(ids, dtype=np.int64).reshape(-1)
     out = np.zeros(len(ids), np.float64)
     if len(ids) == 0:
         return out
     K = np.asarray(K, dtype=np.float64)
     T_cam_from_base = np.linalg.inv(np.asarray(T_base_from_cam, dtype=np.float64))
-    R, t = np.ascontiguousarray(T_cam_from_base[:3, :3]), np.ascontiguousarray(T_cam_from_base[:3, 3])
+    R, t = (
+        np.ascontiguousarray(T_cam_from_base[:3, :3]),
+        np.ascontiguousarray(T_cam_from_base[:3, 3]),
+    )
     lo = np.asarray(range_min, dtype=np.float64)
     vs = float(voxel_size_m)
     hi = lo + np.asarray(occupied.shape) * vs
@@ -139,7 +167,9 @@ def visible_fractions(range_min, voxel_size_m: float, occupied: np.ndarray, inst
     for n, i in enumerate(ids):
         if i <= 0:
             continue
-        area = _silhouette_area(np.ascontiguousarray(centres[occ_id == i]), vs, R, t, fx, fy, cx, cy)
+        area = _silhouette_area(
+            np.ascontiguousarray(centres[occ_id == i]), vs, R, t, fx, fy, cx, cy
+        )
         if area > 0:
             out[n] = min(1.0, seen[i] / area)
     return out

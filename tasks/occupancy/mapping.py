@@ -21,32 +21,55 @@ Two ways to run it, with the same result voxel for voxel:
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
-from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
 from tasks.conventions import PEDESTRIAN, transform_points
 from tasks.occupancy.freespace import OccupancyMap
 from tasks.occupancy.settings import FreeSpaceParams, MapParams
-from tasks.occupancy.static_map import (StaticMap, StaticSemanticMap, lift_image_semantics,
-                                        merge_static_maps, pack_keys, pedestrian_boxes_for_masking,
-                                        pedestrian_point_mask, project_points, sum_votes, unpack_keys,
-                                        vote)
+from tasks.occupancy.static_map import (
+    StaticMap,
+    StaticSemanticMap,
+    lift_image_semantics,
+    merge_static_maps,
+    pack_keys,
+    pedestrian_boxes_for_masking,
+    pedestrian_point_mask,
+    project_points,
+    sum_votes,
+    unpack_keys,
+    vote,
+)
 from tasks.occupancy.tiles import BLOCK_VOXELS, ground_halo_tiles, tiles_of_keys, voxels_per_tile
 
 
 def new_occupancy_map(p: FreeSpaceParams, threads: int | None = None) -> OccupancyMap:
     """An empty occupancy map with the sensor model ``p``."""
-    return OccupancyMap(p.voxel_size_m, p.prob_hit, p.prob_miss, p.clamp_min, p.clamp_max,
-                        p.occupancy_threshold, threads=threads)
+    return OccupancyMap(
+        p.voxel_size_m,
+        p.prob_hit,
+        p.prob_miss,
+        p.clamp_min,
+        p.clamp_max,
+        p.occupancy_threshold,
+        threads=threads,
+    )
 
 
 def load_occupancy_map(p: FreeSpaceParams, keys: np.ndarray, logodds: np.ndarray) -> OccupancyMap:
     """The occupancy map stored as (keys, logodds) (storage.products.OccupancyMapProduct)."""
-    return OccupancyMap.from_arrays(p.voxel_size_m, keys, logodds, prob_hit=p.prob_hit, prob_miss=p.prob_miss,
-                                    clamp_min=p.clamp_min, clamp_max=p.clamp_max,
-                                    occupancy_threshold=p.occupancy_threshold)
+    return OccupancyMap.from_arrays(
+        p.voxel_size_m,
+        keys,
+        logodds,
+        prob_hit=p.prob_hit,
+        prob_miss=p.prob_miss,
+        clamp_min=p.clamp_min,
+        clamp_max=p.clamp_max,
+        occupancy_threshold=p.occupancy_threshold,
+    )
 
 
 @dataclass(frozen=True)
@@ -64,35 +87,80 @@ class SweepLabeller:
     class id (UNLABELED: none); K (3, 3), T_cam_from_lidar (4, 4), width / height: the camera;
     assoc_min_iou: see :func:`pedestrian_boxes_for_masking`; threads: nearest-neighbour search."""
 
-    def __init__(self, params: MapParams, class_lut: np.ndarray, K: np.ndarray, T_cam_from_lidar: np.ndarray,
-                 width: int, height: int, assoc_min_iou: float, threads: int | None = None):
+    def __init__(
+        self,
+        params: MapParams,
+        class_lut: np.ndarray,
+        K: np.ndarray,
+        T_cam_from_lidar: np.ndarray,
+        width: int,
+        height: int,
+        assoc_min_iou: float,
+        threads: int | None = None,
+    ):
         self.params, self.lut, self.K, self.T_cam = params, class_lut, K, T_cam_from_lidar
         self.size, self.min_iou, self.threads = (width, height), assoc_min_iou, threads
 
-    def __call__(self, points_lidar: np.ndarray, semantic: np.ndarray, mask_labels: np.ndarray,
-                 boxes_xyxy: np.ndarray, lidar_centers: np.ndarray, lidar_sizes: np.ndarray,
-                 lidar_yaws: np.ndarray) -> SweepLabels:
+    def __call__(
+        self,
+        points_lidar: np.ndarray,
+        semantic: np.ndarray,
+        mask_labels: np.ndarray,
+        boxes_xyxy: np.ndarray,
+        lidar_centers: np.ndarray,
+        lidar_sizes: np.ndarray,
+        lidar_yaws: np.ndarray,
+    ) -> SweepLabels:
         """points_lidar (N, 3) float32 LiDAR frame; semantic (H, W) Cityscapes train ids,
         mask_labels (H, W) instance labels (> 0: a person), image boxes (D, 4), LiDAR pedestrian
         boxes (M, 3) / (M,)."""
         p, (width, height) = self.params, self.size
-        projection = project_points(points_lidar, self.K, self.T_cam, width, height)  # once per sweep
-        labels = lift_image_semantics(points_lidar, semantic, self.K, self.T_cam, self.lut,
-                                      fallback=p.outside_image_fallback, ground_cell_m=p.ground_cell_m,
-                                      ground_tol_m=p.ground_max_deviation_m,
-                                      ground_lateral_scale=p.fallback_ground_lateral_scale,
-                                      projection=projection, threads=self.threads)
-        boxes = pedestrian_boxes_for_masking(boxes_xyxy, lidar_centers, lidar_sizes, lidar_yaws, self.K,
-                                             self.T_cam, width, height, self.min_iou)
-        people = pedestrian_point_mask(points_lidar, instance_image=mask_labels, boxes_lidar=boxes,
-                                       box_margin_m=p.pedestrian_box_margin_m, projection=projection)
+        projection = project_points(
+            points_lidar, self.K, self.T_cam, width, height
+        )  # once per sweep
+        labels = lift_image_semantics(
+            points_lidar,
+            semantic,
+            self.K,
+            self.T_cam,
+            self.lut,
+            fallback=p.outside_image_fallback,
+            ground_cell_m=p.ground_cell_m,
+            ground_tol_m=p.ground_max_deviation_m,
+            ground_lateral_scale=p.fallback_ground_lateral_scale,
+            projection=projection,
+            threads=self.threads,
+        )
+        boxes = pedestrian_boxes_for_masking(
+            boxes_xyxy,
+            lidar_centers,
+            lidar_sizes,
+            lidar_yaws,
+            self.K,
+            self.T_cam,
+            width,
+            height,
+            self.min_iou,
+        )
+        people = pedestrian_point_mask(
+            points_lidar,
+            instance_image=mask_labels,
+            boxes_lidar=boxes,
+            box_margin_m=p.pedestrian_box_margin_m,
+            projection=projection,
+        )
         return SweepLabels(labels, ~people & (labels != PEDESTRIAN), projection[1])
 
 
 def _vote_kwargs(p: MapParams, ground_class_ids: tuple[int, ...]) -> dict:
-    return dict(ground_classes=tuple(ground_class_ids), ground_tolerance_m=p.ground_max_deviation_m,
-                ground_cell_m=p.ground_cell_m, ground_neighbourhood=p.ground_neighbourhood_cells,
-                ground_quantile=p.ground_quantile, min_votes=p.min_votes)
+    return dict(
+        ground_classes=tuple(ground_class_ids),
+        ground_tolerance_m=p.ground_max_deviation_m,
+        ground_cell_m=p.ground_cell_m,
+        ground_neighbourhood=p.ground_neighbourhood_cells,
+        ground_quantile=p.ground_quantile,
+        min_votes=p.min_votes,
+    )
 
 
 class SequenceMapper:
@@ -100,27 +168,52 @@ class SequenceMapper:
     maps in memory (the tiled pipeline's reference). Arguments as :class:`SweepLabeller`. State
     lives on the instance; ``add_sweep`` advances it."""
 
-    def __init__(self, params: MapParams, freespace: FreeSpaceParams, class_lut: np.ndarray,
-                 K: np.ndarray, T_cam_from_lidar: np.ndarray, width: int, height: int,
-                 assoc_min_iou: float, threads: int | None = None):
+    def __init__(
+        self,
+        params: MapParams,
+        freespace: FreeSpaceParams,
+        class_lut: np.ndarray,
+        K: np.ndarray,
+        T_cam_from_lidar: np.ndarray,
+        width: int,
+        height: int,
+        assoc_min_iou: float,
+        threads: int | None = None,
+    ):
         self.params, self.freespace = params, freespace
-        self.labeller = SweepLabeller(params, class_lut, K, T_cam_from_lidar, width, height, assoc_min_iou, threads)
+        self.labeller = SweepLabeller(
+            params, class_lut, K, T_cam_from_lidar, width, height, assoc_min_iou, threads
+        )
         self.seen = StaticSemanticMap(params.voxel_size_m)
         self.unseen = StaticSemanticMap(params.voxel_size_m)
         self.occupancy = new_occupancy_map(freespace, threads)
         self.kept = self.removed = 0
 
-    def add_sweep(self, points_lidar: np.ndarray, T_world_from_lidar: np.ndarray, semantic: np.ndarray,
-                  mask_labels: np.ndarray, boxes_xyxy: np.ndarray, lidar_centers: np.ndarray,
-                  lidar_sizes: np.ndarray, lidar_yaws: np.ndarray) -> None:
+    def add_sweep(
+        self,
+        points_lidar: np.ndarray,
+        T_world_from_lidar: np.ndarray,
+        semantic: np.ndarray,
+        mask_labels: np.ndarray,
+        boxes_xyxy: np.ndarray,
+        lidar_centers: np.ndarray,
+        lidar_sizes: np.ndarray,
+        lidar_yaws: np.ndarray,
+    ) -> None:
         """One sweep (N, 3) float32 LiDAR frame with its pose (4, 4) and its detections (as
         :meth:`SweepLabeller.__call__`)."""
-        s = self.labeller(points_lidar, semantic, mask_labels, boxes_xyxy, lidar_centers, lidar_sizes, lidar_yaws)
+        s = self.labeller(
+            points_lidar, semantic, mask_labels, boxes_xyxy, lidar_centers, lidar_sizes, lidar_yaws
+        )
         world = world_points(T_world_from_lidar, points_lidar)
         self.seen.add_sweep(world, s.labels, keep=s.keep & s.in_image)
         self.unseen.add_sweep(world, s.labels, keep=s.keep & ~s.in_image)
-        self.occupancy.insert_scan(world[s.keep], T_world_from_lidar[:3, 3], max_range_m=self.freespace.max_range_m,
-                                   discretize=self.freespace.discretize)
+        self.occupancy.insert_scan(
+            world[s.keep],
+            T_world_from_lidar[:3, 3],
+            max_range_m=self.freespace.max_range_m,
+            discretize=self.freespace.discretize,
+        )
         self.removed += int((~s.keep).sum())
         self.kept += int(s.keep.sum())
 
@@ -178,13 +271,18 @@ def _split_by_tile(packed: np.ndarray, counts: np.ndarray, n: int) -> dict[tuple
     order = np.lexsort((packed, tiles[:, 1], tiles[:, 0]))
     t = tiles[order]
     cut = np.flatnonzero(np.any(t[1:] != t[:-1], axis=1)) + 1
-    return {(int(t[a, 0]), int(t[a, 1])): (packed[order[a:b]], counts[order[a:b]])
-            for a, b in zip(np.r_[0, cut], np.r_[cut, len(t)])}
+    return {
+        (int(t[a, 0]), int(t[a, 1])): (packed[order[a:b]], counts[order[a:b]])
+        for a, b in zip(np.r_[0, cut], np.r_[cut, len(t)])
+    }
 
 
-def finalize_tiles(tiles: Iterable[tuple[int, int]], load: Callable[[tuple[int, int]], TileVotes | None],
-                   params: MapParams, ground_class_ids: tuple[int, ...]
-                   ) -> Iterator[tuple[tuple[int, int], StaticMap, int]]:
+def finalize_tiles(
+    tiles: Iterable[tuple[int, int]],
+    load: Callable[[tuple[int, int]], TileVotes | None],
+    params: MapParams,
+    ground_class_ids: tuple[int, ...],
+) -> Iterator[tuple[tuple[int, int], StaticMap, int]]:
     """The final static map of each tile: (tile, map, camera-labelled voxels).
 
     load(tile): the tile's votes summed over the whole sequence (:func:`sum_tile_votes`), None
@@ -219,20 +317,31 @@ def sum_tile_votes(parts: list[TileVotes]) -> TileVotes | None:
     return (*seen, *unseen)
 
 
-def region_occupancy(freespace: FreeSpaceParams, region_keys: tuple[int, int, int, int],
-                     scans: Iterable[tuple[np.ndarray, np.ndarray]], threads: int | None = None) -> OccupancyMap:
+def region_occupancy(
+    freespace: FreeSpaceParams,
+    region_keys: tuple[int, int, int, int],
+    scans: Iterable[tuple[np.ndarray, np.ndarray]],
+    threads: int | None = None,
+) -> OccupancyMap:
     """The occupancy map of one region (voxel keys (kx0, kx1, ky0, ky1), whole blocks:
     :meth:`tasks.occupancy.tiles.MapPlan.region_keys`) from scans (points (N, 3) float32 world
     frame, origin (3,)) given in frame order: every scan that can reach the region
     (:func:`tasks.occupancy.tiles.plan_map`). Its voxels equal those of the whole-sequence map."""
     m = new_occupancy_map(freespace, threads)
     for points, origin in scans:
-        m.insert_scan(points, origin, max_range_m=freespace.max_range_m, discretize=freespace.discretize,
-                      region=region_keys)
+        m.insert_scan(
+            points,
+            origin,
+            max_range_m=freespace.max_range_m,
+            discretize=freespace.discretize,
+            region=region_keys,
+        )
     return m
 
 
-def occupancy_tiles(m: OccupancyMap, tile_m: float) -> Iterator[tuple[tuple[int, int], np.ndarray, np.ndarray]]:
+def occupancy_tiles(
+    m: OccupancyMap, tile_m: float
+) -> Iterator[tuple[tuple[int, int], np.ndarray, np.ndarray]]:
     """(tile, keys (K, 3) int64, log-odds (K,) float32) of a map's known voxels by tile, tiles
     ascending, keys ascending (x, then y, then z) in each."""
     keys, vals = m.to_arrays()
@@ -242,13 +351,25 @@ def occupancy_tiles(m: OccupancyMap, tile_m: float) -> Iterator[tuple[tuple[int,
         yield tile, unpack_keys(pk), v
 
 
-def join_static_tiles(voxel_size_m: float, parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> StaticMap:
+def join_static_tiles(
+    voxel_size_m: float, parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
+) -> StaticMap:
     """The static map of several tiles: parts of (keys (K, 3) int64, labels (K,) uint8, counts
     (K, 9) uint16); keys ascending over the whole (packed order), as the whole-sequence map."""
     if not parts:
-        return StaticMap(voxel_size_m, np.empty((0, 3), np.int64), np.empty(0, np.uint8),
-                         np.empty((0, 9), np.uint16), 0)
+        return StaticMap(
+            voxel_size_m,
+            np.empty((0, 3), np.int64),
+            np.empty(0, np.uint8),
+            np.empty((0, 9), np.uint16),
+            0,
+        )
     keys = np.concatenate([p[0] for p in parts])
     order = np.argsort(pack_keys(keys), kind="stable")
-    return StaticMap(voxel_size_m, keys[order], np.concatenate([p[1] for p in parts])[order],
-                     np.concatenate([p[2] for p in parts])[order], 0)
+    return StaticMap(
+        voxel_size_m,
+        keys[order],
+        np.concatenate([p[1] for p in parts])[order],
+        np.concatenate([p[2] for p in parts])[order],
+        0,
+    )

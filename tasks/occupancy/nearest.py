@@ -146,8 +146,9 @@ def _query(points, perm, start, end, left, right, bmin, bmax, queries, out):
         prev = arg
 
 
-def nearest_indices(sources: np.ndarray, queries: np.ndarray, threads: int | None = None,
-                    leaf_size: int = LEAF_SIZE) -> np.ndarray:
+def nearest_indices(
+    sources: np.ndarray, queries: np.ndarray, threads: int | None = None, leaf_size: int = LEAF_SIZE
+) -> np.ndarray:
     """Index of the nearest source of every query.
 
     sources: (N, 3) float, N >= 1; queries: (M, 3) float, same frame and unit (finite).
@@ -167,6 +168,12 @@ def nearest_indices(sources: np.ndarray, queries: np.ndarray, threads: int | Non
         _query(src, *tree, qry, out)
         return out
     bounds = np.linspace(0, len(qry), n + 1).astype(np.int64)
-    list(executor(n).map(lambda k: _query(src, *tree, qry[bounds[k]:bounds[k + 1]],
-                                          out[bounds[k]:bounds[k + 1]]), range(n)))
+    list(
+        executor(n).map(
+            lambda k: _query(
+                src, *tree, qry[bounds[k] : bounds[k + 1]], out[bounds[k] : bounds[k + 1]]
+            ),
+            range(n),
+        )
+    )
     return out

@@ -22,9 +22,11 @@ def _centre_world(R, t, origin, vs, i, j, k):
     x = origin[0] + (i + 0.5) * vs
     y = origin[1] + (j + 0.5) * vs
     z = origin[2] + (k + 0.5) * vs
-    return (np.float32(R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]),
-            np.float32(R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]),
-            np.float32(R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]))
+    return (
+        np.float32(R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]),
+        np.float32(R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]),
+        np.float32(R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]),
+    )
 
 
 @njit(cache=True)
@@ -35,9 +37,13 @@ def _pull_labels(R, t, origin, vs, shape, map_vs, table, labels, out):
         for j in range(shape[1]):
             for k in range(shape[2]):
                 wx, wy, wz = _centre_world(R, t, origin, vs, i, j, k)
-                out[i, j, k] = lookup_packed(table, labels, np.int64(np.floor(np.float64(wx) / map_vs)),
-                                             np.int64(np.floor(np.float64(wy) / map_vs)),
-                                             np.int64(np.floor(np.float64(wz) / map_vs)))
+                out[i, j, k] = lookup_packed(
+                    table,
+                    labels,
+                    np.int64(np.floor(np.float64(wx) / map_vs)),
+                    np.int64(np.floor(np.float64(wy) / map_vs)),
+                    np.int64(np.floor(np.float64(wz) / map_vs)),
+                )
 
 
 @njit(cache=True)
@@ -50,7 +56,9 @@ def _centres_world(R, t, origin, vs, shape, flat, out):
         out[n, 0], out[n, 1], out[n, 2] = _centre_world(R, t, origin, vs, i, j, k)
 
 
-def static_labels_at_cells(smap: StaticMap, spec: GridSpec, T_world_from_grid: np.ndarray) -> np.ndarray:
+def static_labels_at_cells(
+    smap: StaticMap, spec: GridSpec, T_world_from_grid: np.ndarray
+) -> np.ndarray:
     """Label of the map voxel under each cell centre of a grid.
 
     smap: the static map (world frame). spec: the grid in its own frame (base).
@@ -61,14 +69,23 @@ def static_labels_at_cells(smap: StaticMap, spec: GridSpec, T_world_from_grid: n
     T = np.asarray(T_world_from_grid, dtype=np.float64)
     table, labels = sorted_table(smap)
     out = np.empty(spec.shape, dtype=np.uint8)
-    _pull_labels(np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), spec.origin,
-                 spec.voxel_size_m, np.asarray(spec.shape, dtype=np.int64), smap.voxel_size_m,
-                 table, labels, out)
+    _pull_labels(
+        np.ascontiguousarray(T[:3, :3]),
+        np.ascontiguousarray(T[:3, 3]),
+        spec.origin,
+        spec.voxel_size_m,
+        np.asarray(spec.shape, dtype=np.int64),
+        smap.voxel_size_m,
+        table,
+        labels,
+        out,
+    )
     return out
 
 
-def static_in_grid(smap: StaticMap, spec: GridSpec, T_world_from_base: np.ndarray,
-                   reach_m: float) -> tuple[np.ndarray, np.ndarray]:
+def static_in_grid(
+    smap: StaticMap, spec: GridSpec, T_world_from_base: np.ndarray, reach_m: float
+) -> tuple[np.ndarray, np.ndarray]:
     """The static map as labelled points (world frame) for one frame's local grid.
 
     smap: the static map (world frame). spec: the local grid (base frame). T_world_from_base:
@@ -79,13 +96,22 @@ def static_in_grid(smap: StaticMap, spec: GridSpec, T_world_from_base: np.ndarra
     voxel within reach_m (:meth:`StaticMap.sample_points` at the grid's voxel size).
     """
     if smap.voxel_size_m < spec.voxel_size_m - 1e-9:
-        return smap.crop(np.asarray(T_world_from_base)[:3, 3], reach_m).sample_points(spec.voxel_size_m)
+        return smap.crop(np.asarray(T_world_from_base)[:3, 3], reach_m).sample_points(
+            spec.voxel_size_m
+        )
     labels = static_labels_at_cells(smap, spec, T_world_from_base).reshape(-1)
     flat = np.flatnonzero(labels != UNLABELED)
     T = np.asarray(T_world_from_base, dtype=np.float64)
     pts = np.empty((len(flat), 3), dtype=np.float32)
-    _centres_world(np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), spec.origin,
-                   spec.voxel_size_m, np.asarray(spec.shape, dtype=np.int64), flat, pts)
+    _centres_world(
+        np.ascontiguousarray(T[:3, :3]),
+        np.ascontiguousarray(T[:3, 3]),
+        spec.origin,
+        spec.voxel_size_m,
+        np.asarray(spec.shape, dtype=np.int64),
+        flat,
+        pts,
+    )
     return pts, labels[flat]
 
 

@@ -19,8 +19,8 @@ import numpy as np
 from numba import njit
 
 from tasks.conventions import FREE, PEDESTRIAN, ROAD, TERRAIN, UNLABELED
-from tasks.occupancy.settings import MapParams
 from tasks.occupancy.nearest import nearest_indices
+from tasks.occupancy.settings import MapParams
 from tasks.perception.lidar_clusters import ground_height
 from tasks.perception.person_points import associate_lidar_boxes
 
@@ -69,8 +69,14 @@ def _project(p, R, t, K, width, height, min_depth_m, pix, valid):
             valid[i] = True
 
 
-def project_points(points_lidar: np.ndarray, K: np.ndarray, T_cam_from_lidar: np.ndarray,
-                   width: int, height: int, min_depth_m: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+def project_points(
+    points_lidar: np.ndarray,
+    K: np.ndarray,
+    T_cam_from_lidar: np.ndarray,
+    width: int,
+    height: int,
+    min_depth_m: float = 0.1,
+) -> tuple[np.ndarray, np.ndarray]:
     """Pixels of LiDAR points in a rectified pinhole image.
 
     points_lidar: (N, 3) float metres, LiDAR frame. K: (3, 3) intrinsics (pixels).
@@ -83,34 +89,54 @@ def project_points(points_lidar: np.ndarray, K: np.ndarray, T_cam_from_lidar: np
     T = np.asarray(T_cam_from_lidar, dtype=np.float64)
     pix = np.empty((len(p), 2), dtype=np.int64)
     valid = np.empty(len(p), dtype=bool)
-    _project(p, np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]),
-             np.ascontiguousarray(np.asarray(K, dtype=np.float64)), int(width), int(height),
-             float(min_depth_m), pix, valid)
+    _project(
+        p,
+        np.ascontiguousarray(T[:3, :3]),
+        np.ascontiguousarray(T[:3, 3]),
+        np.ascontiguousarray(np.asarray(K, dtype=np.float64)),
+        int(width),
+        int(height),
+        float(min_depth_m),
+        pix,
+        valid,
+    )
     return pix, valid
 
 
-def _checked_projection(projection, n: int, image: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+def _checked_projection(
+    projection, n: int, image: np.ndarray, what: str
+) -> tuple[np.ndarray, np.ndarray]:
     """A caller's (pixel, valid) from :func:`project_points`, checked against the points and image."""
     pix, valid = projection
     pix, valid = np.asarray(pix), np.asarray(valid, dtype=bool)
     if pix.shape != (n, 2) or valid.shape != (n,):
-        raise StaticMapError(f"projection for {what} has shapes {pix.shape}, {valid.shape}; "
-                             f"expected ({n}, 2), ({n},)")
+        raise StaticMapError(
+            f"projection for {what} has shapes {pix.shape}, {valid.shape}; "
+            f"expected ({n}, 2), ({n},)"
+        )
     if valid.any():
         top = pix[valid].max(axis=0)
         if top[0] >= image.shape[1] or top[1] >= image.shape[0]:
-            raise StaticMapError(f"projection reaches pixel {tuple(int(v) for v in top)} but the "
-                                 f"{what} is {image.shape[1]} x {image.shape[0]}")
+            raise StaticMapError(
+                f"projection reaches pixel {tuple(int(v) for v in top)} but the "
+                f"{what} is {image.shape[1]} x {image.shape[0]}"
+            )
     return pix, valid
 
 
-def lift_image_semantics(points_lidar: np.ndarray, semantic_image: np.ndarray, K: np.ndarray,
-                         T_cam_from_lidar: np.ndarray, class_lut: np.ndarray,
-                         fallback: str = MapParams.outside_image_fallback,
-                         ground_cell_m: float = MapParams.ground_cell_m,
-                         ground_tol_m: float = MapParams.ground_max_deviation_m, ground_lateral_scale: float = 1.0,
-                         projection: tuple[np.ndarray, np.ndarray] | None = None,
-                         threads: int | None = None) -> np.ndarray:
+def lift_image_semantics(
+    points_lidar: np.ndarray,
+    semantic_image: np.ndarray,
+    K: np.ndarray,
+    T_cam_from_lidar: np.ndarray,
+    class_lut: np.ndarray,
+    fallback: str = MapParams.outside_image_fallback,
+    ground_cell_m: float = MapParams.ground_cell_m,
+    ground_tol_m: float = MapParams.ground_max_deviation_m,
+    ground_lateral_scale: float = 1.0,
+    projection: tuple[np.ndarray, np.ndarray] | None = None,
+    threads: int | None = None,
+) -> np.ndarray:
     """Class of each LiDAR point from a semantic image.
 
     points_lidar: (N, 3) float metres, LiDAR frame. semantic_image: (H, W) uint8 Cityscapes train
@@ -196,12 +222,16 @@ def points_in_boxes(points: np.ndarray, boxes: np.ndarray, margin_m: float = 0.0
     return inside
 
 
-def pedestrian_point_mask(points_lidar: np.ndarray, *, K: np.ndarray | None = None,
-                          T_cam_from_lidar: np.ndarray | None = None,
-                          instance_image: np.ndarray | None = None,
-                          boxes_lidar: np.ndarray | None = None,
-                          box_margin_m: float = 0.1,
-                          projection: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+def pedestrian_point_mask(
+    points_lidar: np.ndarray,
+    *,
+    K: np.ndarray | None = None,
+    T_cam_from_lidar: np.ndarray | None = None,
+    instance_image: np.ndarray | None = None,
+    boxes_lidar: np.ndarray | None = None,
+    box_margin_m: float = 0.1,
+    projection: tuple[np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
     """Points to remove before static mapping: True where a point projects into a pedestrian
     instance mask (instance_image (H, W) int > 0, with K (3, 3) and T_cam_from_lidar (4, 4), or
     this sweep's :func:`project_points` into an image of that size as projection) or lies in a
@@ -223,10 +253,17 @@ def pedestrian_point_mask(points_lidar: np.ndarray, *, K: np.ndarray | None = No
     return out
 
 
-def pedestrian_boxes_for_masking(boxes_xyxy: np.ndarray, lidar_centers: np.ndarray,
-                                 lidar_sizes: np.ndarray, lidar_yaws: np.ndarray, K: np.ndarray,
-                                 T_cam_from_lidar: np.ndarray, width: int, height: int,
-                                 min_iou: float) -> np.ndarray:
+def pedestrian_boxes_for_masking(
+    boxes_xyxy: np.ndarray,
+    lidar_centers: np.ndarray,
+    lidar_sizes: np.ndarray,
+    lidar_yaws: np.ndarray,
+    K: np.ndarray,
+    T_cam_from_lidar: np.ndarray,
+    width: int,
+    height: int,
+    min_iou: float,
+) -> np.ndarray:
     """(M', 7) LiDAR pedestrian boxes [cx, cy, cz, l, w, h, yaw] used to remove people's points.
 
     boxes_xyxy: (D, 4) image detections (pixels). lidar_centers, lidar_sizes: (M, 3) metres, LiDAR
@@ -236,13 +273,15 @@ def pedestrian_boxes_for_masking(boxes_xyxy: np.ndarray, lidar_centers: np.ndarr
     projected corners). Outside the view the LiDAR boxes are all there is, so they all count.
     """
     centers = np.asarray(lidar_centers).reshape(-1, 3)
-    boxes = np.column_stack([centers, np.asarray(lidar_sizes).reshape(-1, 3),
-                             np.asarray(lidar_yaws).reshape(-1)])
+    boxes = np.column_stack(
+        [centers, np.asarray(lidar_sizes).reshape(-1, 3), np.asarray(lidar_yaws).reshape(-1)]
+    )
     if len(boxes) == 0:
         return boxes.reshape(0, 7)
     _, in_view = project_points(centers, K, T_cam_from_lidar, width, height)
-    matched = associate_lidar_boxes(boxes_xyxy, centers, lidar_sizes, lidar_yaws, K,
-                                    T_cam_from_lidar, min_iou)
+    matched = associate_lidar_boxes(
+        boxes_xyxy, centers, lidar_sizes, lidar_yaws, K, T_cam_from_lidar, min_iou
+    )
     confirmed = np.zeros(len(boxes), bool)
     confirmed[matched[matched >= 0]] = True
     return boxes[~in_view | confirmed]
@@ -268,23 +307,35 @@ class StaticMap:
         """(K, 3) float64 voxel centres, metres, world frame."""
         return (self.keys + 0.5) * self.voxel_size_m
 
-    def crop(self, center_world: np.ndarray, radius_m: float) -> "StaticMap":
+    def crop(self, center_world: np.ndarray, radius_m: float) -> StaticMap:
         """Voxels whose centre is within radius_m (horizontally) of center_world (3,)."""
         c = self.centers()
         keep = np.hypot(c[:, 0] - center_world[0], c[:, 1] - center_world[1]) <= radius_m
-        return StaticMap(self.voxel_size_m, self.keys[keep], self.labels[keep], self.counts[keep],
-                         self.ground_rejected)
+        return StaticMap(
+            self.voxel_size_m,
+            self.keys[keep],
+            self.labels[keep],
+            self.counts[keep],
+            self.ground_rejected,
+        )
 
-    def crop_to_grid(self, spec, T_world_from_grid: np.ndarray) -> "StaticMap":
+    def crop_to_grid(self, spec, T_world_from_grid: np.ndarray) -> StaticMap:
         """Voxels that can overlap a grid: centre within the grid box (spec: GridSpec in its own
         frame, T_world_from_grid (4, 4) float64) grown by one map voxel diagonal."""
         T = np.asarray(T_world_from_grid, dtype=np.float64)
         c = (self.centers() - T[:3, 3]) @ T[:3, :3]  # world -> grid frame
         pad = self.voxel_size_m * np.sqrt(3.0)
-        keep = np.all((c >= np.asarray(spec.range_min) - pad) & (c <= np.asarray(spec.range_max) + pad),
-                      axis=1)
-        return StaticMap(self.voxel_size_m, self.keys[keep], self.labels[keep], self.counts[keep],
-                         self.ground_rejected)
+        keep = np.all(
+            (c >= np.asarray(spec.range_min) - pad) & (c <= np.asarray(spec.range_max) + pad),
+            axis=1,
+        )
+        return StaticMap(
+            self.voxel_size_m,
+            self.keys[keep],
+            self.labels[keep],
+            self.counts[keep],
+            self.ground_rejected,
+        )
 
     def sample_points(self, spacing_m: float) -> tuple[np.ndarray, np.ndarray]:
         """Points filling every voxel at <= spacing_m (for voxelizing into a finer grid).
@@ -327,8 +378,9 @@ class StaticSemanticMap:
     def memory_bytes(self) -> int:
         return self._keys.nbytes + self._counts.nbytes + 9 * self._pending
 
-    def add_sweep(self, points_world: np.ndarray, labels: np.ndarray,
-                  keep: np.ndarray | None = None) -> None:
+    def add_sweep(
+        self, points_world: np.ndarray, labels: np.ndarray, keep: np.ndarray | None = None
+    ) -> None:
         """Add one sweep's votes.
 
         points_world: (N, 3) float32 metres, world frame. labels: (N,) uint8 class ids (UNLABELED
@@ -343,13 +395,16 @@ class StaticSemanticMap:
         if keep is not None:
             keep = np.asarray(keep, dtype=bool).reshape(-1)
             if len(keep) != len(p):
-                raise StaticMapError(f"sweep {self.num_sweeps}: keep has {len(keep)} rows, expected {len(p)}")
+                raise StaticMapError(
+                    f"sweep {self.num_sweeps}: keep has {len(keep)} rows, expected {len(p)}"
+                )
             sel &= keep
         sel &= np.all(np.isfinite(p), axis=1)
         lab = lab[sel].astype(np.uint8)
         if len(lab) and lab.max() >= NUM_OCCUPIED_CLASSES:
             raise StaticMapError(
-                f"sweep {self.num_sweeps}: class {int(lab.max())} cannot vote (expected 0..8 or 255)")
+                f"sweep {self.num_sweeps}: class {int(lab.max())} cannot vote (expected 0..8 or 255)"
+            )
         keys = np.floor(np.asarray(p[sel], dtype=np.float64) / self.voxel_size_m).astype(np.int64)
         self._pending_keys.append(pack_keys(keys))
         self._pending_labels.append(lab)
@@ -367,8 +422,9 @@ class StaticSemanticMap:
         if not len(pk):
             return
         uk, inv = np.unique(pk, return_inverse=True)
-        add = np.bincount(inv * NUM_OCCUPIED_CLASSES + pl,
-                          minlength=len(uk) * NUM_OCCUPIED_CLASSES).reshape(len(uk), -1)
+        add = np.bincount(
+            inv * NUM_OCCUPIED_CLASSES + pl, minlength=len(uk) * NUM_OCCUPIED_CLASSES
+        ).reshape(len(uk), -1)
         keys = np.union1d(self._keys, uk)
         counts = np.zeros((len(keys), NUM_OCCUPIED_CLASSES), dtype=np.uint32)
         counts[np.searchsorted(keys, self._keys)] = self._counts
@@ -387,13 +443,16 @@ class StaticSemanticMap:
         self._flush()
         return self._keys, self._counts
 
-    def finalize(self, ground_classes: tuple[int, ...] = (ROAD, TERRAIN),
-                 ground_tolerance_m: float = MapParams.ground_max_deviation_m,
-                 ground_cell_m: float = MapParams.ground_cell_m,
-                 ground_neighbourhood: int = MapParams.ground_neighbourhood_cells,
-                 ground_quantile: float = MapParams.ground_quantile,
-                 ignore_classes: tuple[int, ...] = (PEDESTRIAN,),
-                 min_votes: int = MapParams.min_votes) -> StaticMap:
+    def finalize(
+        self,
+        ground_classes: tuple[int, ...] = (ROAD, TERRAIN),
+        ground_tolerance_m: float = MapParams.ground_max_deviation_m,
+        ground_cell_m: float = MapParams.ground_cell_m,
+        ground_neighbourhood: int = MapParams.ground_neighbourhood_cells,
+        ground_quantile: float = MapParams.ground_quantile,
+        ignore_classes: tuple[int, ...] = (PEDESTRIAN,),
+        min_votes: int = MapParams.min_votes,
+    ) -> StaticMap:
         """Ground check, then max voting.
 
         Ground check: per xy cell of ground_cell_m, the local ground height is the vote-weighted
@@ -404,18 +463,33 @@ class StaticSemanticMap:
         than min_votes remaining votes are dropped.
         """
         self._flush()
-        return vote(self._keys, self._counts, self.voxel_size_m, ground_classes, ground_tolerance_m,
-                    ground_cell_m, ground_neighbourhood, ground_quantile, ignore_classes, min_votes)
+        return vote(
+            self._keys,
+            self._counts,
+            self.voxel_size_m,
+            ground_classes,
+            ground_tolerance_m,
+            ground_cell_m,
+            ground_neighbourhood,
+            ground_quantile,
+            ignore_classes,
+            min_votes,
+        )
 
 
-def vote(packed_keys: np.ndarray, counts: np.ndarray, voxel_size_m: float,
-         ground_classes: tuple[int, ...] = (ROAD, TERRAIN),
-         ground_tolerance_m: float = MapParams.ground_max_deviation_m,
-         ground_cell_m: float = MapParams.ground_cell_m,
-         ground_neighbourhood: int = MapParams.ground_neighbourhood_cells,
-         ground_quantile: float = MapParams.ground_quantile,
-         ignore_classes: tuple[int, ...] = (PEDESTRIAN,),
-         min_votes: int = MapParams.min_votes, select: np.ndarray | None = None) -> StaticMap:
+def vote(
+    packed_keys: np.ndarray,
+    counts: np.ndarray,
+    voxel_size_m: float,
+    ground_classes: tuple[int, ...] = (ROAD, TERRAIN),
+    ground_tolerance_m: float = MapParams.ground_max_deviation_m,
+    ground_cell_m: float = MapParams.ground_cell_m,
+    ground_neighbourhood: int = MapParams.ground_neighbourhood_cells,
+    ground_quantile: float = MapParams.ground_quantile,
+    ignore_classes: tuple[int, ...] = (PEDESTRIAN,),
+    min_votes: int = MapParams.min_votes,
+    select: np.ndarray | None = None,
+) -> StaticMap:
     """:meth:`StaticSemanticMap.finalize` of raw votes: packed_keys (K,) int64 ascending, counts
     (K, 9) uint16. select: (K,) bool, the voxels to return (default all); the ground heights use
     every voxel given, so the votes of a tile plus its halo (:func:`tasks.occupancy.tiles.
@@ -430,9 +504,14 @@ def vote(packed_keys: np.ndarray, counts: np.ndarray, voxel_size_m: float,
     rejected = 0
     if len(g_idx) and len(keys):
         gvotes = counts[:, g_idx].sum(axis=1)
-        height = _local_ground_height(centers, gvotes, ground_cell_m, ground_neighbourhood,
-                                      ground_quantile)
-        bad = (gvotes > 0) & np.isfinite(height) & (np.abs(centers[:, 2] - height) > ground_tolerance_m)
+        height = _local_ground_height(
+            centers, gvotes, ground_cell_m, ground_neighbourhood, ground_quantile
+        )
+        bad = (
+            (gvotes > 0)
+            & np.isfinite(height)
+            & (np.abs(centers[:, 2] - height) > ground_tolerance_m)
+        )
         rejected = int(gvotes[bad & sel].sum())
         counts[np.ix_(bad, g_idx)] = 0
     vote = counts.copy()
@@ -440,8 +519,13 @@ def vote(packed_keys: np.ndarray, counts: np.ndarray, voxel_size_m: float,
         vote[:, list(ignore_classes)] = 0
     labels = np.argmax(vote, axis=1).astype(np.uint8)
     keep = (vote.max(axis=1) >= max(1, min_votes)) & sel
-    return StaticMap(voxel_size_m, keys[keep], labels[keep],
-                     np.minimum(counts[keep], 65535).astype(np.uint16), rejected)
+    return StaticMap(
+        voxel_size_m,
+        keys[keep],
+        labels[keep],
+        np.minimum(counts[keep], 65535).astype(np.uint16),
+        rejected,
+    )
 
 
 def sum_votes(parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
@@ -460,8 +544,9 @@ def sum_votes(parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, n
     return keys, np.minimum(total, np.iinfo(np.uint16).max).astype(np.uint16)
 
 
-def _local_ground_height(centers: np.ndarray, gvotes: np.ndarray, cell_m: float, nb: int,
-                         quantile: float) -> np.ndarray:
+def _local_ground_height(
+    centers: np.ndarray, gvotes: np.ndarray, cell_m: float, nb: int, quantile: float
+) -> np.ndarray:
     """Per voxel: the vote-weighted quantile of ground-voxel z over the neighbouring xy cells
     (NaN where no ground votes are near). centers (K, 3) metres; gvotes (K,) int."""
     cell = np.floor(centers[:, :2] / cell_m).astype(np.int64) + _OFF
@@ -506,15 +591,19 @@ def merge_static_maps(primary: StaticMap, secondary: StaticMap) -> StaticMap:
     """
     if primary.voxel_size_m != secondary.voxel_size_m:
         raise StaticMapError(
-            f"cannot merge maps of {primary.voxel_size_m} m and {secondary.voxel_size_m} m voxels")
+            f"cannot merge maps of {primary.voxel_size_m} m and {secondary.voxel_size_m} m voxels"
+        )
     a, b = pack_keys(primary.keys), pack_keys(secondary.keys)
     only_b = ~np.isin(b, a)
     keys = np.concatenate([primary.keys, secondary.keys[only_b]])
     order = np.argsort(pack_keys(keys), kind="stable")
-    return StaticMap(primary.voxel_size_m, keys[order],
-                     np.concatenate([primary.labels, secondary.labels[only_b]])[order],
-                     np.concatenate([primary.counts, secondary.counts[only_b]])[order],
-                     primary.ground_rejected + secondary.ground_rejected)
+    return StaticMap(
+        primary.voxel_size_m,
+        keys[order],
+        np.concatenate([primary.labels, secondary.labels[only_b]])[order],
+        np.concatenate([primary.counts, secondary.counts[only_b]])[order],
+        primary.ground_rejected + secondary.ground_rejected,
+    )
 
 
 def sorted_table(static: StaticMap) -> tuple[np.ndarray, np.ndarray]:
@@ -530,7 +619,9 @@ def sorted_table(static: StaticMap) -> tuple[np.ndarray, np.ndarray]:
 @njit(cache=True, inline="always")
 def lookup_packed(table, labels, kx, ky, kz):
     """Label of map voxel key (kx, ky, kz) in a :func:`sorted_table`, UNLABELED if absent."""
-    if not (-_OFF <= kx <= _MASK - _OFF and -_OFF <= ky <= _MASK - _OFF and -_OFF <= kz <= _MASK - _OFF):
+    if not (
+        -_OFF <= kx <= _MASK - _OFF and -_OFF <= ky <= _MASK - _OFF and -_OFF <= kz <= _MASK - _OFF
+    ):
         return np.uint8(UNLABELED)
     q = ((kx + _OFF) << 42) | ((ky + _OFF) << 21) | (kz + _OFF)
     at = np.searchsorted(table, q)
@@ -542,8 +633,13 @@ def lookup_packed(table, labels, kx, ky, kz):
 @njit(cache=True)
 def _lookup_points(p, vs, table, labels, out):
     for i in range(p.shape[0]):
-        out[i] = lookup_packed(table, labels, np.int64(np.floor(p[i, 0] / vs)),
-                               np.int64(np.floor(p[i, 1] / vs)), np.int64(np.floor(p[i, 2] / vs)))
+        out[i] = lookup_packed(
+            table,
+            labels,
+            np.int64(np.floor(p[i, 0] / vs)),
+            np.int64(np.floor(p[i, 1] / vs)),
+            np.int64(np.floor(p[i, 2] / vs)),
+        )
 
 
 def lookup_labels(static: StaticMap, points_world: np.ndarray) -> np.ndarray:

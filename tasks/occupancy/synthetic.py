@@ -35,8 +35,9 @@ def build_scene(meshes: list) -> o3d.t.geometry.RaycastingScene:
     return scene
 
 
-def raycast(meshes, origin: np.ndarray, directions: np.ndarray,
-            max_range_m: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+def raycast(
+    meshes, origin: np.ndarray, directions: np.ndarray, max_range_m: float = np.inf
+) -> tuple[np.ndarray, np.ndarray]:
     """Cast rays from ``origin`` (3,) along ``directions`` (N, 3) into the meshes (same frame; a
     list of meshes or a :func:`build_scene`).
 
@@ -55,10 +56,14 @@ def raycast(meshes, origin: np.ndarray, directions: np.ndarray,
 def room_scene(seed: int = 0, n_boxes: int = 6) -> list:
     """A 24 x 16 x 4 m closed room (floor at z = 0) with ``n_boxes`` seeded boxes on the floor."""
     rng = np.random.default_rng(seed)
-    meshes = [box_mesh((0.0, 0.0, -0.1), (24.0, 16.0, 0.2)),  # floor
-              box_mesh((0.0, 0.0, 4.1), (24.0, 16.0, 0.2)),  # ceiling
-              box_mesh((12.1, 0.0, 2.0), (0.2, 16.0, 4.0)), box_mesh((-12.1, 0.0, 2.0), (0.2, 16.0, 4.0)),
-              box_mesh((0.0, 8.1, 2.0), (24.0, 0.2, 4.0)), box_mesh((0.0, -8.1, 2.0), (24.0, 0.2, 4.0))]
+    meshes = [
+        box_mesh((0.0, 0.0, -0.1), (24.0, 16.0, 0.2)),  # floor
+        box_mesh((0.0, 0.0, 4.1), (24.0, 16.0, 0.2)),  # ceiling
+        box_mesh((12.1, 0.0, 2.0), (0.2, 16.0, 4.0)),
+        box_mesh((-12.1, 0.0, 2.0), (0.2, 16.0, 4.0)),
+        box_mesh((0.0, 8.1, 2.0), (24.0, 0.2, 4.0)),
+        box_mesh((0.0, -8.1, 2.0), (24.0, 0.2, 4.0)),
+    ]
     for _ in range(n_boxes):
         size = rng.uniform([0.4, 0.4, 0.5], [2.0, 2.0, 2.5])
         c = rng.uniform([-10, -6.5], [10, 6.5])
@@ -79,7 +84,9 @@ def campus_scene(seed: int = 0, n_boxes: int = 40) -> list:
     for _ in range(n_boxes):
         size = rng.uniform([0.2, 0.2, 0.5], [3.0, 3.0, 3.0])
         r, a = rng.uniform(2.5, 25), rng.uniform(0, 2 * np.pi)
-        meshes.append(box_mesh((r * np.cos(a), r * np.sin(a), size[2] / 2), size, rng.uniform(0, np.pi)))
+        meshes.append(
+            box_mesh((r * np.cos(a), r * np.sin(a), size[2] / 2), size, rng.uniform(0, np.pi))
+        )
     return meshes
 
 
@@ -95,12 +102,20 @@ def campus_strip(length_m: float, seed: int = 0, reach_m: float = 140.0) -> list
         for side in (-1, 1):
             size = rng.uniform([8, 8, 6], [25, 25, 20])
             y = side * (rng.uniform(12, 45) + size[1] / 2)
-            meshes.append(box_mesh((35.0 * k + rng.uniform(-5, 5), y, size[2] / 2), size, rng.uniform(-0.3, 0.3)))
+            meshes.append(
+                box_mesh(
+                    (35.0 * k + rng.uniform(-5, 5), y, size[2] / 2), size, rng.uniform(-0.3, 0.3)
+                )
+            )
     for k in range(int(np.floor(-30 / 1.5)), int(np.ceil((length_m + 30) / 1.5)) + 1):
         rng = np.random.default_rng([seed, 2, k + 1_000_000])
         size = rng.uniform([0.2, 0.2, 0.5], [3.0, 3.0, 3.0])
         y = rng.choice([-1, 1]) * rng.uniform(2.5, 30)
-        meshes.append(box_mesh((1.5 * k + rng.uniform(-0.7, 0.7), y, size[2] / 2), size, rng.uniform(0, np.pi)))
+        meshes.append(
+            box_mesh(
+                (1.5 * k + rng.uniform(-0.7, 0.7), y, size[2] / 2), size, rng.uniform(0, np.pi)
+            )
+        )
     return meshes
 
 
@@ -111,13 +126,19 @@ def strip_poses(frames: int, step_m: float, lidar_height_m: float) -> np.ndarray
     y = 0.5 * np.sin(s / 15.0)
     yaw = np.arctan2(0.5 / 15.0 * np.cos(s / 15.0), 1.0)
     T = np.tile(np.eye(4), (frames, 1, 1))
-    T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = np.cos(yaw), -np.sin(yaw), np.sin(yaw), np.cos(yaw)
+    T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = (
+        np.cos(yaw),
+        -np.sin(yaw),
+        np.sin(yaw),
+        np.cos(yaw),
+    )
     T[:, 0, 3], T[:, 1, 3], T[:, 2, 3] = s, y, lidar_height_m
     return T
 
 
-def organised_sweep(scene, T_world_from_lidar: np.ndarray, directions: np.ndarray,
-                    max_range_m: float) -> np.ndarray:
+def organised_sweep(
+    scene, T_world_from_lidar: np.ndarray, directions: np.ndarray, max_range_m: float
+) -> np.ndarray:
     """(len(directions), 3) float32 LiDAR-frame returns of a scene (meshes or :func:`build_scene`)
     seen from a pose, in beam order, zeros where a ray hits nothing within max_range_m (an
     organised OS1 sweep)."""

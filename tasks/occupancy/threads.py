@@ -29,6 +29,7 @@ def executor(threads: int) -> ThreadPoolExecutor:
     with _LOCK:
         pool = _POOLS.get(threads)
         if pool is None:
-            pool = _POOLS[threads] = ThreadPoolExecutor(max_workers=threads,
-                                                        thread_name_prefix=f"occupancy{threads}")
+            pool = _POOLS[threads] = ThreadPoolExecutor(
+                max_workers=threads, thread_name_prefix=f"occupancy{threads}"
+            )
         return pool

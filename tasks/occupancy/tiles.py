@@ -37,21 +37,29 @@ class TileError(ValueError):
     """A tile size that does not cut a map's voxels into whole tiles."""
 
 
-def voxels_per_tile(tile_m: float, voxel_size_m: float, multiple: int = 1, what: str = "map") -> int:
+def voxels_per_tile(
+    tile_m: float, voxel_size_m: float, multiple: int = 1, what: str = "map"
+) -> int:
     """Tile edge in voxels of size voxel_size_m; TileError unless it is a whole multiple of ``multiple``."""
     n = tile_m / voxel_size_m
     whole = int(round(n))
     if whole < multiple or abs(n - whole) > 1e-6 * max(1.0, n) or whole % multiple:
-        raise TileError(f"map.tile_m = {tile_m} m is not a whole number of {multiple} x {voxel_size_m} m "
-                        f"voxels of the {what} (got {n:.6g} voxels; e.g. {multiple * voxel_size_m * 16:g} m)")
+        raise TileError(
+            f"map.tile_m = {tile_m} m is not a whole number of {multiple} x {voxel_size_m} m "
+            f"voxels of the {what} (got {n:.6g} voxels; e.g. {multiple * voxel_size_m * 16:g} m)"
+        )
     return whole
 
 
 def check_tiling(tile_m: float, map_voxel_m: float, occupancy_voxel_m: float) -> None:
     """Raise TileError unless tile_m cuts both maps into whole tiles (occupancy: whole blocks)."""
     voxels_per_tile(tile_m, map_voxel_m, 1, "static map (map.voxel_size_m)")
-    voxels_per_tile(tile_m, occupancy_voxel_m, BLOCK_VOXELS,
-                    "occupancy map (map.freespace.voxel_size_m; 8-voxel blocks)")
+    voxels_per_tile(
+        tile_m,
+        occupancy_voxel_m,
+        BLOCK_VOXELS,
+        "occupancy map (map.freespace.voxel_size_m; 8-voxel blocks)",
+    )
 
 
 def tiles_of_keys(keys: np.ndarray, n: int) -> np.ndarray:
@@ -72,7 +80,9 @@ def tiles_in_box(tile_m: float, lo_xy, hi_xy, pad_m: float = 0.0) -> list[tuple[
     return [(tx, ty) for tx in range(t0[0], t1[0] + 1) for ty in range(t0[1], t1[1] + 1)]
 
 
-def ground_halo_tiles(tile_m: float, ground_cell_m: float, neighbourhood_cells: int, voxel_size_m: float) -> int:
+def ground_halo_tiles(
+    tile_m: float, ground_cell_m: float, neighbourhood_cells: int, voxel_size_m: float
+) -> int:
     """Tiles of halo a tile's ground check reads on each side: the check pools the ground votes of
     cells up to ``neighbourhood_cells`` away, i.e. voxel centres less than
     ``(neighbourhood_cells + 1) * ground_cell_m`` away (one voxel more for the centres' rounding)."""
@@ -93,8 +103,10 @@ class MapPlan:
     region_tiles: int
 
     def region_of_tile(self, tile) -> tuple[int, int]:
-        return ((int(tile[0]) - self.offset[0]) // self.region_tiles,
-                (int(tile[1]) - self.offset[1]) // self.region_tiles)
+        return (
+            (int(tile[0]) - self.offset[0]) // self.region_tiles,
+            (int(tile[1]) - self.offset[1]) // self.region_tiles,
+        )
 
     def region_keys(self, region, n: int) -> tuple[int, int, int, int]:
         """Voxel keys (kx0, kx1, ky0, ky1) of a region, n voxels per tile edge."""
@@ -103,8 +115,9 @@ class MapPlan:
         return x0, x0 + self.region_tiles * n, y0, y0 + self.region_tiles * n
 
 
-def static_groups(plan: MapPlan, windows: list[tuple[int, list[tuple[int, int]]]], halo: int
-                  ) -> list[tuple[list[tuple[int, int]], dict[tuple[int, int], list[int]]]]:
+def static_groups(
+    plan: MapPlan, windows: list[tuple[int, list[tuple[int, int]]]], halo: int
+) -> list[tuple[list[tuple[int, int]], dict[tuple[int, int], list[int]]]]:
     """The static tiles' final pass, one group per region: (its tiles with votes, ascending; for
     those tiles and their halo, the windows that voted there). windows: (window, its tiles)."""
     where: dict[tuple[int, int], list[int]] = {}
@@ -116,13 +129,24 @@ def static_groups(plan: MapPlan, windows: list[tuple[int, list[tuple[int, int]]]
         groups.setdefault(plan.region_of_tile(tile), []).append(tile)
     out = []
     for _, tiles in sorted(groups.items()):
-        near = {(tx + dx, ty + dy) for tx, ty in tiles for dx in range(-halo, halo + 1) for dy in range(-halo, halo + 1)}
+        near = {
+            (tx + dx, ty + dy)
+            for tx, ty in tiles
+            for dx in range(-halo, halo + 1)
+            for dy in range(-halo, halo + 1)
+        }
         out.append((tiles, {t: where[t] for t in sorted(near) if t in where}))
     return out
 
 
-def plan_map(origins_world: np.ndarray, window_frames: int, tile_m: float, region_tiles: int,
-             occupancy_voxel_m: float, reach_m: float) -> MapPlan:
+def plan_map(
+    origins_world: np.ndarray,
+    window_frames: int,
+    tile_m: float,
+    region_tiles: int,
+    occupancy_voxel_m: float,
+    reach_m: float,
+) -> MapPlan:
     """Windows of ``window_frames`` frames, and per region of region_tiles x region_tiles tiles the
     frames whose rays can reach it.
 
@@ -131,27 +155,41 @@ def plan_map(origins_world: np.ndarray, window_frames: int, tile_m: float, regio
     +- reach_m (grown by RAY_MARGIN_VOXELS, in occupancy voxel keys) meets the region's keys.
     """
     if not reach_m > 0 or not math.isfinite(reach_m):
-        raise TileError(f"the occupancy map needs a finite max_range_m > 0 to be split by region, got {reach_m}")
+        raise TileError(
+            f"the occupancy map needs a finite max_range_m > 0 to be split by region, got {reach_m}"
+        )
     o = np.asarray(origins_world, dtype=np.float64).reshape(-1, 3)
     n = len(o)
     windows = [(a, min(a + window_frames, n)) for a in range(0, n, window_frames)]
-    offset = (0, 0) if not n else tuple(int(math.floor(o[0, a] / tile_m)) - region_tiles // 2 for a in range(2))
+    offset = (
+        (0, 0)
+        if not n
+        else tuple(int(math.floor(o[0, a] / tile_m)) - region_tiles // 2 for a in range(2))
+    )
     per_tile = voxels_per_tile(tile_m, occupancy_voxel_m, BLOCK_VOXELS)
     regions = []
     for sign, margin in ((-1, -RAY_MARGIN_VOXELS), (1, RAY_MARGIN_VOXELS)):
         keys = np.floor((o[:, :2] + sign * reach_m) / occupancy_voxel_m).astype(np.int64) + margin
-        regions.append(np.floor_divide(np.floor_divide(keys, per_tile) - np.asarray(offset), region_tiles))
+        regions.append(
+            np.floor_divide(np.floor_divide(keys, per_tile) - np.asarray(offset), region_tiles)
+        )
     lo, hi = regions
     members: dict[tuple[int, int], list[int]] = {}
     for i in range(n):
         for rx in range(lo[i, 0], hi[i, 0] + 1):
             for ry in range(lo[i, 1], hi[i, 1] + 1):
                 members.setdefault((int(rx), int(ry)), []).append(i)
-    return MapPlan(windows, [(r, np.asarray(members[r], dtype=np.int64)) for r in sorted(members)],
-                   offset, region_tiles)
+    return MapPlan(
+        windows,
+        [(r, np.asarray(members[r], dtype=np.int64)) for r in sorted(members)],
+        offset,
+        region_tiles,
+    )
 
 
-def tiles_near_grids(tile_m: float, reach_m: float, T_world_from_base: np.ndarray, pad_m: float) -> list[tuple[int, int]]:
+def tiles_near_grids(
+    tile_m: float, reach_m: float, T_world_from_base: np.ndarray, pad_m: float
+) -> list[tuple[int, int]]:
     """Tiles (sorted) a robot-local grid can touch at any of the poses: those meeting the square
     of half side reach_m + pad_m around each robot position. T_world_from_base: (F, 4, 4) float64.
     reach_m: :func:`tasks.occupancy.resample.grid_reach_m` (every cell centre and the fine-map

@@ -114,8 +114,18 @@ def _walk_all(origin, ends, shape, occupied, out, stop_at_occupied, r0, r1):
     # Rays only ever store 1, so the result depends neither on the ray order nor on how the rays
     # are split over threads sharing ``out``.
     for i in range(r0, r1):
-        _walk(origin[0], origin[1], origin[2], ends[i, 0], ends[i, 1], ends[i, 2], shape,
-              occupied, out, stop_at_occupied)
+        _walk(
+            origin[0],
+            origin[1],
+            origin[2],
+            ends[i, 0],
+            ends[i, 1],
+            ends[i, 2],
+            shape,
+            occupied,
+            out,
+            stop_at_occupied,
+        )
 
 
 @njit(cache=True, nogil=True)
@@ -134,8 +144,18 @@ def _walk_camera(origin, Kinv, R, us, vs, far, shape, occupied, out, r0, r1):
         dy = R[1, 0] * cx + R[1, 1] * cy + R[1, 2] * cz
         dz = R[2, 0] * cx + R[2, 1] * cy + R[2, 2] * cz
         n = math.sqrt(dx * dx + dy * dy + dz * dz)
-        _walk(origin[0], origin[1], origin[2], origin[0] + dx / n * far,
-              origin[1] + dy / n * far, origin[2] + dz / n * far, shape, occupied, out, True)
+        _walk(
+            origin[0],
+            origin[1],
+            origin[2],
+            origin[0] + dx / n * far,
+            origin[1] + dy / n * far,
+            origin[2] + dz / n * far,
+            shape,
+            occupied,
+            out,
+            True,
+        )
 
 
 #: rays per thread below which splitting the rays over threads does not pay
@@ -153,8 +173,9 @@ def _split_rays(walk, n_rays: int, threads: int | None) -> None:
     list(executor(n).map(lambda k: walk(bounds[k], bounds[k + 1]), range(n)))
 
 
-def lidar_mask(spec, points_base: np.ndarray, origin_base: np.ndarray,
-               threads: int | None = None) -> np.ndarray:
+def lidar_mask(
+    spec, points_base: np.ndarray, origin_base: np.ndarray, threads: int | None = None
+) -> np.ndarray:
     """Voxels traversed or hit by this frame's LiDAR rays.
 
     spec: GridSpec (base frame). points_base: (N, 3) float metres, base frame (the endpoints).
@@ -169,13 +190,17 @@ def lidar_mask(spec, points_base: np.ndarray, origin_base: np.ndarray,
         g = np.ascontiguousarray((p - spec.origin) / spec.voxel_size_m)
         o = (np.asarray(origin_base, dtype=np.float64) - spec.origin) / spec.voxel_size_m
         flat = out.reshape(-1)
-        _split_rays(lambda r0, r1: _walk_all(o, g, shape, flat, flat, False, r0, r1), len(g), threads)
+        _split_rays(
+            lambda r0, r1: _walk_all(o, g, shape, flat, flat, False, r0, r1), len(g), threads
+        )
     return out
 
 
 def auto_pixel_stride(spec, K: np.ndarray, T_base_from_cam: np.ndarray) -> int:
     """Largest pixel stride whose rays are at most one voxel apart at the grid's farthest corner."""
-    corners = np.array(np.meshgrid(*zip(spec.range_min, spec.range_max), indexing="ij")).reshape(3, -1).T
+    corners = (
+        np.array(np.meshgrid(*zip(spec.range_min, spec.range_max), indexing="ij")).reshape(3, -1).T
+    )
     far = np.linalg.norm(corners - np.asarray(T_base_from_cam)[:3, 3], axis=1).max()
     f = float(min(K[0, 0], K[1, 1]))
     return max(1, int(spec.voxel_size_m * f / far))
@@ -234,9 +259,17 @@ def _visible(nx, ny, nz, lo, vs, R, t, fx, fy, cx, cy, zbuf, out):
                     out[i, j, k] = 1
 
 
-def camera_mask(spec, occupied: np.ndarray, K: np.ndarray, width: int, height: int,
-                T_base_from_cam: np.ndarray, pixel_stride: int | None = None,
-                method: str = "zbuffer", threads: int | None = None) -> np.ndarray:
+def camera_mask(
+    spec,
+    occupied: np.ndarray,
+    K: np.ndarray,
+    width: int,
+    height: int,
+    T_base_from_cam: np.ndarray,
+    pixel_stride: int | None = None,
+    method: str = "zbuffer",
+    threads: int | None = None,
+) -> np.ndarray:
     """Voxels visible from the camera.
 
     spec: GridSpec (base frame). occupied: (X, Y, Z) bool/uint8, non-zero where a voxel blocks the
@@ -254,7 +287,9 @@ def camera_mask(spec, occupied: np.ndarray, K: np.ndarray, width: int, height: i
         raise ValueError(f"method must be 'zbuffer' or 'rays', got {method!r}")
     K = np.asarray(K, dtype=np.float64)
     T = np.asarray(T_base_from_cam, dtype=np.float64)
-    corners = np.array(np.meshgrid(*zip(spec.range_min, spec.range_max), indexing="ij")).reshape(3, -1).T
+    corners = (
+        np.array(np.meshgrid(*zip(spec.range_min, spec.range_max), indexing="ij")).reshape(3, -1).T
+    )
     far_m = np.linalg.norm(corners - T[:3, 3], axis=1).max()
     out = np.zeros(spec.shape, dtype=np.uint8)
     if method == "zbuffer":
@@ -264,7 +299,10 @@ def camera_mask(spec, occupied: np.ndarray, K: np.ndarray, width: int, height: i
         fx, fy = K[0, 0] * W / width, K[1, 1] * H / height
         cx, cy = (K[0, 2] + 0.5) * W / width - 0.5, (K[1, 2] + 0.5) * H / height - 0.5
         T_cam_from_base = np.linalg.inv(T)
-        R, t = np.ascontiguousarray(T_cam_from_base[:3, :3]), np.ascontiguousarray(T_cam_from_base[:3, 3])
+        R, t = (
+            np.ascontiguousarray(T_cam_from_base[:3, :3]),
+            np.ascontiguousarray(T_cam_from_base[:3, 3]),
+        )
         zbuf = np.full((H, W), np.inf)
         occ_idx = np.argwhere(occupied).astype(np.int64)
         _zbuffer(occ_idx, spec.origin, spec.voxel_size_m, R, t, fx, fy, cx, cy, zbuf)
@@ -278,8 +316,15 @@ def camera_mask(spec, occupied: np.ndarray, K: np.ndarray, width: int, height: i
     us = np.arange(stride / 2 - 0.5, width - 0.5, stride)  # centres of stride x stride pixel blocks
     vs = np.arange(stride / 2 - 0.5, height - 0.5, stride)
     occ = np.ascontiguousarray(occupied.astype(np.uint8, copy=False))
-    Kinv, R, shape = np.linalg.inv(K), np.ascontiguousarray(T[:3, :3]), np.asarray(spec.shape, dtype=np.int64)
+    Kinv, R, shape = (
+        np.linalg.inv(K),
+        np.ascontiguousarray(T[:3, :3]),
+        np.asarray(spec.shape, dtype=np.int64),
+    )
     occ_flat, out_flat = occ.reshape(-1), out.reshape(-1)
-    _split_rays(lambda r0, r1: _walk_camera(o, Kinv, R, us, vs, far, shape, occ_flat, out_flat, r0, r1),
-                len(us) * len(vs), threads)
+    _split_rays(
+        lambda r0, r1: _walk_camera(o, Kinv, R, us, vs, far, shape, occ_flat, out_flat, r0, r1),
+        len(us) * len(vs),
+        threads,
+    )
     return out

@@ -81,8 +81,9 @@ def cluster_points(points: np.ndarray, voxel_m: float, cluster_tol_m: float) -> 
     return voxel_labels[inverse.reshape(-1)].astype(np.int64)
 
 
-def detect_pedestrians_lidar(points_lidar: np.ndarray,
-                             params: LidarClusterParams = LidarClusterParams()) -> LidarDetections:
+def detect_pedestrians_lidar(
+    points_lidar: np.ndarray, params: LidarClusterParams = LidarClusterParams()
+) -> LidarDetections:
     """Pedestrian-like clusters of one sweep as 3D boxes.
 
     points_lidar: (N, 3) float32 metres, LiDAR frame, z up. Returns LidarDetections in the LiDAR

@@ -82,13 +82,20 @@ def detection_probability(
     distance = np.asarray(distance_m, np.float64)
     recall = noise.night_recall if night else noise.day_recall
     ramp = np.clip((distance - noise.near_m) / max(noise.far_m - noise.near_m, 1e-9), 0.0, 1.0)
-    p = (recall * (1.0 - noise.occlusion_miss * (1.0 - visible) ** noise.occlusion_power)
-         * (1.0 - noise.distance_miss * ramp))
+    p = (
+        recall
+        * (1.0 - noise.occlusion_miss * (1.0 - visible) ** noise.occlusion_power)
+        * (1.0 - noise.distance_miss * ramp)
+    )
     return np.where(visible < noise.min_visible_fraction, 0.0, np.clip(p, 0.0, 1.0))
 
 
 def _noisy_mask(
-    instance_image: np.ndarray, track_id: int, box: np.ndarray, flip_prob: float, rng: np.random.Generator
+    instance_image: np.ndarray,
+    track_id: int,
+    box: np.ndarray,
+    flip_prob: float,
+    rng: np.random.Generator,
 ) -> np.ndarray:
     height, width = instance_image.shape
     mask = np.zeros((height, width), bool)
@@ -145,9 +152,13 @@ def oracle_image_perception(
     track_ids = np.asarray(gt_track_ids).reshape(count)
     semantic = np.asarray(semantic_image)
     if semantic.dtype != np.uint8 or semantic.ndim != 2:
-        raise ValueError(f"semantic_image: expected (H, W) uint8, got {semantic.shape} {semantic.dtype}")
+        raise ValueError(
+            f"semantic_image: expected (H, W) uint8, got {semantic.shape} {semantic.dtype}"
+        )
     if instance_image.shape != semantic.shape:
-        raise ValueError(f"instance_image {instance_image.shape} != semantic_image {semantic.shape}")
+        raise ValueError(
+            f"instance_image {instance_image.shape} != semantic_image {semantic.shape}"
+        )
     height, width = semantic.shape
     scale = noise.night_noise_scale if night else 1.0
 
@@ -166,13 +177,20 @@ def oracle_image_perception(
         score = np.clip(0.97 - 0.3 * (1 - visible[p]) + rng.normal(0, 0.02), 0.05, 1.0)
         vis = np.nan_to_num(keypoints_gt[p, :, 2])
         kp = np.empty((NUM_KEYPOINTS, 3))
-        kp[:, :2] = keypoints_gt[p, :, :2] + rng.normal(0, noise.keypoint_sigma * size[1], (NUM_KEYPOINTS, 2))
+        kp[:, :2] = keypoints_gt[p, :, :2] + rng.normal(
+            0, noise.keypoint_sigma * size[1], (NUM_KEYPOINTS, 2)
+        )
         unknown = ~np.isfinite(kp[:, :2]).all(axis=1)  # GT without a projection: box centre, v = 0
         kp[unknown, :2] = (noisy[:2] + noisy[2:]) / 2
         vis = np.where(unknown, 0.0, vis)
         kp[:, 2] = np.where(
-            vis >= 2, rng.uniform(0.7, 1.0, NUM_KEYPOINTS),
-            np.where(vis >= 1, rng.uniform(0.1, 0.5, NUM_KEYPOINTS), rng.uniform(0.0, 0.15, NUM_KEYPOINTS)),
+            vis >= 2,
+            rng.uniform(0.7, 1.0, NUM_KEYPOINTS),
+            np.where(
+                vis >= 1,
+                rng.uniform(0.1, 0.5, NUM_KEYPOINTS),
+                rng.uniform(0.0, 0.15, NUM_KEYPOINTS),
+            ),
         )
         boxes.append(noisy)
         scores.append(score)
@@ -188,7 +206,9 @@ def oracle_image_perception(
         box = np.array([u0, v0, min(u0 + box_w, width), min(v0 + box_h, height)])
         vv, uu = np.mgrid[0:height, 0:width]
         centre, half = (box[:2] + box[2:]) / 2, np.maximum((box[2:] - box[:2]) / 2, 0.5)
-        mask = ((uu + 0.5 - centre[0]) / half[0]) ** 2 + ((vv + 0.5 - centre[1]) / half[1]) ** 2 <= 1
+        mask = ((uu + 0.5 - centre[0]) / half[0]) ** 2 + (
+            (vv + 0.5 - centre[1]) / half[1]
+        ) ** 2 <= 1
         kp = np.empty((NUM_KEYPOINTS, 3))
         kp[:, 0] = rng.uniform(box[0], box[2], NUM_KEYPOINTS)
         kp[:, 1] = rng.uniform(box[1], box[3], NUM_KEYPOINTS)
@@ -205,7 +225,9 @@ def oracle_image_perception(
         scores=np.asarray(scores, np.float32).reshape(-1)[order],
         keypoints=np.asarray(keypoints, np.float32).reshape(-1, NUM_KEYPOINTS, 3)[order],
         masks=np.asarray(masks, bool).reshape(-1, height, width)[order],
-        semantic=_noisy_semantic(semantic, noise.semantic_patches * scale, noise.semantic_patch_px, rng),
+        semantic=_noisy_semantic(
+            semantic, noise.semantic_patches * scale, noise.semantic_patch_px, rng
+        ),
     )
     return detections, np.asarray(gt_index, np.int64)[order]
 
@@ -235,10 +257,12 @@ def oracle_lidar_detections(
     keep = np.flatnonzero(rng.random(count) < p)
     k = keep.size
     out = LidarDetections(
-        centers=(centers[keep] + rng.normal(0, noise.lidar_center_sigma_m, (k, 3))).astype(np.float32),
-        sizes=np.maximum(sizes[keep] + rng.normal(0, noise.lidar_size_sigma_m, (k, 3)), 0.05).astype(
+        centers=(centers[keep] + rng.normal(0, noise.lidar_center_sigma_m, (k, 3))).astype(
             np.float32
         ),
+        sizes=np.maximum(
+            sizes[keep] + rng.normal(0, noise.lidar_size_sigma_m, (k, 3)), 0.05
+        ).astype(np.float32),
         yaws=(yaws[keep] + rng.normal(0, noise.lidar_yaw_sigma_rad, k)).astype(np.float32),
         scores=np.clip(rng.uniform(0.6, 1.0, k), 0, 1).astype(np.float32),
     )

@@ -125,7 +125,9 @@ def associate_lidar_boxes(
     if count == 0 or m == 0:
         return matched
     corners = box_corners(
-        np.asarray(centers).reshape(-1, 3), np.asarray(sizes).reshape(-1, 3), np.asarray(yaws).reshape(-1)
+        np.asarray(centers).reshape(-1, 3),
+        np.asarray(sizes).reshape(-1, 3),
+        np.asarray(yaws).reshape(-1),
     )
     uv, _ = project_points(corners.reshape(-1, 3), K, T_cam_from_lidar)
     uv = uv.reshape(m, 8, 2)
@@ -201,13 +203,18 @@ def person_point_indices(
         x, z = cam_all[:, 0], cam_all[:, 2]
         a_left, a_right = Kf[0, 2] / Kf[0, 0], (width - Kf[0, 2]) / Kf[0, 0]
         band = p.edge_extent_m + p.edge_grow_m
-        near_side = (z > -band) & ((np.abs(x + a_left * z) <= band * np.hypot(1.0, a_left))
-                                   | (np.abs(x - a_right * z) <= band * np.hypot(1.0, a_right)))
+        near_side = (z > -band) & (
+            (np.abs(x + a_left * z) <= band * np.hypot(1.0, a_left))
+            | (np.abs(x - a_right * z) <= band * np.hypot(1.0, a_right))
+        )
         near_side[idx] = False
         out_idx = np.flatnonzero(near_side)
         out_ground = np.zeros(out_idx.size, bool)
         if p.ground_tol_m is not None and out_idx.size:
-            out_ground = points[out_idx, 2] - ground_height(points[out_idx], p.ground_cell_m) < p.ground_tol_m
+            out_ground = (
+                points[out_idx, 2] - ground_height(points[out_idx], p.ground_cell_m)
+                < p.ground_tol_m
+            )
         edge = _OutsidePoints(points, out_idx[~out_ground], out_idx[out_ground])
     u, v = uv[:, 0], uv[:, 1]
     col, row = u.astype(np.int64), v.astype(np.int64)
@@ -258,8 +265,12 @@ def person_point_indices(
 
 
 def in_image_first(
-    points_lidar: np.ndarray, point_sets: list[np.ndarray], K: np.ndarray, T_cam_from_lidar: np.ndarray,
-    image_size: tuple[int, int], min_depth_m: float,
+    points_lidar: np.ndarray,
+    point_sets: list[np.ndarray],
+    K: np.ndarray,
+    T_cam_from_lidar: np.ndarray,
+    image_size: tuple[int, int],
+    min_depth_m: float,
 ) -> tuple[list[np.ndarray], np.ndarray]:
     """Each set reordered as its points inside the image (sorted) then those outside (sorted), and
     (D,) int64 how many are inside: the camera-side consumers (the body fit, whose visibility
@@ -283,12 +294,14 @@ class _OutsidePoints:
         self.points, self.body, self.ground = points, body, ground
         self.body_xy, self.ground_xy = points[body, :2], points[ground, :2]
 
-    def grow(self, chosen: np.ndarray, step_m: float, extent_m: float, feet_radius_m: float) -> np.ndarray:
+    def grow(
+        self, chosen: np.ndarray, step_m: float, extent_m: float, feet_radius_m: float
+    ) -> np.ndarray:
         """``chosen`` (global point indices) plus the outside points connected to it."""
         if chosen.size == 0:
             return chosen
         centre = np.median(self.points[chosen, :2], axis=0)
-        near = self.body[np.sum((self.body_xy - centre) ** 2, axis=1) <= extent_m ** 2]
+        near = self.body[np.sum((self.body_xy - centre) ** 2, axis=1) <= extent_m**2]
         if near.size == 0:
             return chosen
         # connectivity on a voxel grid (cells of step_m / 2, 26-neighbourhood): linear in the points,
@@ -299,14 +312,17 @@ class _OutsidePoints:
         grid[cells[:, 0], cells[:, 1], cells[:, 2]] = True
         labels, _ = ndimage.label(grid, structure=np.ones((3, 3, 3), bool))
         label = labels[cells[:, 0], cells[:, 1], cells[:, 2]]
-        taken = np.isin(label[chosen.size:], label[:chosen.size])
+        taken = np.isin(label[chosen.size :], label[: chosen.size])
         if not taken.any():
             return chosen
         grown = near[taken]
         if feet_radius_m > 0 and self.ground.size:
-            cand = self.ground[np.sum((self.ground_xy - centre) ** 2, axis=1) <= (extent_m + feet_radius_m) ** 2]
+            cand = self.ground[
+                np.sum((self.ground_xy - centre) ** 2, axis=1) <= (extent_m + feet_radius_m) ** 2
+            ]
             if cand.size:
-                dist, _ = cKDTree(self.points[grown]).query(self.points[cand],
-                                                             distance_upper_bound=feet_radius_m)
+                dist, _ = cKDTree(self.points[grown]).query(
+                    self.points[cand], distance_upper_bound=feet_radius_m
+                )
                 grown = np.concatenate([grown, cand[np.isfinite(dist)]])
         return np.concatenate([chosen, grown])

@@ -22,7 +22,9 @@ def _check(name: str, array: np.ndarray, shape: tuple[int | None, ...], dtype: t
     if not isinstance(array, np.ndarray) or array.dtype != np.dtype(dtype):
         got = getattr(array, "dtype", type(array).__name__)
         raise ValueError(f"{name}: expected a numpy array of dtype {np.dtype(dtype)}, got {got}")
-    if array.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, array.shape)):
+    if array.ndim != len(shape) or any(
+        s is not None and s != a for s, a in zip(shape, array.shape)
+    ):
         raise ValueError(f"{name}: expected shape {shape} (None = any), got {array.shape}")
 
 
@@ -61,7 +63,7 @@ class ImagePerception:
         return int(self.semantic.shape[1]), int(self.semantic.shape[0])
 
     @staticmethod
-    def empty(width: int, height: int) -> "ImagePerception":
+    def empty(width: int, height: int) -> ImagePerception:
         """No detections; semantic all ignore (255)."""
         return ImagePerception(
             boxes_xyxy=np.zeros((0, 4), np.float32),
@@ -96,7 +98,7 @@ class LidarDetections:
         return int(self.centers.shape[0])
 
     @staticmethod
-    def empty() -> "LidarDetections":
+    def empty() -> LidarDetections:
         return LidarDetections(
             centers=np.zeros((0, 3), np.float32),
             sizes=np.zeros((0, 3), np.float32),

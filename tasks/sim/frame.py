@@ -16,7 +16,13 @@ import torch
 
 from tasks import conventions as C
 from tasks.sim import groundtruth as G
-from tasks.sim.geometry import make_transform, rot_x, rot_z, rotation_to_axis_angle, transform_points
+from tasks.sim.geometry import (
+    make_transform,
+    rot_x,
+    rot_z,
+    rotation_to_axis_angle,
+    transform_points,
+)
 from tasks.sim.scene import LabelledObject, Scene, SimOptions, build_scene, pedestrian_state
 from tasks.sim.sensors import (
     ALBEDO,
@@ -119,8 +125,13 @@ class Simulator:
     ``options.sensor``).
     """
 
-    def __init__(self, options: SimOptions, body_model=None, grid: G.GridSpec = G.GridSpec(),
-                 rig: SensorRig | None = None):
+    def __init__(
+        self,
+        options: SimOptions,
+        body_model=None,
+        grid: G.GridSpec = G.GridSpec(),
+        rig: SensorRig | None = None,
+    ):
         if body_model is None:
             from tasks.body.procedural import default_body_model
 
@@ -143,9 +154,16 @@ class Simulator:
         colours: dict[int, np.ndarray] = {}
         for item, solid in items:
             base = ALBEDO[item.class_id]
-            if item.class_id in (C.CAR, C.OTHER_STRUCTURE, C.TWO_WHEELER, C.TRUCK) and item.instance_id:
+            if (
+                item.class_id in (C.CAR, C.OTHER_STRUCTURE, C.TWO_WHEELER, C.TRUCK)
+                and item.instance_id
+            ):
                 if item.instance_id not in colours:
-                    jitter = rng.uniform(0.6, 1.3, 3) if item.class_id == C.CAR else rng.uniform(0.85, 1.1, 3)
+                    jitter = (
+                        rng.uniform(0.6, 1.3, 3)
+                        if item.class_id == C.CAR
+                        else rng.uniform(0.85, 1.1, 3)
+                    )
                     colours[item.instance_id] = np.clip(base * jitter, 0, 1)
                 base = colours[item.instance_id]
             if item.class_id == C.VEGETATION and len(item.vertices) <= 16:
@@ -159,8 +177,14 @@ class Simulator:
             alb.append(np.broadcast_to(np.asarray(base, np.float32), (nf, 3)))
             lo, hi = item.vertices.min(0), item.vertices.max(0)
             boxes.append((lo, hi, item, solid))
-        return dict(vertices=np.concatenate(verts), faces=np.concatenate(faces), cls=np.concatenate(cls),
-                    inst=np.concatenate(inst), albedo=np.concatenate(alb).astype(np.float32), items=boxes)
+        return dict(
+            vertices=np.concatenate(verts),
+            faces=np.concatenate(faces),
+            cls=np.concatenate(cls),
+            inst=np.concatenate(inst),
+            albedo=np.concatenate(alb).astype(np.float32),
+            items=boxes,
+        )
 
     # ---------------------------------------------------------------- poses
     def robot_pose(self, index: int) -> tuple[np.ndarray, np.ndarray]:
@@ -177,16 +201,24 @@ class Simulator:
             return None
         states = [pedestrian_state(s, t_s) for s in specs]
         betas = torch.as_tensor(np.stack([s.betas for s in specs]), dtype=torch.float32)
-        body_pose = np.stack([_body_pose(self.options.seed, sp, st) for sp, st in zip(specs, states)])
+        body_pose = np.stack(
+            [_body_pose(self.options.seed, sp, st) for sp, st in zip(specs, states)]
+        )
         R_w = np.stack([rot_z(st.heading + np.pi / 2) @ rot_x(np.pi / 2) for st in states])
         go_w = np.stack([rotation_to_axis_angle(R) for R in R_w])
         bp = torch.as_tensor(body_pose, dtype=torch.float32)
         with torch.no_grad():
-            out0 = self.model(betas, torch.as_tensor(go_w, dtype=torch.float32), bp, torch.zeros(K, 3))
+            out0 = self.model(
+                betas, torch.as_tensor(go_w, dtype=torch.float32), bp, torch.zeros(K, 3)
+            )
         v0 = out0.vertices.numpy().astype(np.float64)
         j0 = out0.joints.numpy().astype(np.float64)
-        transl_w = np.stack([[st.xy[0] - j0[k, 0, 0], st.xy[1] - j0[k, 0, 1], -v0[k, :, 2].min()]
-                             for k, st in enumerate(states)])
+        transl_w = np.stack(
+            [
+                [st.xy[0] - j0[k, 0, 0], st.xy[1] - j0[k, 0, 1], -v0[k, :, 2].min()]
+                for k, st in enumerate(states)
+            ]
+        )
         # Express in the LiDAR frame: R_l = R_lw R_w, t_l = R_lw (J0 + t_w) + t_lw - J0.
         T_lw = np.linalg.inv(T_world_from_lidar)
         R_lw, t_lw = T_lw[:3, :3], T_lw[:3, 3]
@@ -208,11 +240,15 @@ class Simulator:
         stands as the person does at t."""
         h, t_s = VERTEX_VELOCITY_STEP_S, index / self.options.frame_rate_hz
         times = (t_s - h, t_s, t_s + h)
-        world = [self._pose_people(t, np.eye(4)) for t in (times[0], times[2])]  # lidar frame = world
+        world = [
+            self._pose_people(t, np.eye(4)) for t in (times[0], times[2])
+        ]  # lidar frame = world
         if world[0] is None:
             return np.zeros((0, len(self.model.v_template), 3), np.float32)
         v_world = (world[1][5] - world[0][5]) / (2.0 * h)
-        moving = np.array([[pedestrian_state(p, t).moving for t in times] for p in self.scene.pedestrians])
+        moving = np.array(
+            [[pedestrian_state(p, t).moving for t in times] for p in self.scene.pedestrians]
+        )
         before, after = moving[:, 0] != moving[:, 1], moving[:, 2] != moving[:, 1]
         if before.any() or after.any():
             here = self._pose_people(t_s, np.eye(4))[5]
@@ -245,10 +281,17 @@ class Simulator:
                 nf = len(self.person_faces)
                 cls.append(np.full(nf, C.PEDESTRIAN, np.uint8))
                 inst.append(np.full(nf, spec.track_id, np.uint16))
-                hue = np.random.default_rng([self.options.seed, spec.track_id]).uniform(0.15, 0.9, 3)
+                hue = np.random.default_rng([self.options.seed, spec.track_id]).uniform(
+                    0.15, 0.9, 3
+                )
                 alb.append(np.broadcast_to(hue.astype(np.float32), (nf, 3)))
-        meshes = MeshSet(np.concatenate(verts).astype(np.float32), np.concatenate(faces).astype(np.uint32),
-                         np.concatenate(cls), np.concatenate(inst), np.concatenate(alb))
+        meshes = MeshSet(
+            np.concatenate(verts).astype(np.float32),
+            np.concatenate(faces).astype(np.uint32),
+            np.concatenate(cls),
+            np.concatenate(inst),
+            np.concatenate(alb),
+        )
         rc = meshes.raycasting_scene()
         rng = np.random.default_rng(np.random.SeedSequence([self.options.seed, 0x11DA, index]))
         sweep = cast_lidar(rc, meshes, T_wl, self.options.sensor, self.rig.noise, rng)
@@ -268,7 +311,9 @@ class Simulator:
             if np.linalg.norm(c[:2]) <= 40.0:
                 yaw = obj.yaw - np.arctan2(T_wl[1, 0], T_wl[0, 0])
                 objects.append(ObjectBox(obj, c, float(np.arctan2(np.sin(yaw), np.cos(yaw)))))
-        return SimFrame(index, t_s, T_wl, T_wb, sweep, cam0, cam1, occ, occ_inst, people, tuple(objects))
+        return SimFrame(
+            index, t_s, T_wl, T_wb, sweep, cam0, cam1, occ, occ_inst, people, tuple(objects)
+        )
 
     # ---------------------------------------------------------------- ground truth
     def _occupancy(self, T_wb: np.ndarray, people_world: list[np.ndarray]):
@@ -288,14 +333,17 @@ class Simulator:
             if not solid:  # ground tiles are flat axis-aligned rectangles: clip to the grid
                 x0, y0 = np.maximum(lo[:2], glo[:2])
                 x1, y1 = np.minimum(hi[:2], ghi[:2])
-                verts = np.array([[x0, y0, lo[2]], [x1, y0, lo[2]], [x1, y1, lo[2]], [x0, y1, lo[2]]])
+                verts = np.array(
+                    [[x0, y0, lo[2]], [x1, y0, lo[2]], [x1, y1, lo[2]], [x0, y1, lo[2]]]
+                )
             vb = transform_points(T_bw, verts)
             static_tris.append((vb, item.faces, item.class_id, not solid))
             if solid:
                 n = item.planes[:, :3] @ R_wb
                 d = item.planes[:, :3] @ t_wb + item.planes[:, 3]
-                static_planes.append((np.concatenate([n, d[:, None]], axis=1), item.class_id,
-                                      vb.min(0), vb.max(0)))
+                static_planes.append(
+                    (np.concatenate([n, d[:, None]], axis=1), item.class_id, vb.min(0), vb.max(0))
+                )
         people = []
         inside = np.zeros(int(np.prod(grid.shape)), dtype=np.int32)
         centres = grid.centres()
@@ -308,18 +356,38 @@ class Simulator:
             sel = np.flatnonzero(np.all((centres >= lo) & (centres <= hi), axis=1))
             if len(sel):
                 sc = o3d.t.geometry.RaycastingScene()
-                sc.add_triangles(o3c.Tensor(vb.astype(np.float32)), o3c.Tensor(self.person_faces.astype(np.uint32)))
-                occ = sc.compute_occupancy(o3c.Tensor(centres[sel].astype(np.float32)), nsamples=3).numpy()
+                sc.add_triangles(
+                    o3c.Tensor(vb.astype(np.float32)),
+                    o3c.Tensor(self.person_faces.astype(np.uint32)),
+                )
+                occ = sc.compute_occupancy(
+                    o3c.Tensor(centres[sel].astype(np.float32)), nsamples=3
+                ).numpy()
                 inside[sel[occ > 0.5]] = spec.track_id
         inp = G.OccupancyInput(static_tris, static_planes, people, self.person_faces, inside)
         return G.occupancy_grid(inp, grid)
 
-    def _people_gt(self, posed, T_wb, T_wl, cam: "object", render: CameraRender) -> PeopleFrame:
+    def _people_gt(self, posed, T_wb, T_wl, cam: object, render: CameraRender) -> PeopleFrame:
         K = len(self.scene.pedestrians)
         if posed is None:
             z = lambda *s: np.zeros((0, *s), np.float32)  # noqa: E731
-            return PeopleFrame(np.zeros(0, np.int32), z(10), z(3), z(69), z(3), z(0, 3), z(24, 3), z(2),
-                               z(4), z(17, 3), z(), z(3), z(3), z(), ())
+            return PeopleFrame(
+                np.zeros(0, np.int32),
+                z(10),
+                z(3),
+                z(69),
+                z(3),
+                z(0, 3),
+                z(24, 3),
+                z(2),
+                z(4),
+                z(17, 3),
+                z(),
+                z(3),
+                z(3),
+                z(),
+                (),
+            )
         states, betas, go_l, body_pose, transl_l, v_l, j_l = posed
         R_bw = np.linalg.inv(T_wb)[:3, :3]
         T_cl = cam.T_cam_from_lidar
@@ -334,7 +402,9 @@ class Simulator:
         for k, (spec, stt) in enumerate(zip(self.scene.pedestrians, states)):
             vl = v_l[k].astype(np.float64)
             vels.append((R_bw @ np.array([stt.velocity[0], stt.velocity[1], 0.0]))[:2])
-            yaw = float(np.arctan2(np.sin(stt.heading - robot_yaw), np.cos(stt.heading - robot_yaw)))
+            yaw = float(
+                np.arctan2(np.sin(stt.heading - robot_yaw), np.cos(stt.heading - robot_yaw))
+            )
             local = vl @ rot_z(-yaw).T
             lo, hi = local.min(0), local.max(0)
             centers.append(rot_z(yaw) @ ((lo + hi) / 2))
@@ -348,7 +418,12 @@ class Simulator:
             vc = transform_points(T_cl, vl)
             front = vc[:, 2] > 0.05
             uvv, _ = G.project(vc[front], cam.K)
-            in_img = (uvv[:, 0] >= -0.5) & (uvv[:, 0] < W - 0.5) & (uvv[:, 1] >= -0.5) & (uvv[:, 1] < H - 0.5)
+            in_img = (
+                (uvv[:, 0] >= -0.5)
+                & (uvv[:, 0] < W - 0.5)
+                & (uvv[:, 1] >= -0.5)
+                & (uvv[:, 1] < H - 0.5)
+            )
             if not in_img.any():
                 occl.append("Unknown")
                 continue
@@ -359,10 +434,22 @@ class Simulator:
             occl.append(G.occlusion_level(float(vis[k]), True))
         f32 = np.float32
         return PeopleFrame(
-            np.array([s.track_id for s in self.scene.pedestrians], np.int32), betas.astype(f32),
-            go_l.astype(f32), body_pose.astype(f32), transl_l.astype(f32), v_l.astype(f32), j_l.astype(f32),
-            np.asarray(vels, f32), box2d, kps, vis, np.asarray(centers, f32), np.asarray(sizes, f32),
-            np.asarray(yaws, f32), tuple(occl))
+            np.array([s.track_id for s in self.scene.pedestrians], np.int32),
+            betas.astype(f32),
+            go_l.astype(f32),
+            body_pose.astype(f32),
+            transl_l.astype(f32),
+            v_l.astype(f32),
+            j_l.astype(f32),
+            np.asarray(vels, f32),
+            box2d,
+            kps,
+            vis,
+            np.asarray(centers, f32),
+            np.asarray(sizes, f32),
+            np.asarray(yaws, f32),
+            tuple(occl),
+        )
 
     def _visible_fraction(self, verts_lidar, track_id, cam, T_wl, render, box) -> float:
         """Visible / full silhouette pixels of one person in cam, on a pixel lattice in its box."""
@@ -371,10 +458,15 @@ class Simulator:
         step = max(1, int(np.ceil(np.sqrt(area / 40000.0))))
         us, vs = np.meshgrid(np.arange(x0, x1 + 1, step), np.arange(y0, y1 + 1, step))
         us, vs = us.reshape(-1), vs.reshape(-1)
-        d = np.stack([(us - cam.K[0, 2]) / cam.K[0, 0], (vs - cam.K[1, 2]) / cam.K[1, 1], np.ones(len(us))], 1)
+        d = np.stack(
+            [(us - cam.K[0, 2]) / cam.K[0, 0], (vs - cam.K[1, 2]) / cam.K[1, 1], np.ones(len(us))],
+            1,
+        )
         sc = o3d.t.geometry.RaycastingScene()
         vc = transform_points(cam.T_cam_from_lidar, verts_lidar)
-        sc.add_triangles(o3c.Tensor(vc.astype(np.float32)), o3c.Tensor(self.person_faces.astype(np.uint32)))
+        sc.add_triangles(
+            o3c.Tensor(vc.astype(np.float32)), o3c.Tensor(self.person_faces.astype(np.uint32))
+        )
         rays = np.concatenate([np.zeros_like(d), d], 1).astype(np.float32)
         full = np.isfinite(sc.cast_rays(o3c.Tensor(rays))["t_hit"].numpy())
         if not full.any():

@@ -82,8 +82,9 @@ def box_solid(center, size, yaw: float, class_id: int, instance_id: int) -> Soli
     return convex_solid(corners @ rot_z(yaw).T + np.asarray(center, float), class_id, instance_id)
 
 
-def cylinder_solid(base, radius: float, height: float, class_id: int, instance_id: int,
-                   segments: int = 12) -> Solid:
+def cylinder_solid(
+    base, radius: float, height: float, class_id: int, instance_id: int, segments: int = 12
+) -> Solid:
     """A vertical prism approximating a cylinder standing on ``base`` (3,) m."""
     ang = np.arange(segments) * 2 * np.pi / segments
     ring = np.stack([radius * np.cos(ang), radius * np.sin(ang), np.zeros(segments)], axis=1)
@@ -91,8 +92,9 @@ def cylinder_solid(base, radius: float, height: float, class_id: int, instance_i
     return convex_solid(pts, class_id, instance_id)
 
 
-def ellipsoid_solid(center, radii, class_id: int, instance_id: int, rings: int = 6,
-                    segments: int = 10) -> Solid:
+def ellipsoid_solid(
+    center, radii, class_id: int, instance_id: int, rings: int = 6, segments: int = 10
+) -> Solid:
     """A convex polyhedron approximating an axis-aligned ellipsoid (tree crowns)."""
     pts = [[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]
     for i in range(1, rings):
@@ -100,12 +102,16 @@ def ellipsoid_solid(center, radii, class_id: int, instance_id: int, rings: int =
         for j in range(segments):
             ph = 2 * np.pi * (j + 0.5 * (i % 2)) / segments
             pts.append([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)])
-    return convex_solid(np.asarray(pts) * np.asarray(radii, float) + np.asarray(center, float),
-                        class_id, instance_id)
+    return convex_solid(
+        np.asarray(pts) * np.asarray(radii, float) + np.asarray(center, float),
+        class_id,
+        instance_id,
+    )
 
 
-def ground_tile(x0: float, x1: float, y0: float, y1: float, z: float, class_id: int,
-                instance_id: int = 0) -> Surface:
+def ground_tile(
+    x0: float, x1: float, y0: float, y1: float, z: float, class_id: int, instance_id: int = 0
+) -> Surface:
     """A flat rectangle at height z (two triangles facing up)."""
     v = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]], dtype=np.float64)
     f = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int32)
@@ -143,8 +149,16 @@ def sample_triangles(vertices: np.ndarray, faces: np.ndarray, spacing_m: float) 
     a = vertices[faces[:, 0]].astype(np.float64)
     b = vertices[faces[:, 1]].astype(np.float64)
     c = vertices[faces[:, 2]].astype(np.float64)
-    longest = np.max(np.stack([np.linalg.norm(b - a, axis=1), np.linalg.norm(c - b, axis=1),
-                               np.linalg.norm(a - c, axis=1)]), axis=0)
+    longest = np.max(
+        np.stack(
+            [
+                np.linalg.norm(b - a, axis=1),
+                np.linalg.norm(c - b, axis=1),
+                np.linalg.norm(a - c, axis=1),
+            ]
+        ),
+        axis=0,
+    )
     levels = np.maximum(1, np.ceil(longest / spacing_m).astype(np.int64))
     out = []
     for n in np.unique(levels):

@@ -39,11 +39,16 @@ class GridSpec:
 
     def centres(self) -> np.ndarray:
         """(X*Y*Z, 3) float64 voxel centres in the base frame, C order over [x, y, z]."""
-        axes = [self.range_min[a] + self.voxel_size_m * (np.arange(self.shape[a]) + 0.5) for a in range(3)]
+        axes = [
+            self.range_min[a] + self.voxel_size_m * (np.arange(self.shape[a]) + 0.5)
+            for a in range(3)
+        ]
         return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
-def _flat_indices(points_base: np.ndarray, grid: GridSpec, closed: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def _flat_indices(
+    points_base: np.ndarray, grid: GridSpec, closed: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
     """(N, 3) base points -> flat voxel indices (M,) int64 of every voxel whose cube holds a
     point, with the sample index (M,) of each. closed: a point within CLOSED_TOL_M of a face also
     counts for the neighbour (else the half-open floor rule)."""
@@ -100,7 +105,9 @@ def occupancy_grid(inp: OccupancyInput, grid: GridSpec) -> tuple[np.ndarray, np.
             # Move samples a hair into the (convex) solid, so a face lying on a voxel face only
             # occupies the voxel on the solid's side: the voxel must meet the solid's interior.
             towards = verts.mean(axis=0) - pts
-            pts = pts + CLOSED_TOL_M * towards / np.maximum(np.linalg.norm(towards, axis=1, keepdims=True), 1e-12)
+            pts = pts + CLOSED_TOL_M * towards / np.maximum(
+                np.linalg.norm(towards, axis=1, keepdims=True), 1e-12
+            )
         flat, _ = _flat_indices(pts, grid, closed=is_ground)
         target = counts_ground if is_ground else counts_obj
         target[:, cls] += np.bincount(flat, minlength=n_vox)
@@ -146,8 +153,14 @@ def project(points_cam: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return uv, z
 
 
-def keypoint_visibility(uv: np.ndarray, depth: np.ndarray, track_id: int, depth_image: np.ndarray,
-                        instance_image: np.ndarray, tol_m: float = 0.3) -> np.ndarray:
+def keypoint_visibility(
+    uv: np.ndarray,
+    depth: np.ndarray,
+    track_id: int,
+    depth_image: np.ndarray,
+    instance_image: np.ndarray,
+    tol_m: float = 0.3,
+) -> np.ndarray:
     """COCO visibility flags (N,) uint8 of keypoints at pixels uv (N, 2) with camera depth (N,):
     0 outside the image (or behind the camera), 2 visible (the pixel shows this person, or nothing
     nearer than depth - tol_m), 1 occluded."""

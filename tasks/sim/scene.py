@@ -111,7 +111,13 @@ class Scene:
 def _vehicle(rng, kind: str, x: float, side: int, iid: int):
     """Box-composed vehicle: returns (solids, LabelledObject)."""
     if kind == "car":
-        l, w, h, cls, name = rng.uniform(4.0, 4.8), rng.uniform(1.7, 1.9), rng.uniform(1.4, 1.6), C.CAR, "Car"
+        l, w, h, cls, name = (
+            rng.uniform(4.0, 4.8),
+            rng.uniform(1.7, 1.9),
+            rng.uniform(1.4, 1.6),
+            C.CAR,
+            "Car",
+        )
     elif kind == "truck":
         l, w, h = rng.uniform(6.0, 8.0), rng.uniform(2.2, 2.5), rng.uniform(2.8, 3.4)
         cls, name = C.TRUCK, "Delivery Truck"
@@ -124,16 +130,39 @@ def _vehicle(rng, kind: str, x: float, side: int, iid: int):
     solids = []
     if kind == "car":
         solids.append(box_solid([x, y, 0.25 + 0.45], [l, w, 0.9], yaw, cls, iid))
-        solids.append(box_solid([x - 0.2 * l * np.cos(yaw), y, 1.15 + (h - 1.15) / 2],
-                                [0.55 * l, w * 0.9, h - 1.15], yaw, cls, iid))
+        solids.append(
+            box_solid(
+                [x - 0.2 * l * np.cos(yaw), y, 1.15 + (h - 1.15) / 2],
+                [0.55 * l, w * 0.9, h - 1.15],
+                yaw,
+                cls,
+                iid,
+            )
+        )
         for dx in (-0.32 * l, 0.32 * l):
             for dy in (-w / 2 + 0.2, w / 2 - 0.2):
-                solids.append(cylinder_solid([x + dx, y + dy, 0.0], 0.22, 0.3, cls, iid, segments=8))
+                solids.append(
+                    cylinder_solid([x + dx, y + dy, 0.0], 0.22, 0.3, cls, iid, segments=8)
+                )
     elif kind == "truck":
-        solids.append(box_solid([x + 0.35 * l * np.cos(yaw), y, 0.4 + (2.2 - 0.4) / 2],
-                                [0.3 * l, w, 1.8], yaw, cls, iid))
-        solids.append(box_solid([x - 0.15 * l * np.cos(yaw), y, 0.5 + (h - 0.5) / 2],
-                                [0.7 * l, w, h - 0.5], yaw, cls, iid))
+        solids.append(
+            box_solid(
+                [x + 0.35 * l * np.cos(yaw), y, 0.4 + (2.2 - 0.4) / 2],
+                [0.3 * l, w, 1.8],
+                yaw,
+                cls,
+                iid,
+            )
+        )
+        solids.append(
+            box_solid(
+                [x - 0.15 * l * np.cos(yaw), y, 0.5 + (h - 0.5) / 2],
+                [0.7 * l, w, h - 0.5],
+                yaw,
+                cls,
+                iid,
+            )
+        )
         solids.append(box_solid([x, y, 0.25], [0.9 * l, w * 0.9, 0.5], yaw, cls, iid))
     else:
         solids.append(box_solid([x, y, 0.7], [1.2, 0.12, 0.5], yaw, cls, iid))
@@ -174,22 +203,44 @@ def build_scene(options: SimOptions) -> Scene:
             depth = rng.uniform(8, 15)
             height = rng.uniform(6, 15)
             setback = rng.uniform(11, 15)
-            solids.append(box_solid([x + length / 2, side * (setback + depth / 2), height / 2],
-                                    [length, depth, height], 0.0, C.OTHER_STRUCTURE, new_id()))
+            solids.append(
+                box_solid(
+                    [x + length / 2, side * (setback + depth / 2), height / 2],
+                    [length, depth, height],
+                    0.0,
+                    C.OTHER_STRUCTURE,
+                    new_id(),
+                )
+            )
             x += length + rng.uniform(3, 10)
         # Low walls along the lawns, with openings.
         x = x0
         while x < x1:
             length = rng.uniform(4, 12)
             if rng.random() < 0.6:
-                solids.append(box_solid([x + length / 2, side * 9.0, 0.5], [length, 0.3, 1.0], 0.0,
-                                        C.OTHER_STRUCTURE, new_id()))
+                solids.append(
+                    box_solid(
+                        [x + length / 2, side * 9.0, 0.5],
+                        [length, 0.3, 1.0],
+                        0.0,
+                        C.OTHER_STRUCTURE,
+                        new_id(),
+                    )
+                )
             x += length + rng.uniform(1, 4)
         # Poles just off the road edge.
         x = x0 + rng.uniform(0, 10)
         while x < x1:
-            solids.append(cylinder_solid([x, side * (ROAD_HALF_WIDTH_M + 1.4), 0.0], 0.08,
-                                         rng.uniform(3.5, 5.0), C.POLE, new_id(), segments=8))
+            solids.append(
+                cylinder_solid(
+                    [x, side * (ROAD_HALF_WIDTH_M + 1.4), 0.0],
+                    0.08,
+                    rng.uniform(3.5, 5.0),
+                    C.POLE,
+                    new_id(),
+                    segments=8,
+                )
+            )
             x += rng.uniform(9, 15)
         # Trees on the lawns: trunk and crown share the vegetation class and an instance.
         x = x0 + rng.uniform(0, 6)
@@ -197,10 +248,20 @@ def build_scene(options: SimOptions) -> Scene:
             iid = new_id()
             y = side * rng.uniform(5.8, 7.5)
             trunk_h = rng.uniform(1.8, 2.6)
-            solids.append(cylinder_solid([x, y, 0.0], rng.uniform(0.12, 0.2), trunk_h + 0.5,
-                                         C.VEGETATION, iid, segments=8))
+            solids.append(
+                cylinder_solid(
+                    [x, y, 0.0],
+                    rng.uniform(0.12, 0.2),
+                    trunk_h + 0.5,
+                    C.VEGETATION,
+                    iid,
+                    segments=8,
+                )
+            )
             r = rng.uniform(1.2, 2.0)
-            solids.append(ellipsoid_solid([x, y, trunk_h + r * 0.8], [r, r, r * 0.9], C.VEGETATION, iid))
+            solids.append(
+                ellipsoid_solid([x, y, trunk_h + r * 0.8], [r, r, r * 0.9], C.VEGETATION, iid)
+            )
             x += rng.uniform(6, 12)
         # Parked vehicles along the left road edge (the right half of the road and the lawn
         # strips are the walkways).
@@ -223,12 +284,16 @@ WALKWAYS = ((-3.4, -0.8), (-4.6, -3.8), (3.8, 4.6))
 
 
 def _in_vehicle(x: float, y: float, objects, margin: float = 0.6) -> bool:
-    return any(abs(x - o.center[0]) < o.size[0] / 2 + margin and abs(y - o.center[1]) < o.size[1] / 2 + margin
-               for o in objects)
+    return any(
+        abs(x - o.center[0]) < o.size[0] / 2 + margin
+        and abs(y - o.center[1]) < o.size[1] / 2 + margin
+        for o in objects
+    )
 
 
-def _pedestrians(rng: np.random.Generator, options: SimOptions, duration: float,
-                 objects: list[LabelledObject]) -> list[PedestrianSpec]:
+def _pedestrians(
+    rng: np.random.Generator, options: SimOptions, duration: float, objects: list[LabelledObject]
+) -> list[PedestrianSpec]:
     """People mostly ahead of the robot (within ~10 m) and in the camera view, on the walkways;
     crossings and standing spots avoid the parked vehicles, and a new person whose path comes
     within MIN_GAP_M of an earlier one's at some time is redrawn (up to 30 times)."""
@@ -258,8 +323,13 @@ def _track(spec: PedestrianSpec, times: np.ndarray) -> np.ndarray:
     return spec.start_xy + (spec.speed_mps * t_move)[:, None] * direction
 
 
-def _draw_pedestrian(rng: np.random.Generator, track_id: int, options: SimOptions, duration: float,
-                     objects: list[LabelledObject]) -> PedestrianSpec:
+def _draw_pedestrian(
+    rng: np.random.Generator,
+    track_id: int,
+    options: SimOptions,
+    duration: float,
+    objects: list[LabelledObject],
+) -> PedestrianSpec:
     v_robot = options.robot_speed_mps
     betas = np.clip(rng.normal(0.0, 0.8, 10), -2.0, 2.0).astype(np.float32)
     kind = rng.choice(["walk_with", "walk_against", "cross", "stand"], p=[0.35, 0.2, 0.25, 0.2])
@@ -272,7 +342,10 @@ def _draw_pedestrian(rng: np.random.Generator, track_id: int, options: SimOption
         return PedestrianSpec(track_id, "walk", np.array(start), 0.0, float(speed), betas, phase0)
     if kind == "walk_against":
         speed = rng.uniform(0.9, 1.4)
-        start = [rng.uniform(6.0, 10.0) + (v_robot + speed) * duration * rng.uniform(0.3, 0.7), lane]
+        start = [
+            rng.uniform(6.0, 10.0) + (v_robot + speed) * duration * rng.uniform(0.3, 0.7),
+            lane,
+        ]
         return PedestrianSpec(track_id, "walk", np.array(start), np.pi, float(speed), betas, phase0)
     if kind == "cross":
         speed = rng.uniform(1.0, 1.4)
@@ -286,16 +359,33 @@ def _draw_pedestrian(rng: np.random.Generator, track_id: int, options: SimOption
             if not any(_in_vehicle(x, y, objects) for y in np.linspace(-5, 5, 21)):
                 break
             x += rng.uniform(0.5, 2.0)
-        return PedestrianSpec(track_id, "cross", np.array([x, y0]), float(-side * np.pi / 2), float(speed), betas,
-                              phase0, float(t_start), float(t_start + 2 * abs(y0) / speed))
+        return PedestrianSpec(
+            track_id,
+            "cross",
+            np.array([x, y0]),
+            float(-side * np.pi / 2),
+            float(speed),
+            betas,
+            phase0,
+            float(t_start),
+            float(t_start + 2 * abs(y0) / speed),
+        )
     start = [rng.uniform(3.0, 9.0) + v_robot * duration * rng.uniform(0, 0.8), lane]
     for _ in range(20):
         if not _in_vehicle(start[0], start[1], objects):
             break
         start[0] += rng.uniform(0.5, 2.0)
     heading = float(rng.uniform(-np.pi, np.pi))
-    return PedestrianSpec(track_id, "stand", np.array(start), heading, 0.0, betas, phase0,
-                          gesturing=bool(rng.random() < 0.5))
+    return PedestrianSpec(
+        track_id,
+        "stand",
+        np.array(start),
+        heading,
+        0.0,
+        betas,
+        phase0,
+        gesturing=bool(rng.random() < 0.5),
+    )
 
 
 @dataclass(frozen=True)
@@ -318,12 +408,19 @@ def pedestrian_state(spec: PedestrianSpec, t_s: float) -> PedestrianState:
     """The person's state at time t_s (seconds since the first frame)."""
     direction = np.array([np.cos(spec.heading), np.sin(spec.heading)])
     if spec.behaviour == "stand":
-        return PedestrianState(spec.track_id, spec.start_xy.copy(), spec.heading, np.zeros(2), False,
-                               spec.phase0 + 0.25 * t_s)
+        return PedestrianState(
+            spec.track_id,
+            spec.start_xy.copy(),
+            spec.heading,
+            np.zeros(2),
+            False,
+            spec.phase0 + 0.25 * t_s,
+        )
     t_move = float(np.clip(t_s, spec.t_start_s, spec.t_stop_s)) - spec.t_start_s
     moving = spec.t_start_s <= t_s <= spec.t_stop_s
     dist = spec.speed_mps * t_move
     xy = spec.start_xy + direction * dist
     vel = direction * spec.speed_mps if moving else np.zeros(2)
-    return PedestrianState(spec.track_id, xy, spec.heading, vel, moving,
-                           spec.phase0 + dist / STRIDE_CYCLE_M)
+    return PedestrianState(
+        spec.track_id, xy, spec.heading, vel, moving, spec.phase0 + dist / STRIDE_CYCLE_M
+    )

@@ -15,8 +15,8 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
-import open3d.core as o3c
 import open3d as o3d
+import open3d.core as o3c
 
 from tasks import conventions as C
 from tasks.sim.geometry import make_transform
@@ -30,8 +30,17 @@ ROW_STRIDE = {"os1-128": 1, "os1-64": 2, "os1-32": 4}
 REFLECTIVITY = np.array([0.35, 0.6, 0.45, 0.7, 0.2, 0.3, 0.6, 0.5, 0.4], dtype=np.float32)
 #: Base albedo (RGB 0-1) per class for the shaded images.
 ALBEDO = np.array(
-    [[0.75, 0.35, 0.3], [0.5, 0.1, 0.1], [0.78, 0.74, 0.66], [0.5, 0.5, 0.52], [0.36, 0.36, 0.38],
-     [0.35, 0.55, 0.25], [0.85, 0.85, 0.82], [0.15, 0.2, 0.45], [0.22, 0.45, 0.15]],
+    [
+        [0.75, 0.35, 0.3],
+        [0.5, 0.1, 0.1],
+        [0.78, 0.74, 0.66],
+        [0.5, 0.5, 0.52],
+        [0.36, 0.36, 0.38],
+        [0.35, 0.55, 0.25],
+        [0.85, 0.85, 0.82],
+        [0.15, 0.2, 0.45],
+        [0.22, 0.45, 0.15],
+    ],
     dtype=np.float32,
 )
 _SUN = np.array([0.45, 0.3, 0.84]) / np.linalg.norm([0.45, 0.3, 0.84])
@@ -88,16 +97,30 @@ class SensorRig:
 #: as a rotation vector (rad) per camera. They only reach the calibration files: the images are
 #: rendered with the rectified pinhole, as a rectified download holds them.
 RAW_CAMERAS = {
-    "cam0": ((730.27, 729.71, 610.90, 537.72), (-0.0560, 0.1238, 0.00115, -0.00367, -0.0636),
-             (0.0122, 0.0148, 0.0151)),
-    "cam1": ((731.64, 731.02, 614.21, 530.35), (-0.0532, 0.1181, 0.00092, 0.00121, -0.0597),
-             (0.0105, 0.0137, 0.0083)),
+    "cam0": (
+        (730.27, 729.71, 610.90, 537.72),
+        (-0.0560, 0.1238, 0.00115, -0.00367, -0.0636),
+        (0.0122, 0.0148, 0.0151),
+    ),
+    "cam1": (
+        (731.64, 731.02, 614.21, 530.35),
+        (-0.0532, 0.1181, 0.00092, 0.00121, -0.0597),
+        (0.0105, 0.0137, 0.0083),
+    ),
 }
 
 
-def make_rig(sensor: str = "os1-128", lidar_height_m: float = 0.9, width: int = 1224,
-             height: int = 1024, focal_px: float = 730.0, baseline_m: float = 0.12,
-             noise: LidarNoise = LidarNoise(), raw_cameras: bool = True, image_scale: float = 1.0) -> SensorRig:
+def make_rig(
+    sensor: str = "os1-128",
+    lidar_height_m: float = 0.9,
+    width: int = 1224,
+    height: int = 1024,
+    focal_px: float = 730.0,
+    baseline_m: float = 0.12,
+    noise: LidarNoise = LidarNoise(),
+    raw_cameras: bool = True,
+    image_scale: float = 1.0,
+) -> SensorRig:
     """The default rig: LiDAR ``lidar_height_m`` above the base origin, cameras 0.15 m below and
     0.08 m ahead of it, cam0 left of centre by half the baseline, cam1 right, both looking forward
     (these are the rectified frames). raw_cameras: attach the raw cameras of ``RAW_CAMERAS``
@@ -126,11 +149,21 @@ def make_rig(sensor: str = "os1-128", lidar_height_m: float = 0.9, width: int = 
             if image_scale != 1.0:
                 fx, fy = fx * image_scale, fy * image_scale
                 cx, cy = image_scale * (cx + 0.5) - 0.5, image_scale * (cy + 0.5) - 0.5
-            raw = {"K_raw": np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]),
-                   "distortion": np.array(dist, dtype=np.float64),
-                   "R_rect": Rotation.from_rotvec(rotvec).as_matrix()}
-        cams.append(CameraModel(name, K, width, height,
-                                make_transform(R_cam_from_lidar, -R_cam_from_lidar @ centre_lidar), **raw))
+            raw = {
+                "K_raw": np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]),
+                "distortion": np.array(dist, dtype=np.float64),
+                "R_rect": Rotation.from_rotvec(rotvec).as_matrix(),
+            }
+        cams.append(
+            CameraModel(
+                name,
+                K,
+                width,
+                height,
+                make_transform(R_cam_from_lidar, -R_cam_from_lidar @ centre_lidar),
+                **raw,
+            )
+        )
     return SensorRig(sensor, T_base_from_lidar, tuple(cams), noise)
 
 
@@ -153,7 +186,9 @@ def lidar_directions() -> np.ndarray:
     elev = np.linspace(half, -half, ROWS)
     az = np.pi - 2 * np.pi * (np.arange(COLUMNS) + 0.5) / COLUMNS
     ce, se = np.cos(elev)[:, None], np.sin(elev)[:, None]
-    dirs = np.stack([ce * np.cos(az)[None], ce * np.sin(az)[None], np.broadcast_to(se, (ROWS, COLUMNS))], -1)
+    dirs = np.stack(
+        [ce * np.cos(az)[None], ce * np.sin(az)[None], np.broadcast_to(se, (ROWS, COLUMNS))], -1
+    )
     dirs.setflags(write=False)
     return dirs
 
@@ -194,8 +229,14 @@ class LidarSweep:
     point_instance: np.ndarray
 
 
-def cast_lidar(scene: o3d.t.geometry.RaycastingScene, meshes: MeshSet, T_world_from_lidar: np.ndarray,
-               sensor: str, noise: LidarNoise, rng: np.random.Generator) -> LidarSweep:
+def cast_lidar(
+    scene: o3d.t.geometry.RaycastingScene,
+    meshes: MeshSet,
+    T_world_from_lidar: np.ndarray,
+    sensor: str,
+    noise: LidarNoise,
+    rng: np.random.Generator,
+) -> LidarSweep:
     """Ray-cast one sweep from ``T_world_from_lidar`` (4, 4) with the given noise (see module doc)."""
     dirs = lidar_directions().reshape(-1, 3)
     fired = np.zeros((ROWS, COLUMNS), dtype=bool)
@@ -270,7 +311,9 @@ class CameraRays:
         self._rays = np.empty((len(self.rays_cam), 6), dtype=np.float32)
         self._sky = np.empty(len(self.rays_cam), dtype=np.float32)
 
-    def world(self, R_world_from_cam: np.ndarray, t_world_from_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def world(
+        self, R_world_from_cam: np.ndarray, t_world_from_cam: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(rays (H * W, 6) float32 origin + direction, sky factor (H * W,)) in the world frame.
         The arrays are this object's buffers: valid until the next call."""
         key = np.asarray(R_world_from_cam, np.float64).tobytes()
@@ -283,9 +326,14 @@ class CameraRays:
         return self._rays, self._sky
 
 
-def render_camera(scene: o3d.t.geometry.RaycastingScene, meshes: MeshSet, cam: CameraModel,
-                  T_world_from_lidar: np.ndarray, night: bool, rays: CameraRays | None = None,
-                  ) -> CameraRender:
+def render_camera(
+    scene: o3d.t.geometry.RaycastingScene,
+    meshes: MeshSet,
+    cam: CameraModel,
+    T_world_from_lidar: np.ndarray,
+    night: bool,
+    rays: CameraRays | None = None,
+) -> CameraRender:
     """Render one rectified image: per-class albedo x Lambert shading, a sky gradient."""
     if rays is None:
         rays = CameraRays(cam)
@@ -308,13 +356,19 @@ def render_camera(scene: o3d.t.geometry.RaycastingScene, meshes: MeshSet, cam: C
     depth = np.full(H * W, np.inf, dtype=np.float32)
     depth[okn] = t_ok  # rays have unit z in the camera frame: t is the depth
     facing = np.einsum("ij,ij->i", n, d_ok) > 0
-    lambert = np.abs(np.clip(np.where(facing, -1.0, 1.0).astype(np.float32) * (n @ _SUN.astype(np.float32)), 0, 1))
+    lambert = np.abs(
+        np.clip(
+            np.where(facing, -1.0, 1.0).astype(np.float32) * (n @ _SUN.astype(np.float32)), 0, 1
+        )
+    )
     albedo = meshes.tri_albedo[prim]
     rgb = np.empty((H * W, 3), dtype=np.float32)
     sky_idx = np.flatnonzero(~ok)
     s = sky_s[sky_idx][:, None]
     if night:
-        sky = (1 - s) * np.array([0.06, 0.07, 0.12], np.float32) + s * np.array([0.01, 0.01, 0.04], np.float32)
+        sky = (1 - s) * np.array([0.06, 0.07, 0.12], np.float32) + s * np.array(
+            [0.01, 0.01, 0.04], np.float32
+        )
         rgb[okn] = albedo * (0.12 + 0.2 * lambert[:, None]) * np.exp(-t_ok / 25.0)[:, None]
     else:
         haze = np.array([0.82, 0.88, 0.95], np.float32)

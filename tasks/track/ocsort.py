@@ -148,7 +148,11 @@ class PedestrianTracker:
             else:
                 key, self._next_key = self._next_key, self._next_key + 1
             live[id(tracklet)] = (tracklet, key)
-            if tracklet.tracker_id >= 0 and key not in self._key_ids and tracklet.tracker_id in self._our_id:
+            if (
+                tracklet.tracker_id >= 0
+                and key not in self._key_ids
+                and tracklet.tracker_id in self._our_id
+            ):
                 self._key_ids[key] = self._our_id[int(tracklet.tracker_id)]
             if tracklet.time_since_update == 0:
                 obs = tuple(np.asarray(tracklet.last_observation, np.float64).tolist())
@@ -161,7 +165,9 @@ class PedestrianTracker:
                 keys[row] = found.pop(0)
         return keys
 
-    def _recover_confirmed(self, boxes: np.ndarray, rows: np.ndarray, library_ids: np.ndarray) -> np.ndarray:
+    def _recover_confirmed(
+        self, boxes: np.ndarray, rows: np.ndarray, library_ids: np.ndarray
+    ) -> np.ndarray:
         """Library ids for rows matched this frame to a track that already has an id."""
         by_box: dict[tuple[float, ...], list[int]] = {}
         for tracklet in self._tracker.tracks:

@@ -46,8 +46,9 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 
-def backfill_ids(tracklet_keys: list[np.ndarray], online_ids: list[np.ndarray],
-                 confirmed_ids: dict[int, int]) -> list[np.ndarray]:
+def backfill_ids(
+    tracklet_keys: list[np.ndarray], online_ids: list[np.ndarray], confirmed_ids: dict[int, int]
+) -> list[np.ndarray]:
     """Online ids with every row of a confirmed tracklet carrying that tracklet's id.
 
     tracklet_keys, online_ids: per frame (D_f,) int64, aligned with the frame's detections (key -1:
@@ -64,7 +65,9 @@ def backfill_ids(tracklet_keys: list[np.ndarray], online_ids: list[np.ndarray],
     return out
 
 
-def _end_motion(frames: np.ndarray, centres: np.ndarray, at: float) -> tuple[np.ndarray, np.ndarray]:
+def _end_motion(
+    frames: np.ndarray, centres: np.ndarray, at: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares line through (frame, centre (2,) px): (centre at frame ``at``, velocity px/frame)."""
     if len(frames) < 2:
         return centres[0], np.zeros(2)
@@ -115,7 +118,7 @@ class WorldCheck:
 
     def predict(self, times: np.ndarray, xy: np.ndarray, at: float) -> np.ndarray:
         """Constant-velocity prediction at time ``at`` from the last ``window`` (time, xy)."""
-        t, p = times[-self.window:], xy[-self.window:]
+        t, p = times[-self.window :], xy[-self.window :]
         centre, velocity = _end_motion(t, p, float(t[-1]))
         speed = float(np.linalg.norm(velocity))
         if speed > self.max_speed_mps:
@@ -136,9 +139,12 @@ def _observations(ids: list[np.ndarray]) -> dict[int, list[tuple[int, int]]]:
     return tracks
 
 
-def split_tracks(ids: list[np.ndarray], positions: list[np.ndarray], times_s: np.ndarray,
-                 motion: WorldCheck = WorldCheck()
-                 ) -> tuple[list[np.ndarray], list[np.ndarray], dict[int, int]]:
+def split_tracks(
+    ids: list[np.ndarray],
+    positions: list[np.ndarray],
+    times_s: np.ndarray,
+    motion: WorldCheck = WorldCheck(),
+) -> tuple[list[np.ndarray], list[np.ndarray], dict[int, int]]:
     """Cut tracks into fragments wherever the 2D tracker's decision is open to doubt.
 
     A track is cut (a) after every missed frame: a lost and re-found track may have been re-found on
@@ -190,13 +196,16 @@ def split_tracks(ids: list[np.ndarray], positions: list[np.ndarray], times_s: np
             known = bool(np.isfinite(xy).all())
             if known and trusted_t and miss(f, xy) > motion.gate(times_s[f] - trusted_t[-1]):
                 # the track's next known position decides: outlier or another person
-                later = next(((f2, r2) for f2, r2 in obs[k + 1:] if np.isfinite(positions[f2][r2]).all()),
-                             None)
+                later = next(
+                    ((f2, r2) for f2, r2 in obs[k + 1 :] if np.isfinite(positions[f2][r2]).all()),
+                    None,
+                )
                 if later is not None:
                     xy2 = positions[later[0]][later[1]]
                     e_track = miss(later[0], xy2)
-                    if (e_track <= motion.gate(times_s[later[0]] - trusted_t[-1])
-                            and e_track < np.linalg.norm(xy2 - xy)):
+                    if e_track <= motion.gate(
+                        times_s[later[0]] - trusted_t[-1]
+                    ) and e_track < np.linalg.norm(xy2 - xy):
                         ids[f][row] = current  # an outlier: keep the id, forget the position
                         positions[f][row] = np.nan
                         fresh = False
@@ -210,11 +219,19 @@ def split_tracks(ids: list[np.ndarray], positions: list[np.ndarray], times_s: np
     return ids, positions, parent
 
 
-def stitch_ids(ids: list[np.ndarray], boxes_xyxy: list[np.ndarray], max_gap: int,
-               max_distance: float, max_scale: float, window: int = 5,
-               positions: list[np.ndarray] | None = None, times_s: np.ndarray | None = None,
-               motion: WorldCheck = WorldCheck(), parent: dict[int, int] | None = None,
-               provisional: frozenset[int] | set[int] = frozenset()) -> list[np.ndarray]:
+def stitch_ids(
+    ids: list[np.ndarray],
+    boxes_xyxy: list[np.ndarray],
+    max_gap: int,
+    max_distance: float,
+    max_scale: float,
+    window: int = 5,
+    positions: list[np.ndarray] | None = None,
+    times_s: np.ndarray | None = None,
+    motion: WorldCheck = WorldCheck(),
+    parent: dict[int, int] | None = None,
+    provisional: frozenset[int] | set[int] = frozenset(),
+) -> list[np.ndarray]:
     """Join track fragments across gaps (see the module docstring); ids renumbered 1, 2, ...
 
     ids: per frame (D_f,) int64 (-1 = untracked, left alone); boxes_xyxy: per frame (D_f, 4) float
@@ -236,12 +253,20 @@ def stitch_ids(ids: list[np.ndarray], boxes_xyxy: list[np.ndarray], max_gap: int
             fr = np.array([f for f, _ in obs], np.float64)
             bx = np.array([np.asarray(boxes_xyxy[f], np.float64).reshape(-1, 4)[r] for f, r in obs])
             centres, heights = (bx[:, :2] + bx[:, 2:]) / 2, bx[:, 3] - bx[:, 1]
-            end = {"frame": obs[-1][0], "px": _end_motion(fr[-window:], centres[-window:], fr[-1]),
-                   "h": heights[-1]}
-            start = {"frame": obs[0][0], "px": _end_motion(fr[:window], centres[:window], fr[0]),
-                     "h": heights[0]}
+            end = {
+                "frame": obs[-1][0],
+                "px": _end_motion(fr[-window:], centres[-window:], fr[-1]),
+                "h": heights[-1],
+            }
+            start = {
+                "frame": obs[0][0],
+                "px": _end_motion(fr[:window], centres[:window], fr[0]),
+                "h": heights[0],
+            }
             if positions is not None:
-                xy = np.array([np.asarray(positions[f], np.float64).reshape(-1, 2)[r] for f, r in obs])
+                xy = np.array(
+                    [np.asarray(positions[f], np.float64).reshape(-1, 2)[r] for f, r in obs]
+                )
                 known = np.isfinite(xy).all(axis=1)
                 if known.any():
                     # (times, xy) of the known positions; the start's reversed so that its
@@ -253,8 +278,12 @@ def stitch_ids(ids: list[np.ndarray], boxes_xyxy: list[np.ndarray], max_gap: int
 
         def continuation(a: int, b: int) -> bool:
             """b follows a in one 2D track (consecutive fragments of one parent)."""
-            return (parent is not None and parent.get(a) is not None and parent.get(a) == parent.get(b)
-                    and not _between(order, tracks, parent, a, b))
+            return (
+                parent is not None
+                and parent.get(a) is not None
+                and parent.get(a) == parent.get(b)
+                and not _between(order, tracks, parent, a, b)
+            )
 
         cost = np.full((len(order), len(order)), np.inf)
         for i, a in enumerate(order):
@@ -269,8 +298,10 @@ def stitch_ids(ids: list[np.ndarray], boxes_xyxy: list[np.ndarray], max_gap: int
                     (ta, xya), (tb, xyb) = ea["xy"], sb["xy"]
                     if tb[-1] <= ta[-1]:
                         continue
-                    err = (np.linalg.norm(motion.predict(ta, xya, tb[-1]) - xyb[-1])
-                           + np.linalg.norm(motion.predict(tb, xyb, ta[-1]) - xya[-1])) / 2
+                    err = (
+                        np.linalg.norm(motion.predict(ta, xya, tb[-1]) - xyb[-1])
+                        + np.linalg.norm(motion.predict(tb, xyb, ta[-1]) - xya[-1])
+                    ) / 2
                     limit = motion.gate(tb[-1] - ta[-1])
                     if continuation(a, b):  # the 2D tracker backs this join: a looser gate
                         limit *= motion.continuation_gate_scale
@@ -316,13 +347,21 @@ def stitch_ids(ids: list[np.ndarray], boxes_xyxy: list[np.ndarray], max_gap: int
 def _between(order, tracks, parent, a, b) -> bool:
     """Whether another fragment of a's parent lies between fragments a and b (not consecutive)."""
     end_a, start_b = tracks[a][-1][0], tracks[b][0][0]
-    return any(parent.get(c) == parent[a] and c not in (a, b) and end_a < tracks[c][0][0] < start_b
-               for c in order)
+    return any(
+        parent.get(c) == parent[a] and c not in (a, b) and end_a < tracks[c][0][0] < start_b
+        for c in order
+    )
 
 
-def track_offline(boxes_xyxy: list[np.ndarray], scores: list[np.ndarray], tracker,
-                  offline: OfflineParams = OfflineParams(), positions: list[np.ndarray] | None = None,
-                  times_s: np.ndarray | None = None, check: WorldCheck = WorldCheck()) -> list[np.ndarray]:
+def track_offline(
+    boxes_xyxy: list[np.ndarray],
+    scores: list[np.ndarray],
+    tracker,
+    offline: OfflineParams = OfflineParams(),
+    positions: list[np.ndarray] | None = None,
+    times_s: np.ndarray | None = None,
+    check: WorldCheck = WorldCheck(),
+) -> list[np.ndarray]:
     """Track a whole sequence: ``tracker.update`` per frame, then back-fill, splitting, stitching.
 
     boxes_xyxy: per frame (D_f, 4) float pixels; scores: per frame (D_f,) float. tracker: a fresh
@@ -333,8 +372,11 @@ def track_offline(boxes_xyxy: list[np.ndarray], scores: list[np.ndarray], tracke
     untracked.
     """
     online = [tracker.update(b, s) for b, s in zip(boxes_xyxy, scores)]
-    ids = (backfill_ids(tracker.tracklet_keys, online, tracker.confirmed_ids) if offline.backfill
-           else online)
+    ids = (
+        backfill_ids(tracker.tracklet_keys, online, tracker.confirmed_ids)
+        if offline.backfill
+        else online
+    )
     parent, provisional = None, set()
     if positions is not None and check.enabled:
         if times_s is None:
@@ -345,9 +387,18 @@ def track_offline(boxes_xyxy: list[np.ndarray], scores: list[np.ndarray], tracke
         provisional = {f for f, p in parent.items() if p in provisional}
     else:
         positions = None
-    return stitch_ids(ids, boxes_xyxy, offline.stitch_max_gap, offline.stitch_max_distance,
-                      offline.stitch_max_scale, positions=positions, times_s=times_s, motion=check,
-                      parent=parent, provisional=provisional)
+    return stitch_ids(
+        ids,
+        boxes_xyxy,
+        offline.stitch_max_gap,
+        offline.stitch_max_distance,
+        offline.stitch_max_scale,
+        positions=positions,
+        times_s=times_s,
+        motion=check,
+        parent=parent,
+        provisional=provisional,
+    )
 
 
 def _with_tentative(ids, tracklet_keys, confirmed_ids):

@@ -12,8 +12,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from tasks.conventions import transform_points
-from tasks.perception.person_points import (PersonPointParams, associate_lidar_boxes, in_image_first,
-                                            person_point_indices)
+from tasks.perception.person_points import (
+    PersonPointParams,
+    associate_lidar_boxes,
+    in_image_first,
+    person_point_indices,
+)
 
 
 @dataclass(frozen=True)
@@ -31,8 +35,12 @@ class FramePersons:
     world_xy: np.ndarray
 
 
-def person_world_xy(points_lidar: np.ndarray, point_sets: list[np.ndarray], T_world_from_lidar: np.ndarray,
-                    min_points: int) -> np.ndarray:
+def person_world_xy(
+    points_lidar: np.ndarray,
+    point_sets: list[np.ndarray],
+    T_world_from_lidar: np.ndarray,
+    min_points: int,
+) -> np.ndarray:
     """(D, 2) world xy of each person: the median of its LiDAR points; NaN with fewer than
     ``min_points`` (a few points of a mostly hidden person often belong to someone in front)."""
     xy = np.full((len(point_sets), 2), np.nan)
@@ -43,34 +51,63 @@ def person_world_xy(points_lidar: np.ndarray, point_sets: list[np.ndarray], T_wo
     return xy
 
 
-def frame_persons(points_lidar: np.ndarray, T_world_from_lidar: np.ndarray, boxes_xyxy: np.ndarray,
-                  masks: np.ndarray, lidar_centers: np.ndarray, lidar_sizes: np.ndarray,
-                  lidar_yaws: np.ndarray, K: np.ndarray, T_cam_from_lidar: np.ndarray,
-                  image_size: tuple[int, int], params: PersonPointParams,
-                  position_min_points: int) -> FramePersons:
+def frame_persons(
+    points_lidar: np.ndarray,
+    T_world_from_lidar: np.ndarray,
+    boxes_xyxy: np.ndarray,
+    masks: np.ndarray,
+    lidar_centers: np.ndarray,
+    lidar_sizes: np.ndarray,
+    lidar_yaws: np.ndarray,
+    K: np.ndarray,
+    T_cam_from_lidar: np.ndarray,
+    image_size: tuple[int, int],
+    params: PersonPointParams,
+    position_min_points: int,
+) -> FramePersons:
     """Each detection's LiDAR points (tasks.perception.person_points) and world position.
 
     points_lidar: (N, 3) float32, LiDAR frame. boxes_xyxy (D, 4) pixels, masks (D, H, W) bool.
     lidar_*: the frame's LiDAR boxes (M, 3) / (M,), LiDAR frame. A LiDAR box matched to a detection
     gives the expected range of its points (its centre's distance from the camera).
     """
-    lidar_box = associate_lidar_boxes(boxes_xyxy, lidar_centers, lidar_sizes, lidar_yaws, K,
-                                      T_cam_from_lidar, params.assoc_min_iou)
+    lidar_box = associate_lidar_boxes(
+        boxes_xyxy,
+        lidar_centers,
+        lidar_sizes,
+        lidar_yaws,
+        K,
+        T_cam_from_lidar,
+        params.assoc_min_iou,
+    )
     expected = np.full(len(boxes_xyxy), np.nan)
     has = lidar_box >= 0
     if has.any():
         cam = transform_points(T_cam_from_lidar, lidar_centers[lidar_box[has]].astype(np.float64))
         expected[has] = np.linalg.norm(cam, axis=1)
-    sets = person_point_indices(points_lidar, K, T_cam_from_lidar, image_size, boxes_xyxy, masks,
-                                expected, params)
-    sets, in_image = in_image_first(points_lidar, sets, K, T_cam_from_lidar, image_size, params.min_depth_m)
-    return FramePersons(lidar_box, sets, in_image,
-                        person_world_xy(points_lidar, sets, T_world_from_lidar, position_min_points))
+    sets = person_point_indices(
+        points_lidar, K, T_cam_from_lidar, image_size, boxes_xyxy, masks, expected, params
+    )
+    sets, in_image = in_image_first(
+        points_lidar, sets, K, T_cam_from_lidar, image_size, params.min_depth_m
+    )
+    return FramePersons(
+        lidar_box,
+        sets,
+        in_image,
+        person_world_xy(points_lidar, sets, T_world_from_lidar, position_min_points),
+    )
 
 
-def track_rows(frames: list[int], ids: list[np.ndarray], persons: list[FramePersons],
-               boxes_xyxy: list[np.ndarray], scores: list[np.ndarray], keypoints: list[np.ndarray],
-               gt_index: list[np.ndarray]) -> dict[str, np.ndarray]:
+def track_rows(
+    frames: list[int],
+    ids: list[np.ndarray],
+    persons: list[FramePersons],
+    boxes_xyxy: list[np.ndarray],
+    scores: list[np.ndarray],
+    keypoints: list[np.ndarray],
+    gt_index: list[np.ndarray],
+) -> dict[str, np.ndarray]:
     """The rows of the track product (storage.products.Tracks), one per tracked detection.
 
     Per frame f: its raw number frames[f], ids[f] (D_f,) int64 (-1 untracked), persons[f], and the
@@ -85,8 +122,9 @@ def track_rows(frames: list[int], ids: list[np.ndarray], persons: list[FramePers
         return np.concatenate(parts) if parts else np.zeros((0, *shape), dtype)
 
     return {
-        "frame": np.concatenate([np.full(k.size, f, np.int64) for f, k in zip(frames, keep)] or
-                                [np.zeros(0, np.int64)]),
+        "frame": np.concatenate(
+            [np.full(k.size, f, np.int64) for f, k in zip(frames, keep)] or [np.zeros(0, np.int64)]
+        ),
         "det_index": pick([np.arange(len(i)) for i in ids], np.int64, ()),
         "track_id": pick(ids, np.int64, ()),
         "boxes_xyxy": pick(boxes_xyxy, np.float32, (4,)),

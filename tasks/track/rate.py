@@ -46,16 +46,26 @@ def frames_at(count: int, scale: float, minimum: int) -> int:
     return max(minimum, math.floor(count * scale + 0.5))
 
 
-def gates_at_rate(tracker: TrackerParams, offline: OfflineParams, check: WorldCheck, rate_hz: float,
-                  gate: GateRate = GateRate()) -> tuple[TrackerParams, OfflineParams, WorldCheck]:
+def gates_at_rate(
+    tracker: TrackerParams,
+    offline: OfflineParams,
+    check: WorldCheck,
+    rate_hz: float,
+    gate: GateRate = GateRate(),
+) -> tuple[TrackerParams, OfflineParams, WorldCheck]:
     """The three settings objects with their frame counts at ``rate_hz`` (Hz, > 0)."""
     if not rate_hz > 0 or not gate.gates_rate_hz > 0:
-        raise ValueError(f"gates_at_rate: rates must be > 0, got rate_hz={rate_hz}, "
-                         f"gates_rate_hz={gate.gates_rate_hz}")
+        raise ValueError(
+            f"gates_at_rate: rates must be > 0, got rate_hz={rate_hz}, "
+            f"gates_rate_hz={gate.gates_rate_hz}"
+        )
     s = rate_hz / gate.gates_rate_hz
     tracker = dataclasses.replace(
-        tracker, max_age=frames_at(tracker.max_age, s, 1), delta_t=frames_at(tracker.delta_t, s, 1),
-        min_hits=frames_at(tracker.min_hits, s, 1) if gate.scale_min_hits else tracker.min_hits)
+        tracker,
+        max_age=frames_at(tracker.max_age, s, 1),
+        delta_t=frames_at(tracker.delta_t, s, 1),
+        min_hits=frames_at(tracker.min_hits, s, 1) if gate.scale_min_hits else tracker.min_hits,
+    )
     offline = dataclasses.replace(offline, stitch_max_gap=frames_at(offline.stitch_max_gap, s, 1))
     check = dataclasses.replace(check, window=frames_at(check.window, s, 1))
     return tracker, offline, check

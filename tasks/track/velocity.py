@@ -7,7 +7,9 @@ import numpy as np
 from tasks.conventions import transform_points
 
 
-def track_velocities(track_ids: np.ndarray, stamps_s: np.ndarray, positions: np.ndarray) -> np.ndarray:
+def track_velocities(
+    track_ids: np.ndarray, stamps_s: np.ndarray, positions: np.ndarray
+) -> np.ndarray:
     """Velocity of every row from its track's neighbouring rows.
 
     track_ids: (R,) int. stamps_s: (R,) float seconds. positions: (R, 3) float metres in one fixed
@@ -36,8 +38,13 @@ def track_velocities(track_ids: np.ndarray, stamps_s: np.ndarray, positions: np.
     return out
 
 
-def velocities_in_base(track_ids: np.ndarray, stamps_s: np.ndarray, positions_lidar: np.ndarray,
-                       T_world_from_lidar: np.ndarray, T_base_from_lidar: np.ndarray) -> np.ndarray:
+def velocities_in_base(
+    track_ids: np.ndarray,
+    stamps_s: np.ndarray,
+    positions_lidar: np.ndarray,
+    T_world_from_lidar: np.ndarray,
+    T_base_from_lidar: np.ndarray,
+) -> np.ndarray:
     """Ground-plane velocity of every row in the robot's base frame at that row's frame.
 
     positions_lidar: (R, 3) float metres, each in the LiDAR frame of its own frame, whose pose is
@@ -49,12 +56,15 @@ def velocities_in_base(track_ids: np.ndarray, stamps_s: np.ndarray, positions_li
     p = np.asarray(positions_lidar, np.float64).reshape(-1, 3)
     world = np.einsum("rij,rj->ri", T[:, :3, :3], p) + T[:, :3, 3]
     v_world = track_velocities(track_ids, stamps_s, world)
-    R_base_from_world = np.asarray(T_base_from_lidar, np.float64)[:3, :3] @ np.transpose(T[:, :3, :3], (0, 2, 1))
+    R_base_from_world = np.asarray(T_base_from_lidar, np.float64)[:3, :3] @ np.transpose(
+        T[:, :3, :3], (0, 2, 1)
+    )
     return np.einsum("rij,rj->ri", R_base_from_world, v_world)[:, :2]
 
 
-def track_neighbours(track_ids: np.ndarray, stamps_s: np.ndarray,
-                     max_gap_s: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+def track_neighbours(
+    track_ids: np.ndarray, stamps_s: np.ndarray, max_gap_s: float = np.inf
+) -> tuple[np.ndarray, np.ndarray]:
     """The row of the same track just before and just after each row in time.
 
     track_ids: (R,) int; stamps_s: (R,) float seconds. A neighbour farther than ``max_gap_s`` from
@@ -76,8 +86,13 @@ def track_neighbours(track_ids: np.ndarray, stamps_s: np.ndarray,
     return prev, nxt
 
 
-def vertex_velocities_in_base(vertices_lidar: list, T_world_from_lidar: list, stamps_s: list,
-                              T_base_from_lidar: np.ndarray, fallback_base: np.ndarray) -> np.ndarray:
+def vertex_velocities_in_base(
+    vertices_lidar: list,
+    T_world_from_lidar: list,
+    stamps_s: list,
+    T_base_from_lidar: np.ndarray,
+    fallback_base: np.ndarray,
+) -> np.ndarray:
     """Per-vertex velocity of one body in one frame from its neighbours along the track.
 
     vertices_lidar: [previous, this, next]: (V, 3) float metres (the same topology), each in the
@@ -87,15 +102,22 @@ def vertex_velocities_in_base(vertices_lidar: list, T_world_from_lidar: list, st
     with both neighbours, one-sided with one, ``fallback_base`` (3,) m/s base axes (e.g. the
     person's velocity) with none. Returns (V, 3) float64 m/s in the base axes of this frame.
     """
-    world = [None if v is None else transform_points(np.asarray(T, np.float64), np.asarray(v, np.float64))
-             for v, T in zip(vertices_lidar, T_world_from_lidar)]
-    R_base_from_world = (np.asarray(T_base_from_lidar, np.float64)[:3, :3]
-                         @ np.asarray(T_world_from_lidar[1], np.float64)[:3, :3].T)
+    world = [
+        None
+        if v is None
+        else transform_points(np.asarray(T, np.float64), np.asarray(v, np.float64))
+        for v, T in zip(vertices_lidar, T_world_from_lidar)
+    ]
+    R_base_from_world = (
+        np.asarray(T_base_from_lidar, np.float64)[:3, :3]
+        @ np.asarray(T_world_from_lidar[1], np.float64)[:3, :3].T
+    )
     a = 0 if world[0] is not None else 1
     b = 2 if world[2] is not None else 1
     if a == b:
-        return np.broadcast_to(np.asarray(fallback_base, np.float64).reshape(3),
-                               (len(world[1]), 3)).copy()
+        return np.broadcast_to(
+            np.asarray(fallback_base, np.float64).reshape(3), (len(world[1]), 3)
+        ).copy()
     dt = float(stamps_s[b]) - float(stamps_s[a])
     if not dt > 0:
         raise ValueError(f"vertex_velocities_in_base: times {stamps_s} do not increase")

@@ -32,7 +32,15 @@ import numpy as np
 from scipy.special import expit
 
 from tasks.perception.models.detector import Detections
-from tasks.perception.models.image import apply_affine, box_iou, crop_affine, invert_affine, letterbox, paste_back, warp_crops
+from tasks.perception.models.image import (
+    apply_affine,
+    box_iou,
+    crop_affine,
+    invert_affine,
+    letterbox,
+    paste_back,
+    warp_crops,
+)
 from tasks.perception.models.runner import ModelRunner, expect
 
 #: BlazePose landmark index of each COCO-17 keypoint (nose, eyes, ears, shoulders, elbows,
@@ -64,8 +72,9 @@ def ssd_anchors(size: int = DETECTOR_SIZE, strides=(8, 16, 32, 32, 32)) -> np.nd
     return np.concatenate(out)
 
 
-def decode_detections(raw_boxes: np.ndarray, raw_scores: np.ndarray, anchors: np.ndarray,
-                      min_score: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def decode_detections(
+    raw_boxes: np.ndarray, raw_scores: np.ndarray, anchors: np.ndarray, min_score: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Raw detector outputs (A, 12), (A, 1) -> boxes (N, 4) normalised xyxy, keypoints (N, 4, 2)
     normalised, scores (N,) for the anchors scoring >= min_score (normalised to the 224 input)."""
     raw = np.asarray(raw_boxes, np.float64) / DETECTOR_SIZE
@@ -79,8 +88,9 @@ def decode_detections(raw_boxes: np.ndarray, raw_scores: np.ndarray, anchors: np
     return boxes, kps, score
 
 
-def weighted_nms(boxes: np.ndarray, keypoints: np.ndarray, scores: np.ndarray,
-                 iou_threshold: float = 0.3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def weighted_nms(
+    boxes: np.ndarray, keypoints: np.ndarray, scores: np.ndarray, iou_threshold: float = 0.3
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """MediaPipe's WEIGHTED non-max suppression: the best remaining detection gathers every
     remaining one overlapping it by IoU > iou_threshold (itself included); their boxes and
     keypoints are averaged with the scores as weights, the score is the best one's."""
@@ -111,7 +121,9 @@ class Regions:
     def affine(self, size: int = LANDMARK_SIZE) -> np.ndarray:
         """Maps (N, 2, 3) image -> crop pixels, the region's edges on the crop's pixel corners
         (MediaPipe's ImageToTensor)."""
-        A = crop_affine(self.center, np.stack([self.side, self.side], 1), (size, size), self.rotation)
+        A = crop_affine(
+            self.center, np.stack([self.side, self.side], 1), (size, size), self.rotation
+        )
         A[:, :, 2] -= 0.5
         return A
 
@@ -129,12 +141,19 @@ def regions_from_keypoints(kp0: np.ndarray, kp1: np.ndarray, scale: float = ROI_
 def regions_from_boxes(boxes_xyxy: np.ndarray, scale: float) -> Regions:
     """Upright squares on box centres, side max(w, h) x scale."""
     b = np.asarray(boxes_xyxy, np.float64).reshape(-1, 4)
-    return Regions((b[:, :2] + b[:, 2:]) / 2, np.maximum(b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]) * scale,
-                   np.zeros(len(b)))
+    return Regions(
+        (b[:, :2] + b[:, 2:]) / 2,
+        np.maximum(b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]) * scale,
+        np.zeros(len(b)),
+    )
 
 
-def refine_from_heatmap(xy_norm: np.ndarray, heatmap: np.ndarray, kernel: int = REFINE_KERNEL,
-                        min_confidence: float = REFINE_MIN_CONFIDENCE) -> np.ndarray:
+def refine_from_heatmap(
+    xy_norm: np.ndarray,
+    heatmap: np.ndarray,
+    kernel: int = REFINE_KERNEL,
+    min_confidence: float = REFINE_MIN_CONFIDENCE,
+) -> np.ndarray:
     """MediaPipe's RefineLandmarksFromHeatmap: landmarks (L, 2) normalised to the crop, heatmap
     logits (h, w, L). Each landmark inside the heatmap moves to the sigmoid-weighted mean cell
     (cell index / size) of the ``kernel`` window around its cell, where the window's largest
@@ -147,10 +166,12 @@ def refine_from_heatmap(xy_norm: np.ndarray, heatmap: np.ndarray, kernel: int = 
         col, row = int(out[i, 0] * w), int(out[i, 1] * h)
         if not (0 <= col < w and 0 <= row < h):
             continue
-        win = conf[max(row - r, 0):min(row + r + 1, h), max(col - r, 0):min(col + r + 1, w), i]
+        win = conf[max(row - r, 0) : min(row + r + 1, h), max(col - r, 0) : min(col + r + 1, w), i]
         if win.max() < min_confidence or win.sum() <= 0:
             continue
-        rows, cols = np.mgrid[max(row - r, 0):min(row + r + 1, h), max(col - r, 0):min(col + r + 1, w)]
+        rows, cols = np.mgrid[
+            max(row - r, 0) : min(row + r + 1, h), max(col - r, 0) : min(col + r + 1, w)
+        ]
         out[i] = [(cols * win).sum() / win.sum() / w, (rows * win).sum() / win.sum() / h]
     return out
 
@@ -160,8 +181,12 @@ class BlazePoseDetector:
     interest's axis-aligned bounds clipped to the image; :attr:`last_regions` keeps the regions."""
 
     def __init__(self, runner: ModelRunner, min_score: float = 0.5, nms_iou: float = 0.3):
-        expect(runner, "BlazePose detector", {"*": (1, DETECTOR_SIZE, DETECTOR_SIZE, 3)},
-               {"*": (1, NUM_ANCHORS, 12), "**": (1, NUM_ANCHORS, 1)})
+        expect(
+            runner,
+            "BlazePose detector",
+            {"*": (1, DETECTOR_SIZE, DETECTOR_SIZE, 3)},
+            {"*": (1, NUM_ANCHORS, 12), "**": (1, NUM_ANCHORS, 1)},
+        )
         self.runner, self.min_score, self.nms_iou = runner, min_score, nms_iou
         self.input = next(iter(runner.input_shapes))
         self.anchors = ssd_anchors()
@@ -171,7 +196,9 @@ class BlazePoseDetector:
         x, lb = letterbox(image, DETECTOR_SIZE, DETECTOR_SIZE, 0.0, center=True)
         out = list(self.runner({self.input: (x / 127.5 - 1.0)[None].astype(np.float32)}).values())
         raw_boxes, raw_scores = sorted(out, key=lambda a: -a.shape[-1])
-        boxes, kps, scores = decode_detections(raw_boxes[0], raw_scores[0], self.anchors, self.min_score)
+        boxes, kps, scores = decode_detections(
+            raw_boxes[0], raw_scores[0], self.anchors, self.min_score
+        )
         _, kps, scores = weighted_nms(boxes, kps, scores, self.nms_iou)
         px = lb.to_image(kps * DETECTOR_SIZE) - 0.5  # input pixel corners -> image, OpenCV pixels
         return regions_from_keypoints(px[:, 0], px[:, 1]), scores
@@ -182,8 +209,10 @@ class BlazePoseDetector:
         if len(scores) == 0:
             return Detections.empty()
         H, W = image.shape[:2]
-        corners = apply_affine(invert_affine(reg.affine()), np.array([[[-0.5, -0.5], [255.5, -0.5],
-                                                                        [255.5, 255.5], [-0.5, 255.5]]] * len(scores)))
+        corners = apply_affine(
+            invert_affine(reg.affine()),
+            np.array([[[-0.5, -0.5], [255.5, -0.5], [255.5, 255.5], [-0.5, 255.5]]] * len(scores)),
+        )
         boxes = np.concatenate([corners.min(1), corners.max(1)], 1)
         boxes = np.clip(boxes, 0, [W - 1, H - 1, W - 1, H - 1])
         return Detections(boxes.astype(np.float32), scores.astype(np.float32))
@@ -192,20 +221,35 @@ class BlazePoseDetector:
 class BlazePoseLandmarks:
     """COCO-17 keypoints and person masks from MediaPipe's landmark model (module docstring)."""
 
-    def __init__(self, runner: ModelRunner, box_scale: float = ROI_SCALE, mask_threshold: float = 0.5,
-                 refine: bool = True):
+    def __init__(
+        self,
+        runner: ModelRunner,
+        box_scale: float = ROI_SCALE,
+        mask_threshold: float = 0.5,
+        refine: bool = True,
+    ):
         expect(runner, "BlazePose landmark", {"*": (1, LANDMARK_SIZE, LANDMARK_SIZE, 3)}, 5)
         shapes = [tuple(s) for s in runner.output_shapes.values()]
         need = [(1, 195), (1, 1), (1, LANDMARK_SIZE, LANDMARK_SIZE, 1), (1, 64, 64, 39)]
         if any(n not in shapes for n in need):
-            raise ValueError(f"{runner.source}: not a BlazePose landmark model: outputs {dict(runner.output_shapes)}, "
-                             f"expected among them {need}")
-        self.runner, self.box_scale, self.mask_threshold, self.refine = runner, box_scale, mask_threshold, refine
+            raise ValueError(
+                f"{runner.source}: not a BlazePose landmark model: outputs {dict(runner.output_shapes)}, "
+                f"expected among them {need}"
+            )
+        self.runner, self.box_scale, self.mask_threshold, self.refine = (
+            runner,
+            box_scale,
+            mask_threshold,
+            refine,
+        )
         self.input = next(iter(runner.input_shapes))
-        self.names = {s: next(n for n, t in runner.output_shapes.items() if tuple(t) == s) for s in need}
+        self.names = {
+            s: next(n for n, t in runner.output_shapes.items() if tuple(t) == s) for s in need
+        }
 
-    def __call__(self, image: np.ndarray, boxes_xyxy: np.ndarray,
-                 regions: Regions | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def __call__(
+        self, image: np.ndarray, boxes_xyxy: np.ndarray, regions: Regions | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Keypoints (D, 17, 3) float32, masks (D, H, W) bool and pose flags (D,) float32 in
         [0, 1] of boxes (D, 4); ``regions`` (from the BlazePose detector) replaces the regions
         made from the boxes."""
@@ -220,14 +264,14 @@ class BlazePoseLandmarks:
         flag = np.zeros(D, np.float32)
         n = self.names
         for d in range(D):
-            out = self.runner({self.input: crops[d:d + 1].astype(np.float32)})
+            out = self.runner({self.input: crops[d : d + 1].astype(np.float32)})
             lm = out[n[(1, 195)]].reshape(39, 5).astype(np.float64)
             xy = lm[:, :2] / LANDMARK_SIZE
             if self.refine:
                 xy = refine_from_heatmap(xy, out[n[(1, 64, 64, 39)]][0])
             flag[d] = float(out[n[(1, 1)]].ravel()[0])
             present = flag[d] >= 0.5
-            uv = apply_affine(invert_affine(A[d:d + 1]), (xy * LANDMARK_SIZE - 0.5)[None])[0]
+            uv = apply_affine(invert_affine(A[d : d + 1]), (xy * LANDMARK_SIZE - 0.5)[None])[0]
             vis = expit(lm[:, 3])
             idx = list(BLAZEPOSE_TO_COCO)
             kp[d, :, :2] = uv[idx]

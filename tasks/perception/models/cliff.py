@@ -16,7 +16,13 @@ from __future__ import annotations
 import numpy as np
 
 from tasks.fit.init_oracle import BodyParams, cliff_to_params
-from tasks.perception.models.image import IMAGENET_MEAN, IMAGENET_STD, crop_affine, normalize, warp_crops
+from tasks.perception.models.image import (
+    IMAGENET_MEAN,
+    IMAGENET_STD,
+    crop_affine,
+    normalize,
+    warp_crops,
+)
 from tasks.perception.models.runner import ModelRunner, input_hw, run_batched
 
 #: CLIFF's crop tightness around a detection box (``bbox_from_detector(rescale=1.1)``)
@@ -30,8 +36,10 @@ def cliff_bbox_info(center: np.ndarray, size: np.ndarray, K: np.ndarray) -> np.n
     f = K[0, 0]
     c = np.asarray(center, np.float64).reshape(-1, 2)
     b = np.asarray(size, np.float64).reshape(-1)
-    return np.stack([(c[:, 0] - K[0, 2]) / f * 2.8, (c[:, 1] - K[1, 2]) / f * 2.8,
-                     (b - 0.24 * f) / (0.06 * f)], 1).astype(np.float32)
+    return np.stack(
+        [(c[:, 0] - K[0, 2]) / f * 2.8, (c[:, 1] - K[1, 2]) / f * 2.8, (b - 0.24 * f) / (0.06 * f)],
+        1,
+    ).astype(np.float32)
 
 
 class CliffEstimator:
@@ -41,11 +49,17 @@ class CliffEstimator:
         ins = list(runner.input_shapes.items())
         outs = dict(runner.output_shapes)
         rot = [s for s in outs.values() if len(s) == 4]
-        if (len(ins) != 2 or sorted(len(s) for _, s in ins) != [2, 4] or sorted(len(s) for s in outs.values()) != [2, 2, 4]
-                or any(d not in (None, w) for d, w in zip(rot[0][1:], (24, 3, 3)))):
-            raise ValueError(f"{runner.source}: not a CLIFF export: inputs {dict(runner.input_shapes)}, outputs "
-                             f"{outs}; expected inputs image (N, 3, h, w) and bbox_info (N, 3), outputs "
-                             "rotations (N, 24, 3, 3), betas (N, 10), crop camera (N, 3)")
+        if (
+            len(ins) != 2
+            or sorted(len(s) for _, s in ins) != [2, 4]
+            or sorted(len(s) for s in outs.values()) != [2, 2, 4]
+            or any(d not in (None, w) for d, w in zip(rot[0][1:], (24, 3, 3)))
+        ):
+            raise ValueError(
+                f"{runner.source}: not a CLIFF export: inputs {dict(runner.input_shapes)}, outputs "
+                f"{outs}; expected inputs image (N, 3, h, w) and bbox_info (N, 3), outputs "
+                "rotations (N, 24, 3, 3), betas (N, 10), crop camera (N, 3)"
+            )
         self.runner, self.rescale, self.batch_size = runner, rescale, batch_size
         self.image_input = next(n for n, s in ins if len(s) == 4)
         self.info_input = next(n for n, s in ins if len(s) == 2)
@@ -55,7 +69,10 @@ class CliffEstimator:
         """Crop centres (N, 2) and heights b (N,) px of some boxes."""
         b = np.asarray(boxes_xyxy, np.float64).reshape(-1, 4)
         center = (b[:, :2] + b[:, 2:]) / 2
-        size = np.maximum((b[:, 2] - b[:, 0]) * self.height / self.width, b[:, 3] - b[:, 1]) * self.rescale
+        size = (
+            np.maximum((b[:, 2] - b[:, 0]) * self.height / self.width, b[:, 3] - b[:, 1])
+            * self.rescale
+        )
         return center, size
 
     def __call__(self, image: np.ndarray, boxes_xyxy: np.ndarray, K: np.ndarray) -> BodyParams:
@@ -64,10 +81,15 @@ class CliffEstimator:
         if len(center) == 0:
             z = lambda *s: np.zeros(s, np.float32)
             return BodyParams(z(0, 10), z(0, 3), z(0, 69), z(0, 3))
-        A = crop_affine(center, np.stack([size * self.width / self.height, size], 1), (self.height, self.width))
+        A = crop_affine(
+            center, np.stack([size * self.width / self.height, size], 1), (self.height, self.width)
+        )
         x = normalize(warp_crops(image, A, (self.height, self.width)), IMAGENET_MEAN, IMAGENET_STD)
-        out = run_batched(self.runner, {self.image_input: x, self.info_input: cliff_bbox_info(center, size, K)},
-                          self.batch_size)
+        out = run_batched(
+            self.runner,
+            {self.image_input: x, self.info_input: cliff_bbox_info(center, size, K)},
+            self.batch_size,
+        )
         rot = next(v for v in out.values() if v.ndim == 4).reshape(-1, 24, 3, 3)
         flat = [v for v in out.values() if v.ndim == 2]
         betas = next(v for v in flat if v.shape[1] == 10)

@@ -13,8 +13,8 @@ else all False (consumers fall back to the box); ``mask_source`` picks one expli
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -37,8 +37,12 @@ class ModelPerception:
     #: in the box), "none", or "auto" (the first of those three that the setup has)
     mask_source: str = "auto"
 
-    def __call__(self, image: np.ndarray, proposals: Detections | None = None,
-                 semantic: np.ndarray | None = None) -> ImagePerception:
+    def __call__(
+        self,
+        image: np.ndarray,
+        proposals: Detections | None = None,
+        semantic: np.ndarray | None = None,
+    ) -> ImagePerception:
         """Perception of one (H, W, 3) uint8 RGB image; ``proposals`` replaces the detector,
         ``semantic`` (H, W) uint8 train ids the semantic model."""
         check_image(image)
@@ -49,12 +53,17 @@ class ModelPerception:
         elif self.detector is not None:
             dets = self.detector(image)
         else:
-            raise ValueError("no person boxes: the setup has no detector and no proposals were given")
+            raise ValueError(
+                "no person boxes: the setup has no detector and no proposals were given"
+            )
         boxes = np.asarray(dets.boxes_xyxy, np.float32).reshape(-1, 4)
         scores = np.asarray(dets.scores, np.float32).reshape(-1)
         if semantic is None:
-            semantic = (np.full((H, W), 255, np.uint8) if self.semantic is None
-                        else np.asarray(self.semantic(image), np.uint8))
+            semantic = (
+                np.full((H, W), 255, np.uint8)
+                if self.semantic is None
+                else np.asarray(self.semantic(image), np.uint8)
+            )
         semantic = np.asarray(semantic, np.uint8)
         kp = np.zeros((len(boxes), NUM_KEYPOINTS, 3), np.float32)
         masks = None
@@ -66,13 +75,25 @@ class ModelPerception:
             kp = np.asarray(self.keypoints(image, boxes), np.float32)
         source = self.mask_source
         if source == "auto":
-            source = ("masks" if self.masks is not None else "blazepose" if self.blazepose is not None
-                      else "semantic" if self.semantic is not None or semantic_given else "none")
+            source = (
+                "masks"
+                if self.masks is not None
+                else "blazepose"
+                if self.blazepose is not None
+                else "semantic"
+                if self.semantic is not None or semantic_given
+                else "none"
+            )
         if source == "masks":
             masks = np.asarray(self.masks(image, boxes), bool)
         elif source == "semantic":
             masks = semantic_person_masks(semantic, boxes)
         elif source != "blazepose" or masks is None:
             masks = np.zeros((len(boxes), H, W), bool)
-        return ImagePerception(boxes_xyxy=boxes, scores=np.clip(scores, 0, 1).astype(np.float32),
-                               keypoints=kp.astype(np.float32), masks=masks, semantic=semantic)
+        return ImagePerception(
+            boxes_xyxy=boxes,
+            scores=np.clip(scores, 0, 1).astype(np.float32),
+            keypoints=kp.astype(np.float32),
+            masks=masks,
+            semantic=semantic,
+        )

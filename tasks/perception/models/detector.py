@@ -36,11 +36,13 @@ class Detections:
     scores: np.ndarray
 
     @staticmethod
-    def empty() -> "Detections":
+    def empty() -> Detections:
         return Detections(np.zeros((0, 4), np.float32), np.zeros(0, np.float32))
 
 
-def yolox_grid_decode(raw: np.ndarray, height: int, width: int, strides=YOLOX_STRIDES) -> np.ndarray:
+def yolox_grid_decode(
+    raw: np.ndarray, height: int, width: int, strides=YOLOX_STRIDES
+) -> np.ndarray:
     """Decode raw YOLOX rows (A, 5 + C) of a (height, width) input: rows in the order the head
     concatenates them (stride by stride, row-major over the grid). Returns (A, 5 + C) with
     (cx, cy, w, h) in input pixels, scores unchanged."""
@@ -53,15 +55,19 @@ def yolox_grid_decode(raw: np.ndarray, height: int, width: int, strides=YOLOX_ST
     grid = np.concatenate(grids).astype(np.float64)
     step = np.concatenate(steps).astype(np.float64)
     if len(grid) != len(raw):
-        raise ValueError(f"YOLOX output has {len(raw)} rows; a {height} x {width} input with strides "
-                         f"{tuple(strides)} has {len(grid)} (export decoded already? set decoded)")
+        raise ValueError(
+            f"YOLOX output has {len(raw)} rows; a {height} x {width} input with strides "
+            f"{tuple(strides)} has {len(grid)} (export decoded already? set decoded)"
+        )
     out = np.array(raw, np.float64)
     out[:, :2] = (out[:, :2] + grid) * step
     out[:, 2:4] = np.exp(out[:, 2:4]) * step
     return out
 
 
-def _select(boxes: np.ndarray, scores: np.ndarray, score_threshold: float, nms_iou: float) -> Detections:
+def _select(
+    boxes: np.ndarray, scores: np.ndarray, score_threshold: float, nms_iou: float
+) -> Detections:
     keep = scores >= score_threshold
     boxes, scores = boxes[keep], scores[keep]
     order = nms(boxes, scores, nms_iou)
@@ -71,10 +77,17 @@ def _select(boxes: np.ndarray, scores: np.ndarray, score_threshold: float, nms_i
 class YoloxDetector:
     """YOLOX person detector on a runner (see the module docstring)."""
 
-    def __init__(self, runner: ModelRunner, person_class: int = DetectorSettings.person_class,
-                 score_threshold: float = DetectorSettings.score_threshold,
-                 nms_iou: float = DetectorSettings.nms_iou, decoded: bool = DetectorSettings.decoded, mean=(0.0, 0.0, 0.0), std=(1.0, 1.0, 1.0),
-                 bgr: bool = True):
+    def __init__(
+        self,
+        runner: ModelRunner,
+        person_class: int = DetectorSettings.person_class,
+        score_threshold: float = DetectorSettings.score_threshold,
+        nms_iou: float = DetectorSettings.nms_iou,
+        decoded: bool = DetectorSettings.decoded,
+        mean=(0.0, 0.0, 0.0),
+        std=(1.0, 1.0, 1.0),
+        bgr: bool = True,
+    ):
         expect(runner, "YOLOX", {"*": (1, 3, None, None)}, {"*": (1, None, None)})
         self.runner, self.person_class, self.decoded = runner, person_class, decoded
         self.score_threshold, self.nms_iou = score_threshold, nms_iou
@@ -84,13 +97,23 @@ class YoloxDetector:
 
     def __call__(self, image: np.ndarray) -> Detections:
         x, lb = letterbox(image, self.height, self.width, 114.0, center=False)
-        out = next(iter(self.runner({self.input: normalize(x, self.mean, self.std, self.bgr)[None]}).values()))[0]
+        out = next(
+            iter(
+                self.runner(
+                    {self.input: normalize(x, self.mean, self.std, self.bgr)[None]}
+                ).values()
+            )
+        )[0]
         if out.shape[1] < 6 + self.person_class:
-            raise ValueError(f"{self.runner.source}: output rows have {out.shape[1]} values, fewer than "
-                             f"5 + person_class + 1 = {6 + self.person_class}")
+            raise ValueError(
+                f"{self.runner.source}: output rows have {out.shape[1]} values, fewer than "
+                f"5 + person_class + 1 = {6 + self.person_class}"
+            )
         rows = out if self.decoded else yolox_grid_decode(out, self.height, self.width)
         xy, wh = rows[:, :2], rows[:, 2:4]
-        boxes = lb.to_image(np.concatenate([xy - wh / 2, xy + wh / 2], 1).reshape(-1, 2, 2)).reshape(-1, 4)
+        boxes = lb.to_image(
+            np.concatenate([xy - wh / 2, xy + wh / 2], 1).reshape(-1, 2, 2)
+        ).reshape(-1, 4)
         scores = rows[:, 4] * rows[:, 5 + self.person_class]
         return _select(boxes, scores, self.score_threshold, self.nms_iou)
 
@@ -98,15 +121,33 @@ class YoloxDetector:
 class DecodedBoxesDetector:
     """A detector export that outputs final boxes: ``dets`` (1, N, 5), ``labels`` (1, N)."""
 
-    def __init__(self, runner: ModelRunner, person_class: int = DetectorSettings.person_class,
-                 score_threshold: float = DetectorSettings.score_threshold,
-                 nms_iou: float = DetectorSettings.nms_iou, mean=(0.0, 0.0, 0.0), std=(1.0, 1.0, 1.0), bgr: bool = True,
-                 center: bool = False, pad_value: float = 114.0):
-        expect(runner, "decoded-boxes detector", {"*": (1, 3, None, None)},
-               {"dets": (1, None, 5), "labels": (1, None)})
+    def __init__(
+        self,
+        runner: ModelRunner,
+        person_class: int = DetectorSettings.person_class,
+        score_threshold: float = DetectorSettings.score_threshold,
+        nms_iou: float = DetectorSettings.nms_iou,
+        mean=(0.0, 0.0, 0.0),
+        std=(1.0, 1.0, 1.0),
+        bgr: bool = True,
+        center: bool = False,
+        pad_value: float = 114.0,
+    ):
+        expect(
+            runner,
+            "decoded-boxes detector",
+            {"*": (1, 3, None, None)},
+            {"dets": (1, None, 5), "labels": (1, None)},
+        )
         self.runner, self.person_class = runner, person_class
         self.score_threshold, self.nms_iou = score_threshold, nms_iou
-        self.mean, self.std, self.bgr, self.center, self.pad_value = mean, std, bgr, center, pad_value
+        self.mean, self.std, self.bgr, self.center, self.pad_value = (
+            mean,
+            std,
+            bgr,
+            center,
+            pad_value,
+        )
         self.input = next(iter(runner.input_shapes))
         self.height, self.width = input_hw(runner, self.input)
 

@@ -21,7 +21,12 @@ IMAGENET_STD = (58.395, 57.12, 57.375)
 
 
 def check_image(image: np.ndarray) -> None:
-    if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+    if (
+        not isinstance(image, np.ndarray)
+        or image.dtype != np.uint8
+        or image.ndim != 3
+        or image.shape[2] != 3
+    ):
         got = f"{getattr(image, 'dtype', type(image).__name__)} {getattr(image, 'shape', '')}"
         raise ValueError(f"expected an (H, W, 3) uint8 RGB image, got {got}")
 
@@ -40,7 +45,9 @@ def resize(array: np.ndarray, height: int, width: int) -> np.ndarray:
     """Bilinear resize (half-pixel centres, no antialias: cv2.INTER_LINEAR) of a (C, H, W) array
     to (C, height, width) float32."""
     t = torch.as_tensor(np.ascontiguousarray(array, np.float32))
-    return F.interpolate(t[None], size=(height, width), mode="bilinear", align_corners=False)[0].numpy()
+    return F.interpolate(t[None], size=(height, width), mode="bilinear", align_corners=False)[
+        0
+    ].numpy()
 
 
 @dataclass(frozen=True)
@@ -56,7 +63,9 @@ class Letterbox:
         return (np.asarray(xy, np.float64) - [self.pad_x, self.pad_y]) / self.scale
 
 
-def letterbox(image: np.ndarray, height: int, width: int, pad_value: float, center: bool) -> tuple[np.ndarray, Letterbox]:
+def letterbox(
+    image: np.ndarray, height: int, width: int, pad_value: float, center: bool
+) -> tuple[np.ndarray, Letterbox]:
     """Fit an (H, W, 3) image into (height, width) keeping its aspect ratio.
 
     scale = min(height / H, width / W); the resized image (int(W * scale) x int(H * scale), as
@@ -70,11 +79,13 @@ def letterbox(image: np.ndarray, height: int, width: int, pad_value: float, cent
     resized = np.moveaxis(resize(np.moveaxis(image, -1, 0), rh, rw), 0, -1)
     out = np.full((height, width, 3), pad_value, np.float32)
     oy, ox = ((height - rh) // 2, (width - rw) // 2) if center else (0, 0)
-    out[oy:oy + rh, ox:ox + rw] = resized
+    out[oy : oy + rh, ox : ox + rw] = resized
     return out, Letterbox(s, float(ox), float(oy))
 
 
-def box_center_scale(boxes_xyxy: np.ndarray, aspect_w_over_h: float, padding: float) -> tuple[np.ndarray, np.ndarray]:
+def box_center_scale(
+    boxes_xyxy: np.ndarray, aspect_w_over_h: float, padding: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Top-down crop boxes (mmpose ``bbox_xyxy2cs`` + ``_fix_aspect_ratio``): centre (N, 2) and
     size (N, 2) = (w, h) * padding, the short side grown to the model's aspect ratio."""
     b = np.asarray(boxes_xyxy, np.float64).reshape(-1, 4)
@@ -85,8 +96,13 @@ def box_center_scale(boxes_xyxy: np.ndarray, aspect_w_over_h: float, padding: fl
     return center, np.stack([w, h], 1)
 
 
-def crop_affine(center: np.ndarray, size: np.ndarray, out_hw: tuple[int, int], rotation: np.ndarray | None = None,
-                udp: bool = False) -> np.ndarray:
+def crop_affine(
+    center: np.ndarray,
+    size: np.ndarray,
+    out_hw: tuple[int, int],
+    rotation: np.ndarray | None = None,
+    udp: bool = False,
+) -> np.ndarray:
     """Affine maps (N, 2, 3) from image pixels to crop pixels.
 
     center (N, 2) px, size (N, 2) = (w, h) px of the region, out_hw the crop's (height, width),
@@ -125,10 +141,14 @@ def apply_affine(A: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return np.einsum("nij,nkj->nki", A[:, :, :2], np.asarray(xy, np.float64)) + A[:, None, :, 2]
 
 
-def _sample(source: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor, border: float) -> torch.Tensor:
+def _sample(
+    source: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor, border: float
+) -> torch.Tensor:
     """Bilinear samples of source (1, C, H, W) float32 at pixel coordinates xs, ys (h', w')."""
     H, W = source.shape[-2:]
-    grid = torch.stack([xs.float() * (2.0 / max(W - 1, 1)) - 1, ys.float() * (2.0 / max(H - 1, 1)) - 1], dim=-1)[None]
+    grid = torch.stack(
+        [xs.float() * (2.0 / max(W - 1, 1)) - 1, ys.float() * (2.0 / max(H - 1, 1)) - 1], dim=-1
+    )[None]
     if border:
         source = source - border
     out = F.grid_sample(source, grid, mode="bilinear", padding_mode="zeros", align_corners=True)[0]
@@ -139,14 +159,19 @@ def _grid(inv: np.ndarray, v0: int, v1: int, u0: int, u1: int) -> tuple[torch.Te
     """Source coordinates (n, rows, cols) float32 of the pixels [v0, v1) x [u0, u1) through the
     maps ``inv`` (n, 2, 3) (destination -> source)."""
     inv = torch.as_tensor(np.asarray(inv, np.float64), dtype=torch.float32)
-    gy, gx = torch.meshgrid(torch.arange(v0, v1, dtype=torch.float32), torch.arange(u0, u1, dtype=torch.float32),
-                            indexing="ij")
+    gy, gx = torch.meshgrid(
+        torch.arange(v0, v1, dtype=torch.float32),
+        torch.arange(u0, u1, dtype=torch.float32),
+        indexing="ij",
+    )
     xs = inv[:, 0, 0, None, None] * gx + inv[:, 0, 1, None, None] * gy + inv[:, 0, 2, None, None]
     ys = inv[:, 1, 0, None, None] * gx + inv[:, 1, 1, None, None] * gy + inv[:, 1, 2, None, None]
     return xs, ys
 
 
-def warp_crops(image: np.ndarray, A: np.ndarray, out_hw: tuple[int, int], border: float = 0.0) -> np.ndarray:
+def warp_crops(
+    image: np.ndarray, A: np.ndarray, out_hw: tuple[int, int], border: float = 0.0
+) -> np.ndarray:
     """Crops (N, h, w, 3) float32 0-255 of an (H, W, 3) image through maps ``A`` (N, 2, 3)
     (image -> crop), bilinear, ``border`` outside the image (cv2.warpAffine, INTER_LINEAR)."""
     check_image(image)
@@ -160,8 +185,13 @@ def warp_crops(image: np.ndarray, A: np.ndarray, out_hw: tuple[int, int], border
     return out.reshape(3, n, h, w).permute(1, 2, 3, 0).numpy()
 
 
-def paste_back(crop_values: np.ndarray, A: np.ndarray, height: int, width: int,
-               region_xyxy: np.ndarray | None = None) -> np.ndarray:
+def paste_back(
+    crop_values: np.ndarray,
+    A: np.ndarray,
+    height: int,
+    width: int,
+    region_xyxy: np.ndarray | None = None,
+) -> np.ndarray:
     """Values of crops (N, h, w) float brought back to the image: (N, height, width) float32,
     bilinear, 0 outside each crop. ``region_xyxy`` (N, 4) limits each result to a pixel box
     (the rest 0), which keeps the work proportional to the crops."""
@@ -176,8 +206,10 @@ def paste_back(crop_values: np.ndarray, A: np.ndarray, height: int, width: int,
             u1, v1 = min(int(np.ceil(r[2])) + 1, width), min(int(np.ceil(r[3])) + 1, height)
         if u1 <= u0 or v1 <= v0:
             continue
-        xs, ys = _grid(A[i:i + 1], v0, v1, u0, u1)
-        vals = _sample(torch.as_tensor(crop_values[i], dtype=torch.float32)[None, None], xs[0], ys[0], 0.0)
+        xs, ys = _grid(A[i : i + 1], v0, v1, u0, u1)
+        vals = _sample(
+            torch.as_tensor(crop_values[i], dtype=torch.float32)[None, None], xs[0], ys[0], 0.0
+        )
         out[i, v0:v1, u0:u1] = vals[0].numpy()
     return out
 
@@ -193,5 +225,5 @@ def nms(boxes_xyxy: np.ndarray, scores: np.ndarray, iou_threshold: float) -> np.
         if not alive[rank]:
             continue
         keep.append(int(i))
-        alive[rank + 1:] &= iou[i, order[rank + 1:]] <= iou_threshold
+        alive[rank + 1 :] &= iou[i, order[rank + 1 :]] <= iou_threshold
     return np.array(keep, np.int64)

@@ -23,8 +23,16 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from tasks.perception.models.image import (IMAGENET_MEAN, IMAGENET_STD, apply_affine, box_center_scale,
-                                           crop_affine, invert_affine, normalize, warp_crops)
+from tasks.perception.models.image import (
+    IMAGENET_MEAN,
+    IMAGENET_STD,
+    apply_affine,
+    box_center_scale,
+    crop_affine,
+    invert_affine,
+    normalize,
+    warp_crops,
+)
 from tasks.perception.models.runner import ModelRunner, expect, input_hw, run_batched
 from tasks.perception.models.settings import KeypointSettings
 
@@ -52,11 +60,15 @@ def refine_quarter(heatmaps: np.ndarray, xy: np.ndarray) -> np.ndarray:
             x, y = int(xy[i, j, 0]), int(xy[i, j, 1])
             hm = heatmaps[i, j]
             if 0 < x < w - 1 and 0 < y < h - 1:
-                out[i, j] += 0.25 * np.sign([hm[y, x + 1] - hm[y, x - 1], hm[y + 1, x] - hm[y - 1, x]])
+                out[i, j] += 0.25 * np.sign(
+                    [hm[y, x + 1] - hm[y, x - 1], hm[y + 1, x] - hm[y - 1, x]]
+                )
     return out
 
 
-def refine_dark_udp(heatmaps: np.ndarray, xy: np.ndarray, blur_kernel: int = DARK_KERNEL) -> np.ndarray:
+def refine_dark_udp(
+    heatmaps: np.ndarray, xy: np.ndarray, blur_kernel: int = DARK_KERNEL
+) -> np.ndarray:
     """DARK refinement (Zhang et al. 2020) as ViTPose's UDP codec does it: blur each heatmap with a
     Gaussian (``blur_kernel`` taps, cv2's sigma for that size, zero border, rescaled to keep its
     maximum), take the log (values clipped to [1e-3, 50]), and take one Newton step from the
@@ -67,8 +79,9 @@ def refine_dark_udp(heatmaps: np.ndarray, xy: np.ndarray, blur_kernel: int = DAR
         sigma = 0.3 * ((blur_kernel - 1) * 0.5 - 1) + 0.8
         radius = (blur_kernel - 1) // 2
         peak = hm.max(axis=(2, 3), keepdims=True)
-        hm = ndimage.gaussian_filter(hm, sigma=(0, 0, sigma, sigma), mode="constant", cval=0.0,
-                                     truncate=radius / sigma)
+        hm = ndimage.gaussian_filter(
+            hm, sigma=(0, 0, sigma, sigma), mode="constant", cval=0.0, truncate=radius / sigma
+        )
         hm *= peak / np.maximum(hm.max(axis=(2, 3), keepdims=True), 1e-12)
     logs = np.log(np.clip(hm, 1e-3, 50.0))
     pad = np.pad(logs, ((0, 0), (0, 0), (1, 1), (1, 1)), mode="edge")
@@ -89,7 +102,9 @@ def refine_dark_udp(heatmaps: np.ndarray, xy: np.ndarray, blur_kernel: int = DAR
     return xy - step
 
 
-def decode_heatmaps(heatmaps: np.ndarray, input_hw: tuple[int, int], udp: bool) -> tuple[np.ndarray, np.ndarray]:
+def decode_heatmaps(
+    heatmaps: np.ndarray, input_hw: tuple[int, int], udp: bool
+) -> tuple[np.ndarray, np.ndarray]:
     """Heatmaps (N, K, h, w) -> keypoints (N, K, 2) in model-input pixels and confidences (N, K)
     (see the module docstring for the two codecs)."""
     hm = np.asarray(heatmaps, np.float64)
@@ -102,7 +117,9 @@ def decode_heatmaps(heatmaps: np.ndarray, input_hw: tuple[int, int], udp: bool) 
     return xy, val
 
 
-def decode_simcc(simcc_x: np.ndarray, simcc_y: np.ndarray, split_ratio: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+def decode_simcc(
+    simcc_x: np.ndarray, simcc_y: np.ndarray, split_ratio: float = 2.0
+) -> tuple[np.ndarray, np.ndarray]:
     """SimCC vectors (N, K, Wx), (N, K, Wy) -> keypoints (N, K, 2) input pixels (arg-max bin /
     split_ratio) and confidences (N, K) = min of the two maxima; -1 where that is <= 0."""
     sx, sy = np.asarray(simcc_x, np.float64), np.asarray(simcc_y, np.float64)
@@ -117,15 +134,35 @@ class TopDownKeypoints:
     (``form='simcc'``) export: one image input (N, 3, h, w), heatmaps (N, 17, h', w') or
     simcc_x (N, 17, Wx), simcc_y (N, 17, Wy)."""
 
-    def __init__(self, runner: ModelRunner, form: str, udp: bool = KeypointSettings.udp, padding: float = 1.25,
-                 split_ratio: float = 2.0, batch_size: int = KeypointSettings.batch_size, mean=IMAGENET_MEAN, std=IMAGENET_STD):
+    def __init__(
+        self,
+        runner: ModelRunner,
+        form: str,
+        udp: bool = KeypointSettings.udp,
+        padding: float = 1.25,
+        split_ratio: float = 2.0,
+        batch_size: int = KeypointSettings.batch_size,
+        mean=IMAGENET_MEAN,
+        std=IMAGENET_STD,
+    ):
         if form == "heatmap":
-            expect(runner, "ViTPose heatmap", {"*": (None, 3, None, None)}, {"*": (None, NUM_KEYPOINTS, None, None)})
+            expect(
+                runner,
+                "ViTPose heatmap",
+                {"*": (None, 3, None, None)},
+                {"*": (None, NUM_KEYPOINTS, None, None)},
+            )
         elif form == "simcc":
-            expect(runner, "RTMPose SimCC", {"*": (None, 3, None, None)},
-                   {"*": (None, NUM_KEYPOINTS, None), "**": (None, NUM_KEYPOINTS, None)})
+            expect(
+                runner,
+                "RTMPose SimCC",
+                {"*": (None, 3, None, None)},
+                {"*": (None, NUM_KEYPOINTS, None), "**": (None, NUM_KEYPOINTS, None)},
+            )
         else:
-            raise ValueError(f"keypoint form {form!r}: expected 'heatmap' (ViTPose) or 'simcc' (RTMPose)")
+            raise ValueError(
+                f"keypoint form {form!r}: expected 'heatmap' (ViTPose) or 'simcc' (RTMPose)"
+            )
         self.runner, self.form, self.udp = runner, form, udp and form == "heatmap"
         self.padding, self.split_ratio, self.batch_size = padding, split_ratio, batch_size
         self.mean, self.std = mean, std
@@ -148,6 +185,8 @@ class TopDownKeypoints:
         if self.form == "heatmap":
             xy, conf = decode_heatmaps(out[0], (self.height, self.width), self.udp)
         else:
-            xy, conf = decode_simcc(out[0], out[1], self.split_ratio)  # simcc_x first (mmpose export)
+            xy, conf = decode_simcc(
+                out[0], out[1], self.split_ratio
+            )  # simcc_x first (mmpose export)
         uv = apply_affine(invert_affine(A), xy)
         return np.concatenate([uv, np.clip(conf, 0, 1)[..., None]], -1).astype(np.float32)

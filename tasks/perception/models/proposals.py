@@ -12,9 +12,17 @@ import numpy as np
 from tasks.perception.types import box_corners
 
 
-def project_lidar_boxes(centers: np.ndarray, sizes: np.ndarray, yaws: np.ndarray, T_cam_from_lidar: np.ndarray,
-                        K: np.ndarray, width: int, height: int, min_depth_m: float = 0.3,
-                        min_side_px: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
+def project_lidar_boxes(
+    centers: np.ndarray,
+    sizes: np.ndarray,
+    yaws: np.ndarray,
+    T_cam_from_lidar: np.ndarray,
+    K: np.ndarray,
+    width: int,
+    height: int,
+    min_depth_m: float = 0.3,
+    min_side_px: float = 4.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """Image boxes of 3D boxes (LiDAR frame: centers (M, 3), sizes (M, 3), yaws (M,)).
 
     A box counts when all eight corners are at least ``min_depth_m`` in front of the camera
@@ -22,8 +30,11 @@ def project_lidar_boxes(centers: np.ndarray, sizes: np.ndarray, yaws: np.ndarray
     (width x height, pixel centres at integers), is at least ``min_side_px`` on both sides.
     Returns boxes (B, 4) float32 xyxy px and the indices (B,) int64 of the 3D boxes they come from.
     """
-    corners = box_corners(np.asarray(centers).reshape(-1, 3), np.asarray(sizes).reshape(-1, 3),
-                          np.asarray(yaws).reshape(-1))
+    corners = box_corners(
+        np.asarray(centers).reshape(-1, 3),
+        np.asarray(sizes).reshape(-1, 3),
+        np.asarray(yaws).reshape(-1),
+    )
     T = np.asarray(T_cam_from_lidar, np.float64)
     cam = corners @ T[:3, :3].T + T[:3, 3]
     z = cam[..., 2]

@@ -47,8 +47,12 @@ def labels_from_output(out: np.ndarray, height: int, width: int) -> np.ndarray:
         up = F.interpolate(logits, size=(height, width), mode="bilinear", align_corners=False)
         return up[0].argmax(0).numpy().astype(np.uint8)
     lab = a.reshape(a.shape[-2:])
-    rows = np.minimum(((np.arange(height) + 0.5) * lab.shape[0] / height).astype(int), lab.shape[0] - 1)
-    cols = np.minimum(((np.arange(width) + 0.5) * lab.shape[1] / width).astype(int), lab.shape[1] - 1)
+    rows = np.minimum(
+        ((np.arange(height) + 0.5) * lab.shape[0] / height).astype(int), lab.shape[0] - 1
+    )
+    cols = np.minimum(
+        ((np.arange(width) + 0.5) * lab.shape[1] / width).astype(int), lab.shape[1] - 1
+    )
     out_lab = lab[rows][:, cols].astype(np.int64)
     return np.where((out_lab >= 0) & (out_lab < NUM_CITYSCAPES), out_lab, 255).astype(np.uint8)
 
@@ -56,21 +60,37 @@ def labels_from_output(out: np.ndarray, height: int, width: int) -> np.ndarray:
 class SemanticSegmenter:
     """Cityscapes train ids per pixel from a segmentation export (module docstring)."""
 
-    def __init__(self, runner: ModelRunner, mean=IMAGENET_MEAN, std=IMAGENET_STD,
-                 input_size: tuple[int, int] | None = SemanticSettings.input_size):
+    def __init__(
+        self,
+        runner: ModelRunner,
+        mean=IMAGENET_MEAN,
+        std=IMAGENET_STD,
+        input_size: tuple[int, int] | None = SemanticSettings.input_size,
+    ):
         expect(runner, "Cityscapes segmentation", {"*": (1, 3, None, None)}, 1)
         shape = next(iter(runner.output_shapes.values()))
         if not (len(shape) == 3 or (len(shape) == 4 and shape[1] in (None, 1, NUM_CITYSCAPES))):
-            raise ValueError(f"{runner.source}: not a Cityscapes segmentation export: output shape {shape}, "
-                             f"expected logits (1, {NUM_CITYSCAPES}, h, w) or labels (1, h, w)")
+            raise ValueError(
+                f"{runner.source}: not a Cityscapes segmentation export: output shape {shape}, "
+                f"expected logits (1, {NUM_CITYSCAPES}, h, w) or labels (1, h, w)"
+            )
         self.runner, self.mean, self.std = runner, mean, std
         self.input = next(iter(runner.input_shapes))
         self.height, self.width = input_size or input_hw(runner, self.input)
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
         """(H, W) uint8 train ids."""
-        out = next(iter(self.runner({self.input: _resized_input(image, self.height, self.width,
-                                                                self.mean, self.std)}).values()))
+        out = next(
+            iter(
+                self.runner(
+                    {
+                        self.input: _resized_input(
+                            image, self.height, self.width, self.mean, self.std
+                        )
+                    }
+                ).values()
+            )
+        )
         return labels_from_output(out, image.shape[0], image.shape[1])
 
 
@@ -101,8 +121,14 @@ def assign_masks(boxes_xyxy: np.ndarray, masks: np.ndarray, min_box_iou: float) 
     return out
 
 
-def query_masks(class_logits: np.ndarray, mask_logits: np.ndarray, height: int, width: int,
-                person_class: int, score_threshold: float) -> tuple[np.ndarray, np.ndarray]:
+def query_masks(
+    class_logits: np.ndarray,
+    mask_logits: np.ndarray,
+    height: int,
+    width: int,
+    person_class: int,
+    score_threshold: float,
+) -> tuple[np.ndarray, np.ndarray]:
     """Mask2Former query outputs (Q, C + 1), (Q, h, w) -> person masks (M, height, width) bool and
     their scores (M,), by decreasing score (module docstring)."""
     logits = torch.as_tensor(np.asarray(class_logits, np.float32))
@@ -110,8 +136,12 @@ def query_masks(class_logits: np.ndarray, mask_logits: np.ndarray, height: int, 
     keep = np.flatnonzero(prob >= score_threshold)  # the mask factor is <= 1: a cheap pre-filter
     if keep.size == 0:
         return np.zeros((0, height, width), bool), np.zeros(0, np.float32)
-    up = F.interpolate(torch.as_tensor(np.asarray(mask_logits, np.float32)[keep])[None],
-                       size=(height, width), mode="bilinear", align_corners=False)[0]
+    up = F.interpolate(
+        torch.as_tensor(np.asarray(mask_logits, np.float32)[keep])[None],
+        size=(height, width),
+        mode="bilinear",
+        align_corners=False,
+    )[0]
     binary = up > 0
     sig = up.sigmoid()
     mask_score = (sig * binary).flatten(1).sum(1) / binary.flatten(1).sum(1).clamp(min=1)
@@ -124,35 +154,57 @@ def query_masks(class_logits: np.ndarray, mask_logits: np.ndarray, height: int, 
 class QueryInstanceMasks:
     """Person masks for detection boxes from a Mask2Former-style export (module docstring)."""
 
-    def __init__(self, runner: ModelRunner, person_class: int = MaskSettings.person_class,
-                 score_threshold: float = MaskSettings.score_threshold,
-                 min_box_iou: float = 0.5, mean=IMAGENET_MEAN, std=IMAGENET_STD,
-                 input_size: tuple[int, int] | None = None):
+    def __init__(
+        self,
+        runner: ModelRunner,
+        person_class: int = MaskSettings.person_class,
+        score_threshold: float = MaskSettings.score_threshold,
+        min_box_iou: float = 0.5,
+        mean=IMAGENET_MEAN,
+        std=IMAGENET_STD,
+        input_size: tuple[int, int] | None = None,
+    ):
         expect(runner, "Mask2Former-style instance", {"*": (1, 3, None, None)}, 2)
         if sorted(len(s) for s in runner.output_shapes.values()) != [3, 4]:
-            raise ValueError(f"{runner.source}: not a Mask2Former-style export: outputs "
-                             f"{dict(runner.output_shapes)}, expected class logits (1, Q, C + 1) and "
-                             "mask logits (1, Q, h, w)")
+            raise ValueError(
+                f"{runner.source}: not a Mask2Former-style export: outputs "
+                f"{dict(runner.output_shapes)}, expected class logits (1, Q, C + 1) and "
+                "mask logits (1, Q, h, w)"
+            )
         self.runner, self.person_class = runner, person_class
-        self.score_threshold, self.min_box_iou, self.mean, self.std = score_threshold, min_box_iou, mean, std
+        self.score_threshold, self.min_box_iou, self.mean, self.std = (
+            score_threshold,
+            min_box_iou,
+            mean,
+            std,
+        )
         self.input = next(iter(runner.input_shapes))
         self.height, self.width = input_size or input_hw(runner, self.input)
 
     def __call__(self, image: np.ndarray, boxes_xyxy: np.ndarray) -> np.ndarray:
         """(D, H, W) bool, one mask per box (all False where no query matches)."""
         H, W = image.shape[:2]
-        out = sorted(self.runner({self.input: _resized_input(image, self.height, self.width,
-                                                             self.mean, self.std)}).values(), key=np.ndim)
+        out = sorted(
+            self.runner(
+                {self.input: _resized_input(image, self.height, self.width, self.mean, self.std)}
+            ).values(),
+            key=np.ndim,
+        )
         cls, masks = out[0][0], out[1][0]
         if self.person_class >= cls.shape[-1] - 1:
-            raise ValueError(f"{self.runner.source}: person_class {self.person_class} but the export has "
-                             f"{cls.shape[-1] - 1} classes (+ no-object)")
+            raise ValueError(
+                f"{self.runner.source}: person_class {self.person_class} but the export has "
+                f"{cls.shape[-1] - 1} classes (+ no-object)"
+            )
         found, _ = query_masks(cls, masks, H, W, self.person_class, self.score_threshold)
-        return assign_masks(np.asarray(boxes_xyxy, np.float64).reshape(-1, 4), found, self.min_box_iou)
+        return assign_masks(
+            np.asarray(boxes_xyxy, np.float64).reshape(-1, 4), found, self.min_box_iou
+        )
 
 
-def semantic_person_masks(semantic: np.ndarray, boxes_xyxy: np.ndarray,
-                          person_ids=PERSON_TRAIN_IDS) -> np.ndarray:
+def semantic_person_masks(
+    semantic: np.ndarray, boxes_xyxy: np.ndarray, person_ids=PERSON_TRAIN_IDS
+) -> np.ndarray:
     """The fallback: person pixels of ``semantic`` (H, W) inside each box (D, 4); a pixel in
     several boxes goes to the box with the lowest bottom edge. Returns (D, H, W) bool."""
     H, W = semantic.shape
