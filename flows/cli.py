@@ -217,8 +217,12 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from flows.commands.evaluate import evaluate
+    from flows.commands.report import section_table
 
-    evaluate(args.dataset, args.gt, args.report, labels=args.labels)
+    res = evaluate(args.dataset, args.gt, args.report, labels=args.labels)
+    for key, title in (("detection", "automatic"), ("detection_manual_qa", "manual QA")):
+        if key in res:  # the paper's Table 4 bottom, computed and checked by hand
+            print(f"detection robustness ({title}):\n{section_table(key, res[key])}\n")
     print(
         f"report: {args.report / 'report.md'} (figures in {args.report / 'figures'}, "
         f"numbers in {args.report / 'results.json'})"
@@ -297,6 +301,32 @@ def cmd_show(args: argparse.Namespace) -> int:
     png = show(args.path, args.png, frame=args.frame)
     print(png)
     return 0
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from flows.commands.view import view
+    from flows.viewer.draw import Layers
+    from storage.layout import StoreError
+
+    chosen = {"mask": args.mask, "style": args.style, "max_voxels": args.max_voxels}
+    layers = Layers(unknown=args.unknown, **{k: v for k, v in chosen.items() if v is not None})
+    try:
+        return view(
+            args.dataset,
+            args.sequence,
+            args.frame,
+            args.port,
+            args.host,
+            args.html,
+            args.frames,
+            layers,
+            args.qa,
+            args.qa_frames,
+            args.data,
+        )
+    except (StoreError, ValueError, OSError) as exc:
+        print(f"mobileocc view: {exc}", file=sys.stderr)
+        return EXIT_USAGE
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -473,6 +503,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frame", type=int, default=None)
     p.add_argument("--png", type=Path, default=None, help="output PNG path")
     p.set_defaults(func=cmd_show)
+
+    p = sub.add_parser(
+        "view",
+        help="look at a dataset in 3D in the browser (served on localhost, or --html FILE), "
+        "and the manual detection QA (--qa)",
+    )
+    p.add_argument("--dataset", type=Path, required=True, help="the output store (OUT)")
+    p.add_argument("--sequence", default=None, help="sequence to open (default: the first)")
+    p.add_argument("--frame", type=int, default=None, help="frame index (frames table `frame`)")
+    p.add_argument("--port", type=int, default=8080, help="viewer port (next free when taken)")
+    p.add_argument("--host", default="127.0.0.1", help="address to serve on")
+    p.add_argument("--html", type=Path, default=None, help="write one self-contained HTML page")
+    p.add_argument("--frames", type=int, default=1, help="--html: frames in the page (<= 50)")
+    p.add_argument("--qa", action="store_true", help="manual detection QA pass (saved in OUT/qa/)")
+    p.add_argument("--qa-frames", type=int, default=None, help="QA frames per condition (100)")
+    p.add_argument(
+        "--mask", choices=["none", "camera", "lidar"], default=None, help="voxels inside it only"
+    )
+    p.add_argument("--unknown", action="store_true", help="show unknown space in grey")
+    p.add_argument("--style", choices=["auto", "cubes", "points"], default=None)
+    p.add_argument(
+        "--max-voxels", type=int, default=None, help="per layer; beyond, voxels merge into blocks"
+    )
+    p.add_argument("--data", type=Path, default=None, help="raw data root (default: recorded)")
+    p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("demo", help="generate the synthetic demo data (if missing) and process it")
     _add_config_args(p)
