@@ -246,6 +246,7 @@ BENCHMARKS = {
     "perception": "flows.bench.perception",
     "planning": "flows.bench.planning",
     "memory": "flows.bench.memory",
+    "viewer": "flows.bench.viewer",
 }
 
 
@@ -443,7 +444,7 @@ def build_parser() -> argparse.ArgumentParser:
         (
             "bench",
             "measure speeds, memory and reference ratios in one run: `mobileocc bench "
-            "[pipeline | fit | occupancy | perception | planning | memory] [--help | options]` "
+            "[pipeline | fit | occupancy | perception | planning | memory | viewer] [--help | options]` "
             "(default pipeline)",
         ),
         ("cluster", "render a Dask cluster spec: `mobileocc cluster render infra/slurm.yaml`"),
@@ -522,7 +523,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--mask", choices=["none", "camera", "lidar"], default=None, help="voxels inside it only"
     )
     p.add_argument("--unknown", action="store_true", help="show unknown space in grey")
-    p.add_argument("--style", choices=["auto", "cubes", "points"], default=None)
+    p.add_argument(
+        "--style", choices=["points", "cubes"], default=None, help="voxels as squares or boxes"
+    )
     p.add_argument(
         "--max-voxels", type=int, default=None, help="per layer; beyond, voxels merge into blocks"
     )

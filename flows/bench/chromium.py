@@ -112,7 +112,7 @@ class Chromium:
             raise ChromiumError("chromium has no page target")
         return pages[0]["webSocketDebuggerUrl"]
 
-    def call(self, method: str, timeout_s: float = 120.0, **params):
+    def call(self, method: str, timeout_s: float = 300.0, **params):
         """Send one protocol command and return its result (events meanwhile are kept)."""
         ident = next(self._ids)
         self.ws.send(json.dumps({"id": ident, "method": method, "params": params}))
@@ -138,8 +138,30 @@ class Chromium:
             if e.get("method") == "Network.requestWillBeSent"
         ]
 
-    def goto(self, url: str) -> None:
+    def goto(self, url: str, timeout_s: float = 120.0) -> None:
+        """Open ``url`` and wait for its load event."""
+        seen = len(self.events)
         self.call("Page.navigate", url=url)
+        self.wait_event("Page.loadEventFired", timeout_s, since=seen)
+
+    def wait_event(self, method: str, timeout_s: float, since: int = 0) -> dict:
+        """The first event ``method`` at or after position ``since`` of :attr:`events`, read
+        from the connection until it comes (ChromiumError after ``timeout_s``)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            for e in self.events[since:]:
+                if e.get("method") == method:
+                    return e
+            since = len(self.events)
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise ChromiumError(f"no {method} within {timeout_s:.0f} s")
+            try:
+                msg = json.loads(self.ws.recv(timeout=left))
+            except TimeoutError:
+                continue
+            if "method" in msg:
+                self.events.append(msg)
 
     def evaluate(self, expression: str):
         """The value of a JavaScript expression in the page (promises awaited)."""

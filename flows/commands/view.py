@@ -58,39 +58,50 @@ def export_html(
     fps: float = 5.0,
 ) -> dict:
     """Write frames ``first .. first + count - 1`` of ``sequence`` (clipped to the sequence) as
-    one self-contained HTML page at ``path``; returns {frames, bytes, seconds, layers}."""
-    from flows.viewer.app import place_camera, start_viser, with_boxes
+    one self-contained HTML page at ``path``; returns {frames, bytes, seconds, layers, notes}."""
+    from flows.viewer.app import with_boxes
 
     if not 1 <= count <= MAX_HTML_FRAMES:
         raise ViewerInputError(f"--frames {count}: expected 1..{MAX_HTML_FRAMES}")
     path = Path(path)
     if path.is_dir():
         raise ViewerInputError(f"--html {path}: is a folder, expected a file name")
-    last = min(source.num_frames(sequence), first + count) - 1
+    frames = list(range(first, min(source.num_frames(sequence), first + count)))
+    datas = (with_boxes(source.frame(sequence, k)) for k in frames)
+    res = write_html(datas, path, layers, body_model(source.out), fps)
+    return {**res, "frames": frames}
+
+
+def write_html(datas, path: Path, layers: Layers, model=None, fps: float = 5.0) -> dict:
+    """Record the frames ``datas`` (FrameData, in order, 1 / fps s apart) into one self-contained
+    HTML page (viser's client with the scene inline) written atomically at ``path``; returns
+    {bytes, seconds, layers (of the last frame), notes}."""
+    from flows.viewer.app import place_camera, start_viser, stop_viser
+
     t0 = time.perf_counter()
-    server = start_viser("127.0.0.1", 0)
+    server = start_viser("127.0.0.1", 0)  # the recording needs a scene; nothing connects to it
     try:
-        data = with_boxes(source.frame(sequence, first))
-        place_camera(server.initial_camera, data)
-        serializer = server.get_scene_serializer()
-        drawer = FrameDrawer(server.scene, body_model(source.out))
-        stats = None
-        for k in range(first, last + 1):
-            if k > first:
+        serializer, drawer, stats = None, FrameDrawer(server.scene, model), None
+        for data in datas:
+            if serializer is None:
+                place_camera(server.initial_camera, data)
+                serializer = server.get_scene_serializer()
+            else:
                 serializer.insert_sleep(1.0 / fps)
-                data = with_boxes(source.frame(sequence, k))
             stats = drawer.draw(data, layers)
+        if serializer is None:
+            raise ViewerInputError(f"--html {path}: no frame to write")
         page = serializer.as_html().encode()
     finally:
-        server.stop()
+        stop_viser(server)
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(path, page)
     return {
-        "frames": list(range(first, last + 1)),
         "bytes": len(page),
         "seconds": time.perf_counter() - t0,
-        "layers": stats.layers if stats else {},
-        "notes": stats.notes if stats else [],
+        "layers": stats.layers,
+        "notes": stats.notes,
     }
 
 

@@ -23,6 +23,7 @@ from tasks.viz import instance_colors
 
 LAYER_TOGGLES = (
     ("voxels", "occupied voxels"),
+    ("pedestrian_voxels", "pedestrian voxels"),
     ("unknown", "unknown (grey)"),
     ("bodies", "bodies"),
     ("boxes", "boxes"),
@@ -42,7 +43,16 @@ def start_viser(host: str, port: int):
     with redirect_stdout(StringIO()):
         server = viser.ViserServer(host=host, port=port, label="mobileocc", verbose=False)
     server.scene.set_up_direction("+z")
+    # no image-based lighting: it pales the bodies' colours and costs seconds of software
+    # rendering on machines without a GPU; the default lights shade the bodies
+    server.scene.configure_environment_map(hdri=None)
+    server.scene.configure_default_lights(enabled=True, cast_shadow=False)
     return server
+
+
+def stop_viser(server) -> None:
+    with redirect_stdout(StringIO()):  # viser's "Server stopped" line
+        server.stop()
 
 
 def place_camera(target, data) -> None:
@@ -51,7 +61,7 @@ def place_camera(target, data) -> None:
     center = view_center(data)
     extent = float(np.max(np.asarray(data.semantics.shape[:2]) * data.voxel_size_m))
     target.look_at = tuple(center)
-    target.position = tuple(center + [-0.9 * extent, 0.35 * extent, 0.8 * extent])
+    target.position = tuple(center + [-0.55 * extent, 0.25 * extent, 0.6 * extent])
 
 
 class ViewerApp:
@@ -139,7 +149,7 @@ class ViewerApp:
                 "mask", ("none", "camera", "lidar"), initial_value=self.layers.mask
             )
             self.g_style = gui.add_dropdown(
-                "voxel style", ("auto", "cubes", "points"), initial_value=self.layers.style
+                "voxel style", ("points", "cubes"), initial_value=self.layers.style
             )
             self.g_look = gui.add_button("look through the camera")
 
@@ -361,7 +371,7 @@ class ViewerApp:
 
     def close(self) -> None:
         self._stop.set()
-        self.server.stop()
+        stop_viser(self.server)
 
 
 def _rotation(wxyz) -> np.ndarray:

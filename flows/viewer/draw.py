@@ -22,6 +22,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from tasks import conventions as C
 from tasks.view import scene as S
 from tasks.viz import instance_colors
 
@@ -48,16 +49,20 @@ CUBE_FACES = np.array(
 )
 #: gap between the labels, the ground truth and the difference, m
 GROUP_GAP_M = 1.0
+#: LiDAR points are shown this far around the grid (a sweep reaches 100 m), m
+LIDAR_MARGIN_M = 3.0
 
 
 @dataclass(frozen=True)
 class Layers:
     """What to draw. mask: "none" (every occupied voxel), "camera" or "lidar" (only voxels where
-    that mask is 1); style: "cubes" (instanced boxes), "points" (squares of the voxel's size,
-    lighter), "auto" (cubes up to ``cube_limit`` voxels, points beyond); max_voxels: per voxel
-    layer, beyond it voxels merge into blocks (tasks.view.scene)."""
+    that mask is 1); style: "points" (unlit squares of the voxel's size: the class colours as
+    they are, 9 bytes a voxel) or "cubes" (instanced lit boxes: shaded, but viser's lighting
+    pales the colours, 31 bytes a voxel); max_voxels: per voxel layer, beyond it voxels merge
+    into blocks (tasks.view.scene)."""
 
     voxels: bool = True
+    pedestrian_voxels: bool = True
     mask: str = "none"
     unknown: bool = False
     bodies: bool = True
@@ -67,15 +72,14 @@ class Layers:
     camera: bool = True
     ground_truth: bool = True
     difference: bool = True
-    style: str = "auto"
+    style: str = "points"
     max_voxels: int = S.MAX_VOXELS
-    cube_limit: int = 60_000
 
     def __post_init__(self) -> None:
         if self.mask not in ("none", "camera", "lidar"):
             raise ValueError(f"mask {self.mask!r}: expected none, camera or lidar")
-        if self.style not in ("auto", "cubes", "points"):
-            raise ValueError(f"style {self.style!r}: expected auto, cubes or points")
+        if self.style not in ("points", "cubes"):
+            raise ValueError(f"style {self.style!r}: expected points or cubes")
 
     def with_(self, **kw) -> Layers:
         return replace(self, **kw)
@@ -151,7 +155,10 @@ class FrameDrawer:
 
         if layers.voxels:
             mask = {"none": None, "camera": data.mask_camera, "lidar": data.mask_lidar}[layers.mask]
-            layer = S.class_layer(data.semantics, rm, vs, mask, True, layers.max_voxels)
+            sem = data.semantics
+            if not layers.pedestrian_voxels:  # to see the bodies inside them
+                sem = np.where(sem == C.PEDESTRIAN, np.uint8(C.FREE), sem)
+            layer = S.class_layer(sem, rm, vs, mask, True, layers.max_voxels)
             self._voxels(add, "/labels/voxels", layer, layers, stats)
         if layers.unknown:
             mask = data.mask_lidar if layers.mask == "lidar" else data.mask_camera
@@ -175,12 +182,14 @@ class FrameDrawer:
                     ),
                 )
         if layers.lidar and data.points_lidar is not None:
-            pts, cols = S.lidar_points(data.points_lidar, data.T_base_from_lidar)
+            lo = rm - LIDAR_MARGIN_M
+            hi = rm + np.asarray(data.semantics.shape) * vs + LIDAR_MARGIN_M
+            pts, cols = S.lidar_points(data.points_lidar, data.T_base_from_lidar, 60_000, lo, hi)
             stats.points = len(pts)
             add(
                 "/sensors/lidar",
                 lambda n: self.scene.add_point_cloud(
-                    n, pts, cols, point_size=0.03, point_shape="circle", point_shading="flat"
+                    n, pts, cols, point_size=0.025, point_shape="circle", point_shading="flat"
                 ),
             )
         if layers.camera:
@@ -219,11 +228,8 @@ class FrameDrawer:
         center = (layer.centers.min(0) + layer.centers.max(0)) / 2.0
         rel = layer.centers - center
         center = center + np.array([0.0, dy, 0.0], np.float32)
-        cubes = layers.style == "cubes" or (
-            layers.style == "auto" and len(layer) <= layers.cube_limit
-        )
-        stats.layers[key]["style"] = "cubes" if cubes else "points"
-        if cubes:
+        stats.layers[key]["style"] = layers.style
+        if layers.style == "cubes":
             add(
                 name,
                 lambda n: self.scene.add_batched_meshes_simple(

@@ -353,16 +353,24 @@ def height_colors(z: np.ndarray, z_min: float = -1.0, z_max: float = 3.0) -> np.
 
 
 def lidar_points(
-    points_lidar: np.ndarray, T_base_from_lidar: np.ndarray, max_points: int = 60_000
+    points_lidar: np.ndarray,
+    T_base_from_lidar: np.ndarray,
+    max_points: int = 60_000,
+    box_min=None,
+    box_max=None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """A sweep (N, 3) float32 m, LiDAR frame (all-zero rows = no return, dropped) -> every k-th
-    point in the base frame (at most ``max_points``, k the smallest that fits: a deterministic
-    thinning that keeps the ring structure) and its height colours. Returns (M, 3) float32,
-    (M, 3) uint8."""
+    """A sweep (N, 3) float32 m, LiDAR frame (all-zero rows = no return, dropped) -> its points in
+    the base frame inside [box_min, box_max] (3,) m when given (the grid and its surroundings:
+    a sweep reaches 100 m and would hide the grid), thinned to every k-th point (at most
+    ``max_points``, k the smallest that fits: deterministic, keeps the ring structure), and their
+    height colours. Returns (M, 3) float32, (M, 3) uint8."""
     p = np.asarray(points_lidar, np.float32).reshape(-1, 3)
     p = p[np.any(p != 0, axis=1)]
-    step = max(1, -(-p.shape[0] // max(1, int(max_points))))
-    base = C.transform_points(T_base_from_lidar, p[::step]).astype(np.float32)
+    base = C.transform_points(T_base_from_lidar, p)
+    if box_min is not None and box_max is not None:
+        base = base[np.all((base >= box_min) & (base <= box_max), axis=1)]
+    step = max(1, -(-base.shape[0] // max(1, int(max_points))))
+    base = base[::step].astype(np.float32)
     return base, height_colors(base[:, 2])
 
 
@@ -401,7 +409,7 @@ class CameraView:
 
 
 def camera_view(
-    K: np.ndarray, width: int, height: int, T_base_from_cam: np.ndarray, depth_m: float = 1.5
+    K: np.ndarray, width: int, height: int, T_base_from_cam: np.ndarray, depth_m: float = 0.8
 ) -> CameraView:
     """The camera of intrinsics K (3, 3) px and image size width x height px, at pose
     T_base_from_cam (4, 4), with its image drawn ``depth_m`` in front of it."""
