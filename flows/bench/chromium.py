@@ -38,7 +38,7 @@ FLAGS = (
     "--mute-audio",
     # WebGL on the software rasteriser (recent Chromium wants it asked for explicitly)
     "--enable-unsafe-swiftshader",
-    "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE localhost",
+    "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE localhost, EXCLUDE 127.0.0.1",
 )
 
 

@@ -285,7 +285,11 @@ class FrameDrawer:
             add(
                 "/labels/boxes",
                 lambda n: self.scene.add_line_segments(
-                    n, segs, np.repeat(cols[:, None], 2, axis=1), line_width=2.0
+                    n,
+                    segs,
+                    np.repeat(cols[:, None], 2, axis=1),
+                    thickness=2.0,
+                    thickness_units="screen",
                 ),
             )
             for r in boxed:
