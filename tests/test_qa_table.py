@@ -64,3 +64,20 @@ def test_a_table_of_an_older_version_is_refused_and_left_as_it_was(tmp_path):
     path.write_bytes(b"not parquet")
     with pytest.raises(QATableError, match="not a readable Parquet file"):
         read_qa(tmp_path)
+
+
+def test_the_report_section_counts_marks_and_names_rebuilt_sequences(tmp_path):
+    from flows.viewer.qa import manual_qa_section
+
+    assert manual_qa_section(tmp_path) == (None, None)  # no pass saved: no section
+    _save(tmp_path, 1, [Mark("T", 3), Mark("M_vis", None, 10.5, 20.0)])
+    _save(tmp_path, 0, [])
+    counts, note = manual_qa_section(tmp_path, {"0": "v1"})
+    assert counts["crowded"]["T"] == 1 and counts["crowded"]["M_vis"] == 1
+    assert counts["all"]["recall"] == 0.5 and "2 frame(s) checked" in note
+    assert "rebuilt" not in note
+    _, note = manual_qa_section(tmp_path, {"0": "v2"})
+    assert "sequence(s) 0 were rebuilt after their frames were checked" in note
+    qa_path(tmp_path).write_bytes(b"broken")  # evaluate goes on, saying why
+    assert manual_qa_section(tmp_path)[0] is None
+    assert "manual QA table not read" in manual_qa_section(tmp_path)[1]

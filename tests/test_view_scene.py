@@ -149,6 +149,9 @@ def test_lidar_points_thin_and_move_to_base():
     base, cols = S.lidar_points(pts, T, max_points=100)
     assert len(base) == 100 and np.allclose(base[:, 2], 0.8) and base[1, 0] == 9.0
     assert cols.shape == (100, 3) and cols.dtype == np.uint8
+    # only the points around the grid: a sweep reaches 100 m
+    near, _ = S.lidar_points(pts, T, 1000, box_min=(0, -1, 0), box_max=(50.5, 1, 1))
+    assert len(near) == 50 and near[:, 0].max() == 50.0
 
 
 def test_draw_boxes_2d_outlines_only():

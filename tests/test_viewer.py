@@ -23,6 +23,9 @@ from flows.viewer.draw import Layers
 from storage.qa import QATableError, qa_path
 from storage.viewer_data import ViewerInputError, ViewerSource
 
+# one worker builds the module's dataset once; end to end with a browser: slow
+pytestmark = [pytest.mark.xdist_group("viewer"), pytest.mark.slow]
+
 needs_chromium = pytest.mark.skipif(
     find_chromium() is None,
     reason="no chromium on PATH: the viewer's browser tests need headless Chromium "

@@ -180,12 +180,12 @@ class Chromium:
         return np.array(Image.open(io.BytesIO(base64.b64decode(data))).convert("RGB"))
 
     def wait_for(self, predicate, timeout_s: float, interval_s: float = 0.5):
-        """Call ``predicate()`` until it returns something truthy; returns it, or raises
-        ChromiumError after ``timeout_s``."""
+        """Call ``predicate()`` until it returns something other than None or False; returns
+        it, or raises ChromiumError after ``timeout_s``."""
         deadline = time.monotonic() + timeout_s
         while True:
             value = predicate()
-            if value:
+            if value is not None and value is not False:
                 return value
             if time.monotonic() > deadline:
                 raise ChromiumError(f"condition not met within {timeout_s:.0f} s")

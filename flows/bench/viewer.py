@@ -183,6 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sequence", default=None)
     p.add_argument("--frame", type=int, default=0)
     p.add_argument("--no-browser", action="store_true", help="skip the Chromium timings")
+    p.add_argument("--no-synthetic", action="store_true", help="only the --dataset frame")
     p.add_argument("--keep", type=Path, default=None, help="keep the pages (and screenshots) here")
     p.add_argument("--json", type=Path, default=None)
     p.add_argument(
@@ -210,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
                 results["dataset_served"] = measure_served(
                     args.dataset, seq, args.frame, browser, args.screenshot
                 )
-        for vs in (0.2, 0.02):
+        for vs in () if args.no_synthetic else (0.2, 0.02):
             t0 = time.perf_counter()
             data = synthetic_frame(vs)
             made = time.perf_counter() - t0

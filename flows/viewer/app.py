@@ -154,8 +154,9 @@ class ViewerApp:
             self.g_look = gui.add_button("look through the camera")
 
         @self.g_seq.on_update
-        def _(_) -> None:
-            self._request(self.g_seq.value, 0)
+        def _(_) -> None:  # also fired when show() sets the value: then it is the sequence shown
+            if self.g_seq.value != self.sequence:
+                self._request(self.g_seq.value, 0)
 
         @self.g_frame.on_update
         def _(_) -> None:
