@@ -18,7 +18,7 @@ import pytest
 
 from flows.bench.chromium import Chromium, find_chromium
 from flows.bench.viewer import class_pixel_counts, time_to_show
-from flows.commands.view import export_html, start
+from flows.commands.view import export_html, serving_lines, start
 from flows.viewer.draw import Layers
 from storage.qa import QATableError, qa_path
 from storage.viewer_data import ViewerInputError, ViewerSource
@@ -123,7 +123,10 @@ def test_served_viewer_answers_and_steps_frames_in_the_browser(built):
     port = taken.getsockname()[1]
     app, api = start(out, "0", 1, port=port)
     try:
-        assert app.port != port  # the port was in use: the next free one
+        assert app.port != port  # the port was in use: the next free one, and said
+        assert serving_lines(app, api, port)[0] == (
+            f"port {port} is in use: serving on port {app.port} instead"
+        )
         with urllib.request.urlopen(app.url, timeout=60) as r:
             assert r.status == 200 and b"Viser" in r.read()
         base = f"http://127.0.0.1:{api.server_address[1]}"

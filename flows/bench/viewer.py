@@ -62,6 +62,24 @@ def time_to_show(browser, url: str, timeout_s: float = 300.0, min_pixels: int = 
         time.sleep(0.25)
 
 
+FRAME_RATE_JS = (
+    "new Promise(done => { let n = 0; const t0 = performance.now();"
+    " const tick = () => { n++; if (performance.now() - t0 < 3000) requestAnimationFrame(tick);"
+    " else done(n * 1000 / (performance.now() - t0)); }; requestAnimationFrame(tick); })"
+)
+
+
+def page_metrics(browser) -> dict:
+    """The page's JavaScript heap (MB) and frames drawn per second over 3 s (the page does not
+    freeze when this stays above a few per second)."""
+    browser.call("Performance.enable")
+    metrics = {m["name"]: m["value"] for m in browser.call("Performance.getMetrics")["metrics"]}
+    return {
+        "js_heap_MB": round(metrics.get("JSHeapUsedSize", 0) / 1e6, 1),
+        "frames_per_s": round(float(browser.evaluate(FRAME_RATE_JS)), 1),
+    }
+
+
 def synthetic_frame(voxel_size_m: float):
     """One FrameData of the benchmark range at ``voxel_size_m`` (no sensors)."""
     from flows.bench.storage import RANGE_MIN, synthetic_frames
@@ -113,13 +131,15 @@ def measure(data, work: Path, name: str, browser=None, layers=None) -> dict:
         "page_MB": round(res["bytes"] / 1e6, 2),
     }
     if browser is not None:
+        seen = len(browser.requests)
         shown = time_to_show(browser, page.resolve().as_uri())
-        metrics = {m["name"]: m["value"] for m in browser.call("Performance.getMetrics")["metrics"]}
         row["show_seconds"] = None if shown["seconds"] is None else round(shown["seconds"], 1)
-        row["js_heap_MB"] = round(metrics.get("JSHeapUsedSize", 0) / 1e6, 1)
+        row.update(page_metrics(browser))
         row["class_pixels"] = shown["counts"]
         row["requests_not_local"] = [
-            u.split(":", 1)[0] for u in browser.requests if not u.startswith(("file:", "data:"))
+            u.split(":", 1)[0]
+            for u in browser.requests[seen:]
+            if not u.startswith(("file:", "data:", "blob:"))
         ]
         if name.startswith("dataset"):
             from PIL import Image
@@ -149,6 +169,7 @@ def measure_served(dataset: Path, sequence: str, frame: int, browser, screenshot
     try:
         first = time_to_show(browser, app.url)
         row = {"show_seconds": None if first["seconds"] is None else round(first["seconds"], 1)}
+        row.update(page_metrics(browser))
         if screenshot is not None:
             from PIL import Image
 
@@ -201,12 +222,15 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.dataset is not None:
             from flows.viewer.app import with_boxes
+            from flows.viewer.draw import Layers
             from storage.viewer_data import ViewerSource
 
             src = ViewerSource(args.dataset)
             seq = args.sequence or src.sequences[0]
             data = with_boxes(src.frame(seq, args.frame))
-            results[f"dataset_{data.voxel_size_m:g}m"] = measure(data, work, "dataset", browser)
+            results[f"dataset_{data.voxel_size_m:g}m"] = measure(
+                data, work, "dataset", browser, Layers()
+            )
             if browser is not None:
                 results["dataset_served"] = measure_served(
                     args.dataset, seq, args.frame, browser, args.screenshot

@@ -14,6 +14,7 @@ written before they are checked.
 
 from __future__ import annotations
 
+import signal
 import sys
 import time
 from pathlib import Path
@@ -147,6 +148,29 @@ def start(
     return app, api
 
 
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
+def serving_lines(app, api, port: int) -> list[str]:
+    """What `view` says when it serves: the URLs (and that the port asked for was taken)."""
+    lines = []
+    if app.port != port and port != 0:
+        lines.append(f"port {port} is in use: serving on port {app.port} instead")
+    lines += [
+        f"viewer: {app.url}  (from another machine: ssh -L {app.port}:localhost:{app.port} "
+        "<this host>, then open the URL)",
+        f"API: http://{app.host}:{api.server_address[1]}/api/state",
+    ]
+    if app.qa is not None:
+        prog = app.qa.progress()
+        lines.append(
+            f"QA: {prog['checked']} of {prog['total']} sample frames checked; verdicts are saved "
+            f"to {app.source.out / 'qa' / 'detection_qa.parquet'}"
+        )
+    return lines
+
+
 def view(
     dataset: Path,
     sequence: str | None = None,
@@ -175,21 +199,11 @@ def view(
             print(f"  {note}")
         return 0
     app, api = start(dataset, sequence, frame, port, host, layers, qa, qa_frames, data_root)
-    if app.port != port and port != 0:
-        print(f"port {port} is in use: serving on port {app.port} instead")
-    print(
-        f"viewer: {app.url}  (open it in a browser; from another machine: ssh -L {app.port}:"
-        f"localhost:{app.port} <this host>)"
-    )
-    print(f"API: http://{host}:{api.server_address[1]}/api/state")
-    if qa:
-        prog = app.qa.progress()
-        print(
-            f"QA: {prog['checked']} of {prog['total']} sample frames checked; verdicts are saved "
-            f"to {Path(dataset) / 'qa' / 'detection_qa.parquet'}"
-        )
+    for line in serving_lines(app, api, port):
+        print(line)
     print("Ctrl-C to stop")
     sys.stdout.flush()
+    signal.signal(signal.SIGTERM, _interrupt)  # a service manager's stop: the same clean close
     try:
         while True:
             time.sleep(3600)
