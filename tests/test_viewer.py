@@ -103,9 +103,14 @@ def test_html_page_shows_the_classes_and_fetches_nothing(built, tmp_path):
     assert res["frames"] == [1, 2, 3] and page.stat().st_size == res["bytes"] > 500_000
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".tmp")]
     with Chromium(1280, 800) as browser:
-        shown = time_to_show(browser, page.as_uri(), SHOW_TIMEOUT_S)
+        # the page plays its 3 frames in a loop: it never stands still
+        shown = time_to_show(browser, page.as_uri(), SHOW_TIMEOUT_S, still=False)
         counts = shown["counts"]
         assert _shown(counts), f"class colours on screen: {counts}"
+        # its timeline spans the 3 frames, 0.2 s apart (5 Hz)
+        assert browser.evaluate(
+            "[...document.querySelectorAll('[role=slider]')].map(e => e.getAttribute('aria-valuemax'))"
+        ) == ["0.4"]
         # every request the page made stayed inside the file (the page itself, data: / blob:
         # URLs of its inline assets); the resolver maps every other host to nothing anyway
         schemes = {u.split(":", 1)[0] for u in browser.requests}
@@ -208,6 +213,32 @@ def test_qa_pass_through_the_api_appears_in_evaluate(built, tmp_path):
     auto_at, manual_at = md.index("## Detection robustness\n"), md.index("(manual QA)")
     assert auto_at < manual_at  # beside the automatic table, right after it
     assert f"| all | {manual['all']['T']} |" in md[manual_at:]
+
+    # the panel's way: the T / W buttons and a click on the camera image, for the first frame
+    from storage.qa import read_qa
+
+    app, api = start(out, qa=True, qa_frames=5, port=0)
+    try:
+        f = app.qa.sample[0]
+        app.show(f["sequence"], f["frame"])  # shows its saved verdict, which the reviewer redoes
+        app.clear_misses()
+        for p in app.qa.persons(f["sequence"], f["frame"]):
+            app.mark(p["track_id"], "T")
+        d, cam = app.data, app.drawer.camera
+        u, v = 300.0, 200.0
+        p_cam = np.array([(u - d.K[0, 2]) / d.K[0, 0], (v - d.K[1, 2]) / d.K[1, 1], 1.0])
+        p = d.T_base_from_cam0[:3, :3] @ (p_cam * cam.depth_m) + d.T_base_from_cam0[:3, 3]
+        eye = p + np.array([-2.0, 1.0, 1.5])  # the reviewer's view, behind and above
+        assert app.click_image(eye, p - eye) == pytest.approx((u, v), abs=1e-6)
+        assert app.save_verdict() is None
+    finally:
+        api.shutdown()
+        app.close()
+    rows = [r for r in read_qa(out).to_pylist() if (r["sequence"], r["frame"]) == (
+        f["sequence"], f["frame"])]  # fmt: skip
+    assert sorted(r["kind"] for r in rows) == sorted(["T"] * len(info["persons"]) + ["M_vis"])
+    miss = next(r for r in rows if r["kind"] == "M_vis")
+    assert (miss["u"], miss["v"]) == pytest.approx((u, v), abs=1e-3)
 
 
 def test_qa_table_of_an_older_version_stops_the_viewer_before_anything_is_written(built, tmp_path):

@@ -44,17 +44,20 @@ def class_pixel_counts(image: np.ndarray, classes=SHOWN_CLASSES, tol: float = 0.
     return out
 
 
-def time_to_show(browser, url: str, timeout_s: float = 300.0, min_pixels: int = 50) -> dict:
+def time_to_show(
+    browser, url: str, timeout_s: float = 300.0, min_pixels: int = 50, still: bool = True
+) -> dict:
     """Navigate to ``url`` and poll screenshots until every SHOWN_CLASSES colour covers at least
-    ``min_pixels`` and two screenshots in a row are equal; {seconds, counts, image}."""
+    ``min_pixels`` and (``still``) two screenshots in a row are equal (a page that plays several
+    frames never stands still: ``still=False``); {seconds (None: timed out), counts, image}."""
     t0 = time.perf_counter()
     browser.goto(url)
     last = None
     while True:
         img = browser.screenshot()
         counts = class_pixel_counts(img)
-        if all(v >= min_pixels for v in counts.values()) and last is not None:
-            if np.array_equal(img, last):
+        if all(v >= min_pixels for v in counts.values()):
+            if not still or (last is not None and np.array_equal(img, last)):
                 return {"seconds": time.perf_counter() - t0, "counts": counts, "image": img}
         last = img
         if time.perf_counter() - t0 > timeout_s:

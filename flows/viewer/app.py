@@ -89,11 +89,15 @@ class ViewerApp:
         self._qa_widgets: list = []
         self._verdicts: dict[int, str] = {}
         self._misses: list[dict] = []
-        self._build_gui()
-        self.show(sequence, frame)
+        try:
+            self._build_gui()
+            self.show(sequence, frame)
+        except BaseException:
+            stop_viser(self.server)
+            raise
         place_camera(self.server.initial_camera, self.data)
         if qa is not None:
-            self.drawer_on_image_click()
+            self._enable_image_clicks()
         self._player = threading.Thread(target=self._play_loop, daemon=True, name="view-play")
         self._player.start()
 
@@ -254,26 +258,26 @@ class ViewerApp:
                 f = self.qa.sample[nxt]
                 self._request(f["sequence"], f["frame"])
 
-        @self.g_qa_clear.on_click
-        def _(_) -> None:
-            self._misses = []
-            self._draw_misses()
-            self._refresh_qa_text()
+        self.g_qa_clear.on_click(lambda _: self.clear_misses())
 
-        @self.g_qa_save.on_click
-        def _(_) -> None:
-            marks = [{"kind": k, "track_id": t} for t, k in self._verdicts.items()] + self._misses
-            try:
-                self.qa.save(self.sequence, self.frame, marks)
-            except (QAMarkError, ValueError) as exc:
-                self.g_qa_info.content = f"**not saved:** {exc}"
-                return
-            nxt = self.qa.progress()["next"]
-            if nxt is not None:
-                f = self.qa.sample[nxt]
-                self._request(f["sequence"], f["frame"])
-            else:
-                self._refresh_qa_gui()
+        self.g_qa_save.on_click(lambda _: self.save_verdict())
+
+    def save_verdict(self) -> str | None:
+        """The panel's "save this frame and go on": save the marks made on this frame, then show
+        the next unchecked one; returns None, or why nothing was saved (also in the panel)."""
+        marks = [{"kind": k, "track_id": t} for t, k in self._verdicts.items()] + self._misses
+        try:
+            self.qa.save(self.sequence, self.frame, marks)
+        except (QAMarkError, ValueError) as exc:
+            self.g_qa_info.content = f"**not saved:** {exc}"
+            return str(exc)
+        nxt = self.qa.progress()["next"]
+        if nxt is not None:
+            f = self.qa.sample[nxt]
+            self._request(f["sequence"], f["frame"])
+        else:
+            self._refresh_qa_gui()
+        return None
 
     def _refresh_qa_gui(self) -> None:
         for w in self._qa_widgets:
@@ -288,12 +292,19 @@ class ViewerApp:
             for p in saved["persons"]:
                 tid = p["track_id"]
                 group = self.server.gui.add_button_group(f"#{tid}", ("T", "W"))
-                group.on_click(lambda e, tid=tid: self._set_verdict(tid, e.target.value))
+                group.on_click(lambda e, tid=tid: self.mark(tid, e.target.value))
                 self._qa_widgets.append(group)
         self._draw_misses()
         self._refresh_qa_text()
 
-    def _set_verdict(self, track_id: int, kind: str) -> None:
+    def clear_misses(self) -> None:
+        """The panel's "clear the clicked misses"."""
+        self._misses = []
+        self._draw_misses()
+        self._refresh_qa_text()
+
+    def mark(self, track_id: int, kind: str) -> None:
+        """A labelled person's button: T or W."""
         self._verdicts[int(track_id)] = kind
         self._refresh_qa_text()
 
@@ -323,25 +334,25 @@ class ViewerApp:
         ]
         self.g_qa_info.content = "\n\n".join(lines)
 
-    def drawer_on_image_click(self) -> None:
-        """Clicks on the camera image (QA): a missed person at that pixel."""
-
-        def on_click(event) -> None:
-            kind = self.g_qa_miss.value
-            d, cam = self.data, self.drawer.camera
-            if kind == "nothing" or d is None or cam is None:
-                return
-            uv = S.pixel_from_ray(
-                event.ray_origin, event.ray_direction, d.K, d.T_base_from_cam0, cam.depth_m
-            )
-            if uv is None or not (0 <= uv[0] < d.width and 0 <= uv[1] < d.height):
-                return
-            self._misses.append({"kind": kind, "track_id": None, "u": uv[0], "v": uv[1]})
-            self._draw_misses()
-            self._refresh_qa_text()
-
-        self._image_click = on_click
+    def _enable_image_clicks(self) -> None:
+        self._image_click = lambda event: self.click_image(event.ray_origin, event.ray_direction)
         self._attach_click()
+
+    def click_image(self, ray_origin, ray_direction) -> tuple[float, float] | None:
+        """A click on the camera image (QA): a missed person (of the kind the panel's menu says)
+        at the pixel the click ray hits; returns that pixel, or None (no image hit, or the menu
+        says nothing)."""
+        kind = self.g_qa_miss.value
+        d, cam = self.data, self.drawer.camera
+        if kind == "nothing" or d is None or cam is None:
+            return None
+        uv = S.pixel_from_ray(ray_origin, ray_direction, d.K, d.T_base_from_cam0, cam.depth_m)
+        if uv is None or not (0 <= uv[0] < d.width and 0 <= uv[1] < d.height):
+            return None
+        self._misses.append({"kind": kind, "track_id": None, "u": uv[0], "v": uv[1]})
+        self._draw_misses()
+        self._refresh_qa_text()
+        return uv
 
     def _attach_click(self) -> None:
         handle = self.drawer.handles.get("/sensors/image")
