@@ -104,6 +104,7 @@ class ViewerSource:
         self.data_root = Path(data_root) if data_root is not None else recorded_source_root(out)
         self._info: dict[str, Any] = {}
         self._gt_seq: dict[str, Any] = {}
+        self._persons: dict[str, dict[int, list[dict[str, Any]]]] = {}
 
     @property
     def sequences(self) -> tuple[str, ...]:
@@ -154,11 +155,14 @@ class ViewerSource:
         return data if isinstance(data, dict) else {}
 
     def persons(self, sequence: str) -> dict[int, list[dict[str, Any]]]:
-        """frame -> its rows of the instances table."""
-        out: dict[int, list[dict[str, Any]]] = {}
-        for row in self.ds.table("instances", sequence).to_pylist():
-            out.setdefault(int(row["frame"]), []).append(row)
-        return out
+        """frame -> its rows of the instances table (read once per sequence)."""
+        self.check_sequence(sequence)
+        if sequence not in self._persons:
+            out: dict[int, list[dict[str, Any]]] = {}
+            for row in self.ds.table("instances", sequence).to_pylist():
+                out.setdefault(int(row["frame"]), []).append(row)
+            self._persons[sequence] = out
+        return self._persons[sequence]
 
     def frame(
         self, sequence: str, frame: int, sensors: bool = True, ground_truth: bool = True
@@ -170,9 +174,7 @@ class ViewerSource:
         row = info.frames[frame]
         attrs = self.ds.attrs(sequence)
         arrays = read_frames(self.ds.store_path(sequence), frame)
-        persons = [
-            r for r in self.ds.table("instances", sequence).to_pylist() if int(r["frame"]) == frame
-        ]
+        persons = list(self.persons(sequence).get(frame, []))
         notes: list[str] = []
         points = image = gt = None
         if sensors:

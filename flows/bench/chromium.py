@@ -191,6 +191,31 @@ class Chromium:
                 raise ChromiumError(f"condition not met within {timeout_s:.0f} s")
             time.sleep(interval_s)
 
+    def cpu_seconds(self) -> float:
+        """CPU time (user + system) used so far by Chromium's processes (the browser and its
+        renderer, GPU and utility children), from /proc; 0.0 where /proc is not there."""
+        import os
+
+        ticks = os.sysconf("SC_CLK_TCK")
+        stats = {}
+        for entry in Path("/proc").iterdir():
+            if entry.name.isdigit():
+                try:
+                    fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+                except OSError:
+                    continue
+                stats[int(entry.name)] = (int(fields[1]), int(fields[11]) + int(fields[12]))
+        tree, total, grew = {self.proc.pid}, 0, True
+        while grew:
+            grew = False
+            for pid, (ppid, _) in stats.items():
+                if ppid in tree and pid not in tree:
+                    tree.add(pid)
+                    grew = True
+        for pid in tree:
+            total += stats.get(pid, (0, 0))[1]
+        return total / ticks
+
     def close(self) -> None:
         ws = getattr(self, "ws", None)
         if ws is not None:
