@@ -165,8 +165,8 @@ def test_served_viewer_answers_and_steps_frames_in_the_browser(built):
         taken.close()
 
 
-def test_qa_pass_through_the_api_appears_in_evaluate(built, tmp_path):
-    from flows.commands.evaluate import evaluate
+def test_qa_pass_through_the_api_appears_in_evaluate(built, tmp_path, capsys):
+    from flows.cli import main
 
     data, out = built
     app, api = start(out, qa=True, qa_frames=5, port=0)
@@ -198,13 +198,22 @@ def test_qa_pass_through_the_api_appears_in_evaluate(built, tmp_path):
             )
             assert status == 200 and body["checked"] == i + 1, body
             posted += [(f["condition"], m["kind"]) for m in marks]
+            if i == 3:  # a pass stopped here resumes at the fifth frame
+                from flows.viewer.qa import QASession
+
+                assert QASession(ViewerSource(out), 5).progress()["next"] == 4
         assert _get(base + "/api/qa")[1]["next"] is None
         table = _get(base + "/api/qa/table")[1]
         assert sorted((r["condition"], r["kind"]) for r in table if r["kind"]) == sorted(posted)
     finally:
         api.shutdown()
         app.close()
-    res = evaluate(out, data, tmp_path / "report", sample_frames=0)
+    assert main(["evaluate", "--dataset", str(out), "--gt", str(data), "--report",
+                 str(tmp_path / "report")]) == 0  # fmt: skip
+    printed = capsys.readouterr().out
+    assert "detection robustness (automatic)" in printed
+    assert "detection robustness (manual QA)" in printed
+    res = json.loads((tmp_path / "report" / "results.json").read_text())
     manual = res["detection_manual_qa"]
     for cond in ("crowded", "night"):
         for kind in ("T", "W", "M_vis", "M_occ"):

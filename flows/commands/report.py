@@ -8,6 +8,7 @@ and renders what it finds. ``results`` (JSON-like; numpy scalars / arrays allowe
 - ``static``: ``StaticCounts.as_dict()`` (per_class_iou, miou, coverage, voxel / point accuracy).
 - ``pedestrian_boxes``, ``pedestrian_lidar``: {sequence: ``PRCounts.as_dict()``}, "all" included.
 - ``detection``: {condition: ``DetectionCounts.as_dict()``}.
+- ``detection_manual_qa``: the same, counted from the manual QA table (flows/viewer/qa.py).
 - ``occupancy``: ``OccupancyScores.as_dict()``, or {name: that} for several rows.
 - ``fit``: {metric: value} or {row: {metric: value}} (PVE / MPJPE / PA-MPJPE in mm, MPERE).
 - ``tracking``: {sequence: ``TrackingScores.as_dict()``}.

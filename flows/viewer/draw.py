@@ -51,6 +51,8 @@ CUBE_FACES = np.array(
 GROUP_GAP_M = 1.0
 #: LiDAR points are shown this far around the grid (a sweep reaches 100 m), m
 LIDAR_MARGIN_M = 3.0
+#: voxels at least this big go to the browser as float16 points (quantised to <= 8 mm at 20 m)
+FLOAT16_MIN_VOXEL_M = 0.1
 
 
 @dataclass(frozen=True)
@@ -224,10 +226,11 @@ class FrameDrawer:
         }
         if len(layer) == 0:
             return
-        # positions relative to the layer's centre: float16 points keep ~2 mm there
-        center = (layer.centers.min(0) + layer.centers.max(0)) / 2.0
-        rel = layer.centers - center
-        center = center + np.array([0.0, dy, 0.0], np.float32)
+        # positions in the world, never as a node offset: viser's recorded pages lose node
+        # offsets of point clouds when their timeline loops (seen in Chromium: every layer
+        # jumped to the origin); float16 keeps ~8 mm at 20 m, enough for 0.1 m voxels
+        pts = layer.centers + np.array([0.0, dy, 0.0], np.float32)
+        precision = "float16" if layer.size_m >= FLOAT16_MIN_VOXEL_M else "float32"
         stats.layers[key]["style"] = layers.style
         if layers.style == "cubes":
             add(
@@ -239,13 +242,12 @@ class FrameDrawer:
                     batched_wxyzs=np.broadcast_to(
                         np.array([1.0, 0, 0, 0], np.float32), (len(layer), 4)
                     ),
-                    batched_positions=rel,
+                    batched_positions=pts,
                     batched_colors=layer.colors,
                     lod="off",
                     flat_shading=True,
                     cast_shadow=False,
                     receive_shadow=False,
-                    position=center,
                 ),
             )
         else:
@@ -253,12 +255,12 @@ class FrameDrawer:
                 name,
                 lambda n: self.scene.add_point_cloud(
                     n,
-                    rel,
+                    pts,
                     layer.colors,
                     point_size=layer.size_m,
                     point_shape="square",
                     point_shading="flat",
-                    position=center,
+                    precision=precision,
                 ),
             )
 
@@ -352,11 +354,10 @@ class FrameDrawer:
                         f"/gt/bodies/track_{tid}",
                         lambda n, v=v, col=col: self.scene.add_mesh_simple(
                             n,
-                            v,
+                            v + shift.astype(np.float32),  # in place, not a node offset
                             self.faces,
                             color=tuple(int(c) for c in col),
                             cast_shadow=False,
-                            position=tuple(shift),
                         ),
                     )
         if layers.difference:
