@@ -38,6 +38,7 @@ from scipy import ndimage
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
+from tasks.bounds import AtLeastOne, NonNegative, Positive, PositiveFraction, Probability
 from tasks.perception.lidar_clusters import ground_height
 from tasks.perception.types import box_corners
 
@@ -48,25 +49,25 @@ class PersonPointParams:
     metres, LiDAR z up."""
 
     #: step 3: split the range-sorted points at gaps larger than this
-    gap_m: float = 0.3
+    gap_m: Positive = 0.3
     #: step 3: a segment needs this many points
-    min_points: int = 3
+    min_points: AtLeastOne = 3
     #: step 3: expected range from the box's pixel height for a person this tall
-    person_height_m: float = 1.7
-    range_sigma_frac: float = 0.25
-    core_frac: float = 0.5
+    person_height_m: Positive = 1.7
+    range_sigma_frac: Positive = 0.25
+    core_frac: PositiveFraction = 0.5
     #: step 1: points at camera depth z <= this are not projected
-    min_depth_m: float = 0.5
+    min_depth_m: NonNegative = 0.5
     #: step 1: points less than this above the local ground are ground (None keeps all)
     ground_tol_m: float | None = 0.15
-    ground_cell_m: float = 2.0
-    feet_radius_m: float = 0.1
+    ground_cell_m: Positive = 2.0
+    feet_radius_m: NonNegative = 0.1
     #: step 4 (0 = off)
-    edge_grow_m: float = 0.25
-    edge_extent_m: float = 0.7
-    edge_margin_px: float = 20.0
+    edge_grow_m: NonNegative = 0.25
+    edge_extent_m: Positive = 0.7
+    edge_margin_px: NonNegative = 20.0
     #: LiDAR boxes match image detections at this IoU or more (:func:`associate_lidar_boxes`)
-    assoc_min_iou: float = 0.3
+    assoc_min_iou: Probability = 0.3
 
 
 def _rigid(points: np.ndarray, T: np.ndarray) -> np.ndarray:

@@ -45,6 +45,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from tasks.bounds import AtLeastOne, Count, NonNegative, Positive, Widening
+
 
 def backfill_ids(
     tracklet_keys: list[np.ndarray], online_ids: list[np.ndarray], confirmed_ids: dict[int, int]
@@ -84,9 +86,9 @@ class OfflineParams:
     heights; stitch_max_scale: largest height ratio of the two end boxes."""
 
     backfill: bool = True
-    stitch_max_gap: int = 10
-    stitch_max_distance: float = 0.5
-    stitch_max_scale: float = 1.5
+    stitch_max_gap: Count = 10
+    stitch_max_distance: Positive = 0.5
+    stitch_max_scale: Widening = 1.5
 
 
 @dataclass(frozen=True)
@@ -108,12 +110,12 @@ class WorldCheck:
     """
 
     enabled: bool = True
-    min_points: int = 5
-    max_speed_mps: float = 2.5
-    tol_m: float = 0.6
-    speed_sigma_mps: float = 0.5
-    window: int = 5
-    continuation_gate_scale: float = 1.5
+    min_points: AtLeastOne = 5
+    max_speed_mps: Positive = 2.5
+    tol_m: Positive = 0.6
+    speed_sigma_mps: NonNegative = 0.5
+    window: AtLeastOne = 5
+    continuation_gate_scale: Widening = 1.5
     tentative: bool = True
 
     def predict(self, times: np.ndarray, xy: np.ndarray, at: float) -> np.ndarray:
