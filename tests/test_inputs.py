@@ -124,7 +124,7 @@ def _candidates(value: Any) -> list[Any]:
             {},
             {
                 "mine": {
-                    "rho": 100,
+                    "rho_px": 100,
                     "lambda_theta": 1,
                     "lambda_a": 1,
                     "lambda_beta": 1,
@@ -219,7 +219,7 @@ def test_the_old_slice_table_misses_the_map_stages_iou_and_the_inputs_do_not():
 
 def test_a_chosen_custom_preset_is_in_the_fit_key():
     mine = {
-        "rho": 100,
+        "rho_px": 100,
         "lambda_theta": 1,
         "lambda_a": 1,
         "lambda_beta": 1,

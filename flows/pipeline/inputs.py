@@ -23,6 +23,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
+from pydantic import BaseModel, TypeAdapter
+from pydantic.dataclasses import is_pydantic_dataclass
+
 from configs.schema import Config
 from flows.pipeline.dag import CODE_VERSIONS, STAGES
 from storage.coda import CodaSequence
@@ -46,14 +49,15 @@ PER_SEQUENCE_KEYS = ("dataset.lighting",)
 
 def to_jsonable(value: Any) -> Any:
     """Plain JSON of an inputs object: dataclasses (tagged with their type, so two providers with
-    the same fields differ), pydantic models, tuples, paths."""
+    the same fields differ), config sections held whole (``detect.models``: their config JSON),
+    tuples, paths."""
+    if is_pydantic_dataclass(type(value)) or isinstance(value, BaseModel):
+        return TypeAdapter(type(value)).dump_python(value, mode="json")
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return {
             "type": type(value).__name__,
             **{f.name: to_jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)},
         }
-    if hasattr(value, "model_dump"):
-        return value.model_dump(mode="json")
     if isinstance(value, dict):
         return {str(k): to_jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):

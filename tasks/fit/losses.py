@@ -13,8 +13,6 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from tasks.fit.weights import FIT_PRESETS, FitWeights  # noqa: F401 - the objective's weights, torch-free
-
 #: 69-d body-pose indices (left elbow y, right elbow y, left knee x, right knee x) and the sign
 #: that makes the unnatural bending direction positive (SMPLify's hyperextension prior).
 HYPEREXTENSION_IDS: tuple[int, ...] = (52, 55, 9, 12)
@@ -52,8 +50,8 @@ def reprojection_loss(
     keypoints_cam: torch.Tensor,
     keypoints_2d: torch.Tensor,
     K: torch.Tensor,
-    rho_px: float = 100.0,
-    conf_power: float = 2.0,
+    rho_px: float,
+    conf_power: float,
     keypoint_weights: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """L_J: confidence-weighted Geman-McClure reprojection error, per person (B,), pixels^2.

@@ -42,6 +42,7 @@ from tasks.fit.icp import icp_align, rigid_update_params
 from tasks.fit.init_oracle import BodyParams
 from tasks.fit.settings import FitSettings
 from tasks.fit.visibility import Visibility, vertex_parts, visibility_masks
+from tasks.fit.weights import FIT_PRESETS, FitWeights
 
 _COCO_JOINT_IDX = [COCO_TO_SMPL_JOINT[i] for i in range(5, 17)]
 #: layout of the packed parameter rows (B, 85): betas, global_orient, body_pose, transl
@@ -99,7 +100,7 @@ def fit_persons(
     T_cam_from_lidar,
     points,
     counts,
-    weights: L.FitWeights = L.FIT_PRESETS["3dpw"],
+    weights: FitWeights = FIT_PRESETS["3dpw"],
     iterations: int = FitSettings.iterations,
     lr: float = 0.02,
     device: str = "cpu",
@@ -228,7 +229,7 @@ class _PersonPoints:
         )
 
 
-def _visibility_fn(model, conf: torch.Tensor, weights: L.FitWeights, use_visibility: bool):
+def _visibility_fn(model, conf: torch.Tensor, weights: FitWeights, use_visibility: bool):
     """verts (B, V, 3) -> Visibility of the persons whose keypoint confidences are conf (B, 17)."""
     faces = model.faces_tensor
     parts = torch.as_tensor(vertex_parts(model.lbs_weights), device=conf.device)
@@ -401,11 +402,11 @@ class _Problem:
         }
         t["total"] = (
             t["L_J"]
-            + w.scale("3d") * t["L_3D"]
-            + w.scale("theta") * t["L_theta"]
-            + w.scale("a") * t["L_a"]
-            + w.scale("beta") * t["L_beta"]
-            + w.scale("occ") * t["L_occ"]
+            + w.factor(w.lambda_3d) * t["L_3D"]
+            + w.factor(w.lambda_theta) * t["L_theta"]
+            + w.factor(w.lambda_a) * t["L_a"]
+            + w.factor(w.lambda_beta) * t["L_beta"]
+            + w.factor(w.lambda_occ) * t["L_occ"]
         )
         return o, t
 
