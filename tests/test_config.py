@@ -131,7 +131,9 @@ def test_kernel_sections_take_their_defaults_from_the_kernels():
         (cfg.fuse, FuseSettings),
     ):
         assert section.to(kernel) == kernel(), kernel.__name__
-        assert {f.name for f in dataclasses.fields(kernel)} <= {f.name for f in dataclasses.fields(section)}
+        assert {f.name for f in dataclasses.fields(kernel)} <= {
+            f.name for f in dataclasses.fields(section)
+        }
 
 
 def test_no_kernel_repeats_a_config_default_as_a_keyword_default():
