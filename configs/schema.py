@@ -36,6 +36,7 @@ from pydantic import (
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 from pydantic.fields import FieldInfo
 
+from tasks.bounds import AtLeastOne, Count, NonNegative, Positive, Probability, VoxelSize
 from tasks.conventions import CITYSCAPES_TO_CLASS, CLASS_NAMES, FREE, UNLABELED
 from tasks.fit.settings import FitSettings
 from tasks.fit.weights import FIT_PRESETS, FitWeights, LossWeights, ObjectiveSettings
@@ -140,7 +141,7 @@ class GridConfig(Strict):
 
     range_min: Vec3 = (0.4, -4.8, -1.0)
     range_max: Vec3 = (10.0, 4.8, 3.8)
-    voxel_size_m: float = Field(0.2, ge=0.02, le=1.0)
+    voxel_size_m: VoxelSize = 0.2
 
     @model_validator(mode="after")
     def _extent_divides(self) -> GridConfig:
@@ -178,7 +179,7 @@ class GridConfig(Strict):
         )
 
     def spec(self) -> GridSpec:
-        return GridSpec(tuple(self.range_min), tuple(self.range_max), self.voxel_size_m)
+        return GridSpec(self.range_min, self.range_max, self.voxel_size_m)
 
 
 class DatasetConfig(Strict):
@@ -194,14 +195,14 @@ class DatasetConfig(Strict):
     #: day / night per sequence id; a sequence not listed takes its metadata's "lighting"
     lighting: dict[str, Literal["day", "night"]] = Field(default_factory=dict)
     #: LiDAR height above the ground, used only where calib_os1_to_base.yaml is missing
-    lidar_height_m: float = Field(0.9, gt=0)
+    lidar_height_m: Positive = 0.9
     #: raw sensors run at 10 Hz; MobileOcc keeps every 2nd frame (5 Hz); 10: every frame (the
     #: tracking gates counted in frames are scaled to it: track.gates_rate_hz)
-    rate_hz: float = Field(5.0, gt=0)
-    sensor_rate_hz: float = Field(10.0, gt=0)
+    rate_hz: Positive = 5.0
+    sensor_rate_hz: Positive = 10.0
     #: drops no-return points (zeros) and returns off the robot body
-    min_range_m: float = Field(0.5, ge=0)
-    max_range_m: float = Field(120.0, gt=0)
+    min_range_m: NonNegative = 0.5
+    max_range_m: Positive = 120.0
 
     @field_validator("lighting", mode="before")
     @classmethod
@@ -296,7 +297,7 @@ class DetectConfig(Strict):
     seed: int = 0
     #: a frame whose input is bad (a cut sweep, an image that does not decode) is left out of
     #: every stage; the sequence fails when more than this share of its frames is bad (0: any)
-    max_failed_frame_share: float = Field(0.5, ge=0, le=1)
+    max_failed_frame_share: Probability = 0.5
 
     @model_validator(mode="after")
     def _precomputed_needs_dir(self) -> DetectConfig:
@@ -411,7 +412,7 @@ class FuseConfig(FuseSettings, Section):
     body_source: Literal["fit", "ground-truth"] = "fit"
     #: ground-truth bodies: fuse only people the sensors observe (>= this many LiDAR returns and
     #: some pixels in cam0), the people a real pipeline can annotate; 0 = every simulated person
-    gt_min_points: int = Field(10, ge=0)
+    gt_min_points: Count = 10
 
 
 class ExportConfig(Strict):
@@ -426,13 +427,13 @@ class ExportConfig(Strict):
 
 class OutputConfig(Strict):
     root: Path = Path("demo-out")
-    frames_per_chunk: int = Field(50, ge=1)
+    frames_per_chunk: AtLeastOne = 50
 
 
 class DaskConfig(Strict):
     runner: Literal["thread", "dask"] = "thread"
-    workers: int = Field(2, ge=1)
-    threads_per_worker: int = Field(1, ge=1)
+    workers: AtLeastOne = 2
+    threads_per_worker: AtLeastOne = 1
     address: str | None = None
     memory_limit: str = "4GiB"
     #: route the fit stage to workers started with `--resources GPU=1`
