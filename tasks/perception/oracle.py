@@ -240,12 +240,13 @@ def oracle_lidar_detections(
     num_points: np.ndarray,
     rng: np.random.Generator,
     noise: OracleNoise = OracleNoise(),
-    min_points: int = 5,
+    min_returns: int = 5,
 ) -> tuple[LidarDetections, np.ndarray]:
     """Noisy LiDAR pedestrian boxes from ground-truth boxes (LiDAR frame; lighting does not matter).
 
     gt_centers, gt_sizes: (M, 3) float metres (l, w, h); gt_yaws: (M,) radians; num_points: (M,)
-    int LiDAR points inside each box (boxes with fewer than ``min_points`` are never detected).
+    int LiDAR points inside each box (boxes with fewer than ``min_returns`` are never detected: the oracle's own visibility,
+    not a setting).
     Returns (detections, gt_index (K,) int64 row of each detection).
     """
     centers = np.asarray(gt_centers, np.float64).reshape(-1, 3)
@@ -254,7 +255,7 @@ def oracle_lidar_detections(
     yaws = np.asarray(gt_yaws, np.float64).reshape(count)
     distance = np.linalg.norm(centers[:, :2], axis=1)
     p = noise.lidar_recall * np.clip(1.0 - distance / noise.lidar_far_m, 0.0, 1.0) ** 0.25
-    p = np.where(np.asarray(num_points).reshape(count) < min_points, 0.0, p)
+    p = np.where(np.asarray(num_points).reshape(count) < min_returns, 0.0, p)
     keep = np.flatnonzero(rng.random(count) < p)
     k = keep.size
     out = LidarDetections(

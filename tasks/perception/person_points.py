@@ -42,6 +42,9 @@ from tasks.bounds import AtLeastOne, NonNegative, Positive, PositiveFraction, Pr
 from tasks.perception.lidar_clusters import ground_height
 from tasks.perception.types import box_corners
 
+#: a LiDAR box whose corner is nearer the camera plane than this has no image box (is not matched)
+BOX_CORNER_MIN_DEPTH_M = 0.1
+
 
 @dataclass(frozen=True)
 class PersonPointParams:
@@ -92,7 +95,7 @@ def _in_image(uv: np.ndarray, width: int, height: int) -> np.ndarray:
 
 
 def project_points(
-    points_lidar: np.ndarray, K: np.ndarray, T_cam_from_lidar: np.ndarray, min_depth_m: float = 0.1
+    points_lidar: np.ndarray, K: np.ndarray, T_cam_from_lidar: np.ndarray, min_depth_m: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Pinhole projection (no distortion: undistort the image or the detections first).
 
@@ -130,7 +133,7 @@ def associate_lidar_boxes(
         np.asarray(sizes).reshape(-1, 3),
         np.asarray(yaws).reshape(-1),
     )
-    uv, _ = project_points(corners.reshape(-1, 3), K, T_cam_from_lidar)
+    uv, _ = project_points(corners.reshape(-1, 3), K, T_cam_from_lidar, BOX_CORNER_MIN_DEPTH_M)
     uv = uv.reshape(m, 8, 2)
     valid = ~np.isnan(uv).any(axis=(1, 2))
     rect = np.zeros((m, 4))
