@@ -268,13 +268,6 @@ def box_rotation(rpy: np.ndarray) -> np.ndarray:
     return rz @ ry @ rx
 
 
-def points_in_box(points: np.ndarray, box: Box3D, margin_m: float = 0.0) -> np.ndarray:
-    """(N,) bool: points (N, 3) inside the rotated box (the devkit's own test ignores yaw)."""
-    local = (points.astype(np.float64) - box.center) @ box_rotation(box.rpy)
-    half = box.size / 2.0 + margin_m
-    return np.all(np.abs(local) <= half, axis=1)
-
-
 def rectified_camera(
     R_rect: np.ndarray, P_rect: np.ndarray, T_cam_from_lidar: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:

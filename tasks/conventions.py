@@ -216,9 +216,3 @@ COCO_TO_SMPL_JOINT: dict[int, int] = {
 }
 #: COCO-17 face keypoints given by SMPL vertex ids (official SMPL topology).
 COCO_TO_SMPL_VERTEX: dict[int, int] = {0: 332, 1: 2800, 2: 6260, 3: 583, 4: 4071}
-
-
-def transform_points(T_target_from_source: np.ndarray, points_source: np.ndarray) -> np.ndarray:
-    """(N, 3) points in the source frame -> (N, 3) float64 in the target frame (4x4 rigid T)."""
-    T = np.asarray(T_target_from_source, dtype=np.float64)
-    return np.asarray(points_source, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]

@@ -31,7 +31,8 @@ from flows.stages.models import model_perception
 from storage.gt import read_frame_gt
 from storage.images import read_rgb
 from storage.products import Detections as DetectionsProduct
-from tasks.metrics.detection import DetectionCounts, detection_counts, match_boxes
+from tasks.geometry import match_boxes
+from tasks.metrics.detection import DetectionCounts, detection_counts
 from tasks.metrics.keypoints import mask_iou, pck_counts
 from tasks.perception.models.detector import Detections
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from storage.model_files import bundled_model, open_onnx, open_tflite
-from tasks.metrics.detection import match_boxes
+from tasks.geometry import match_boxes
 from tasks.perception.models.blazepose import BlazePoseLandmarks
 from tasks.perception.models.cliff import CliffEstimator
 from tasks.perception.models.composite import ModelPerception
