@@ -166,11 +166,13 @@ def _body_model(config: dict):
 def _posed(model, params: dict, rows) -> tuple[np.ndarray, np.ndarray]:
     import torch
 
+    from tasks.body.params import BodyParams
+
     with torch.no_grad():
         out = model(
             *(
                 torch.as_tensor(np.asarray(params[k])[rows], dtype=torch.float32)
-                for k in ("betas", "global_orient", "body_pose", "transl")
+                for k in BodyParams.FIELDS
             )
         )
     return out.vertices.numpy(), out.joints.numpy()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from tasks.fit.init_oracle import BodyParams
+from tasks.body.params import BodyParams
 from tasks.fit.optimize import FitResult, model_keypoints
 from tasks.fit.quality import fit_residuals
 from tasks.fit.reframe import reframe_params
