@@ -31,7 +31,8 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse
 
-from storage.manifest import atomic_write_bytes
+from storage.atomic import atomic_write_bytes
+from storage.npzio import save_npz_deterministic
 
 BODY_MODEL_KEYS = (
     "v_template",
@@ -268,9 +269,8 @@ def save_body_model_npz(path, params: dict) -> None:
     missing = [k for k in BODY_MODEL_KEYS if k not in params]
     if missing:
         raise BodyFileError(f"{path}: refusing to write a body model without keys {missing}")
-    buffer = io.BytesIO()
-    np.savez(buffer, **{k: np.asarray(v) for k, v in params.items()})
-    atomic_write_bytes(path, buffer.getvalue())  # writers may race: each renames a whole file
+    # deterministic bytes; writers may race: each renames a whole file
+    save_npz_deterministic(path, compressed=False, **{k: np.asarray(v) for k, v in params.items()})
 
 
 def save_body_model_pkl(path, params: dict) -> None:

@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from storage.atomic import atomic_write_bytes
+
 #: the wheel set-up downloads (pip download mediapipe==0.10.21 --no-deps): the last release line
 #: that still ships the pose models inside the package (1.x no longer does)
 MEDIAPIPE_VERSION = "0.10.21"
@@ -179,9 +181,7 @@ def extract_bundled_models(wheel: str | os.PathLike, cache: str | os.PathLike) -
                         f"{wheel}: {member} has sha256 {hashlib.sha256(data).hexdigest()}, "
                         f"expected {digest}"
                     )
-                tmp = target.with_name(name + ".tmp-write")
-                tmp.write_bytes(data)
-                os.replace(tmp, target)
+                atomic_write_bytes(target, data)
             out.append(target)
     return out
 

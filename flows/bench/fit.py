@@ -23,6 +23,9 @@ import dataclasses
 import sys
 import time
 
+from storage.atomic import atomic_write_text
+from storage.npzio import save_npz_deterministic
+
 
 def _variants(weights, ablations: bool):
     out = [("Ours", weights, {})]
@@ -572,7 +575,7 @@ def main(argv=None) -> None:
     if a.save_pool:
         import numpy as np
 
-        np.savez_compressed(a.save_pool, **simulated_pool(a.pool, sensor, a.seed))
+        save_npz_deterministic(a.save_pool, **simulated_pool(a.pool, sensor, a.seed))
         print(f"{a.pool} persons ({sensor}) saved to {a.save_pool}")
         return
     pool_arrays = None
@@ -623,8 +626,8 @@ def main(argv=None) -> None:
     }
     if a.json:
         import json
-        from pathlib import Path
 
-        Path(a.json).write_text(
-            json.dumps({"argv": argv if argv is not None else sys.argv[1:], **results}, indent=1)
+        atomic_write_text(
+            a.json,
+            json.dumps({"argv": argv if argv is not None else sys.argv[1:], **results}, indent=1),
         )

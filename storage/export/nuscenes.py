@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from storage.atomic import atomic_write_bytes, atomic_write_text, write_atomically
 from storage.dataset import open_dataset
 from storage.export.common import (
     CAM_CHANNEL,
@@ -46,7 +47,6 @@ from storage.export.common import (
     scene_name,
     sequence_info,
     token,
-    write_bytes,
     write_json,
 )
 from storage.occupancy_store import open_layout, read_frames
@@ -397,15 +397,13 @@ def export_nuscenes(
             )
 
     # a tiny all-zero semantic prior: the devkit needs the file, nothing reads its content here
-    mask = out / t["map"][0]["filename"]
-    mask.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(np.zeros((8, 8), np.uint8)).save(mask)
-    table_dir = out / version
-    table_dir.mkdir(parents=True, exist_ok=True)
+    with write_atomically(out / t["map"][0]["filename"]) as mask:
+        Image.fromarray(np.zeros((8, 8), np.uint8)).save(mask, format="PNG")
     for name in TABLES:
-        tmp = table_dir / f".tmp-{name}.json"
-        tmp.write_text(json.dumps(t[name], indent=0, sort_keys=True, allow_nan=False))
-        os.replace(tmp, table_dir / f"{name}.json")
+        atomic_write_text(
+            out / version / f"{name}.json",
+            json.dumps(t[name], indent=0, sort_keys=True, allow_nan=False),
+        )
     meta = {
         **metadata,
         "version": version,
@@ -416,9 +414,11 @@ def export_nuscenes(
         "infos_data_root": prefix,
     }
     for split, records in infos.items():
-        write_bytes(out / meta["infos"][split], dumps_plain({"infos": records, "metadata": meta}))
+        atomic_write_bytes(
+            out / meta["infos"][split], dumps_plain({"infos": records, "metadata": meta})
+        )
     write_json(out / METADATA_FILE, meta)
-    return table_dir
+    return out / version
 
 
 def _annotations(
