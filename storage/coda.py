@@ -23,7 +23,7 @@ Cameras. ``2d_rect`` images are made by the devkit with ``cv2.initUndistortRecti
 whose map uses ``P[:, :3] @ R`` (the 4th column of P is not read), so a LiDAR point x lands on the
 rectified pixel ``P[:, :3] @ R @ T_cam_from_lidar @ x``. Each camera is therefore exposed as the
 pinhole (``K = P[:, :3]``, ``T_cam_from_lidar = [[R, 0], [0, 1]] @ T_cam_from_lidar``) of its
-rectified frame (storage.model.CameraCalibration); the files' values stay on ``.raw``.
+rectified frame (storage.sequence_data.CameraCalibration); the files' values stay on ``.raw``.
 
 Every error names the file, the frame where there is one, the value and what was expected. All are
 :class:`CodaFormatError` (a :class:`storage.files.InputError`, a ValueError); those of one frame's
@@ -55,7 +55,7 @@ import numpy as np
 import yaml
 
 from storage.files import InputError, open_regular, read_bytes, read_text, regular_stat, where
-from storage.model import (
+from storage.sequence_data import (
     Box3D,
     Calibration,
     CameraCalibration,

@@ -26,7 +26,7 @@ import yaml
 from PIL import Image
 
 from storage.atomic import atomic_write_bytes
-from storage.model import Box3D, Calibration
+from storage.sequence_data import Box3D, Calibration
 
 NUM_POINTS = 128 * 1024
 CHANNELS = 5
@@ -169,10 +169,11 @@ def _yaml(path: Path, doc: dict) -> Path:
 def write_calibration(root: Path, seq: int, calib: Calibration) -> list[Path]:
     """The calibration files of a sequence, as CODa's.
 
-    A camera with ``raw`` (storage.model.RawCameraCalibration) is written from it: intrinsics K, D,
-    rectification R and projection P, and the raw camera's extrinsic; one without is written as an
-    already rectified camera (K, R = I, P = [K | p4]). p4 = -fx * baseline on cam1 (ROS / OpenCV
-    stereo convention), 0 on cam0. Also os1 -> base and, with cam1, cam0 -> cam1 as ``{R, T}``."""
+    A camera with ``raw`` (storage.sequence_data.RawCameraCalibration) is written from it:
+    intrinsics K, D, rectification R and projection P, and the raw camera's extrinsic; one without
+    is written as an already rectified camera (K, R = I, P = [K | p4]). p4 = -fx * baseline on
+    cam1 (ROS / OpenCV stereo convention), 0 on cam0. Also os1 -> base and, with cam1, cam0 -> cam1
+    as ``{R, T}``."""
     d = Path(root) / "calibrations" / str(seq)
     out = []
     cam0 = calib.cameras["cam0"]

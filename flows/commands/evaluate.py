@@ -155,7 +155,7 @@ def _condition(metadata: dict) -> str:
 
 
 def _body_model(config: dict):
-    from storage.body_files import load_body_model
+    from storage.body_model_files import load_body_model
     from tasks.body.model import BodyModel
     from tasks.body.procedural import default_body_model
 

@@ -2,7 +2,8 @@
 
 Perception (detect): a provider answers for one sequence, frame by frame: ``image(frame)`` gives the
 frame's 2D perception (and, for the oracle, which ground-truth person each detection is),
-``lidar(frame)`` its LiDAR pedestrian boxes; ``frame`` is the reader's :class:`storage.model.Frame`.
+``lidar(frame)`` its LiDAR pedestrian boxes; ``frame`` is the reader's
+:class:`storage.sequence_data.Frame`.
 Initial body estimates (fit): ``available(tracks)`` says which rows of the track product have an
 estimate, ``estimates(tracks, rows)`` gives them (cam frame).
 
@@ -37,9 +38,9 @@ from storage.cliff_files import cliff_path, read_cliff_estimates
 from storage.coda import CodaSequence
 from storage.gt import read_frame_gt
 from storage.images import read_rgb
-from storage.model import Frame
 from storage.perception_files import PrecomputedPerception
 from storage.products import Tracks
+from storage.sequence_data import Frame
 from tasks.body.params import BodyParams
 from tasks.fit.init_oracle import cliff_to_params, oracle_initial_estimate
 from tasks.fit.reframe import reframe_params

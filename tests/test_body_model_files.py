@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import scipy.sparse
 
-from storage.body_files import (
+from storage.body_model_files import (
     BodyFileError,
     UnsafePickleError,
     load_body_model,
@@ -195,7 +195,7 @@ def test_generated_model_loads_into_body_model(tmp_path):
 
 def test_plain_numpy_smpl_pickle_of_the_procedural_model(tmp_path):
     """The procedural stand-in as an SMPL pickle: official keys, plain numpy inside (issue 19)."""
-    from storage.body_files import BODY_MODEL_KEYS, save_body_model_pkl
+    from storage.body_model_files import BODY_MODEL_KEYS, save_body_model_pkl
     from storage.plain_pickle import pickle_globals
     from tasks.body.procedural import default_body_params
 
@@ -219,7 +219,7 @@ def test_smplx_poses_our_bodies_like_our_model(tmp_path):
     smplx = pytest.importorskip("smplx")
     import torch
 
-    from storage.body_files import save_body_model_pkl, smplx_vertex_ids
+    from storage.body_model_files import save_body_model_pkl, smplx_vertex_ids
     from tasks.body.model import BodyModel
     from tasks.body.procedural import default_body_params
 
