@@ -3,8 +3,8 @@
 One row per mark (tasks.view.qa: T / W on a labelled person, M_vis / M_occ on a missed one), and
 one row with ``kind`` null for a frame checked with nobody in it, so the table says which frames
 a pass has done and a pass resumes where it stopped. A frame's marks are saved together: the
-whole table is rewritten (read, the frame's old rows replaced, written to a hidden file, one
-``os.replace``) under a file lock, so a reader sees the table before or after a save, never a
+whole table is rewritten (read, the frame's old rows replaced, written atomically by
+storage.atomic) under a file lock, so a reader sees the table before or after a save, never a
 part of one, and two viewers on one dataset do not lose each other's frames.
 
 The file carries its schema version (``mobileocc.schema`` = ``detection_qa``,
@@ -23,8 +23,8 @@ from pathlib import Path
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from storage.atomic import atomic_write_bytes
 from storage.layout import StoreError
-from storage.manifest import atomic_write_bytes
 from tasks.view.qa import MARK_KINDS, Mark
 
 QA_DIR = "qa"

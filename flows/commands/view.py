@@ -20,7 +20,8 @@ import time
 from pathlib import Path
 
 from flows.viewer.draw import FrameDrawer, Layers
-from storage.manifest import Manifest, atomic_write_bytes
+from storage.atomic import atomic_write_bytes
+from storage.manifest import Manifest
 from storage.viewer_data import ViewerInputError, ViewerSource
 
 #: at most this many frames in one HTML page (each frame's scene is held in the page)
@@ -30,7 +31,7 @@ MAX_HTML_FRAMES = 50
 def body_model(out: Path):
     """The body model the dataset was fitted with (``fit.body_model_path`` recorded in the
     manifest), else the procedural one the simulator and the demo use."""
-    from storage.body_files import load_body_model
+    from storage.body_model_files import load_body_model
     from tasks.body.model import BodyModel
     from tasks.body.procedural import default_body_model
 
