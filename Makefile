@@ -51,7 +51,7 @@ demo-bundled: setup
 	$(VENV)/bin/mobileocc demo --config configs/bundled-models.yaml --data $(DEMO_DATA) \
 	  --out $(DEMO_OUT)-bundled --workers $(WORKERS)
 
-# headless Chromium for the viewer's browser tests (tests/test_viewer_browser.py), installed where
+# headless Chromium for the viewer's browser tests (tests/test_viewer.py), installed where
 # missing (root or passwordless sudo); where it cannot be, those tests skip and say why
 browser:
 	@if ! command -v chromium >/dev/null && ! command -v chromium-browser >/dev/null; then \

@@ -76,15 +76,18 @@ def test_difference_codes_voxel_by_voxel():
     np.testing.assert_array_equal(layer.colors, S.DIFF_COLORS[layer.codes])
 
 
-def test_box_corners_follow_the_heading():
-    corners = S.box_corners([[1.0, 2.0, 0.5]], [[2.0, 1.0, 1.0]], [np.pi / 2])[0]
-    # l = 2 along the heading (+y after a quarter turn), w = 1 across it
-    np.testing.assert_allclose(corners[:, 0].max() - corners[:, 0].min(), 1.0, atol=1e-12)
-    np.testing.assert_allclose(corners[:, 1].max() - corners[:, 1].min(), 2.0, atol=1e-12)
-    np.testing.assert_allclose(corners.mean(0), [1.0, 2.0, 0.5], atol=1e-12)
-    segs = S.box_segments([[0, 0, 0]] * 2, [[1, 1, 1]] * 2, [0, 0])
-    assert segs.shape == (24, 2, 3)
-    np.testing.assert_allclose(np.linalg.norm(segs[:, 1] - segs[:, 0], axis=1), 1.0)
+def test_box_segments_are_the_edges_along_the_heading():
+    segs = S.box_segments([[1.0, 2.0, 0.5]], [[2.0, 1.0, 3.0]], [np.pi / 2])
+    assert segs.shape == (12, 2, 3)
+    # l = 2 along the heading (+y after a quarter turn), w = 1 across it, h = 3: four edges each
+    lengths = np.sort(np.linalg.norm(segs[:, 1] - segs[:, 0], axis=1))
+    np.testing.assert_allclose(lengths, [1.0] * 4 + [2.0] * 4 + [3.0] * 4, atol=1e-6)
+    along = segs[:, 1] - segs[:, 0]
+    long_edges = along[np.isclose(np.linalg.norm(along, axis=1), 2.0)]
+    np.testing.assert_allclose(np.abs(long_edges), [[0.0, 2.0, 0.0]] * 4, atol=1e-6)
+    np.testing.assert_allclose(segs.reshape(-1, 3).mean(0), [1.0, 2.0, 0.5], atol=1e-6)
+    with pytest.raises(S.SceneError):
+        S.box_segments([[0, 0, 0]] * 2, [[1, 1, 1]], [0, 0])
 
 
 def test_velocity_arrows_per_voxel_and_per_block_on_fine_grids():

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from storage.atomic import atomic_write_text
 from tasks import conventions as C
 
 #: classes whose colour must be on screen for a frame to count as shown
@@ -258,5 +259,5 @@ def main(argv: list[str] | None = None) -> int:
     text = json.dumps(results, indent=1)
     print(text)
     if args.json:
-        args.json.write_text(text + "\n")
+        atomic_write_text(args.json, text + "\n")
     return 0

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tasks import conventions as C
+from tasks.geometry import transform_points
 from tasks.metrics.bev import (
     DIFF_COLORS,
     DIFF_CORRECT,
@@ -29,6 +30,7 @@ from tasks.metrics.bev import (
     DIFF_UNKNOWN,
     DIFF_WRONG_CLASS,
 )
+from tasks.perception.types import box_corners
 
 #: at most this many voxels (or blocks) per layer by default: ~200k instanced cubes or points
 #: draw smoothly in a software-rendered browser (measured: flows/bench/viewer.py)
@@ -267,34 +269,21 @@ def difference_layer(
 # ---- people -------------------------------------------------------------------------------------
 
 
-def box_corners(center: np.ndarray, size: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-    """Upright boxes -> (B, 8, 3) float64 corners. center (B, 3) m; size (B, 3) = (l, w, h), l
-    along the heading; yaw (B,) rad about z. Corners 0-3 bottom, 4-7 top, counter-clockwise."""
+#: corner pairs of a box's 12 edges, in the corner order of tasks.perception.types.box_corners
+#: (corner 4 * ix + 2 * iy + iz: an edge joins two corners that differ in one axis)
+BOX_EDGES = np.array(
+    [[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7], [0, 4], [1, 5], [2, 6], [3, 7]]
+)
+
+
+def box_segments(center: np.ndarray, size: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """(B * 12, 2, 3) float32 line segments of upright boxes' edges. center (B, 3) m; size (B, 3)
+    = (l, w, h), l along the heading; yaw (B,) rad about z."""
     center = np.asarray(center, np.float64).reshape(-1, 3)
     size = np.asarray(size, np.float64).reshape(-1, 3)
     yaw = np.asarray(yaw, np.float64).reshape(-1)
     if not len(center) == len(size) == len(yaw):
         raise SceneError(f"boxes: {len(center)} centres, {len(size)} sizes, {len(yaw)} yaws")
-    unit = np.array(
-        [[1, 1, -1], [-1, 1, -1], [-1, -1, -1], [1, -1, -1], [1, 1, 1], [-1, 1, 1], [-1, -1, 1]]
-        + [[1, -1, 1]],
-        np.float64,
-    )
-    local = unit[None] * size[:, None] / 2.0
-    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
-    x = c * local[..., 0] - s * local[..., 1]
-    y = s * local[..., 0] + c * local[..., 1]
-    return np.stack([x, y, local[..., 2]], axis=-1) + center[:, None]
-
-
-#: corner pairs of a box's 12 edges (box_corners order)
-BOX_EDGES = np.array(
-    [[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]]
-)
-
-
-def box_segments(center: np.ndarray, size: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-    """(B * 12, 2, 3) float32 line segments of the boxes' edges (arguments as box_corners)."""
     corners = box_corners(center, size, yaw)
     return corners[:, BOX_EDGES].reshape(-1, 2, 3).astype(np.float32)
 
@@ -366,7 +355,7 @@ def lidar_points(
     height colours. Returns (M, 3) float32, (M, 3) uint8."""
     p = np.asarray(points_lidar, np.float32).reshape(-1, 3)
     p = p[np.any(p != 0, axis=1)]
-    base = C.transform_points(T_base_from_lidar, p)
+    base = transform_points(T_base_from_lidar, p)
     if box_min is not None and box_max is not None:
         base = base[np.all((base >= box_min) & (base <= box_max), axis=1)]
     step = max(1, -(-base.shape[0] // max(1, int(max_points))))
