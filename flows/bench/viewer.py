@@ -123,15 +123,16 @@ def synthetic_frame(voxel_size_m: float):
     )
 
 
-def measure(data, work: Path, name: str, browser=None, layers=None) -> dict:
-    """Build, write and (with a browser) show one frame; the figures of the module docstring."""
+def measure(data, work: Path, name: str, browser=None, layers=None, model=None) -> dict:
+    """Build, write and (with a browser) show one frame (bodies drawn with the body ``model``
+    where given); the figures of the module docstring."""
     from flows.commands.view import write_html
     from flows.viewer.draw import Layers
 
     layers = layers or Layers(lidar=False, camera=False)
     occupied = int(np.count_nonzero(data.semantics < C.FREE))
     page = work / f"{name}.html"
-    res = write_html([data], page, layers)
+    res = write_html([data], page, layers, model)
     row = {
         "voxel_size_m": data.voxel_size_m,
         "grid": list(data.semantics.shape),
@@ -238,8 +239,10 @@ def main(argv: list[str] | None = None) -> int:
             src = ViewerSource(args.dataset)
             seq = args.sequence or src.sequences[0]
             data = with_boxes(src.frame(seq, args.frame))
+            from flows.commands.view import body_model
+
             results[f"dataset_{data.voxel_size_m:g}m"] = measure(
-                data, work, "dataset", browser, Layers()
+                data, work, "dataset", browser, Layers(), body_model(args.dataset)
             )
             if browser is not None:
                 results["dataset_served"] = measure_served(
