@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from flows.bench.common import machine, make_config, spawned
+
 STEP_M = 0.2
 #: ray range of the synthetic sweeps, m (the OS1's nominal range)
 SWEEP_RANGE_M = 120.0
@@ -154,7 +156,6 @@ def _stage_process(
 ) -> dict:
     """In a fresh process: one stage of one sequence; its peak RSS and its baseline."""
     import flows.stages  # noqa: F401  (every stage and kernel imported before the baseline)
-    from flows.bench.pipeline import make_config
     from flows.pipeline.inputs import runtime, source
     from flows.pipeline.run import execute_unit
 
@@ -183,7 +184,6 @@ def _untiled_process(data_root: str, sequence: str, detect_dir: str, overrides: 
     """In a fresh process: the whole-sequence SequenceMapper over the sequence (the design before
     tiles: both maps whole in memory), peak RSS as :func:`_stage_process`."""
     import flows.stages  # noqa: F401
-    from flows.bench.pipeline import make_config
     from flows.pipeline.inputs import map_inputs, sequence_ref, source
     from storage.products import Detections
     from tasks.conventions import UNLABELED
@@ -244,7 +244,6 @@ def bench_memory(
     Returns {"frames": [...], "map": {n: {...}}, "fuse": {n: {...}}, "untiled_map": {n: {...}}
     (with ``untiled``), "ratio": {stage: peak(longest) / peak(shortest)}, "sequences": {...},
     "machine": {...}}. work_dir keeps the data between calls (sweeps are made once)."""
-    from flows.bench.pipeline import _spawned, machine
 
     work = Path(work_dir)
     frames = sorted(int(n) for n in frames)
@@ -255,7 +254,7 @@ def bench_memory(
         seq, detect = made[n]["sequence"], made[n]["detect_dir"]
         outroot = work / "out" / str(n)
         if "map" in stages or "fuse" in stages:
-            m = _spawned(
+            m = spawned(
                 _stage_process,
                 str(work / "data"),
                 str(outroot),
@@ -268,7 +267,7 @@ def bench_memory(
                 "summary": m["outcome"]["summary"]
             }
         if "fuse" in stages:
-            f = _spawned(
+            f = spawned(
                 _stage_process,
                 str(work / "data"),
                 str(outroot),
@@ -279,7 +278,7 @@ def bench_memory(
             )
             out.setdefault("fuse", {})[n] = {k: v for k, v in f.items() if k != "outcome"}
         if untiled:
-            out.setdefault("untiled_map", {})[n] = _spawned(
+            out.setdefault("untiled_map", {})[n] = spawned(
                 _untiled_process, str(work / "data"), seq, detect, overrides
             )
     lo, hi = frames[0], frames[-1]

@@ -15,11 +15,12 @@ from __future__ import annotations
 
 import json
 import os
-import resource
 import sys
 import time
 
 import numpy as np
+
+from flows.bench.common import peak_rss_mb, spawned
 
 BENCH_RANGE_MIN = (0.4, -4.8, -1.0)
 BENCH_RANGE_MAX = (10.0, 4.8, 3.8)
@@ -32,10 +33,6 @@ def _best(fn, repeats: int, clock=time.process_time) -> float:
         fn()
         best = min(best, clock() - t0)
     return best
-
-
-def _peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def octomap_seconds_per_scan(
@@ -132,7 +129,7 @@ def bench_freespace(
         "query_grid_ours_s": t_query_ours,
         "getLabels_octomap_s": t_query_theirs,
         "ours_map_bytes": m.memory_bytes,
-        "peak_rss_mb": _peak_rss_mb(),
+        "peak_rss_mb": peak_rss_mb(),
     }
 
 
@@ -243,27 +240,19 @@ def bench_map_fuse(
         "occupancy_map_bytes": omap.memory_bytes,
         "fuse_fps": 1.0 / float(np.mean(fuse_s)),
         "last_frame_counts": counts,
-        "peak_rss_mb": _peak_rss_mb(),
+        "peak_rss_mb": peak_rss_mb(),
     }
-
-
-def _in_subprocess(fn, *args, **kwargs) -> dict:
-    """Run a benchmark in a fresh process so its peak RSS is its own."""
-    import multiprocessing as mp
-
-    with mp.get_context("spawn").Pool(1) as pool:
-        return pool.apply(fn, args, kwargs)
 
 
 def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     quick = "--quick" in argv
     out = {
-        "freespace": _in_subprocess(bench_freespace, quick),
-        "freespace_discretize": _in_subprocess(bench_freespace, quick, discretize=True),
+        "freespace": spawned(bench_freespace, quick),
+        "freespace_discretize": spawned(bench_freespace, quick, discretize=True),
     }
     for vs in (0.2, 0.05) if quick else (0.2, 0.05, 0.02):
-        r = out[f"map_fuse_{vs}"] = _in_subprocess(
+        r = out[f"map_fuse_{vs}"] = spawned(
             bench_map_fuse, quick, vs, map_voxel_size_m=max(vs, 0.05)
         )
         # the issue's target: map + fuse per frame <= 0.2 x octomap's insertion of one scan

@@ -25,31 +25,18 @@ runs the scale benchmark instead (flows/bench/scale.py).
 from __future__ import annotations
 
 import json
-import os
-import platform
-import resource
 import shutil
 import tempfile
 import time
 from pathlib import Path
 
-STAGE_ORDER = ("detect", "track", "fit", "map", "fuse", "export")
+from flows.bench.common import machine, make_config, peak_rss_mb, spawned
+from flows.pipeline.dag import STAGES
+
+STAGE_ORDER = tuple(STAGES)
 
 
 # ---- running the stages without Prefect ----------------------------------------------------------
-
-
-def make_config(data_root: Path, out_root: Path, overrides: dict | None = None):
-    """The default config pointed at ``data_root`` / ``out_root`` with dotted ``overrides``."""
-    from configs.schema import load_config
-
-    return load_config(
-        overrides={
-            "dataset.root": str(data_root),
-            "output.root": str(out_root),
-            **{k: v for k, v in (overrides or {}).items()},
-        }
-    )
 
 
 def run_local(config, stages=STAGE_ORDER, sequences: list[str] | None = None) -> dict:
@@ -92,62 +79,7 @@ def run_local(config, stages=STAGE_ORDER, sequences: list[str] | None = None) ->
     return outcomes
 
 
-# ---- machine description -----------------------------------------------------------------------
-
-
-def machine() -> dict:
-    import numpy as np
-
-    model = ""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    mem_gb = None
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemTotal"):
-                mem_gb = round(int(line.split()[1]) / 1024**2, 1)
-    except OSError:
-        pass
-    try:
-        import torch
-
-        torch_v, cuda = torch.__version__, torch.cuda.is_available()
-        gpu = torch.cuda.get_device_name(0) if cuda else None
-    except ImportError:  # pragma: no cover
-        torch_v, cuda, gpu = None, False, None
-    return {
-        "cpu_count": os.cpu_count(),
-        "cpu_affinity": len(os.sched_getaffinity(0)),
-        "cpu_model": model,
-        "memory_gb": mem_gb,
-        "load_avg_1m": os.getloadavg()[0],
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "torch": torch_v,
-        "cuda": cuda,
-        "gpu": gpu,
-    }
-
-
 # ---- measurements ------------------------------------------------------------------------------
-
-
-def _peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def _spawned(fn, *args):
-    """``fn(*args)`` in a fresh spawned process: its peak RSS is its own."""
-    import multiprocessing as mp
-
-    with mp.get_context("spawn").Pool(1) as pool:
-        return pool.apply(fn, args)
 
 
 def _stage_in_process(data_root: str, out_root: str, overrides: dict, stages: tuple) -> dict:
@@ -161,7 +93,7 @@ def _stage_in_process(data_root: str, out_root: str, overrides: dict, stages: tu
             "wall_s": sum(o["seconds"] for (s, st), o in outcomes.items() if st == stage),
             "cpu_s": time.process_time() - c0,
             "total_wall_s": time.perf_counter() - t0,
-            "peak_rss_mb": _peak_rss_mb(),
+            "peak_rss_mb": peak_rss_mb(),
         }
     return res
 
@@ -210,7 +142,7 @@ def _fuse_fanout(data_root: str, out_root: str, overrides: dict, n_workers: int)
         t0 = time.perf_counter()
         client.submit(unit, pure=False).result()
         wall = time.perf_counter() - t0
-        rss = client.run(lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
+        rss = client.run(peak_rss_mb)
     return {"workers": n_workers, "wall_s": wall, "worker_peak_rss_mb": max(rss.values())}
 
 
@@ -367,7 +299,7 @@ def _fit_rate(data_root: str, out_root: str, overrides: dict, device: str) -> di
         "iterations": cfg.fit.iterations,
         "wall_s": wall,
         "fits_per_s": len(rows) / wall,
-        "peak_rss_mb": _peak_rss_mb(),
+        "peak_rss_mb": peak_rss_mb(),
     }
 
 
@@ -416,7 +348,7 @@ def bench(
         over = {"output.frames_per_chunk": 2}  # several write units, for the fan-out figures
         stages: dict = {}
         out02 = work / "out-0.2"
-        per = _spawned(_stage_in_process, str(data), str(out02), over, STAGE_ORDER)
+        per = spawned(_stage_in_process, str(data), str(out02), over, STAGE_ORDER)
         for st, v in per.items():
             stages[st] = {
                 **v,
@@ -437,7 +369,7 @@ def bench(
         )
         (out005 / "manifest.json").unlink(missing_ok=True)
         fine = {**over, "fuse.grid.voxel_size_m": 0.05}
-        per_fine = _spawned(_stage_in_process, str(data), str(out005), fine, ("fuse",))
+        per_fine = spawned(_stage_in_process, str(data), str(out005), fine, ("fuse",))
         f = per_fine["fuse"]
         result["fuse_0.05m"] = {
             **f,
@@ -461,7 +393,7 @@ def bench(
             }
         }
         if torch.cuda.is_available():
-            fits["cuda"] = _spawned(_fit_rate, str(data), str(out02), over, "cuda")
+            fits["cuda"] = spawned(_fit_rate, str(data), str(out02), over, "cuda")
             fits["cuda_over_cpu"] = fits["cuda"]["fits_per_s"] / fits["cpu"]["fits_per_s"]
         result["person_fits"] = fits
         # fan-out speed-up of fuse
@@ -474,11 +406,11 @@ def bench(
             "frames": frames,
             "chunks": -(-frames // 2),
         }
-        result["freespace_vs_octomap"] = _spawned(bench_freespace, quick)
+        result["freespace_vs_octomap"] = spawned(bench_freespace, quick)
         # the issue's target: map + fuse per frame <= 0.2 x octomap's insertPointCloud of the
         # same scan (the bench sequence's sweeps, same run): wall seconds on both sides, and
         # process CPU seconds (less sensitive to other load on the machine; ours counts all threads)
-        octo = _spawned(_octomap_same_scans, str(data), str(out02), over)
+        octo = spawned(_octomap_same_scans, str(data), str(out02), over)
         map_fuse = (per["map"]["wall_s"] + per["fuse"]["wall_s"]) / frames
         map_fuse_cpu = (per["map"]["cpu_s"] + per["fuse"]["cpu_s"]) / frames
         result["map_fuse_vs_octomap"] = {
@@ -496,8 +428,8 @@ def bench(
             "note": "stage seconds include the stage's fixed costs (process start-up of its kernels, "
             "sequence-level reads and writes) spread over the bench's few frames",
         }
-        result["stage_costs"] = _spawned(_stage_costs, str(data), str(out02), over)
-        result["store_vs_numpy"] = _spawned(bench_store, quick)
+        result["stage_costs"] = spawned(_stage_costs, str(data), str(out02), over)
+        result["store_vs_numpy"] = spawned(bench_store, quick)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     result["bench_wall_s"] = time.perf_counter() - started

@@ -238,7 +238,7 @@ def bench_planning(sequences: list[int], work_dir: Path | str) -> dict:
     """Planning figures for datasets of each size in ``sequences`` (see the module docstring).
     Returns {"machine", "raw_frames", "sizes": {N: figures}}."""
     from configs.schema import load_config
-    from flows.bench.pipeline import machine
+    from flows.bench.common import machine
     from flows.commands.simulate import simulate
     from flows.pipeline.plan import PlanCosts, plan_run
     from storage.manifest import FingerprintCache, Manifest
