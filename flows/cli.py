@@ -216,9 +216,12 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from flows.commands.evaluate import evaluate
+    if args.labels == "coda":
+        from flows.commands.evaluate_coda import evaluate_coda as evaluate
+    else:
+        from flows.commands.evaluate import evaluate
 
-    evaluate(args.dataset, args.gt, args.report, labels=args.labels)
+    evaluate(args.dataset, args.gt, args.report)
     print(
         f"report: {args.report / 'report.md'} (figures in {args.report / 'figures'}, "
         f"numbers in {args.report / 'results.json'})"

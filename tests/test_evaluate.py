@@ -10,6 +10,7 @@ import pytest
 
 from flows.bench.pipeline import make_config, run_local
 from flows.commands.evaluate import _boxes_to_base, _condition, evaluate
+from flows.commands.evaluate_coda import evaluate_coda
 
 
 @pytest.fixture(scope="module")
@@ -108,7 +109,7 @@ def test_coda_labels_reproduce_the_synthetic_figures(built, tmp_path):
     # terrain voxel: IoU >= the GT one), the same pedestrian boxes (written to 6 decimals).
     data, out = built
     syn = evaluate(out, None, tmp_path / "syn", sample_frames=0)
-    coda = evaluate(out, None, tmp_path / "coda", labels="coda")
+    coda = evaluate_coda(out, None, tmp_path / "coda")
     assert coda["labels"]["frames"] == coda["labels"]["frames with 3d_semantic"] == 2
     assert (
         coda["labels"]["pedestrian boxes"] > 0 and coda["labels"]["boxes skipped (malformed)"] == 0
