@@ -457,6 +457,10 @@ INPUTS = {
 }
 
 
-def stage_inputs(config: Config) -> dict[str, Any]:
+#: a stage's inputs object: the only settings its stage reads (``StageContext.inputs``)
+StageInputs = DetectInputs | TrackInputs | FitInputs | MapInputs | FuseInputs | ExportInputs
+
+
+def stage_inputs(config: Config) -> dict[str, StageInputs]:
     """Every stage's inputs object."""
     return {stage: make(config) for stage, make in INPUTS.items()}

@@ -22,6 +22,7 @@ from configs.schema import Config
 from flows.pipeline.dag import CODE_VERSIONS, STAGES
 from flows.pipeline.inputs import (
     SequenceRef,
+    StageInputs,
     inputs_hash,
     sequence_ref,
     source,
@@ -49,9 +50,9 @@ class UnitPlan:
     fresh: bool
     reason: str  # why it runs ("" when fresh)
     #: the stage's inputs object (the only settings the stage reads)
-    inputs: Any = None
+    inputs: StageInputs
     #: the sequence: where it is, what the config says about it alone
-    ref: SequenceRef | None = None
+    ref: SequenceRef
 
 
 @dataclass

@@ -7,11 +7,11 @@ import json
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Generic, TypeVar
 
 import numpy as np
 
-from flows.pipeline.inputs import BodyModelFiles, Runtime, SequenceRef
+from flows.pipeline.inputs import BodyModelFiles, Runtime, SequenceRef, StageInputs
 from storage.body_files import (
     load_body_model,
     load_pose_prior,
@@ -23,15 +23,18 @@ from tasks.body.model import BodyModel
 from tasks.body.prior import GMMPosePrior, generate_pose_prior
 from tasks.body.procedural import generate_body_model
 
+#: the inputs type of one stage: ``StageContext[FitInputs]`` is the fit stage's context
+InputsT = TypeVar("InputsT", bound=StageInputs)
+
 
 @dataclass(frozen=True)
-class StageContext:
+class StageContext(Generic[InputsT]):
     """One (sequence, stage) unit: its inputs object (the only settings it reads), the sequence
-    (where it lives, what the config says about it alone), where its upstream products are and where it writes (a hidden staging folder
-    published by rename when the stage returns)."""
+    (where it lives, what the config says about it alone), where its upstream products are and
+    where it writes (a hidden staging folder published by rename when the stage returns)."""
 
     ref: SequenceRef
-    inputs: Any
+    inputs: InputsT
     out_root: Path
     out_dir: Path
     upstream: dict[str, Path] = field(default_factory=dict)

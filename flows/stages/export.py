@@ -13,6 +13,7 @@ import shutil
 
 import numpy as np
 
+from flows.pipeline.inputs import ExportInputs
 from flows.stages.common import StageContext, body_model, is_night
 from storage.export.common import source_relative
 from storage.products import Bodies, FusedFrames, Tracks
@@ -34,7 +35,7 @@ def _link_tree(src, dst) -> None:
 
 
 def instance_rows(
-    ctx: StageContext, frame_pos: dict[int, int], T_base_from_lidar: np.ndarray
+    ctx: StageContext[ExportInputs], frame_pos: dict[int, int], T_base_from_lidar: np.ndarray
 ) -> list[dict]:
     """One row per tracked person and frame: 2D box and keypoints from track; body parameters,
     3D box and velocity (base frame) from the fit where that person was fitted."""
@@ -87,7 +88,7 @@ def instance_rows(
     return rows
 
 
-def frame_rows(ctx: StageContext, seq, fused: FusedFrames) -> list[dict]:
+def frame_rows(ctx: StageContext[ExportInputs], seq, fused: FusedFrames) -> list[dict]:
     """One row per frame of the fused store (the frames detect produced); source paths relative
     to the dataset root."""
     night, cams = is_night(seq), seq.info.calibration.cameras
@@ -112,7 +113,7 @@ def frame_rows(ctx: StageContext, seq, fused: FusedFrames) -> list[dict]:
     ]
 
 
-def run_export(ctx: StageContext) -> dict:
+def run_export(ctx: StageContext[ExportInputs]) -> dict:
     seq = ctx.open()
     calib = seq.info.calibration
     cam = calib.cameras[ctx.inputs.source.camera]

@@ -193,7 +193,7 @@ def fuse_chunk(
     return rows
 
 
-def run_fuse(ctx: StageContext) -> dict:
+def run_fuse(ctx: StageContext[FuseInputs]) -> dict:
     inp, spec = ctx.inputs, ctx.inputs.grid
     fit_dir = ctx.upstream.get("fit") if inp.body_source == "fit" else None
     store, at = ctx.out_dir / "occupancy.zarr", detected_positions(ctx, ctx.open())

@@ -189,7 +189,7 @@ def map_static(
     return out
 
 
-def run_map(ctx: StageContext) -> dict:
+def run_map(ctx: StageContext[MapInputs]) -> dict:
     inp, seq, work, threads = ctx.inputs, ctx.open(), ctx.out_dir / "work", ctx.runtime.threads
     s, fs, at = inp.settings, inp.freespace, np.asarray(detected_positions(ctx, seq), np.int64)
     plan = plan_map(
