@@ -139,13 +139,15 @@ def cmd_reprocess(args: argparse.Namespace) -> int:
 
 def _unit_state(manifest, plan, stage: str, unit, dry_run: bool) -> list[str]:
     """Lines for one unit: nothing when fresh and whole; its reason, failure or lost frames."""
+    from flows.pipeline.outcome import Status
+
     rec = manifest.get(plan.sequence, stage)
     if unit.fresh:
         bad = (rec.summary or {}).get("failed_frames") or [] if rec is not None else []
         return [f"fresh, frame {b['frame']} left out: {b['error']}" for b in bad[:3]] + (
             [f"fresh, {len(bad)} frame(s) left out in all"] if len(bad) > 3 else []
         )
-    if rec is not None and rec.status in ("failed", "skipped") and not dry_run:
+    if rec is not None and rec.status in (Status.FAILED, Status.SKIPPED) and not dry_run:
         return [f"{rec.status}: {rec.error.splitlines()[0] if rec.error else ''}"]
     return [f"{'would run' if dry_run else 'stale'}: {unit.reason}"]
 

@@ -31,8 +31,8 @@ def _measure(cfg_for, data: Path, work: Path, name: str, sequences: int) -> dict
 
     run(work / f"{name}-warm", ["0"])
     wall, report = run(work / f"{name}-run", [str(i) for i in range(sequences)])
-    inside = sum(o.get("seconds", 0.0) for o in report.outcomes.values())
-    units = sum(o["status"] in ("done", "failed") for o in report.outcomes.values())
+    inside = sum(o.seconds for o in report.outcomes.values())
+    units = sum(o.ran for o in report.outcomes.values())
     return {
         "flow_s": round(wall, 2),
         "inside_stages_s": round(inside, 2),

@@ -8,7 +8,7 @@ import shutil
 import numpy as np
 import pytest
 
-from flows.bench.pipeline import make_config, run_local
+from flows.bench.common import make_config, run_stages
 from flows.commands.evaluate import _boxes_to_base, _condition, evaluate
 from flows.commands.evaluate_coda import evaluate_coda
 
@@ -22,7 +22,7 @@ def built(tmp_path_factory):
     data, out = root / "data", root / "out"
     simulate(data, sequences=1, frames=4, seed=5, pedestrians=3, crowd="crowded", progress=False)
     cfg = make_config(data, out, {"fuse.body_source": "ground-truth"})
-    run_local(cfg, stages=("detect", "track", "map", "fuse", "export"))
+    run_stages(cfg, ("detect", "track", "map", "fuse", "export"))
     return data, out
 
 

@@ -76,3 +76,20 @@ def spawned(fn, *args, **kwargs):
 
     with ProcessPoolExecutor(1, mp_context=mp.get_context("spawn")) as pool:
         return pool.submit(fn, *args, **kwargs).result()
+
+
+def run_stages(config, stages: tuple[str, ...], submitter=None):
+    """``stages`` of every sequence through the pipeline's runner in this process
+    (flows.pipeline.units.run_units: a stage-level run, inline unless a ``submitter`` is given,
+    recorded in OUT/manifest.json as a flow run records it). Returns its RunReport (``seconds``
+    per unit in ``outcomes``); RuntimeError when a sequence or unit did not finish."""
+    from flows.pipeline.units import run_units
+
+    report = run_units(config, progress=False, submitter=submitter, stages=stages)
+    bad = report.failed + report.skipped
+    if bad:
+        raise RuntimeError(
+            "\n".join(f"sequence {o.sequence} stage {o.stage} {o.status}: {o.error}" for o in bad)
+            + f"\n{bad[0].traceback}"
+        )
+    return report

@@ -151,13 +151,21 @@ def _unit(cfg, sequence: str, stage: str):
     )
 
 
+def _made(sequence: str, stage: str, location: str):
+    """The outcome of a unit whose product the bench made itself at ``location``."""
+    from flows.pipeline.outcome import Status, UnitOutcome
+
+    return UnitOutcome(sequence, stage, "", {}, Status.DONE, location=location)
+
+
 def _stage_process(
     data_root: str, out_root: str, sequence: str, stage: str, upstream: dict, overrides: dict
 ) -> dict:
     """In a fresh process: one stage of one sequence; its peak RSS and its baseline."""
     import flows.stages  # noqa: F401  (every stage and kernel imported before the baseline)
     from flows.pipeline.inputs import runtime, source
-    from flows.pipeline.run import execute_unit
+    from flows.pipeline.outcome import Status
+    from flows.pipeline.units import execute_unit
 
     cfg = make_config(Path(data_root), Path(out_root), overrides)
     frames = len(source(cfg).open(_unit(cfg, sequence, stage).ref))
@@ -165,10 +173,8 @@ def _stage_process(
     outcome = execute_unit(
         _unit(cfg, sequence, stage), Path(out_root), upstream, "bench", runtime(cfg)
     )
-    if outcome["status"] != "done":
-        raise RuntimeError(
-            f"{stage} of sequence {sequence}: {outcome.get('error')}\n{outcome.get('traceback', '')}"
-        )
+    if outcome.status != Status.DONE:
+        raise RuntimeError(f"{stage} of sequence {sequence}: {outcome.error}\n{outcome.traceback}")
     return {
         "frames": frames,
         "peak_rss_mb": _peak_mb(),
@@ -260,11 +266,11 @@ def bench_memory(
                 str(outroot),
                 seq,
                 "map",
-                {"detect": {"status": "done", "location": detect}},
+                {"detect": _made(seq, "detect", detect)},
                 overrides,
             )
             out.setdefault("map", {})[n] = {k: v for k, v in m.items() if k != "outcome"} | {
-                "summary": m["outcome"]["summary"]
+                "summary": m["outcome"].summary
             }
         if "fuse" in stages:
             f = spawned(
@@ -273,7 +279,7 @@ def bench_memory(
                 str(outroot),
                 seq,
                 "fuse",
-                {"map": m["outcome"], "detect": {"status": "done", "location": detect}},
+                {"map": m["outcome"], "detect": _made(seq, "detect", detect)},
                 overrides,
             )
             out.setdefault("fuse", {})[n] = {k: v for k, v in f.items() if k != "outcome"}

@@ -1,8 +1,9 @@
 """``mobileocc bench``: what a (re)build costs on this machine, measured in one run.
 
-``bench(quick, json_path, workers)`` makes a small synthetic dataset (flows/commands/simulate.py), runs the
-six stages through ``flows.pipeline.run.execute_unit`` without Prefect (``run_local``) and times each
-stage, then calls the other benchmark functions of the project in the same run:
+``bench(quick, json_path, workers)`` makes a small synthetic dataset (flows/commands/simulate.py),
+runs the six stages through the pipeline's runner without Prefect (flows.pipeline.units.run_units,
+inline; flows/bench/common.py ``run_stages``) and times each stage, then calls the other benchmark
+functions of the project in the same run:
 
 - frames/s per stage and end to end (simulation excluded), at 0.2 m and, for fuse, at 0.05 m;
 - peak RSS: ``resource.getrusage(RUSAGE_SELF).ru_maxrss`` of a fresh spawned process per measured
@@ -30,53 +31,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from flows.bench.common import machine, make_config, peak_rss_mb, spawned
+from flows.bench.common import machine, make_config, peak_rss_mb, run_stages, spawned
 from flows.pipeline.dag import STAGES
 
 STAGE_ORDER = tuple(STAGES)
-
-
-# ---- running the stages without Prefect ----------------------------------------------------------
-
-
-def run_local(config, stages=STAGE_ORDER, sequences: list[str] | None = None) -> dict:
-    """Plan and run ``stages`` of every sequence in this process (no Prefect), recording each
-    outcome and the resolved config in ``OUT/manifest.json`` as a flow run does. Stages left out
-    are absent upstream (fuse with ``body_source: ground-truth`` needs no fit). Returns
-    {(sequence, stage): outcome} with ``seconds`` per unit; raises on a failed unit."""
-    from configs.schema import config_hash
-    from flows.pipeline.dag import STAGES
-    from flows.pipeline.inputs import runtime
-    from flows.pipeline.plan import plan_run
-    from flows.pipeline.run import _record, execute_unit
-    from storage.manifest import FileHasher, Manifest
-
-    out = Path(config.output.root)
-    out.mkdir(parents=True, exist_ok=True)
-    manifest = Manifest.load(out)
-    manifest.meta.update(
-        {"config_hash": config_hash(config), "config": config.model_dump(mode="json")}
-    )
-    outcomes: dict = {}
-    for plan in plan_run(config, manifest, FileHasher(None), sequences=sequences):
-        if plan.error:
-            raise RuntimeError(f"sequence {plan.sequence}: {plan.error}")
-        done: dict[str, dict] = {}
-        for stage in STAGES:
-            if stage not in stages:
-                continue
-            ups = {u: done[u] for u in STAGES[stage] if u in done}
-            outcome = execute_unit(plan.units[stage], out, ups, plan.fingerprint, runtime(config))
-            _record(manifest, outcome)
-            if outcome["status"] != "done":
-                raise RuntimeError(
-                    f"sequence {plan.sequence} stage {stage} {outcome['status']}: "
-                    f"{outcome.get('error')}\n{outcome.get('traceback', '')}"
-                )
-            done[stage] = outcome
-            outcomes[(plan.sequence, stage)] = outcome
-    manifest.save()
-    return outcomes
 
 
 # ---- measurements ------------------------------------------------------------------------------
@@ -88,9 +46,9 @@ def _stage_in_process(data_root: str, out_root: str, overrides: dict, stages: tu
     res = {}
     for stage in stages:
         c0, t0 = time.process_time(), time.perf_counter()
-        outcomes = run_local(cfg, stages=_with_upstream(stage))
+        outcomes = run_stages(cfg, _with_upstream(stage)).outcomes
         res[stage] = {
-            "wall_s": sum(o["seconds"] for (s, st), o in outcomes.items() if st == stage),
+            "wall_s": sum(o.seconds for (s, st), o in outcomes.items() if st == stage),
             "cpu_s": time.process_time() - c0,
             "total_wall_s": time.perf_counter() - t0,
             "peak_rss_mb": peak_rss_mb(),
@@ -99,8 +57,8 @@ def _stage_in_process(data_root: str, out_root: str, overrides: dict, stages: tu
 
 
 def _with_upstream(stage: str) -> tuple:
-    """``stage`` and everything before it in STAGE_ORDER (earlier ones are cached in the manifest:
-    execute_unit returns a finished key folder at once)."""
+    """``stage`` and every stage before it (the earlier ones are fresh in the manifest: the runner
+    takes them from the cache)."""
     return STAGE_ORDER[: STAGE_ORDER.index(stage) + 1]
 
 

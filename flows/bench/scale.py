@@ -39,7 +39,6 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import resource
 import shutil
 import subprocess
 import sys
@@ -47,7 +46,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from flows.bench.common import machine, make_config, spawned
+from flows.bench.common import machine, make_config, run_stages, spawned
 from flows.bench.planning import (
     SOURCE_ID,  # the simulated long sequence's id (a number no copy takes)
 )
@@ -114,66 +113,21 @@ def link_sequence(
 # ---- stages with per-stage peak RSS ----------------------------------------------------------------
 
 
-def _rss_mb() -> float:
-    with open("/proc/self/statm") as fh:
-        return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
-
-
 def _run_stages_forked(data_root: str, out_root: str, overrides: dict) -> dict:
-    """In a fresh (spawned) runner: import everything, plan, then run each stage of the one
-    sequence in a forked child; per stage wall / CPU seconds, the child's peak RSS and the
-    runner's RSS when it forked (the baseline)."""
+    """In a fresh (spawned) runner: import everything, then run the one sequence through the
+    pipeline's runner, each stage in a forked child (flows/bench/forked.py); per stage wall / CPU
+    seconds, the child's peak RSS and the runner's baseline."""
     import flows.stages  # noqa: F401  (every stage module and its kernels, before the forks)
-    from flows.pipeline.inputs import runtime
-    from flows.pipeline.plan import plan_run
-    from flows.pipeline.run import _record, execute_unit
-    from storage.manifest import FileHasher, Manifest
+    from flows.bench.forked import ForkedUnits
 
-    cfg = make_config(Path(data_root), Path(out_root), overrides)
-    out = Path(out_root)
-    out.mkdir(parents=True, exist_ok=True)
-    manifest = Manifest.load(out)
-    (plan,) = plan_run(cfg, manifest, FileHasher(None))
-    if plan.error:
-        raise RuntimeError(f"{data_root}: {plan.error}")
-    done: dict[str, dict] = {}
+    forked = ForkedUnits()
+    report = run_stages(
+        make_config(Path(data_root), Path(out_root), overrides), tuple(STAGES), forked
+    )
+    (plan,) = report.plans
     res: dict = {"frames": plan.num_frames}
-    for stage in STAGES:
-        ups = {u: done[u] for u in STAGES[stage] if u in done}
-        r, w = os.pipe()
-        pid = os.fork()
-        if pid == 0:  # the child: one stage, then report and leave without cleanup handlers
-            code = 0
-            try:
-                os.close(r)
-                start_rss = _rss_mb()  # what the fork maps of the runner (its anonymous pages)
-                c0, t0 = time.process_time(), time.perf_counter()
-                outcome = execute_unit(plan.units[stage], out, ups, plan.fingerprint, runtime(cfg))
-                msg = {
-                    "outcome": outcome,
-                    "wall_s": time.perf_counter() - t0,
-                    "cpu_s": time.process_time() - c0,
-                    "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-                    "start_rss_mb": start_rss,
-                }
-                os.write(w, json.dumps(msg, default=str).encode())
-            except BaseException as exc:  # noqa: BLE001 - reported to the runner
-                os.write(w, json.dumps({"error": f"{type(exc).__name__}: {exc}"}).encode())
-                code = 1
-            finally:
-                os._exit(code)
-        os.close(w)
-        with os.fdopen(r, "rb") as fh:
-            data = fh.read()
-        os.waitpid(pid, 0)
-        msg = json.loads(data.decode() or '{"error": "the stage process died"}')
-        if "error" in msg or msg["outcome"]["status"] != "done":
-            raise RuntimeError(
-                f"{data_root} stage {stage}: {msg.get('error') or msg['outcome'].get('error')}"
-            )
-        _record(manifest, msg["outcome"])
-        done[stage] = msg["outcome"]
-        n = max(1, plan.num_frames)
+    n = max(1, plan.num_frames)
+    for stage, msg in forked.measured.items():
         res[stage] = {
             "wall_s": msg["wall_s"],
             "cpu_s": msg["cpu_s"],
@@ -284,7 +238,7 @@ def _rebuild_on(data_root: str, out_root: str, address: str, overrides: dict) ->
         report = rebuild_dataset(cfg, progress=False)
         wall = time.perf_counter() - t0
     if report.failed:
-        raise RuntimeError(f"cluster rebuild failed: {report.failed[0]['error']}")
+        raise RuntimeError(f"cluster rebuild failed: {report.failed[0].error}")
     return {
         "wall_s": wall,
         "units_s": report.seconds,

@@ -29,6 +29,7 @@ from flows.pipeline.inputs import (
     stage_inputs,
     to_jsonable,
 )
+from flows.pipeline.outcome import Status
 from storage.coda import READER_VERSION, frame_number, sequence_ids, sequence_layout
 from storage.files import InputError, regular_stat
 from storage.manifest import (
@@ -286,8 +287,8 @@ def _stale_reason(
     rec = manifest.get(seq, stage)
     if rec is None:
         return "never ran"
-    if rec.status != "done":
-        what = "was skipped" if rec.status == "skipped" else "failed"
+    if rec.status != Status.DONE:
+        what = "was skipped" if rec.status == Status.SKIPPED else "failed"
         return f"last run {what}: {rec.error.splitlines()[0][:120] if rec.error else rec.status}"
     rerun_up = [u for u in upstream if u in runs]
     if rerun_up:  # also when keys match: the upstream output it was built from is being rebuilt
