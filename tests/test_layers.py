@@ -83,3 +83,35 @@ def test_tests_take_kernels_from_tasks():
                     if not a.name.startswith("run_")
                 ]
     assert bad == []
+
+
+def entry_points(root: Path = ROOT, layers=("flows", "tasks", "configs")) -> list[str]:
+    """Modules other than flows/cli.py that define a top-level ``main`` or an
+    ``if __name__ == "__main__":`` block."""
+    found = []
+    for layer in layers:
+        for path in sorted((root / layer).rglob("*.py")):
+            if path == root / "flows" / "cli.py":
+                continue
+            for node in ast.parse(path.read_text()).body:
+                if isinstance(node, ast.FunctionDef) and node.name == "main":
+                    found.append(f"{path.relative_to(root)}:{node.lineno} def main")
+                if isinstance(node, ast.If) and "__main__" in ast.unparse(node.test):
+                    found.append(f"{path.relative_to(root)}:{node.lineno} __main__")
+    return found
+
+
+def test_one_cli():
+    """One entry point, ``mobileocc`` (flows/cli.py): every command is a subcommand of it."""
+    assert entry_points() == []
+
+
+def test_the_check_catches_a_second_entry_point(tmp_path):
+    (tmp_path / "flows" / "bench").mkdir(parents=True)
+    (tmp_path / "flows" / "bench" / "x.py").write_text(
+        "def main(argv=None):\n    pass\n\n\nif __name__ == '__main__':\n    main()\n"
+    )
+    assert entry_points(tmp_path) == [
+        "flows/bench/x.py:1 def main",
+        "flows/bench/x.py:5 __main__",
+    ]

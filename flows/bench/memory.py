@@ -21,7 +21,6 @@ from __future__ import annotations
 import json
 import os
 import resource
-import sys
 import time
 from pathlib import Path
 
@@ -322,28 +321,3 @@ def format_table(r: dict) -> str:
         f"peak({r['frames'][0]})"
     )
     return "\n".join(lines)
-
-
-def main(argv: list[str] | None = None) -> int:
-    import argparse
-
-    ap = argparse.ArgumentParser(prog="mobileocc bench memory", description=__doc__.splitlines()[0])
-    ap.add_argument(
-        "--work", type=Path, required=True, help="folder for the sequences and outputs (kept)"
-    )
-    ap.add_argument(
-        "--frames",
-        type=int,
-        nargs="+",
-        default=[200, 1000, 2000],
-        help="sequence lengths, 5 Hz frames",
-    )
-    ap.add_argument("--untiled", action="store_true", help="also the whole-sequence SequenceMapper")
-    ap.add_argument("--stages", nargs="+", default=["map", "fuse"], choices=["map", "fuse"])
-    ap.add_argument("--json", type=Path, help="write the results here")
-    a = ap.parse_args(sys.argv[1:] if argv is None else argv)
-    r = bench_memory(a.frames, a.work, untiled=a.untiled, stages=tuple(a.stages))
-    if a.json:
-        a.json.write_text(json.dumps(r, indent=1, default=str))
-    print(format_table(r))
-    return 0

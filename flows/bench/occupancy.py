@@ -4,8 +4,9 @@
 octomap-python's ``insertPointCloud`` in the same run, best of several repeats, plus the agreement
 of the voxel states on the benchmark grid. Ours is timed on one thread and on one thread per core;
 wall-clock seconds give the speed ratio (what a user waits for; octomap-python is one thread), and
-process CPU seconds are reported beside them (they count less of other load on the machine). ``bench_map_fuse``: static-map accumulation and per-frame fusion in frames per second,
-and (in ``main``) their seconds per frame over octomap's seconds per scan of the same run
+process CPU seconds are reported beside them (they count less of other load on the machine).
+``bench_map_fuse``: static-map accumulation and per-frame fusion in frames per second, and (in
+``bench_occupancy``) their seconds per frame over octomap's seconds per scan of the same run
 (``map_fuse_over_octomap_cpu``; the issue's target is <= 0.2 at 0.2 m).
 
 Run: ``mobileocc bench occupancy [--quick]`` (prints JSON, then a table).
@@ -13,9 +14,7 @@ Run: ``mobileocc bench occupancy [--quick]`` (prints JSON, then a table).
 
 from __future__ import annotations
 
-import json
 import os
-import sys
 import time
 
 import numpy as np
@@ -244,9 +243,9 @@ def bench_map_fuse(
     }
 
 
-def main(argv: list[str] | None = None) -> None:
-    argv = sys.argv[1:] if argv is None else argv
-    quick = "--quick" in argv
+def bench_occupancy(quick: bool) -> dict:
+    """Free-space insertion vs octomap-python, then map and fuse frames/s at each voxel size (each
+    measurement in a fresh process), and map + fuse per frame over octomap's CPU per scan."""
     out = {
         "freespace": spawned(bench_freespace, quick),
         "freespace_discretize": spawned(bench_freespace, quick, discretize=True),
@@ -260,12 +259,11 @@ def main(argv: list[str] | None = None) -> None:
         per_frame = 1.0 / r["map_fps"] + 1.0 / r["fuse_fps"]
         r["map_fuse_s_per_frame"] = per_frame
         r["map_fuse_over_octomap_cpu"] = per_frame / out["freespace"]["octomap_cpu_s"]
-    print(json.dumps(out, indent=2))
-    print(format_table(out))
+    return out
 
 
 def format_table(out: dict) -> str:
-    """Headline figures of :func:`main`'s JSON as an aligned text table."""
+    """Headline figures of :func:`bench_occupancy` as an aligned text table."""
     fs = out["freespace"]
     lines = [
         f"{'measure':<46}{'value':>12}",

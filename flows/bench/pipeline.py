@@ -19,7 +19,7 @@ functions of the project in the same run:
   and fuse (a cProfile rerun of each; library time charged to the calling function of ours).
 
 Ratios are computed inside the run. CPU counts, model name, memory and library versions go in the
-JSON's ``machine``. Run: ``mobileocc bench [--quick] [--json FILE]``; ``mobileocc bench --scale``
+JSON's ``machine``. Run: ``mobileocc bench [--quick] [--json FILE]``; ``mobileocc bench scale``
 runs the scale benchmark instead (flows/bench/scale.py).
 """
 
@@ -482,71 +482,3 @@ def format_table(r: dict) -> str:
                     row(f"store {part} {k}", float(v))
     row("bench wall s", r.get("bench_wall_s"))
     return "\n".join(lines)
-
-
-def main(argv: list[str] | None = None) -> None:  # pragma: no cover - the CLI calls bench()
-    import argparse
-
-    from flows.bench import scale
-
-    def ints(text: str) -> list[int]:
-        return [int(v) for v in text.split(",") if v.strip()]
-
-    p = argparse.ArgumentParser(prog="mobileocc bench", description=__doc__.splitlines()[0])
-    p.add_argument("--quick", action="store_true")
-    p.add_argument("--json", type=Path, default=None)
-    p.add_argument("--workers", type=int, default=2)
-    g = p.add_argument_group(
-        "--scale: long sequences, many sequences, a loopback cluster, the 116k-frame "
-        "projection (flows/bench/scale.py, docs/scale.md)"
-    )
-    g.add_argument("--scale", action="store_true", help="run the scale benchmark instead")
-    g.add_argument(
-        "--frames",
-        type=ints,
-        default=list(scale.DEFAULT_FRAMES),
-        help="5 Hz frames of the long-sequence runs (default %(default)s; the issue's 200,1000,2000 "
-        "take hours here)",
-    )
-    g.add_argument(
-        "--sequences",
-        type=ints,
-        default=list(scale.DEFAULT_SEQUENCES),
-        help="sequences of the planning datasets (default %(default)s)",
-    )
-    g.add_argument(
-        "--cluster-workers",
-        type=ints,
-        default=list(scale.DEFAULT_CLUSTER_WORKERS),
-        help="worker counts of the loopback Dask cluster (default %(default)s)",
-    )
-    g.add_argument(
-        "--memory-frames",
-        type=ints,
-        default=list(scale.MEMORY_FRAMES),
-        help="5 Hz frames of the memory part's sequences (default %(default)s)",
-    )
-    g.add_argument(
-        "--parts", default=",".join(scale.PARTS), help="which parts (default %(default)s)"
-    )
-    g.add_argument(
-        "--sim-frames", type=int, default=2000, help="raw frames of the simulator's long sequence"
-    )
-    a = p.parse_args(argv)
-    if a.scale:
-        parts = tuple(v.strip() for v in a.parts.split(",") if v.strip())
-        unknown = sorted(set(parts) - set(scale.PARTS))
-        if unknown:
-            p.error(f"--parts: unknown {unknown}; expected some of {list(scale.PARTS)}")
-        scale.bench_scale(
-            a.frames,
-            a.sequences,
-            a.cluster_workers,
-            parts,
-            a.json,
-            sim_long_frames=a.sim_frames,
-            sim_workers=a.workers,
-            memory_frames=a.memory_frames,
-        )
-        return
-    bench(a.quick, a.json, a.workers)

@@ -1,4 +1,4 @@
-"""``mobileocc bench --scale``: what a 116k-frame rebuild costs, measured in one run of minutes.
+"""``mobileocc bench scale``: what a 116k-frame rebuild costs, measured in one run of minutes.
 
 Parts (``parts``), each in its own spawned process where it matters:
 
