@@ -14,6 +14,8 @@ the Zarr store and the Parquet tables.
 from __future__ import annotations
 
 import dataclasses
+import json
+import shutil
 import zipfile
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar
@@ -430,3 +432,20 @@ def masks_to_labels(masks: np.ndarray) -> np.ndarray:
 def labels_to_masks(labels: np.ndarray, count: int) -> np.ndarray:
     """(H, W) uint16 label image -> (count, H, W) bool masks."""
     return labels[None, :, :] == np.arange(1, count + 1, dtype=np.uint16)[:, None, None]
+
+
+#: a stage's JSON-able summary, beside its products
+SUMMARY = "summary.json"
+
+
+def write_summary(folder: Path, summary: dict) -> None:
+    (Path(folder) / SUMMARY).write_text(json.dumps(summary, sort_keys=True, indent=1))
+
+
+def read_summary(folder: Path) -> dict:
+    return json.loads((Path(folder) / SUMMARY).read_text())
+
+
+def remove_scratch(folder: Path) -> None:
+    """Remove a folder of scratch products (a stage's work files, not part of its output)."""
+    shutil.rmtree(folder, ignore_errors=True)

@@ -161,6 +161,19 @@ def sequence_writer(
     publish_sequence(staged)
 
 
+def stage_store(staged: StagedSequence, store: Path) -> None:
+    """Put a finished Zarr store (the fuse stage's) into a staged sequence: its files hard-linked
+    (copied where a link is refused, e.g. across file systems)."""
+
+    def link(a, b):
+        try:
+            os.link(a, b)
+        except OSError:
+            shutil.copy2(a, b)
+
+    shutil.copytree(store, staged.store_path, copy_function=link, dirs_exist_ok=True)
+
+
 def stage_table(staged: StagedSequence, name: str, data: Any) -> Path:
     """Write a table partition into a staged sequence; it goes live with publish_sequence."""
     partition_dir(staged.root, name, staged.sequence)  # validates the name

@@ -19,7 +19,6 @@ out of the dataset-level exports.
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import time
@@ -61,6 +60,7 @@ from storage.manifest import (
     staged_output,
     sweep_temporaries,
 )
+from storage.products import SUMMARY, read_summary, write_summary
 from storage.publish import withdraw_sequence
 
 
@@ -88,8 +88,8 @@ def execute_unit(
         return outcome(Status.SKIPPED, error=f"upstream {', '.join(blocked)} did not finish")
     final = stage_dir(out_root, unit.stage, unit.sequence, unit.key)
     location = str(final.relative_to(out_root))
-    if (final / "summary.json").exists():  # finished by a run that was killed before recording it
-        summary = json.loads((final / "summary.json").read_text())
+    if (final / SUMMARY).exists():  # finished by a run that was killed before recording it
+        summary = read_summary(final)
         return outcome(Status.DONE, location=location, summary=summary)
     from flows.pipeline.parallel import limit_threads
     from flows.stages import (  # the kernels: only where a unit runs
@@ -112,7 +112,7 @@ def execute_unit(
                 runtime=runtime,
             )
             summary = STAGE_FUNCTIONS[unit.stage](ctx)
-            (tmp / "summary.json").write_text(json.dumps(summary, sort_keys=True, indent=1))
+            write_summary(tmp, summary)
     except Exception as exc:  # noqa: BLE001 - one bad sequence fails alone, with its error
         return outcome(
             Status.FAILED,

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import json
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,6 +18,7 @@ from storage.body_files import (
     save_pose_prior_pkl,
 )
 from storage.coda import CodaSequence
+from storage.products import read_summary
 from tasks.body.model import BodyModel
 from tasks.body.prior import GMMPosePrior, generate_pose_prior
 from tasks.body.procedural import generate_body_model
@@ -55,7 +55,7 @@ class StageContext(Generic[InputsT]):
 def detected_positions(ctx: StageContext, seq: CodaSequence) -> list[int]:
     """Positions (in ``seq.info.frame_indices``) of the frames the detect stage produced: a frame
     whose input was bad is in its ``failed_frames`` instead and no later stage reads it."""
-    summary = json.loads((ctx.upstream["detect"] / "summary.json").read_text())
+    summary = read_summary(ctx.upstream["detect"])
     at = {raw: k for k, raw in enumerate(seq.info.frame_indices)}
     return [at[int(raw)] for raw in summary["frames"]]
 

@@ -15,14 +15,13 @@ import functools
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from flows.pipeline.inputs import FitInputs, SequenceRef
 from flows.pipeline.parallel import fan_out
 from flows.stages.common import StageContext, body_model, pose_prior
 from flows.stages.providers import init_provider
 from storage.products import Bodies, Tracks
-from tasks.fit.batch import concat_point_sets, drop_far_fits, fit_rows
+from tasks.fit.batch import concat_point_sets, drop_far_fits, fit_rows, resolve_device
 from tasks.fit.init_oracle import BodyParams
 from tasks.fit.optimize import fit_persons
 from tasks.fit.warm_start import warm_started
@@ -32,10 +31,6 @@ from tasks.track.velocity import velocities_in_base
 @functools.lru_cache(maxsize=2)
 def _tracks(folder: str) -> Tracks:
     return Tracks.read(Path(folder))  # key-named, never rewritten: safe to keep per process
-
-
-def device(name: str) -> str:
-    return ("cuda" if torch.cuda.is_available() else "cpu") if name == "auto" else name
 
 
 def fit_batch(
@@ -71,7 +66,7 @@ def fit_batch(
         weights=inputs.weights,
         iterations=s.iterations,
         lr=s.learning_rate,
-        device=device(s.device),
+        device=resolve_device(s.device),
         seed=s.seed,
         nn_every=s.nn_every,
         converge_rtol=s.converge_rtol,
@@ -199,6 +194,6 @@ def run_fit(ctx: StageContext[FitInputs]) -> dict:
         "skipped_without_estimate": int(len(tracks.track_id) - len(rows) - int(few.sum())),
         "skipped_few_points": int(few.sum()),
         "dropped_far_from_estimate": far,
-        "device": device(s.device),
+        "device": resolve_device(s.device),
         "preset": inp.preset,
     }

@@ -16,7 +16,6 @@ holds a bounded part of the sequence: memory does not grow with its length.
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +31,7 @@ from storage.products import (
     OccupancyMapProduct,
     StaticMapProduct,
     WindowVotesProduct,
+    remove_scratch,
 )
 from tasks.conventions import UNLABELED
 from tasks.occupancy.mapping import (
@@ -234,7 +234,7 @@ def run_map(ctx: StageContext[MapInputs]) -> dict:
         )
         for t in part
     ]
-    shutil.rmtree(work, ignore_errors=True)
+    remove_scratch(work)
     MapTiles.of(
         s.tile_m,
         s.voxel_size_m,

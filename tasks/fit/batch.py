@@ -70,3 +70,8 @@ def drop_far_fits(out: dict, max_shift_m: float | None) -> tuple[dict, int]:
         return out, 0
     keep = np.asarray(out["shift_m"]) <= max_shift_m
     return {k: np.asarray(v)[keep] for k, v in out.items()}, int((~keep).sum())
+
+
+def resolve_device(name: str) -> str:
+    """A torch device name: "auto" is CUDA where a GPU is available, else the CPU."""
+    return ("cuda" if torch.cuda.is_available() else "cpu") if name == "auto" else name
