@@ -355,36 +355,19 @@ def _add_bench_parsers(sub) -> None:
         help="long sequences, many sequences, a loopback cluster, the 116k-frame projection "
         "(flows/bench/scale.py, docs/scale.md)",
     )
-    s.add_argument(
-        "--frames",
-        type=_csv(int),
-        default=scale.DEFAULT_FRAMES,
-        help="5 Hz frames of the long-sequence runs (default %(default)s; the issue's 200,1000,2000 "
-        "take hours here)",
-    )
-    s.add_argument(
-        "--sequences",
-        type=_csv(int),
-        default=scale.DEFAULT_SEQUENCES,
-        help="sequences of the planning datasets (default %(default)s)",
-    )
-    s.add_argument(
-        "--cluster-workers",
-        type=_csv(int),
-        default=scale.DEFAULT_CLUSTER_WORKERS,
-        help="worker counts of the loopback Dask cluster (default %(default)s)",
-    )
-    s.add_argument(
-        "--memory-frames",
-        type=_csv(int),
-        default=scale.MEMORY_FRAMES,
-        help="5 Hz frames of the memory part's sequences (default %(default)s)",
-    )
+    for flag, default, text in (
+        ("--frames", scale.DEFAULT_FRAMES, "5 Hz frames of the long-sequence runs"),
+        ("--sequences", scale.DEFAULT_SEQUENCES, "sequences of the planning datasets"),
+        ("--cluster-workers", scale.DEFAULT_CLUSTER_WORKERS, "worker counts of the Dask cluster"),
+        ("--memory-frames", scale.MEMORY_FRAMES, "5 Hz frames of the memory part's sequences"),
+    ):
+        shown = ",".join(map(str, default))
+        s.add_argument(flag, type=_csv(int), default=default, help=f"{text} (default {shown})")
     s.add_argument(
         "--parts",
         type=_csv(str, scale.PARTS),
         default=scale.PARTS,
-        help="which parts (default %(default)s)",
+        help=f"which parts (default {','.join(scale.PARTS)})",
     )
     s.add_argument(
         "--sim-frames", type=int, default=2000, help="raw frames of the simulator's long sequence"
