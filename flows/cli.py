@@ -173,11 +173,13 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.labels == "coda":
-        from flows.commands.evaluate_coda import evaluate_coda as evaluate
+        from flows.commands.evaluate_coda import evaluate_coda
+
+        evaluate_coda(args.dataset, args.gt, args.report)
     else:
         from flows.commands.evaluate import evaluate
 
-    evaluate(args.dataset, args.gt, args.report)
+        evaluate(args.dataset, args.gt, args.report)
     print(
         f"report: {args.report / 'report.md'} (figures in {args.report / 'figures'}, "
         f"numbers in {args.report / 'results.json'})"
@@ -198,8 +200,8 @@ def _write_json(path: Path | None, value) -> None:
         path.write_text(json.dumps(value, indent=1, default=str) + "\n")
 
 
-def _csv(kind=str, choices: tuple | None = None):
-    """An argparse type: comma-separated values of ``kind`` (each one of ``choices``)."""
+def _csv(kind=str, choices: tuple = ()):
+    """An argparse type: comma-separated values of ``kind`` (each one of ``choices``, if any)."""
 
     def parse(text: str) -> tuple:
         values = tuple(kind(v.strip()) for v in text.split(",") if v.strip())

@@ -60,7 +60,7 @@ def bench_overhead(sequences: int = 8, frames: int = 2) -> dict:
         progress=False,
     )
 
-    result = {"sequences": sequences, "raw_frames": frames}
+    result: dict = {"sequences": sequences, "raw_frames": frames}
     with prefect_api():
         result["thread"] = _measure(
             lambda d, o, s: make_config(d, o, {"dataset.sequences": s, "dask.workers": 1}),
