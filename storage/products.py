@@ -130,15 +130,6 @@ class Product:
             }
         )
 
-    @classmethod
-    def concat(cls: type[P], parts: list[P]) -> P:
-        """Rows of several products of a row-indexed kind (every field's first axis is the row)."""
-        if not parts:
-            return cls.empty()
-        return cls(
-            **{name: np.concatenate([getattr(p, name) for p in parts]) for name in cls.specs()}
-        )
-
     def take(self: P, rows: np.ndarray) -> P:
         """The given rows of a row-indexed product."""
         return type(self)(**{name: value[rows] for name, value in self.arrays().items()})

@@ -139,14 +139,6 @@ def discard(staged: StagedSequence | str | os.PathLike) -> None:
     shutil.rmtree(path, ignore_errors=True)
 
 
-def discard_stale(root: str | os.PathLike) -> list[Path]:
-    """Remove every staging directory left under ``root`` by killed runs; returns them."""
-    stale = sorted(p for p in Path(root).glob(f"{TMP_PREFIX}*") if p.is_dir())
-    for path in stale:
-        shutil.rmtree(path, ignore_errors=True)
-    return stale
-
-
 @contextlib.contextmanager
 def sequence_writer(
     root: str | os.PathLike, sequence: str, version: str

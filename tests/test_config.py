@@ -149,7 +149,6 @@ def test_no_kernel_repeats_a_config_default_as_a_keyword_default():
         ("offline.py", "stitch_ids", "window"),  # the pixel-velocity window
         ("optimize.py", "fit_persons", "min_points"),  # skip ICP / L_3D below this, per person
         ("calibration.py", "project", "min_depth_m"),  # check-data's sanity projection
-        ("blazepose.py", "weighted_nms", "iou_threshold"),  # BlazePose's own detector NMS
         ("cliff.py", "__init__", "batch_size"),  # crops per CLIFF run
         ("segmentation.py", "__init__", "input_size"),  # Mask2Former's input (None: the export's)
         (

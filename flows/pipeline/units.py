@@ -139,8 +139,6 @@ class RunReport:
     withdrawn: list[str] = field(default_factory=list)
     #: manifest / memo files that could not be written (a full disk), with the error
     write_errors: list[str] = field(default_factory=list)
-    #: leftovers of earlier runs removed at the start
-    swept: int = 0
 
     @property
     def failed(self) -> list[UnitOutcome]:
@@ -320,7 +318,7 @@ def run_units(
         raise ValueError(f"stages {sorted(stages or ())}: expected some of {list(STAGES)}")
     with holding_lock(out_root) if lock_held else run_lock(out_root):
         report = RunReport(out_root, [])
-        report.swept = sweep_temporaries(out_root)
+        sweep_temporaries(out_root)  # leftovers of earlier (killed) runs
         manifest = Manifest.load(out_root)
         manifest.meta.update(
             {"config_hash": config_hash(config), "config": config.model_dump(mode="json")}
