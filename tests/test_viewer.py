@@ -39,8 +39,9 @@ SHOW_TIMEOUT_S = 300
 def built(tmp_path_factory):
     """Two sequences of 5 frames each (10 Hz, no striding): 0 crowded by day, 1 at night; every
     stage of the default config (fitted bodies: meshes and boxes in the instances table)."""
-    from flows.bench.pipeline import make_config, run_local
+    from flows.bench.common import make_config, run_stages
     from flows.commands.simulate import simulate
+    from flows.pipeline.dag import STAGES
 
     root = tmp_path_factory.mktemp("viewer")
     data, out = root / "data", root / "out"
@@ -48,7 +49,7 @@ def built(tmp_path_factory):
              fast=True)  # fmt: skip
     simulate(data, sequences=1, frames=5, seed=6, pedestrians=3, crowd="uncrowded", night=True,
              progress=False, first_id=1, fast=True)  # fmt: skip
-    run_local(make_config(data, out, {"dataset.rate_hz": 10.0}))
+    run_stages(make_config(data, out, {"dataset.rate_hz": 10.0}), tuple(STAGES))
     return data, out
 
 

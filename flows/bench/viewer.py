@@ -13,15 +13,12 @@ flows/bench/storage.py's ``synthetic_frames`` does (ground, a car, a wall, a pol
 
 from __future__ import annotations
 
-import argparse
-import json
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from storage.atomic import atomic_write_text
 from tasks import conventions as C
 
 #: classes whose colour must be on screen for a frame to count as shown
@@ -209,58 +206,50 @@ def measure_served(dataset: Path, sequence: str, frame: int, browser, screenshot
     return row
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="mobileocc bench viewer", description=__doc__.split("\n")[0])
-    p.add_argument("--dataset", type=Path, default=None, help="also a frame of this dataset")
-    p.add_argument("--sequence", default=None)
-    p.add_argument("--frame", type=int, default=0)
-    p.add_argument("--no-browser", action="store_true", help="skip the Chromium timings")
-    p.add_argument("--no-synthetic", action="store_true", help="only the --dataset frame")
-    p.add_argument("--keep", type=Path, default=None, help="keep the pages (and screenshots) here")
-    p.add_argument("--json", type=Path, default=None)
-    p.add_argument(
-        "--screenshot", type=Path, default=None, help="with --dataset: the served viewer, as PNG"
-    )
-    args = p.parse_args(argv)
+def bench_viewer(
+    dataset: Path | None = None,
+    sequence: str | None = None,
+    frame: int = 0,
+    browser: bool = True,
+    synthetic: bool = True,
+    keep: Path | None = None,
+    screenshot: Path | None = None,
+) -> dict:
+    """The figures of the module docstring: a frame of ``dataset`` (its page and the served
+    viewer) and the synthetic 0.2 m / 0.02 m frames; in Chromium where ``browser`` and one is
+    installed. The pages go to ``keep`` (default: a temporary folder, left for a look)."""
     from flows.bench.chromium import Chromium, find_chromium
 
-    work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="mobileocc-bench-view-"))
+    work = Path(keep) if keep else Path(tempfile.mkdtemp(prefix="mobileocc-bench-view-"))
     work.mkdir(parents=True, exist_ok=True)
-    browser = None
-    if not args.no_browser and find_chromium() is not None:
-        browser = Chromium(1280, 800)
+    chromium = Chromium(1280, 800) if browser and find_chromium() is not None else None
     results = {}
     try:
-        if args.dataset is not None:
+        if dataset is not None:
+            from flows.commands.view import body_model
             from flows.viewer.app import with_boxes
             from flows.viewer.draw import Layers
             from storage.viewer_data import ViewerSource
 
-            src = ViewerSource(args.dataset)
-            seq = args.sequence or src.sequences[0]
-            data = with_boxes(src.frame(seq, args.frame))
-            from flows.commands.view import body_model
-
+            src = ViewerSource(dataset)
+            seq = sequence or src.sequences[0]
+            data = with_boxes(src.frame(seq, frame))
             results[f"dataset_{data.voxel_size_m:g}m"] = measure(
-                data, work, "dataset", browser, Layers(), body_model(args.dataset)
+                data, work, "dataset", chromium, Layers(), body_model(dataset)
             )
-            if browser is not None:
+            if chromium is not None:
                 results["dataset_served"] = measure_served(
-                    args.dataset, seq, args.frame, browser, args.screenshot
+                    dataset, seq, frame, chromium, screenshot
                 )
-        for vs in () if args.no_synthetic else (0.2, 0.02):
+        for vs in (0.2, 0.02) if synthetic else ():
             t0 = time.perf_counter()
             data = synthetic_frame(vs)
             made = time.perf_counter() - t0
             results[f"synthetic_{vs:g}m"] = {
-                **measure(data, work, f"synthetic_{vs:g}m", browser),
+                **measure(data, work, f"synthetic_{vs:g}m", chromium),
                 "make_seconds": round(made, 1),
             }
     finally:
-        if browser is not None:
-            browser.close()
-    text = json.dumps(results, indent=1)
-    print(text)
-    if args.json:
-        atomic_write_text(args.json, text + "\n")
-    return 0
+        if chromium is not None:
+            chromium.close()
+    return results
