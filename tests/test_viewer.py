@@ -28,7 +28,7 @@ pytestmark = [pytest.mark.xdist_group("viewer"), pytest.mark.slow]
 
 needs_chromium = pytest.mark.skipif(
     find_chromium() is None,
-    reason="no chromium on PATH: the viewer's browser tests need headless Chromium "
+    reason="no working chromium on PATH: the viewer's browser tests need headless Chromium "
     "(`make test` apt-installs Debian's `chromium` where it can)",
 )
 #: generous: software WebGL on a loaded 2-core machine

@@ -11,6 +11,7 @@ The protocol goes over the ``websockets`` client (a dependency of viser).
 from __future__ import annotations
 
 import base64
+import functools
 import io
 import itertools
 import json
@@ -46,11 +47,19 @@ class ChromiumError(RuntimeError):
     """Chromium could not be started or did not answer."""
 
 
+@functools.cache
 def find_chromium() -> str | None:
-    """Path of a Chromium binary on PATH, or None."""
+    """Path of a Chromium binary on PATH that runs (``--version`` answers: Ubuntu's ``chromium``
+    package is a stub that asks for a snap), or None."""
     for name in BINARIES:
         path = shutil.which(name)
-        if path:
+        if path is None:
+            continue
+        try:
+            ran = subprocess.run([path, "--version"], capture_output=True, text=True, timeout=60)
+        except (OSError, subprocess.TimeoutExpired):
+            continue
+        if ran.returncode == 0 and ("Chromium" in ran.stdout or "Chrome" in ran.stdout):
             return path
     return None
 
