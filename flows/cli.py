@@ -203,10 +203,13 @@ def cmd_export(args: argparse.Namespace) -> int:
         )
         return 2
     cfg = _config(args)
+    explicit = args.data is not None or any(
+        o.partition("=")[0].strip() == "dataset.root" for o in args.overrides
+    )
     target = export_dataset(
         dataset_export_inputs(cfg),
         cfg.output.root,
-        cfg.dataset.root,
+        cfg.dataset.root if explicit else None,  # None: where the dataset was built from
         args.format,
         args.to,
         gt=args.gt,
@@ -374,7 +377,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--gt",
         action="store_true",
-        help="occ3d: labels from the synthetic ground truth under --data (dataset.root)",
+        help="occ3d: labels from the synthetic ground truth under the raw data root (--data; "
+        "default: the one the dataset was built from)",
     )
     p.set_defaults(func=cmd_export)
 

@@ -62,7 +62,7 @@ def run_local(config, stages=STAGE_ORDER, sequences: list[str] | None = None) ->
     from flows.pipeline.inputs import runtime
     from flows.pipeline.plan import plan_run
     from flows.pipeline.run import _record, execute_unit
-    from storage.manifest import FileHasher, Manifest
+    from storage.manifest import FileHasher, Manifest, record_data_root
 
     out = Path(config.output.root)
     out.mkdir(parents=True, exist_ok=True)
@@ -70,6 +70,7 @@ def run_local(config, stages=STAGE_ORDER, sequences: list[str] | None = None) ->
     manifest.meta.update(
         {"config_hash": config_hash(config), "config": config.model_dump(mode="json")}
     )
+    record_data_root(manifest, config.dataset.root)
     outcomes: dict = {}
     for plan in plan_run(config, manifest, FileHasher(None), sequences=sequences):
         if plan.error:

@@ -53,7 +53,9 @@ from storage.manifest import (
     Manifest,
     StageRecord,
     check_writable,
+    data_root_for,
     holding_lock,
+    record_data_root,
     remove_stale_versions,
     run_lock,
     stage_dir,
@@ -332,6 +334,7 @@ def run_units(
         manifest.meta.update(
             {"config_hash": config_hash(config), "config": config.model_dump(mode="json")}
         )
+        record_data_root(manifest, config.dataset.root)  # export / evaluate default to it
         units = _Units(config, manifest, report, submitter or Submitter())
         cache = FingerprintCache(out_root / ".cache" / "sequences", verify)
         with _Progress(report, units, progress, len(ids)) as bars:
@@ -477,13 +480,14 @@ class _Progress:
 def export_dataset(
     ex: DatasetExportInputs,
     out_root: Path,
-    data_root: Path,
+    data_root: Path | None,
     fmt: str,
     target: Path | None = None,
     gt: bool = False,
 ) -> Path:
     """Export the published dataset (every sequence) for occupancy trainers; ``gt``: Occ3D labels
-    from the synthetic ground truth under ``data_root`` instead of the pipeline's."""
+    from the synthetic ground truth under ``data_root`` instead of the pipeline's. ``data_root``
+    None: the raw data root recorded by the run that built the dataset."""
     from storage.export.nuscenes import export_nuscenes
     from storage.export.occ3d import export_occ3d
 
@@ -496,7 +500,7 @@ def export_dataset(
             target,
             scene_prefix=ex.scene_prefix,
             val_sequences=ex.val_sequences,
-            gt_root=Path(data_root) if gt else None,
+            gt_root=data_root_for(out_root, data_root) if gt else None,
         )
     else:
         export_nuscenes(
@@ -504,7 +508,7 @@ def export_dataset(
             target,
             version=ex.nuscenes_version,
             scene_prefix=ex.scene_prefix,
-            source_root=Path(data_root),
+            source_root=data_root_for(out_root, data_root),
             min_range_m=ex.min_range_m,
             val_sequences=ex.val_sequences,
             **({"infos_data_root": ex.infos_data_root} if ex.infos_data_root else {}),
