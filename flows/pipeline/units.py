@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from configs.schema import Config, config_hash
-from flows.pipeline.dag import CODE_VERSIONS, STAGES
+from flows.pipeline.dag import CODE_VERSIONS, DATASET_EXPORTS_VERSION, STAGES
 from flows.pipeline.inputs import (
     DatasetExportInputs,
     Runtime,
@@ -410,7 +410,8 @@ def _dataset_exports(config: Config, manifest: Manifest, report: RunReport) -> N
         st == "export" and o["status"] == "done" and o.get("ran", True)
         for (_, st), o in report.outcomes.items()
     )
-    key, done = inputs_hash(ex), manifest.meta.setdefault("dataset_exports", {})
+    key = f"{inputs_hash(ex)}-v{DATASET_EXPORTS_VERSION}"
+    done = manifest.meta.setdefault("dataset_exports", {})
     for fmt in ex.formats:
         if not (published or done.get(fmt) != key):
             continue
