@@ -139,8 +139,9 @@ _HOW_TO_READ = {
     "positions of the frame and up to 7 neighbours, LiDAR-like rings, 1 deg azimuth; a ray counts "
     "when its ground-truth first hit is occupied; true positive: same class and first-hit depth "
     "within 1 / 2 / 4 m; mean over classes (free excluded) and thresholds. mAVE: velocity error "
-    "(m/s) at the true-positive rays at 2 m, moving classes; OccScore = 0.9 RayIoU + "
-    "0.1 max(1 - mAVE, 0).",
+    "(m/s) at the true-positive rays at 2 m, mean over the moving classes with any (pedestrian, "
+    "car, truck, two-wheeler, as the reference; our labels move pedestrians only, so a vehicle's "
+    "AVE is 0 where both sides say 0); OccScore = 0.9 RayIoU + 0.1 max(1 - mAVE, 0).",
     "ray_iou_per_class": "RayIoU per class at each depth threshold (n/a: no ray hits the class on either side).",
     "velocity_by_limb": "AVE per limb group of the GT voxel (the group of its nearest GT vertex, from the body "
     "model's skinning weights), against the per-vertex GT and against the per-person GT; "
