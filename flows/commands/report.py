@@ -135,8 +135,9 @@ _HOW_TO_READ = {
     "velocity_vertex_gt": "AVE as above against the per-vertex ground truth: each GT pedestrian voxel moves with "
     "the mean velocity of the body surface in it (a swinging leg's voxels faster than the "
     "torso's).",
-    "ray_iou": "SparseOcc / OpenOcc's RayIoU over the full grids (no masks): query rays from the LiDAR "
-    "positions of the frame and up to 7 neighbours, LiDAR-like rings, 1 deg azimuth; a ray counts "
+    "ray_iou": "SparseOcc / OpenOcc's RayIoU over the full grids (no masks): query rays from up to 8 LiDAR "
+    "positions of the sequence (the frame's own and those over the grid, evenly thinned in time), "
+    "LiDAR-like rings, 1 deg azimuth; a ray counts "
     "when its ground-truth first hit is occupied; true positive: same class and first-hit depth "
     "within 1 / 2 / 4 m; mean over classes (free excluded) and thresholds. mAVE: velocity error "
     "(m/s) at the true-positive rays at 2 m, mean over the moving classes with any (pedestrian, "
