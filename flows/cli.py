@@ -286,6 +286,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         split_style=args.split_style,
         fast=args.fast,
         workers=args.workers,
+        fmt=args.format,
+        log_poses=args.log_poses,
     )
     print(f"wrote sequence(s) {', '.join(map(str, ids))} to {args.out}")
     return 0
@@ -425,7 +427,8 @@ def build_parser() -> argparse.ArgumentParser:
         sub.add_parser(name, help=text, add_help=False)
 
     p = sub.add_parser(
-        "simulate", help="generate synthetic campus sequences (CODa layout + ground truth)"
+        "simulate",
+        help="generate synthetic campus sequences (CODa layout or robot logs + ground truth)",
     )
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--sequences", type=int, default=1)
@@ -462,6 +465,20 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=1,
         help="frame worker processes (the files are the same bytes for any number)",
+    )
+    p.add_argument(
+        "--format",
+        choices=["coda", "mcap", "ros1"],
+        default="coda",
+        help="the CODa layout, or one robot log per sequence: ROS 2 MCAP (SEQ.mcap) or ROS 1 "
+        "bag (SEQ.bag) with real drivers' topics; gt/ beside in every case",
+    )
+    p.add_argument(
+        "--log-poses",
+        choices=["tf", "odometry", "none"],
+        default=None,
+        help="logs only: world poses on /tf (default for mcap), as nav_msgs/Odometry on /odom "
+        "(default for ros1), or none (LiDAR odometry makes them)",
     )
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_simulate)
