@@ -15,8 +15,8 @@ import numpy as np
 
 @dataclass(frozen=True)
 class TrajectoryError:
-    """ate_rmse_m, ate_max_m: metres after alignment; rotation_rmse_deg: of the aligned
-    rotations; final_drift_pct: last position error / path length x 100; length_m: path length
+    """ate_rmse_m, ate_max_m: metres after alignment; rotation_rmse_deg: of the rotations
+    relative to the first pose; final_drift_pct: last position error / path length x 100; length_m: path length
     of the ground truth; poses: how many were compared."""
 
     ate_rmse_m: float
@@ -52,7 +52,11 @@ def trajectory_error(estimated: np.ndarray, ground_truth: np.ndarray) -> Traject
     T = align_rigid(est[:, :3, 3], gt[:, :3, 3]) if n >= 3 else np.eye(4)
     aligned = T @ est
     err = np.linalg.norm(aligned[:, :3, 3] - gt[:, :3, 3], axis=1)
-    rel = np.einsum("nji,njk->nik", gt[:, :3, :3], aligned[:, :3, :3])
+    # rotations relative to the first pose (a near-straight path leaves the alignment's
+    # rotation about it undetermined; relative rotations do not depend on it)
+    R_gt = np.einsum("ji,njk->nik", gt[0, :3, :3], gt[:, :3, :3])
+    R_est = np.einsum("ji,njk->nik", est[0, :3, :3], est[:, :3, :3])
+    rel = np.einsum("nji,njk->nik", R_gt, R_est)
     cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
     length = float(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum())
     # the end pose relative to the start (independent of either world frame)
