@@ -242,6 +242,7 @@ BENCHMARKS = {
     "perception": "flows.bench.perception",
     "planning": "flows.bench.planning",
     "memory": "flows.bench.memory",
+    "logs": "flows.bench.logs",
 }
 
 

@@ -689,35 +689,57 @@ class LogSequence:
         return poses
 
     # -- messages ------------------------------------------------------------------------------
+    def _raw(self, topic: str, k: int):
+        stream = self.index.streams[topic]
+        return self.log.raw(topic, k, int(stream.log_ns[k]), int(stream.ordinal[k]))
+
     def _message(self, topic: str, k: int, frame: int | None = None):
         stream = self.index.streams[topic]
-        log_ns, stamp = int(stream.log_ns[k]), int(stream.stamp_ns[k])
-        msgtype = stream.msgtype
-        for _, _, raw in self.log.messages([topic], log_ns, log_ns + 1):
-            msg = self.log.deserialize(raw, msgtype, topic, stamp)
-            if stamp_ns(msg.header) == stamp:
-                return msg
-        raise self._error(
-            f"message {k} is not in the log any more (the index was made from another "
-            "version of the file?)",
-            topic,
-            stamp,
-            k,
-            frame,
-        )
+        stamp = int(stream.stamp_ns[k])
+        msg = self.log.deserialize(bytes(self._raw(topic, k)), stream.msgtype, topic, stamp)
+        if stamp_ns(msg.header) != stamp:
+            raise self._error(
+                f"message {k} has stamp {stamp_ns(msg.header)} ns, the index says {stamp} ns "
+                "(the index was made from another version of the file?)",
+                topic,
+                stamp,
+                k,
+                frame,
+            )
+        return msg
 
     def _cloud(self, k: int, min_range_m: float, max_range_m: float) -> DecodedCloud:
-        msg = self._message(self.lidar_topic, k, k)
+        from storage.sources.positions import PositionError, pointcloud2_of
+
         stamp = int(self.index.streams[self.lidar_topic].stamp_ns[k])
         try:
+            msg = pointcloud2_of(self._raw(self.lidar_topic, k), self.log.ros1)
+        except (PositionError, IndexError, ValueError) as exc:
+            raise self._error(
+                f"PointCloud2 cannot be read ({exc}); the log is truncated or damaged",
+                self.lidar_topic,
+                stamp,
+                k,
+                k,
+            ) from None
+        if msg.stamp_ns != stamp:
+            raise self._error(
+                f"sweep {k} has stamp {msg.stamp_ns} ns, the index says {stamp} ns (the index "
+                "was made from another version of the file?)",
+                self.lidar_topic,
+                stamp,
+                k,
+                k,
+            )
+        try:
             return decode_pointcloud2(
-                [Field(f.name, int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields],
+                [Field(*f) for f in msg.fields],
                 msg.data,
-                height=int(msg.height),
-                width=int(msg.width),
-                point_step=int(msg.point_step),
-                row_step=int(msg.row_step),
-                is_bigendian=bool(msg.is_bigendian),
+                height=msg.height,
+                width=msg.width,
+                point_step=msg.point_step,
+                row_step=msg.row_step,
+                is_bigendian=msg.is_bigendian,
                 stamp_ns=stamp,
                 min_range_m=min_range_m,
                 max_range_m=max_range_m,

@@ -16,14 +16,16 @@ import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from struct import error as struct_error
 
 import numpy as np
 
+from storage.sources.positions import Positions
 from storage.sources.ros_images import CameraInfo
-from storage.sources.rosbag import LogFile, LogFormatError, quick_fingerprint
+from storage.sources.rosbag import LogFile, LogFormatError, quick_fingerprint, where
 
 #: bump when what the index holds changes (old cache files are then not read)
-INDEX_VERSION = "1"
+INDEX_VERSION = "2"
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 IMAGE = "sensor_msgs/msg/Image"
@@ -34,6 +36,8 @@ ODOMETRY = "nav_msgs/msg/Odometry"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 POSE_COV_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
 SENSOR_TYPES = (POINTCLOUD2, IMAGE, COMPRESSED_IMAGE, CAMERA_INFO)
+#: bytes read of a sweep or an image message while indexing (its header: stamp and frame id)
+HEAD_BYTES = 512
 POSE_TYPES = (ODOMETRY, POSE_STAMPED, POSE_COV_STAMPED)
 
 
@@ -45,12 +49,14 @@ def stamp_ns(header) -> int:
 @dataclass
 class Stream:
     """One sensor topic: msgtype, frame_id (of its first message), log_ns and stamp_ns (n,)
-    int64 in log order."""
+    int64 in log order; ordinal (n,) int32: the message's rank among those of the topic at the
+    same log time (messages are found again by log time where a log has no positions)."""
 
     msgtype: str
     frame_id: str
     log_ns: np.ndarray
     stamp_ns: np.ndarray
+    ordinal: np.ndarray
 
 
 @dataclass
@@ -89,6 +95,8 @@ class LogIndex:
     tf: Transforms | None = None
     tf_static: Transforms | None = None
     poses: dict[str, PoseTrack] = field(default_factory=dict)
+    #: where the sensor topics' messages lie (storage.sources.positions), None for ROS 2 folders
+    positions: Positions | None = None
 
 
 def _camera_info(msg) -> CameraInfo:
@@ -136,18 +144,63 @@ class _TFBuilder:
         )
 
 
+def _iter_messages(log: LogFile, topics: list[str], positions: Positions | None, heads=()):
+    """(topic, log_ns, k, raw) of the topics' messages in log-time order; k: the message's row
+    in its topic's positions. Of the ``heads`` topics only the first bytes are read (the
+    header: sweeps and images are not read whole here)."""
+    if positions is None:
+        counts: dict[str, int] = {}
+        for topic, log_ns, raw in log.messages(topics):
+            k = counts.get(topic, 0)
+            counts[topic] = k + 1
+            yield topic, log_ns, k, raw
+        return
+    parts = [(t, positions.topics[t]) for t in topics if len(positions.topics[t])]
+    if not parts:
+        return
+    log_ns = np.concatenate([p[:, 0] for _, p in parts])
+    which = np.concatenate([np.full(len(p), j) for j, (_, p) in enumerate(parts)])
+    rows = np.concatenate([np.arange(len(p)) for _, p in parts])
+    for i in np.lexsort((rows, which, log_ns)):
+        topic, k = parts[which[i]][0], int(rows[i])
+        limit = HEAD_BYTES if topic in heads else None
+        yield topic, int(log_ns[i]), k, log.raw(topic, k, int(log_ns[i]), limit=limit)
+
+
 def build_index(log: LogFile, fingerprint: str = "") -> LogIndex:
     """One pass over the log's sensor, TF and pose topics (see the module doc)."""
+    from storage.sources.positions import PositionError, header_of
+
     index = LogIndex(fingerprint, {n: (t.msgtype, t.count) for n, t in log.topics.items()})
     wanted = [
         n for n, t in log.topics.items() if t.msgtype in SENSOR_TYPES + POSE_TYPES + (TF_MESSAGE,)
     ]
+    index.positions = log.scan_positions(wanted)
+    log.use_positions(index.positions)
     rows: dict[str, list] = {n: [] for n in wanted}
     frame_ids: dict[str, str] = {}
+    last: dict[str, tuple[int, int]] = {}
     tf, tf_static = _TFBuilder(), _TFBuilder()
-    for topic, log_ns, raw in log.messages(wanted):
+    heads = {n for n in wanted if log.topics[n].msgtype in (POINTCLOUD2, IMAGE, COMPRESSED_IMAGE)}
+    for topic, log_ns, _, raw in _iter_messages(log, wanted, index.positions, heads):
         msgtype = log.topics[topic].msgtype
-        msg = log.deserialize(raw, msgtype, topic)
+        if msgtype in SENSOR_TYPES and msgtype != CAMERA_INFO:
+            try:  # the header alone: sweeps and images are not deserialised here
+                stamp, frame_id = header_of(raw, log.ros1)
+            except (PositionError, IndexError, struct_error) as exc:
+                raise LogFormatError(
+                    f"{where(log.path, topic, None)}: message header cannot be read ({exc}); "
+                    "the log is truncated or damaged",
+                    log.path,
+                    topic=topic,
+                ) from None
+            frame_ids.setdefault(topic, frame_id.lstrip("/"))
+            prev = last.get(topic)
+            ordinal = prev[1] + 1 if prev and prev[0] == log_ns else 0
+            last[topic] = (log_ns, ordinal)
+            rows[topic].append((log_ns, stamp, ordinal))
+            continue
+        msg = log.deserialize(bytes(raw), msgtype, topic)
         if msgtype == TF_MESSAGE:
             builder = tf_static if topic.rstrip("/").endswith("tf_static") else tf
             for tr in msg.transforms:
@@ -160,9 +213,12 @@ def build_index(log: LogFile, fingerprint: str = "") -> LogIndex:
             child = str(getattr(msg, "child_frame_id", "")).lstrip("/")
             rows[topic].append((stamp, child, *t, *q))
             continue
-        if msgtype == CAMERA_INFO and topic not in index.camera_info:
+        if topic not in index.camera_info:
             index.camera_info[topic] = _camera_info(msg)
-        rows[topic].append((log_ns, stamp))
+        prev = last.get(topic)
+        ordinal = prev[1] + 1 if prev and prev[0] == log_ns else 0
+        last[topic] = (log_ns, ordinal)
+        rows[topic].append((log_ns, stamp, ordinal))
     for topic in wanted:
         msgtype = log.topics[topic].msgtype
         if msgtype in POSE_TYPES:
@@ -177,10 +233,11 @@ def build_index(log: LogFile, fingerprint: str = "") -> LogIndex:
                 vals[:, 3:].copy(),
             )
         elif msgtype in SENSOR_TYPES:
-            a = np.array(rows[topic], np.int64).reshape(-1, 2)
+            a = np.array(rows[topic], np.int64).reshape(-1, 3)
             index.streams[topic] = Stream(
-                msgtype, frame_ids.get(topic, ""), a[:, 0].copy(), a[:, 1].copy()
-            )
+                msgtype, frame_ids.get(topic, ""), a[:, 0].copy(), a[:, 1].copy(),
+                a[:, 2].astype(np.int32),
+            )  # fmt: skip
     index.tf, index.tf_static = tf.build(), tf_static.build()
     return index
 
@@ -199,15 +256,28 @@ def _pack(index: LogIndex) -> dict[str, np.ndarray]:
         "poses": {n: [p.msgtype, p.frame_id, p.child_frame_id] for n, p in index.poses.items()},
         "tf_frames": index.tf.frames if index.tf else [],
         "tf_static_frames": index.tf_static.frames if index.tf_static else [],
+        "positions": (
+            None
+            if index.positions is None
+            else {
+                "topics": list(index.positions.topics),
+                "compressions": index.positions.compressions,
+            }
+        ),
     }
     arrays = {"meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)}
     for k, s in enumerate(index.streams.values()):
         arrays[f"s{k}_log"], arrays[f"s{k}_stamp"] = s.log_ns, s.stamp_ns
+        arrays[f"s{k}_ordinal"] = s.ordinal
     for k, c in enumerate(index.camera_info.values()):
         arrays[f"c{k}"] = np.concatenate([c.K.ravel(), c.R.ravel(), c.P.ravel()])
         arrays[f"c{k}_D"] = c.D
     for k, p in enumerate(index.poses.values()):
         arrays[f"p{k}_stamp"], arrays[f"p{k}_tq"] = p.stamp_ns, np.c_[p.t, p.q_wxyz]
+    if index.positions is not None:
+        arrays["chunks"] = index.positions.chunks
+        for k, p in enumerate(index.positions.topics.values()):
+            arrays[f"pos{k}"] = p
     for name, tr in (("tf", index.tf), ("tfs", index.tf_static)):
         if tr is not None:
             arrays[f"{name}_ids"] = np.c_[tr.parent, tr.child].astype(np.int32)
@@ -219,7 +289,9 @@ def _unpack(z) -> LogIndex:
     meta = json.loads(bytes(z["meta"]).decode())
     index = LogIndex(meta["fingerprint"], {n: tuple(v) for n, v in meta["topics"].items()})
     for k, (n, (msgtype, frame_id)) in enumerate(meta["streams"].items()):
-        index.streams[n] = Stream(msgtype, frame_id, z[f"s{k}_log"], z[f"s{k}_stamp"])
+        index.streams[n] = Stream(
+            msgtype, frame_id, z[f"s{k}_log"], z[f"s{k}_stamp"], z[f"s{k}_ordinal"]
+        )
     for k, (n, (w, h, model, frame_id)) in enumerate(meta["camera_info"].items()):
         v = z[f"c{k}"]
         index.camera_info[n] = CameraInfo(
@@ -230,6 +302,12 @@ def _unpack(z) -> LogIndex:
         tq = z[f"p{k}_tq"]
         index.poses[n] = PoseTrack(
             msgtype, frame_id, child, z[f"p{k}_stamp"], tq[:, :3].copy(), tq[:, 3:].copy()
+        )
+    if meta["positions"] is not None:
+        index.positions = Positions(
+            {t: z[f"pos{k}"] for k, t in enumerate(meta["positions"]["topics"])},
+            z["chunks"],
+            list(meta["positions"]["compressions"]),
         )
     for name, frames, attr in (("tf", "tf_frames", "tf"), ("tfs", "tf_static_frames", "tf_static")):
         if f"{name}_ids" in z:
@@ -262,6 +340,7 @@ def load_index(log: LogFile, cache_dir: Path | None) -> LogIndex:
             with np.load(path, allow_pickle=False) as z:
                 index = _unpack(z)
             if index.fingerprint == fingerprint:
+                log.use_positions(index.positions)
                 return index
         except (OSError, ValueError, KeyError):  # a damaged cache file is rebuilt
             pass

@@ -187,10 +187,66 @@ class LogFile:
             for name, conns in sorted(topics.items())
         }
 
+        self.kind = "ros1" if self.ros1 else ("mcap" if self.path.suffix == ".mcap" else "ros2")
+        self._fetcher = None
+
+    def scan_positions(self, topics: list[str]):
+        """Message positions of ``topics`` (storage.sources.positions.Positions), or None for a
+        ROS 2 bag folder (read by log time instead)."""
+        from storage.sources.positions import PositionError, ros1_positions, scan_mcap
+
+        wanted = {c.id: t for t in topics for c in self.topics[t].connections}
+        try:
+            if self.kind == "mcap":
+                return scan_mcap(self.path, wanted)
+            if self.kind == "ros1":
+                return ros1_positions(self._reader.readers[0], wanted)
+        except (PositionError, OSError, ValueError, IndexError, KeyError) as exc:
+            raise LogFormatError(
+                f"{self.path}: the log's records cannot be walked ({type(exc).__name__}: {exc}); "
+                "the log is truncated or damaged",
+                self.path,
+            ) from None
+        return None
+
+    def use_positions(self, positions) -> None:
+        """Read messages back through these positions (:meth:`raw`)."""
+        from storage.sources.positions import Fetcher
+
+        self._fetcher = Fetcher(self.path, positions, self.ros1) if positions else None
+
+    def raw(self, topic: str, k: int, log_ns: int, ordinal: int = 0, limit: int | None = None):
+        """The serialised message k of ``topic`` (log time ``log_ns``): read at its position (its
+        first ``limit`` bytes when given), or (ROS 2 bag folders) the ``ordinal``-th message at
+        that log time."""
+        if self._fetcher is not None:
+            from storage.sources.positions import PositionError
+
+            try:
+                return self._fetcher.raw(topic, k, limit)
+            except (PositionError, OSError, ValueError) as exc:
+                raise LogFormatError(
+                    f"{where(self.path, topic, None, k)}: message cannot be read "
+                    f"({type(exc).__name__}: {exc}); the log is truncated or damaged",
+                    self.path,
+                    topic=topic,
+                ) from None
+        for j, (_, _, raw) in enumerate(self.messages([topic], log_ns, log_ns + 1)):
+            if j == ordinal:
+                return raw
+        raise LogFormatError(
+            f"{where(self.path, topic, None, k)}: no message at log time {log_ns} ns any more "
+            "(the index was made from another version of the log?)",
+            self.path,
+            topic=topic,
+        )
+
     def close(self) -> None:
         reader, self._reader = getattr(self, "_reader", None), None
         if reader is not None:
             reader.close()
+        if getattr(self, "_fetcher", None) is not None:
+            self._fetcher.close()
 
     def __enter__(self) -> LogFile:
         return self
