@@ -66,10 +66,11 @@ def make_log(
     cameras: tuple[str, ...] = ("cam0", "cam1"),
     image_offset_ns: int = 0,
     skip_images: tuple[int, ...] = (),
+    compress: bool = False,
 ) -> Path:
     """A log of ``frames`` sweeps at 10 Hz; the robot drives 1 m/s along x, turning 0.1 rad/s."""
     cams = [camera(c, 0.06 if c == "cam0" else -0.06) for c in cameras]
-    with LogWriter(path, fmt, cams, base_from_lidar(), poses=poses) as w:
+    with LogWriter(path, fmt, cams, base_from_lidar(), poses=poses, compress=compress) as w:
         w.write_static(START_NS)
         for k in range(frames):
             stamp = START_NS + k * PERIOD_NS

@@ -111,3 +111,34 @@ def test_find_logs(tmp_path):
     assert list(find_logs(tmp_path)) == ["a", "b"]
     assert list(find_logs(tmp_path / "b.mcap")) == ["b"]
     assert ROWS * COLS == 2048
+
+
+@pytest.mark.parametrize(("fmt", "compress"), [("mcap", True), ("ros1", True), ("ros2", False)])
+def test_compressed_chunks_and_ros2_folders_read_the_same(tmp_path, fmt, compress):
+    plain = LogSequence(make_log(tmp_path / "plain.mcap"), frame_stride=1)
+    name = {"mcap": "c.mcap", "ros1": "c.bag", "ros2": "c"}[fmt]
+    path = make_log(tmp_path / name, fmt, compress=compress)
+    other = LogSequence(path, frame_stride=1)
+    assert other.sequence == "c" and (other.index.positions is None) == (fmt == "ros2")
+    assert other.info.frame_indices == plain.info.frame_indices
+    for i in (0, 3, 5, 1):  # out of order: chunks are fetched again
+        a, b = plain.frame(i), other.frame(i)
+        np.testing.assert_array_equal(a.points_lidar, b.points_lidar)
+        np.testing.assert_array_equal(a.point_time_s, b.point_time_s)
+        np.testing.assert_array_equal(plain.image("cam0", i), other.image("cam0", i))
+    np.testing.assert_allclose(other.info.poses, plain.info.poses, atol=1e-12)
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "ros1"])
+def test_pointcloud2_parsed_in_place_as_rosbags_deserialises_it(tmp_path, fmt):
+    from storage.sources.positions import pointcloud2_of
+
+    seq = LogSequence(make_log(tmp_path / f"a.{'bag' if fmt == 'ros1' else 'mcap'}", fmt))
+    raw = seq._raw(seq.lidar_topic, 2)
+    mine = pointcloud2_of(raw, seq.log.ros1)
+    ref = seq.log.deserialize(bytes(raw), "sensor_msgs/msg/PointCloud2", seq.lidar_topic)
+    assert mine.stamp_ns == ref.header.stamp.sec * 10**9 + ref.header.stamp.nanosec
+    assert (mine.frame_id, mine.height, mine.width) == (ref.header.frame_id, ref.height, ref.width)
+    assert mine.fields == [(f.name, f.offset, f.datatype, f.count) for f in ref.fields]
+    assert (mine.point_step, mine.row_step) == (ref.point_step, ref.row_step)
+    assert bytes(mine.data) == ref.data.tobytes()

@@ -30,9 +30,10 @@ import numpy as np
 from storage.sources.pointcloud import OUSTER_FIELDS, OUSTER_POINT_STEP, encode_pointcloud2
 from tasks.poses.rotations import invert, matrix_to_quat_wxyz
 
-FORMATS = ("mcap", "ros1")
+#: mcap: a ROS 2 MCAP file; ros1: a ROS 1 bag; ros2: a ROS 2 bag folder (sqlite3 storage)
+FORMATS = ("mcap", "ros1", "ros2")
 POSE_MODES = ("tf", "odometry", "none")
-SUFFIX = {"mcap": ".mcap", "ros1": ".bag"}
+SUFFIX = {"mcap": ".mcap", "ros1": ".bag", "ros2": ""}
 #: ROS 1 typestores lack tf2_msgs: its one-line definition, registered where missing
 TF_MESSAGE_DEF = "geometry_msgs/TransformStamped[] transforms\n"
 
@@ -84,7 +85,8 @@ def _typestore(fmt: str):
 
 class LogWriter:
     """One log file. ``cameras``: LogCamera list; ``T_base_from_lidar`` (4, 4); poses: one of
-    POSE_MODES. Use as a context manager, or call :meth:`close`."""
+    POSE_MODES; compress: lz4 chunks (ROS 1), zstd chunks (MCAP). Use as a context manager, or
+    call :meth:`close`."""
 
     def __init__(
         self,
@@ -95,6 +97,7 @@ class LogWriter:
         poses: str = "tf",
         layout: LogLayout = LogLayout(),
         image_format: str = "jpeg",
+        compress: bool = False,
     ):
         if fmt not in FORMATS:
             raise ValueError(f"log format {fmt!r}: expected one of {FORMATS}")
@@ -105,17 +108,26 @@ class LogWriter:
         self.image_format = image_format
         self.ts = _typestore(fmt)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp = self.path.with_name(f".{self.path.name}.tmp{os.getpid()}")
-        if self._tmp.exists():
-            shutil.rmtree(self._tmp) if self._tmp.is_dir() else self._tmp.unlink()
+        # written inside a hidden folder under its own name (a ROS 2 bag folder names its storage
+        # file after itself), then moved to its final name
+        self._tmpdir = self.path.with_name(f".{self.path.name}.tmp{os.getpid()}")
+        shutil.rmtree(self._tmpdir, ignore_errors=True)
+        self._tmpdir.mkdir(parents=True)
+        self._tmp = self._tmpdir / (self.path.stem if fmt == "mcap" else self.path.name)
         if fmt == "ros1":
             from rosbags.rosbag1 import Writer
 
             self._writer = Writer(self._tmp)
+            if compress:
+                self._writer.set_compression(Writer.CompressionFormat.LZ4)
         else:
             from rosbags.rosbag2 import StoragePlugin, Writer
+            from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
-            self._writer = Writer(self._tmp, version=9, storage_plugin=StoragePlugin.MCAP)
+            plugin = StoragePlugin.MCAP if fmt == "mcap" else StoragePlugin.SQLITE3
+            self._writer = Writer(self._tmp, version=9, storage_plugin=plugin)
+            if compress:
+                self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
         self._writer.open()
         self._conns: dict[str, object] = {}
         self._seq = 0
@@ -279,11 +291,12 @@ class LogWriter:
         """Finish the file and move it to its final name; returns the path."""
         self._writer.close()
         if self.fmt == "mcap":  # rosbags writes a bag folder: keep its .mcap as a plain file
-            inner = self._tmp / f"{self._tmp.name}.mcap"
-            os.replace(inner, self.path)
-            shutil.rmtree(self._tmp)
-        else:
+            os.replace(self._tmp / f"{self._tmp.name}.mcap", self.path)
+        else:  # a ROS 1 bag, or a ROS 2 bag folder
+            if self.path.is_dir():
+                shutil.rmtree(self.path)
             os.replace(self._tmp, self.path)
+        shutil.rmtree(self._tmpdir)
         return self.path
 
     def abort(self) -> None:
@@ -291,10 +304,7 @@ class LogWriter:
             self._writer.close()
         except Exception:  # noqa: BLE001 - nothing of a failed write is kept
             pass
-        if self._tmp.is_dir():
-            shutil.rmtree(self._tmp, ignore_errors=True)
-        elif self._tmp.exists():
-            self._tmp.unlink()
+        shutil.rmtree(self._tmpdir, ignore_errors=True)
 
     def __enter__(self) -> LogWriter:
         return self
