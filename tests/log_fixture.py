@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from storage.sources.log_writer import LogCamera, LogWriter
+from storage.sources.log.writer import LogCamera, LogWriter
 from tasks.poses.rotations import matrix_to_quat_wxyz
 
 ROWS, COLS = 128, 16

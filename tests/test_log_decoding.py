@@ -9,19 +9,19 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from storage.sources.pointcloud import (
-    OUSTER_FIELDS,
-    Field,
-    PointLayoutError,
-    decode_pointcloud2,
-    encode_pointcloud2,
-)
-from storage.sources.ros_images import (
+from storage.sources.log.images import (
     CameraInfo,
     ImageDecodeError,
     Rectifier,
     decode_compressed,
     decode_raw,
+)
+from storage.sources.log.pointcloud import (
+    OUSTER_FIELDS,
+    Field,
+    PointLayoutError,
+    decode_pointcloud2,
+    encode_pointcloud2,
 )
 from tasks.metrics.trajectory import trajectory_error
 from tasks.poses.interpolate import interpolate_poses, slerp

@@ -6,13 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from storage.sources.log import CameraTopics, LogSequence, LogSettings
-from storage.sources.rosbag import LogFormatError, find_logs
+from storage.sources.log.bag import LogFormatError, find_logs
+from storage.sources.log.reader import CameraTopics, LogSequence, LogSettings
 from tests.log_fixture import (
     COLS,
-    K,
     R_CAM_FROM_LIDAR,
     ROWS,
+    K,
     base_from_lidar,
     expected_pose,
     make_log,
@@ -131,7 +131,7 @@ def test_compressed_chunks_and_ros2_folders_read_the_same(tmp_path, fmt, compres
 
 @pytest.mark.parametrize("fmt", ["mcap", "ros1"])
 def test_pointcloud2_parsed_in_place_as_rosbags_deserialises_it(tmp_path, fmt):
-    from storage.sources.positions import pointcloud2_of
+    from storage.sources.log.positions import pointcloud2_of
 
     seq = LogSequence(make_log(tmp_path / f"a.{'bag' if fmt == 'ros1' else 'mcap'}", fmt))
     raw = seq._raw(seq.lidar_topic, 2)

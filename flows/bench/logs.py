@@ -1,11 +1,11 @@
 """Robot-log decoding: speed on one core, and peak memory against the log's length (issue 27).
 
 ``bench_logs(sweeps, work)`` writes one ROS 2 MCAP log per length with the simulator's log writer
-(storage.sources.log_writer): organised OS1-128 sweeps in the Ouster driver's 48-byte layout
+(storage.sources.log.writer): organised OS1-128 sweeps in the Ouster driver's 48-byte layout
 (ranges of a smooth random scene, 10 % no-returns, so every sweep differs), a small rectified
 JPEG camera with its CameraInfo, /tf_static and /tf poses at 10 Hz. Then, per log, a fresh
 spawned process pinned to one core (``sched_setaffinity``, BLAS / OpenMP pools at one thread)
-opens it as a sequence (storage.sources.log.LogSequence: the index pass over the whole log, no
+opens it as a sequence (storage.sources.log.reader.LogSequence: the index pass over the whole log, no
 cache) and reads every sweep in stamp order (``frame(i)``: the message fetched through the index,
 its PointCloud2 decoded, no-returns dropped), and reports:
 
@@ -59,7 +59,7 @@ def write_bench_log(path: Path, sweeps: int, seed: int = 0) -> Path:
 
     from PIL import Image
 
-    from storage.sources.log_writer import LogCamera, LogWriter
+    from storage.sources.log.writer import LogCamera, LogWriter
 
     rng = np.random.default_rng(seed)
     coarse = rng.uniform(3.0, 60.0, (ROWS // 16, COLS // 32))
@@ -87,7 +87,7 @@ def _read_log(path: str, queue) -> None:
     os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
     from threadpoolctl import threadpool_limits
 
-    from storage.sources.log import LogSequence
+    from storage.sources.log.reader import LogSequence
 
     with threadpool_limits(1):
         baseline = _peak_mb()

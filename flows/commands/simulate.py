@@ -187,9 +187,9 @@ FORMATS = ("coda", "mcap", "ros1")
 
 
 def log_cameras(rig) -> list:
-    """The rig's cameras as a log records them (storage.sources.log_writer.LogCamera): the raw
+    """The rig's cameras as a log records them (storage.sources.log.writer.LogCamera): the raw
     camera's K, D, R, P and extrinsic, the values the CODa calibration files hold."""
-    from storage.sources.log_writer import LogCamera
+    from storage.sources.log.writer import LogCamera
 
     out = []
     for name, cam in _calibration(rig).cameras.items():
@@ -265,9 +265,9 @@ def _write_log_sequence(
     out: Path, seq: int, opts, fast: bool, stamps: np.ndarray, image_ext: str, fmt: str,
     log_poses: str, pool, bar,
 ) -> None:  # fmt: skip
-    """One sequence as one robot log ``out/{seq}.mcap`` / ``.bag`` (storage.sources.log_writer)."""
+    """One sequence as one robot log ``out/{seq}.mcap`` / ``.bag`` (storage.sources.log.writer)."""
     from storage import coda_writer as W
-    from storage.sources.log_writer import SUFFIX, LogWriter
+    from storage.sources.log.writer import SUFFIX, LogWriter
 
     sim = make_simulator(opts, fast)
     frames = list(range(len(stamps)))
@@ -339,7 +339,7 @@ def simulate(
     frame_step: files only for every ``frame_step``-th raw frame (2: the 5 Hz frames the pipeline
     keeps, half the simulation; timestamps and poses: every frame).
     fmt: "coda" (the CODa layout), "mcap" (ROS 2 MCAP) or "ros1" (ROS 1 bag): one log per
-    sequence, ``out/{SEQ}.mcap`` / ``.bag``, with real drivers' topics (storage.sources.log_writer)
+    sequence, ``out/{SEQ}.mcap`` / ``.bag``, with real drivers' topics (storage.sources.log.writer)
     and ``gt/`` beside. log_poses: the logs' world poses, "tf" (/tf map -> base_link; the default
     for mcap), "odometry" (nav_msgs/Odometry on /odom; the default for ros1) or "none"."""
     from tqdm import tqdm

@@ -10,7 +10,7 @@ chunks).
 - ROS 1 bags: rosbags has read the bag's own index (per connection: time, chunk position,
   offset in the chunk); a message record there is ``header_len u32, header, data_len u32, data``.
 - ROS 2 bag folders (sqlite3 or MCAP storage inside): no positions; messages are found again by
-  their log time through rosbags (storage.sources.rosbag.LogFile.messages).
+  their log time through rosbags (storage.sources.log.bag.LogFile.messages).
 
 Positions per topic are ``(n, 4) int64``: log time ns, chunk id (-1: the offset is in the file),
 offset, length. Chunks are ``(m, 3) int64``: file offset of the chunk's (compressed) records,

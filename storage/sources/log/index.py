@@ -7,7 +7,7 @@ index, without reading anything else); the first CameraInfo's values; every ``/t
 ``/tf_static`` transform and every Odometry / PoseStamped pose (small: a few numbers each). What
 the pass keeps grows by a few dozen bytes per message and never holds a sweep or an image, so
 memory stays flat in the log's length. Cached as one ``.npz`` (no pickles) under the output's
-``.cache/log-index/``, named by :func:`storage.sources.rosbag.quick_fingerprint`.
+``.cache/log-index/``, named by :func:`storage.sources.log.bag.quick_fingerprint`.
 """
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ from struct import error as struct_error
 
 import numpy as np
 
-from storage.sources.positions import Positions
-from storage.sources.ros_images import CameraInfo
-from storage.sources.rosbag import LogFile, LogFormatError, quick_fingerprint, where
+from storage.sources.log.bag import LogFile, LogFormatError, quick_fingerprint, where
+from storage.sources.log.images import CameraInfo
+from storage.sources.log.positions import Positions
 
 #: bump when what the index holds changes (old cache files are then not read)
 INDEX_VERSION = "2"
@@ -95,7 +95,7 @@ class LogIndex:
     tf: Transforms | None = None
     tf_static: Transforms | None = None
     poses: dict[str, PoseTrack] = field(default_factory=dict)
-    #: where the sensor topics' messages lie (storage.sources.positions), None for ROS 2 folders
+    #: where the sensor topics' messages lie (storage.sources.log.positions), None for ROS 2 folders
     positions: Positions | None = None
 
 
@@ -169,7 +169,7 @@ def _iter_messages(log: LogFile, topics: list[str], positions: Positions | None,
 
 def build_index(log: LogFile, fingerprint: str = "") -> LogIndex:
     """One pass over the log's sensor, TF and pose topics (see the module doc)."""
-    from storage.sources.positions import PositionError, header_of
+    from storage.sources.log.positions import PositionError, header_of
 
     index = LogIndex(fingerprint, {n: (t.msgtype, t.count) for n, t in log.topics.items()})
     wanted = [

@@ -4,7 +4,7 @@ ROS 1 bag (``.bag``), through ``rosbags`` (the simulator's ``--format mcap | ros
 Topics and layouts (:class:`LogLayout`), as the drivers publish them:
 
 - ``/ouster/points`` sensor_msgs/PointCloud2 from the Ouster ROS driver: organised 128 x 1024,
-  ``ouster_ros::Point`` records of 48 bytes (storage.sources.pointcloud.OUSTER_FIELDS), frame
+  ``ouster_ros::Point`` records of 48 bytes (storage.sources.log.pointcloud.OUSTER_FIELDS), frame
   ``os_sensor``, no-returns as (0, 0, 0), ``t`` uint32 nanoseconds since the header stamp.
 - ``/stereo/left`` and ``/stereo/right``: ``image_rect_color/compressed``
   (sensor_msgs/CompressedImage, JPEG or PNG, image_transport's format string) and
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.sources.pointcloud import OUSTER_FIELDS, OUSTER_POINT_STEP, encode_pointcloud2
+from storage.sources.log.pointcloud import OUSTER_FIELDS, OUSTER_POINT_STEP, encode_pointcloud2
 from tasks.poses.rotations import invert, matrix_to_quat_wxyz
 
 #: mcap: a ROS 2 MCAP file; ros1: a ROS 1 bag; ros2: a ROS 2 bag folder (sqlite3 storage)

@@ -191,9 +191,9 @@ class LogFile:
         self._fetcher = None
 
     def scan_positions(self, topics: list[str]):
-        """Message positions of ``topics`` (storage.sources.positions.Positions), or None for a
+        """Message positions of ``topics`` (storage.sources.log.positions.Positions), or None for a
         ROS 2 bag folder (read by log time instead)."""
-        from storage.sources.positions import PositionError, ros1_positions, scan_mcap
+        from storage.sources.log.positions import PositionError, ros1_positions, scan_mcap
 
         wanted = {c.id: t for t in topics for c in self.topics[t].connections}
         try:
@@ -211,7 +211,7 @@ class LogFile:
 
     def use_positions(self, positions) -> None:
         """Read messages back through these positions (:meth:`raw`)."""
-        from storage.sources.positions import Fetcher
+        from storage.sources.log.positions import Fetcher
 
         self._fetcher = Fetcher(self.path, positions, self.ros1) if positions else None
 
@@ -220,7 +220,7 @@ class LogFile:
         first ``limit`` bytes when given), or (ROS 2 bag folders) the ``ordinal``-th message at
         that log time."""
         if self._fetcher is not None:
-            from storage.sources.positions import PositionError
+            from storage.sources.log.positions import PositionError
 
             try:
                 return self._fetcher.raw(topic, k, limit)

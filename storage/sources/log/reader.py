@@ -8,7 +8,7 @@ Topics are found, not configured (every choice overridable, :class:`LogSettings`
 - cameras: (CompressedImage or Image) + CameraInfo pairs by namespace (``/stereo/left/...`` ->
   cam0, ``/stereo/right/...`` -> cam1, namespaces in sorted order); a rectified topic (``rect``
   in its name) is projected with the CameraInfo's P and R as CODa's ``2d_rect``, a raw one is
-  undistorted and rectified with its D / R / P (storage.sources.ros_images) into that same pinhole;
+  undistorted and rectified with its D / R / P (storage.sources.log.images) into that same pinhole;
 - calibration: the ``/tf_static`` chain base -> LiDAR -> each camera's optical frame;
 - poses T_world_from_lidar at each picked sweep's stamp (linear + slerp, tasks.poses): from ``/tf``
   (world frame -> base), else a nav_msgs/Odometry or PoseStamped topic, else (or with
@@ -17,7 +17,7 @@ Topics are found, not configured (every choice overridable, :class:`LogSettings`
 
 Per picked sweep, each camera's image nearest in stamp within ``max_image_offset_ms``; a frame
 without one, or outside the poses' time range, is left out and reported (``info.warnings``).
-The log is indexed once (storage.sources.log_index) and read message by message: memory stays
+The log is indexed once (storage.sources.log.index) and read message by message: memory stays
 flat in the log's length. Every error is a :class:`LogFormatError` naming the file, the topic and
 the stamp (and the raw frame where there is one).
 """
@@ -40,7 +40,15 @@ from storage.model import (
     RawCameraCalibration,
     SequenceInfo,
 )
-from storage.sources.log_index import (
+from storage.sources.log.bag import LogFile, LogFormatError, log_files, quick_fingerprint, where
+from storage.sources.log.images import (
+    CameraInfo,
+    ImageDecodeError,
+    Rectifier,
+    decode_compressed,
+    decode_raw,
+)
+from storage.sources.log.index import (
     CAMERA_INFO,
     COMPRESSED_IMAGE,
     IMAGE,
@@ -53,15 +61,7 @@ from storage.sources.log_index import (
     load_index,
     stamp_ns,
 )
-from storage.sources.pointcloud import DecodedCloud, Field, PointLayoutError, decode_pointcloud2
-from storage.sources.ros_images import (
-    CameraInfo,
-    ImageDecodeError,
-    Rectifier,
-    decode_compressed,
-    decode_raw,
-)
-from storage.sources.rosbag import LogFile, LogFormatError, log_files, quick_fingerprint, where
+from storage.sources.log.pointcloud import DecodedCloud, Field, PointLayoutError, decode_pointcloud2
 from tasks.poses.odometry import OdometrySettings
 from tasks.poses.tf import StampedEdge, TFGap, TFTree, static_edge
 
@@ -709,7 +709,7 @@ class LogSequence:
         return msg
 
     def _cloud(self, k: int, min_range_m: float, max_range_m: float) -> DecodedCloud:
-        from storage.sources.positions import PositionError, pointcloud2_of
+        from storage.sources.log.positions import PositionError, pointcloud2_of
 
         stamp = int(self.index.streams[self.lidar_topic].stamp_ns[k])
         try:
