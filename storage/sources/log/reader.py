@@ -832,6 +832,18 @@ class LogSequence:
             rgb = self._rectifiers[camera](rgb)
         return rgb
 
+    def source_paths(self, raw_frame: int) -> dict[str, str | None]:
+        """``LOG#TOPIC@INDEX`` of the frame's sweep and images (LOG relative to :attr:`root`)."""
+        out: dict[str, str | None] = {
+            "lidar": f"{self.path.name}#{self.lidar_topic}@{int(raw_frame)}",
+            "cam0": None,
+            "cam1": None,
+        }
+        for cam in self.camera_streams:
+            k = self._image_at[cam.name].get(int(raw_frame))
+            out[cam.name] = None if k is None else f"{self.path.name}#{cam.image_topic}@{k}"
+        return out
+
     def check_images(self, raw_frame: int) -> None:
         """Decode every camera's image of a raw frame (errors name file, topic and stamp)."""
         for cam in self.info.calibration.cameras:
