@@ -152,8 +152,8 @@ def _unit_state(manifest, plan, stage: str, unit, dry_run: bool) -> list[str]:
 
 def _print_plan(args: argparse.Namespace, dry_run: bool) -> int:
     from flows.pipeline.plan import PlanCosts, plan_run, selected_sequences
-    from storage.coda import check_dataset_root
     from storage.manifest import FingerprintCache, Manifest
+    from storage.sources.coda import check_dataset_root
 
     cfg = _config(args)
     if cfg.dataset.sequences == "all":

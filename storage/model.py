@@ -2,7 +2,7 @@
 
 Frames, units and array conventions are those of :mod:`tasks.conventions`. These are plain frozen
 dataclasses over numpy arrays: flows unpack them and hand the arrays to the kernels in ``tasks/``.
-The CODa reader (:mod:`storage.coda`) builds them; the synthetic generator writes the CODa layout,
+The CODa reader (:mod:`storage.sources.coda`) builds them; the synthetic generator writes the CODa layout,
 so synthetic and real data reach the pipeline through the same reader.
 """
 

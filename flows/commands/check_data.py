@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from configs.schema import Config
-from storage.coda_check import SequenceFacts, inspect_sequence
+from storage.sources.coda.check import SequenceFacts, inspect_sequence
 from tasks.metrics.calibration import (
     ground_height_m,
     in_image_fraction,

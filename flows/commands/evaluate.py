@@ -37,13 +37,13 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.coda import read_lidar_bin
 from storage.dataset import open_dataset
 from storage.export.common import sequence_info
 from storage.export.nuscenes import visibility_token, visible_fractions_of_boxes
 from storage.gt import gt_dir, read_frame_gt, read_sequence_gt
 from storage.manifest import Manifest
 from storage.products import Bodies, Detections, Tracks
+from storage.sources.coda import read_lidar_bin
 from tasks import conventions as C
 from tasks.metrics._common import PRCounts
 from tasks.metrics.detection import DetectionCounts, detection_counts, match_boxes

@@ -1,7 +1,7 @@
 """``mobileocc simulate``: write synthetic campus sequences in the CODa layout with ground truth.
 
 Sequence ``i`` of a run is generated with the seed derived from ``(seed, i)``; its frames are made
-by :class:`tasks.sim.Simulator` and written through :mod:`storage.coda_writer` (raw data, as a
+by :class:`tasks.sim.Simulator` and written through :mod:`storage.sources.coda.writer` (raw data, as a
 CODa download holds them: ``3d_comp`` sweeps with nanosecond times, ``2d_rect`` JPEG images of a
 stereo pair with a non-identity rectification and its own projection matrix, 3d_bbox boxes and
 3d_semantic terrain labels in CODa's ids) and :mod:`storage.gt` (``gt/{SEQ}/``, exact ground
@@ -86,7 +86,7 @@ def _boxes(frame) -> list:
 
 def write_frame(out: Path, seq: int, frame, stamp_ns: int, image_ext: str = ".jpg") -> None:
     """Write one SimFrame: LiDAR, both images, boxes, CODa terrain labels, ground truth."""
-    from storage import coda_writer as W
+    from storage.sources.coda import writer as W
     from tasks.sim.sensors import coda_semantic_ids
 
     s = frame.sweep
@@ -214,10 +214,10 @@ def log_cameras(rig) -> list:
 
 def log_base_pose(T_world_from_lidar: np.ndarray, T_base_from_lidar: np.ndarray):
     """(t (3,), q_wxyz (4,)) of T_world_from_base for a log's /tf or /odom, from the LiDAR pose
-    as the CODa poses file records it (storage.coda_writer.recorded_pose), so both formats of a
+    as the CODa poses file records it (storage.sources.coda.writer.recorded_pose), so both formats of a
     scene hold the same poses (exactly so for the simulator's rig, whose LiDAR is not rotated on
     the base)."""
-    from storage import coda_writer as W
+    from storage.sources.coda import writer as W
     from tasks.poses.rotations import matrix_to_quat_wxyz, quat_wxyz_to_matrix
 
     t_wl, q_wl = W.recorded_pose(T_world_from_lidar)
@@ -235,7 +235,7 @@ def _log_records(
 ) -> list[dict]:
     """Simulate ``indices`` (in a frame worker or in-process): ground truth written here, the
     raw data returned for the log writer (one writer per log, in the parent)."""
-    from storage import coda_writer as W
+    from storage.sources.coda import writer as W
 
     key = (seq, opts, fast)
     if _WORKER_SIM.get("key") != key:
@@ -266,7 +266,7 @@ def _write_log_sequence(
     log_poses: str, pool, bar,
 ) -> None:  # fmt: skip
     """One sequence as one robot log ``out/{seq}.mcap`` / ``.bag`` (storage.sources.log.writer)."""
-    from storage import coda_writer as W
+    from storage.sources.coda import writer as W
     from storage.sources.log.writer import SUFFIX, LogWriter
 
     sim = make_simulator(opts, fast)
@@ -459,7 +459,7 @@ def _write_sequence_files(
 ) -> None:
     """Calibration, timestamps, poses, the sequence's ground truth, then the metadata (last: its
     presence marks a complete sequence)."""
-    from storage import coda_writer as W
+    from storage.sources.coda import writer as W
 
     sim = (
         make_simulator(opts, fast)

@@ -25,7 +25,7 @@ from typing import Any, ClassVar
 
 from configs.schema import Config
 from flows.pipeline.dag import CODE_VERSIONS, STAGES
-from storage.coda import CodaSequence
+from storage.sources.coda import CodaSequence
 from tasks.conventions import CLASS_NAMES
 from tasks.fit.settings import FitSettings
 from tasks.fit.weights import FitWeights

@@ -28,7 +28,6 @@ from flows.pipeline.inputs import (
     stage_inputs,
     to_jsonable,
 )
-from storage.coda import READER_VERSION, frame_number, sequence_ids, sequence_layout
 from storage.files import InputError, regular_stat
 from storage.manifest import (
     FileHasher,
@@ -38,6 +37,7 @@ from storage.manifest import (
     sequence_fingerprint,
     stage_key,
 )
+from storage.sources.coda import READER_VERSION, frame_number, sequence_ids, sequence_layout
 
 
 @dataclass
@@ -96,7 +96,7 @@ class PlanCosts:
 
 def selected_sequences(config: Config) -> list[str]:
     """The sequences a run takes: ``dataset.sequences``, or with "all" every sequence that has any
-    layout file (storage.coda.sequence_ids: one missing its timestamps file is still listed, so it
+    layout file (storage.sources.coda.sequence_ids: one missing its timestamps file is still listed, so it
     is reported, not left out)."""
     if config.dataset.sequences == "all":
         return sequence_ids(config.dataset.root)

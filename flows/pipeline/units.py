@@ -47,7 +47,6 @@ from flows.pipeline.plan import (
     iter_plans,
     selected_sequences,
 )
-from storage.coda import check_dataset_root
 from storage.manifest import (
     FingerprintCache,
     Manifest,
@@ -61,6 +60,7 @@ from storage.manifest import (
     sweep_temporaries,
 )
 from storage.publish import withdraw_sequence
+from storage.sources.coda import check_dataset_root
 
 
 def _error_text(exc: BaseException, where: Path) -> str:
@@ -224,7 +224,7 @@ def _save(manifest: Manifest, report: RunReport) -> None:
 
 def check_run_paths(config: Config, sequences: list[str] | None = None) -> list[str]:
     """Before any work: the output store is writable and the dataset root holds sequences;
-    returns the sequences to run. Raises storage.manifest.OutputError / storage.coda's
+    returns the sequences to run. Raises storage.manifest.OutputError / storage.sources.coda's
     CodaFormatError with one clear line."""
     check_writable(Path(config.output.root))
     if sequences is not None:

@@ -18,7 +18,7 @@ from storage.body_files import (
     save_body_model_npz,
     save_pose_prior_pkl,
 )
-from storage.coda import CodaSequence
+from storage.sources.coda import CodaSequence
 from tasks.body.model import BodyModel
 from tasks.body.prior import GMMPosePrior, generate_pose_prior
 from tasks.body.procedural import generate_body_model
@@ -63,7 +63,7 @@ def chunks(n: int, size: int) -> list[list[int]]:
 
 
 def is_night(seq: CodaSequence) -> bool:
-    """dataset.lighting of the sequence, else its metadata's lighting (storage.coda)."""
+    """dataset.lighting of the sequence, else its metadata's lighting (storage.sources.coda)."""
     return seq.info.is_night
 
 

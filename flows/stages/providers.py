@@ -34,12 +34,12 @@ from flows.stages.models import (
     model_perception,
 )
 from storage.cliff_files import cliff_path, read_cliff_estimates
-from storage.coda import CodaSequence
 from storage.gt import read_frame_gt
 from storage.images import read_rgb
 from storage.model import Frame
 from storage.perception_files import PrecomputedPerception
 from storage.products import Tracks
+from storage.sources.coda import CodaSequence
 from tasks.fit.init_oracle import BodyParams, cliff_to_params, oracle_initial_estimate
 from tasks.fit.reframe import reframe_params
 from tasks.perception.lidar_clusters import detect_pedestrians_lidar

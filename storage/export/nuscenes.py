@@ -115,7 +115,7 @@ def _rot_z(yaw: float) -> np.ndarray:
 
 def read_sweep(path: Path, min_range_m: float, frame: int) -> np.ndarray:
     """(N, 5) float32 x y z intensity ring of a CODa .bin (no-returns dropped), LiDAR frame."""
-    from storage.coda import read_lidar_bin
+    from storage.sources.coda import read_lidar_bin
 
     sweep = read_lidar_bin(path, min_range_m=min_range_m, frame=frame)
     out = np.empty((len(sweep.points), 5), dtype=np.float32)

@@ -5,7 +5,7 @@ sensor headers read; LiDAR-odometry poses are not computed here), then decodes t
 (first, middle and last selected frame) for the point layout and the reprojection figures, and
 one image per camera. ``deep=True`` decodes every selected sweep and image instead.
 
-Problems are ``(blocking, message)`` pairs as for the CODa layout (storage.coda_check): a log
+Problems are ``(blocking, message)`` pairs as for the CODa layout (storage.sources.coda.check): a log
 that cannot be opened as a sequence, or a sweep / image that cannot be decoded, blocks a run;
 frames left out (no image within the offset, no pose), defaults used, intensity all zero are
 worth knowing.

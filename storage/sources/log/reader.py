@@ -200,7 +200,7 @@ class LogSequence:
 
     path: the log (a .bag or .mcap file, or a ROS 2 bag folder); sequence: its name (the stem).
     frame_stride, min_range_m, max_range_m, cameras (names wanted, cam0 required), lighting,
-    lidar_height_m (where the TF tree has no base frame): as :class:`storage.coda.CodaSequence`.
+    lidar_height_m (where the TF tree has no base frame): as :class:`storage.sources.coda.CodaSequence`.
     cache_dir: where the index and the odometry product are cached (None: not cached).
     with_poses: False skips computing LiDAR-odometry poses (planning, check-data): the info then
     holds identity poses and says so in ``pose_source``.

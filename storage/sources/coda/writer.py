@@ -267,7 +267,7 @@ def recorded_pose(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def recorded_stamp_ns(stamp_ns: int) -> int:
     """A stamp as a reader of the timestamps file gets it back: the text's Unix seconds parsed as
-    a float64 and rounded to nanoseconds (storage.coda; within ~120 ns of ``stamp_ns``)."""
+    a float64 and rounded to nanoseconds (storage.sources.coda; within ~120 ns of ``stamp_ns``)."""
     return int(np.round(np.float64(float(_stamp_str(stamp_ns))) * 1e9))
 
 
@@ -337,8 +337,8 @@ def read_image(root: Path, seq: int, cam: str, frame: int) -> np.ndarray:
 
 def read_camera(root: Path, seq: int, cam: str = "cam0") -> tuple[np.ndarray, np.ndarray]:
     """(K (3, 3), T_cam_from_lidar (4, 4)) float64 of the rectified camera of a written calibration
-    (storage.coda.rectified_camera: the pinhole that projects onto the 2d_rect image)."""
-    from storage.coda import read_extrinsic, read_intrinsics, rectified_camera
+    (storage.sources.coda.rectified_camera: the pinhole that projects onto the 2d_rect image)."""
+    from storage.sources.coda import read_extrinsic, read_intrinsics, rectified_camera
 
     d = Path(root) / "calibrations" / str(seq)
     intr = read_intrinsics(d / f"calib_{cam}_intrinsics.yaml")
