@@ -32,6 +32,7 @@ from pydantic import (
     model_validator,
 )
 
+from configs.sources import CameraTopics, LogSettings
 from tasks.conventions import CITYSCAPES_TO_CLASS, CLASS_NAMES, FREE, UNLABELED
 from tasks.fit.settings import FitSettings
 from tasks.fit.weights import FIT_PRESETS, FitWeights
@@ -48,6 +49,7 @@ from tasks.perception.models.settings import (
 )
 from tasks.perception.oracle import OracleNoise
 from tasks.perception.person_points import PersonPointParams
+from tasks.poses.odometry import OdometrySettings
 from tasks.track.ocsort import TrackerParams
 from tasks.track.offline import OfflineParams, WorldCheck
 from tasks.track.rate import GateRate
@@ -192,10 +194,66 @@ class GridConfig(Strict):
         return GridSpec(tuple(self.range_min), tuple(self.range_max), self.voxel_size_m)
 
 
+OdometryConfig = section(
+    "OdometryConfig",
+    "LiDAR odometry (KISS-ICP) of logs without world poses: tasks.poses.odometry.",
+    kernel_fields(
+        OdometrySettings,
+        {
+            "min_range_m": _NONNEG,
+            "max_range_m": _POS,
+            "voxel_size_m": _POS,
+            "max_points_per_voxel": {"ge": 1},
+            "initial_threshold_m": _POS,
+            "min_motion_m": _NONNEG,
+            "max_iterations": {"ge": 1},
+            "convergence": _POS,
+        },
+    ),
+)
+
+CameraTopicsConfig = section(
+    "CameraTopicsConfig",
+    "One camera's topics in a log (null: found in the log): storage.sources.log.reader.",
+    kernel_fields(CameraTopics),
+)
+
+
+class LogConfig(
+    section(
+        "LogConfigFields",
+        "",
+        kernel_fields(
+            LogSettings,
+            {"max_image_offset_ms": _POS, "max_pose_gap_ms": _POS},
+            exclude=("cameras", "odometry", "poses"),
+        ),
+    )
+):
+    """How robot logs are read (dataset.format log): topics and frames (null: found in the log,
+    storage/sources/log/reader.py), where the poses come from, the image / pose time limits."""
+
+    poses: Literal["auto", "tf", "odometry", "lidar-odometry"] = LogSettings.poses
+    cameras: dict[Literal["cam0", "cam1"], CameraTopicsConfig] = Field(default_factory=dict)
+    odometry: OdometryConfig = OdometryConfig()
+
+    def settings(self) -> LogSettings:
+        """The reader's settings (what the stage inputs hold)."""
+        cams = tuple((name, self.cameras[name].to(CameraTopics)) for name in sorted(self.cameras))
+        plain = {f.name: getattr(self, f.name) for f in dataclasses.fields(LogSettings)}
+        return LogSettings(
+            **{**plain, "cameras": cams, "odometry": self.odometry.to(OdometrySettings)}
+        )
+
+
 class DatasetConfig(Strict):
-    """Where the raw sequences are and how they are read (CODa raw layout)."""
+    """Where the raw sequences are and how they are read (CODa raw layout or robot logs)."""
 
     root: Path = Path("demo-data")
+    #: auto: robot logs when the root is a log or holds logs (.bag, .mcap, ROS 2 bag folders),
+    #: else the CODa layout
+    format: Literal["auto", "coda", "log"] = "auto"
+    log: LogConfig = LogConfig()
     sequences: list[str] | Literal["all"] = "all"
     lidar_source: Literal["3d_comp", "3d_raw"] = "3d_comp"
     image_source: Literal["2d_rect", "2d_raw"] = "2d_rect"

@@ -151,13 +151,13 @@ def _unit_state(manifest, plan, stage: str, unit, dry_run: bool) -> list[str]:
 
 
 def _print_plan(args: argparse.Namespace, dry_run: bool) -> int:
+    from flows.pipeline.inputs import source
     from flows.pipeline.plan import PlanCosts, plan_run, selected_sequences
     from storage.manifest import FingerprintCache, Manifest
-    from storage.sources.coda import check_dataset_root
 
     cfg = _config(args)
     if cfg.dataset.sequences == "all":
-        check_dataset_root(cfg.dataset.root)
+        source(cfg).check_root(cfg.dataset.root)
     out, costs = Path(cfg.output.root), PlanCosts()
     manifest = Manifest.load(out)
     cache = FingerprintCache(

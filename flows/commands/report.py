@@ -98,6 +98,10 @@ _DIFF_COLORS = np.array(
 )  # unknown: light grey
 
 _HOW_TO_READ = {
+    "trajectory": "The world poses each log's labels were built with (its /tf, odometry topic or "
+    "LiDAR odometry) against the simulator's: ATE = RMSE of the positions after the best rigid "
+    "alignment, rotation error relative to the first pose, final drift = end-pose error over the "
+    "path length. Lower is better.",
     "static": "Static voxel labels against labelled ground-truth LiDAR points. IoU is per point (a point "
     "takes its voxel's label); coverage = GT points whose voxel is occupied; the accuracies are "
     "over covered points / occupied voxels holding GT points (majority GT label). Higher is better.",
@@ -144,6 +148,7 @@ _TITLES = {
     "velocity": "Pedestrian velocity (AVE)",
     "velocity_vertex_gt": "Pedestrian velocity (AVE) vs per-vertex GT",
     "velocity_by_limb": "Pedestrian velocity (AVE) per limb group",
+    "trajectory": "Trajectory of robot logs (published poses vs GT)",
 }
 _COLUMNS = {
     "pedestrian_boxes": ["precision", "recall", "f1", "pred_total", "ref_total"],

@@ -39,6 +39,7 @@ from flows.pipeline.inputs import (
     export_inputs,
     inputs_hash,
     runtime,
+    source,
 )
 from flows.pipeline.plan import (
     PlanCosts,
@@ -60,7 +61,6 @@ from storage.manifest import (
     sweep_temporaries,
 )
 from storage.publish import withdraw_sequence
-from storage.sources.coda import check_dataset_root
 
 
 def _error_text(exc: BaseException, where: Path) -> str:
@@ -224,12 +224,12 @@ def _save(manifest: Manifest, report: RunReport) -> None:
 
 def check_run_paths(config: Config, sequences: list[str] | None = None) -> list[str]:
     """Before any work: the output store is writable and the dataset root holds sequences;
-    returns the sequences to run. Raises storage.manifest.OutputError / storage.sources.coda's
-    CodaFormatError with one clear line."""
+    returns the sequences to run. Raises storage.manifest.OutputError / the source's InputError
+    (storage.files) with one clear line."""
     check_writable(Path(config.output.root))
     if sequences is not None:
         return [str(s) for s in sequences]
-    check_dataset_root(Path(config.dataset.root))
+    source(config).check_root(Path(config.dataset.root))
     return selected_sequences(config)
 
 

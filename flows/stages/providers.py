@@ -35,11 +35,10 @@ from flows.stages.models import (
 )
 from storage.cliff_files import cliff_path, read_cliff_estimates
 from storage.gt import read_frame_gt
-from storage.images import read_rgb
 from storage.model import Frame
 from storage.perception_files import PrecomputedPerception
 from storage.products import Tracks
-from storage.sources.coda import CodaSequence
+from storage.sources import SequenceSource
 from tasks.fit.init_oracle import BodyParams, cliff_to_params, oracle_initial_estimate
 from tasks.fit.reframe import reframe_params
 from tasks.perception.lidar_clusters import detect_pedestrians_lidar
@@ -62,13 +61,13 @@ class LidarProvider(Protocol):
 class OracleImage:
     """Ground truth + the oracle's noise model (synthetic data only)."""
 
-    def __init__(self, spec: OracleProvider, seq: CodaSequence):
+    def __init__(self, spec: OracleProvider, seq: SequenceSource):
         self.spec, self.seq, self.night = spec, seq, is_night(seq)
 
     def image(
         self, frame: Frame, lidar: LidarDetections | None = None
     ) -> tuple[ImagePerception, np.ndarray]:
-        gt = read_frame_gt(self.seq.root, int(self.seq.sequence), frame.index)
+        gt = read_frame_gt(self.seq.root, self.seq.sequence, frame.index)
         rng = frame_rng(self.spec.seed, self.seq.sequence, frame.index, 1)
         return oracle_image_perception(
             gt.box2d,
@@ -86,7 +85,7 @@ class OracleImage:
 
 class OracleLidar(OracleImage):
     def lidar(self, frame: Frame) -> LidarDetections:
-        gt = read_frame_gt(self.seq.root, int(self.seq.sequence), frame.index)
+        gt = read_frame_gt(self.seq.root, self.seq.sequence, frame.index)
         counts = np.array([(gt.point_instance == t).sum() for t in gt.track_id], np.int64)
         rng = frame_rng(self.spec.seed, self.seq.sequence, frame.index, 2)
         return oracle_lidar_detections(
@@ -97,7 +96,7 @@ class OracleLidar(OracleImage):
 class PrecomputedFiles:
     """A model's outputs read from files (storage/PERCEPTION_FORMAT.md), keyed by raw frame."""
 
-    def __init__(self, spec: PrecomputedProvider, seq: CodaSequence):
+    def __init__(self, spec: PrecomputedProvider, seq: SequenceSource):
         self.files = PrecomputedPerception(Path(spec.directory) / seq.sequence)
 
     def image(self, frame: Frame, lidar: LidarDetections) -> tuple[ImagePerception, None]:
@@ -110,7 +109,7 @@ class PrecomputedFiles:
 class LidarClusters:
     """The weight-free LiDAR detector on the frame's sweep."""
 
-    def __init__(self, spec: LidarClustersProvider, seq: CodaSequence):
+    def __init__(self, spec: LidarClustersProvider, seq: SequenceSource):
         self.params = spec.params
 
     def lidar(self, frame: Frame) -> LidarDetections:
@@ -118,7 +117,7 @@ class LidarClusters:
 
 
 class NoLidar:
-    def __init__(self, spec: NoProvider, seq: CodaSequence):
+    def __init__(self, spec: NoProvider, seq: SequenceSource):
         pass
 
     def lidar(self, frame: Frame) -> LidarDetections:
@@ -130,7 +129,7 @@ class ModelsImage:
     proposals when the detector is 'lidar'; with the oracle's semantics (synthetic data) the
     detections take ground-truth identities by box."""
 
-    def __init__(self, spec: ModelsProvider, seq: CodaSequence):
+    def __init__(self, spec: ModelsProvider, seq: SequenceSource):
         self.spec, self.seq = spec, seq
         self.cam = seq.info.calibration.cameras[spec.camera]
         self.oracle = OracleImage(spec.oracle, seq) if spec.oracle is not None else None
@@ -140,12 +139,12 @@ class ModelsImage:
     ) -> tuple[ImagePerception, np.ndarray | None]:
         m, cam = self.spec.models, self.cam
         semantic = self.oracle.image(frame)[0].semantic if self.oracle is not None else None
-        rgb = read_rgb(frame.image_paths[self.spec.camera], (cam.width, cam.height))
+        rgb = self.seq.image(self.spec.camera, frame.index)
         proposals = lidar_proposals(lidar, cam) if m.detector.kind == "lidar" else None
         image = model_perception(m)(rgb, proposals, semantic)
         if self.oracle is None:
             return image, None
-        gt = read_frame_gt(self.seq.root, int(self.seq.sequence), frame.index)
+        gt = read_frame_gt(self.seq.root, self.seq.sequence, frame.index)
         return image, gt_index_by_boxes(image.boxes_xyxy, gt.box2d)
 
 
@@ -162,11 +161,11 @@ LIDAR_PROVIDERS = {
 }
 
 
-def image_provider(spec, seq: CodaSequence) -> ImageProvider:
+def image_provider(spec, seq: SequenceSource) -> ImageProvider:
     return IMAGE_PROVIDERS[type(spec)](spec, seq)
 
 
-def lidar_provider(spec, seq: CodaSequence) -> LidarProvider:
+def lidar_provider(spec, seq: SequenceSource) -> LidarProvider:
     return LIDAR_PROVIDERS[type(spec)](spec, seq)
 
 
@@ -174,7 +173,7 @@ class OracleInit:
     """The oracle's initial estimates (synthetic data): the ground-truth bodies perturbed like a
     monocular regressor; a false positive has none. One generator per batch of rows."""
 
-    def __init__(self, spec: OracleInitProvider, seq: CodaSequence, model, camera):
+    def __init__(self, spec: OracleInitProvider, seq: SequenceSource, model, camera):
         self.spec, self.seq, self.model, self.camera = spec, seq, model, camera
 
     def available(self, tracks: Tracks) -> np.ndarray:
@@ -183,7 +182,7 @@ class OracleInit:
     def estimates(self, tracks: Tracks, rows: np.ndarray) -> BodyParams:
         truths = []
         for r in rows:
-            gt = read_frame_gt(self.seq.root, int(self.seq.sequence), int(tracks.frame[r]))
+            gt = read_frame_gt(self.seq.root, self.seq.sequence, int(tracks.frame[r]))
             g = [int(tracks.gt_index[r])]
             truths.append(
                 BodyParams(gt.betas[g], gt.global_orient[g], gt.body_pose[g], gt.transl[g])
@@ -204,7 +203,7 @@ class PrecomputedCliff:
     """CLIFF outputs precomputed by the user (``<directory>/<sequence>/cliff.parquet``), keyed by
     (frame, det_index), converted with the sequence's calibrated intrinsics."""
 
-    def __init__(self, spec: PrecomputedProvider, seq: CodaSequence, model, camera):
+    def __init__(self, spec: PrecomputedProvider, seq: SequenceSource, model, camera):
         self.est = read_cliff_estimates(cliff_path(spec.directory, seq.sequence))
         self.K = camera.K
         self.where = {
@@ -237,7 +236,7 @@ class PrecomputedCliff:
 class CliffModel:
     """A CLIFF export on each tracked box (one image read per frame of the batch)."""
 
-    def __init__(self, spec: CliffProvider, seq: CodaSequence, model, camera):
+    def __init__(self, spec: CliffProvider, seq: SequenceSource, model, camera):
         self.spec, self.seq, self.camera = spec, seq, camera
         self.at = {raw: k for k, raw in enumerate(seq.info.frame_indices)}
 
@@ -250,7 +249,7 @@ class CliffModel:
         for raw in dict.fromkeys(tracks.frame[rows].tolist()):  # frames in order of first row
             here = rows[tracks.frame[rows] == raw]
             frame = self.seq.frame(self.at[int(raw)])
-            rgb = read_rgb(frame.image_paths[cam.name], (cam.width, cam.height))
+            rgb = self.seq.image(cam.name, frame.index)
             parts.append((here, cliff(rgb, tracks.boxes_xyxy[here], cam.K)))
         order = np.argsort(np.concatenate([h for h, _ in parts]), kind="stable")
         return BodyParams(
@@ -268,5 +267,5 @@ INIT_PROVIDERS = {
 }
 
 
-def init_provider(spec, seq: CodaSequence, model, camera):
+def init_provider(spec, seq: SequenceSource, model, camera):
     return INIT_PROVIDERS[type(spec)](spec, seq, model, camera)

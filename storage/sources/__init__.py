@@ -12,6 +12,7 @@ Frame, Calibration) is :mod:`storage.model`.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Protocol
@@ -63,3 +64,16 @@ class SequenceSource(Protocol):
         """Where a frame's raw data are, for the frames table: ``lidar``, ``cam0``, ``cam1``
         (relative to the dataset root; a log's as ``LOG#TOPIC@INDEX``)."""
         ...
+
+
+def source_relative(path: str | os.PathLike, source_root: str | os.PathLike) -> str:
+    """``path`` (a source file under ``source_root``) as a POSIX path relative to ``source_root``:
+    what the frames table stores, so the dataset reads the same wherever the raw data is mounted."""
+    p, root = Path(path), Path(source_root)
+    try:
+        return p.relative_to(root).as_posix()
+    except ValueError:
+        try:
+            return p.resolve().relative_to(root.resolve()).as_posix()
+        except ValueError:
+            raise ValueError(f"source file {p} is not under the dataset root {root}") from None

@@ -229,7 +229,7 @@ def points_in_box(points: np.ndarray, box: Box3D, margin_m: float = 0.0) -> np.n
 
 
 class CodaSequence:
-    """One sequence of a CODa-layout root. Cheap to build (no sweep is read); frames on demand.
+    """The CODa sequence source (storage.sources.SequenceSource). One sequence of a CODa-layout root. Cheap to build (no sweep is read); frames on demand.
 
     frame_stride: keep a frame every k raw frames (2 for 5 Hz). lidar_source: ``3d_comp`` (what
     the downloads ship for os1) or ``3d_raw``; image_source: ``2d_rect`` or ``2d_raw``. frames:
@@ -238,6 +238,8 @@ class CodaSequence:
     lidar_height_m: used where ``calib_os1_to_base.yaml`` is missing (T_base_from_lidar = a pure
     lift of that height, with a warning in ``info.warnings``); None = that file is required.
     """
+
+    kind = "coda"
 
     def __init__(
         self,
@@ -525,11 +527,36 @@ class CodaSequence:
             boxes=boxes,
             box_problems=problems,
             intensity_present=sweep.intensity_present,
+            point_index=sweep.index,
         )
 
     def frames(self):
         for i in range(len(self)):
             yield self.frame(i)
+
+    def image(self, camera: str, raw_frame: int) -> np.ndarray:
+        """(H, W, 3) uint8 RGB of ``camera``'s image at a raw frame, its size checked against the
+        calibration (storage.images.read_rgb)."""
+        from storage.images import read_rgb
+
+        cam = self.info.calibration.cameras[camera]
+        return read_rgb(self.image_path(camera, raw_frame), (cam.width, cam.height))
+
+    def source_paths(self, raw_frame: int) -> dict[str, str | None]:
+        """The frame's sweep and images relative to the root (cam0: "" and cam1: None where the
+        sequence has no such camera)."""
+        from storage.sources import source_relative
+
+        cams = self.info.calibration.cameras
+        return {
+            "lidar": source_relative(self.lidar_path(raw_frame), self.root),
+            "cam0": source_relative(self.image_path("cam0", raw_frame), self.root)
+            if "cam0" in cams
+            else "",
+            "cam1": source_relative(self.image_path("cam1", raw_frame), self.root)
+            if "cam1" in cams
+            else None,
+        }
 
     def check_images(self, raw_frame: int) -> None:
         """Decode every camera's image of a raw frame and check its size against the calibration

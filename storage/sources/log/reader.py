@@ -28,11 +28,12 @@ import hashlib
 import json
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from configs.sources import POSE_MODES, LogSettings
 from storage.model import (
     Calibration,
     CameraCalibration,
@@ -62,10 +63,8 @@ from storage.sources.log.index import (
     stamp_ns,
 )
 from storage.sources.log.pointcloud import DecodedCloud, Field, PointLayoutError, decode_pointcloud2
-from tasks.poses.odometry import OdometrySettings
 from tasks.poses.tf import StampedEdge, TFGap, TFTree, static_edge
 
-POSE_MODES = ("auto", "tf", "odometry", "lidar-odometry")
 #: PointCloud2 topics of common drivers, preferred in this order when a log has several
 KNOWN_LIDAR_TOPICS = (
     "/ouster/points",
@@ -83,38 +82,6 @@ WORLD_FRAMES = ("map", "world", "odom")
 READER_VERSION = "1"
 #: version of the LiDAR-odometry product (bump when its poses change for the same inputs)
 ODOMETRY_VERSION = "1"
-
-
-@dataclass(frozen=True)
-class CameraTopics:
-    """One camera's topics; None = found in the log. rectified: None = from the image topic's
-    name (``rect`` in it)."""
-
-    image_topic: str | None = None
-    info_topic: str | None = None
-    rectified: bool | None = None
-
-
-@dataclass(frozen=True)
-class LogSettings:
-    """How a log is read (the ``dataset.log`` config section). Every topic and frame None = found
-    in the log (module doc). poses: auto | tf | odometry | lidar-odometry; pose_topic: the
-    Odometry / PoseStamped topic. max_image_offset_ms: an image further from its sweep's stamp
-    is no match (50, as CODa's own bag decoder). max_pose_gap_ms: two pose samples further
-    apart are not interpolated between."""
-
-    lidar_topic: str | None = None
-    cameras: tuple[tuple[str, CameraTopics], ...] = ()
-    base_frame: str | None = None
-    world_frame: str | None = None
-    poses: str = "auto"
-    pose_topic: str | None = None
-    max_image_offset_ms: float = 50.0
-    max_pose_gap_ms: float = 1000.0
-    odometry: OdometrySettings = field(default_factory=OdometrySettings)
-
-    def camera(self, name: str) -> CameraTopics:
-        return dict(self.cameras).get(name, CameraTopics())
 
 
 @dataclass(frozen=True)
@@ -783,6 +750,7 @@ class LogSequence:
             lidar_path=self.path,
             point_time_s=cloud.time_s,
             intensity_present=cloud.intensity_present,
+            point_index=cloud.index,
         )
 
     def frames(self):
