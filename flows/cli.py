@@ -403,8 +403,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "check-data",
-        help="check a CODa-layout download before a run: a table per sequence, "
-        "exit 1 on blocking problems",
+        help="check a CODa-layout download or robot logs before a run: a table per sequence "
+        "(and a log's topics), exit 1 on blocking problems",
     )
     _add_config_args(p, runtime=False)
     p.add_argument(
