@@ -91,3 +91,43 @@ def expected_pose(k: int) -> np.ndarray:
     T[:3, :3] = [[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]]
     T[:3, 3] = [0.1 * k, 0.0, 0.0]
     return T @ base_from_lidar()
+
+
+def rewrite_log(src: Path, dst: Path, edit=None, empty_topics: tuple[tuple[str, str], ...] = ()):
+    """Copy a log into an MCAP file message by message; ``edit(topic, msgtype, msg, log_ns)``
+    returns the messages to write instead, [(topic, msgtype, msg, log_ns), ...] (None: the
+    message unchanged; [] drops it). ``empty_topics``: (topic, msgtype) connections written
+    without a message."""
+    import os
+    import shutil
+
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    tmp = dst.parent / f".{dst.stem}.rewrite"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    with AnyReader([src], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
+        ts = reader.typestore
+        writer = Writer(tmp / dst.stem, version=9, storage_plugin=StoragePlugin.MCAP)
+        writer.open()
+        conns: dict[str, object] = {}
+
+        def put(topic, msgtype, msg, log_ns):
+            if topic not in conns:
+                conns[topic] = writer.add_connection(topic, msgtype, typestore=ts)
+            if msg is not None:
+                writer.write(conns[topic], log_ns, ts.serialize_cdr(msg, msgtype))
+
+        for conn, log_ns, raw in reader.messages():
+            msg = reader.deserialize(raw, conn.msgtype)
+            out = edit(conn.topic, conn.msgtype, msg, log_ns) if edit else None
+            for item in [(conn.topic, conn.msgtype, msg, log_ns)] if out is None else out:
+                put(*item)
+        for topic, msgtype in empty_topics:
+            put(topic, msgtype, None, 0)
+        writer.close()
+    os.replace(tmp / dst.stem / f"{dst.stem}.mcap", dst)
+    shutil.rmtree(tmp)
+    return dst

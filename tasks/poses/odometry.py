@@ -24,6 +24,7 @@ class OdometrySettings:
     each sweep's motion with its per-point times (real spinning LiDARs; off for sweeps taken at
     one instant, as the simulator's). max_points_per_voxel, initial_threshold_m, min_motion_m:
     KISS-ICP's map and adaptive-threshold settings; max_iterations, convergence: its ICP loop.
+    two_way: see :func:`two_way`.
     """
 
     min_range_m: float = 0.5
@@ -35,6 +36,10 @@ class OdometrySettings:
     min_motion_m: float = 0.1
     max_iterations: int = 500
     convergence: float = 1e-4
+    #: also run backwards from the last sweep and take each sweep's motion from the pass that is
+    #: further from its own start (:func:`two_way`): a pass under-estimates its first metres
+    #: while its motion model has no speed yet (along corridors and facades most)
+    two_way: bool = True
 
 
 def _config(s: OdometrySettings):
@@ -88,7 +93,33 @@ class LidarOdometry:
         return np.array(self._icp.last_pose, dtype=np.float64)
 
 
+def two_way(forward: np.ndarray, backward: np.ndarray) -> np.ndarray:
+    """(K, 4, 4) T_first_from_lidar from a forward pass (K, 4, 4) T_first_from_lidar and a
+    backward pass over the reversed sweeps, given per sweep as (K, 4, 4) T_last_from_lidar.
+
+    Each pass under-estimates the motion of its first sweeps (its constant-velocity prediction
+    starts at zero speed), so sweep k's motion from sweep k - 1 is the forward pass's in the
+    second half of the sequence and the backward pass's in the first half; the poses are those
+    motions chained from the first sweep (identity)."""
+    n = len(forward)
+    if n == 0:
+        return np.zeros((0, 4, 4))
+    out = np.tile(np.eye(4), (n, 1, 1))
+    for k in range(1, n):
+        src = forward if k >= n // 2 else backward
+        out[k] = out[k - 1] @ (np.linalg.inv(src[k - 1]) @ src[k])
+    return out
+
+
 def lidar_odometry(sweeps, settings: OdometrySettings = OdometrySettings()) -> np.ndarray:
-    """(K, 4, 4) float64 T_first_from_lidar of K sweeps, each (points (N, 3), time_s (N,) | None)."""
+    """(K, 4, 4) float64 T_first_from_lidar of K sweeps, each (points (N, 3), time_s (N,) | None),
+    a list (two_way needs them again in reverse)."""
+    if not sweeps:
+        return np.zeros((0, 4, 4))
     odo = LidarOdometry(settings)
-    return np.stack([odo.step(p, t) for p, t in sweeps]) if sweeps else np.zeros((0, 4, 4))
+    forward = np.stack([odo.step(p, t) for p, t in sweeps])
+    if not settings.two_way:
+        return forward
+    back = LidarOdometry(settings)
+    backward = np.stack([back.step(p, None if t is None else -t) for p, t in reversed(sweeps)])
+    return two_way(forward, backward[::-1])

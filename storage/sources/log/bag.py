@@ -149,9 +149,19 @@ def _open_hint(path: Path, text: str) -> str:
             "writes the index in place and keeps a .orig.bag copy, then run again"
         )
     if path.suffix == ".mcap" and ("end magic" in low or "footer" in low or "summary" in low):
+        from storage.sources.log.positions import mcap_last_whole_message
+
+        whole, topic, log_ns = mcap_last_whole_message(path)
+        last = (
+            f"; its last whole message is on topic {topic} at log time {log_ns} ns "
+            f"({log_ns / 1e9:.6f} s), {whole} of {path.stat().st_size} bytes whole"
+            if log_ns is not None
+            else ""
+        )
         return (
-            f"{path}: the MCAP file is truncated or was not closed (no valid footer: {text}); "
-            f"recover what it holds with `mcap recover {path} -o fixed.mcap` (the mcap CLI)"
+            f"{path}: the MCAP file is truncated or was not closed (no valid footer: {text}"
+            f"{last}); recover what it holds with `mcap recover {path} -o fixed.mcap` (the mcap "
+            "CLI)"
         )
     return f"{path}: not a readable log ({text})"
 

@@ -118,6 +118,59 @@ def scan_mcap(path: Path, channels: dict[int, str]) -> Positions:
     return Positions(_arrays(rows), np.array(chunks, np.int64).reshape(-1, 3), compressions)
 
 
+def mcap_last_whole_message(path: Path) -> tuple[int, str | None, int | None]:
+    """Where a cut MCAP file stops holding whole records: (bytes of whole records, the topic and
+    log time of the last whole message before the cut, or None). Chunks are taken whole or not
+    at all (a compressed chunk's messages are read)."""
+    from rosbags.rosbag2.storage_mcap import DECOMPRESSORS
+
+    topics: dict[int, str] = {}
+    last: tuple[str | None, int | None] = (None, None)
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        f = _File(fd, os.fstat(fd).st_size)
+        pos = 8
+        while pos + 9 <= f.size:
+            head = f.read(pos, 9)
+            op, length = head[0], _u64(head, 1)[0]
+            body = pos + 9
+            if body + length > f.size:
+                break
+            if op == 0x04:  # Channel: id u16, schema u16, topic string
+                rec = f.read(body, min(length, 4096))
+                n = _u32(rec, 4)[0]
+                topics[_u16(rec, 0)[0]] = rec[8 : 8 + n].decode("utf-8", "replace")
+            elif op == OP_MESSAGE:
+                channel, _, log_time, _ = _msg_head(f.read(body, 22), 0)
+                last = (topics.get(channel), log_time)
+            elif op == OP_CHUNK:
+                fixed = f.read(body, 32)
+                uncompressed, name_len = _u64(fixed, 16)[0], _u32(fixed, 28)[0]
+                compression = f.read(body + 32, name_len).decode()
+                rec_len = _u64(f.read(body + 32 + name_len, 8), 0)[0]
+                start = body + 40 + name_len
+                inner: _File = f
+                if compression:
+                    data = DECOMPRESSORS[compression](f.read(start, rec_len), uncompressed)
+                    inner, start, rec_len = _Bytes(data), 0, len(data)
+                q = start
+                while q + 9 <= start + rec_len:
+                    h = inner.read(q, 9)
+                    if h[0] == 0x04:
+                        rec = inner.read(q + 9, min(_u64(h, 1)[0], 4096))
+                        topics[_u16(rec, 0)[0]] = rec[8 : 8 + _u32(rec, 4)[0]].decode()
+                    elif h[0] == OP_MESSAGE:
+                        channel, _, log_time, _ = _msg_head(inner.read(q + 9, 22), 0)
+                        last = (topics.get(channel), log_time)
+                    q += 9 + _u64(h, 1)[0]
+            pos = body + length
+    except (PositionError, OSError, KeyError, ValueError):
+        pass
+    finally:
+        os.close(fd)
+    return pos, last[0], last[1]
+
+
 class _Bytes(_File):
     """A decompressed chunk read like a file."""
 

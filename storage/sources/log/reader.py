@@ -81,7 +81,7 @@ WORLD_FRAMES = ("map", "world", "odom")
 #: version of what opening a log checks and returns (the planner's memo of another is not used)
 READER_VERSION = "1"
 #: version of the LiDAR-odometry product (bump when its poses change for the same inputs)
-ODOMETRY_VERSION = "1"
+ODOMETRY_VERSION = "2"
 
 
 @dataclass(frozen=True)
@@ -303,8 +303,8 @@ class LogSequence:
             k = int(np.flatnonzero(steps <= 0)[0]) + 1
             raise self._error(
                 f"header stamps go backwards: {int(stamps[k])} ns after {int(stamps[k - 1])} ns "
-                "(message k-1); expected increasing stamps (two sensors on one topic, or a clock "
-                "jump while recording?)",
+                f"(message {k - 1}); expected increasing stamps (two sensors on one topic, or a "
+                "clock jump while recording?)",
                 topic,
                 int(stamps[k]),
                 k,
@@ -371,8 +371,10 @@ class LogSequence:
                 info_topic not in index.camera_info
             ):
                 infos = [n for n, (t, _) in index.topics.items() if t == CAMERA_INFO]
+                images_at = index.streams[image_topic].stamp_ns
                 raise self._error(
-                    f"no sensor_msgs/CameraInfo for camera {name} ({image_topic}): expected it on "
+                    f"no sensor_msgs/CameraInfo for camera {name} ({image_topic}, first image at "
+                    f"stamp {int(images_at[0]) if len(images_at) else '-'} ns): expected it on "
                     f"{info_topic} (CameraInfo topics: {', '.join(infos) or 'none'}; "
                     f"dataset.log.cameras.{name}.info_topic names another)",
                     info_topic,
@@ -630,7 +632,7 @@ class LogSequence:
     def odometry_poses(self) -> np.ndarray:
         """(S, 4, 4) float64 T_first_from_lidar at every sweep (KISS-ICP), from the cache when
         there (``cache_dir/odometry/<key>.npz``), else computed and cached."""
-        from tasks.poses.odometry import LidarOdometry
+        from tasks.poses.odometry import LidarOdometry, two_way
 
         key = self.odometry_key()
         path = self.cache_dir / "odometry" / f"{key}.npz" if self.cache_dir else None
@@ -638,11 +640,19 @@ class LogSequence:
             with np.load(path, allow_pickle=False) as z:
                 return z["T_first_from_lidar"]
         s = self.settings.odometry
-        odo, out = LidarOdometry(s), []
-        for k in range(len(self.index.streams[self.lidar_topic].stamp_ns)):
-            cloud = self._cloud(k, s.min_range_m, s.max_range_m)
-            out.append(odo.step(cloud.points, cloud.time_s))
-        poses = np.stack(out)
+        n = len(self.index.streams[self.lidar_topic].stamp_ns)
+
+        def run(order, sign):  # one pass, a sweep at a time (memory flat in the log's length)
+            odo, out = LidarOdometry(s), []
+            for k in order:
+                cloud = self._cloud(k, s.min_range_m, s.max_range_m)
+                t = None if cloud.time_s is None else sign * cloud.time_s
+                out.append(odo.step(cloud.points, t))
+            return np.stack(out)
+
+        poses = run(range(n), 1.0)
+        if s.two_way and n > 1:  # backwards from the last sweep: its times run backwards too
+            poses = two_way(poses, run(range(n - 1, -1, -1), -1.0)[::-1])
         if path is not None:
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
