@@ -51,6 +51,7 @@ from storage.export.common import (
 )
 from storage.occupancy_store import open_layout, read_frames
 from storage.plain_pickle import dumps_plain
+from storage.sources.log.refs import parse_ref, read_ref_sweep, ref_image
 from tasks.conventions import CLASS_NAMES, FREE, PEDESTRIAN, ROAD, TERRAIN
 from tasks.occupancy.instance_visibility import box_lattice, visible_fractions
 
@@ -337,11 +338,21 @@ def export_nuscenes(
                 t["ego_pose"].append(
                     {"token": sd_list[i], "timestamp": stamp_us, **pose_record(T_wb)}
                 )
-            img_src = resolve(row["cam0_path"], src_root, "cam0 image", seq, f)
-            img_rel = sample_file_name(scene, CAM_CHANNEL, stamp_us, img_src.suffix)
-            link_or_copy(img_src, out / img_rel)
-            lidar_src = resolve(row["lidar_path"], src_root, "LiDAR", seq, f)
-            sweep = read_sweep(lidar_src, min_range_m, f)
+            img_ref, lidar_ref = parse_ref(row["cam0_path"]), parse_ref(row["lidar_path"])
+            if img_ref is None:  # a file of the CODa layout
+                img_src = resolve(row["cam0_path"], src_root, "cam0 image", seq, f)
+                img_rel = sample_file_name(scene, CAM_CHANNEL, stamp_us, img_src.suffix)
+                link_or_copy(img_src, out / img_rel)
+                img_suffix = img_src.suffix
+            else:  # a message of a robot log
+                data, img_suffix = ref_image(img_ref, src_root)
+                img_rel = sample_file_name(scene, CAM_CHANNEL, stamp_us, img_suffix)
+                write_bytes(out / img_rel, data)
+            if lidar_ref is None:
+                lidar_src = resolve(row["lidar_path"], src_root, "LiDAR", seq, f)
+                sweep = read_sweep(lidar_src, min_range_m, f)
+            else:
+                sweep = read_ref_sweep(lidar_ref, src_root, min_range_m)
             lidar_rel = sample_file_name(scene, LIDAR_CHANNEL, stamp_us, ".pcd.bin")
             (out / lidar_rel).parent.mkdir(parents=True, exist_ok=True)
             sweep.tofile(out / lidar_rel)
@@ -349,7 +360,7 @@ def export_nuscenes(
             pts_h = np.c_[sweep[:, :3].astype(np.float64), np.ones(len(sweep))]
             points_by_frame[f] = (pts_h @ info.T_base_from_lidar.T)[:, :3]
             for sd_list, cs, rel, fmt, w, h in (
-                (sd_cam, cs_cam, img_rel, img_src.suffix.lstrip("."), info.width, info.height),
+                (sd_cam, cs_cam, img_rel, img_suffix.lstrip("."), info.width, info.height),
                 (sd_lidar, cs_lidar, lidar_rel, "pcd", 0, 0),
             ):
                 t["sample_data"].append(
