@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from configs.sources import CameraTopics, LogSettings
 from storage.sources.log.bag import LogFormatError, find_logs
-from storage.sources.log.reader import CameraTopics, LogSequence, LogSettings
+from storage.sources.log.reader import LogSequence
 from tests.log_fixture import (
     COLS,
     R_CAM_FROM_LIDAR,
