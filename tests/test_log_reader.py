@@ -143,3 +143,14 @@ def test_pointcloud2_parsed_in_place_as_rosbags_deserialises_it(tmp_path, fmt):
     assert mine.fields == [(f.name, f.offset, f.datatype, f.count) for f in ref.fields]
     assert (mine.point_step, mine.row_step) == (ref.point_step, ref.row_step)
     assert bytes(mine.data) == ref.data.tobytes()
+
+
+def test_bench_logs_reads_every_sweep_of_each_log(tmp_path):
+    """The benchmark's own bookkeeping (not a timing): each log read whole in a fresh process."""
+    from flows.bench.logs import bench_logs, format_table
+
+    r = bench_logs([2, 3], tmp_path)
+    assert [x["sweeps"] for x in r["runs"]] == [2, 3]
+    assert all(x["points"] > 0.8 * 131072 * x["sweeps"] for x in r["runs"])  # 10 % no-returns
+    assert r["rss_ratio"] > 0 and "sweeps/s on one core" in format_table(r)
+    assert not list(tmp_path.glob("*.mcap"))  # the logs are removed unless kept
