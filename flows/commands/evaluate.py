@@ -281,7 +281,9 @@ def _evaluate_sequence(
     visible = visible_fractions_of_boxes(
         ds, seq, sequence_info(ds, seq), boxed
     )  # the nuScenes export's
-    poses = np.asarray(ds.table("frames", seq).column("T_world_from_lidar").to_pylist())
+    poses = np.asarray(ds.table("frames", seq).column("T_world_from_lidar").to_pylist()).reshape(
+        -1, 4, 4
+    )
     gt_poses = []
     for k, raw in enumerate(raw_frames):
         gtf = read_frame_gt(gt_root, int(seq), raw)
