@@ -5,10 +5,13 @@ storage/sources/log/reader.py reads with them)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal, get_args
 
+from tasks.bounds import Positive
 from tasks.poses.odometry import OdometrySettings
 
-POSE_MODES = ("auto", "tf", "odometry", "lidar-odometry")
+PoseMode = Literal["auto", "tf", "odometry", "lidar-odometry"]
+POSE_MODES = get_args(PoseMode)
 
 
 @dataclass(frozen=True)
@@ -33,10 +36,10 @@ class LogSettings:
     cameras: tuple[tuple[str, CameraTopics], ...] = ()
     base_frame: str | None = None
     world_frame: str | None = None
-    poses: str = "auto"
+    poses: PoseMode = "auto"
     pose_topic: str | None = None
-    max_image_offset_ms: float = 50.0
-    max_pose_gap_ms: float = 1000.0
+    max_image_offset_ms: Positive = 50.0
+    max_pose_gap_ms: Positive = 1000.0
     odometry: OdometrySettings = field(default_factory=OdometrySettings)
 
     def camera(self, name: str) -> CameraTopics:

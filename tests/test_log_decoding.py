@@ -341,7 +341,7 @@ def test_lidar_odometry_follows_a_known_drive():
         T[:3, 3] = [0.1 * k, 0.02 * k, 1.0]
         gt.append(T)
     gt = np.stack(gt)
-    settings = OdometrySettings(max_range_m=30.0, deskew=False)
+    settings = OdometrySettings(scan_max_range_m=30.0, deskew=False)
     est = lidar_odometry([(_room_scan(rng, T), None) for T in gt], settings)
     err = trajectory_error(est, np.linalg.inv(gt[0]) @ gt)
     np.testing.assert_array_equal(est[0], np.eye(4))

@@ -15,27 +15,30 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tasks.bounds import AtLeastOne, NonNegative, Positive
+
 
 @dataclass(frozen=True)
 class OdometrySettings:
     """KISS-ICP's settings (its defaults, but the range limits and deskewing).
 
-    voxel_size_m: map voxel size; None = max_range_m / 100 (KISS-ICP's rule). deskew: correct
+    scan_min_range_m, scan_max_range_m: the returns registered (metres from the sensor).
+    voxel_size_m: map voxel size; None = scan_max_range_m / 100 (KISS-ICP's rule). deskew: correct
     each sweep's motion with its per-point times (real spinning LiDARs; off for sweeps taken at
     one instant, as the simulator's). max_points_per_voxel, initial_threshold_m, min_motion_m:
-    KISS-ICP's map and adaptive-threshold settings; max_iterations, convergence: its ICP loop.
+    KISS-ICP's map and adaptive-threshold settings; icp_max_iterations, convergence: its ICP loop.
     two_way: see :func:`two_way`.
     """
 
-    min_range_m: float = 0.5
-    max_range_m: float = 100.0
-    voxel_size_m: float | None = None
+    scan_min_range_m: NonNegative = 0.5
+    scan_max_range_m: Positive = 100.0
+    voxel_size_m: Positive | None = None
     deskew: bool = True
-    max_points_per_voxel: int = 20
-    initial_threshold_m: float = 2.0
-    min_motion_m: float = 0.1
-    max_iterations: int = 500
-    convergence: float = 1e-4
+    max_points_per_voxel: AtLeastOne = 20
+    initial_threshold_m: Positive = 2.0
+    min_motion_m: NonNegative = 0.1
+    icp_max_iterations: AtLeastOne = 500
+    convergence: Positive = 1e-4
     #: also run backwards from the last sweep and take each sweep's motion from the pass that is
     #: further from its own start (:func:`two_way`): a pass under-estimates its first metres
     #: while its motion model has no speed yet (along corridors and facades most)
@@ -53,14 +56,16 @@ def _config(s: OdometrySettings):
 
     return KISSConfig.model_construct(
         out_dir="",
-        data=DataConfig(max_range=s.max_range_m, min_range=s.min_range_m, deskew=s.deskew),
+        data=DataConfig(
+            max_range=s.scan_max_range_m, min_range=s.scan_min_range_m, deskew=s.deskew
+        ),
         registration=RegistrationConfig(
-            max_num_iterations=s.max_iterations,
+            max_num_iterations=s.icp_max_iterations,
             convergence_criterion=s.convergence,
             max_num_threads=1,
         ),
         mapping=MappingConfig(
-            voxel_size=s.voxel_size_m if s.voxel_size_m is not None else s.max_range_m / 100.0,
+            voxel_size=s.voxel_size_m if s.voxel_size_m is not None else s.scan_max_range_m / 100.0,
             max_points_per_voxel=s.max_points_per_voxel,
         ),
         adaptive_threshold=AdaptiveThresholdConfig(

@@ -645,7 +645,7 @@ class LogSequence:
         def run(order, sign):  # one pass, a sweep at a time (memory flat in the log's length)
             odo, out = LidarOdometry(s), []
             for k in order:
-                cloud = self._cloud(k, s.min_range_m, s.max_range_m)
+                cloud = self._cloud(k, s.scan_min_range_m, s.scan_max_range_m)
                 t = None if cloud.time_s is None else sign * cloud.time_s
                 out.append(odo.step(cloud.points, t))
             return np.stack(out)
