@@ -181,6 +181,8 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(sys.argv[1:] if argv is None else argv)
     r = bench_logs(a.sweeps, a.work, keep=a.keep)
     if a.json:
-        a.json.write_text(json.dumps(r, indent=1, default=str))
+        from storage.atomic import atomic_write_text
+
+        atomic_write_text(a.json, json.dumps(r, indent=1, default=str))
     print(format_table(r))
     return 0

@@ -7,7 +7,7 @@ stages, check-data, evaluate, export and the planner read a sequence through
 ``Source`` / ``LogSource``: ``sequence_ids``, ``layout``, ``open``).
 
 Frames, units and arrays are those of :mod:`tasks.conventions`; the data model (SequenceInfo,
-Frame, Calibration) is :mod:`storage.model`.
+Frame, Calibration) is :mod:`storage.sequence_data`.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from typing import Protocol
 
 import numpy as np
 
-from storage.model import Frame, SequenceInfo
+from storage.sequence_data import Frame, SequenceInfo
 
 
 class SequenceSource(Protocol):

@@ -1,11 +1,11 @@
 """CODa calibration files: camera intrinsics, extrinsics, the rectified pinhole, a sequence's
-:class:`storage.model.Calibration`.
+:class:`storage.sequence_data.Calibration`.
 
 Cameras. ``2d_rect`` images are made by the devkit with ``cv2.initUndistortRectifyMap(K, D, R, P)``,
 whose map uses ``P[:, :3] @ R`` (the 4th column of P is not read), so a LiDAR point x lands on the
 rectified pixel ``P[:, :3] @ R @ T_cam_from_lidar @ x``. Each camera is therefore exposed as the
 pinhole (``K = P[:, :3]``, ``T_cam_from_lidar = [[R, 0], [0, 1]] @ T_cam_from_lidar``) of its
-rectified frame (storage.model.CameraCalibration); the files' values stay on ``.raw``.
+rectified frame (storage.sequence_data.CameraCalibration); the files' values stay on ``.raw``.
 
 Checked when read: finite numbers, rotations orthonormal with determinant +1, positive focal
 lengths, whole positive image sizes; every error a CodaFormatError naming the file and the key.
@@ -19,7 +19,7 @@ import numpy as np
 import yaml
 
 from storage.files import InputError, read_text
-from storage.model import Calibration, CameraCalibration, RawCameraCalibration
+from storage.sequence_data import Calibration, CameraCalibration, RawCameraCalibration
 from storage.sources.coda.layout import ROTATION_TOLERANCE, CodaFormatError, _present
 from tasks.poses.rotations import quat_wxyz_to_matrix
 

@@ -13,13 +13,13 @@ memory stays flat in the log's length. Cached as one ``.npz`` (no pickles) under
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from struct import error as struct_error
 
 import numpy as np
 
+from storage.npzio import save_npz_deterministic
 from storage.sources.log.bag import LogFile, LogFormatError, quick_fingerprint, where
 from storage.sources.log.images import CameraInfo
 from storage.sources.log.positions import Positions
@@ -346,11 +346,7 @@ def load_index(log: LogFile, cache_dir: Path | None) -> LogIndex:
             pass
     index = build_index(log, fingerprint)
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **_pack(index))
-        os.replace(tmp, path)
+        save_npz_deterministic(path, compressed=False, **_pack(index))
     return index
 
 

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from configs.sources import POSE_MODES, LogSettings
-from storage.model import (
+from storage.sequence_data import (
     Calibration,
     CameraCalibration,
     Frame,
@@ -654,15 +654,13 @@ class LogSequence:
         if s.two_way and n > 1:  # backwards from the last sweep: its times run backwards too
             poses = two_way(poses, run(range(n - 1, -1, -1), -1.0)[::-1])
         if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-            with open(tmp, "wb") as fh:
-                np.savez(
-                    fh,
-                    T_first_from_lidar=poses,
-                    stamps_ns=self.index.streams[self.lidar_topic].stamp_ns,
-                )
-            os.replace(tmp, path)
+            from storage.npzio import save_npz_deterministic
+
+            save_npz_deterministic(
+                path,
+                T_first_from_lidar=poses,
+                stamps_ns=self.index.streams[self.lidar_topic].stamp_ns,
+            )
         return poses
 
     # -- messages ------------------------------------------------------------------------------

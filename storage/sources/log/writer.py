@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from storage.atomic import move_into_place
 from storage.sources.log.pointcloud import OUSTER_FIELDS, OUSTER_POINT_STEP, encode_pointcloud2
 from tasks.poses.rotations import invert, matrix_to_quat_wxyz
 
@@ -291,11 +292,11 @@ class LogWriter:
         """Finish the file and move it to its final name; returns the path."""
         self._writer.close()
         if self.fmt == "mcap":  # rosbags writes a bag folder: keep its .mcap as a plain file
-            os.replace(self._tmp / f"{self._tmp.name}.mcap", self.path)
-        else:  # a ROS 1 bag, or a ROS 2 bag folder
+            move_into_place(self._tmp / f"{self._tmp.name}.mcap", self.path)
+        else:  # a ROS 1 bag, or a ROS 2 bag folder (onto nothing)
             if self.path.is_dir():
                 shutil.rmtree(self.path)
-            os.replace(self._tmp, self.path)
+            move_into_place(self._tmp, self.path)
         shutil.rmtree(self._tmpdir)
         return self.path
 
