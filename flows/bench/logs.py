@@ -17,16 +17,14 @@ its PointCloud2 decoded, no-returns dropped), and reports:
 The summary's ``rss_ratio`` is the longest log's peak over the shortest's (target <= 1.2 for
 1,000 vs 100 sweeps: memory flat in the log's length).
 
-Run: ``mobileocc bench logs --work DIR [--sweeps 100 1000] [--json FILE] [--keep]``.
+Run: ``mobileocc bench logs --work DIR [--sweeps 100 1000] [--json FILE] [--keep]`` (flows/cli.py).
 """
 
 from __future__ import annotations
 
-import json
 import os
 import resource
 import shutil
-import sys
 import time
 from pathlib import Path
 
@@ -168,21 +166,3 @@ def format_table(r: dict) -> str:
         f"(target <= 1.2); load average {r['load_average'][0]:.1f} on {r['cpus']} CPUs"
     )
     return "\n".join(lines)
-
-
-def main(argv: list[str] | None = None) -> int:
-    import argparse
-
-    ap = argparse.ArgumentParser(prog="mobileocc bench logs", description=__doc__.splitlines()[0])
-    ap.add_argument("--work", type=Path, required=True, help="folder for the logs")
-    ap.add_argument("--sweeps", type=int, nargs="+", default=[100, 1000])
-    ap.add_argument("--keep", action="store_true", help="keep the logs")
-    ap.add_argument("--json", type=Path, help="write the results here")
-    a = ap.parse_args(sys.argv[1:] if argv is None else argv)
-    r = bench_logs(a.sweeps, a.work, keep=a.keep)
-    if a.json:
-        from storage.atomic import atomic_write_text
-
-        atomic_write_text(a.json, json.dumps(r, indent=1, default=str))
-    print(format_table(r))
-    return 0

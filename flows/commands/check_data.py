@@ -8,7 +8,7 @@ Exit code 1 when a problem blocks a run (missing or truncated files of selected 
 unreadable sequence, images that are not the calibration's size), else 0.
 
 Fast: file sizes, a directory listing, the small text files, three sweeps per sequence and one
-image header per camera (storage/coda_check.py). ``--deep`` reads every sweep, label file and
+image header per camera (storage/sources/coda/check.py). ``--deep`` reads every sweep, label file and
 image header. The figures come from tasks/metrics/calibration.py:
 
 - ``rows``: median |v_cam0 - v_cam1| px of the sampled LiDAR points in both rectified images
