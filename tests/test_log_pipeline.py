@@ -121,9 +121,20 @@ def test_the_planner_memo_works_for_logs(scenes, tmp_path):
     os.replace(data / "0.tmp", data / "0.mcap")
     [copy] = plan_run(cfg, Manifest.load(out), FingerprintCache(out / ".cache" / "sequences"))
     assert not copy.memo_hit and copy.fingerprint == first.fingerprint
-    # a changed log: its sequence reruns from detect
-    with open(data / "0.mcap", "ab") as fh:
-        fh.write(b"\0")
+    # a changed log (its first sweep dropped; still a whole MCAP file): its sequence reruns from
+    # detect. Bytes appended to the file would make it a cut MCAP, an error of its own.
+    from tests.log_fixture import rewrite_log
+
+    dropped: list[int] = []
+
+    def drop_first_sweep(topic, msgtype, msg, log_ns):
+        if msgtype.endswith("PointCloud2") and not dropped:
+            dropped.append(log_ns)
+            return []
+        return None
+
+    rewrite_log(data / "0.mcap", data / "0.mcap", drop_first_sweep)
+    assert dropped
     [changed] = plan_run(cfg, Manifest.load(out), FingerprintCache(out / ".cache" / "sequences"))
     assert changed.fingerprint != first.fingerprint
     assert changed.units["detect"].reason == "input files changed"
