@@ -41,3 +41,9 @@ CODE_VERSIONS: dict[str, str] = {
     #                 velocity, chamfer_m / reproj_px written, config_hash of the stage inputs; the
     #                 rectified camera's K and T in the sequences table
 }
+#: Version of the dataset-level Occ3D / nuScenes exports (OUT/exports/, made after the sequences
+#: are published; part of their key in the manifest): bump when their files change for the same
+#: dataset. 2: labels.npz carries OpenOcc's flow; annotations.json and the training infos in time
+#: order, the infos with the occupancy challenge's prev / next / frame_idx / can_bus / occ_gt_path;
+#: the metadata's FlashOcc settings (depth, BEV flips, input sizes and their frustum coverage)
+DATASET_EXPORTS_VERSION = "2"
