@@ -36,6 +36,7 @@ from pydantic import (
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 from pydantic.fields import FieldInfo
 
+from configs.sources import CameraTopics, LogSettings, PoseMode
 from tasks.bounds import AtLeastOne, Count, NonNegative, Positive, Probability, VoxelSize
 from tasks.conventions import CITYSCAPES_TO_CLASS, CLASS_NAMES, FREE, UNLABELED
 from tasks.fit.settings import FitSettings
@@ -53,6 +54,7 @@ from tasks.perception.models.settings import (
 )
 from tasks.perception.oracle import OracleNoise
 from tasks.perception.person_points import PersonPointParams
+from tasks.poses.odometry import OdometrySettings
 from tasks.track.ocsort import TrackerParams
 from tasks.track.offline import OfflineParams, WorldCheck
 from tasks.track.rate import GateRate
@@ -182,10 +184,48 @@ class GridConfig(Strict):
         return GridSpec(self.range_min, self.range_max, self.voxel_size_m)
 
 
+@pydantic_dataclass(config=STRICT, frozen=True)
+class OdometryConfig(OdometrySettings, Section):
+    """LiDAR odometry (KISS-ICP) of logs without world poses: tasks.poses.odometry."""
+
+
+@pydantic_dataclass(config=STRICT, frozen=True)
+class CameraTopicsConfig(CameraTopics, Section):
+    """One camera's topics in a log (null: found in the log): storage/sources/log/reader.py."""
+
+
+class LogConfig(Strict):
+    """How robot logs are read (dataset.format log): topics and frames (null: found in the log,
+    storage/sources/log/reader.py), where the poses come from, the image / pose time limits. The
+    defaults are configs.sources.LogSettings'."""
+
+    lidar_topic: str | None = LogSettings.lidar_topic
+    cameras: dict[Literal["cam0", "cam1"], CameraTopicsConfig] = Field(default_factory=dict)
+    base_frame: str | None = LogSettings.base_frame
+    world_frame: str | None = LogSettings.world_frame
+    poses: PoseMode = LogSettings.poses
+    pose_topic: str | None = LogSettings.pose_topic
+    max_image_offset_ms: Positive = LogSettings.max_image_offset_ms
+    max_pose_gap_ms: Positive = LogSettings.max_pose_gap_ms
+    odometry: OdometryConfig = OdometryConfig()
+
+    def settings(self) -> LogSettings:
+        """The reader's settings (what the stage inputs hold)."""
+        cams = tuple((name, self.cameras[name].to(CameraTopics)) for name in sorted(self.cameras))
+        plain = {f.name: getattr(self, f.name) for f in dataclasses.fields(LogSettings)}
+        return LogSettings(
+            **{**plain, "cameras": cams, "odometry": self.odometry.to(OdometrySettings)}
+        )
+
+
 class DatasetConfig(Strict):
-    """Where the raw sequences are and how they are read (CODa raw layout)."""
+    """Where the raw sequences are and how they are read (CODa raw layout or robot logs)."""
 
     root: Path = Path("demo-data")
+    #: auto: robot logs when the root is a log or holds logs (.bag, .mcap, ROS 2 bag folders),
+    #: else the CODa layout
+    format: Literal["auto", "coda", "log"] = "auto"
+    log: LogConfig = LogConfig()
     sequences: list[str] | Literal["all"] = "all"
     lidar_source: Literal["3d_comp", "3d_raw"] = "3d_comp"
     image_source: Literal["2d_rect", "2d_raw"] = "2d_rect"

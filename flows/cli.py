@@ -341,6 +341,15 @@ def cmd_bench_memory(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_logs(args: argparse.Namespace) -> int:
+    from flows.bench.logs import bench_logs, format_table
+
+    result = bench_logs(args.sweeps, args.work, keep=args.keep)
+    _write_json(args.json, result)
+    print(format_table(result))
+    return 0
+
+
 def cmd_bench_overhead(args: argparse.Namespace) -> int:
     from flows.bench.overhead import bench_overhead
 
@@ -372,7 +381,7 @@ def _add_bench_parsers(sub) -> None:
         "bench",
         help="measure speeds, memory and reference ratios: `mobileocc bench [--quick]` (the "
         "pipeline) or `mobileocc bench fit | occupancy | perception | planning | memory | scale "
-        "| overhead | viewer [options]`",
+        "| overhead | viewer | logs [options]`",
         description="Without BENCHMARK: the pipeline benchmark (flows/bench/pipeline.py) with the "
         "options below; `mobileocc bench BENCHMARK --help` for the others.",
     )
@@ -495,6 +504,15 @@ def _add_bench_parsers(sub) -> None:
     m.add_argument("--json", type=Path, help="write the results here")
     m.set_defaults(func=cmd_bench_memory)
 
+    g = bench.add_parser(
+        "logs", help="robot-log decoding: sweeps/s on one core, peak RSS vs the log's length"
+    )
+    g.add_argument("--work", type=Path, required=True, help="folder for the logs")
+    g.add_argument("--sweeps", type=int, nargs="+", default=[100, 1000], help="log lengths")
+    g.add_argument("--keep", action="store_true", help="keep the logs")
+    g.add_argument("--json", type=Path, default=None, help="also write the results here")
+    g.set_defaults(func=cmd_bench_logs)
+
     v = bench.add_parser(
         "overhead", help="Prefect overhead per sequence on the thread and Dask runners"
     )
@@ -605,6 +623,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         split_style=args.split_style,
         fast=args.fast,
         workers=args.workers,
+        fmt=args.format,
+        log_poses=args.log_poses,
     )
     print(f"wrote sequence(s) {', '.join(map(str, ids))} to {args.out}")
     return 0
@@ -765,8 +785,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "check-data",
-        help="check a CODa-layout download before a run: a table per sequence, "
-        "exit 1 on blocking problems",
+        help="check a CODa-layout download or robot logs before a run: a table per sequence "
+        "(and a log's topics), exit 1 on blocking problems",
     )
     _add_config_args(p, runtime=False)
     p.add_argument(
@@ -778,7 +798,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_deploy_parsers(sub)
 
     p = sub.add_parser(
-        "simulate", help="generate synthetic campus sequences (CODa layout + ground truth)"
+        "simulate",
+        help="generate synthetic campus sequences (CODa layout or robot logs + ground truth)",
     )
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--sequences", type=int, default=1)
@@ -815,6 +836,20 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=1,
         help="frame worker processes (the files are the same bytes for any number)",
+    )
+    p.add_argument(
+        "--format",
+        choices=["coda", "mcap", "ros1"],
+        default="coda",
+        help="the CODa layout, or one robot log per sequence: ROS 2 MCAP (SEQ.mcap) or ROS 1 "
+        "bag (SEQ.bag) with real drivers' topics; gt/ beside in every case",
+    )
+    p.add_argument(
+        "--log-poses",
+        choices=["tf", "odometry", "none"],
+        default=None,
+        help="logs only: world poses on /tf (default for mcap), as nav_msgs/Odometry on /odom "
+        "(default for ros1), or none (LiDAR odometry makes them)",
     )
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_simulate)

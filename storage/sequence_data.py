@@ -2,8 +2,8 @@
 
 Frames, units and array conventions are those of :mod:`tasks.conventions`. These are plain frozen
 dataclasses over numpy arrays: flows unpack them and hand the arrays to the kernels in ``tasks/``.
-The CODa reader (:mod:`storage.coda`) builds them; the synthetic generator writes the CODa layout,
-so synthetic and real data reach the pipeline through the same reader.
+The sequence sources (:mod:`storage.sources`: the CODa layout, robot logs) build them; the
+simulator writes both, so synthetic and real data reach the pipeline through the same readers.
 """
 
 from __future__ import annotations
@@ -130,6 +130,9 @@ class Frame:
     boxes: tuple[Box3D, ...] = ()
     box_problems: tuple[str, ...] = ()
     intensity_present: bool = True
+    #: (N,) int64 position of each point in the sensor's scan (the organised 128 x 1024 order of
+    #: a CODa sweep or a PointCloud2 message), to align per-point labels of the full scan
+    point_index: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

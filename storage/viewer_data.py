@@ -11,6 +11,7 @@ frame is shown without it and ``FrameData.notes`` says what is missing.
 
 from __future__ import annotations
 
+import io
 import json
 import os
 from dataclasses import dataclass, field
@@ -18,8 +19,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from PIL import Image
 
-from storage.coda import read_lidar_bin
 from storage.dataset import Dataset, open_dataset
 from storage.export.common import recorded_source_root, resolve, sequence_info
 from storage.files import InputError
@@ -27,6 +28,8 @@ from storage.gt import GTFormatError, gt_dir, read_frame_gt, read_sequence_gt
 from storage.images import read_rgb
 from storage.layout import StoreError
 from storage.occupancy_store import read_frames
+from storage.sources.coda.reader import read_lidar_bin
+from storage.sources.log.refs import parse_ref, read_ref_sweep, ref_image
 
 
 class ViewerInputError(StoreError):
@@ -209,14 +212,24 @@ class ViewerSource:
 
     def _sensors(self, sequence: str, frame: int, row: dict, info, notes: list[str]):
         points = image = None
+        # a robot log's frames table holds message references (LOG#TOPIC@INDEX), not file paths
+        lidar_ref, image_ref = parse_ref(row.get("lidar_path")), parse_ref(row.get("cam0_path"))
         try:
-            path = resolve(row.get("lidar_path"), self.data_root, "LiDAR", sequence, frame)
-            points = read_lidar_bin(path, frame=int(row["raw_frame"])).points
+            if lidar_ref is not None and self.data_root is not None:
+                points = read_ref_sweep(lidar_ref, Path(self.data_root), 0.0)[:, :3]
+            else:
+                path = resolve(row.get("lidar_path"), self.data_root, "LiDAR", sequence, frame)
+                points = read_lidar_bin(path, frame=int(row["raw_frame"])).points
         except (ValueError, OSError, InputError) as exc:
             notes.append(f"LiDAR sweep not shown: {exc}")
         try:
-            path = resolve(row.get("cam0_path"), self.data_root, "cam0 image", sequence, frame)
-            image = read_rgb(path, (info.width, info.height))
+            if image_ref is not None and self.data_root is not None:
+                data, _ = ref_image(image_ref, Path(self.data_root))
+                with Image.open(io.BytesIO(data)) as im:
+                    image = np.array(im.convert("RGB"))
+            else:
+                path = resolve(row.get("cam0_path"), self.data_root, "cam0 image", sequence, frame)
+                image = read_rgb(path, (info.width, info.height))
         except (ValueError, OSError) as exc:
             notes.append(f"camera image not shown: {exc}")
         return points, image

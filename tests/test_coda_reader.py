@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
-from storage.coda import (
+from storage.sources.coda import (
     CodaFormatError,
     CodaFrameError,
     CodaSequence,

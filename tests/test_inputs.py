@@ -51,7 +51,11 @@ PROVIDER_ONLY = {
     },
 }
 #: every leaf under these prefixes is read only with the provider chosen
-PROVIDER_PREFIXES = {"detect.models.": {"detect.image_provider": "models"}}
+PROVIDER_PREFIXES = {
+    "detect.models.": {"detect.image_provider": "models"},
+    # how robot logs are read: only with the log source
+    "dataset.log.": {"dataset.format": "log"},
+}
 #: leaves read only in part: of ``fit.presets`` only the preset ``fit.preset`` names counts
 #: (test_a_chosen_custom_preset_is_in_the_fit_key); track.scale_min_hits acts only where
 #: dataset.rate_hz differs from track.gates_rate_hz (test_scale_min_hits_is_in_the_track_key_at_10_hz)
@@ -103,6 +107,9 @@ def _candidates(value: Any) -> list[Any]:
             "dask",
             "yolox",
             "person",
+            "log",
+            "coda",
+            "lidar-odometry",
             value + "x",
         ]
     if value is None:
@@ -122,6 +129,7 @@ def _candidates(value: Any) -> list[Any]:
         return [
             {**value, 10: "terrain"},
             {},
+            {"cam0": {"image_topic": "/x/image"}},
             {
                 "mine": {
                     "rho_px": 100,

@@ -10,8 +10,8 @@ import pytest
 import torch
 import yaml
 
-from storage import coda_writer as W
 from storage import gt as GT
+from storage.sources.coda import writer as W
 from tasks import conventions as C
 from tasks.geometry import transform_points
 from tasks.sim import GridSpec, SimOptions, Simulator
@@ -70,7 +70,7 @@ def test_fast_mode_changes_only_the_cameras(runs, tmp_path):
     from PIL import Image
 
     from flows.commands.simulate import FAST_IMAGE_SCALE, simulate
-    from storage.coda import CodaSequence
+    from storage.sources.coda import CodaSequence
 
     simulate(tmp_path, sequences=1, frames=2, seed=SEED, pedestrians=5, progress=False, fast=True)
     slow = runs[0]
@@ -197,7 +197,7 @@ def test_written_layout_is_coda(runs):
 def test_reader_recovers_the_rendering_camera(runs):
     # The images are rendered with the rectified pinhole; the files hold the raw camera, its
     # rectification and projection (as CODa's). The reader must give back the rendering camera.
-    from storage.coda import CodaSequence
+    from storage.sources.coda import CodaSequence
     from tasks.sim.sensors import make_rig
 
     seq = CodaSequence(runs[0], 0, frame_stride=1)
@@ -227,7 +227,7 @@ def test_semantic_files_hold_coda_terrain_ids(runs):
 
 def test_split_style_writes_blocks_of_frames(tmp_path, monkeypatch):
     import flows.commands.simulate as S
-    from storage.coda import CodaSequence
+    from storage.sources.coda import CodaSequence
 
     assert S.split_style_frames(25) == [*range(10), *range(20, 25)]
     monkeypatch.setattr(S, "SPLIT_BLOCK_FRAMES", 2)  # blocks of 2 keep the test small

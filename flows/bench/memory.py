@@ -69,7 +69,7 @@ def make_sequences(root: Path, frames: list[int], seed: int = 0) -> dict[int, di
     """Write the synthetic sequences (id SEQ_BASE + length) under root/data and their detections
     under root/detect/<id>; returns {length: {"sequence", "detect_dir", "distinct_sweeps", ...}}."""
     from flows.commands.simulate import _calibration
-    from storage import coda_writer as W
+    from storage.sources.coda import writer as W
     from tasks.occupancy.synthetic import (
         build_scene,
         campus_strip,

@@ -78,7 +78,7 @@ def link_sequence(
     """Hard-link sequence ``src_id`` of ``src_root`` into ``dst_root`` as ``dst_id``; with
     ``raw_frames``, only the frame files below that raw frame, and the timestamps / poses cut
     there. Text files (timestamps, poses, metadata) are written, not linked. Returns the files."""
-    from storage.coda import frame_number
+    from storage.sources.coda import frame_number
 
     sid, n = str(src_id), 0
     for p in sorted(Path(src_root).rglob("*")):

@@ -1,4 +1,5 @@
-"""``mobileocc check-data --data DIR [--config FILE] [--deep]``: is a CODa download ready for a run?
+"""``mobileocc check-data --data DIR [--config FILE] [--deep]``: is a CODa download or a folder of
+robot logs ready for a run?
 
 For every selected sequence it prints one table row (frames found and how they were selected,
 LiDAR channels, missing / truncated files, labels present, camera calibration, reprojection
@@ -7,13 +8,17 @@ Exit code 1 when a problem blocks a run (missing or truncated files of selected 
 unreadable sequence, images that are not the calibration's size), else 0.
 
 Fast: file sizes, a directory listing, the small text files, three sweeps per sequence and one
-image header per camera (storage/coda_check.py). ``--deep`` reads every sweep, label file and
+image header per camera (storage/sources/coda/check.py). ``--deep`` reads every sweep, label file and
 image header. The figures come from tasks/metrics/calibration.py:
 
 - ``rows``: median |v_cam0 - v_cam1| px of the sampled LiDAR points in both rectified images
   (0 for a consistent rectification);
 - ``in img``: share of the sampled points inside the configured camera's image;
 - ``ground``: ground height in the base frame (0 when T_base_from_lidar is right).
+
+Robot logs (storage/sources/log/check.py): one row per log (sweeps and their rate, frames kept,
+the LiDAR's point layout, cameras, base frame, pose source, the same figures), then per log every
+topic (type, messages, rate, frame id) with what it is used as, and what is missing.
 """
 
 from __future__ import annotations
@@ -21,7 +26,8 @@ from __future__ import annotations
 import numpy as np
 
 from configs.schema import Config
-from storage.coda_check import SequenceFacts, inspect_sequence
+from storage.sources.coda.check import SequenceFacts, inspect_sequence
+from storage.sources.log.check import LogCheckFacts, inspect_log
 from tasks.metrics.calibration import (
     ground_height_m,
     in_image_fraction,
@@ -189,17 +195,131 @@ def format_table(rows: list[list[str]]) -> str:
     return "\n".join([line(HEADER), "  ".join("-" * w for w in widths), *(line(r) for r in rows)])
 
 
+LOG_HEADER = [
+    "log",
+    "sweeps (rate)",
+    "frames kept",
+    "lidar",
+    "cameras (rectified)",
+    "base",
+    "poses",
+    "reprojection",
+    "lighting",
+    "status",
+]
+
+
+def _log_row(facts: LogCheckFacts, fig: dict) -> list[str]:
+    if facts.seq is None:
+        return [facts.sequence, "-", "-", "-", "-", "-", "-", "-", "-", "BLOCKED"]
+    seq, f = facts.seq, facts.facts
+    stamps = seq.index.streams[seq.lidar_topic].stamp_ns
+    rate = (len(stamps) - 1) / ((int(stamps[-1]) - int(stamps[0])) / 1e9) if len(stamps) > 1 else 0
+    cams = []
+    for c in f.cameras:
+        cal = seq.info.calibration.cameras[c.name]
+        how = "rect" if c.rectified else ("raw->rect" if c.info.needs_rectifying() else "raw")
+        cams.append(f"{c.name} {cal.width}x{cal.height} {how}")
+    reproj = []
+    if "rows" in fig:
+        reproj.append(f"rows {fig['rows']:.2f}px")
+    if "in_image" in fig:
+        reproj.append(f"in img {fig['in_image']:.0%}")
+    if "ground" in fig and np.isfinite(fig["ground"]):
+        reproj.append(f"ground {fig['ground']:+.2f}m")
+    info = seq.info
+    status = "BLOCKED" if facts.blocking else ("warn" if facts.problems else "OK")
+    return [
+        facts.sequence,
+        f"{len(stamps)} ({rate:.1f} Hz)",
+        f"{info.num_frames} (every {seq.frame_stride})",
+        f.lidar_topic,
+        ", ".join(cams) or "-",
+        f.base_frame or "default",
+        f.pose_source,
+        ", ".join(reproj) or "-",
+        f"{info.lighting} ({info.lighting_source})",
+        status,
+    ]
+
+
+def _topic_table(facts: LogCheckFacts) -> list[str]:
+    """Every topic of the log: type, messages, rate, frame id, what it is used as."""
+    f, seq = facts.facts, facts.seq
+    used = {f.lidar_topic: "LiDAR"}
+    for c in f.cameras:
+        used[c.image_topic] = f"{c.name} image"
+        used[c.info_topic] = f"{c.name} CameraInfo"
+    used.setdefault("/tf_static", "calibration")
+    if seq.pose_source.startswith("/tf"):
+        used["/tf"] = "poses"
+    for name, *_ in f.topics:
+        if seq.pose_source.startswith(name + " "):
+            used[name] = "poses"
+    rows = [
+        [name, msgtype.replace("/msg/", "/"), str(count), f"{rate:.1f}" if rate else "-",
+         frame_id or "-", used.get(name, "")]
+        for name, msgtype, count, rate, frame_id in f.topics
+    ]  # fmt: skip
+    header = ["topic", "type", "messages", "Hz", "frame id", "used as"]
+    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
+    line = lambda r: "    " + "  ".join(v.ljust(w) for v, w in zip(r, widths)).rstrip()  # noqa: E731
+    return [line(header), *(line(r) for r in rows)]
+
+
+def _check_logs(config: Config, ids: list[str], deep: bool) -> tuple[int, str]:
+    from flows.pipeline.inputs import open_sequence
+
+    root = config.dataset.root
+    rows, notes, blocking = [], [], False
+    for sid in ids:
+        facts = inspect_log(lambda s: open_sequence(config, s, with_poses=False), sid, deep=deep)
+        fig = _figures(facts, config.dataset.camera) if facts.seq is not None else {}
+        rows.append(_log_row(facts, fig))
+        if facts.seq is not None:
+            f = facts.facts
+            notes.append(f"  {sid}: {facts.seq.path}: {facts.seq.info.selection}")
+            notes.append(f"  {sid}: LiDAR points: {f.lidar_layout}")
+            notes += _topic_table(facts)
+        for b, msg in facts.problems:
+            notes.append(f"  {sid}: {'BLOCKING' if b else 'warning'}: {msg}")
+        blocking |= facts.blocking
+    mode = (
+        "deep: every selected sweep and image decoded"
+        if deep
+        else "fast: the index, 3 sweeps and 1 image per camera per log"
+    )
+    widths = [max(len(r[i]) for r in [LOG_HEADER, *rows]) for i in range(len(LOG_HEADER))]
+    line = lambda r: "  ".join(v.ljust(w) for v, w in zip(r, widths)).rstrip()  # noqa: E731
+    table = "\n".join([line(LOG_HEADER), "  ".join("-" * w for w in widths), *map(line, rows)])
+    text = [
+        f"check-data {root} (robot logs; {mode}; camera {config.dataset.camera})",
+        "",
+        table,
+        "",
+    ]
+    text += ["details:", *notes] if notes else []
+    n_block = sum(r[-1] == "BLOCKED" for r in rows)
+    text += ["", f"{len(rows)} log(s): " + (f"{n_block} blocked" if blocking else "ready to run")]
+    return (1 if blocking else 0), "\n".join(text)
+
+
 def check_data(
     config: Config, deep: bool = False, sequences: list[str] | None = None
 ) -> tuple[int, str]:
     """(exit code, report text) for the dataset of ``config`` (dataset.root, dataset.sequences)."""
-    from flows.pipeline.inputs import open_sequence
+    from flows.pipeline.inputs import open_sequence, source
     from flows.pipeline.plan import selected_sequences
 
     root = config.dataset.root
     ids = sequences if sequences is not None else selected_sequences(config)
     if not ids:
-        return 1, f"{root}: no sequence found (expected timestamps/<SEQ>.txt in the CODa layout)"
+        return 1, (
+            f"{root}: no sequence found (expected the CODa layout, timestamps/<SEQ>.txt ..., or "
+            "robot logs: .bag / .mcap files or ROS 2 bag folders)"
+        )
+    if source(config).kind == "log":
+        return _check_logs(config, ids, deep)
     rows, notes, blocking = [], [], False
     for sid in ids:
         facts = inspect_sequence(lambda s: open_sequence(config, s), sid, deep=deep)

@@ -29,6 +29,9 @@ Definitions beyond the kernels' own (each kernel's docstring has the rest):
   person's heading (box_yaw), both about base z (tasks/metrics/heading.py);
 - box visibility: the nuScenes export's visible fraction of each matched fitted row's box vs the
   GT person's visible_fraction, and their nuScenes visibility bins;
+- trajectory (robot logs): the published T_world_from_lidar of each frame (the frames table: the
+  log's /tf or odometry, or its LiDAR odometry) vs the ground truth's, absolute trajectory error after a rigid
+  alignment (tasks/metrics/trajectory.py), with the pose source.
 - RayIoU / OccScore (SparseOcc / OpenOcc's ray metric, full grids, flow = velocity):
   flows/commands/evaluate_rays.py, tasks/metrics/rayiou.py.
 """
@@ -40,7 +43,6 @@ from pathlib import Path
 import numpy as np
 
 from flows.commands.evaluate_rays import SequenceRays, ray_sections
-from storage.coda import read_lidar_bin
 from storage.dataset import open_dataset
 from storage.export.common import sequence_info
 from storage.export.nuscenes import visibility_token, visible_fractions_of_boxes
@@ -61,6 +63,7 @@ from tasks.metrics.pedestrian import (
 )
 from tasks.metrics.static import StaticCounts, static_counts
 from tasks.metrics.tracking import tracking_scores
+from tasks.metrics.trajectory import trajectory_error
 from tasks.metrics.velocity import (
     LIMB_GROUPS,
     VelocityErrors,
@@ -199,6 +202,8 @@ class _Totals:
         self.fit: dict[str, dict[str, list]] = {}
         self.person_points: dict[str, PRCounts] = {}
         self.notes: dict[str, str] = {}
+        #: sequence -> absolute trajectory error of the published poses (tasks.metrics.trajectory)
+        self.trajectory: dict[str, dict] = {}
         self.hist: dict[str, list] = {"velocity_error": [], "PVE_mm": [], "MPJPE_mm": []}
         self.samples: list[dict] = []
         self.rays: dict = {}  # sequence -> evaluate_rays.SequenceRays (RayIoU / OccScore)
@@ -219,11 +224,12 @@ def _evaluate_sequence(
     range_min = np.asarray(attrs["range_min"], np.float64)
     vs = float(attrs["voxel_size_m"])
     raw_frames = [int(r) for r in ds.table("frames", seq).column("raw_frame").to_pylist()]
+    data_root, gt_root = gt_root, gt_root if gt_root.is_dir() else gt_root.parent
     if not (gt_dir(gt_root, int(seq)) / "sequence.npz").exists() if seq.isdigit() else True:
         tot.notes[f"sequence {seq}"] = f"no ground truth under {gt_root}/gt/{seq}: not evaluated"
         return
     gseq = read_sequence_gt(gt_root, int(seq))
-    coda = open_recorded_sequence(config, gt_root, seq)
+    coda = open_recorded_sequence(config, data_root, seq)
     cam = coda.info.calibration.cameras[((config.get("dataset") or {}).get("camera")) or "cam0"]
     T_bl = np.asarray(gseq.T_base_from_lidar, np.float64)
     shape = tuple(arrays["semantics"].shape[1:4])
@@ -239,7 +245,6 @@ def _evaluate_sequence(
             "velocity and BEV comparisons skipped"
         )
     condition = "night" if coda.info.is_night else _condition(coda.info.metadata)
-    min_range = float((config.get("dataset") or {}).get("min_range_m", coda.min_range_m))
     frustum = _frustum(shape, range_min, vs, T_bl, cam)
     if same_grid:
         tot.rays[seq] = SequenceRays(
@@ -278,27 +283,29 @@ def _evaluate_sequence(
     visible = visible_fractions_of_boxes(
         ds, seq, sequence_info(ds, seq), boxed
     )  # the nuScenes export's
+    poses = np.asarray(ds.table("frames", seq).column("T_world_from_lidar").to_pylist()).reshape(
+        -1, 4, 4
+    )
+    gt_poses = []
     for k, raw in enumerate(raw_frames):
         gtf = read_frame_gt(gt_root, int(seq), raw)
+        gt_poses.append(gtf.T_world_from_lidar)
         pred = np.asarray(arrays["semantics"][k])
         mask_cam = np.asarray(arrays["mask_camera"][k]).astype(bool)
         # static semantics vs labelled GT points (pedestrian points out)
-        max_range = float((config.get("dataset") or {}).get("max_range_m", np.inf))
-        sweep = read_lidar_bin(
-            coda.path(coda.lidar_source, "os1", raw, ".bin"), min_range, max_range, frame=raw
-        )
-        pcls = gtf.point_class[sweep.index].copy()
-        pinst = gtf.point_instance[sweep.index]
+        sweep = coda.frame(coda.position(raw))  # the reader's min / max range (the config's)
+        pcls = gtf.point_class[sweep.point_index].copy()
+        pinst = gtf.point_instance[sweep.point_index]
         is_ped = (pcls == C.PEDESTRIAN) | ((pinst >= 1) & (pinst < 1000))
         pcls[is_ped] = C.UNLABELED
-        pts_base = transform_points(T_bl, sweep.points)
+        pts_base = transform_points(T_bl, sweep.points_lidar)
         st = st + static_counts(pred, range_min, vs, pts_base, pcls)
         # pedestrian vs boxes and vs LiDAR body points
         centers, yaws = _boxes_to_base(T_bl, gtf.box_center, gtf.box_yaw)
         bx = bx + pedestrian_box_counts(
             pred, range_min, vs, centers, gtf.box_size, yaws, visible=mask_cam
         )
-        body_pts = (pinst >= 1) & (pinst < 1000) & _in_image(sweep.points, cam)
+        body_pts = (pinst >= 1) & (pinst < 1000) & _in_image(sweep.points_lidar, cam)
         li = li + pedestrian_lidar_counts(
             pred, voxelize_points(pts_base[body_pts], range_min, vs, shape), region=frustum
         )
@@ -397,6 +404,11 @@ def _evaluate_sequence(
                         gtf.visible_fraction[persons[gi]].astype(np.float64)
                     )
     tot.static[seq], tot.boxes[seq], tot.lidar[seq], tot.velocity[seq] = st, bx, li, ve
+    if coda.kind == "log" and len(gt_poses):  # a log's poses (/tf, odometry, LiDAR odometry)
+        tot.trajectory[seq] = {
+            "pose source": getattr(coda, "pose_source", "poses file"),
+            **vars(trajectory_error(poses, np.stack(gt_poses))),
+        }
     if pp.pred_total:
         tot.person_points[seq] = pp
     if vv.n_t:
@@ -545,7 +557,7 @@ def _sample_positions(ds, sample_frames: int) -> set:
 
 
 def open_recorded_sequence(config: dict, root: Path, sequence: str):
-    """The CODa reader of ``sequence`` under ``root`` with the dataset settings of a recorded
+    """The reader (CODa or robot log) of ``sequence`` under ``root`` with the dataset settings of a recorded
     config (``OUT/manifest.json`` meta.config; the defaults when none was recorded)."""
     from configs.schema import Config, load_config
     from flows.pipeline.inputs import open_sequence
@@ -603,6 +615,8 @@ def evaluate(
         results["occupancy_by_sequence"] = {
             s: _brief(m.compute().as_dict()) for s, m in tot.occ.items()
         }
+    if tot.trajectory:
+        results["trajectory"] = tot.trajectory
     results.update(ray_sections(tot.rays))
     if tot.static:
         results["static"] = _sum(tot.static.values()).as_dict()

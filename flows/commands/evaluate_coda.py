@@ -15,7 +15,7 @@ label-quality table, protocol of its "Occupancy Label Quality" section).
 
 The frames are read through the CODa reader with the dataset settings recorded in
 ``OUT/manifest.json`` (lidar source, ranges, frame selection), from ``data`` (default: the
-recorded ``dataset.root``). Boxes the reader skipped (storage.coda.read_boxes) and class names
+recorded ``dataset.root``). Boxes the reader skipped (storage.sources.coda.read_boxes) and class names
 the mapping does not know are counted in the report's "labels" section.
 """
 
@@ -107,7 +107,7 @@ def evaluate_coda(
             labels["pedestrian boxes"] += len(peds)
             mask_cam = np.asarray(arrays["mask_camera"][k]).astype(bool)
             if peds:
-                from storage.coda import box_rotation
+                from storage.sources.coda import box_rotation
 
                 centers = np.array([b.center for b in peds])
                 sizes = np.array([b.size for b in peds])

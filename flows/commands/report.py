@@ -99,6 +99,10 @@ _LABELS = {
 _DIFF_COLORS = DIFF_COLORS  # tasks.metrics.bev: the same colours as the 3D viewer's
 
 _HOW_TO_READ = {
+    "trajectory": "The world poses each log's labels were built with (its /tf, odometry topic or "
+    "LiDAR odometry) against the simulator's: ATE = RMSE of the positions after the best rigid "
+    "alignment, rotation error relative to the first pose, final drift = end-pose error over the "
+    "path length. Lower is better.",
     "static": "Static voxel labels against labelled ground-truth LiDAR points. IoU is per point (a point "
     "takes its voxel's label); coverage = GT points whose voxel is occupied; the accuracies are "
     "over covered points / occupied voxels holding GT points (majority GT label). Higher is better.",
@@ -159,6 +163,7 @@ _TITLES = {
     "velocity": "Pedestrian velocity (AVE)",
     "velocity_vertex_gt": "Pedestrian velocity (AVE) vs per-vertex GT",
     "velocity_by_limb": "Pedestrian velocity (AVE) per limb group",
+    "trajectory": "Trajectory of robot logs (published poses vs GT)",
     "ray_iou": "RayIoU and OccScore (ray-based, SparseOcc / OpenOcc)",
     "ray_iou_per_class": "RayIoU per class",
     "ray_ave_per_class": "Ray AVE per moving class (m/s, true positives at 2 m)",

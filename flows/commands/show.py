@@ -16,9 +16,9 @@ def show(path: Path, out_png: Path, frame: int | None = None) -> Path:
     import numpy as np
     from PIL import Image
 
-    from storage import coda_writer as W
     from storage import gt as GT
     from storage.atomic import write_atomically
+    from storage.sources.coda import writer as W
     from tasks import viz
 
     path = Path(path)

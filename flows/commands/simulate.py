@@ -1,7 +1,7 @@
 """``mobileocc simulate``: write synthetic campus sequences in the CODa layout with ground truth.
 
 Sequence ``i`` of a run is generated with the seed derived from ``(seed, i)``; its frames are made
-by :class:`tasks.sim.Simulator` and written through :mod:`storage.coda_writer` (raw data, as a
+by :class:`tasks.sim.Simulator` and written through :mod:`storage.sources.coda.writer` (raw data, as a
 CODa download holds them: ``3d_comp`` sweeps with nanosecond times, ``2d_rect`` JPEG images of a
 stereo pair with a non-identity rectification and its own projection matrix, 3d_bbox boxes and
 3d_semantic terrain labels in CODa's ids) and :mod:`storage.gt` (``gt/{SEQ}/``, exact ground
@@ -86,8 +86,7 @@ def _boxes(frame) -> list:
 
 def write_frame(out: Path, seq: int, frame, stamp_ns: int, image_ext: str = ".jpg") -> None:
     """Write one SimFrame: LiDAR, both images, boxes, CODa terrain labels, ground truth."""
-    from storage import coda_writer as W
-    from storage import gt as GT
+    from storage.sources.coda import writer as W
     from tasks.sim.sensors import coda_semantic_ids
 
     s = frame.sweep
@@ -96,7 +95,14 @@ def write_frame(out: Path, seq: int, frame, stamp_ns: int, image_ext: str = ".jp
     W.write_image(out, seq, "cam1", frame.index, frame.cam1.rgb, image_ext)
     W.write_boxes(out, seq, frame.index, _boxes(frame))
     W.write_semantic(out, seq, frame.index, coda_semantic_ids(s.point_class))
-    p = frame.people
+    write_frame_gt(out, seq, frame, stamp_ns)
+
+
+def write_frame_gt(out: Path, seq: int, frame, stamp_ns: int) -> None:
+    """The ground truth of one SimFrame (``gt/{SEQ}/``), whatever the format of the raw data."""
+    from storage import gt as GT
+
+    s, p = frame.sweep, frame.people
     GT.write_frame_gt(
         out,
         seq,
@@ -176,6 +182,132 @@ def _chunks(items: list[int], n: int) -> list[list[int]]:
     return [items[i : i + n] for i in range(0, len(items), n)]
 
 
+#: raw-data formats of ``mobileocc simulate``: the CODa layout, or robot logs (one per sequence)
+FORMATS = ("coda", "mcap", "ros1")
+
+
+def log_cameras(rig) -> list:
+    """The rig's cameras as a log records them (storage.sources.log.writer.LogCamera): the raw
+    camera's K, D, R, P and extrinsic, the values the CODa calibration files hold."""
+    from storage.sources.log.writer import LogCamera
+
+    out = []
+    for name, cam in _calibration(rig).cameras.items():
+        if cam.raw is not None:
+            r = cam.raw
+            out.append(
+                LogCamera(
+                    name, cam.width, cam.height, r.K, r.distortion, r.R_rect, r.P_rect,
+                    r.T_cam_from_lidar,
+                )
+            )  # fmt: skip
+        else:
+            P = np.hstack([cam.K, np.zeros((3, 1))])
+            out.append(
+                LogCamera(
+                    name, cam.width, cam.height, cam.K, np.zeros(5), np.eye(3), P,
+                    cam.T_cam_from_lidar,
+                )
+            )  # fmt: skip
+    return out
+
+
+def log_base_pose(T_world_from_lidar: np.ndarray, T_base_from_lidar: np.ndarray):
+    """(t (3,), q_wxyz (4,)) of T_world_from_base for a log's /tf or /odom, from the LiDAR pose
+    as the CODa poses file records it (storage.sources.coda.writer.recorded_pose), so both formats of a
+    scene hold the same poses (exactly so for the simulator's rig, whose LiDAR is not rotated on
+    the base)."""
+    from storage.sources.coda import writer as W
+    from tasks.poses.rotations import matrix_to_quat_wxyz, quat_wxyz_to_matrix
+
+    t_wl, q_wl = W.recorded_pose(T_world_from_lidar)
+    R_bl = np.asarray(T_base_from_lidar, np.float64)[:3, :3]
+    q = (
+        q_wl
+        if np.array_equal(R_bl, np.eye(3))
+        else matrix_to_quat_wxyz(quat_wxyz_to_matrix(q_wl) @ R_bl.T)
+    )
+    return t_wl - quat_wxyz_to_matrix(q) @ np.asarray(T_base_from_lidar)[:3, 3], q
+
+
+def _log_records(
+    out: str, seq: int, opts, fast: bool, indices: list[int], stamps_ns: list[int], image_ext: str
+) -> list[dict]:
+    """Simulate ``indices`` (in a frame worker or in-process): ground truth written here, the
+    raw data returned for the log writer (one writer per log, in the parent)."""
+    from storage.sources.coda import writer as W
+
+    key = (seq, opts, fast)
+    if _WORKER_SIM.get("key") != key:
+        _WORKER_SIM.clear()
+        _WORKER_SIM.update(key=key, sim=make_simulator(opts, fast))
+    sim, records = _WORKER_SIM["sim"], []
+    for i, stamp in zip(indices, stamps_ns):
+        frame = sim.frame(i)
+        write_frame_gt(Path(out), seq, frame, int(stamp))
+        s = frame.sweep
+        records.append(
+            {
+                "index": i,
+                "points": s.points,
+                "intensity": s.intensity,
+                "t_ns": W.recorded_time_ns(s.time_s),
+                "images": {
+                    "cam0": W.image_bytes(frame.cam0.rgb, image_ext),
+                    "cam1": W.image_bytes(frame.cam1.rgb, image_ext),
+                },
+            }
+        )
+    return records
+
+
+def _write_log_sequence(
+    out: Path, seq: int, opts, fast: bool, stamps: np.ndarray, image_ext: str, fmt: str,
+    log_poses: str, pool, bar,
+) -> None:  # fmt: skip
+    """One sequence as one robot log ``out/{seq}.mcap`` / ``.bag`` (storage.sources.log.writer)."""
+    from storage.sources.coda import writer as W
+    from storage.sources.log.writer import SUFFIX, LogWriter
+
+    sim = make_simulator(opts, fast)
+    frames = list(range(len(stamps)))
+    recorded = [W.recorded_stamp_ns(int(s)) for s in stamps]
+    writer = LogWriter(
+        out / f"{seq}{SUFFIX[fmt]}",
+        fmt,
+        log_cameras(sim.rig),
+        sim.rig.T_base_from_lidar,
+        poses=log_poses,
+        image_format=image_ext.lstrip(".").replace("jpg", "jpeg"),
+    )
+    try:
+        writer.write_static(recorded[0])
+        size = max(1, min(16, -(-len(frames) // 8)))
+        chunks = _chunks(frames, size)
+        args = [
+            (str(out), seq, opts, fast, c, [int(stamps[i]) for i in c], image_ext) for c in chunks
+        ]
+        results = (
+            pool.map(_log_records, *zip(*args)) if pool is not None
+            else (_log_records(*a) for a in args)
+        )  # fmt: skip
+        for records in results:
+            for r in records:
+                i, stamp = r["index"], recorded[r["index"]]
+                if log_poses != "none":
+                    t, q = log_base_pose(sim.robot_pose(i)[1], sim.rig.T_base_from_lidar)
+                    writer.write_pose(stamp, t, q)
+                writer.write_sweep(stamp, r["points"], r["intensity"], r["t_ns"])
+                for cam, data in r["images"].items():
+                    writer.write_image(stamp, cam, data)
+                bar.update(1)
+    except BaseException:
+        writer.abort()
+        raise
+    writer.close()
+    _write_sequence_gt(out, seq, sim)
+
+
 def simulate(
     out: Path,
     sequences: int,
@@ -192,6 +324,8 @@ def simulate(
     fast: bool = False,
     workers: int = 1,
     frame_step: int = 1,
+    fmt: str = "coda",
+    log_poses: str | None = None,
 ) -> list[int]:
     """Write ``sequences`` synthetic sequences (ids first_id..first_id+sequences-1) of ``frames``
     raw 10 Hz frames under ``out`` in the CODa layout plus ``gt/``. Returns the sequence ids
@@ -203,7 +337,11 @@ def simulate(
     without it). workers: frame worker processes (each frame is a pure function of the
     sequence's options and its index, so the files are the same bytes for any number).
     frame_step: files only for every ``frame_step``-th raw frame (2: the 5 Hz frames the pipeline
-    keeps, half the simulation; timestamps and poses: every frame)."""
+    keeps, half the simulation; timestamps and poses: every frame).
+    fmt: "coda" (the CODa layout), "mcap" (ROS 2 MCAP) or "ros1" (ROS 1 bag): one log per
+    sequence, ``out/{SEQ}.mcap`` / ``.bag``, with real drivers' topics (storage.sources.log.writer)
+    and ``gt/`` beside. log_poses: the logs' world poses, "tf" (/tf map -> base_link; the default
+    for mcap), "odometry" (nav_msgs/Odometry on /odom; the default for ros1) or "none"."""
     from tqdm import tqdm
 
     from tasks.sim import SimOptions
@@ -216,6 +354,11 @@ def simulate(
         raise ValueError(f"workers must be >= 1, got {workers}")
     if frame_step < 1:
         raise ValueError(f"frame_step must be >= 1, got {frame_step}")
+    if fmt not in FORMATS:
+        raise ValueError(f"format must be one of {FORMATS}, got {fmt!r}")
+    if fmt != "coda" and (split_style or frame_step != 1):
+        raise ValueError("split_style and frame_step apply to the CODa layout only")
+    log_poses = log_poses or ("odometry" if fmt == "ros1" else "tf")
     out = Path(out)
     written_frames = split_style_frames(frames) if split_style else list(range(frames))
     written_frames = written_frames[::frame_step]
@@ -244,6 +387,12 @@ def simulate(
             )
             start_ns = (START_UNIX_S + 3600 * seq) * 1_000_000_000
             stamps = start_ns + FRAME_PERIOD_NS * np.arange(frames, dtype=np.int64)
+            if fmt != "coda":
+                _write_log_sequence(
+                    out, seq, opts, fast, stamps, image_ext, fmt, log_poses, pool, bar
+                )
+                written.append(seq)
+                continue
             if pool is None:
                 for i in written_frames:
                     _write_frames(str(out), seq, opts, fast, [i], [int(stamps[i])], image_ext)
@@ -280,30 +429,10 @@ def simulate(
     return written
 
 
-def _write_sequence_files(
-    out: Path,
-    seq: int,
-    opts,
-    fast: bool,
-    frames: int,
-    stamps: np.ndarray,
-    seed: int,
-    written_frames: list[int],
-) -> None:
-    """Calibration, timestamps, poses, the sequence's ground truth, then the metadata (last: its
-    presence marks a complete sequence)."""
-    from storage import coda_writer as W
+def _write_sequence_gt(out: Path, seq: int, sim) -> None:
+    """``gt/{SEQ}/sequence.npz``: the grid, the body model's faces, the rig's base."""
     from storage import gt as GT
 
-    sim = (
-        make_simulator(opts, fast)
-        if _WORKER_SIM.get("key") != (seq, opts, fast)
-        else _WORKER_SIM["sim"]
-    )
-    poses = [sim.robot_pose(i)[1] for i in range(frames)]
-    W.write_calibration(out, seq, _calibration(sim.rig))
-    W.write_timestamps(out, seq, stamps)
-    W.write_poses(out, seq, stamps, np.asarray(poses))
     GT.write_sequence_gt(
         out,
         seq,
@@ -316,6 +445,32 @@ def _write_sequence_files(
             "T_base_from_lidar": sim.rig.T_base_from_lidar,
         },
     )
+
+
+def _write_sequence_files(
+    out: Path,
+    seq: int,
+    opts,
+    fast: bool,
+    frames: int,
+    stamps: np.ndarray,
+    seed: int,
+    written_frames: list[int],
+) -> None:
+    """Calibration, timestamps, poses, the sequence's ground truth, then the metadata (last: its
+    presence marks a complete sequence)."""
+    from storage.sources.coda import writer as W
+
+    sim = (
+        make_simulator(opts, fast)
+        if _WORKER_SIM.get("key") != (seq, opts, fast)
+        else _WORKER_SIM["sim"]
+    )
+    poses = [sim.robot_pose(i)[1] for i in range(frames)]
+    W.write_calibration(out, seq, _calibration(sim.rig))
+    W.write_timestamps(out, seq, stamps)
+    W.write_poses(out, seq, stamps, np.asarray(poses))
+    _write_sequence_gt(out, seq, sim)
     fast_keys = {"simulation": "fast", "image_scale": FAST_IMAGE_SCALE} if fast else {}
     W.write_metadata(
         out,

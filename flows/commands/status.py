@@ -6,9 +6,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from configs.schema import Config
+from flows.pipeline.inputs import source
 from flows.pipeline.outcome import Status
 from flows.pipeline.plan import PlanCosts, plan_run, selected_sequences
-from storage.coda import check_dataset_root
 from storage.manifest import FingerprintCache, Manifest
 
 
@@ -29,7 +29,7 @@ def print_plan(cfg: Config, dry_run: bool, verify: bool = False) -> int:
     """Print per sequence and stage what is stale (or would run, ``dry_run``) and why, and what
     failed; returns the number of sequences with failures (or that cannot be read)."""
     if cfg.dataset.sequences == "all":
-        check_dataset_root(cfg.dataset.root)
+        source(cfg).check_root(cfg.dataset.root)
     out, costs = Path(cfg.output.root), PlanCosts()
     manifest = Manifest.load(out)
     cache = FingerprintCache(out / ".cache" / "sequences" if out.is_dir() else None, verify)

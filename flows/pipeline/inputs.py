@@ -28,8 +28,20 @@ from pydantic import BaseModel, TypeAdapter
 from pydantic.dataclasses import is_pydantic_dataclass
 
 from configs.schema import Config, ModelsConfig
+from configs.sources import LogSettings
 from flows.pipeline.dag import CODE_VERSIONS, STAGES
-from storage.coda import CodaSequence
+from storage.sources import SequenceSource
+from storage.sources.coda import READER_VERSION as CODA_READER_VERSION
+from storage.sources.coda import (
+    CodaSequence,
+    check_dataset_root,
+    frame_number,
+    sequence_ids,
+    sequence_layout,
+)
+from storage.sources.log.bag import LogFormatError, find_logs, holds_logs
+from storage.sources.log.reader import READER_VERSION as LOG_READER_VERSION
+from storage.sources.log.reader import LogSequence
 from tasks.conventions import CLASS_NAMES
 from tasks.fit.settings import FitSettings
 from tasks.fit.weights import FitWeights
@@ -81,11 +93,14 @@ def inputs_hash(inputs: Any) -> str:
 class SequenceRef:
     """One sequence: where it lives and what the config says about it alone (its entry in
     ``dataset.lighting``). In no stage's inputs: the plan folds the lighting into the sequence's
-    fingerprint, so changing one sequence's lighting reruns that sequence only."""
+    fingerprint, so changing one sequence's lighting reruns that sequence only. ``cache_dir``:
+    where a source keeps what it derives from its input (a log's index, its LiDAR-odometry
+    trajectory: OUT/.cache), keyed by the input's fingerprint; never part of a key."""
 
     root: Path
     sequence: str
     lighting: str | None = None
+    cache_dir: Path | None = None
 
     def fingerprint(self, files_fingerprint: str) -> str:
         if self.lighting is None:
@@ -97,20 +112,29 @@ class SequenceRef:
 
 def sequence_ref(config: Config, sequence: str) -> SequenceRef:
     return SequenceRef(
-        Path(config.dataset.root), str(sequence), config.dataset.lighting.get(str(sequence))
+        Path(config.dataset.root),
+        str(sequence),
+        config.dataset.lighting.get(str(sequence)),
+        Path(config.output.root) / ".cache",
     )
 
 
-def open_sequence(config: Config, sequence: str) -> CodaSequence:
+def open_sequence(config: Config, sequence: str, with_poses: bool = True) -> SequenceSource:
     """The reader of one sequence as the config says to read it (for commands; stages get their
-    :class:`Source` and :class:`SequenceRef`)."""
-    return source(config).open(sequence_ref(config, sequence))
+    :class:`Source` and :class:`SequenceRef`). ``with_poses`` False: a log's LiDAR-odometry poses
+    are not computed (check-data)."""
+    return source(config).open(sequence_ref(config, sequence), with_poses=with_poses)
 
 
 @dataclass(frozen=True)
 class Source:
-    """How a sequence's raw files are read (the dataset root is not part of it: the input
-    fingerprint covers the files' content wherever they are)."""
+    """How a sequence of the CODa layout is read (the dataset root is not part of it: the input
+    fingerprint covers the files' content wherever they are). Its kind's dataset-level questions
+    (which sequences a root holds, where a sequence's files are) are its methods too."""
+
+    kind: ClassVar[str] = "coda"
+    #: version of what opening a sequence checks (a planner memo of another is not used)
+    reader_version: ClassVar[str] = CODA_READER_VERSION
 
     lidar_source: str
     image_source: str
@@ -123,7 +147,22 @@ class Source:
     #: LiDAR height above the ground where calib_os1_to_base.yaml is missing
     lidar_height_m: float
 
-    def open(self, ref: SequenceRef) -> CodaSequence:
+    def sequence_ids(self, root: Path) -> list[str]:
+        return sequence_ids(root)
+
+    def check_root(self, root: Path) -> list[str]:
+        """The sequence ids of a dataset root; an InputError when it holds none."""
+        return check_dataset_root(root)
+
+    def frame_of(self, path: Path) -> int | None:
+        """The raw frame a file of the layout belongs to (for error messages), or None."""
+        return frame_number(path)
+
+    def layout(self, ref: SequenceRef) -> list[tuple[str, bool]]:
+        """(path, is a folder) of everything the sequence's files live in: its stat signature."""
+        return sequence_layout(ref.root, ref.sequence, self.lidar_source, self.image_source)
+
+    def open(self, ref: SequenceRef, with_poses: bool = True) -> CodaSequence:
         """The sequence ``ref``, read this way."""
         return CodaSequence(
             ref.root,
@@ -136,6 +175,78 @@ class Source:
             frames=self.frames,
             lighting=ref.lighting,
             lidar_height_m=self.lidar_height_m,
+        )
+
+
+@dataclass(frozen=True)
+class LogSource:
+    """How a robot log is read as a sequence (``dataset.log``; storage/sources/log): each log
+    (a .bag or .mcap file, or a ROS 2 bag folder) directly in the dataset root, or the root
+    itself, is a sequence named by its stem."""
+
+    kind: ClassVar[str] = "log"
+    reader_version: ClassVar[str] = LOG_READER_VERSION
+
+    camera: str
+    frame_stride: int
+    min_range_m: float
+    max_range_m: float
+    #: LiDAR height above the ground where the TF tree has no base frame
+    lidar_height_m: float
+    log: LogSettings
+
+    def sequence_ids(self, root: Path) -> list[str]:
+        return list(find_logs(root))
+
+    def check_root(self, root: Path) -> list[str]:
+        root = Path(root)
+        if not root.exists():
+            raise LogFormatError(f"dataset root {root} does not exist", root)
+        ids = self.sequence_ids(root)
+        if not ids:
+            raise LogFormatError(
+                f"dataset root {root} holds no log (expected .bag / .mcap files or ROS 2 bag "
+                "folders with a metadata.yaml, or one of them as the root)",
+                root,
+            )
+        return ids
+
+    def _path(self, ref: SequenceRef) -> Path:
+        logs = find_logs(ref.root)
+        if ref.sequence not in logs:
+            raise LogFormatError(
+                f"unknown sequence {ref.sequence!r} in {ref.root}: no log of that name "
+                f"(logs: {', '.join(logs) or 'none'})",
+                ref.root,
+            )
+        return logs[ref.sequence]
+
+    def frame_of(self, path: Path) -> int | None:
+        return None
+
+    def layout(self, ref: SequenceRef) -> list[tuple[str, bool]]:
+        """The log (a file, or a bag folder to list) and the ground truth beside it."""
+        import os
+
+        path = self._path(ref)
+        return [
+            (os.fspath(path), path.is_dir()),
+            (os.fspath(path.parent / "gt" / ref.sequence), True),
+        ]
+
+    def open(self, ref: SequenceRef, with_poses: bool = True) -> LogSequence:
+        return LogSequence(
+            self._path(ref),
+            ref.sequence,
+            settings=self.log,
+            frame_stride=self.frame_stride,
+            min_range_m=self.min_range_m,
+            max_range_m=self.max_range_m,
+            cameras=("cam0", "cam1"),
+            lighting=ref.lighting,
+            lidar_height_m=self.lidar_height_m,
+            cache_dir=ref.cache_dir,
+            with_poses=with_poses,
         )
 
 
@@ -164,8 +275,20 @@ def runtime(config: Config) -> Runtime:
     return Runtime(gpu_fit=d.gpu_fit, gpu_detect=d.gpu_detect, threads=threads)
 
 
-def source(config: Config) -> Source:
+def source(config: Config) -> Source | LogSource:
+    """How the dataset's sequences are read: ``dataset.format``, or with "auto" robot logs when
+    the root is a log or holds logs, else the CODa layout. Only the chosen format's settings are
+    in the stage inputs (a CODa dataset's keys do not change with dataset.log)."""
     ds = config.dataset
+    if ds.format == "log" or (ds.format == "auto" and holds_logs(Path(ds.root))):
+        return LogSource(
+            ds.camera,
+            ds.frame_stride,
+            ds.min_range_m,
+            ds.max_range_m,
+            ds.lidar_height_m,
+            ds.log.settings(),
+        )
     return Source(
         ds.lidar_source,
         ds.image_source,
@@ -281,7 +404,7 @@ InitSpec = OracleInitSpec | PrecomputedSpec | CliffSpec
 
 @dataclass(frozen=True)
 class DetectInputs:
-    source: Source
+    source: Source | LogSource
     image: ImageSpec
     lidar: LidarDetectionsSpec
     #: frames with bad input are left out; the stage fails when more than this share of them are
@@ -290,7 +413,7 @@ class DetectInputs:
 
 @dataclass(frozen=True)
 class TrackInputs:
-    source: Source
+    source: Source | LogSource
     #: the frame-counted gates at dataset.rate_hz (tasks.track.rate: the same values at 5 Hz)
     tracker: TrackerParams
     offline: OfflineParams
@@ -300,7 +423,7 @@ class TrackInputs:
 
 @dataclass(frozen=True)
 class FitInputs:
-    source: Source
+    source: Source | LogSource
     #: initial estimates: the oracle (perturbed ground truth) or precomputed CLIFF files
     init: InitSpec
     body: BodyModelFiles
@@ -312,7 +435,7 @@ class FitInputs:
 
 @dataclass(frozen=True)
 class MapInputs:
-    source: Source
+    source: Source | LogSource
     #: Cityscapes train id -> our class id, sorted pairs
     class_lut: tuple[tuple[int, int], ...]
     #: ground classes as class ids
@@ -325,7 +448,7 @@ class MapInputs:
 
 @dataclass(frozen=True)
 class FuseInputs:
-    source: Source
+    source: Source | LogSource
     grid: GridSpec
     body_source: str
     #: ground-truth bodies: people with fewer LiDAR returns are not fused
@@ -339,7 +462,7 @@ class FuseInputs:
 
 @dataclass(frozen=True)
 class ExportInputs:
-    source: Source
+    source: Source | LogSource
     body: BodyModelFiles
     #: what the published bytes were made from: a hash of every stage's inputs and code version
     #: (written as the sequences table's ``config_hash``)

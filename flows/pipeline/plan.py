@@ -30,7 +30,6 @@ from flows.pipeline.inputs import (
     to_jsonable,
 )
 from flows.pipeline.outcome import Status
-from storage.coda import READER_VERSION, frame_number, sequence_ids, sequence_layout
 from storage.files import InputError, regular_stat
 from storage.manifest import (
     FileHasher,
@@ -98,10 +97,10 @@ class PlanCosts:
 
 def selected_sequences(config: Config) -> list[str]:
     """The sequences a run takes: ``dataset.sequences``, or with "all" every sequence that has any
-    layout file (storage.coda.sequence_ids: one missing its timestamps file is still listed, so it
-    is reported, not left out)."""
+    layout file of the dataset's source (a CODa sequence missing its timestamps file is still
+    listed, so it is reported, not left out; every log of a folder of logs)."""
     if config.dataset.sequences == "all":
-        return sequence_ids(config.dataset.root)
+        return source(config).sequence_ids(config.dataset.root)
     return [str(s) for s in config.dataset.sequences]
 
 
@@ -151,25 +150,24 @@ def sequence_facts(
     (after opening the sequence, so bad input is still found). ``src`` / ``reader``: the
     config's Source and its JSON, when the caller has them."""
     src = src or source(config)
-    signature = layout_signature(
-        ref.root, sequence_layout(ref.root, ref.sequence, src.lidar_source, src.image_source)
-    )
+    signature = layout_signature(ref.root, src.layout(ref))
     reader = {
-        "version": READER_VERSION,
+        "version": src.reader_version,
         "source": reader or to_jsonable(src),
         "lighting": ref.lighting,
     }
     memo = cache.load(ref.sequence)
     if cache.hit(memo, reader, signature):
         return memo["fingerprint"], int(memo["num_frames"]), tuple(memo["warnings"]), True
-    info = src.open(ref).info  # every sequence-level check of the reader
+    # every sequence-level check of the reader (a log's LiDAR odometry waits for its stages)
+    info = src.open(ref, with_poses=False).info
     for path in info.files:  # a FIFO, device, folder or link loop among them fails here, unread
-        regular_stat(path, frame_number(path), "input file")
+        regular_stat(path, src.frame_of(path), "input file")
     if not hashing:
         raise NeedsHashing(ref.sequence)
     hasher = cache.file_hasher(memo)
     try:
-        fingerprint = sequence_fingerprint(ref.root, info.files, hasher)
+        fingerprint = sequence_fingerprint(info.root, info.files, hasher)
     finally:
         cache.add_costs(hasher)
     cache.save(

@@ -35,6 +35,7 @@ from flows.pipeline.inputs import (
     export_inputs,
     inputs_hash,
     runtime,
+    source,
 )
 from flows.pipeline.outcome import Status, UnitOutcome
 from flows.pipeline.plan import (
@@ -45,7 +46,6 @@ from flows.pipeline.plan import (
     selected_sequences,
 )
 from storage.atomic import staged_folder
-from storage.coda import check_dataset_root
 from storage.manifest import (
     FingerprintCache,
     Manifest,
@@ -212,12 +212,12 @@ def _save(manifest: Manifest, report: RunReport) -> None:
 
 def check_run_paths(config: Config, sequences: list[str] | None = None) -> list[str]:
     """Before any work: the output store is writable and the dataset root holds sequences;
-    returns the sequences to run. Raises storage.manifest.OutputError / storage.coda's
-    CodaFormatError with one clear line."""
+    returns the sequences to run. Raises storage.manifest.OutputError / the source's InputError
+    (storage.files) with one clear line."""
     check_writable(Path(config.output.root))
     if sequences is not None:
         return [str(s) for s in sequences]
-    check_dataset_root(Path(config.dataset.root))
+    source(config).check_root(Path(config.dataset.root))
     return selected_sequences(config)
 
 

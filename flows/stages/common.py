@@ -17,8 +17,8 @@ from storage.body_model_files import (
     save_body_model_npz,
     save_pose_prior_pkl,
 )
-from storage.coda import CodaSequence
 from storage.products import read_summary
+from storage.sources import SequenceSource
 from tasks.body.model import BodyModel
 from tasks.body.prior import GMMPosePrior, generate_pose_prior
 from tasks.body.procedural import generate_body_model
@@ -44,7 +44,7 @@ class StageContext(Generic[InputsT]):
     fingerprint: str = ""
     runtime: Runtime = Runtime()
 
-    def open(self) -> CodaSequence:
+    def open(self) -> SequenceSource:
         return self.inputs.source.open(self.ref)
 
     @property
@@ -52,7 +52,7 @@ class StageContext(Generic[InputsT]):
         return self.ref.sequence
 
 
-def detected_positions(ctx: StageContext, seq: CodaSequence) -> list[int]:
+def detected_positions(ctx: StageContext, seq: SequenceSource) -> list[int]:
     """Positions (in ``seq.info.frame_indices``) of the frames the detect stage produced: a frame
     whose input was bad is in its ``failed_frames`` instead and no later stage reads it."""
     summary = read_summary(ctx.upstream["detect"])
@@ -65,8 +65,8 @@ def chunks(n: int, size: int) -> list[list[int]]:
     return [list(range(a, min(a + size, n))) for a in range(0, n, size)]
 
 
-def is_night(seq: CodaSequence) -> bool:
-    """dataset.lighting of the sequence, else its metadata's lighting (storage.coda)."""
+def is_night(seq: SequenceSource) -> bool:
+    """dataset.lighting of the sequence, else what its source says (a CODa metadata file)."""
     return seq.info.is_night
 
 

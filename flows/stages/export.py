@@ -12,7 +12,6 @@ import numpy as np
 
 from flows.pipeline.inputs import ExportInputs
 from flows.stages.common import StageContext, body_model, is_night
-from storage.export.common import source_relative
 from storage.products import Bodies, FusedFrames, Tracks
 from storage.publish import sequence_writer, stage_store, stage_table
 from tasks.body.boxes import upright_box
@@ -76,28 +75,26 @@ def instance_rows(
 
 
 def frame_rows(ctx: StageContext[ExportInputs], seq, fused: FusedFrames) -> list[dict]:
-    """One row per frame of the fused store (the frames detect produced); source paths relative
-    to the dataset root."""
-    night, cams = is_night(seq), seq.info.calibration.cameras
-
-    def rel(path):
-        return source_relative(path, seq.root)
-
-    return [
-        {
-            "frame": k,
-            "raw_frame": raw,
-            "stamp_ns": int(fused.stamp_ns[k]),
-            "T_world_from_lidar": seq.info.poses[seq.position(raw)].reshape(-1).tolist(),
-            "T_world_from_base": fused.T_world_from_base[k].reshape(-1).tolist(),
-            "lidar_path": rel(seq.path(seq.lidar_source, "os1", raw, ".bin")),
-            "cam0_path": rel(seq.image_path("cam0", raw)) if "cam0" in cams else "",
-            "cam1_path": rel(seq.image_path("cam1", raw)) if "cam1" in cams else None,
-            "class_counts": fused.class_counts[k].tolist(),
-            "is_night": night,
-        }
-        for k, raw in enumerate(fused.frame.tolist())
-    ]
+    """One row per frame of the fused store (the frames detect produced); where its raw data are
+    (the source's ``source_paths``: files relative to the dataset root, or a log's messages)."""
+    night, rows = is_night(seq), []
+    for k, raw in enumerate(fused.frame.tolist()):
+        paths = seq.source_paths(raw)
+        rows.append(
+            {
+                "frame": k,
+                "raw_frame": raw,
+                "stamp_ns": int(fused.stamp_ns[k]),
+                "T_world_from_lidar": seq.info.poses[seq.position(raw)].reshape(-1).tolist(),
+                "T_world_from_base": fused.T_world_from_base[k].reshape(-1).tolist(),
+                "lidar_path": paths["lidar"],
+                "cam0_path": paths["cam0"],
+                "cam1_path": paths["cam1"],
+                "class_counts": fused.class_counts[k].tolist(),
+                "is_night": night,
+            }
+        )
+    return rows
 
 
 def run_export(ctx: StageContext[ExportInputs]) -> dict:

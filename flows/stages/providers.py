@@ -38,12 +38,11 @@ from flows.stages.models import (
     model_perception,
 )
 from storage.cliff_files import cliff_path, read_cliff_estimates
-from storage.coda import CodaSequence
 from storage.gt import read_frame_gt
-from storage.images import read_rgb
 from storage.perception_files import PrecomputedPerception
 from storage.products import Tracks
 from storage.sequence_data import Frame
+from storage.sources import SequenceSource
 from tasks.body.params import BodyParams
 from tasks.fit.init_oracle import cliff_to_params, oracle_initial_estimate
 from tasks.fit.reframe import reframe_params
@@ -67,13 +66,13 @@ class LidarProvider(Protocol):
 class OracleImage:
     """Ground truth + the oracle's noise model (synthetic data only)."""
 
-    def __init__(self, spec: OracleSpec, seq: CodaSequence):
+    def __init__(self, spec: OracleSpec, seq: SequenceSource):
         self.spec, self.seq, self.night = spec, seq, is_night(seq)
 
     def image(
         self, frame: Frame, lidar: LidarDetections | None = None
     ) -> tuple[ImagePerception, np.ndarray]:
-        gt = read_frame_gt(self.seq.root, int(self.seq.sequence), frame.index)
+        gt = read_frame_gt(self.seq.root, self.seq.sequence, frame.index)
         rng = frame_rng(self.spec.seed, self.seq.sequence, frame.index, 1)
         return oracle_image_perception(
             gt.box2d,
@@ -91,7 +90,7 @@ class OracleImage:
 
 class OracleLidar(OracleImage):
     def lidar(self, frame: Frame) -> LidarDetections:
-        gt = read_frame_gt(self.seq.root, int(self.seq.sequence), frame.index)
+        gt = read_frame_gt(self.seq.root, self.seq.sequence, frame.index)
         counts = np.array([(gt.point_instance == t).sum() for t in gt.track_id], np.int64)
         rng = frame_rng(self.spec.seed, self.seq.sequence, frame.index, 2)
         return oracle_lidar_detections(
@@ -102,7 +101,7 @@ class OracleLidar(OracleImage):
 class PrecomputedFiles:
     """A model's outputs read from files (storage/PERCEPTION_FORMAT.md), keyed by raw frame."""
 
-    def __init__(self, spec: PrecomputedSpec, seq: CodaSequence):
+    def __init__(self, spec: PrecomputedSpec, seq: SequenceSource):
         self.files = PrecomputedPerception(Path(spec.directory) / seq.sequence)
 
     def image(self, frame: Frame, lidar: LidarDetections) -> tuple[ImagePerception, None]:
@@ -115,7 +114,7 @@ class PrecomputedFiles:
 class LidarClusters:
     """The weight-free LiDAR detector on the frame's sweep."""
 
-    def __init__(self, spec: LidarClustersSpec, seq: CodaSequence):
+    def __init__(self, spec: LidarClustersSpec, seq: SequenceSource):
         self.params = spec.params
 
     def lidar(self, frame: Frame) -> LidarDetections:
@@ -123,7 +122,7 @@ class LidarClusters:
 
 
 class NoLidar:
-    def __init__(self, spec: NoDetectionsSpec, seq: CodaSequence):
+    def __init__(self, spec: NoDetectionsSpec, seq: SequenceSource):
         pass
 
     def lidar(self, frame: Frame) -> LidarDetections:
@@ -135,7 +134,7 @@ class ModelsImage:
     proposals when the detector is 'lidar'; with the oracle's semantics (synthetic data) the
     detections take ground-truth identities by box."""
 
-    def __init__(self, spec: ModelsSpec, seq: CodaSequence):
+    def __init__(self, spec: ModelsSpec, seq: SequenceSource):
         self.spec, self.seq = spec, seq
         self.cam = seq.info.calibration.cameras[spec.camera]
         self.oracle = OracleImage(spec.oracle, seq) if spec.oracle is not None else None
@@ -145,12 +144,12 @@ class ModelsImage:
     ) -> tuple[ImagePerception, np.ndarray | None]:
         m, cam = self.spec.models, self.cam
         semantic = self.oracle.image(frame)[0].semantic if self.oracle is not None else None
-        rgb = read_rgb(frame.image_paths[self.spec.camera], (cam.width, cam.height))
+        rgb = self.seq.image(self.spec.camera, frame.index)
         proposals = lidar_proposals(lidar, cam) if m.detector.kind == "lidar" else None
         image = model_perception(m)(rgb, proposals, semantic)
         if self.oracle is None:
             return image, None
-        gt = read_frame_gt(self.seq.root, int(self.seq.sequence), frame.index)
+        gt = read_frame_gt(self.seq.root, self.seq.sequence, frame.index)
         return image, gt_index_by_boxes(image.boxes_xyxy, gt.box2d)
 
 
@@ -167,11 +166,11 @@ LIDAR_PROVIDERS = {
 }
 
 
-def image_provider(spec: ImageSpec, seq: CodaSequence) -> ImageProvider:
+def image_provider(spec: ImageSpec, seq: SequenceSource) -> ImageProvider:
     return IMAGE_PROVIDERS[type(spec)](spec, seq)
 
 
-def lidar_provider(spec: LidarDetectionsSpec, seq: CodaSequence) -> LidarProvider:
+def lidar_provider(spec: LidarDetectionsSpec, seq: SequenceSource) -> LidarProvider:
     return LIDAR_PROVIDERS[type(spec)](spec, seq)
 
 
@@ -179,7 +178,7 @@ class OracleInit:
     """The oracle's initial estimates (synthetic data): the ground-truth bodies perturbed like a
     monocular regressor; a false positive has none. One generator per batch of rows."""
 
-    def __init__(self, spec: OracleInitSpec, seq: CodaSequence, model, camera):
+    def __init__(self, spec: OracleInitSpec, seq: SequenceSource, model, camera):
         self.spec, self.seq, self.model, self.camera = spec, seq, model, camera
 
     def available(self, tracks: Tracks) -> np.ndarray:
@@ -188,7 +187,7 @@ class OracleInit:
     def estimates(self, tracks: Tracks, rows: np.ndarray) -> BodyParams:
         truths = []
         for r in rows:
-            gt = read_frame_gt(self.seq.root, int(self.seq.sequence), int(tracks.frame[r]))
+            gt = read_frame_gt(self.seq.root, self.seq.sequence, int(tracks.frame[r]))
             truths.append(BodyParams.of(gt).take([int(tracks.gt_index[r])]))
         truth = BodyParams.concat(truths)
         rng = frame_rng(self.spec.seed, self.seq.sequence, int(rows[0]), 3)
@@ -201,7 +200,7 @@ class PrecomputedCliff:
     """CLIFF outputs precomputed by the user (``<directory>/<sequence>/cliff.parquet``), keyed by
     (frame, det_index), converted with the sequence's calibrated intrinsics."""
 
-    def __init__(self, spec: PrecomputedSpec, seq: CodaSequence, model, camera):
+    def __init__(self, spec: PrecomputedSpec, seq: SequenceSource, model, camera):
         self.est = read_cliff_estimates(cliff_path(spec.directory, seq.sequence))
         self.K = camera.K
         self.where = {
@@ -234,7 +233,7 @@ class PrecomputedCliff:
 class CliffModel:
     """A CLIFF export on each tracked box (one image read per frame of the batch)."""
 
-    def __init__(self, spec: CliffSpec, seq: CodaSequence, model, camera):
+    def __init__(self, spec: CliffSpec, seq: SequenceSource, model, camera):
         self.spec, self.seq, self.camera = spec, seq, camera
         self.at = {raw: k for k, raw in enumerate(seq.info.frame_indices)}
 
@@ -247,7 +246,7 @@ class CliffModel:
         for raw in dict.fromkeys(tracks.frame[rows].tolist()):  # frames in order of first row
             here = rows[tracks.frame[rows] == raw]
             frame = self.seq.frame(self.at[int(raw)])
-            rgb = read_rgb(frame.image_paths[cam.name], (cam.width, cam.height))
+            rgb = self.seq.image(cam.name, frame.index)
             parts.append((here, cliff(rgb, tracks.boxes_xyxy[here], cam.K)))
         order = np.argsort(np.concatenate([h for h, _ in parts]), kind="stable")
         return BodyParams.concat(p for _, p in parts).take(order)
@@ -260,5 +259,5 @@ INIT_PROVIDERS = {
 }
 
 
-def init_provider(spec: InitSpec, seq: CodaSequence, model, camera):
+def init_provider(spec: InitSpec, seq: SequenceSource, model, camera):
     return INIT_PROVIDERS[type(spec)](spec, seq, model, camera)

@@ -118,19 +118,6 @@ def sequence_info(ds: Dataset, sequence: str) -> SequenceExportInfo:
     )
 
 
-def source_relative(path: str | os.PathLike, source_root: str | os.PathLike) -> str:
-    """``path`` (a source file under ``source_root``) as a POSIX path relative to ``source_root``:
-    what the frames table stores, so the dataset reads the same wherever the raw data is mounted."""
-    p, root = Path(path), Path(source_root)
-    try:
-        return p.relative_to(root).as_posix()
-    except ValueError:
-        try:
-            return p.resolve().relative_to(root.resolve()).as_posix()
-        except ValueError:
-            raise ValueError(f"source file {p} is not under the dataset root {root}") from None
-
-
 def resolve(
     path: str | None,
     source_root: Path | None,

@@ -51,6 +51,7 @@ from storage.export.common import (
 )
 from storage.occupancy_store import open_layout, read_frames
 from storage.plain_pickle import dumps_plain
+from storage.sources.log.refs import parse_ref, read_ref_sweep, ref_image
 from tasks.conventions import CLASS_NAMES, FREE, PEDESTRIAN, ROAD, TERRAIN
 from tasks.geometry import points_in_boxes, rot_z
 from tasks.occupancy.instance_visibility import box_lattice, visible_fractions
@@ -115,7 +116,7 @@ def visibility_token(fraction: float) -> str:
 
 def read_sweep(path: Path, min_range_m: float, frame: int) -> np.ndarray:
     """(N, 5) float32 x y z intensity ring of a CODa .bin (no-returns dropped), LiDAR frame."""
-    from storage.coda import read_lidar_bin
+    from storage.sources.coda import read_lidar_bin
 
     sweep = read_lidar_bin(path, min_range_m=min_range_m, frame=frame)
     out = np.empty((len(sweep.points), 5), dtype=np.float32)
@@ -256,7 +257,8 @@ def export_nuscenes(
     for seq in chosen:  # a moved data root fails here, before anything is written
         for row in ds.table("frames", seq).to_pylist()[:1]:
             for key, what in (("cam0_path", "cam0 image"), ("lidar_path", "LiDAR")):
-                resolve(row[key], src_root, what, seq, row["frame"], built_from)
+                if parse_ref(row[key]) is None:  # a robot log's message: read where it is used
+                    resolve(row[key], src_root, what, seq, row["frame"], built_from)
     val = set(val_sequences)
     if val - set(chosen):
         raise ValueError(
@@ -336,11 +338,21 @@ def export_nuscenes(
                 t["ego_pose"].append(
                     {"token": sd_list[i], "timestamp": stamp_us, **pose_record(T_wb)}
                 )
-            img_src = resolve(row["cam0_path"], src_root, "cam0 image", seq, f, built_from)
-            img_rel = sample_file_name(scene, CAM_CHANNEL, stamp_us, img_src.suffix)
-            link_or_copy(img_src, out / img_rel)
-            lidar_src = resolve(row["lidar_path"], src_root, "LiDAR", seq, f, built_from)
-            sweep = read_sweep(lidar_src, min_range_m, f)
+            img_ref, lidar_ref = parse_ref(row["cam0_path"]), parse_ref(row["lidar_path"])
+            if img_ref is None:  # a file of the CODa layout
+                img_src = resolve(row["cam0_path"], src_root, "cam0 image", seq, f, built_from)
+                img_rel = sample_file_name(scene, CAM_CHANNEL, stamp_us, img_src.suffix)
+                link_or_copy(img_src, out / img_rel)
+                img_suffix = img_src.suffix
+            else:  # a message of a robot log
+                data, img_suffix = ref_image(img_ref, src_root)
+                img_rel = sample_file_name(scene, CAM_CHANNEL, stamp_us, img_suffix)
+                atomic_write_bytes(out / img_rel, data)
+            if lidar_ref is None:
+                lidar_src = resolve(row["lidar_path"], src_root, "LiDAR", seq, f, built_from)
+                sweep = read_sweep(lidar_src, min_range_m, f)
+            else:
+                sweep = read_ref_sweep(lidar_ref, src_root, min_range_m)
             lidar_rel = sample_file_name(scene, LIDAR_CHANNEL, stamp_us, ".pcd.bin")
             (out / lidar_rel).parent.mkdir(parents=True, exist_ok=True)
             sweep.tofile(out / lidar_rel)
@@ -348,7 +360,7 @@ def export_nuscenes(
             pts_h = np.c_[sweep[:, :3].astype(np.float64), np.ones(len(sweep))]
             points_by_frame[f] = (pts_h @ info.T_base_from_lidar.T)[:, :3]
             for sd_list, cs, rel, fmt, w, h in (
-                (sd_cam, cs_cam, img_rel, img_src.suffix.lstrip("."), info.width, info.height),
+                (sd_cam, cs_cam, img_rel, img_suffix.lstrip("."), info.width, info.height),
                 (sd_lidar, cs_lidar, lidar_rel, "pcd", 0, 0),
             ):
                 t["sample_data"].append(

@@ -82,6 +82,12 @@ def write_lidar(
     return atomic_write_bytes(lidar_path(root, seq, frame), data.tobytes())
 
 
+def recorded_time_ns(time_s: np.ndarray) -> np.ndarray:
+    """(N,) uint32 nanoseconds of per-point times as a sweep file holds them (float32 of the
+    rounded nanoseconds, whole numbers): the simulator's logs record the same values."""
+    return np.round(np.asarray(time_s, np.float64) * 1e9).astype(np.float32).astype(np.uint32)
+
+
 def image_bytes(image: np.ndarray, ext: str = ".png") -> bytes:
     """PNG (any of (H, W, 3) uint8, (H, W) uint8 / uint16) or JPEG ((H, W, 3) uint8) bytes."""
     pil = Image.fromarray(np.ascontiguousarray(image))
@@ -235,17 +241,36 @@ def write_timestamps(root: Path, seq: int, stamps_ns: np.ndarray) -> Path:
     return atomic_write_bytes(Path(root) / "timestamps" / f"{seq}.txt", text.encode())
 
 
-def write_poses(root: Path, seq: int, stamps_ns: np.ndarray, poses: np.ndarray) -> Path:
-    """poses/dense_global/{SEQ}.txt: ``ts x y z qw qx qy qz`` per frame, T_world_from_os1."""
+def _pose_values(T: np.ndarray) -> list[float]:
+    """x y z qw qx qy qz of a pose (w >= 0), before formatting."""
     from scipy.spatial.transform import Rotation
 
+    x, y, z, w = Rotation.from_matrix(T[:3, :3]).as_quat()
+    q = np.array([w, x, y, z]) * (1.0 if w >= 0 else -1.0)
+    return [*T[:3, 3], *q]
+
+
+def recorded_pose(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(translation (3,), quaternion (w, x, y, z)) of a pose as a reader gets them back from the
+    poses file (9 decimals): other formats of the same scene (the simulator's robot logs) record
+    these values, so every reader sees the same poses."""
+    vals = [float(f"{v:.9f}") for v in _pose_values(T)]
+    return np.array(vals[:3]), np.array(vals[3:])
+
+
+def recorded_stamp_ns(stamp_ns: int) -> int:
+    """A stamp as a reader of the timestamps file gets it back: the text's Unix seconds parsed as
+    a float64 and rounded to nanoseconds (storage.sources.coda; within ~120 ns of ``stamp_ns``)."""
+    return int(np.round(np.float64(float(_stamp_str(stamp_ns))) * 1e9))
+
+
+def write_poses(root: Path, seq: int, stamps_ns: np.ndarray, poses: np.ndarray) -> Path:
+    """poses/dense_global/{SEQ}.txt: ``ts x y z qw qx qy qz`` per frame, T_world_from_os1."""
     if len(stamps_ns) != len(poses):
         raise ValueError(f"sequence {seq}: {len(stamps_ns)} stamps but {len(poses)} poses")
     lines = []
     for s, T in zip(stamps_ns, poses):
-        x, y, z, w = Rotation.from_matrix(T[:3, :3]).as_quat()
-        q = np.array([w, x, y, z]) * (1.0 if w >= 0 else -1.0)
-        vals = [*T[:3, 3], *q]
+        vals = _pose_values(T)
         lines.append(_stamp_str(s) + " " + " ".join(f"{v:.9f}" for v in vals) + "\n")
     return atomic_write_bytes(
         Path(root) / "poses" / "dense_global" / f"{seq}.txt", "".join(lines).encode()
@@ -305,8 +330,8 @@ def read_image(root: Path, seq: int, cam: str, frame: int) -> np.ndarray:
 
 def read_camera(root: Path, seq: int, cam: str = "cam0") -> tuple[np.ndarray, np.ndarray]:
     """(K (3, 3), T_cam_from_lidar (4, 4)) float64 of the rectified camera of a written calibration
-    (storage.coda.rectified_camera: the pinhole that projects onto the 2d_rect image)."""
-    from storage.coda import read_extrinsic, read_intrinsics, rectified_camera
+    (storage.sources.coda.rectified_camera: the pinhole that projects onto the 2d_rect image)."""
+    from storage.sources.coda import read_extrinsic, read_intrinsics, rectified_camera
 
     d = Path(root) / "calibrations" / str(seq)
     intr = read_intrinsics(d / f"calib_{cam}_intrinsics.yaml")

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.coda import (
+from storage.sources.coda import (
     IMAGE_EXTENSIONS,
     POINTS_PER_SWEEP,
     CodaFormatError,

@@ -1,4 +1,5 @@
-"""Reader for the CODa raw layout (UT Campus Object Dataset), real or synthetic.
+"""Reader for the CODa raw layout (UT Campus Object Dataset), real or synthetic: the CODa
+sequence source (storage.sources.SequenceSource).
 
 Layout (ut-amrl/coda-devkit, docs/DATA_REPORT.md)::
 
@@ -47,73 +48,38 @@ from __future__ import annotations
 import json
 import math
 import os
-import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
-from storage.files import InputError, open_regular, read_bytes, read_text, regular_stat, where
-from storage.sequence_data import (
-    Box3D,
-    Calibration,
-    CameraCalibration,
-    Frame,
-    RawCameraCalibration,
-    SequenceInfo,
+from storage.files import InputError, open_regular, read_bytes, read_text, regular_stat
+from storage.sequence_data import Box3D, Calibration, Frame, SequenceInfo
+from storage.sources.coda.calibration import read_calibration
+from storage.sources.coda.layout import (
+    COLUMNS_PER_BEAM,
+    FRAME_SELECTIONS,
+    IMAGE_EXTENSIONS,
+    IMAGE_SOURCES,
+    LIDAR_SOURCES,
+    MAX_POSITION_M,
+    MAX_SPEED_MPS,
+    METADATA_TASKS,
+    NIGHT_WORDS,
+    NS_PER_S,
+    POINTS_PER_SWEEP,
+    POSE_TIME_TOLERANCE_S,
+    CodaFormatError,
+    CodaFrameError,
+    _frame_error,
+    _present,
+    _where,
+    frame_number,
+    list_sequences,
+    sequence_folders,
+    stride_frames,
 )
-
-#: points per organised OS1-128 sweep (128 beams x 1024 columns), no-returns included
-POINTS_PER_SWEEP = 128 * 1024
-COLUMNS_PER_BEAM = 1024
-LIDAR_SOURCES = ("3d_comp", "3d_raw")
-IMAGE_SOURCES = ("2d_rect", "2d_raw")
-IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
-FRAME_SELECTIONS = ("files", "metadata")
-#: the metadata lists that name annotated frames (coda-devkit helpers/metadata.py)
-METADATA_TASKS = ("ObjectTracking", "SemanticSegmentation")
-#: metadata ``lighting`` values that mean night (the devkit's METALighting.DARK is "dark")
-NIGHT_WORDS = ("night", "dark")
-NS_PER_S = 1_000_000_000
-#: pose times may differ from the frame timestamps by this much (half a frame at 10 Hz)
-POSE_TIME_TOLERANCE_S = 0.05
-#: a robot faster than this between two raw frames is a broken pose, not a fast robot
-MAX_SPEED_MPS = 20.0
-#: pose translations beyond this distance from the map origin are not a campus-scale map
-MAX_POSITION_M = 1.0e5
-#: rotation matrices: |R R^T - I| and |det R - 1| within this
-ROTATION_TOLERANCE = 1e-3
-#: version of what opening a sequence checks and returns: a fingerprint memo made by another
-#: version is not used (planning opens the sequence again); bump when the checks change
-READER_VERSION = "2"
-#: the layout folders that hold one sub-folder per sequence (``{modality}/{sensor}/{SEQ}/``)
-SEQUENCE_MODALITIES = ("3d_comp", "3d_raw", "2d_rect", "2d_raw", "3d_bbox", "3d_semantic")
-
-
-class CodaFormatError(InputError):
-    """Bad or missing input in a CODa-layout dataset (``path`` / ``frame`` where known)."""
-
-
-class CodaFrameError(CodaFormatError):
-    """One frame's file is missing or unreadable: ``path`` and ``frame`` (raw number) say which.
-
-    The sequence and its other frames may still be fine; a stage can fail this frame alone.
-    """
-
-    def __init__(self, message: str, path: Path, frame: int | None, sequence: str | None = None):
-        super().__init__(message, path, frame, sequence)
-
-
-def _where(path: Path, frame: int | None) -> str:
-    return where(path, frame)
-
-
-def _frame_error(exc: InputError, frame: int | None) -> CodaFrameError:
-    """An InputError about one frame's file as that frame's CodaFrameError."""
-    return CodaFrameError(
-        str(exc), exc.path or Path("?"), frame if exc.frame is None else exc.frame
-    )
+from tasks.poses.rotations import quat_wxyz_to_matrix
 
 
 @dataclass(frozen=True)
@@ -245,18 +211,6 @@ def read_lidar_bin(
     )
 
 
-def quat_wxyz_to_matrix(q: np.ndarray) -> np.ndarray:
-    """(4,) quaternion (w, x, y, z) -> (3, 3) rotation matrix, float64 (normalises q)."""
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 def box_rotation(rpy: np.ndarray) -> np.ndarray:
     """CODa box angles (roll, pitch, yaw) -> (3, 3) rotation Rz(yaw) Ry(pitch) Rx(roll)."""
     r, p, y = rpy
@@ -267,43 +221,8 @@ def box_rotation(rpy: np.ndarray) -> np.ndarray:
     return rz @ ry @ rx
 
 
-def rectified_camera(
-    R_rect: np.ndarray, P_rect: np.ndarray, T_cam_from_lidar: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """The pinhole of a rectified image: (K (3, 3), T_rect_from_lidar (4, 4)) float64.
-
-    R_rect (3, 3) rectification_matrix, P_rect (3, 4) projection_matrix, T_cam_from_lidar (4, 4)
-    the raw camera's extrinsic. ``initUndistortRectifyMap(K, D, R, P)`` maps the rectified pixel
-    (u, v) through ``(P[:, :3] @ R)^-1``, so K = P[:, :3] and T_rect_from_lidar = [[R, 0], [0, 1]]
-    @ T_cam_from_lidar; P's 4th column (-fx * baseline on the right camera of a stereo pair)
-    belongs to projecting points given in the *left* rectified frame and is not used here.
-    """
-    K = np.array(P_rect, dtype=np.float64)[:, :3].copy()
-    R4 = np.eye(4)
-    R4[:3, :3] = R_rect
-    return K, R4 @ np.asarray(T_cam_from_lidar, dtype=np.float64)
-
-
-_FRAME_NAME = re.compile(r"_(\d+)$")
-
-
-def frame_number(path: Path) -> int | None:
-    """The FRAME of ``{modality}_{sensor}_{SEQ}_{FRAME}.{ext}``, None if the name has none."""
-    m = _FRAME_NAME.search(Path(path).name.split(".", 1)[0])
-    return int(m.group(1)) if m else None
-
-
-def stride_frames(candidates, stride: int) -> tuple[int, ...]:
-    """Ascending raw frames, keeping one when it is >= ``stride`` raw frames after the last kept."""
-    kept: list[int] = []
-    for f in sorted(set(int(c) for c in candidates)):
-        if not kept or f - kept[-1] >= stride:
-            kept.append(f)
-    return tuple(kept)
-
-
 class CodaSequence:
-    """One sequence of a CODa-layout root. Cheap to build (no sweep is read); frames on demand.
+    """The CODa sequence source (storage.sources.SequenceSource). One sequence of a CODa-layout root. Cheap to build (no sweep is read); frames on demand.
 
     frame_stride: keep a frame every k raw frames (2 for 5 Hz). lidar_source: ``3d_comp`` (what
     the downloads ship for os1) or ``3d_raw``; image_source: ``2d_rect`` or ``2d_raw``. frames:
@@ -312,6 +231,8 @@ class CodaSequence:
     lidar_height_m: used where ``calib_os1_to_base.yaml`` is missing (T_base_from_lidar = a pure
     lift of that height, with a warning in ``info.warnings``); None = that file is required.
     """
+
+    kind = "coda"
 
     def __init__(
         self,
@@ -516,68 +437,12 @@ class CodaSequence:
         return ("night" if str(value).lower() in NIGHT_WORDS else "day"), "metadata"
 
     def _read_calibration(self, warnings: list[str]) -> Calibration:
-        folder = self.root / "calibrations" / self.sequence
-        c01_path = folder / "calib_cam0_to_cam1.yaml"
-        T_cam1_from_cam0 = read_extrinsic(c01_path)[0] if _present(c01_path) else None
-        cameras = {}
-        for cam in self.cameras:
-            intr_path = folder / f"calib_{cam}_intrinsics.yaml"
-            ext_path = folder / f"calib_os1_to_{cam}.yaml"
-            if cam != "cam0" and not _present(intr_path):
-                continue  # only cam0 is required
-            intr = read_intrinsics(intr_path)
-            if _present(ext_path):
-                T, P_l2r = read_extrinsic(ext_path)
-            elif cam == "cam1" and T_cam1_from_cam0 is not None and "cam0" in cameras:
-                # as the devkit's gen_calibrations.py: T_os1_to_cam1 = T_cam0_to_cam1 @ T_os1_to_cam0
-                T, P_l2r = T_cam1_from_cam0 @ cameras["cam0"].raw.T_cam_from_lidar, None
-            else:
-                T, P_l2r = read_extrinsic(ext_path)  # raises: file is missing
-            raw = RawCameraCalibration(
-                intr["K"], intr["distortion"], intr["R"], intr["P"], T, P_l2r
-            )
-            if self.image_source == "2d_rect":
-                if not intr["has_rect"]:
-                    warnings.append(
-                        f"{intr_path}: no rectification_matrix / projection_matrix; 2d_rect "
-                        "images are projected with camera_matrix and the raw extrinsic"
-                    )
-                K, T_cam = rectified_camera(intr["R"], intr["P"], T)
-                cameras[cam] = CameraCalibration(
-                    cam, K, np.zeros(5), intr["width"], intr["height"], T_cam, raw, rectified=True
-                )
-            else:
-                if np.any(intr["distortion"] != 0):
-                    warnings.append(
-                        f"{cam}: 2d_raw images are distorted ({intr_path.name} k1={intr['distortion'][0]:.4g}) "
-                        "and the pipeline projects with a pinhole; use 2d_rect"
-                    )
-                cameras[cam] = CameraCalibration(
-                    cam,
-                    intr["K"],
-                    intr["distortion"],
-                    intr["width"],
-                    intr["height"],
-                    T,
-                    raw,
-                    rectified=False,
-                )
-        base_path = folder / "calib_os1_to_base.yaml"
-        if _present(base_path) or self.lidar_height_m is None:
-            T_base, base_default = read_extrinsic(base_path)[0], False
-        else:
-            T_base, base_default = np.eye(4), True
-            T_base[2, 3] = float(self.lidar_height_m)
-            warnings.append(
-                f"{base_path} is missing: T_base_from_lidar = the LiDAR "
-                f"{self.lidar_height_m:g} m above the ground, axes aligned "
-                "(dataset.lidar_height_m)"
-            )
-        return Calibration(
-            cameras=cameras,
-            T_base_from_lidar=T_base,
-            base_is_default=base_default,
-            T_cam1_from_cam0=T_cam1_from_cam0,
+        return read_calibration(
+            self.root / "calibrations" / self.sequence,
+            self.cameras,
+            self.image_source,
+            self.lidar_height_m,
+            warnings,
         )
 
     def _input_files(self, frames, *extra: Path) -> list[Path]:
@@ -655,11 +520,36 @@ class CodaSequence:
             boxes=boxes,
             box_problems=problems,
             intensity_present=sweep.intensity_present,
+            point_index=sweep.index,
         )
 
     def frames(self):
         for i in range(len(self)):
             yield self.frame(i)
+
+    def image(self, camera: str, raw_frame: int) -> np.ndarray:
+        """(H, W, 3) uint8 RGB of ``camera``'s image at a raw frame, its size checked against the
+        calibration (storage.images.read_rgb)."""
+        from storage.images import read_rgb
+
+        cam = self.info.calibration.cameras[camera]
+        return read_rgb(self.image_path(camera, raw_frame), (cam.width, cam.height))
+
+    def source_paths(self, raw_frame: int) -> dict[str, str | None]:
+        """The frame's sweep and images relative to the root (cam0: "" and cam1: None where the
+        sequence has no such camera)."""
+        from storage.sources import source_relative
+
+        cams = self.info.calibration.cameras
+        return {
+            "lidar": source_relative(self.lidar_path(raw_frame), self.root),
+            "cam0": source_relative(self.image_path("cam0", raw_frame), self.root)
+            if "cam0" in cams
+            else "",
+            "cam1": source_relative(self.image_path("cam1", raw_frame), self.root)
+            if "cam1" in cams
+            else None,
+        }
 
     def check_images(self, raw_frame: int) -> None:
         """Decode every camera's image of a raw frame and check its size against the calibration
@@ -668,122 +558,6 @@ class CodaSequence:
         for name, cam in self.info.calibration.cameras.items():
             path = self.image_path(name, raw_frame)
             decode_image(path, raw_frame, (cam.width, cam.height), self.sequence)
-
-
-def _sorted_ids(ids) -> list[str]:
-    return sorted(set(ids), key=lambda s: (not s.isdigit(), int(s) if s.isdigit() else 0, s))
-
-
-def list_sequences(root: Path) -> list[str]:
-    """Sequence ids of a CODa-layout root (those with a timestamps file), numerically sorted."""
-    folder = Path(root) / "timestamps"
-    if not folder.is_dir():
-        return []
-    return _sorted_ids(p.stem for p in folder.glob("*.txt") if not p.name.startswith("."))
-
-
-def _ids_in(folder: Path, files: bool, suffix: str = "") -> list[str]:
-    try:
-        entries = list(os.scandir(folder))
-    except OSError:  # missing, not a folder, unreadable: no ids from here
-        return []
-    out = []
-    for e in entries:
-        if e.name.startswith((".", "_")):
-            continue
-        if files and e.name.endswith(suffix):
-            out.append(e.name[: len(e.name) - len(suffix)])
-        elif not files:
-            out.append(e.name)
-    return out
-
-
-def sequence_ids(root: Path) -> list[str]:
-    """Every sequence id that has any layout file or folder under ``root`` (timestamps, poses,
-    metadata, calibrations or a ``{modality}/{sensor}/{SEQ}`` folder), numerically sorted: a
-    sequence missing its timestamps file is still found, so a run can report it instead of
-    leaving it out."""
-    root = Path(root)
-    ids = list_sequences(root)
-    ids += _ids_in(root / "poses" / "dense_global", True, ".txt") + _ids_in(
-        root / "poses" / "dense", True, ".txt"
-    )
-    ids += _ids_in(root / "metadata", True, ".json") + _ids_in(root / "calibrations", False)
-    for modality in SEQUENCE_MODALITIES:
-        for sensor in _ids_in(root / modality, False):
-            ids += _ids_in(root / modality / sensor, False)
-    return _sorted_ids(ids)
-
-
-def sequence_folders(root: Path, sequence: str) -> list[str]:
-    """The layout paths (relative to ``root``) that hold files of ``sequence``."""
-    root, out = Path(root), []
-    for rel in (
-        f"timestamps/{sequence}.txt",
-        f"poses/dense_global/{sequence}.txt",
-        f"poses/dense/{sequence}.txt",
-        f"metadata/{sequence}.json",
-        f"calibrations/{sequence}",
-    ):
-        if os.path.lexists(root / rel):
-            out.append(rel)
-    for modality in SEQUENCE_MODALITIES:
-        for sensor in _ids_in(root / modality, False):
-            if os.path.lexists(root / modality / sensor / sequence):
-                out.append(f"{modality}/{sensor}/{sequence}")
-    return out
-
-
-def check_dataset_root(root: Path) -> list[str]:
-    """The sequence ids of a dataset root (:func:`sequence_ids`); CodaFormatError when the root is
-    missing, not a folder, or holds no sequence at all."""
-    root = Path(root)
-    if not root.exists():
-        raise CodaFormatError(f"dataset root {root} does not exist", root)
-    if not root.is_dir():
-        raise CodaFormatError(f"dataset root {root} is not a folder", root)
-    ids = sequence_ids(root)
-    if not ids:
-        raise CodaFormatError(
-            f"dataset root {root} holds no sequence (expected the CODa layout: "
-            "timestamps/<SEQ>.txt, poses/, calibrations/<SEQ>/, 3d_comp/os1/<SEQ>/ ...)",
-            root,
-        )
-    return ids
-
-
-def sequence_layout(
-    root: Path,
-    sequence: str,
-    lidar_source: str,
-    image_source: str,
-    cameras: tuple[str, ...] = ("cam0", "cam1"),
-) -> list[tuple[str, bool]]:
-    """(path, is a folder to list) of everything a sequence's files live in, for a stat
-    signature: if no entry of these changed size, mtime or inode, the sequence reads the same.
-    Plain strings: this runs for every sequence of every plan."""
-    root, seq, join = os.fspath(root), str(sequence), os.path.join
-    out = [
-        (join(root, "timestamps", f"{seq}.txt"), False),
-        (join(root, "poses", "dense_global", f"{seq}.txt"), False),
-        (join(root, "poses", "dense", f"{seq}.txt"), False),
-        (join(root, "metadata", f"{seq}.json"), False),
-        (join(root, "calibrations", seq), True),
-        (join(root, "gt", seq), True),
-    ]
-    for modality, sensor in [
-        (lidar_source, "os1"),
-        ("3d_bbox", "os1"),
-        ("3d_semantic", "os1"),
-        *[(image_source, cam) for cam in cameras],
-    ]:
-        out.append((join(root, modality, sensor, seq), True))
-    return out
-
-
-def _present(path: Path) -> bool:
-    """The path exists as an entry (a broken or looping link counts: reading it gives the error)."""
-    return os.path.lexists(path)
 
 
 def image_size(path: Path, frame: int | None = None) -> tuple[int, int]:
@@ -903,108 +677,6 @@ def read_boxes(path: Path, frame: int | None = None) -> tuple[tuple[Box3D, ...],
     return tuple(boxes), tuple(problems)
 
 
-# -- calibration files ------------------------------------------------------------------------
-def read_intrinsics(path: Path) -> dict:
-    """A ``calib_{cam}_intrinsics.yaml`` -> dict(width, height, K (3, 3), distortion (5,), R (3, 3),
-    P (3, 4), has_rect). R defaults to identity and P to [K | 0] where the file lacks them
-    (has_rect False)."""
-    data = _read_yaml(path)
-    K = _yaml_matrix(data, "camera_matrix", (3, 3), path)
-    dist = _yaml_matrix(data, "distortion_coefficients", None, path).reshape(-1)
-    if dist.size not in (4, 5, 8):
-        raise CodaFormatError(
-            f"{path}: distortion_coefficients has {dist.size} values, expected 5 "
-            "(plumb_bob k1 k2 p1 p2 k3)"
-        )
-    if np.any(dist[5:] != 0):
-        raise CodaFormatError(
-            f"{path}: distortion_coefficients {dist.tolist()}: only plumb_bob "
-            "(k1 k2 p1 p2 k3) is supported"
-        )
-    dist = np.pad(dist[:5], (0, 5 - min(dist.size, 5)))
-    width = _positive_int(data, "image_width", path)
-    height = _positive_int(data, "image_height", path)
-    has_rect = "rectification_matrix" in data and "projection_matrix" in data
-    R = (
-        _yaml_matrix(data, "rectification_matrix", (3, 3), path)
-        if "rectification_matrix" in data
-        else np.eye(3)
-    )
-    _check_rotation(R, path, "rectification_matrix")
-    P = (
-        _yaml_matrix(data, "projection_matrix", (3, 4), path)
-        if "projection_matrix" in data
-        else np.hstack([K, np.zeros((3, 1))])
-    )
-    for name, M in (("camera_matrix", K), ("projection_matrix", P)):
-        if not (M[0, 0] > 0 and M[1, 1] > 0 and np.allclose(M[2, :3], [0, 0, 1])):
-            raise CodaFormatError(
-                f"{path}: {name} {M.tolist()} is not a camera matrix "
-                "(expected fx, fy > 0 and a last row 0 0 1)"
-            )
-    return {
-        "width": width,
-        "height": height,
-        "K": K,
-        "distortion": dist,
-        "R": R,
-        "P": P,
-        "has_rect": has_rect,
-    }
-
-
-def read_extrinsic(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """An extrinsic YAML -> (T_target_from_source (4, 4) float64, projection_matrix (3, 4) or None).
-
-    ``extrinsic_matrix`` is either ``{rows: 4, cols: 4, data: [16]}`` (row-major; 3 x 4 accepted)
-    or, as CODa's ``calib_cam0_to_cam1.yaml``, ``{R: {rows: 3, cols: 3, data: [9]}, T: [3]}``.
-    A top-level ``projection_matrix`` (3 x 4, the devkit's P R T) is returned when present.
-    """
-    data = _read_yaml(path)
-    node = _yaml_key(data, "extrinsic_matrix", path)
-    T = np.eye(4)
-    if isinstance(node, dict) and "R" in node and "T" in node:
-        T[:3, :3] = _yaml_matrix(node, "R", (3, 3), path, "extrinsic_matrix.R")
-        T[:3, 3] = _yaml_matrix(node, "T", (3, 1), path, "extrinsic_matrix.T").reshape(3)
-    else:
-        values = _yaml_matrix(data, "extrinsic_matrix", None, path).reshape(-1)
-        if values.size not in (12, 16):
-            raise CodaFormatError(
-                f"{path}: extrinsic_matrix has {values.size} values, expected 4x4 "
-                "(rows/cols/data) or {R: 3x3, T: [3]}"
-            )
-        T[:3] = values[:12].reshape(3, 4)
-        if values.size == 16 and not np.allclose(values[12:], [0, 0, 0, 1], atol=1e-9):
-            raise CodaFormatError(
-                f"{path}: extrinsic_matrix last row {values[12:].tolist()}, expected 0 0 0 1"
-            )
-    _check_rotation(T[:3, :3], path, "extrinsic_matrix rotation")
-    P = (
-        _yaml_matrix(data, "projection_matrix", (3, 4), path)
-        if "projection_matrix" in data
-        else None
-    )
-    return T, P
-
-
-def _check_rotation(R: np.ndarray, path: Path, name: str) -> None:
-    """A rotation: orthonormal (R R^T = I) with determinant +1, within ROTATION_TOLERANCE."""
-    err = float(np.max(np.abs(R @ R.T - np.eye(3))))
-    if err > ROTATION_TOLERANCE:
-        raise CodaFormatError(
-            f"{path}: {name} is not orthonormal (max |R R^T - I| = {err:.3g}, a scaled, sheared "
-            f"or zero matrix): {np.round(R, 6).tolist()}",
-            path,
-        )
-    det = float(np.linalg.det(R))
-    if abs(det - 1.0) > ROTATION_TOLERANCE:
-        raise CodaFormatError(
-            f"{path}: {name} has determinant {det:.4f}, expected +1 (a reflection, not a "
-            f"rotation): {np.round(R, 6).tolist()}",
-            path,
-        )
-
-
 def _check_metadata(metadata, path: Path) -> None:
     """The metadata fields the reader uses have the types CODa's devkit writes."""
     if not isinstance(metadata, dict):
@@ -1036,7 +708,6 @@ def _check_metadata(metadata, path: Path) -> None:
                 )
 
 
-# -- small parsers ----------------------------------------------------------------------------
 def _read_timestamps(path: Path) -> np.ndarray:
     try:
         lines = read_text(path, None, "timestamps file").split()
@@ -1139,63 +810,6 @@ def _read_poses(
                     k,
                 )
     return poses
-
-
-def _read_yaml(path: Path) -> dict:
-    try:
-        data = yaml.load(read_text(path, None, "calibration file"), Loader=_YamlLoader)
-    except InputError as exc:
-        raise CodaFormatError(str(exc), path) from None
-    except yaml.YAMLError as exc:
-        raise CodaFormatError(f"{path}: invalid YAML ({exc})", path) from None
-    if not isinstance(data, dict):
-        raise CodaFormatError(f"{path}: expected a YAML mapping", path)
-    return data
-
-
-#: libyaml's safe loader where PyYAML has it (the calibration files are parsed at every open)
-_YamlLoader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
-
-
-def _yaml_key(data: dict, key: str, path: Path, name: str | None = None):
-    if key not in data:
-        raise CodaFormatError(f"{path}: calibration key {name or key!r} is missing")
-    return data[key]
-
-
-def _positive_int(data: dict, key: str, path: Path) -> int:
-    value = _yaml_key(data, key, path)
-    if (
-        isinstance(value, bool)
-        or not isinstance(value, (int, float))
-        or value <= 0
-        or value != int(value)
-    ):
-        raise CodaFormatError(
-            f"{path}: {key} is {value!r}, expected a positive whole number of pixels"
-        )
-    return int(value)
-
-
-def _yaml_matrix(
-    data: dict, key: str, shape: tuple[int, int] | None, path: Path, name: str | None = None
-) -> np.ndarray:
-    name = name or key
-    node = _yaml_key(data, key, path, name)
-    values = node.get("data") if isinstance(node, dict) else node
-    try:
-        arr = np.asarray(values, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise CodaFormatError(f"{path}: {name} is not a list of numbers") from None
-    if shape is not None:
-        if arr.size != shape[0] * shape[1]:
-            raise CodaFormatError(
-                f"{path}: {name} has {arr.size} values, expected {shape[0]}x{shape[1]}"
-            )
-        arr = arr.reshape(shape)
-    if not np.isfinite(arr).all():
-        raise CodaFormatError(f"{path}: {name} has non-finite values")
-    return arr
 
 
 def _read_json(path: Path, where: str | None = None):
