@@ -5,7 +5,8 @@ After the per-frame fits, each track's frames are refitted together: pose and ro
 of every frame by the fit's own objective (tasks/fit/optimize.py: keypoints, LiDAR Chamfer, pose
 priors) plus an acceleration penalty that ties consecutive frames,
 
-    L_acc = w_joints * sum_j |a_j|^2 + w_root * |a_root|^2,   a = x_prev - 2 x + x_next
+    L_acc = w_limbs * sum_limb joints |a_j|^2 + w_torso * sum_torso joints |a_j|^2
+            + w_root * |a_root|^2,   a = x_prev - 2 x + x_next
 
 with x the joints in a frame fixed to the world (the robot's motion removed), in metres per
 frame^2 at the sequence's nominal rate (unequal steps use the second divided difference scaled
@@ -32,19 +33,25 @@ class RefineSettings:
     enabled: refine (False: per-frame fits as they are). iterations / learning_rate: Adam steps
     and step size of the refit (it starts from converged per-frame fits). joint_weight /
     root_weight: w_joints and w_root of L_acc (objective units per (m/frame^2)^2; the keypoint
-    term is in pixels^2). max_gap_s: neighbours farther apart are not tied. window_frames /
+    term is in pixels^2); torso_weight: w_torso of the spine, neck, head, collars and shoulders,
+    which move nearly with the pelvis (joint_weight is then w_limbs). max_gap_s: neighbours farther apart are not tied. window_frames /
     overlap_frames: the windows of a long track. batch_rows: rows per batched refit.
     """
 
     enabled: bool = True
     iterations: int = 30
     learning_rate: float = 0.01
-    joint_weight: float = 2.0e4
-    root_weight: float = 2.0e5
+    joint_weight: float = 1.0e3
+    torso_weight: float = 1.0e4
+    root_weight: float = 2.0e4
     max_gap_s: float = 0.5
     window_frames: int = 48
     overlap_frames: int = 8
     batch_rows: int = 256
+
+
+#: SMPL joints that move nearly with the pelvis: spine 1-3, neck, collars, head, shoulders
+TORSO_JOINTS = (3, 6, 9, 12, 13, 14, 15, 16, 17)
 
 
 class AccelerationPenalty:
@@ -56,14 +63,19 @@ class AccelerationPenalty:
     batch (-1 none); scale_prev / scale_mid / scale_next (k,): the divided-difference weights
     times the nominal step squared."""
 
-    def __init__(self, T_ref_from_cam, prev, nxt, coef, joint_weight, root_weight, device="cpu"):
+    def __init__(
+        self, T_ref_from_cam, prev, nxt, coef, joint_weight, torso_weight, root_weight, device="cpu"
+    ):
         T = torch.as_tensor(np.asarray(T_ref_from_cam), dtype=torch.float32, device=device)
         self.R, self.t = T[:, :3, :3], T[:, :3, 3]
         self.prev = torch.as_tensor(np.maximum(prev, 0), device=device)
         self.next = torch.as_tensor(np.maximum(nxt, 0), device=device)
         self.on = torch.as_tensor((prev >= 0) & (nxt >= 0), device=device)
         self.coef = torch.as_tensor(np.asarray(coef), dtype=torch.float32, device=device)
-        self.w_joint, self.w_root = float(joint_weight), float(root_weight)
+        w = np.full(24, float(joint_weight))
+        w[list(TORSO_JOINTS)] = float(torso_weight)
+        w[0] += float(root_weight)
+        self.w = torch.as_tensor(w, dtype=torch.float32, device=device)
 
     def __call__(self, joints: torch.Tensor) -> torch.Tensor:
         x = joints @ self.R.transpose(1, 2) + self.t[:, None]  # (k, 24, 3) reference frame
@@ -74,7 +86,7 @@ class AccelerationPenalty:
             + c[:, 2, None, None] * x[self.next]
         )
         a2 = (a * a).sum(-1)  # (k, 24)
-        pen = self.w_joint * a2.sum(-1) + self.w_root * a2[:, 0]
+        pen = (a2 * self.w).sum(-1)
         return torch.where(self.on, pen, torch.zeros_like(pen))
 
 
@@ -184,7 +196,9 @@ def refine_tracks(
         # a world-fixed frame near each window: its first row's camera
         first = {w: rows[which == w][0] for w in batch}
         T_ref = np.stack([np.linalg.inv(T[first[w]]) @ T[r] for r, w in zip(rows, which)])
-        penalty = AccelerationPenalty(T_ref, prev, nxt, coef, s.joint_weight, s.root_weight)
+        penalty = AccelerationPenalty(
+            T_ref, prev, nxt, coef, s.joint_weight, s.torso_weight, s.root_weight
+        )
         result = fit(rows, fits.take(rows), penalty)
         mine = take[rows] == which
         for k in _FIELDS:
