@@ -238,6 +238,7 @@ def cmd_check_data(args: argparse.Namespace) -> int:
 BENCHMARKS = {
     "pipeline": "flows.bench.pipeline",
     "fit": "flows.bench.fit",
+    "fit-tracks": "flows.bench.fit_tracks",
     "occupancy": "flows.bench.occupancy",
     "perception": "flows.bench.perception",
     "planning": "flows.bench.planning",

@@ -13,13 +13,12 @@ from tasks.body.poses import sample_plausible_poses
 from tasks.body.prior import GMMPosePrior, generate_pose_prior
 from tasks.body.procedural import default_body_model
 from tasks.body.rotations import axis_angle_to_matrix
-from tasks.fit.flips import FlipSettings, decide_flips
+from tasks.fit.flips import decide_flips
 from tasks.fit.gaps import (
     OCCLUDED,
     SEEN_THROUGH,
     SUPPORTED,
     UNOBSERVED,
-    GapSettings,
     check_body,
     find_gaps,
     interpolate_bodies,
@@ -35,8 +34,15 @@ from tasks.fit.lidar_sim import (
 )
 from tasks.fit.metrics import mean_error_mm
 from tasks.fit.optimize import ragged_points
-from tasks.fit.refine import RefineSettings, acceleration_error, refine_tracks, windows
+from tasks.fit.refine import acceleration_error, refine_tracks, windows
 from tasks.fit.reframe import reframe_params
+from tasks.fit.settings import (
+    FitSettings,
+    FlipSettings,
+    GapSettings,
+    InitLidarSettings,
+    RefineSettings,
+)
 from tasks.fit.shape import geometric_median, shape_spread, track_shapes, with_shape
 from tasks.fit.track_fit import persons_fit
 from tasks.fit.weights import FIT_PRESETS
@@ -45,6 +51,7 @@ K = np.array([[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]])
 T_CL = np.eye(4)
 T_CL[:3, :3] = R_CAM_FROM_LIDAR
 UP_CAM = np.array([0.0, -1.0, 0.0])  # a level camera: y down
+INIT = InitLidarSettings()
 
 
 @pytest.fixture(scope="module")
@@ -107,8 +114,8 @@ def test_weight_free_start_on_procedural_persons(model, prior):
         max_points=400,
     )
     pc, pts, counts = _cam_points(sp.points_lidar, sp.point_mask)
-    costs = facing_costs(model, sp.keypoints, K, pc, counts, UP_CAM)
-    start = initial_bodies(model, costs, costs.best(), sp.keypoints, K, pc, counts, UP_CAM)
+    costs = facing_costs(model, sp.keypoints, K, pc, counts, UP_CAM, INIT)
+    start = initial_bodies(model, costs, costs.best(), sp.keypoints, K, pc, counts, UP_CAM, INIT)
     # heading: the chosen facing within 30 deg of the true one (the template faces +z)
     true_facing = axis_angle_to_matrix(
         torch.as_tensor(sp.truth_global_orient, dtype=torch.float64)
@@ -137,7 +144,7 @@ def test_weight_free_start_on_procedural_persons(model, prior):
         mean_error_mm(joints, sp.truth_joints).mean()
         < mean_error_mm(_posed(model, oracle)[1], sp.truth_joints).mean()
     )
-    fit = persons_fit(model, prior, K, T_CL, FIT_PRESETS["3dpw"], 0.02, 5, 0.03, None)
+    fit = persons_fit(model, prior, K, T_CL, FIT_PRESETS["3dpw"], FitSettings())
     ours = fit(sp.keypoints, pts, counts, start, iterations=30)
     theirs = fit(sp.keypoints, pts, counts, oracle, iterations=30)
     e_ours = mean_error_mm(ours.joints, sp.truth_joints).mean()
@@ -153,18 +160,18 @@ def test_weight_free_start_without_points_or_confident_keypoints(model):
     low[..., 2] = 0.1
     none = np.zeros((0, 3))
     for keypoints in (kp, low):
-        costs = facing_costs(model, keypoints, K, none, np.array([0]), UP_CAM)
-        body = lidar_keypoint_init(model, keypoints, K, none, np.array([0]), UP_CAM)
+        costs = facing_costs(model, keypoints, K, none, np.array([0]), UP_CAM, INIT)
+        body = lidar_keypoint_init(model, keypoints, K, none, np.array([0]), UP_CAM, INIT)
         assert not costs.has_points[0]
         assert all(
             np.isfinite(getattr(body, f)).all()
             for f in ("betas", "global_orient", "body_pose", "transl")
         )
-    _, joints = _posed(model, lidar_keypoint_init(model, kp, K, none, np.array([0]), UP_CAM))
+    _, joints = _posed(model, lidar_keypoint_init(model, kp, K, none, np.array([0]), UP_CAM, INIT))
     assert (
         np.linalg.norm(joints[0, 0] - obs.joints[0, 0]) < 1.0
     )  # keypoints alone: depth within 1 m
-    costs = facing_costs(model, low, K, none, np.array([0]), UP_CAM)
+    costs = facing_costs(model, low, K, none, np.array([0]), UP_CAM, INIT)
     assert not costs.has_keypoints[0] and np.array_equal(costs.cost[:, 0], costs.cost[:, 1])
 
 
@@ -174,7 +181,7 @@ def test_weight_free_start_without_points_or_confident_keypoints(model):
 def _decide(model, heading, speed, mirror, settings=FlipSettings()):
     truth, obs, kp = _track(model, heading, speed, mirror=mirror)
     pc, pts, counts = _cam_points(obs.points_lidar, obs.point_mask)
-    costs = facing_costs(model, kp, K, pc, counts, UP_CAM)
+    costs = facing_costs(model, kp, K, pc, counts, UP_CAM, INIT)
     ends = np.cumsum(counts)
     where = np.stack([np.median(pts[e - n : e], 0) for n, e in zip(counts, ends)])
     return decide_flips(
@@ -206,12 +213,20 @@ def test_flip_with_both_candidates_equally_poor_is_kept_and_counted():
     facing[..., 0], facing[..., 2] = np.sin(psi), np.cos(psi)
     cost = np.ones((R, 2, Y))  # the same for both labellings and every heading
     d = decide_flips(
-        np.ones(R, int), np.arange(R) * 0.2, np.zeros((R, 3)), facing, cost, R_CAM_FROM_LIDAR.T
+        np.ones(R, int),
+        np.arange(R) * 0.2,
+        np.zeros((R, 3)),
+        facing,
+        cost,
+        R_CAM_FROM_LIDAR.T,
+        FlipSettings(),
     )
     assert not d.mirrored.any() and not d.decided.any()
     assert d.counts() == {"flipped": 0, "kept": 0, "undecided": 3}
     # a track of one frame, standing: its own costs decide; equal costs: kept, undecided
-    one = decide_flips([7], [0.0], np.zeros((1, 3)), facing[:1], cost[:1], R_CAM_FROM_LIDAR.T)
+    one = decide_flips(
+        [7], [0.0], np.zeros((1, 3)), facing[:1], cost[:1], R_CAM_FROM_LIDAR.T, FlipSettings()
+    )
     assert not one.mirrored[0] and not one.decided[0]
     off = decide_flips(
         np.ones(R, int),
@@ -253,7 +268,7 @@ def test_track_shape_is_a_robust_median_and_keeps_the_root(model):
 
 def _refine(model, prior, truth, obs, start, settings=RefineSettings()):
     pc, pts, counts = _cam_points(obs.points_lidar, obs.point_mask)
-    fit = persons_fit(model, prior, K, T_CL, FIT_PRESETS["3dpw"], 0.02, 5, 0.03, None)
+    fit = persons_fit(model, prior, K, T_CL, FIT_PRESETS["3dpw"], FitSettings())
     n = len(start)
 
     def refit(sel, init, coupling):
@@ -369,3 +384,74 @@ def test_gap_filling_on_a_track_with_a_hole(model):
     assert nothing.keep and nothing.status == UNOBSERVED
     # a longer hole than the limit: not filled
     assert len(find_gaps([1, 1], [0, 4], np.arange(5) * 0.2, max_gap_frames=2)) == 0
+
+
+# ---- warm starts along a track ------------------------------------------------------------------
+
+
+def test_warm_start_carries_a_tracks_fit_into_its_next_frame(model):
+    """fit_tracks with an identity 'fit' (its output is its start): a track fitted in the
+    previous frame starts from that body moved by the ego-motion, so in the world it stays put
+    exactly; a new track, or one after a frame gap, starts from the provider's estimate."""
+    from types import SimpleNamespace
+
+    from tasks.fit.track_fit import TrackRows, fit_tracks
+
+    def pose(yaw, x):
+        T = np.eye(4)
+        T[:3, :3] = axis_angle_to_matrix(torch.tensor([0.0, 0.0, yaw], dtype=torch.float64)).numpy()
+        T[:3, 3] = [x, 0.5 * x, 0.0]
+        return T
+
+    poses = np.stack([pose(0.1 * k, 0.7 * k) for k in range(4)])
+    # track 1 in frames 0, 1, 2; track 2 in 1; track 3 in 0 and 2 (a gap)
+    track_id, position = np.array([1, 3, 1, 2, 1, 3]), np.array([0, 0, 1, 1, 2, 2])
+    n = len(track_id)
+    rng = np.random.default_rng(0)
+    est = BodyParams(
+        rng.normal(0, 0.5, (n, 10)).astype(np.float32),
+        rng.normal(0, 0.3, (n, 3)).astype(np.float32),
+        rng.normal(0, 0.2, (n, 69)).astype(np.float32),
+        (rng.normal(0, 0.5, (n, 3)) + [0, 0, 6]).astype(np.float32),
+    )
+
+    def identity_fit(keypoints, points_lidar, counts, init, **kw):
+        return SimpleNamespace(
+            **{f: getattr(init, f) for f in ("betas", "global_orient", "body_pose", "transl")},
+            residuals={},
+        )
+
+    rows = TrackRows(
+        track_id,
+        position,
+        np.zeros((n, 17, 3), np.float32),
+        np.zeros((0, 3), np.float32),
+        np.zeros(n, np.int64),
+        K,
+        T_CL,
+        poses,
+        np.arange(4) * 0.2,
+    )
+    settings = FitSettings(warm_start=True, shared_shape=False, batch_persons=2)
+    res = fit_tracks(
+        rows,
+        identity_fit,
+        model,
+        est,
+        settings,
+        InitLidarSettings(),
+        FlipSettings(enabled=False),
+        RefineSettings(enabled=False),
+    )
+    assert res.warm.tolist() == [False, False, True, False, True, False]
+    world = {}
+    for r in range(n):
+        T_world_from_cam = poses[position[r]] @ np.linalg.inv(T_CL)
+        w = reframe_params(model, res.params.take(slice(r, r + 1)), T_world_from_cam)
+        world[r] = _posed(model, w)[0][0]
+    # track 1: frames 1 and 2 start from frame 0's body (the same world pose, to float32)
+    assert np.abs(world[2] - world[0]).max() < 1e-4 and np.abs(world[4] - world[0]).max() < 1e-4
+    # track 2 (new) and track 3 after a gap: their own estimates
+    for r in (3, 5):
+        np.testing.assert_array_equal(res.params.betas[r], est.betas[r])
+    assert np.abs(world[5] - world[1]).max() > 0.05

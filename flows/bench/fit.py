@@ -45,8 +45,14 @@ def bench_fit(
     seed: int = 0,
     warm_start: bool = False,
     ablation_sensors=None,
+    start_settings=None,
 ) -> dict:
     """Run the benchmark; returns {sensor: {variant: {metric: mean}}} plus 'person_fits_per_s'.
+
+    start_settings: None: the fits start from the oracle's estimates (truth with monocular-like
+    errors); tasks.fit.settings.InitLidarSettings: from the weight-free start computed from each
+    person's points and keypoints (``fit.init_provider: lidar-keypoints``; the oracle's estimates
+    are drawn all the same, so the persons and the noise are the same in both).
 
     weights (tasks.fit.weights.FitWeights) and settings (tasks.fit.settings.FitSettings: iterations,
     learning rate, nn_every, the L_3D cap, converge_rtol, batch_persons as the chunk): the
@@ -95,13 +101,7 @@ def bench_fit(
                 sp.T_cam_from_lidar,
                 *ragged_points(sp.points_lidar[idx], sp.point_mask[idx]),
                 w,
-                iterations=its,
-                lr=settings.learning_rate,
-                device=device,
-                seed=seed,
-                nn_every=settings.nn_every,
-                chamfer_vertex_max_m=settings.chamfer_vertex_max_m,
-                converge_rtol=settings.converge_rtol,
+                dataclasses.replace(settings, iterations=its, device=device, seed=seed),
                 **extra,
             )
             if count:
@@ -122,6 +122,20 @@ def bench_fit(
             sp.truth_betas, sp.truth_global_orient, sp.truth_body_pose, sp.truth_transl
         )
         init = oracle_initial_estimate(model, truth, rng)
+        if start_settings is not None:
+            from tasks.fit.init_lidar import lidar_keypoint_init
+
+            pts, counts = ragged_points(sp.points_lidar, sp.point_mask)
+            T = np.asarray(sp.T_cam_from_lidar, np.float64)
+            init = lidar_keypoint_init(
+                model,
+                sp.keypoints,
+                sp.K,
+                pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3],
+                counts,
+                T[:3, :3] @ np.array([0.0, 0.0, 1.0]),  # the LiDAR's z is up
+                start_settings,
+            )
         occ = sp.occluded_limb >= 0
         table: dict = {}
 
@@ -336,7 +350,7 @@ def bench_throughput(
     from tasks.fit.icp import icp_align
     from tasks.fit.init_oracle import BodyParams
     from tasks.fit.metrics import mean_error_mm
-    from tasks.fit.optimize import fit_persons, ragged_points
+    from tasks.fit.optimize import LIDAR_MIN_POINTS, fit_persons, ragged_points
     from tasks.fit.visibility import vertex_parts, visibility_masks
 
     iterations = settings.iterations
@@ -354,15 +368,7 @@ def bench_throughput(
     rep = np.arange(persons) % n
     init = init0.take(rep)
     pts, counts = ragged_points(a["points_lidar"][rep], a["point_mask"][rep])
-    args = {
-        "weights": weights,
-        "iterations": iterations,
-        "device": device,
-        "nn_every": settings.nn_every,
-        "chamfer_vertex_max_m": settings.chamfer_vertex_max_m,
-        "lr": settings.learning_rate,
-        "converge_rtol": settings.converge_rtol,
-    }
+    fit_settings = dataclasses.replace(settings, device=device)
     w = min(4, persons)
     warm_pts, warm_counts = ragged_points(a["points_lidar"][rep[:w]], a["point_mask"][rep[:w]])
     fit_persons(
@@ -374,14 +380,24 @@ def bench_throughput(
         a["T_cam_from_lidar"],
         warm_pts,
         warm_counts,
-        **{**args, "iterations": min(iterations, 6)},
+        weights,
+        dataclasses.replace(fit_settings, iterations=min(iterations, 6)),
     )
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
     sync()
     t0 = time.perf_counter()
     r = fit_persons(
-        model, prior, init, a["keypoints"][rep], a["K"], a["T_cam_from_lidar"], pts, counts, **args
+        model,
+        prior,
+        init,
+        a["keypoints"][rep],
+        a["K"],
+        a["T_cam_from_lidar"],
+        pts,
+        counts,
+        weights,
+        fit_settings,
     )
     sync()
     wall = time.perf_counter() - t0
@@ -412,7 +428,7 @@ def bench_throughput(
     )
     sync()
     t1 = time.perf_counter()
-    icp_align(o.vertices, vis.vertex_mask, p_cam, person)
+    icp_align(o.vertices, vis.vertex_mask, p_cam, person, min_person_points=LIDAR_MIN_POINTS)
     sync()
     icp_s = time.perf_counter() - t1
     out = {
@@ -447,13 +463,14 @@ def device_agreement(pool_arrays: dict, device: str, weights, iterations: int = 
     from tasks.body.procedural import default_body_model
     from tasks.fit.init_oracle import BodyParams
     from tasks.fit.optimize import fit_persons, ragged_points
+    from tasks.fit.settings import FitSettings
 
     a, model = pool_arrays, default_body_model()
     g = generate_pose_prior()
     prior = GMMPosePrior(g["means"], g["covars"], g["weights"])
     init = BodyParams(*(a[f"init_{k}"] for k in ("betas", "global_orient", "body_pose", "transl")))
     pts, counts = ragged_points(a["points_lidar"], a["point_mask"])
-    kw = {"weights": weights, "iterations": iterations, "nn_every": 5, "chamfer_vertex_max_m": 0.03}
+    settings = dataclasses.replace(FitSettings(), iterations=iterations)
 
     def fit(dev):
         p = prior if dev == "cpu" else copy.deepcopy(prior).to(dev)
@@ -466,8 +483,8 @@ def device_agreement(pool_arrays: dict, device: str, weights, iterations: int = 
             a["T_cam_from_lidar"],
             pts,
             counts,
-            device=dev,
-            **kw,
+            weights,
+            dataclasses.replace(settings, device=dev),
         )
 
     c, d1, d2 = fit("cpu"), fit(device), fit(device)
@@ -513,7 +530,7 @@ def main(argv=None) -> None:
     import yaml
 
     from configs.schema import load_config
-    from tasks.fit.settings import FitSettings
+    from tasks.fit.settings import FitSettings, InitLidarSettings
 
     ap = argparse.ArgumentParser(prog="mobileocc bench fit", description=__doc__.splitlines()[0])
     ap.add_argument(
@@ -629,9 +646,13 @@ def main(argv=None) -> None:
         ablation_sensors=None
         if a.ablation_sensors is None
         else tuple(a.ablation_sensors.split(",")),
+        start_settings=fit.init_lidar.to(InitLidarSettings)
+        if fit.init_provider == "lidar-keypoints"
+        else None,
     )
     results["settings"] = {
         "preset": fit.preset,
+        "start": "lidar-keypoints" if fit.init_provider == "lidar-keypoints" else "oracle",
         "weights": dataclasses.asdict(weights),
         "fit": dataclasses.asdict(settings),
     }

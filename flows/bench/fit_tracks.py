@@ -188,7 +188,9 @@ def bench_tracks(
     frames: int,
     weights,
     settings,
-    track_settings,
+    start_settings,
+    flip_settings,
+    refine_settings,
     init: str = "oracle",
     rate_hz: float = 5.0,
     sensor: str = "ouster-128",
@@ -221,33 +223,17 @@ def bench_tracks(
     )
     rng = np.random.default_rng(seed + 1)
     oracle = oracle_initial_estimate(model, sim["truth"], rng)
-    fit = persons_fit(
-        model,
-        prior,
-        sim["K"],
-        sim["T_cam_from_lidar"],
-        weights,
-        settings.learning_rate,
-        settings.nn_every,
-        settings.chamfer_vertex_max_m,
-        settings.converge_rtol,
-        seed=settings.seed,
-    )
+    fit = persons_fit(model, prior, sim["K"], sim["T_cam_from_lidar"], weights, settings)
     start = oracle if init == "oracle" else None
     out: dict = {"rows": len(rows), "swapped_rows": int(sim["swapped"].sum())}
     for method in methods:
-        if method == "per-frame":
-            ts = dataclasses.replace(
-                track_settings,
-                warm_start=False,
-                shared_shape=False,
-                flips=dataclasses.replace(track_settings.flips, enabled=False),
-                refine=dataclasses.replace(track_settings.refine, enabled=False),
-            )
-        else:
-            ts = track_settings
+        s, fl, rf = settings, flip_settings, refine_settings
+        if method == "per-frame":  # the fit before issue 29: each row alone, as detected
+            s = dataclasses.replace(settings, warm_start=False, shared_shape=False)
+            fl = dataclasses.replace(flip_settings, enabled=False)
+            rf = dataclasses.replace(refine_settings, enabled=False)
         t0 = time.process_time()
-        res = fit_tracks(rows, fit, model, start, settings.iterations, settings.batch_persons, ts)
+        res = fit_tracks(rows, fit, model, start, s, start_settings, fl, rf)
         cpu = time.process_time() - t0
         m = _metrics(model, sim, res.params, rate_hz)
         m["cpu_s_per_fit"] = cpu / max(len(rows), 1)
@@ -269,8 +255,7 @@ def main(argv=None) -> None:
     import yaml
 
     from configs.schema import load_config
-    from tasks.fit.settings import FitSettings
-    from tasks.fit.track_fit import TrackSettings
+    from tasks.fit.settings import FitSettings, FlipSettings, InitLidarSettings, RefineSettings
 
     ap = argparse.ArgumentParser(
         prog="mobileocc bench fit-tracks", description=__doc__.splitlines()[0]
@@ -296,13 +281,14 @@ def main(argv=None) -> None:
 
     torch.set_num_threads(a.threads)
     fit = load_config(a.config, overrides).fit
-    track_settings = TrackSettings()
     res = bench_tracks(
         a.tracks,
         a.frames,
         fit.weights,
         fit.to(FitSettings),
-        track_settings,
+        fit.init_lidar.to(InitLidarSettings),
+        fit.flips.to(FlipSettings),
+        fit.refine.to(RefineSettings),
         a.init,
         a.rate_hz,
         a.sensor,

@@ -28,30 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-
-@dataclass(frozen=True)
-class FlipSettings:
-    """How left / right swaps are decided (defaults measured on the benchmark, docs/fit-benchmark.md).
-
-    enabled: decide (False: keypoints as detected, each row's cheapest heading). motion_weight /
-    smooth_weight / cost_weight: weights of the walking-direction, smoothness and facing-cost
-    terms (the facing cost is in units of :class:`tasks.fit.init_lidar.InitLidarSettings`).
-    min_speed_mps / full_speed_mps: the walking direction counts from the first speed and fully
-    from the second. velocity_window_s: half-width of the window whose positions give a row's
-    velocity (a least-squares line). max_gap_s: rows farther apart are not tied by smoothness.
-    min_margin: a smaller difference between the two labellings' min-marginal costs keeps the
-    keypoints as detected.
-    """
-
-    enabled: bool = True
-    motion_weight: float = 4.0
-    smooth_weight: float = 4.0
-    cost_weight: float = 1.0
-    min_speed_mps: float = 0.3
-    full_speed_mps: float = 0.8
-    velocity_window_s: float = 0.45
-    max_gap_s: float = 0.5
-    min_margin: float = 0.5
+from tasks.fit.settings import FlipSettings
 
 
 @dataclass(frozen=True)
@@ -104,7 +81,7 @@ def decide_flips(
     facing_cam,
     cost,
     R_world_from_cam,
-    settings: FlipSettings = FlipSettings(),
+    settings: FlipSettings,
 ) -> FlipDecision:
     """Decide, for R detections, between their keypoints as labelled and mirrored.
 

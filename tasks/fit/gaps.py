@@ -6,8 +6,8 @@ missing frame gets a body: the two fits moved into the world (robot motion remov
 rotation (the root's in the world, the others local) interpolated by slerp, the root joint along
 the straight line between them, the shape of the earlier fit; then moved into the missing
 frame's LiDAR frame. The body is checked against that frame's sweep:
-- the LiDAR points near it (within ``max_shift_m`` + ``support_radius_m`` of the mesh) pull it by
-  a translation (a few nearest-vertex steps, at most ``max_shift_m``); if ``min_support_points``
+- the LiDAR points near it (within ``align_max_m`` + ``support_radius_m`` of the mesh) pull it by
+  a translation (a few nearest-vertex steps, at most ``align_max_m``); if ``min_support_points``
   of them then lie within ``support_radius_m`` of its surface, it is kept ("supported");
 - otherwise the rays of the sweep through the body's direction (its angular footprint seen from
   the sensor) decide: more of them pass the body and return from behind it than stop in front
@@ -33,28 +33,12 @@ from tasks.body.rotations import (
 )
 from tasks.fit.init_oracle import BodyParams
 from tasks.fit.reframe import reframe_params
+from tasks.fit.settings import GapSettings
 
 _FIELDS = ("betas", "global_orient", "body_pose", "transl")
 #: check outcomes (the GapBodies.status codes)
 SUPPORTED, OCCLUDED, UNOBSERVED, SEEN_THROUGH = 0, 1, 2, 3
 STATUS_NAMES = ("supported", "occluded", "unobserved", "seen through")
-
-
-@dataclass(frozen=True)
-class GapSettings:
-    """Gap filling (defaults measured on the benchmark's night sequence, docs/fit-benchmark.md).
-
-    enabled: fill gaps. max_gap_frames: longest run of missing frames filled (a longer one is
-    left empty). support_radius_m / min_support_points / max_shift_m: the check against the
-    missing frame's sweep (module docstring). behind_margin_m: how far past (or before) the
-    body's surface a return must lie to count as seen through (or in front)."""
-
-    enabled: bool = True
-    max_gap_frames: int = 2
-    support_radius_m: float = 0.08
-    min_support_points: int = 5
-    max_shift_m: float = 0.3
-    behind_margin_m: float = 0.3
 
 
 @dataclass(frozen=True)
@@ -190,7 +174,7 @@ def check_body(vertices_lidar: np.ndarray, points_lidar: np.ndarray, s: GapSetti
 
     v = np.asarray(vertices_lidar, np.float64)
     p = np.asarray(points_lidar, np.float64)
-    reach = s.max_shift_m + s.support_radius_m
+    reach = s.align_max_m + s.support_radius_m
     lo, hi = v.min(0) - reach, v.max(0) + reach
     near = p[np.all((p >= lo) & (p <= hi), axis=1)]
     shift = np.zeros(3)
@@ -204,8 +188,8 @@ def check_body(vertices_lidar: np.ndarray, points_lidar: np.ndarray, s: GapSetti
             step = np.median(near[ok] - shift - v[i[ok]], axis=0)
             shift = shift + step
             n = np.linalg.norm(shift)
-            if n > s.max_shift_m:
-                shift *= s.max_shift_m / n
+            if n > s.align_max_m:
+                shift *= s.align_max_m / n
             if np.linalg.norm(step) < 1e-3:
                 break
         d, _ = tree.query(near - shift)

@@ -39,6 +39,7 @@ from tasks.body.poses import neutral_pose
 from tasks.body.rotations import matrix_to_axis_angle
 from tasks.conventions import COCO_TO_SMPL_JOINT
 from tasks.fit.init_oracle import BodyParams
+from tasks.fit.settings import InitLidarSettings
 
 #: COCO-17 index of each keypoint's left / right counterpart (itself for the nose)
 MIRROR: tuple[int, ...] = (0, 2, 1, 4, 3, 6, 5, 8, 7, 10, 9, 12, 11, 14, 13, 16, 15)
@@ -58,37 +59,6 @@ _PAIRS: tuple[tuple[int, int], ...] = ((2, 3),)
 #: limb root joints whose COCO keypoint is the joint itself (shoulders; COCO hips are not SMPL's)
 _ROOT_KEYPOINT = {16: 5, 17: 6}
 _COCO_JOINT = [COCO_TO_SMPL_JOINT[i] for i in range(5, 17)]
-
-
-@dataclass(frozen=True)
-class InitLidarSettings:
-    """Settings of the weight-free start (defaults measured on the fit benchmark's persons,
-    docs/fit-benchmark.md).
-
-    yaw_candidates: headings tried (evenly spaced over 360 deg; the fit's ICP corrects up to 30).
-    min_points: fewer LiDAR points: place and turn the body by the keypoints alone.
-    min_confidence: keypoints below this confidence are not used.
-    lidar_sigma_m: scale of the LiDAR term (m; its Chamfer distances are capped at
-    ``lidar_cap_m``); keypoint_sigma: scale of the keypoint term (fraction of the person's height
-    in pixels). The facing cost is chamfer / lidar_sigma^2 + keypoint_weight * mean GM(error /
-    height; keypoint_sigma). limb_radius_m: depth from the surface a LiDAR point sees to the
-    bone inside. foreshortening: a limb bone whose keypoints span at least this fraction of its
-    length across the view is taken to lie across it (its depth from the keypoints is
-    ill-conditioned); a shorter one points towards or away from the camera, which of the two
-    the LiDAR points decide. max_points / max_vertices: subsampling of the scoring (speed).
-    """
-
-    yaw_candidates: int = 24
-    min_points: int = 5
-    min_confidence: float = 0.3
-    lidar_sigma_m: float = 0.03
-    lidar_cap_m: float = 0.10
-    keypoint_sigma: float = 0.1
-    keypoint_weight: float = 4.0
-    limb_radius_m: float = 0.05
-    foreshortening: float = 0.85
-    max_points: int = 256
-    max_vertices: int = 500
 
 
 @dataclass(frozen=True)
@@ -125,7 +95,7 @@ class _Neutral:
     """The neutral body of given betas, posed once in the template frame (no global rotation):
     vertices, joints, rotations per joint, a fixed vertex subsample with normals, keypoints."""
 
-    def __init__(self, model, betas: np.ndarray, body_pose: np.ndarray, max_vertices: int):
+    def __init__(self, model, betas: np.ndarray, body_pose: np.ndarray, score_vertices: int):
         B = len(betas)
         with torch.no_grad():
             out = model(
@@ -139,7 +109,7 @@ class _Neutral:
         self.vertices = out.vertices.double().numpy()
         self.joints = out.joints.double().numpy()
         self.root_rest = self.rest_joints[:, 0]
-        step = max(1, int(np.ceil(model.num_vertices / max_vertices)))
+        step = max(1, int(np.ceil(model.num_vertices / score_vertices)))
         self.sub = np.arange(0, model.num_vertices, step)
         self.sub_vertices = self.vertices[:, self.sub]
         self.sub_normals = _vertex_normals(self.vertices, model.faces, self.sub)
@@ -214,7 +184,7 @@ def facing_costs(
     points_cam,
     counts,
     up_cam,
-    settings: InitLidarSettings = InitLidarSettings(),
+    settings: InitLidarSettings,
 ) -> FacingCosts:
     """Steps 1-2 for B persons: the shape guess and the cost of every candidate heading.
 
@@ -230,16 +200,16 @@ def facing_costs(
     up = up / np.linalg.norm(up, axis=1, keepdims=True)
     pts = _person_points(np.asarray(points_cam, np.float64).reshape(-1, 3), np.asarray(counts))
     conf_ok = kp[..., 2] >= s.min_confidence
-    has_pts = np.array([len(p) >= max(s.min_points, 1) for p in pts])
+    has_pts = np.array([len(p) >= max(s.min_lidar_points, 1) for p in pts])
     has_kp = conf_ok.sum(1) >= 2
 
     neutral = np.tile(neutral_pose(), (B, 1))
-    zero = _Neutral(model, np.zeros((1, 10), np.float32), neutral[:1], s.max_vertices)
+    zero = _Neutral(model, np.zeros((1, 10), np.float32), neutral[:1], s.score_vertices)
     stature = np.array(
         [_stature(pts[b], kp[b], conf_ok[b], K, up[b], zero, 0, s) for b in range(B)]
     )
     betas = _stature_betas(model, stature)
-    body = _Neutral(model, betas, neutral, s.max_vertices)
+    body = _Neutral(model, betas, neutral, s.score_vertices)
 
     view = np.empty((B, 3))
     for b in range(B):
@@ -254,7 +224,7 @@ def facing_costs(
     for b in range(B):
         R = _frames(up[b], facing[b])  # (Y, 3, 3)
         if has_pts[b]:
-            cost[b] += _lidar_cost(R, body, b, _subsample(pts[b], s.max_points), view[b], s)[None]
+            cost[b] += _lidar_cost(R, body, b, _subsample(pts[b], s.score_points), view[b], s)[None]
         if has_kp[b]:
             cost[b] += s.keypoint_weight * _keypoint_cost(
                 R, body, b, kp[b], conf_ok[b], K, pts[b], s
@@ -267,7 +237,7 @@ def _stature(pts, kp, ok, K, up, body: _Neutral, b: int, s: InitLidarSettings) -
     when there are too few points."""
     v = body.vertices[b]
     model_h = float(v[:, 1].max() - v[:, 1].min())
-    if len(pts) < max(s.min_points, 1):
+    if len(pts) < max(s.min_lidar_points, 1):
         return model_h
     h = pts @ up
     top, bottom = float(h.max()), float(h.min())
@@ -348,7 +318,7 @@ def initial_bodies(
     points_cam,
     counts,
     up_cam,
-    settings: InitLidarSettings = InitLidarSettings(),
+    settings: InitLidarSettings,
 ) -> BodyParams:
     """Steps 3-4: the initial bodies (cam frame) of B persons turned to candidate ``heading``
     (B,) int of ``costs``, limbs swung towards ``keypoints`` (B, 17, 3) (the labelling chosen:
@@ -366,13 +336,13 @@ def initial_bodies(
     facing = costs.facing_cam[np.arange(B), heading]
     Rg = _frames(up, facing)  # (B, 3, 3)
     body_pose = np.broadcast_to(neutral_pose(), (B, 69)).copy()
-    first = _Neutral(model, costs.betas, body_pose, s.max_vertices)
+    first = _Neutral(model, costs.betas, body_pose, s.score_vertices)
     transl = _placement(first, Rg, costs, pts, kp, ok, K)
     for b in range(B):
         body_pose[b] = _swing_limbs(
             model, first, b, Rg[b], transl[b], body_pose[b], kp[b], ok[b], K, pts[b], s
         )
-    body = _Neutral(model, costs.betas, body_pose, s.max_vertices)
+    body = _Neutral(model, costs.betas, body_pose, s.score_vertices)
     transl = _placement(body, Rg, costs, pts, kp, ok, K)
     go = matrix_to_axis_angle(torch.as_tensor(Rg)).numpy()
     f32 = np.float32
@@ -662,7 +632,7 @@ def lidar_keypoint_init(
     points_cam,
     counts,
     up_cam,
-    settings: InitLidarSettings = InitLidarSettings(),
+    settings: InitLidarSettings,
 ) -> BodyParams:
     """The weight-free initial bodies (cam frame) of B persons, keypoints as labelled (arguments
     as :func:`facing_costs`)."""

@@ -17,38 +17,11 @@ farthest from an edge. Rows of different tracks share batches but never a term.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import torch
 
 from tasks.fit.init_oracle import BodyParams
-
-
-@dataclass(frozen=True)
-class RefineSettings:
-    """Settings of the track refinement (defaults measured on the track benchmark,
-    docs/fit-benchmark.md).
-
-    enabled: refine (False: per-frame fits as they are). iterations / learning_rate: Adam steps
-    and step size of the refit (it starts from converged per-frame fits). joint_weight /
-    root_weight: w_joints and w_root of L_acc (objective units per (m/frame^2)^2; the keypoint
-    term is in pixels^2); torso_weight: w_torso of the spine, neck, head, collars and shoulders,
-    which move nearly with the pelvis (joint_weight is then w_limbs). max_gap_s: neighbours farther apart are not tied. window_frames /
-    overlap_frames: the windows of a long track. batch_rows: rows per batched refit.
-    """
-
-    enabled: bool = True
-    iterations: int = 30
-    learning_rate: float = 0.01
-    joint_weight: float = 1.0e3
-    torso_weight: float = 1.0e4
-    root_weight: float = 2.0e4
-    max_gap_s: float = 0.5
-    window_frames: int = 48
-    overlap_frames: int = 8
-    batch_rows: int = 256
-
+from tasks.fit.settings import RefineSettings
 
 #: SMPL joints that move nearly with the pelvis: spine 1-3, neck, collars, head, shoulders
 TORSO_JOINTS = (3, 6, 9, 12, 13, 14, 15, 16, 17)
@@ -90,12 +63,12 @@ class AccelerationPenalty:
         return torch.where(self.on, pen, torch.zeros_like(pen))
 
 
-def neighbours(track_id, stamps_s, max_gap_s: float) -> tuple[np.ndarray, np.ndarray]:
+def neighbours(track_id, stamps_s, max_step_s: float) -> tuple[np.ndarray, np.ndarray]:
     """Previous and next row (R,) int64 of each row along its track (-1: none, or farther than
-    max_gap_s)."""
+    max_step_s)."""
     from tasks.track.velocity import track_neighbours
 
-    return track_neighbours(track_id, stamps_s, max_gap_s)
+    return track_neighbours(track_id, stamps_s, max_step_s)
 
 
 def divided_difference_coefficients(stamps_s, prev, nxt, step_s: float) -> np.ndarray:
@@ -158,7 +131,7 @@ def refine_tracks(
     position,
     T_ref_from_cam,
     step_s: float,
-    settings: RefineSettings = RefineSettings(),
+    settings: RefineSettings,
 ):
     """Refit R rows (cam frame bodies ``fits``, shapes already the tracks') with the acceleration
     penalty. fit: a callable (rows (n,) int64, init BodyParams of those rows, coupling) ->
@@ -211,14 +184,14 @@ def refine_tracks(
 _FIELDS = ("betas", "global_orient", "body_pose", "transl")
 
 
-def acceleration_error(track_id, stamps_s, pred, truth, max_gap_s: float = np.inf):
+def acceleration_error(track_id, stamps_s, pred, truth, max_step_s: float = np.inf):
     """Per row with two neighbours the mean over points of |a_pred - a_truth| (R,) (NaN
     elsewhere) and the mask of such rows: pred / truth (R, J, 3) points (joints) in a frame fixed
     to the world, m; a = the second divided difference of the row's track (m/s^2). Multiply by
     step^2 for m/frame^2."""
     ids = np.asarray(track_id).reshape(-1)
     t = np.asarray(stamps_s, np.float64).reshape(-1)
-    prev, nxt = neighbours(ids, t, max_gap_s)
+    prev, nxt = neighbours(ids, t, max_step_s)
     coef = divided_difference_coefficients(t, prev, nxt, 1.0)
     ok = (prev >= 0) & (nxt >= 0)
     out = np.full(len(ids), np.nan)

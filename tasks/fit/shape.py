@@ -16,9 +16,7 @@ import numpy as np
 import torch
 
 
-def track_shapes(
-    track_id, betas, weights=None, iterations: int = 50, tol: float = 1e-6
-) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+def track_shapes(track_id, betas, weights=None) -> tuple[np.ndarray, dict[int, np.ndarray]]:
     """Per row the shape (R, 10) float32 of its track, and {track id: betas (10,)}.
 
     track_id (R,) int; betas (R, 10) the per-frame fits' shapes; weights (R,) >= 0 (e.g. LiDAR
@@ -32,25 +30,29 @@ def track_shapes(
     for tid in np.unique(ids):
         rows = np.flatnonzero(ids == tid)
         ww = w[rows] if w[rows].sum() > 0 else np.ones(len(rows))
-        m = geometric_median(b[rows], ww, iterations, tol)
+        m = geometric_median(b[rows], ww)
         out[rows] = m
         per_track[int(tid)] = m.astype(np.float32)
     return out.astype(np.float32), per_track
 
 
-def geometric_median(x: np.ndarray, w: np.ndarray, iterations: int = 50, tol: float = 1e-6):
+#: Weiszfeld steps at most, and the step (in betas) below which it stops
+MEDIAN_STEPS, MEDIAN_TOL = 50, 1e-6
+
+
+def geometric_median(x: np.ndarray, w: np.ndarray):
     """The point (D,) minimising sum_i w_i |x_i - m| over rows x (N, D) (Weiszfeld, started at
     the weighted mean; a step that lands on a sample stops there)."""
     x = np.asarray(x, np.float64)
     w = np.asarray(w, np.float64)
     m = (w[:, None] * x).sum(0) / w.sum()
-    for _ in range(iterations):
+    for _ in range(MEDIAN_STEPS):
         d = np.linalg.norm(x - m, axis=1)
         if (d < 1e-12).any():
             return x[int(np.argmin(d))].copy()
         c = w / d
         new = (c[:, None] * x).sum(0) / c.sum()
-        if np.linalg.norm(new - m) < tol:
+        if np.linalg.norm(new - m) < MEDIAN_TOL:
             return new
         m = new
     return m

@@ -21,7 +21,8 @@ Frames: rows' bodies are fitted in their frame's camera frame (OpenCV) and retur
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import dataclasses
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -36,26 +37,10 @@ from tasks.fit.init_lidar import (
 from tasks.fit.init_oracle import BodyParams
 from tasks.fit.refine import RefineSettings, refine_tracks
 from tasks.fit.reframe import reframe_params
+from tasks.fit.settings import FitSettings
 from tasks.fit.shape import track_shapes, with_shape
 
 _FIELDS = ("betas", "global_orient", "body_pose", "transl")
-
-
-@dataclass(frozen=True)
-class TrackSettings:
-    """How the fits of a track are made beyond one frame's fit (tasks.fit.settings.FitSettings).
-
-    warm_start: start a row from its track's fit in the previous frame; warm_iterations: Adam
-    steps of such a warm fit (a cold fit takes FitSettings.iterations). shared_shape: one shape
-    per track. init / flips / refine: the weight-free start, the swap decision, the refinement.
-    """
-
-    warm_start: bool = True
-    warm_iterations: int = 30
-    shared_shape: bool = True
-    init: InitLidarSettings = field(default_factory=InitLidarSettings)
-    flips: FlipSettings = field(default_factory=FlipSettings)
-    refine: RefineSettings = field(default_factory=RefineSettings)
 
 
 @dataclass(frozen=True)
@@ -95,12 +80,14 @@ class TrackRows:
 
 @dataclass(frozen=True)
 class TrackFitResult:
-    """Per row: params (cam frame bodies), keypoints (R, 17, 3) the ones fitted (mirrored where
-    decided), flips (FlipDecision or None), warm (R,) bool: started from the previous frame's fit,
-    residuals: dict of (R,) float64 (the last fit's terms, 'steps' of the per-frame fit summed
-    with the refinement's), shapes: {track id: betas (10,)}."""
+    """Per row: params (cam frame bodies), starts (cam frame: the estimates the per-frame fits
+    started from, the provider's or the weight-free ones), keypoints (R, 17, 3) the ones fitted
+    (mirrored where decided), flips (FlipDecision or None), warm (R,) bool: started from the
+    previous frame's fit, residuals: dict of (R,) float64 (the last fit's terms, 'steps' of the
+    per-frame fit summed with the refinement's), shapes: {track id: betas (10,)}."""
 
     params: BodyParams
+    starts: BodyParams
     keypoints: np.ndarray
     flips: FlipDecision | None
     warm: np.ndarray
@@ -113,9 +100,10 @@ def fit_tracks(
     fit,
     model,
     init: BodyParams | None,
-    cold_iterations: int,
-    batch_persons: int,
-    settings: TrackSettings = TrackSettings(),
+    settings: FitSettings,
+    start: InitLidarSettings,
+    flips: FlipSettings,
+    refine: RefineSettings,
     run=None,
 ) -> TrackFitResult:
     """Fit every row of a sequence (steps 1-6 of the module docstring).
@@ -125,7 +113,9 @@ def fit_tracks(
     per-person fit (tasks.fit.optimize.fit_persons) with the camera, the objective's weights and
     the fit settings bound (learning_rate None: the settings'). model: the body model. init:
     the provider's starts (cam frame, one per row) or None (weight-free). run: maps a function
-    over a list of argument tuples (the stage's fan-out; default: in order, here)."""
+    over a list of argument tuples (the stage's fan-out; default: in order, here). settings:
+    iterations (a cold fit), warm_start / warm_iterations, shared_shape, batch_persons; start /
+    flips / refine: the weight-free start, the swap decision, the refinement."""
     s = settings
     run = run or (lambda f, args: [f(*a) for a in args])
     R = len(rows)
@@ -135,11 +125,11 @@ def fit_tracks(
     up_cam = R_cw @ np.array([0.0, 0.0, 1.0])
     pts_cam = _points_cam(rows)
     costs: FacingCosts | None = None
-    if init is None or s.flips.enabled:
-        costs = _facing_costs(model, kp, rows, pts_cam, up_cam, s.init, batch_persons)
+    if init is None or flips.enabled:
+        costs = _facing_costs(model, kp, rows, pts_cam, up_cam, start, s.batch_persons)
     decision = None
     heading = None if costs is None else costs.best()
-    if costs is not None and s.flips.enabled:
+    if costs is not None and flips.enabled:
         decision = decide_flips(
             rows.track_id,
             rows.stamps_s[rows.position],
@@ -147,15 +137,15 @@ def fit_tracks(
             costs.facing_cam,
             costs.cost,
             T_wc[:, :3, :3],
-            s.flips,
+            flips,
         )
         heading = decision.heading
         kp = np.where(decision.mirrored[:, None, None], mirrored(kp), kp)
     if init is None:
-        init = _weight_free(model, costs, heading, kp, rows, pts_cam, up_cam, s.init, batch_persons)
-    params, residuals, warm = _per_frame(
-        rows, fit, model, init, kp, cold_iterations, batch_persons, s, run
-    )
+        init = _weight_free(
+            model, costs, heading, kp, rows, pts_cam, up_cam, start, s.batch_persons
+        )
+    params, residuals, warm = _per_frame(rows, fit, model, init, kp, s, run)
     shapes: dict = {}
     if s.shared_shape and R:
         betas, shapes = track_shapes(rows.track_id, params.betas, rows.counts)
@@ -165,7 +155,7 @@ def fit_tracks(
             params.body_pose,
             with_shape(model, params.betas, params.transl, betas),
         )
-    if s.refine.enabled and R:
+    if refine.enabled and R:
         step = _nominal_step(rows.stamps_s)
 
         def refit(sel, start, coupling):
@@ -175,11 +165,11 @@ def fit_tracks(
                 pts,
                 counts,
                 start,
-                iterations=s.refine.iterations,
+                iterations=refine.iterations,
                 frozen=("betas",),
                 coupling=coupling,
                 use_icp=False,
-                learning_rate=s.refine.learning_rate,
+                learning_rate=refine.learning_rate,
             )
 
         steps = residuals.get("steps", np.zeros(R))
@@ -191,12 +181,34 @@ def fit_tracks(
             rows.position,
             T_wc,
             step,
-            s.refine,
+            refine,
         )
         res2["steps"] = steps + res2.get("steps", 0.0)
         res2["icp_fitness"] = residuals.get("icp_fitness", np.zeros(R))
         residuals = res2
-    return TrackFitResult(params, kp.astype(np.float32), decision, warm, residuals, shapes)
+    return TrackFitResult(params, init, kp.astype(np.float32), decision, warm, residuals, shapes)
+
+
+def posed_result(model, params: BodyParams, residuals: dict, chunk: int = 256):
+    """tasks.fit.optimize.FitResult of bodies ``params`` (posed by ``model``, in chunks)."""
+    import torch
+
+    from tasks.fit.optimize import FitResult
+
+    verts, joints = [], []
+    for a in range(0, len(params), chunk):
+        p = params.take(slice(a, a + chunk))
+        with torch.no_grad():
+            o = model(*(torch.as_tensor(np.asarray(getattr(p, f))) for f in _FIELDS))
+        verts.append(o.vertices.numpy())
+        joints.append(o.joints.numpy())
+    nv = int(model.v_template.shape[0])
+    return FitResult(
+        *(np.asarray(getattr(params, f), np.float32) for f in _FIELDS),
+        np.concatenate(verts) if verts else np.zeros((0, nv, 3), np.float32),
+        np.concatenate(joints) if joints else np.zeros((0, 24, 3), np.float32),
+        residuals,
+    )
 
 
 def _points_cam(rows: TrackRows) -> np.ndarray:
@@ -279,9 +291,9 @@ def _weight_free(model, costs, heading, kp, rows, pts_cam, up_cam, s, batch) -> 
     return BodyParams(*(np.concatenate([getattr(p, f) for p in parts]) for f in _FIELDS))
 
 
-def _per_frame(rows: TrackRows, fit, model, init: BodyParams, kp, cold_iterations, batch, s, run):
+def _per_frame(rows: TrackRows, fit, model, init: BodyParams, kp, s: FitSettings, run):
     """Step 4: the per-frame fits. Returns params, residuals (dict of (R,)), warm (R,) bool."""
-    R = len(rows)
+    R, batch = len(rows), s.batch_persons
     pos = np.asarray(rows.position)
     ids = np.asarray(rows.track_id)
     out = {k: np.array(getattr(init, k), np.float32, copy=True) for k in _FIELDS}
@@ -291,11 +303,9 @@ def _per_frame(rows: TrackRows, fit, model, init: BodyParams, kp, cold_iteration
         prev = _previous_frame_row(ids, pos)
         warm = prev >= 0
     cold = np.flatnonzero(~warm)
-    jobs = [cold[a : a + batch] for a in range(0, len(cold), batch)]
 
-    def job(sel, start, its):
-        pts, counts = rows.points_of(sel)
-        return fit(kp[sel], pts, counts, start, iterations=its)
+    def args(sel, start, its):
+        return (fit, kp[sel], *rows.points_of(sel), start, its)
 
     def store(sel, result):
         for k in _FIELDS:
@@ -303,8 +313,9 @@ def _per_frame(rows: TrackRows, fit, model, init: BodyParams, kp, cold_iteration
         for k, v in result.residuals.items():
             residuals.setdefault(k, np.zeros(R))[sel] = np.asarray(v)
 
+    jobs = [cold[a : a + batch] for a in range(0, len(cold), batch)]
     for sel, result in zip(
-        jobs, run(job, [(sel, init.take(sel), cold_iterations) for sel in jobs])
+        jobs, run(_fit_call, [args(j, init.take(j), s.iterations) for j in jobs])
     ):
         store(sel, result)
     if warm.any():
@@ -318,15 +329,20 @@ def _per_frame(rows: TrackRows, fit, model, init: BodyParams, kp, cold_iteration
                 @ rows.T_world_from_lidar[p - 1]
                 @ np.linalg.inv(T_cl)
             )
-            before = BodyParams(*(out[k][prev[here]] for k in _FIELDS))
-            start = reframe_params(model, before, T)
-            args = [
-                (here[a : a + batch], start.take(slice(a, a + batch)), s.warm_iterations)
-                for a in range(0, len(here), batch)
-            ]
-            for (sel, _, _), result in zip(args, run(job, args)):
-                store(sel, result)
+            start = reframe_params(model, BodyParams(*(out[k][prev[here]] for k in _FIELDS)), T)
+            jobs = [np.arange(a, min(len(here), a + batch)) for a in range(0, len(here), batch)]
+            results = run(
+                _fit_call, [args(here[j], start.take(j), s.warm_iterations) for j in jobs]
+            )
+            for j, result in zip(jobs, results):
+                store(here[j], result)
     return BodyParams(*(out[k] for k in _FIELDS)), residuals, warm
+
+
+def _fit_call(fit, keypoints, points_lidar, counts, start, iterations):
+    """One batch of the per-frame fits (a module-level function: the stage may run it on
+    another process)."""
+    return fit(keypoints, points_lidar, counts, start, iterations=iterations)
 
 
 def _previous_frame_row(ids: np.ndarray, pos: np.ndarray) -> np.ndarray:
@@ -341,21 +357,10 @@ def _nominal_step(stamps_s: np.ndarray) -> float:
     return float(np.median(d)) if len(d) else 0.2
 
 
-def persons_fit(
-    model,
-    prior,
-    K,
-    T_cam_from_lidar,
-    weights,
-    learning_rate: float,
-    nn_every: int,
-    chamfer_vertex_max_m: float | None,
-    converge_rtol: float | None,
-    device: str = "cpu",
-    seed: int = 0,
-):
+def persons_fit(model, prior, K, T_cam_from_lidar, weights, settings: FitSettings):
     """The fit callable :func:`fit_tracks` takes: tasks.fit.optimize.fit_persons with one
-    camera, the objective's weights and the fit settings bound."""
+    camera, the objective's weights and the fit settings bound (iterations and learning rate
+    given per call)."""
     from tasks.fit.optimize import fit_persons
 
     def fit(
@@ -370,6 +375,7 @@ def persons_fit(
         use_icp=True,
         learning_rate=None,
     ):
+        lr = settings.learning_rate if learning_rate is None else learning_rate
         return fit_persons(
             model,
             prior,
@@ -380,17 +386,10 @@ def persons_fit(
             points_lidar,
             counts,
             weights,
-            iterations=iterations,
-            lr=learning_rate if learning_rate is not None else lr0,
-            device=device,
-            seed=seed,
+            dataclasses.replace(settings, iterations=iterations, learning_rate=lr),
             use_icp=use_icp,
-            nn_every=nn_every,
-            chamfer_vertex_max_m=chamfer_vertex_max_m,
-            converge_rtol=converge_rtol,
             frozen=frozen,
             coupling=coupling,
         )
 
-    lr0 = learning_rate
     return fit
