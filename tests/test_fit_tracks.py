@@ -283,7 +283,7 @@ def _refine(model, prior, truth, obs, start, settings=RefineSettings()):
             frozen=("betas",),
             coupling=coupling,
             use_icp=False,
-            learning_rate=settings.learning_rate,
+            lr=settings.learning_rate,
         )
 
     out, _ = refine_tracks(

@@ -11,9 +11,10 @@ rows, minimising
     sum_t [ cost_t(state) + motion_weight * m_t (1 - cos(yaw(state) - walking direction_t)) ]
     + smooth_weight * sum_t (1 - cos(yaw_t - yaw_t+1)),
 
-with m_t in [0, 1] growing with the track's speed from ``min_speed_mps`` to ``full_speed_mps``
+with m_t in [0, 1] growing with the track's speed from ``walking_min_speed_mps`` to
+``walking_full_speed_mps``
 (people walk forwards; a standing person's position says nothing) and the smoothness term between
-rows at most ``max_gap_s`` apart (a body does not turn round in a fifth of a second). Each row's
+rows at most ``smooth_max_step_s`` apart (a body does not turn round in a fifth of a second). Each row's
 labelling is the one of its cheapest min-marginal; where the two labellings' min-marginals differ
 by less than ``min_margin`` the evidence is too weak and the row keeps its keypoints as detected
 (counted as undecided).
@@ -108,7 +109,12 @@ def decide_flips(
             np.zeros(R_rows, bool), heading, np.zeros(R_rows), np.zeros(R_rows, bool), speed
         )
     walk = np.arctan2(vel[:, 1], vel[:, 0])
-    m = np.clip((speed - s.min_speed_mps) / max(s.full_speed_mps - s.min_speed_mps, 1e-9), 0, 1)
+    m = np.clip(
+        (speed - s.walking_min_speed_mps)
+        / max(s.walking_full_speed_mps - s.walking_min_speed_mps, 1e-9),
+        0,
+        1,
+    )
     unary = (
         s.cost_weight * cost
         + (s.motion_weight * m)[:, None, None] * (1.0 - np.cos(yaw - walk[:, None]))[:, None, :]
@@ -137,7 +143,7 @@ def decide_flips(
 def _min_marginals(unary: np.ndarray, yaw: np.ndarray, t: np.ndarray, s: FlipSettings):
     """Min-sum forward-backward on a chain: unary (n, S) over states S = 2 x Y (labelling,
     heading), yaw (n, Y) of each row's headings; the pairwise cost between consecutive rows is
-    smooth_weight (1 - cos(yaw difference)) when they are at most max_gap_s apart. Returns the
+    smooth_weight (1 - cos(yaw difference)) when they are at most smooth_max_step_s apart. Returns the
     min-marginals (n, S): the cheapest total cost of a labelling of the whole chain with that
     row in that state."""
     n, S = unary.shape
@@ -147,7 +153,7 @@ def _min_marginals(unary: np.ndarray, yaw: np.ndarray, t: np.ndarray, s: FlipSet
     fwd[0] = unary[0]
     pair = []
     for k in range(1, n):
-        if t[k] - t[k - 1] <= s.max_gap_s:
+        if t[k] - t[k - 1] <= s.smooth_max_step_s:
             P = s.smooth_weight * (1.0 - np.cos(ys[k - 1][:, None] - ys[k][None, :]))  # (S, S)
         else:
             P = np.zeros((S, S))

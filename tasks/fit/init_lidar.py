@@ -199,7 +199,7 @@ def facing_costs(
     up = np.broadcast_to(np.asarray(up_cam, np.float64), (B, 3))
     up = up / np.linalg.norm(up, axis=1, keepdims=True)
     pts = _person_points(np.asarray(points_cam, np.float64).reshape(-1, 3), np.asarray(counts))
-    conf_ok = kp[..., 2] >= s.min_confidence
+    conf_ok = kp[..., 2] >= s.keypoint_min_confidence
     has_pts = np.array([len(p) >= max(s.min_lidar_points, 1) for p in pts])
     has_kp = conf_ok.sum(1) >= 2
 
@@ -331,7 +331,7 @@ def initial_bodies(
     up = np.broadcast_to(np.asarray(up_cam, np.float64), (B, 3))
     up = up / np.linalg.norm(up, axis=1, keepdims=True)
     pts = _person_points(np.asarray(points_cam, np.float64).reshape(-1, 3), np.asarray(counts))
-    ok = kp[..., 2] >= s.min_confidence
+    ok = kp[..., 2] >= s.keypoint_min_confidence
     heading = np.asarray(heading, np.int64).reshape(B)
     facing = costs.facing_cam[np.arange(B), heading]
     Rg = _frames(up, facing)  # (B, 3, 3)

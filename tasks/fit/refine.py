@@ -164,7 +164,7 @@ def refine_tracks(
         which = np.concatenate([np.full(len(win[w]), w) for w in batch])
         # neighbours inside the batch: same window only (a window's rows are consecutive)
         local_ids = which.astype(np.int64)
-        prev, nxt = neighbours(local_ids, t[rows], s.max_gap_s)
+        prev, nxt = neighbours(local_ids, t[rows], s.tie_max_step_s)
         coef = divided_difference_coefficients(t[rows], prev, nxt, step_s)
         # a world-fixed frame near each window: its first row's camera
         first = {w: rows[which == w][0] for w in batch}

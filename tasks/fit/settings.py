@@ -52,7 +52,7 @@ class InitLidarSettings:
 
     yaw_candidates: headings tried (evenly spaced over 360 deg; the fit's ICP corrects up to 30).
     min_lidar_points: fewer LiDAR points: place and turn the body by the keypoints alone.
-    min_confidence: keypoints below this confidence are not used.
+    keypoint_min_confidence: keypoints below this confidence are not used.
     lidar_sigma_m: scale of the LiDAR term (m; its Chamfer distances are capped at
     ``lidar_cap_m``); keypoint_sigma: scale of the keypoint term (fraction of the person's height
     in pixels). The facing cost is chamfer / lidar_sigma^2 + keypoint_weight * mean GM(error /
@@ -65,7 +65,7 @@ class InitLidarSettings:
 
     yaw_candidates: AtLeastOne = 24
     min_lidar_points: AtLeastOne = 5
-    min_confidence: Probability = 0.3
+    keypoint_min_confidence: Probability = 0.3
     lidar_sigma_m: Positive = 0.03
     lidar_cap_m: Positive = 0.10
     keypoint_sigma: Positive = 0.1
@@ -83,9 +83,9 @@ class FlipSettings:
     enabled: decide (False: keypoints as detected, each row's cheapest heading). motion_weight /
     smooth_weight / cost_weight: weights of the walking-direction, smoothness and facing-cost
     terms (the facing cost is in units of :class:`tasks.fit.init_lidar.InitLidarSettings`).
-    min_speed_mps / full_speed_mps: the walking direction counts from the first speed and fully
+    walking_min_speed_mps / walking_full_speed_mps: the walking direction counts from the first speed and fully
     from the second. velocity_window_s: half-width of the window whose positions give a row's
-    velocity (a least-squares line). max_gap_s: rows farther apart are not tied by smoothness.
+    velocity (a least-squares line). smooth_max_step_s: rows farther apart are not tied by smoothness.
     min_margin: a smaller difference between the two labellings' min-marginal costs keeps the
     keypoints as detected.
     """
@@ -94,10 +94,10 @@ class FlipSettings:
     motion_weight: NonNegative = 4.0
     smooth_weight: NonNegative = 4.0
     cost_weight: NonNegative = 1.0
-    min_speed_mps: NonNegative = 0.3
-    full_speed_mps: Positive = 0.8
+    walking_min_speed_mps: NonNegative = 0.3
+    walking_full_speed_mps: Positive = 0.8
     velocity_window_s: Positive = 0.45
-    max_gap_s: Positive = 0.5
+    smooth_max_step_s: Positive = 0.5
     min_margin: NonNegative = 0.5
 
 
@@ -110,7 +110,7 @@ class RefineSettings:
     and step size of the refit (it starts from converged per-frame fits). joint_weight /
     root_weight: w_joints and w_root of L_acc (objective units per (m/frame^2)^2; the keypoint
     term is in pixels^2); torso_weight: w_torso of the spine, neck, head, collars and shoulders,
-    which move nearly with the pelvis (joint_weight is then w_limbs). max_gap_s: neighbours farther apart are not tied. window_frames /
+    which move nearly with the pelvis (joint_weight is then w_limbs). tie_max_step_s: neighbours farther apart are not tied. window_frames /
     overlap_frames: the windows of a long track. batch_rows: rows per batched refit.
     """
 
@@ -120,7 +120,7 @@ class RefineSettings:
     joint_weight: NonNegative = 100.0
     torso_weight: NonNegative = 0.0
     root_weight: NonNegative = 2.0e4
-    max_gap_s: Positive = 0.5
+    tie_max_step_s: Positive = 0.5
     window_frames: AtLeastOne = 48
     overlap_frames: Count = 8
     batch_rows: AtLeastOne = 256

@@ -109,9 +109,9 @@ def fit_tracks(
     """Fit every row of a sequence (steps 1-6 of the module docstring).
 
     fit: callable (keypoints (k, 17, 3), points_lidar (n, 3), counts (k,), init BodyParams, *,
-    iterations, frozen, coupling, use_icp, learning_rate) -> tasks.fit.optimize.FitResult: the
+    iterations, frozen, coupling, use_icp, lr) -> tasks.fit.optimize.FitResult: the
     per-person fit (tasks.fit.optimize.fit_persons) with the camera, the objective's weights and
-    the fit settings bound (learning_rate None: the settings'). model: the body model. init:
+    the fit settings bound (lr None: the settings'). model: the body model. init:
     the provider's starts (cam frame, one per row) or None (weight-free). run: maps a function
     over a list of argument tuples (the stage's fan-out; default: in order, here). settings:
     iterations (a cold fit), warm_start / warm_iterations, shared_shape, batch_persons; start /
@@ -169,7 +169,7 @@ def fit_tracks(
                 frozen=("betas",),
                 coupling=coupling,
                 use_icp=False,
-                learning_rate=refine.learning_rate,
+                lr=refine.learning_rate,
             )
 
         steps = residuals.get("steps", np.zeros(R))
@@ -373,9 +373,9 @@ def persons_fit(model, prior, K, T_cam_from_lidar, weights, settings: FitSetting
         frozen=(),
         coupling=None,
         use_icp=True,
-        learning_rate=None,
+        lr=None,
     ):
-        lr = settings.learning_rate if learning_rate is None else learning_rate
+        lr = settings.learning_rate if lr is None else lr
         return fit_persons(
             model,
             prior,
