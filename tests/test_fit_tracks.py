@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from tasks.body.params import BodyParams
 from tasks.body.poses import sample_plausible_poses
 from tasks.body.prior import GMMPosePrior, generate_pose_prior
 from tasks.body.procedural import default_body_model
@@ -24,7 +25,7 @@ from tasks.fit.gaps import (
     interpolate_bodies,
 )
 from tasks.fit.init_lidar import facing_costs, initial_bodies, lidar_keypoint_init, mirrored
-from tasks.fit.init_oracle import BodyParams, oracle_initial_estimate
+from tasks.fit.init_oracle import oracle_initial_estimate
 from tasks.fit.lidar_sim import (
     R_CAM_FROM_LIDAR,
     SENSORS,
@@ -67,12 +68,7 @@ def prior():
 
 def _posed(model, p: BodyParams):
     with torch.no_grad():
-        o = model(
-            *(
-                torch.as_tensor(getattr(p, f))
-                for f in ("betas", "global_orient", "body_pose", "transl")
-            )
-        )
+        o = model(*(torch.as_tensor(getattr(p, f)) for f in BodyParams.FIELDS))
     return o.vertices.numpy(), o.joints.numpy()
 
 
@@ -89,7 +85,7 @@ def _track(model, heading, speed, frames=4, seed=3, mirror=False):
     )
     obs = observe_bodies(
         model,
-        *(getattr(truth, f) for f in ("betas", "global_orient", "body_pose", "transl")),
+        *(getattr(truth, f) for f in BodyParams.FIELDS),
         SENSORS["ouster-64"],
         rng,
         K,
@@ -163,10 +159,7 @@ def test_weight_free_start_without_points_or_confident_keypoints(model):
         costs = facing_costs(model, keypoints, K, none, np.array([0]), UP_CAM, INIT)
         body = lidar_keypoint_init(model, keypoints, K, none, np.array([0]), UP_CAM, INIT)
         assert not costs.has_points[0]
-        assert all(
-            np.isfinite(getattr(body, f)).all()
-            for f in ("betas", "global_orient", "body_pose", "transl")
-        )
+        assert all(np.isfinite(getattr(body, f)).all() for f in BodyParams.FIELDS)
     _, joints = _posed(model, lidar_keypoint_init(model, kp, K, none, np.array([0]), UP_CAM, INIT))
     assert (
         np.linalg.norm(joints[0, 0] - obs.joints[0, 0]) < 1.0
@@ -417,7 +410,7 @@ def test_warm_start_carries_a_tracks_fit_into_its_next_frame(model):
 
     def identity_fit(keypoints, points_lidar, counts, init, **kw):
         return SimpleNamespace(
-            **{f: getattr(init, f) for f in ("betas", "global_orient", "body_pose", "transl")},
+            **{f: getattr(init, f) for f in BodyParams.FIELDS},
             residuals={},
         )
 

@@ -42,9 +42,9 @@ def simulate_tracks(
     counts, swapped (R,) bool; per frame T_world_from_lidar, stamps_s; K, T_cam_from_lidar."""
     import numpy as np
 
+    from tasks.body.params import BodyParams
     from tasks.body.poses import standing_pose
     from tasks.fit.init_lidar import mirrored
-    from tasks.fit.init_oracle import BodyParams
     from tasks.fit.lidar_sim import (
         R_CAM_FROM_LIDAR,
         SENSORS,
@@ -91,10 +91,7 @@ def simulate_tracks(
                 for p in range(frames)
             ]
             cam = BodyParams(
-                *(
-                    np.concatenate([getattr(c, f) for c in cam])
-                    for f in ("betas", "global_orient", "body_pose", "transl")
-                )
+                *(np.concatenate([getattr(c, f) for c in cam]) for f in BodyParams.FIELDS)
             )
             z, x = cam.transl[:, 2], cam.transl[:, 0]
             if (z > 3.0).all() and (np.abs(x / z) < 0.45).all() and (z < 13.0).all():
@@ -130,10 +127,7 @@ def simulate_tracks(
         "position": cat(parts["position"]).astype(np.int64),
         "swapped": cat(parts["swapped"]),
         "truth": BodyParams(
-            *(
-                cat([getattr(t, f) for t in truth_parts])
-                for f in ("betas", "global_orient", "body_pose", "transl")
-            )
+            *(cat([getattr(t, f) for t in truth_parts]) for f in BodyParams.FIELDS)
         ),
         "joints": cat([o.joints for o in obs_parts]),
         "vertices": cat([o.vertices for o in obs_parts]),
@@ -151,17 +145,13 @@ def _metrics(model, sim: dict, params, rate_hz: float) -> dict:
     import numpy as np
     import torch
 
+    from tasks.body.params import BodyParams
     from tasks.fit.metrics import pa_mpjpe_mm
     from tasks.fit.refine import acceleration_error
     from tasks.fit.shape import shape_spread
 
     with torch.no_grad():
-        o = model(
-            *(
-                torch.as_tensor(getattr(params, f))
-                for f in ("betas", "global_orient", "body_pose", "transl")
-            )
-        )
+        o = model(*(torch.as_tensor(getattr(params, f)) for f in BodyParams.FIELDS))
     J = o.joints.double().numpy()
     G = sim["joints"].astype(np.float64)
     T_wc = sim["T_world_from_lidar"][sim["position"]] @ np.linalg.inv(sim["T_cam_from_lidar"])

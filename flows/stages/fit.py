@@ -25,15 +25,15 @@ from flows.pipeline.parallel import fan_out
 from flows.stages.common import StageContext, body_model, pose_prior
 from flows.stages.providers import init_provider
 from storage.products import Bodies, Tracks
+from tasks.body.params import BodyParams
 from tasks.fit.batch import concat_point_sets, drop_far_fits, fit_rows
 from tasks.fit.gaps import check_body, find_gaps, interpolate_bodies, shifted
-from tasks.fit.init_oracle import BodyParams
 from tasks.fit.optimize import torch_device
 from tasks.fit.shape import shape_spread
 from tasks.fit.track_fit import TrackRows, fit_tracks, persons_fit, posed_result
 from tasks.track.velocity import velocities_in_base
 
-_FIELDS = ("betas", "global_orient", "body_pose", "transl")
+_FIELDS = BodyParams.FIELDS
 
 
 @functools.lru_cache(maxsize=2)

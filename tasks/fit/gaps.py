@@ -26,16 +26,16 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from tasks.body.params import BodyParams
 from tasks.body.rotations import (
     axis_angle_to_matrix,
     matrix_to_quaternion,
     quaternion_to_axis_angle,
 )
-from tasks.fit.init_oracle import BodyParams
 from tasks.fit.reframe import reframe_params
 from tasks.fit.settings import GapSettings
 
-_FIELDS = ("betas", "global_orient", "body_pose", "transl")
+_FIELDS = BodyParams.FIELDS
 #: check outcomes (the GapBodies.status codes)
 SUPPORTED, OCCLUDED, UNOBSERVED, SEEN_THROUGH = 0, 1, 2, 3
 STATUS_NAMES = ("supported", "occluded", "unobserved", "seen through")

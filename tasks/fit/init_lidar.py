@@ -35,10 +35,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from tasks.body.params import BodyParams
 from tasks.body.poses import neutral_pose
 from tasks.body.rotations import matrix_to_axis_angle
 from tasks.conventions import COCO_TO_SMPL_JOINT
-from tasks.fit.init_oracle import BodyParams
 from tasks.fit.settings import InitLidarSettings
 
 #: COCO-17 index of each keypoint's left / right counterpart (itself for the nose)

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from tasks.fit.init_oracle import BodyParams
+from tasks.body.params import BodyParams
 from tasks.fit.settings import RefineSettings
 
 #: SMPL joints that move nearly with the pelvis: spine 1-3, neck, collars, head, shoulders
@@ -181,7 +181,7 @@ def refine_tracks(
     return BodyParams(*(out[k] for k in _FIELDS)), residuals
 
 
-_FIELDS = ("betas", "global_orient", "body_pose", "transl")
+_FIELDS = BodyParams.FIELDS
 
 
 def acceleration_error(track_id, stamps_s, pred, truth, max_step_s: float = np.inf):

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tasks.body.params import BodyParams
 from tasks.fit.flips import FlipDecision, FlipSettings, decide_flips
 from tasks.fit.init_lidar import (
     FacingCosts,
@@ -34,13 +35,12 @@ from tasks.fit.init_lidar import (
     initial_bodies,
     mirrored,
 )
-from tasks.fit.init_oracle import BodyParams
 from tasks.fit.refine import RefineSettings, refine_tracks
 from tasks.fit.reframe import reframe_params
 from tasks.fit.settings import FitSettings
 from tasks.fit.shape import track_shapes, with_shape
 
-_FIELDS = ("betas", "global_orient", "body_pose", "transl")
+_FIELDS = BodyParams.FIELDS
 
 
 @dataclass(frozen=True)
