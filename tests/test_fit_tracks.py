@@ -114,14 +114,14 @@ def test_weight_free_start_on_procedural_persons(model, prior):
     start = initial_bodies(model, costs, costs.best(), sp.keypoints, K, pc, counts, UP_CAM, INIT)
     # heading: the chosen facing within 30 deg of the true one (the template faces +z)
     true_facing = axis_angle_to_matrix(
-        torch.as_tensor(sp.truth_global_orient, dtype=torch.float64)
+        torch.as_tensor(sp.truth.global_orient, dtype=torch.float64)
     ).numpy()[:, :, 2]
     got = costs.facing_cam[np.arange(3), costs.best()]
     assert np.degrees(np.arccos(np.clip((true_facing * got).sum(1), -1, 1))).max() < 30.0
     # stature from the points: within 12 cm of the true heel-to-crown height
     with torch.no_grad():
         rest = model(
-            torch.as_tensor(sp.truth_betas),
+            torch.as_tensor(sp.truth.betas),
             torch.zeros(3, 3),
             torch.zeros(3, 69),
             torch.zeros(3, 3),
@@ -133,7 +133,7 @@ def test_weight_free_start_on_procedural_persons(model, prior):
     # 0.3 m there), and a short fit from it is as good as one from the oracle's
     oracle = oracle_initial_estimate(
         model,
-        BodyParams(sp.truth_betas, sp.truth_global_orient, sp.truth_body_pose, sp.truth_transl),
+        sp.truth,
         rng,
     )
     assert (

@@ -288,6 +288,6 @@ def main(argv=None) -> None:
     )
     res["argv"] = argv
     if a.json:
-        from pathlib import Path
+        from storage.atomic import atomic_write_text
 
-        Path(a.json).write_text(json.dumps(res, indent=1))
+        atomic_write_text(a.json, json.dumps(res, indent=1))
