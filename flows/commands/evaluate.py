@@ -406,8 +406,8 @@ def _evaluate_sequence(
                                 k,
                                 float(coda.info.stamps_ns[coda.position(raw)]) * 1e-9,
                                 int(gtf.track_id[persons[gi[j]]]),
-                                C.transform_points(T_w, pj[j]),
-                                C.transform_points(T_w, gtf.joints[persons[gi[j]]]),
+                                transform_points(T_w, pj[j]),
+                                transform_points(T_w, gtf.joints[persons[gi[j]]]),
                             )
                         )
                     _, gt_yaw = _boxes_to_base(
