@@ -18,7 +18,6 @@ seconds per person-fit of each method, measured in the same process one after th
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import time
@@ -239,55 +238,3 @@ def bench_tracks(
             flush=True,
         )
     return out
-
-
-def main(argv=None) -> None:
-    import yaml
-
-    from configs.schema import load_config
-    from tasks.fit.settings import FitSettings, FlipSettings, InitLidarSettings, RefineSettings
-
-    ap = argparse.ArgumentParser(
-        prog="mobileocc bench fit-tracks", description=__doc__.splitlines()[0]
-    )
-    ap.add_argument("--config", default=None)
-    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
-    ap.add_argument("--tracks", type=int, default=12)
-    ap.add_argument("--frames", type=int, default=10)
-    ap.add_argument("--rate-hz", type=float, default=5.0)
-    ap.add_argument("--sensor", default="ouster-128")
-    ap.add_argument("--init", default="oracle", choices=("oracle", "lidar-keypoints"))
-    ap.add_argument("--swap-back-views", type=float, default=0.0)
-    ap.add_argument("--methods", default="per-frame,tracks")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--json", default=None)
-    a = ap.parse_args(argv)
-    overrides = {}
-    for item in a.overrides:
-        key, _, value = item.partition("=")
-        overrides[key.strip()] = yaml.safe_load(value)
-    import torch
-
-    torch.set_num_threads(a.threads)
-    fit = load_config(a.config, overrides).fit
-    res = bench_tracks(
-        a.tracks,
-        a.frames,
-        fit.weights,
-        fit.to(FitSettings),
-        fit.init_lidar.to(InitLidarSettings),
-        fit.flips.to(FlipSettings),
-        fit.refine.to(RefineSettings),
-        a.init,
-        a.rate_hz,
-        a.sensor,
-        a.seed,
-        a.swap_back_views,
-        tuple(a.methods.split(",")),
-    )
-    res["argv"] = argv
-    if a.json:
-        from storage.atomic import atomic_write_text
-
-        atomic_write_text(a.json, json.dumps(res, indent=1))

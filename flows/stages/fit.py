@@ -72,7 +72,9 @@ def _person_points(seq, tracks: Tracks, rows: np.ndarray, at: dict) -> list[np.n
     return out
 
 
-def _fitted(ctx: StageContext, seq, tracks: Tracks, rows: np.ndarray) -> tuple[dict, dict]:
+def _fitted(
+    ctx: StageContext[FitInputs], seq, tracks: Tracks, rows: np.ndarray
+) -> tuple[dict, dict]:
     """The fits of ``rows`` (tasks.fit.batch.fit_rows, LiDAR frame) and the track kernel's counts."""
     inp, s = ctx.inputs, ctx.inputs.settings
     cam = seq.info.calibration.cameras[inp.source.camera]
@@ -130,7 +132,7 @@ def _fitted(ctx: StageContext, seq, tracks: Tracks, rows: np.ndarray) -> tuple[d
     }
 
 
-def _gap_bodies(ctx: StageContext, seq, out: dict) -> tuple[dict, dict]:
+def _gap_bodies(ctx: StageContext[FitInputs], seq, out: dict) -> tuple[dict, dict]:
     """Bodies for the frames inside tracks without a kept fit (tasks/fit/gaps.py), as rows like
     ``out``'s; and how many were filled, by the check's outcome."""
     g = ctx.inputs.gaps
@@ -189,7 +191,7 @@ def _bodies(seq, out: dict) -> Bodies:
     return Bodies(velocity_base=velocity.astype(np.float32), **out)
 
 
-def run_fit(ctx: StageContext) -> dict:
+def run_fit(ctx: StageContext[FitInputs]) -> dict:
     inp, seq = ctx.inputs, ctx.open()
     s, tracks = inp.settings, _tracks(str(ctx.upstream["track"]))
     cam = seq.info.calibration.cameras[inp.source.camera]
