@@ -93,6 +93,9 @@ def _run(args: argparse.Namespace, force: bool) -> int:
     # before prefect is imported: its settings are read once; per-task INFO lines would bury the
     # progress bars and the summary (PREFECT_LOGGING_LEVEL=INFO brings them back)
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+    # Prefect's temporary server gets 20 s to start by default: a busy machine (a build beside
+    # the run, other agents) misses that and the run fails before its first stage
+    os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
     from flows.pipeline.plan import PlanCosts, plan_without_hashing
     from flows.pipeline.units import check_run_paths, run_units, summary_table
     from storage.manifest import FingerprintCache, Manifest, run_lock
@@ -159,10 +162,13 @@ def cmd_export(args: argparse.Namespace) -> int:
         )
         return 2
     cfg = _config(args)
+    explicit = args.data is not None or any(
+        o.partition("=")[0].strip() == "dataset.root" for o in args.overrides
+    )
     target = export_dataset(
         dataset_export_inputs(cfg),
         cfg.output.root,
-        cfg.dataset.root,
+        cfg.dataset.root if explicit else None,  # None: where the dataset was built from
         args.format,
         args.to,
         gt=args.gt,
@@ -723,7 +729,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--gt",
         action="store_true",
-        help="occ3d: labels from the synthetic ground truth under --data (dataset.root)",
+        help="occ3d: labels from the synthetic ground truth under the raw data root (--data; "
+        "default: the one the dataset was built from)",
     )
     p.set_defaults(func=cmd_export)
 

@@ -61,6 +61,21 @@ def test_report_sections_and_gt_bodies_near_perfect(built, tmp_path):
     assert all(limbs[g]["ave_t_vertex_gt"] < 0.05 for g in ("legs", "arms", "torso"))
     assert limbs["legs"]["ave_o_person_gt"] > 2 * limbs["legs"]["ave_o_vertex_gt"]
     assert res["occupancy"]["geometric_iou"] > 0.6
+    # RayIoU / OccScore (SparseOcc / OpenOcc), in the report and results.json
+    ray = saved["ray_iou"]["all"]
+    assert "RayIoU and OccScore" in md and ray == saved["ray_iou"]["0"]  # one sequence
+    assert ray["rays"] > 1000 and 0 < ray["ray_iou_4m"] <= 1
+    assert ray["ray_iou_1m"] <= ray["ray_iou_2m"] <= ray["ray_iou_4m"]
+    # a class is n/a at every threshold or none (gt + pred - tp > 0 whenever gt + pred > 0)
+    assert ray["ray_iou"] == pytest.approx(
+        np.mean([ray[f"ray_iou_{t}m"] for t in (1, 2, 4)]), abs=1e-12
+    )
+    assert ray["occ_score"] == pytest.approx(
+        0.9 * ray["ray_iou"] + 0.1 * max(1 - ray["mave"], 0.0), abs=1e-12
+    )
+    # the exact GT bodies and vertex velocities are in: pedestrian rays near perfect
+    assert saved["ray_iou_per_class"]["2m"]["pedestrian"] > 0.9
+    assert saved["ray_ave_per_class"]["all"]["pedestrian (m/s)"] < 0.2
     # detection: every GT person in view counted once (T + misses), condition from the metadata
     d = res["detection"]["crowded"]
     assert d["T"] + d["M_vis"] + d["M_occ"] > 0 and d["T"] >= d["M_vis"]
@@ -85,6 +100,7 @@ def test_corrupted_semantics_lower_miou(built, tmp_path):
     arr[0] = frame
     bad = evaluate(bad_out, data, tmp_path / "bad", sample_frames=0)
     assert bad["occupancy"]["miou"] < good["occupancy"]["miou"] - 0.2
+    assert bad["ray_iou"]["all"]["ray_iou"] < good["ray_iou"]["all"]["ray_iou"] - 0.2
     assert bad["static"]["point_accuracy"] < good["static"]["point_accuracy"] - 0.2
     # geometry unchanged: the geometric IoU does not move
     assert bad["occupancy"]["geometric_iou"] == pytest.approx(good["occupancy"]["geometric_iou"])

@@ -28,7 +28,9 @@ Definitions beyond the kernels' own (each kernel's docstring has the rest):
 - box heading: the published box yaw (instances table) of each matched fitted row vs the GT
   person's heading (box_yaw), both about base z (tasks/metrics/heading.py);
 - box visibility: the nuScenes export's visible fraction of each matched fitted row's box vs the
-  GT person's visible_fraction, and their nuScenes visibility bins.
+  GT person's visible_fraction, and their nuScenes visibility bins;
+- RayIoU / OccScore (SparseOcc / OpenOcc's ray metric, full grids, flow = velocity):
+  flows/commands/evaluate_rays.py, tasks/metrics/rayiou.py.
 """
 
 from __future__ import annotations
@@ -37,12 +39,13 @@ from pathlib import Path
 
 import numpy as np
 
+from flows.commands.evaluate_rays import SequenceRays, ray_sections
 from storage.coda import read_lidar_bin
 from storage.dataset import open_dataset
 from storage.export.common import sequence_info
 from storage.export.nuscenes import visibility_token, visible_fractions_of_boxes
 from storage.gt import gt_dir, read_frame_gt, read_sequence_gt
-from storage.manifest import Manifest
+from storage.manifest import Manifest, data_root_for
 from storage.products import Bodies, Detections, Tracks
 from tasks import conventions as C
 from tasks.geometry import match_boxes, transform_points
@@ -105,15 +108,8 @@ def _stage_folder(out: Path, manifest: Manifest, sequence: str, stage: str) -> P
 
 
 def _gt_root(out: Path, manifest: Manifest, gt: Path | None) -> Path:
-    if gt is not None:
-        return Path(gt)
-    root = ((manifest.meta.get("config") or {}).get("dataset") or {}).get("root")
-    if not root:
-        raise EvaluateError(
-            f"{out / 'manifest.json'}: no meta.config.dataset.root recorded; pass --gt GT "
-            "(the raw data root holding gt/)"
-        )
-    return Path(root)
+    """``--gt`` when given, else the raw data root the dataset was built from (OUT's manifest)."""
+    return data_root_for(out, gt)
 
 
 def _boxes_to_base(T_base_from_lidar: np.ndarray, centers, yaws) -> tuple[np.ndarray, np.ndarray]:
@@ -211,6 +207,7 @@ class _Totals:
         self.notes: dict[str, str] = {}
         self.hist: dict[str, list] = {"velocity_error": [], "PVE_mm": [], "MPJPE_mm": []}
         self.samples: list[dict] = []
+        self.rays: dict = {}  # sequence -> evaluate_rays.SequenceRays (RayIoU / OccScore)
 
 
 def _evaluate_sequence(
@@ -250,6 +247,10 @@ def _evaluate_sequence(
     condition = "night" if coda.info.is_night else _condition(coda.info.metadata)
     min_range = float((config.get("dataset") or {}).get("min_range_m", coda.min_range_m))
     frustum = _frustum(shape, range_min, vs, T_bl, cam)
+    if same_grid:
+        tot.rays[seq] = SequenceRays(
+            ds.table("frames", seq), range_min, range_min + np.asarray(shape) * vs, vs
+        )
 
     detect_dir = _stage_folder(out, manifest, seq, "detect")
     track_dir = _stage_folder(out, manifest, seq, "track")
@@ -314,6 +315,7 @@ def _evaluate_sequence(
                 gvel[gtf.occupancy_instance == tid] = gtf.velocity_base[j]
             pvel = np.asarray(arrays["velocity"][k]).astype(np.float32)
             ve = ve + velocity_errors(pred, pvel, gtf.occupancy, gvel, mask_cam)
+            tot.rays[seq].add(k, pred, gtf.occupancy, pvel, gvel)
             vv = _vertex_velocity(
                 tot,
                 seq,
@@ -690,8 +692,6 @@ def open_for_evaluation(dataset: Path, data: Path | None):
     manifest = Manifest.load(out)
     config = manifest.meta.get("config") or {}
     root = _gt_root(out, manifest, data)
-    if not root.is_dir():
-        raise EvaluateError(f"data root {root} does not exist (pass --gt DATA, the raw data root)")
     ds = open_dataset(out)
     if not ds.sequences:
         raise EvaluateError(f"{out}: no published sequence to evaluate (run the pipeline first)")
@@ -731,6 +731,7 @@ def evaluate(
         results["occupancy_by_sequence"] = {
             s: _brief(m.compute().as_dict()) for s, m in tot.occ.items()
         }
+    results.update(ray_sections(tot.rays))
     if tot.static:
         results["static"] = _sum(tot.static.values()).as_dict()
         results["static_by_sequence"] = {s: _brief(v.as_dict()) for s, v in tot.static.items()}

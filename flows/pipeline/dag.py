@@ -46,3 +46,9 @@ CODE_VERSIONS: dict[str, str] = {
     #                 4: instances carry keypoints_mirrored and gap_filled, and a row per gap-filled
     #                 body (no 2D box or keypoints)
 }
+#: Version of the dataset-level Occ3D / nuScenes exports (OUT/exports/, made after the sequences
+#: are published; part of their key in the manifest): bump when their files change for the same
+#: dataset. 2: labels.npz carries OpenOcc's flow; annotations.json and the training infos in time
+#: order, the infos with the occupancy challenge's prev / next / frame_idx / can_bus / occ_gt_path;
+#: the metadata's FlashOcc settings (depth, BEV flips, input sizes and their frustum coverage)
+DATASET_EXPORTS_VERSION = "2"

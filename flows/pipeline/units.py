@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from configs.schema import Config, config_hash
-from flows.pipeline.dag import CODE_VERSIONS, STAGES
+from flows.pipeline.dag import CODE_VERSIONS, DATASET_EXPORTS_VERSION, STAGES
 from flows.pipeline.inputs import (
     DatasetExportInputs,
     Runtime,
@@ -51,7 +51,9 @@ from storage.manifest import (
     Manifest,
     StageRecord,
     check_writable,
+    data_root_for,
     holding_lock,
+    record_data_root,
     remove_stale_versions,
     run_lock,
     stage_dir,
@@ -320,6 +322,7 @@ def run_units(
         manifest.meta.update(
             {"config_hash": config_hash(config), "config": config.model_dump(mode="json")}
         )
+        record_data_root(manifest, config.dataset.root)  # export / evaluate default to it
         units = _Units(config, manifest, report, submitter or Submitter(), run)
         cache = FingerprintCache(out_root / ".cache" / "sequences", verify)
         with _Progress(report, units, progress, len(ids)) as bars:
@@ -395,7 +398,8 @@ def _dataset_exports(config: Config, manifest: Manifest, report: RunReport) -> N
     published = report.withdrawn or any(
         st == "export" and o.status == Status.DONE for (_, st), o in report.outcomes.items()
     )
-    key, done = inputs_hash(ex), manifest.meta.setdefault("dataset_exports", {})
+    key = f"{inputs_hash(ex)}-v{DATASET_EXPORTS_VERSION}"
+    done = manifest.meta.setdefault("dataset_exports", {})
     for fmt in ex.formats:
         if not (published or done.get(fmt) != key):
             continue
@@ -455,13 +459,14 @@ class _Progress:
 def export_dataset(
     ex: DatasetExportInputs,
     out_root: Path,
-    data_root: Path,
+    data_root: Path | None,
     fmt: str,
     target: Path | None = None,
     gt: bool = False,
 ) -> Path:
     """Export the published dataset (every sequence) for occupancy trainers; ``gt``: Occ3D labels
-    from the synthetic ground truth under ``data_root`` instead of the pipeline's."""
+    from the synthetic ground truth under ``data_root`` instead of the pipeline's. ``data_root``
+    None: the raw data root recorded by the run that built the dataset."""
     from storage.export.nuscenes import export_nuscenes
     from storage.export.occ3d import export_occ3d
 
@@ -474,7 +479,7 @@ def export_dataset(
             target,
             scene_prefix=ex.scene_prefix,
             val_sequences=ex.val_sequences,
-            gt_root=Path(data_root) if gt else None,
+            gt_root=data_root_for(out_root, data_root) if gt else None,
         )
     else:
         export_nuscenes(
@@ -482,7 +487,7 @@ def export_dataset(
             target,
             version=ex.nuscenes_version,
             scene_prefix=ex.scene_prefix,
-            source_root=Path(data_root),
+            source_root=data_root_for(out_root, data_root),
             min_range_m=ex.min_range_m,
             val_sequences=ex.val_sequences,
             **({"infos_data_root": ex.infos_data_root} if ex.infos_data_root else {}),
