@@ -171,7 +171,6 @@ def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle
         enough = tracks["points_in_image"] >= oracle_cfg.fit.min_points  # others are not fitted
         rows = np.flatnonzero((tracks["gt_index"] >= 0) & enough)
         few[seq] = int(((tracks["gt_index"] >= 0) & ~enough).sum())
-        batches = [rows[a : a + 2] for a in range(0, len(rows), 2)]  # the stage's batches
         opened = source(oracle_cfg).open(sequence_ref(oracle_cfg, seq))
         provider = init_provider(
             fit_inputs(oracle_cfg).init,
@@ -179,10 +178,9 @@ def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle
             body_model(fit_inputs(oracle_cfg).body, tmp_path / "oracle"),
             opened.info.calibration.cameras[oracle_cfg.dataset.camera],
         )
-        est = [provider.estimates(typed, b) for b in batches]
+        est = provider.estimates(typed, rows)  # the stage asks for a sequence's rows at once
         go, bp, tr, betas = (
-            np.concatenate([getattr(e, k) for e in est])
-            for k in ("global_orient", "body_pose", "transl", "betas")
+            getattr(est, k) for k in ("global_orient", "body_pose", "transl", "betas")
         )
         rot = axis_angle_to_matrix(
             torch.as_tensor(
