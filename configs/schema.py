@@ -39,7 +39,13 @@ from pydantic.fields import FieldInfo
 from configs.sources import CameraTopics, LogSettings, PoseMode
 from tasks.bounds import AtLeastOne, Count, NonNegative, Positive, Probability, VoxelSize
 from tasks.conventions import CITYSCAPES_TO_CLASS, CLASS_NAMES, FREE, UNLABELED
-from tasks.fit.settings import FitSettings
+from tasks.fit.settings import (
+    FitSettings,
+    FlipSettings,
+    GapSettings,
+    InitLidarSettings,
+    RefineSettings,
+)
 from tasks.fit.weights import FIT_PRESETS, FitWeights, LossWeights, ObjectiveSettings
 from tasks.occupancy.grid import GridSpec
 from tasks.occupancy.settings import FreeSpaceParams, FuseSettings, MapParams
@@ -379,6 +385,26 @@ class LossWeightsConfig(LossWeights, Section):
 
 
 @pydantic_dataclass(config=STRICT, frozen=True)
+class InitLidarConfig(InitLidarSettings, Section):
+    """The weight-free start from LiDAR points and keypoints: tasks.fit.settings.InitLidarSettings."""
+
+
+@pydantic_dataclass(config=STRICT, frozen=True)
+class FlipsConfig(FlipSettings, Section):
+    """Left / right keypoint swaps decided along a track: tasks.fit.settings.FlipSettings."""
+
+
+@pydantic_dataclass(config=STRICT, frozen=True)
+class RefineConfig(RefineSettings, Section):
+    """The temporal refinement of a track's fits: tasks.fit.settings.RefineSettings."""
+
+
+@pydantic_dataclass(config=STRICT, frozen=True)
+class GapsConfig(GapSettings, Section):
+    """Bodies for frames a track coasted over: tasks.fit.settings.GapSettings."""
+
+
+@pydantic_dataclass(config=STRICT, frozen=True)
 class FitConfig(ObjectiveSettings, FitSettings, Section):
     """The body fit: tasks.fit.settings.FitSettings, the objective's preset and its
     tasks.fit.weights.ObjectiveSettings, where the initial estimates and the body model come
@@ -387,7 +413,13 @@ class FitConfig(ObjectiveSettings, FitSettings, Section):
     preset: str = "ut_campus"
     #: named loss-weight presets beside the paper's four (tasks.fit.weights.FIT_PRESETS)
     presets: dict[str, LossWeightsConfig] = Field(default_factory=dict)
-    init_provider: Literal["oracle", "precomputed", "cliff"] = "oracle"
+    #: initial estimates: the oracle (synthetic data), CLIFF (precomputed files or an export),
+    #: or lidar-keypoints (no network, no ground truth: tasks/fit/init_lidar.py)
+    init_provider: Literal["oracle", "precomputed", "cliff", "lidar-keypoints"] = "oracle"
+    init_lidar: InitLidarConfig = InitLidarConfig()
+    flips: FlipsConfig = FlipsConfig()
+    refine: RefineConfig = RefineConfig()
+    gaps: GapsConfig = GapsConfig()
     #: cliff: a CLIFF ONNX export run on each tracked box (tasks/perception/models/cliff.py), on
     #: fit.device
     cliff_path: Path | None = None

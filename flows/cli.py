@@ -253,7 +253,7 @@ def cmd_bench_fit(args: argparse.Namespace) -> int:
     import dataclasses
 
     from flows.bench import fit as fb
-    from tasks.fit.settings import FitSettings
+    from tasks.fit.settings import FitSettings, InitLidarSettings
 
     fit = _config(args).fit
     weights, settings = fit.weights, fit.to(FitSettings)
@@ -287,13 +287,44 @@ def cmd_bench_fit(args: argparse.Namespace) -> int:
         seed=args.seed,
         warm_start=args.warm_start,
         ablation_sensors=args.ablation_sensors,
+        start_settings=fit.init_lidar.to(InitLidarSettings)
+        if fit.init_provider == "lidar-keypoints"
+        else None,
     )
     results["settings"] = {
         "preset": fit.preset,
+        "start": "lidar-keypoints" if fit.init_provider == "lidar-keypoints" else "oracle",
         "weights": dataclasses.asdict(weights),
         "fit": dataclasses.asdict(settings),
     }
     _write_json(args.json, {"argv": args.argv, **results})
+    return 0
+
+
+def cmd_bench_fit_tracks(args: argparse.Namespace) -> int:
+    import torch
+
+    from flows.bench.fit_tracks import bench_tracks
+    from tasks.fit.settings import FitSettings, FlipSettings, InitLidarSettings, RefineSettings
+
+    torch.set_num_threads(args.threads)
+    fit = _config(args).fit
+    res = bench_tracks(
+        args.tracks,
+        args.frames,
+        fit.weights,
+        fit.to(FitSettings),
+        fit.init_lidar.to(InitLidarSettings),
+        fit.flips.to(FlipSettings),
+        fit.refine.to(RefineSettings),
+        args.init,
+        args.rate_hz,
+        args.sensor,
+        args.seed,
+        args.swap_back_views,
+        tuple(args.methods),
+    )
+    _write_json(args.json, {"argv": args.argv, **res})
     return 0
 
 
@@ -380,8 +411,8 @@ def _add_bench_parsers(sub) -> None:
     p = sub.add_parser(
         "bench",
         help="measure speeds, memory and reference ratios: `mobileocc bench [--quick]` (the "
-        "pipeline) or `mobileocc bench fit | occupancy | perception | planning | memory | scale "
-        "| overhead | viewer | logs [options]`",
+        "pipeline) or `mobileocc bench fit | fit-tracks | occupancy | perception | planning | "
+        "memory | scale | overhead | viewer | logs [options]`",
         description="Without BENCHMARK: the pipeline benchmark (flows/bench/pipeline.py) with the "
         "options below; `mobileocc bench BENCHMARK --help` for the others.",
     )
@@ -467,6 +498,31 @@ def _add_bench_parsers(sub) -> None:
         "process avoids OpenMP spin-waiting",
     )
     f.set_defaults(func=cmd_bench_fit)
+
+    t = bench.add_parser(
+        "fit-tracks",
+        help="the fit along tracks (swaps, one shape, refinement) against frame by frame: "
+        "MPJPE, acceleration error, shape spread, CPU s per fit (flows/bench/fit_tracks.py)",
+    )
+    _add_config_args(t, runtime=False)
+    t.add_argument("--tracks", type=int, default=12)
+    t.add_argument("--frames", type=int, default=10)
+    t.add_argument("--rate-hz", type=float, default=5.0)
+    t.add_argument("--sensor", default="ouster-128")
+    t.add_argument("--init", default="oracle", choices=("oracle", "lidar-keypoints"))
+    t.add_argument(
+        "--swap-back-views",
+        type=float,
+        default=0.0,
+        help="probability that a track seen from behind has its keypoints mirrored left / right",
+    )
+    t.add_argument(
+        "--methods", type=_csv(choices=("per-frame", "tracks")), default=("per-frame", "tracks")
+    )
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+    t.add_argument("--json", type=Path, default=None, help="also write the results here")
+    t.set_defaults(func=cmd_bench_fit_tracks)
 
     o = bench.add_parser(
         "occupancy", help="free-space insertion vs octomap-python; map and fuse frames/s"

@@ -228,12 +228,14 @@ class Tracks(Product):
 
 @dataclasses.dataclass(frozen=True)
 class Bodies(Product):
-    """fit: one row per fitted person and frame; body parameters in the LiDAR frame of the frame."""
+    """fit: one row per fitted person and frame; body parameters in the LiDAR frame of the frame.
+    Rows with ``gap_filled`` are bodies interpolated for a frame the track coasted over (no
+    detection: det_index -1, no loss terms: NaN)."""
 
     NAME: ClassVar[str] = "bodies"
     frame: np.ndarray = array(np.int64, ("R",), "raw frame number")
     track_id: np.ndarray = array(np.int64, ("R",), "track id")
-    det_index: np.ndarray = array(np.int64, ("R",), "row in that frame's Detections")
+    det_index: np.ndarray = array(np.int64, ("R",), "row in that frame's Detections, -1 none")
     betas: np.ndarray = array(np.float32, ("R", 10), "SMPL shape")
     global_orient: np.ndarray = array(np.float32, ("R", 3), "root axis-angle, LiDAR frame, rad")
     body_pose: np.ndarray = array(np.float32, ("R", 69), "23 joint axis-angles, rad")
@@ -253,6 +255,12 @@ class Bodies(Product):
     num_points: np.ndarray = array(np.int64, ("R",), "LiDAR points the fit used")
     shift_m: np.ndarray = array(
         np.float32, ("R",), "how far the fit moved the root from its initial estimate, m"
+    )
+    mirrored: np.ndarray = array(
+        np.bool_, ("R",), "the fit used the detection's keypoints mirrored left / right"
+    )
+    gap_filled: np.ndarray = array(
+        np.bool_, ("R",), "interpolated for a frame without a detection (tasks/fit/gaps.py)"
     )
 
 

@@ -74,6 +74,12 @@ INSTANCES = pa.schema(
         _f("reproj_px", pa.float32(), "fit residual: mean keypoint reprojection error, px"),
         _f("vx", pa.float32(), "velocity x, base frame, m/s"),
         _f("vy", pa.float32(), "velocity y, base frame, m/s"),
+        _f("keypoints_mirrored", pa.bool_(), "the fit used the keypoints mirrored left / right"),
+        _f(
+            "gap_filled",
+            pa.bool_(),
+            "a body interpolated for a frame the track coasted over (no detection)",
+        ),
     ]
 )
 
@@ -94,7 +100,11 @@ SEQUENCES = pa.schema(
     ]
 )
 
-SCHEMA_VERSIONS: dict[str, int] = {"frames": 1, "instances": 1, "sequences": 1}
+SCHEMA_VERSIONS: dict[str, int] = {
+    "frames": 1,
+    "instances": 2,
+    "sequences": 1,
+}  # instances 2: keypoints_mirrored, gap_filled
 _BASE: dict[str, pa.Schema] = {"frames": FRAMES, "instances": INSTANCES, "sequences": SEQUENCES}
 TABLE_NAMES: tuple[str, ...] = tuple(_BASE)
 

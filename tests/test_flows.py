@@ -171,7 +171,6 @@ def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle
         enough = tracks["points_in_image"] >= oracle_cfg.fit.min_points  # others are not fitted
         rows = np.flatnonzero((tracks["gt_index"] >= 0) & enough)
         few[seq] = int(((tracks["gt_index"] >= 0) & ~enough).sum())
-        batches = [rows[a : a + 2] for a in range(0, len(rows), 2)]  # the stage's batches
         opened = source(oracle_cfg).open(sequence_ref(oracle_cfg, seq))
         provider = init_provider(
             fit_inputs(oracle_cfg).init,
@@ -179,10 +178,9 @@ def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle
             body_model(fit_inputs(oracle_cfg).body, tmp_path / "oracle"),
             opened.info.calibration.cameras[oracle_cfg.dataset.camera],
         )
-        est = [provider.estimates(typed, b) for b in batches]
+        est = provider.estimates(typed, rows)  # the stage asks for a sequence's rows at once
         go, bp, tr, betas = (
-            np.concatenate([getattr(e, k) for e in est])
-            for k in ("global_orient", "body_pose", "transl", "betas")
+            getattr(est, k) for k in ("global_orient", "body_pose", "transl", "betas")
         )
         rot = axis_angle_to_matrix(
             torch.as_tensor(
@@ -238,99 +236,6 @@ def _camera_K(cfg, seq):
     from flows.pipeline.inputs import sequence_ref, source
 
     return source(cfg).open(sequence_ref(cfg, seq)).info.calibration.cameras[cfg.dataset.camera].K
-
-
-def test_warm_start_carries_a_tracks_fit_into_its_next_frame(tmp_path, monkeypatch):
-    """The fit stage's warm start with an identity 'fit' (its output is its start): a track fitted
-    in the previous frame starts from that body moved by the ego-motion, so in the world frame it
-    stays put exactly; a new track, or one with a frame gap, starts from the provider's estimate."""
-    from types import SimpleNamespace
-
-    import numpy as np
-    import torch
-
-    import flows.stages.fit as fit_stage
-    from flows.pipeline.inputs import Runtime, fit_inputs
-    from tasks.body.params import BodyParams
-    from tasks.body.rotations import axis_angle_to_matrix
-    from tasks.fit.reframe import reframe_params
-
-    cfg = load_config(
-        overrides={"output.root": str(tmp_path), "fit.batch_persons": 2, "fit.warm_start": True}
-    )
-    inputs = fit_inputs(cfg)
-    model = fit_stage.body_model(inputs.body, tmp_path)
-    rng = np.random.default_rng(0)
-
-    def pose(yaw, x):
-        T = np.eye(4)
-        T[:3, :3] = axis_angle_to_matrix(torch.tensor([0.0, 0.0, yaw], dtype=torch.float64)).numpy()
-        T[:3, 3] = [x, 0.5 * x, 0.0]
-        return T
-
-    T_cam = np.eye(4)
-    T_cam[:3, :3] = [[0, -1, 0], [0, 0, -1], [1, 0, 0]]
-    camera = SimpleNamespace(T_cam_from_lidar=T_cam, K=np.eye(3))
-    info = SimpleNamespace(
-        frame_indices=[10, 12, 14, 16],
-        poses=np.stack([pose(0.1 * k, 0.7 * k) for k in range(4)]),
-        calibration=SimpleNamespace(cameras={cfg.dataset.camera: camera}),
-    )
-    # track 1 in frames 10, 12, 14; track 2 in 12; track 3 in 10 and 14 (a gap)
-    tracks = SimpleNamespace(
-        frame=np.array([10, 10, 12, 12, 14, 14]), track_id=np.array([1, 3, 1, 2, 1, 3])
-    )
-    n = len(tracks.frame)
-    est = BodyParams(
-        rng.normal(0, 0.5, (n, 10)).astype(np.float32),
-        rng.normal(0, 0.3, (n, 3)).astype(np.float32),
-        rng.normal(0, 0.2, (n, 69)).astype(np.float32),
-        (rng.normal(0, 0.5, (n, 3)) + [0, 0, 6]).astype(np.float32),
-    )
-
-    def identity_fit(ref, inputs, out_root, tracks_dir, rows, init):
-        lidar = reframe_params(model, init, np.linalg.inv(T_cam))
-        return {
-            "rows": np.asarray(rows),
-            "betas": lidar.betas,
-            "global_orient": lidar.global_orient,
-            "body_pose": lidar.body_pose,
-            "transl": lidar.transl,
-        }
-
-    provider = SimpleNamespace(estimates=lambda tracks, rows: est.take(np.asarray(rows)))
-    monkeypatch.setattr(fit_stage, "fit_batch", identity_fit)
-    monkeypatch.setattr(fit_stage, "init_provider", lambda *a: provider)
-    ctx = SimpleNamespace(
-        inputs=inputs,
-        out_root=tmp_path,
-        ref=None,
-        sequence="0",
-        runtime=Runtime(),
-        upstream={"track": tmp_path},
-    )
-    parts = fit_stage._warm_started(ctx, SimpleNamespace(info=info), tracks, np.arange(n), None)
-    out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-    order = np.argsort(out["rows"])
-    world = {}
-    for k in order:
-        r = int(out["rows"][k])
-        p = info.frame_indices.index(int(tracks.frame[r]))
-        body = BodyParams.of(out).take(slice(k, k + 1))
-        with torch.no_grad():
-            w = reframe_params(model, body, info.poses[p])
-            world[r] = (
-                model(*(torch.as_tensor(getattr(w, f)) for f in BodyParams.FIELDS))
-                .vertices[0]
-                .numpy()
-            )
-    # track 1: frame 12 and 14 start from frame 10's body (same world pose, up to float32 round trips)
-    assert np.abs(world[2] - world[0]).max() < 1e-4 and np.abs(world[4] - world[0]).max() < 1e-4
-    # track 2 (new) and track 3 after a gap: their own estimates, not track 1's or their earlier body
-    for r in (3, 5):
-        k = int(np.flatnonzero(out["rows"] == r)[0])
-        np.testing.assert_array_equal(out["betas"][k], est.betas[r])
-    assert np.abs(world[5] - world[1]).max() > 0.05
 
 
 def test_labels_at_the_sensor_rate_end_to_end(dataset, tmp_path):

@@ -45,8 +45,14 @@ def bench_fit(
     seed: int = 0,
     warm_start: bool = False,
     ablation_sensors=None,
+    start_settings=None,
 ) -> dict:
     """Run the benchmark; returns {sensor: {variant: {metric: mean}}} plus 'person_fits_per_s'.
+
+    start_settings: None: the fits start from the oracle's estimates (truth with monocular-like
+    errors); tasks.fit.settings.InitLidarSettings: from the weight-free start computed from each
+    person's points and keypoints (``fit.init_provider: lidar-keypoints``; the oracle's estimates
+    are drawn all the same, so the persons and the noise are the same in both).
 
     weights (tasks.fit.weights.FitWeights) and settings (tasks.fit.settings.FitSettings: iterations,
     learning rate, nn_every, the L_3D cap, converge_rtol, batch_persons as the chunk): the
@@ -115,6 +121,20 @@ def bench_fit(
         sp = synthesize_persons(model, poses, SENSORS[sensor], rng)
         truth = sp.truth
         init = oracle_initial_estimate(model, truth, rng)
+        if start_settings is not None:
+            from tasks.fit.init_lidar import lidar_keypoint_init
+
+            pts, counts = ragged_points(sp.points_lidar, sp.point_mask)
+            T = np.asarray(sp.T_cam_from_lidar, np.float64)
+            init = lidar_keypoint_init(
+                model,
+                sp.keypoints,
+                sp.K,
+                pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3],
+                counts,
+                T[:3, :3] @ np.array([0.0, 0.0, 1.0]),  # the LiDAR's z is up
+                start_settings,
+            )
         occ = sp.occluded_limb >= 0
         table: dict = {}
 

@@ -236,20 +236,32 @@ def _fit_rate(data_root: str, out_root: str, overrides: dict, device: str) -> di
     import numpy as np
 
     from flows.pipeline.inputs import fit_inputs, sequence_ref
-    from flows.stages.fit import fit_batch
+    from flows.stages.common import body_model
+    from flows.stages.fit import FitCall, _person_points
+    from flows.stages.providers import init_provider
     from storage.manifest import Manifest
     from storage.products import Tracks
+    from tasks.fit.batch import concat_point_sets
 
     cfg = make_config(Path(data_root), Path(out_root), {**overrides, "fit.device": device})
-    inputs, man, seq = fit_inputs(cfg), Manifest.load(Path(out_root)), "0"
-    tracks_dir = Path(out_root) / man.get(seq, "track").location
-    rows = np.flatnonzero(Tracks.read(tracks_dir).gt_index >= 0).tolist()
-    if not rows:
+    inputs, man, name = fit_inputs(cfg), Manifest.load(Path(out_root)), "0"
+    tracks = Tracks.read(Path(out_root) / man.get(name, "track").location)
+    rows = np.flatnonzero(tracks.gt_index >= 0)
+    if not len(rows):
         return {"device": device, "persons": 0, "note": "no tracked person to fit"}
-    args = (sequence_ref(cfg, seq), inputs, Path(out_root), tracks_dir)
-    fit_batch(*args, rows[:1])  # warm-up
+    seq = inputs.source.open(sequence_ref(cfg, name))
+    cam = seq.info.calibration.cameras[inputs.source.camera]
+    at = {raw: i for i, raw in enumerate(seq.info.frame_indices)}
+    points = _person_points(seq, tracks, rows, at)
+    init = init_provider(inputs.init, seq, body_model(inputs.body, Path(out_root)), cam).estimates(
+        tracks, rows
+    )
+    fit = FitCall(inputs, Path(out_root), cam.K, cam.T_cam_from_lidar)
+    pts, counts = concat_point_sets(points)
+    one, one_counts = concat_point_sets(points[:1])
+    fit(tracks.keypoints[rows[:1]], one, one_counts, init.take(slice(0, 1)), iterations=2)
     t0 = time.perf_counter()
-    fit_batch(*args, rows)
+    fit(tracks.keypoints[rows], pts, counts, init, iterations=cfg.fit.iterations)
     wall = time.perf_counter() - t0
     return {
         "device": device,

@@ -200,6 +200,12 @@ class _Totals:
             str, np.ndarray | None
         ] = {}  # sequence -> (V,) limb of each GT vertex
         self.fit: dict[str, dict[str, list]] = {}
+        #: sequence -> matched fits along their tracks, for the acceleration error:
+        #: (track_id, frame position, stamp s, GT track id, joints world (24, 3), GT joints world)
+        self.fit_tracks: dict[str, list[tuple]] = {}
+        #: sequence -> gap-filled bodies' errors and counts, the fit stage's summary
+        self.fit_gaps: dict[str, dict] = {}
+        self.fit_summary: dict[str, dict] = {}
         self.person_points: dict[str, PRCounts] = {}
         self.notes: dict[str, str] = {}
         #: sequence -> absolute trajectory error of the published poses (tasks.metrics.trajectory)
@@ -370,7 +376,18 @@ def _evaluate_sequence(
                     gtf.track_id[tracks["gt_index"][rows]],
                 )
         if bodies is not None and detect_dir is not None:
-            rows = np.flatnonzero(bodies["frame"] == raw)
+            here = bodies["frame"] == raw
+            _gap_filled_errors(
+                tot,
+                seq,
+                model,
+                bodies,
+                np.flatnonzero(here & bodies["gap_filled"]),
+                gtf,
+                persons,
+                gseq,
+            )
+            rows = np.flatnonzero(here & ~bodies["gap_filled"])
             if rows.size:
                 det = Detections.read(detect_dir, Detections.file_name(raw)).arrays()
                 boxes = det["boxes_xyxy"][bodies["det_index"][rows]]
@@ -388,6 +405,18 @@ def _evaluate_sequence(
                     )
                     for key in ("pve", "mpjpe", "pa_mpjpe", "mpere"):
                         fit_rows[key].append(np.asarray(m[key], np.float64))
+                    T_w = coda.info.poses[coda.position(raw)]
+                    for j, b in enumerate(rows[fi]):
+                        tot.fit_tracks.setdefault(seq, []).append(
+                            (
+                                int(bodies["track_id"][b]),
+                                k,
+                                float(coda.info.stamps_ns[coda.position(raw)]) * 1e-9,
+                                int(gtf.track_id[persons[gi[j]]]),
+                                transform_points(T_w, pj[j]),
+                                transform_points(T_w, gtf.joints[persons[gi[j]]]),
+                            )
+                        )
                     _, gt_yaw = _boxes_to_base(
                         T_bl, gtf.box_center[persons[gi]], gtf.box_yaw[persons[gi]]
                     )
@@ -419,10 +448,99 @@ def _evaluate_sequence(
     if tracks is not None:
         tot.tracking[seq] = tracking_scores(track_frames)
     if bodies is not None:
+        import json
+
+        from tasks.fit.shape import shape_spread
+
+        summary = (
+            json.loads((fit_dir / "summary.json").read_text())
+            if (fit_dir / "summary.json").exists()
+            else {}
+        )
+        fitted = ~bodies["gap_filled"]
+        tot.fit_summary[seq] = {
+            "shape_spread": shape_spread(bodies["track_id"][fitted], bodies["betas"][fitted]),
+            "keypoints_mirrored": int(bodies["mirrored"].sum()),
+            **{
+                k: summary[k]
+                for k in (
+                    "flips_flipped",
+                    "flips_kept",
+                    "flips_undecided",
+                    "gap_filled",
+                    "gap_dropped_seen_through",
+                    "warm_started",
+                )
+                if k in summary
+            },
+            "gap_filled_bodies": int(bodies["gap_filled"].sum()),
+        }
         got = {k: np.concatenate(v) if v else np.zeros(0) for k, v in fit_rows.items()}
         tot.fit[seq] = got
         tot.hist["PVE_mm"].append(got["pve"])
         tot.hist["MPJPE_mm"].append(got["mpjpe"])
+
+
+#: a gap-filled body claims the GT person whose pelvis is nearest, within this distance (m)
+GAP_MATCH_M = 0.5
+
+
+def _gap_filled_errors(tot: _Totals, seq: str, model, bodies: dict, rows, gtf, persons, gseq):
+    """MPJPE / PVE of the bodies the fit interpolated for frames without a detection, each
+    matched to the nearest GT person of its frame by pelvis (within GAP_MATCH_M)."""
+    g = tot.fit_gaps.setdefault(seq, {"bodies": 0, "matched": 0, "mpjpe": [], "pve": []})
+    g["bodies"] += len(rows)
+    if not len(rows) or not len(persons):
+        return
+    from tasks.fit.metrics import fit_metrics
+
+    pv, pj = _posed(model, bodies, rows)
+    d = np.linalg.norm(pj[:, None, 0] - gtf.joints[persons][None, :, 0], axis=-1)
+    near = d.argmin(1)
+    ok = d[np.arange(len(rows)), near] < GAP_MATCH_M
+    if ok.any():
+        m = fit_metrics(
+            pv[ok],
+            pj[ok],
+            gtf.vertices[persons[near[ok]]],
+            gtf.joints[persons[near[ok]]],
+            gseq.person_faces,
+        )
+        g["matched"] += int(ok.sum())
+        g["mpjpe"].append(np.asarray(m["mpjpe"], np.float64))
+        g["pve"].append(np.asarray(m["pve"], np.float64))
+
+
+def acceleration_errors(records: list[tuple], step_s: float) -> dict:
+    """Acceleration error of fitted joints along their tracks: for every matched fit whose
+    track has matched fits in the published frames just before and after it, all three of the
+    same GT person, |a_fit - a_gt| with a the second divided difference of the world positions;
+    mean over such fits and joints (all 24, and the root alone), in m/s^2 and in mm/frame^2 at
+    the step ``step_s`` (the published frames' nominal step)."""
+    from tasks.fit.refine import acceleration_error
+
+    if not records:
+        return {"fits": 0}
+    key = np.array([(r[0], r[3]) for r in records])
+    ids = np.unique(key, axis=0, return_inverse=True)[1].reshape(-1)  # one id per (track, GT)
+    pos = np.array([r[1] for r in records])
+    t = np.array([r[2] for r in records])
+    pred = np.stack([r[4] for r in records])
+    gt = np.stack([r[5] for r in records])
+    # neighbours must be adjacent published frames: stamps more than 1.5 steps apart do not tie
+    joints, ok = acceleration_error(ids, t, pred, gt, 1.5 * step_s)
+    root, _ = acceleration_error(ids, t, pred[:, :1], gt[:, :1], 1.5 * step_s)
+    del pos
+    f2 = step_s * step_s * 1000.0
+    n = int(ok.sum())
+    mean = lambda a: float(np.nanmean(a)) if n else float("nan")  # noqa: E731
+    return {
+        "fits": n,
+        "joints_m_s2": mean(joints),
+        "joints_mm_frame2": mean(joints) * f2,
+        "root_m_s2": mean(root),
+        "root_mm_frame2": mean(root) * f2,
+    }
 
 
 def _limb_groups(gseq) -> np.ndarray | None:
@@ -542,6 +660,16 @@ def _fit_row(v: dict) -> dict:
     }
 
 
+def _published_step(ds) -> float:
+    """The published frames' nominal step (s): the median stamp difference of the first
+    sequence with two frames (0.2 s when none has)."""
+    for seq in ds.sequences:
+        t = np.asarray(ds.table("frames", seq).column("stamp_ns").to_pylist(), np.float64) * 1e-9
+        if len(t) >= 2:
+            return float(np.median(np.diff(np.sort(t))))
+    return 0.2
+
+
 def _sample_positions(ds, sample_frames: int) -> set:
     """``sample_frames`` (sequence, frame position) pairs spread over the sequences and frames."""
     pairs = []
@@ -658,6 +786,25 @@ def evaluate(
             for k in ("pve", "mpjpe", "pa_mpjpe", "mpere")
         }
         results["fit"] = {**{s: _fit_row(v) for s, v in tot.fit.items()}, "all": _fit_row(allfit)}
+        step = _published_step(ds)
+        results["fit_acceleration"] = {
+            **{q: acceleration_errors(v, step) for q, v in tot.fit_tracks.items()},
+            "all": acceleration_errors([r for v in tot.fit_tracks.values() for r in v], step),
+        }
+        results["fit_tracks"] = tot.fit_summary
+        if tot.fit_gaps:
+            gaps = [g for g in tot.fit_gaps.values()]
+            cat = lambda k: (
+                np.concatenate([x for g in gaps for x in g[k]])
+                if any(g[k] for g in gaps)
+                else np.zeros(0)
+            )  # noqa: E731
+            results["fit_gap_filled"] = {
+                "bodies": sum(g["bodies"] for g in gaps),
+                "matched": sum(g["matched"] for g in gaps),
+                "MPJPE_mm": float(cat("mpjpe").mean()) if cat("mpjpe").size else float("nan"),
+                "PVE_mm": float(cat("pve").mean()) if cat("pve").size else float("nan"),
+            }
         results["box_heading"] = heading_summary(
             np.concatenate([v["heading"] for v in tot.fit.values()])
         )

@@ -12,6 +12,8 @@ and renders what it finds. ``results`` (JSON-like; numpy scalars / arrays allowe
 - ``occupancy``: ``OccupancyScores.as_dict()``, or {name: that} for several rows.
 - ``fit``: {metric: value} or {row: {metric: value}} (PVE / MPJPE / PA-MPJPE in mm, MPERE).
 - ``tracking``: {sequence: ``TrackingScores.as_dict()``}.
+- ``fit_acceleration``: {sequence: {fits, joints / root in m/s^2 and mm/frame^2}}, "all" included;
+  ``fit_tracks``: {sequence: shape spread, swaps, gap-filled bodies}; ``fit_gap_filled``.
 - ``ray_iou``: {sequence and "all": RayIoU, RayIoU@t, mAVE, OccScore, rays}; ``ray_iou_per_class``
   {threshold: {class: IoU}}; ``ray_ave_per_class`` (flows/commands/evaluate_rays.py).
 - ``velocity``, ``velocity_vertex_gt``: ``VelocityErrors.as_dict()`` or {name: that};
@@ -122,6 +124,17 @@ _HOW_TO_READ = {
     "(n/a: class in neither grid, left out of the mean), IoU (geom.) = occupied vs free.",
     "fit": "Body fit errors: PVE / MPJPE in mm (lower is better), PA-MPJPE after similarity alignment, "
     "MPERE relative edge-length error (unitless).",
+    "fit_acceleration": "Acceleration error of the fitted joints along their tracks (fits whose "
+    "track has matched fits in the frames just before and after, of the same GT person): "
+    "|a_fit - a_GT| of the second difference of world positions, mean over such fits and all "
+    "24 joints, or the root (pelvis) alone; m/s^2 and mm/frame^2 at the published rate. Lower "
+    "is better.",
+    "fit_tracks": "Per sequence: per-track spread of the shapes (RMS distance of a track's betas to its "
+    "mean, 0 = one shape per person), fits with keypoints mirrored, left / right swaps decided "
+    "(flipped / kept / undecided: kept as detected), bodies filled in frames a track coasted "
+    "over (and dropped: the sweep saw through them), fits warm-started.",
+    "fit_gap_filled": "Bodies interpolated for frames without a detection, matched to the GT person "
+    "whose pelvis is nearest (within 0.5 m): their MPJPE / PVE in mm.",
     "box_heading": "Published pedestrian box yaw of each fitted person matched to a GT person vs the GT heading, "
     "degrees (lower is better); axis off 45 share: boxes whose axis is more than 45 deg off "
     "modulo 180 (l and w swapped).",
@@ -157,6 +170,9 @@ _TITLES = {
     "detection_manual_qa": "Detection robustness (manual QA)",
     "occupancy": "Semantic occupancy (Occ3D metric)",
     "fit": "Body fit accuracy",
+    "fit_acceleration": "Body fit acceleration error",
+    "fit_tracks": "Bodies along tracks",
+    "fit_gap_filled": "Gap-filled bodies",
     "box_heading": "Pedestrian box heading (vs GT)",
     "box_visibility": "Pedestrian box visibility (vs GT)",
     "tracking": "Tracking",

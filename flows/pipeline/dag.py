@@ -21,11 +21,14 @@ CODE_VERSIONS: dict[str, str] = {
     #               first sweep (every later stage's key follows through its upstream keys)
     "track": "5",  # 2: offline back-fill and stitching; 3: world-position check; 4: person points past the
     #               image side; 5: 2d_rect cameras read as the rectified pinhole (real CODa calibration)
-    "fit": "4",  # 2: L_3D caps the vertex -> point distances (fit.chamfer_vertex_max_m); 100 iterations;
+    "fit": "5",  # 2: L_3D caps the vertex -> point distances (fit.chamfer_vertex_max_m); 100 iterations;
     #             3: detections with fewer than fit.min_points LiDAR points are not fitted, fits
     #                that moved more than fit.max_shift_m from their estimate are dropped;
     #             4: bodies carry chamfer_m and reproj_px (typed products); the rectified camera;
     #                the kernel rewritten for speed (batched ICP, vertex subset, grid pairs); torch on 1 thread
+    #             5: along tracks (tasks/fit/track_fit.py): left / right swaps decided, one shape
+    #                per track, the temporal refinement, gap-filled bodies (Bodies.mirrored,
+    #                .gap_filled); fit.init_provider lidar-keypoints
     "map": "4",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path;
     #             3: 2d_rect cameras read as the rectified pinhole (real CODa calibration);
     #             4: both maps written by spatial tile (map_tiles.npz + tiles/*.npz, map.tile_m), built in
@@ -36,10 +39,12 @@ CODE_VERSIONS: dict[str, str] = {
     #               mask_lidar = 1 (as documented); store attrs carry the stage key, not a config hash;
     #               the rectified camera; 3: pedestrian voxel velocity from each vertex's motion along
     #               the track (fuse.velocity "vertex"), the mean over the body surface in the voxel
-    "export": "3",  # 2: instances carry the fitted bodies, 3D boxes and velocities; 3: source paths
+    "export": "4",  # 2: instances carry the fitted bodies, 3D boxes and velocities; 3: source paths
     #                 relative to the dataset root, box yaw from the body's forward axis, no NaN
     #                 velocity, chamfer_m / reproj_px written, config_hash of the stage inputs; the
     #                 rectified camera's K and T in the sequences table
+    #                 4: instances carry keypoints_mirrored and gap_filled, and a row per gap-filled
+    #                 body (no 2D box or keypoints)
 }
 #: Version of the dataset-level Occ3D / nuScenes exports (OUT/exports/, made after the sequences
 #: are published; part of their key in the manifest): bump when their files change for the same

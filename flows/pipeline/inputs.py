@@ -43,7 +43,13 @@ from storage.sources.log.bag import LogFormatError, find_logs, holds_logs
 from storage.sources.log.reader import READER_VERSION as LOG_READER_VERSION
 from storage.sources.log.reader import LogSequence
 from tasks.conventions import CLASS_NAMES
-from tasks.fit.settings import FitSettings
+from tasks.fit.settings import (
+    FitSettings,
+    FlipSettings,
+    GapSettings,
+    InitLidarSettings,
+    RefineSettings,
+)
 from tasks.fit.weights import FitWeights
 from tasks.occupancy.grid import GridSpec
 from tasks.occupancy.settings import FreeSpaceParams, FuseSettings, MapParams
@@ -377,6 +383,14 @@ class OracleInitSpec:
 
 
 @dataclass(frozen=True)
+class LidarKeypointsInitSpec:
+    """Initial body estimates from each person's LiDAR points and 2D keypoints, no network and
+    no ground truth (tasks.fit.init_lidar; its settings are FitInputs.init_lidar)."""
+
+    NAME: ClassVar[str] = "lidar-keypoints"
+
+
+@dataclass(frozen=True)
 class NoDetectionsSpec:
     """No detections of this kind."""
 
@@ -396,7 +410,7 @@ class BodyModelFiles:
 #: what each kind of provider can be
 ImageSpec = OracleSpec | PrecomputedSpec | ModelsSpec
 LidarDetectionsSpec = LidarClustersSpec | OracleSpec | PrecomputedSpec | NoDetectionsSpec
-InitSpec = OracleInitSpec | PrecomputedSpec | CliffSpec
+InitSpec = OracleInitSpec | PrecomputedSpec | CliffSpec | LidarKeypointsInitSpec
 
 
 # ---- the stages ------------------------------------------------------------------------------------
@@ -431,6 +445,12 @@ class FitInputs:
     preset: str
     weights: FitWeights
     settings: FitSettings
+    #: the weight-free start (also scores the headings the swap decision weighs), the left /
+    #: right swap decision, the temporal refinement and the gap filling
+    init_lidar: InitLidarSettings
+    flips: FlipSettings
+    refine: RefineSettings
+    gaps: GapSettings
 
 
 @dataclass(frozen=True)
@@ -539,8 +559,20 @@ def fit_inputs(config: Config) -> FitInputs:
         "oracle": lambda: OracleInitSpec(f.seed),
         "precomputed": lambda: PrecomputedSpec(str(f.init_dir)),
         "cliff": lambda: CliffSpec(str(f.cliff_path), f.device),
+        "lidar-keypoints": LidarKeypointsInitSpec,
     }[f.init_provider]()
-    return FitInputs(source(config), init, _body(config), f.preset, f.weights, f.to(FitSettings))
+    return FitInputs(
+        source(config),
+        init,
+        _body(config),
+        f.preset,
+        f.weights,
+        f.to(FitSettings),
+        f.init_lidar.to(InitLidarSettings),
+        f.flips.to(FlipSettings),
+        f.refine.to(RefineSettings),
+        f.gaps.to(GapSettings),
+    )
 
 
 def map_inputs(config: Config) -> MapInputs:

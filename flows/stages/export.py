@@ -24,10 +24,16 @@ def instance_rows(
     ctx: StageContext[ExportInputs], frame_pos: dict[int, int], T_base_from_lidar: np.ndarray
 ) -> list[dict]:
     """One row per tracked person and frame: 2D box and keypoints from track; body parameters,
-    3D box and velocity (base frame) from the fit where that person was fitted."""
+    3D box and velocity (base frame) from the fit where that person was fitted; and one row per
+    body the fit interpolated for a frame the track coasted over (``gap_filled``: no 2D box, no
+    keypoints)."""
     tracks = Tracks.read(ctx.upstream["track"])
     bodies = Bodies.read(ctx.upstream["fit"]) if "fit" in ctx.upstream else Bodies.empty()
-    fitted = {(int(f), int(d)): r for r, (f, d) in enumerate(zip(bodies.frame, bodies.det_index))}
+    fitted = {
+        (int(f), int(d)): r
+        for r, (f, d) in enumerate(zip(bodies.frame, bodies.det_index))
+        if not bodies.gap_filled[r]
+    }
     base = reframe_params(
         body_model(ctx.inputs.body, ctx.out_root),
         BodyParams.of(bodies),
@@ -40,6 +46,28 @@ def instance_rows(
         base.body_pose,
         base.transl,
     )
+
+    def body_fields(b: int) -> dict:
+        vel = np.asarray(bodies.velocity_base[b], np.float64)
+        known = bool(np.all(np.isfinite(vel)))  # unknown (e.g. across a track gap): null, never NaN
+        box = upright_box(verts[b], base.global_orient[b], vel if known else None)
+        finite = lambda x: float(x) if np.isfinite(x) else None  # noqa: E731
+        return {
+            "box3d_center": box.center.tolist(),
+            "box3d_size": box.size.tolist(),
+            "box3d_yaw": box.yaw,
+            "betas": base.betas[b].tolist(),
+            "global_orient": base.global_orient[b].tolist(),
+            "body_pose": base.body_pose[b].tolist(),
+            "transl": base.transl[b].tolist(),
+            "chamfer_m": finite(bodies.chamfer_m[b]),
+            "reproj_px": float(bodies.reproj_px[b]),
+            "vx": float(vel[0]) if known else None,
+            "vy": float(vel[1]) if known else None,
+            "keypoints_mirrored": bool(bodies.mirrored[b]),
+            "gap_filled": bool(bodies.gap_filled[b]),
+        }
+
     rows = []
     for r in range(len(tracks.track_id)):
         row = {
@@ -47,30 +75,21 @@ def instance_rows(
             "frame": frame_pos[int(tracks.frame[r])],
             "box2d_xyxy": tracks.boxes_xyxy[r].tolist(),
             "keypoints": tracks.keypoints[r].reshape(-1).tolist(),
+            "gap_filled": False,
         }
         b = fitted.get((int(tracks.frame[r]), int(tracks.det_index[r])))
         if b is not None:
-            vel = np.asarray(bodies.velocity_base[b], np.float64)
-            known = bool(
-                np.all(np.isfinite(vel))
-            )  # unknown (e.g. across a track gap): null, never NaN
-            box = upright_box(verts[b], base.global_orient[b], vel if known else None)
-            row.update(
+            row.update(body_fields(b))
+        rows.append(row)
+    for b in np.flatnonzero(bodies.gap_filled):
+        if int(bodies.frame[b]) in frame_pos:
+            rows.append(
                 {
-                    "box3d_center": box.center.tolist(),
-                    "box3d_size": box.size.tolist(),
-                    "box3d_yaw": box.yaw,
-                    "betas": base.betas[b].tolist(),
-                    "global_orient": base.global_orient[b].tolist(),
-                    "body_pose": base.body_pose[b].tolist(),
-                    "transl": base.transl[b].tolist(),
-                    "chamfer_m": float(bodies.chamfer_m[b]),
-                    "reproj_px": float(bodies.reproj_px[b]),
-                    "vx": float(vel[0]) if known else None,
-                    "vy": float(vel[1]) if known else None,
+                    "track_id": int(bodies.track_id[b]),
+                    "frame": frame_pos[int(bodies.frame[b])],
+                    **body_fields(int(b)),
                 }
             )
-        rows.append(row)
     return rows
 
 

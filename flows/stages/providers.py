@@ -24,6 +24,7 @@ from flows.pipeline.inputs import (
     InitSpec,
     LidarClustersSpec,
     LidarDetectionsSpec,
+    LidarKeypointsInitSpec,
     ModelsSpec,
     NoDetectionsSpec,
     OracleInitSpec,
@@ -252,10 +253,22 @@ class CliffModel:
         return BodyParams.concat(p for _, p in parts).take(order)
 
 
+class WeightFree:
+    """No estimates from elsewhere: the fit computes its starts from each person's LiDAR points
+    and keypoints (tasks/fit/init_lidar.py), so every row can be fitted."""
+
+    def __init__(self, spec: LidarKeypointsInitSpec, seq: SequenceSource, model, camera):
+        pass
+
+    def available(self, tracks: Tracks) -> np.ndarray:
+        return np.arange(len(tracks.track_id), dtype=np.int64)
+
+
 INIT_PROVIDERS = {
     OracleInitSpec: OracleInit,
     PrecomputedSpec: PrecomputedCliff,
     CliffSpec: CliffModel,
+    LidarKeypointsInitSpec: WeightFree,
 }
 
 

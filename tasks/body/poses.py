@@ -98,6 +98,15 @@ def gait_pose(phase: float, speed_mps: float = 1.2) -> np.ndarray:
     return pose
 
 
+def neutral_pose() -> np.ndarray:
+    """Standing upright, arms hanging (lowered 1.25 rad from the T-pose), elbows slightly bent,
+    legs straight: the deterministic body pose a weight-free initial estimate starts from
+    (tasks.fit.init_lidar). Returns (69,) float64."""
+    pose = np.zeros(69)
+    _arms_down(pose, 1.25, 0.0, 0.0, 0.25)
+    return pose
+
+
 def standing_pose(rng: np.random.Generator) -> np.ndarray:
     """A relaxed standing pose with random small variations. Returns (69,) float64."""
     pose = np.zeros(69)

@@ -110,7 +110,8 @@ def icp_align(
 
 
 class _PairSearch:
-    """Nearest point within a radius for each source vertex (per person)."""
+    """Nearest point within a radius for each source vertex (per person), for any subset of the
+    persons (the ICP loop asks only for those it still moves)."""
 
     def __init__(self, points: torch.Tensor, point_person: torch.Tensor, B: int):
         self.points, self.person, self.B = points, point_person, B
@@ -119,46 +120,57 @@ class _PairSearch:
             self.order = np.argsort(person, kind="stable")
             self.bounds = np.searchsorted(person[self.order], np.arange(B + 1))
             self.sorted = np.ascontiguousarray(points.numpy()[self.order])
+        else:  # padded per person once: (B, P_max) point ids, centroids for the distances
+            dev = points.device
+            counts = torch.bincount(point_person, minlength=B)[:B]
+            pmax = max(int(counts.max().item()) if B else 0, 1)
+            starts = torch.cumsum(counts, 0) - counts
+            slot = torch.arange(len(point_person), device=dev) - starts[point_person]
+            self.pad = torch.zeros(B, pmax, 3, dtype=points.dtype, device=dev)
+            self.gid = torch.full((B, pmax), -1, dtype=torch.long, device=dev)
+            self.pad[point_person, slot] = points
+            self.gid[point_person, slot] = torch.arange(len(point_person), device=dev)
+            self.centre = self.pad.sum(1) / counts.clamp(min=1)[:, None]
 
     def __call__(
-        self, src: torch.Tensor, mask: torch.Tensor, radius: float
+        self, src: torch.Tensor, mask: torch.Tensor, radius: float, rows: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """src (B, N, 3) float64, mask (B, N) -> index into points (B, N) (-1: none), d2 (B, N)."""
+        """src (k, N, 3) float64 and mask (k, N) of persons rows (k,) int64 -> index into
+        points (k, N) (-1: none), d2 (k, N)."""
         if self.points.device.type == "cpu":
-            from tasks.fit.nearest import pairs_within
+            from tasks.fit.nearest import pairs_within_ranges
 
-            idx, d2 = pairs_within(
-                np.ascontiguousarray(src.numpy()), mask.numpy(), self.sorted, self.bounds, radius
+            r = rows.numpy()
+            idx, d2 = pairs_within_ranges(
+                np.ascontiguousarray(src.numpy()),
+                mask.numpy(),
+                self.sorted,
+                self.bounds[r],
+                self.bounds[r + 1],
+                radius,
             )
             idx = torch.from_numpy(idx)
             return torch.where(
                 idx >= 0, torch.from_numpy(self.order)[idx.clamp(min=0)], idx
             ), torch.from_numpy(d2)
-        return _pairs_brute(src, mask, self.points, self.person, radius)
+        return _pairs_brute(src, mask, self.pad[rows], self.gid[rows], self.centre[rows], radius)
 
 
-def _pairs_brute(src, mask, points, person, radius, chunk_elements: int = 2**27):
+def _pairs_brute(src, mask, pad, gid, centre, radius, chunk_elements: int = 2**27):
     """Device path of the pair search: float32 distance matrices of centred sets for chunks of
     persons (cdist expands |a - b|^2, so both are shifted by the person's point centroid), then
-    the exact float64 distance of each chosen pair."""
-    B, N = mask.shape
+    the exact float64 distance of each chosen pair. pad (k, P_max, 3) / gid (k, P_max): the
+    persons' points padded (gid -1), centre (k, 3) their centroids."""
+    k, N = mask.shape
     dev = src.device
-    counts = torch.bincount(person, minlength=B)[:B]
-    pmax = max(int(counts.max().item()) if B else 0, 1)
-    starts = torch.cumsum(counts, 0) - counts
-    slot = torch.arange(len(person), device=dev) - starts[person]
-    pad = torch.zeros(B, pmax, 3, dtype=src.dtype, device=dev)
-    gid = torch.full((B, pmax), -1, dtype=torch.long, device=dev)
-    pad[person, slot] = points
-    gid[person, slot] = torch.arange(len(person), device=dev)
-    c = pad.sum(1) / counts.clamp(min=1)[:, None]
+    pmax = pad.shape[1]
     far = torch.full((), 1e4, dtype=torch.float32, device=dev)
-    b = torch.where(gid[..., None] >= 0, (pad - c[:, None]).float(), far)
-    a = (src - c[:, None]).float()
-    j = torch.zeros(B, N, dtype=torch.long, device=dev)
+    b = torch.where(gid[..., None] >= 0, (pad - centre[:, None]).float(), far)
+    a = (src - centre[:, None]).float()
+    j = torch.zeros(k, N, dtype=torch.long, device=dev)
     step = max(1, chunk_elements // (N * pmax))
-    for s in range(0, B, step):
-        e = min(B, s + step)
+    for s in range(0, k, step):
+        e = min(k, s + step)
         j[s:e] = torch.cdist(a[s:e], b[s:e]).argmin(2)
     near = torch.gather(pad, 1, j[..., None].expand(-1, -1, 3))
     d2 = ((src - near) ** 2).sum(-1)
@@ -169,39 +181,48 @@ def _pairs_brute(src, mask, points, person, radius, chunk_elements: int = 2**27)
 
 def _icp_stage(V, vm, P, pairs, T, radius, max_iterations, relative_change):
     """One correspondence radius of ICP for every person (open3d's loop: estimate from the
-    current correspondences, move, re-evaluate, stop when fitness and RMSE settle)."""
+    current correspondences, move, re-evaluate, stop when fitness and RMSE settle). Each
+    iteration works on the persons still moving only (the batch is compacted as they settle:
+    a settled person costs nothing more, on the CPU and on a GPU alike)."""
     n_src = vm.sum(1).clamp(min=1).to(V.dtype)
+    T = T.clone()
+    B = V.shape[0]
+    fit = torch.zeros(B, dtype=V.dtype, device=V.device)
+    rmse = torch.zeros(B, dtype=V.dtype, device=V.device)
 
-    def evaluate(T, active):
-        src = V @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]
-        idx, d2 = pairs(src, vm & active[:, None], radius)
+    def evaluate(Tk, rows):
+        src = _apply(Tk, V[rows])
+        idx, d2 = pairs(src, vm[rows], radius, rows)
         hit = idx >= 0
         n = hit.sum(1).to(V.dtype)
-        fit = n / n_src
-        rmse = torch.sqrt(torch.where(hit, d2, torch.zeros_like(d2)).sum(1) / n.clamp(min=1))
-        return src, idx, hit, fit, torch.where(n > 0, rmse, torch.zeros_like(rmse))
+        f = n / n_src[rows]
+        e = torch.sqrt(torch.where(hit, d2, torch.zeros_like(d2)).sum(1) / n.clamp(min=1))
+        return src, idx, hit, f, torch.where(n > 0, e, torch.zeros_like(e))
 
-    active = vm.any(1)
-    src, idx, hit, fit, rmse = evaluate(T, active)
+    rows = torch.nonzero(vm.any(1)).reshape(-1)
+    src, idx, hit, f, e = evaluate(T[rows], rows)
+    fit[rows], rmse[rows] = f, e
     for _ in range(max_iterations):
-        if not bool(active.any()):
+        if len(rows) == 0:
             break
         target = P[idx.clamp(min=0)]
-        update = _kabsch(src, target, hit & active[:, None])
-        T = torch.where(active[:, None, None], update @ T, T)
-        prev_fit, prev_rmse = fit, rmse
-        src_n, idx_n, hit_n, fit_n, rmse_n = evaluate(T, active)
-        a3 = active[:, None, None]
-        src = torch.where(a3, src_n, src)
-        idx = torch.where(active[:, None], idx_n, idx)
-        hit = torch.where(active[:, None], hit_n, hit)
-        fit = torch.where(active, fit_n, fit)
-        rmse = torch.where(active, rmse_n, rmse)
-        settled = ((prev_fit - fit).abs() < relative_change) & (
-            (prev_rmse - rmse).abs() < relative_change
+        Tk = _kabsch(src, target, hit) @ T[rows]
+        T[rows] = Tk
+        src, idx, hit, f, e = evaluate(Tk, rows)
+        settled = ((fit[rows] - f).abs() < relative_change) & (
+            (rmse[rows] - e).abs() < relative_change
         )
-        active = active & ~settled
+        fit[rows], rmse[rows] = f, e
+        go = ~settled
+        rows, src, idx, hit = rows[go], src[go], idx[go], hit[go]
     return T, fit, rmse
+
+
+def _apply(T: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """Rigid transforms T (k, 4, 4) applied to points x (k, N, 3), written out per coordinate
+    (rounding independent of a row's place in the batch)."""
+    R, t = T[:, None, :3, :3], T[:, None, :3, 3]
+    return (R * x[..., None, :]).sum(-1) + t
 
 
 def _kabsch(src: torch.Tensor, dst: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
@@ -210,7 +231,9 @@ def _kabsch(src: torch.Tensor, dst: torch.Tensor, w: torch.Tensor) -> torch.Tens
     wf = w.to(src.dtype)[..., None]
     n = wf.sum(1).clamp(min=1.0)
     cs, cd = (src * wf).sum(1) / n, (dst * wf).sum(1) / n
-    H = ((src - cs[:, None]) * wf).transpose(1, 2) @ (dst - cd[:, None])  # (B, 3, 3)
+    # H (B, 3, 3) as a sum over pairs, written out: a batched 3 x N x 3 product may round a row
+    # differently by its place in the batch, and a person's fit must not depend on its batch
+    H = (((src - cs[:, None]) * wf)[..., :, None] * (dst - cd[:, None])[..., None, :]).sum(1)
     U, _, Vh = torch.linalg.svd(H)
     d = torch.sign(torch.linalg.det(Vh.transpose(1, 2) @ U.transpose(1, 2)))
     D = torch.diag_embed(

@@ -224,3 +224,130 @@ def synthesize_persons(
         T,
         occluded,
     )
+
+
+@dataclass(frozen=True)
+class Observations:
+    """What the camera and the LiDAR see of B posed bodies (cam frame): vertices (B, V, 3) and
+    joints (B, 24, 3) float32 m (the truth); keypoints (B, 17, 3) (u, v, confidence) px;
+    points_lidar (B, P, 3) float32 padded (LiDAR frame) with point_mask (B, P) bool."""
+
+    vertices: np.ndarray
+    joints: np.ndarray
+    keypoints: np.ndarray
+    points_lidar: np.ndarray
+    point_mask: np.ndarray
+
+
+def observe_bodies(
+    model,
+    betas,
+    global_orient,
+    body_pose,
+    transl,
+    spec: LidarSpec,
+    rng: np.random.Generator,
+    K,
+    image_size: tuple[int, int] = (1920, 1080),
+    keypoint_noise_px: float = 3.0,
+    max_points: int = 1024,
+) -> Observations:
+    """Keypoints and a LiDAR sweep of each of B bodies given by their parameters (cam frame:
+    betas (B, 10), global_orient (B, 3), body_pose (B, 69), transl (B, 3)), each body alone in
+    the scene (no occluder), the sensor at the camera centre. Keypoint noise N(0,
+    keypoint_noise_px), confidences U(0.75, 1); sweeps with more than max_points returns are
+    subsampled at random."""
+    import torch
+
+    from tasks.fit.optimize import model_keypoints  # noqa: PLC0415 (avoid a cycle at import)
+
+    f32 = torch.float32
+    with torch.no_grad():
+        o = model(
+            *(
+                torch.as_tensor(np.array(a, np.float32), dtype=f32)
+                for a in (betas, global_orient, body_pose, transl)
+            )
+        )
+    verts, joints = o.vertices.double().numpy(), o.joints.double().numpy()
+    B = len(verts)
+    K = np.asarray(K, np.float64)
+    kp3 = model_keypoints(
+        torch.as_tensor(joints), torch.as_tensor(verts), model.keypoint_vertex_ids
+    ).numpy()
+    uvw = kp3 @ K.T
+    uv = uvw[..., :2] / uvw[..., 2:3] + rng.normal(0.0, keypoint_noise_px, (B, 17, 2))
+    conf = rng.uniform(0.75, 1.0, (B, 17))
+    dirs = frustum_ray_directions(spec, K, image_size)
+    faces = np.asarray(model.faces)
+    pts = np.zeros((B, max_points, 3), np.float32)
+    mask = np.zeros((B, max_points), bool)
+    for b in range(B):
+        p, _ = simulate_sweep(verts[b], faces, dirs, spec, rng)
+        if len(p) > max_points:
+            p = p[rng.choice(len(p), max_points, replace=False)]
+        pts[b, : len(p)] = p.astype(np.float64) @ R_CAM_FROM_LIDAR
+        mask[b, : len(p)] = True
+    f = np.float32
+    return Observations(
+        verts.astype(f),
+        joints.astype(f),
+        np.concatenate([uv, conf[..., None]], -1).astype(f),
+        pts,
+        mask,
+    )
+
+
+def walking_track_params(
+    model,
+    betas,
+    start_cam,
+    heading_rad: float,
+    speed_mps: float,
+    frames: int,
+    rate_hz: float,
+    phase0: float = 0.0,
+    standing_pose=None,
+):
+    """One person along a straight line on the ground, seen by a fixed level camera: the body
+    parameters (cam frame, tasks.fit.init_oracle.BodyParams of ``frames`` rows) at ``rate_hz``.
+
+    betas (10,); start_cam (3,): the ground point under the pelvis at frame 0 (cam frame: y down,
+    so the ground is y = start_cam[1]); heading_rad: the facing direction about the vertical,
+    0 = away from the camera (+z), pi/2 = towards +x; the person walks that way at speed_mps
+    (gait_pose, ~0.9 strides per second per m/s of speed over 1.3 m); speed 0: standing still
+    in ``standing_pose`` (69,) (default: tasks.body.poses.neutral_pose)."""
+    import torch
+
+    from tasks.body.params import BodyParams
+    from tasks.body.poses import gait_pose, neutral_pose
+    from tasks.body.rotations import matrix_to_axis_angle
+
+    f = np.array([np.sin(heading_rad), 0.0, np.cos(heading_rad)])
+    up = np.array([0.0, -1.0, 0.0])
+    R = np.stack([np.cross(up, f), up, f], 1)
+    go = np.tile(matrix_to_axis_angle(torch.as_tensor(R)).numpy(), (frames, 1))
+    t = np.arange(frames) / rate_hz
+    if speed_mps > 0:
+        cadence = speed_mps / 1.3  # gait cycles per second
+        pose = np.stack([gait_pose((phase0 + cadence * tk) % 1.0, speed_mps) for tk in t])
+    else:
+        base = neutral_pose() if standing_pose is None else np.asarray(standing_pose)
+        pose = np.tile(base, (frames, 1))
+    b = np.tile(np.asarray(betas, np.float64), (frames, 1))
+    f32 = torch.float32
+    with torch.no_grad():
+        o = model(
+            torch.as_tensor(b, dtype=f32),
+            torch.as_tensor(go, dtype=f32),
+            torch.as_tensor(pose, dtype=f32),
+            torch.zeros(frames, 3),
+        )
+    root = o.joints[:, 0].double().numpy()
+    lowest = o.vertices[..., 1].amax(1).double().numpy()  # y down: the soles
+    ground = np.asarray(start_cam, np.float64)[None] + (speed_mps * t)[:, None] * f[None]
+    transl = np.stack(
+        [ground[:, 0] - root[:, 0], ground[:, 1] - lowest, ground[:, 2] - root[:, 2]], 1
+    )
+    c = np.float32
+    return BodyParams(b.astype(c), go.astype(c), pose.astype(c), transl.astype(c))

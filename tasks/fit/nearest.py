@@ -182,19 +182,27 @@ def pairs_within(queries, query_mask, points, bounds, max_m):
     queries (K, N, 3) float64, query_mask (K, N) bool, points (P, 3) float64 grouped by person
     (rows bounds[k]:bounds[k + 1]). Returns index (K, N) int64 into points (-1: none within
     max_m, or not masked) and squared distance (K, N) float64 (inf where none)."""
+    return pairs_within_ranges(queries, query_mask, points, bounds[:-1], bounds[1:], max_m)
+
+
+@njit(cache=True, nogil=True)
+def pairs_within_ranges(queries, query_mask, points, starts, ends, max_m):
+    """:func:`pairs_within` with person k's points at rows starts[k]:ends[k] of points (any
+    subset of persons of one grouped array, e.g. those an ICP still moves); a person with no
+    masked query is skipped (no grid built)."""
     K, N = query_mask.shape
     index = np.full((K, N), -1, np.int64)
     d2 = np.full((K, N), np.inf)
     lim = max_m * max_m
     for k in range(K):
-        if bounds[k + 1] == bounds[k]:
+        if ends[k] == starts[k] or not query_mask[k].any():
             continue
-        pk = points[bounds[k] : bounds[k + 1]]
+        pk = points[starts[k] : ends[k]]
         lo, cell, dims, start, order = _build_grid(pk)
         for n in range(N):
             if query_mask[k, n]:
                 i, d = _nearest_one(queries[k, n], pk, lo, cell, dims, start, order, lim)
                 if i >= 0 and d <= lim:
-                    index[k, n] = bounds[k] + i
+                    index[k, n] = starts[k] + i
                     d2[k, n] = d
     return index, d2

@@ -113,6 +113,8 @@ def fit_persons(
     use_visibility: bool = True,
     use_icp: bool = True,
     keypoint_weights=None,
+    frozen: tuple[str, ...] = (),
+    coupling=None,
 ) -> FitResult:
     """Fit B persons jointly (batched Adam), returning cam-frame bodies.
 
@@ -130,6 +132,10 @@ def fit_persons(
     :class:`tasks.fit.settings.FitSettings` is the stage's (which persons, batches).
     use_visibility=False uses every vertex and flags no joint occluded, use_icp=False skips the
     rigid alignment (ablations). Deterministic for a fixed seed on a device.
+    frozen: parameter groups held at their initial values ('betas', 'global_orient',
+    'body_pose', 'transl'; e.g. a track's shape). coupling: a term tying persons together,
+    joints (B, 24, 3) cam frame -> (B,) added to the objective (residual 'L_coupling'; e.g. the
+    acceleration penalty of tasks/fit/refine.py); with it no person leaves the batch early.
     """
     B = len(init)
     kp_np, pts_l, counts = np.asarray(keypoints), np.asarray(points), np.asarray(counts).reshape(-1)
@@ -166,7 +172,19 @@ def fit_persons(
     problem = _Problem.build(
         model, prior, x, vis_fn, pts, kp, Kt, kw, weights, s.chamfer_vertex_max_m
     )
-    x, steps = _optimize(problem, x, s.iterations, s.learning_rate, s.nn_every, s.converge_rtol)
+    problem.coupling = coupling
+    free = torch.ones(x.shape[1], dtype=x.dtype, device=dev)
+    for name in frozen:
+        free[_SLICES[name]] = 0.0
+    x, steps = _optimize(
+        problem,
+        x,
+        s.iterations,
+        s.learning_rate,
+        s.nn_every,
+        None if coupling else s.converge_rtol,
+        free,
+    )
 
     with torch.no_grad():
         full = _posed(model, x)
@@ -302,6 +320,7 @@ class _Problem:
         )
         self.pts, self.vertex_mask = pts, vertex_mask
         self.targets: L.ChamferTargets | None = None
+        self.coupling = None  # joints (k, 24, 3) -> (k,), or None
         self.offsets: torch.Tensor | None = None  # pose blend shapes, (k, V, 3)
         self.visible_count = vertex_mask.sum(1)
 
@@ -357,6 +376,7 @@ class _Problem:
         out.targets = None if self.targets is None else self.targets.take(rows)
         out.offsets = None if self.offsets is None else self.offsets[rows]
         out.visible_count = self.visible_count[rows]
+        out.coupling = self.coupling
         return out
 
     def objective(self, x: torch.Tensor, refresh: bool) -> tuple:
@@ -402,6 +422,9 @@ class _Problem:
             + w.factor(w.lambda_beta) * t["L_beta"]
             + w.factor(w.lambda_occ) * t["L_occ"]
         )
+        if self.coupling is not None:
+            t["L_coupling"] = self.coupling(o.joints)
+            t["total"] = t["total"] + t["L_coupling"]
         return o, t
 
 
@@ -412,9 +435,11 @@ def _optimize(
     lr: float,
     nn_every: int,
     converge_rtol: float | None,
+    free: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Adam on the packed rows x (B, 85) (torch.optim.Adam's update, written out so that rows
-    can leave the batch with their moments). Returns the final rows and the steps per person."""
+    can leave the batch with their moments); free (85,): 0 where a parameter is held fixed.
+    Returns the final rows and the steps per person."""
     B = x.shape[0]
     dev = x.device
     out = x.clone()
@@ -443,6 +468,8 @@ def _optimize(
                     keep = (~done).nonzero().reshape(-1)
             last = now
         (g,) = torch.autograd.grad(total.sum(), xr)
+        if free is not None:
+            g = g * free
         if keep is not None:
             x, m, v, g, index, last = x[keep], m[keep], v[keep], g[keep], index[keep], last[keep]
             problem = problem.take(keep)
