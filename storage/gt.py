@@ -115,22 +115,22 @@ def _check(
             )
 
 
-def gt_dir(root: Path, seq: int) -> Path:
+def gt_dir(root: Path, seq: int | str) -> Path:
     return Path(root) / "gt" / str(seq)
 
 
-def frame_path(root: Path, seq: int, frame: int) -> Path:
+def frame_path(root: Path, seq: int | str, frame: int) -> Path:
     return gt_dir(root, seq) / f"gt_{seq}_{frame}.npz"
 
 
-def write_sequence_gt(root: Path, seq: int, arrays: dict[str, np.ndarray]) -> Path:
+def write_sequence_gt(root: Path, seq: int | str, arrays: dict[str, np.ndarray]) -> Path:
     """Write ``sequence.npz`` (fields SEQUENCE_FIELDS)."""
     path = gt_dir(root, seq) / "sequence.npz"
     _check(path, arrays, SEQUENCE_FIELDS)
     return write_npz_deterministic(path, {k: np.asarray(arrays[k]) for k in SEQUENCE_FIELDS})
 
 
-def write_frame_gt(root: Path, seq: int, frame: int, arrays: dict[str, np.ndarray]) -> Path:
+def write_frame_gt(root: Path, seq: int | str, frame: int, arrays: dict[str, np.ndarray]) -> Path:
     """Write one frame's ground truth (fields FRAME_FIELDS and those of OPTIONAL_FRAME_FIELDS
     given, validated)."""
     path = frame_path(root, seq, frame)
@@ -185,7 +185,7 @@ class GTFrame:
     vertex_velocity_base: np.ndarray | None = None
 
 
-def list_gt_frames(root: Path, seq: int) -> list[int]:
+def list_gt_frames(root: Path, seq: int | str) -> list[int]:
     """Frame numbers with a ground-truth file, ascending."""
     d = gt_dir(root, seq)
     prefix = f"gt_{seq}_"
@@ -197,7 +197,7 @@ def list_gt_frames(root: Path, seq: int) -> list[int]:
     return sorted(out)
 
 
-def read_sequence_gt(root: Path, seq: int) -> GTSequence:
+def read_sequence_gt(root: Path, seq: int | str) -> GTSequence:
     """Read ``gt/{SEQ}/sequence.npz``; raises GTFormatError (GTMissingError, also a
     FileNotFoundError, when it is not there) naming the file."""
     path = gt_dir(root, seq) / "sequence.npz"
@@ -216,7 +216,7 @@ def read_sequence_gt(root: Path, seq: int) -> GTSequence:
     )
 
 
-def read_frame_gt(root: Path, seq: int, frame: int) -> GTFrame:
+def read_frame_gt(root: Path, seq: int | str, frame: int) -> GTFrame:
     """Read one frame's ground truth as arrays."""
     path = frame_path(root, seq, frame)
     if not path.exists():

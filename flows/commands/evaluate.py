@@ -219,10 +219,10 @@ def _evaluate_sequence(
     range_min = np.asarray(attrs["range_min"], np.float64)
     vs = float(attrs["voxel_size_m"])
     raw_frames = [int(r) for r in ds.table("frames", seq).column("raw_frame").to_pylist()]
-    if not (gt_dir(gt_root, int(seq)) / "sequence.npz").exists() if seq.isdigit() else True:
+    if not (gt_dir(gt_root, seq) / "sequence.npz").exists():
         tot.notes[f"sequence {seq}"] = f"no ground truth under {gt_root}/gt/{seq}: not evaluated"
         return
-    gseq = read_sequence_gt(gt_root, int(seq))
+    gseq = read_sequence_gt(gt_root, seq)
     from flows.commands.evaluate_coda import open_recorded_sequence
 
     coda = open_recorded_sequence(config, gt_root, seq)
@@ -277,7 +277,7 @@ def _evaluate_sequence(
         ds, seq, sequence_info(ds, seq), boxed
     )  # the nuScenes export's
     for k, raw in enumerate(raw_frames):
-        gtf = read_frame_gt(gt_root, int(seq), raw)
+        gtf = read_frame_gt(gt_root, seq, raw)
         pred = np.asarray(arrays["semantics"][k])
         mask_cam = np.asarray(arrays["mask_camera"][k]).astype(bool)
         # static semantics vs labelled GT points (pedestrian points out)

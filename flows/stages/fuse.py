@@ -47,7 +47,7 @@ class _People:
         self.inputs, self.seq, self.per_vertex = inputs, seq, inputs.fusion.velocity == "vertex"
         self.T = seq.info.calibration.T_base_from_lidar
         if inputs.body_source == "ground-truth":
-            self.faces = read_sequence_gt(seq.root, int(seq.sequence)).person_faces
+            self.faces = read_sequence_gt(seq.root, seq.sequence).person_faces
             return
         self.model = body_model(inputs.body, out_root)
         self.faces = np.asarray(self.model.faces)
@@ -91,13 +91,13 @@ class _People:
     def _ground_truth(self, frame: int):
         """(track ids, vertices LiDAR frame, person velocities, vertex velocities base axes) of
         the observed simulated people."""
-        gt = read_frame_gt(self.seq.root, int(self.seq.sequence), frame)
+        gt = read_frame_gt(self.seq.root, self.seq.sequence, frame)
         returns = np.array([(gt.point_instance == t).sum() for t in gt.track_id], np.int64)
         n = self.inputs.gt_min_points
         observed = (returns >= n) & (gt.visible_fraction > 0) if n else returns >= 0
         if self.per_vertex and gt.vertex_velocity_base is None:
             raise ValueError(
-                f"{frame_path(self.seq.root, int(self.seq.sequence), frame)}: no vertex_velocity_base "
+                f"{frame_path(self.seq.root, self.seq.sequence, frame)}: no vertex_velocity_base "
                 "(ground truth simulated before it existed): simulate again, or set "
                 "fuse.velocity: person"
             )

@@ -33,7 +33,7 @@ from flows.stages.models import (
     lidar_proposals,
     model_perception,
 )
-from storage.cliff_files import cliff_path, read_cliff_estimates
+from storage.cliff_files import CliffFileError, cliff_path, read_cliff_estimates
 from storage.coda import CodaSequence
 from storage.gt import read_frame_gt
 from storage.images import read_rgb
@@ -68,7 +68,7 @@ class OracleImage:
     def image(
         self, frame: Frame, lidar: LidarDetections | None = None
     ) -> tuple[ImagePerception, np.ndarray]:
-        gt = read_frame_gt(self.seq.root, int(self.seq.sequence), frame.index)
+        gt = read_frame_gt(self.seq.root, self.seq.sequence, frame.index)
         rng = frame_rng(self.spec.seed, self.seq.sequence, frame.index, 1)
         return oracle_image_perception(
             gt.box2d,
@@ -86,7 +86,7 @@ class OracleImage:
 
 class OracleLidar(OracleImage):
     def lidar(self, frame: Frame) -> LidarDetections:
-        gt = read_frame_gt(self.seq.root, int(self.seq.sequence), frame.index)
+        gt = read_frame_gt(self.seq.root, self.seq.sequence, frame.index)
         counts = np.array([(gt.point_instance == t).sum() for t in gt.track_id], np.int64)
         rng = frame_rng(self.spec.seed, self.seq.sequence, frame.index, 2)
         return oracle_lidar_detections(
@@ -145,7 +145,7 @@ class ModelsImage:
         image = model_perception(m)(rgb, proposals, semantic)
         if self.oracle is None:
             return image, None
-        gt = read_frame_gt(self.seq.root, int(self.seq.sequence), frame.index)
+        gt = read_frame_gt(self.seq.root, self.seq.sequence, frame.index)
         return image, gt_index_by_boxes(image.boxes_xyxy, gt.box2d)
 
 
@@ -183,7 +183,7 @@ class OracleInit:
     def estimates(self, tracks: Tracks, rows: np.ndarray) -> BodyParams:
         truths = []
         for r in rows:
-            gt = read_frame_gt(self.seq.root, int(self.seq.sequence), int(tracks.frame[r]))
+            gt = read_frame_gt(self.seq.root, self.seq.sequence, int(tracks.frame[r]))
             g = [int(tracks.gt_index[r])]
             truths.append(
                 BodyParams(gt.betas[g], gt.global_orient[g], gt.body_pose[g], gt.transl[g])
@@ -205,7 +205,8 @@ class PrecomputedCliff:
     (frame, det_index), converted with the sequence's calibrated intrinsics."""
 
     def __init__(self, spec: PrecomputedProvider, seq: CodaSequence, model, camera):
-        self.est = read_cliff_estimates(cliff_path(spec.directory, seq.sequence))
+        self.path = cliff_path(spec.directory, seq.sequence)
+        self.est = read_cliff_estimates(self.path)
         self.K = camera.K
         self.where = {
             key: i
@@ -216,7 +217,15 @@ class PrecomputedCliff:
         return [self.where.get((int(tracks.frame[r]), int(tracks.det_index[r]))) for r in rows]
 
     def available(self, tracks: Tracks) -> np.ndarray:
+        """Rows with an estimate. A file with no estimate at all for a sequence with tracked
+        persons is refused (it would publish the sequence without a single body, silently)."""
         rows = np.arange(len(tracks.track_id))
+        if len(rows) and not len(self.est["frame"]):
+            raise CliffFileError(
+                f"{self.path}: holds no CLIFF estimate, but {len(rows)} tracked detection(s) are "
+                "to be fitted: write the estimates (storage/PERCEPTION_FORMAT.md) or set "
+                "fit.init_provider to oracle"
+            )
         return rows[[i is not None for i in self._index(tracks, rows)]].astype(np.int64)
 
     def estimates(self, tracks: Tracks, rows: np.ndarray) -> BodyParams:
