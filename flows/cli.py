@@ -152,6 +152,7 @@ def _unit_state(manifest, plan, stage: str, unit, dry_run: bool) -> list[str]:
 
 def _print_plan(args: argparse.Namespace, dry_run: bool) -> int:
     from flows.pipeline.plan import PlanCosts, plan_run, selected_sequences
+    from flows.pipeline.units import DAMAGED_REASONS
     from storage.coda import check_dataset_root
     from storage.manifest import FingerprintCache, Manifest
 
@@ -176,7 +177,11 @@ def _print_plan(args: argparse.Namespace, dry_run: bool) -> int:
             for line in _unit_state(manifest, plan, stage, unit, dry_run)
         ]
         runs += sum(not u.fresh for u in plan.units.values())
-        problems += any(line.startswith(("failed", "skipped", "fresh, ")) for _, line in lines)
+        problems += any(
+            line.startswith(("failed", "skipped", "fresh, "))
+            or line.split(": ", 1)[-1].startswith(DAMAGED_REASONS)
+            for _, line in lines
+        )
         for stage, line in lines:
             print(f"{plan.sequence:>6}  {stage:<7} {line}")
         if not lines and not dry_run:
@@ -185,7 +190,12 @@ def _print_plan(args: argparse.Namespace, dry_run: bool) -> int:
         f"{len(plans)} sequence(s): {runs} unit(s) {'would run' if dry_run else 'stale or failed'}, "
         f"{problems} sequence(s) with failures; {costs.line()}"
     )
-    return EXIT_FAILED if problems else EXIT_OK
+    from flows.pipeline.units import store_problems
+
+    store = store_problems(cfg, manifest, getattr(args, "verify", False)) if out.is_dir() else []
+    for line in store:
+        print(line)
+    return EXIT_FAILED if problems or store else EXIT_OK
 
 
 def cmd_status(args: argparse.Namespace) -> int:

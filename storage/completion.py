@@ -25,6 +25,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 from storage.layout import TMP_PREFIX
+from storage.manifest import atomic_write_bytes
 
 RECORD = "complete.json"
 RECORD_VERSION = 1
@@ -41,12 +42,12 @@ def file_sha256(path: str | os.PathLike) -> str:
     return h.hexdigest()
 
 
-def _walk(folder: Path) -> Iterable[Path]:
+def _walk(folder: Path, record: str = RECORD) -> Iterable[Path]:
     """Every regular file under ``folder`` (sorted; temporaries and the record itself left out)."""
     for dirpath, dirnames, filenames in os.walk(folder):
         dirnames[:] = sorted(d for d in dirnames if not d.startswith(TMP_PREFIX))
         for name in sorted(filenames):
-            if name.startswith(TMP_PREFIX) or (name == RECORD and Path(dirpath) == folder):
+            if name.startswith(TMP_PREFIX) or (name == record and Path(dirpath) == folder):
                 continue
             yield Path(dirpath) / name
 
@@ -55,13 +56,14 @@ def describe(
     base: str | os.PathLike,
     files: Iterable[str | os.PathLike] | None = None,
     rename: Mapping[str, str] | None = None,
+    record: str = RECORD,
 ) -> FileList:
     """The file list of ``files`` (default: every file under ``base``), keyed by their paths
     relative to ``base`` (POSIX separators); ``rename``: a prefix of those paths -> the prefix
     they will have once published (a staged file listed under its final name)."""
     base = Path(base)
     out: FileList = {}
-    for path in _walk(base) if files is None else (Path(f) for f in files):
+    for path in _walk(base, record) if files is None else (Path(f) for f in files):
         rel = Path(path).relative_to(base).as_posix()
         for old, new in (rename or {}).items():
             if rel == old or rel.startswith(old.rstrip("/") + "/"):
@@ -71,27 +73,24 @@ def describe(
     return dict(sorted(out.items()))
 
 
-def write_record(folder: str | os.PathLike, **about: str) -> FileList:
-    """Write ``folder/complete.json`` listing every file in ``folder`` (call it last, when nothing
-    else will be written there); ``about``: stage, sequence, key. Returns the file list."""
+def write_record(folder: str | os.PathLike, name: str = RECORD, **about: str) -> FileList:
+    """Write ``folder/complete.json`` (or ``name``) listing every file in ``folder`` (call it
+    last, when nothing else will be written there); ``about``: stage, sequence, key. Returns the
+    file list."""
     folder = Path(folder)
-    files = describe(folder)
+    files = describe(folder, record=name)
     body = {"version": RECORD_VERSION, **about, "files": files}
-    path = folder / RECORD
-    with open(path, "wb") as fh:  # the folder is still hidden: it is published by rename
-        fh.write(json.dumps(body, sort_keys=True, indent=1).encode())
-        fh.flush()
-        os.fsync(fh.fileno())
+    atomic_write_bytes(folder / name, json.dumps(body, sort_keys=True, indent=1).encode())
     return files
 
 
-def read_record(folder: str | os.PathLike) -> dict:
+def read_record(folder: str | os.PathLike, name: str = RECORD) -> dict:
     """The record of ``folder``; ValueError naming the file when it is missing or unreadable."""
-    path = Path(folder) / RECORD
+    path = Path(folder) / name
     try:
         body = json.loads(path.read_bytes())
     except FileNotFoundError:
-        raise ValueError(f"{path} is missing (the unit did not finish)") from None
+        raise ValueError(f"{path} is missing (its writer did not finish)") from None
     except (OSError, ValueError) as exc:
         raise ValueError(f"{path} cannot be read ({exc})") from None
     if (
@@ -131,14 +130,14 @@ def check_files(base: str | os.PathLike, files: Mapping[str, list], deep: bool =
     return ""
 
 
-def check_record(folder: str | os.PathLike, deep: bool = False) -> str:
+def check_record(folder: str | os.PathLike, deep: bool = False, name: str = RECORD) -> str:
     """The first problem of a unit's output folder ("" when it is whole): no folder, no record,
     or a listed file missing, of another size or (``deep``) of other content."""
     folder = Path(folder)
     if not folder.is_dir():
         return f"{folder} is missing"
     try:
-        body = read_record(folder)
+        body = read_record(folder, name)
     except ValueError as exc:
         return str(exc)
     return check_files(folder, body["files"], deep)

@@ -19,17 +19,11 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import signal
-import subprocess
-import sys
-import textwrap
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
 
-import numpy as np
 import pytest
 import yaml
 
@@ -228,7 +222,7 @@ STORE_FAULTS = [
     Fault(
         "stage completion record deleted",
         lambda e: (e.stage("fuse") / "complete.json").unlink(),
-        says="did not finish",
+        says="writer did not finish",
     ),
     Fault(
         "stage product rewritten, same size",

@@ -47,7 +47,16 @@ from flows.pipeline.plan import (
     iter_plans,
     selected_sequences,
 )
-from storage.coda import check_dataset_root
+from storage.coda import check_dataset_root, sequence_ids
+from storage.completion import (
+    RECORD,
+    RECORD_VERSION,
+    check_files,
+    check_record,
+    read_record,
+    write_record,
+)
+from storage.layout import TMP_PREFIX
 from storage.manifest import (
     FingerprintCache,
     Manifest,
@@ -60,7 +69,14 @@ from storage.manifest import (
     staged_output,
     sweep_temporaries,
 )
-from storage.publish import withdraw_sequence
+from storage.publish import (
+    pending_publications,
+    published_names,
+    published_versions,
+    recover_publications,
+    remove_sequence,
+    withdraw_sequence,
+)
 
 
 def _error_text(exc: BaseException, where: Path) -> str:
@@ -88,9 +104,17 @@ def execute_unit(
         }
     final = stage_dir(out_root, unit.stage, unit.sequence, unit.key)
     location = str(final.relative_to(out_root))
-    if (final / "summary.json").exists():  # finished by a run that was killed before recording it
-        summary = json.loads((final / "summary.json").read_text())
-        return {**base, "status": "done", "location": location, "summary": summary, "seconds": 0.0}
+    if final.exists():
+        if reusable(unit, final):  # finished by a run that was killed before recording it
+            summary = json.loads((final / "summary.json").read_text())
+            return {
+                **base,
+                "status": "done",
+                "location": location,
+                "summary": summary,
+                "seconds": 0.0,
+            }
+        remove_output(final)  # damaged, forced, or a publication to make again
     from flows.pipeline.parallel import limit_threads
     from flows.stages import (  # the kernels: only where a unit runs
         STAGE_FUNCTIONS,
@@ -113,6 +137,7 @@ def execute_unit(
             )
             summary = STAGE_FUNCTIONS[unit.stage](ctx)
             (tmp / "summary.json").write_text(json.dumps(summary, sort_keys=True, indent=1))
+            write_record(tmp, stage=unit.stage, sequence=unit.sequence, key=unit.key)  # last
     except Exception as exc:  # noqa: BLE001 - one bad sequence fails alone, with its error
         return {
             **base,
@@ -128,6 +153,20 @@ def execute_unit(
         "summary": summary,
         "seconds": time.perf_counter() - started,
     }
+
+
+def reusable(unit: UnitPlan, final: Path) -> bool:
+    """Whether an output folder found at a unit's key can stand for running it: it is whole
+    (its completion record verifies), the unit is not forced, and it is not the export stage,
+    whose work is the publication itself (made again whenever the plan says it must be)."""
+    return not unit.force and unit.stage != "export" and not check_record(final)
+
+
+def remove_output(final: Path) -> None:
+    """Remove a unit's output folder: renamed aside (hidden, swept after a kill), then deleted."""
+    aside = final.with_name(f"{TMP_PREFIX}{final.name}-{uuid.uuid4().hex[:8]}")
+    os.replace(final, aside)
+    shutil.rmtree(aside, ignore_errors=True)
 
 
 @dataclass
@@ -146,6 +185,12 @@ class RunReport:
     write_errors: list[str] = field(default_factory=list)
     #: leftovers of earlier runs removed at the start
     swept: int = 0
+    #: publications (or withdrawals) a killed run left half done, completed at the start
+    recovered: list[str] = field(default_factory=list)
+    #: sequences in the store (published, withdrawn or in the manifest) whose input is no longer
+    #: under the data root, and those of them this run took out of the store (``prune``)
+    gone: list[str] = field(default_factory=list)
+    pruned: list[str] = field(default_factory=list)
 
     @property
     def failed(self) -> list[dict]:
@@ -318,17 +363,22 @@ def run_units(
     plans: list[SequencePlan] | None = None,
     lock_held: bool = False,
     submitter: Submitter | None = None,
+    prune: bool = False,
 ) -> RunReport:
     """Plan and run; the body of both flows (which pass a Prefect ``submitter``). Without one
-    (``inline``) every unit runs here, in order. ``verify``: hash every input file.
+    (``inline``) every unit runs here, in order. ``verify``: hash every input file and every
+    output (stage products, published sequences, dataset-level exports) against its record.
     ``plans``: already made under this run's lock (flows.pipeline.plan.plan_without_hashing).
-    ``lock_held``: the caller holds the output store's lock (checked) and keeps it."""
+    ``lock_held``: the caller holds the output store's lock (checked) and keeps it.
+    ``prune``: take sequences whose input is gone out of the store (else they are reported)."""
     out_root, started = Path(config.output.root), time.perf_counter()
     ids = check_run_paths(config, sequences)
     with holding_lock(out_root) if lock_held else run_lock(out_root):
         report = RunReport(out_root, [])
+        report.recovered = recover_publications(out_root)  # before the sweep: it reads temporaries
         report.swept = sweep_temporaries(out_root)
         manifest = Manifest.load(out_root)
+        adopt_unrecorded_outputs(manifest)
         manifest.meta.update(
             {"config_hash": config_hash(config), "config": config.model_dump(mode="json")}
         )
@@ -357,10 +407,81 @@ def run_units(
                         units.submit(plan, stage)
             units.wait()
         _withdraw_failed(config, report)
-        _dataset_exports(config, manifest, report)
+        _gone(config, manifest, report, ids, prune)
+        _dataset_exports(config, manifest, report, verify)
         _save(manifest, report)
     report.seconds = time.perf_counter() - started
     return report
+
+
+def adopt_unrecorded_outputs(manifest: Manifest) -> None:
+    """A store written before completion records (no ``completion_records`` in the manifest's
+    meta): record every unit output it calls done as it is (what the code of then trusted), once;
+    from then on a folder without its record is a unit that did not finish."""
+    if manifest.meta.get("completion_records"):
+        return
+    for rec in manifest.rows.values():
+        folder = manifest.root / rec.location
+        if (
+            rec.status == "done"
+            and rec.location
+            and (folder / "summary.json").is_file()
+            and not (folder / RECORD).exists()
+        ):
+            write_record(folder, stage=rec.stage, sequence=rec.sequence, key=rec.key)
+    manifest.meta["completion_records"] = RECORD_VERSION
+
+
+def gone_sequences(config: Config, manifest: Manifest, selected: list[str]) -> list[str]:
+    """Sequences the store knows (published, withdrawn, or in the manifest) whose input is not
+    under the data root any more (deleted, renamed), the selected ones aside (they fail)."""
+    root = Path(config.dataset.root)
+    known = published_names(manifest.root) | {seq for seq, _ in manifest.rows}
+    present = set(sequence_ids(root)) if root.is_dir() else set()
+    return sorted(known - present - set(selected))
+
+
+def store_problems(config: Config, manifest: Manifest, deep: bool = False) -> list[str]:
+    """What ``status`` reports beyond the units (one line each): publications a killed run left
+    half done, sequences whose input is gone, dataset-level exports that do not match the
+    published sequences."""
+    out_root = Path(config.output.root)
+    lines = [
+        f"{seq:>6}  publication interrupted by a killed run (the next rebuild or export "
+        "completes it)"
+        for seq in pending_publications(out_root)
+    ]
+    selected = selected_sequences(config) if Path(config.dataset.root).is_dir() else []
+    lines += [
+        f"{seq:>6}  in the dataset but no longer under the data root {config.dataset.root}; "
+        "`rebuild --prune` takes it out"
+        for seq in gone_sequences(config, manifest, selected)
+    ]
+    ex, key = dataset_export_inputs(config), dataset_export_key(config, out_root)
+    for fmt in ex.formats:
+        problem = dataset_export_problem(out_root / "exports" / fmt, key, deep)
+        if problem:
+            lines.append(f"{fmt} export stale: {problem}")
+    return lines
+
+
+def _gone(
+    config: Config, manifest: Manifest, report: RunReport, selected: list[str], prune: bool
+) -> None:
+    report.gone = gone_sequences(config, manifest, selected)
+    if not prune:
+        return
+    for seq in report.gone:
+        try:
+            remove_sequence(report.out_root, seq)
+            for folder in (report.out_root / "stages").glob(f"*/{seq}"):
+                remove_output(folder)
+            (report.out_root / ".cache" / "sequences" / f"{seq}.json").unlink(missing_ok=True)
+        except (OSError, ValueError) as exc:
+            report.write_errors.append(f"pruning sequence {seq}: {exc}")
+            continue
+        manifest.drop_sequence(seq)
+        report.pruned.append(seq)
 
 
 def _first_problem(report: RunReport, plan: SequencePlan) -> str | None:
@@ -397,36 +518,55 @@ def _withdraw_failed(config: Config, report: RunReport) -> None:
             report.write_errors.append(f"withdrawing sequence {plan.sequence}: {exc}")
 
 
-def _dataset_exports(config: Config, manifest: Manifest, report: RunReport) -> None:
-    """The Occ3D / nuScenes exports of the whole dataset (``export.formats``), made again when a
-    sequence was (re)published or withdrawn, or their settings changed. Each is written aside and
-    swapped in, so a failed or killed export leaves the previous one. A failure is reported, not
-    raised: the sequences are published."""
-    ex = dataset_export_inputs(config)
-    published = report.withdrawn or any(
-        st == "export" and o["status"] == "done" and o.get("ran", True)
-        for (_, st), o in report.outcomes.items()
-    )
-    key, done = inputs_hash(ex), manifest.meta.setdefault("dataset_exports", {})
+EXPORT_RECORD = ".mobileocc-export.json"
+
+
+def dataset_export_key(config: Config, out_root: Path) -> str:
+    """What a dataset-level export is made of: its settings and the published version of every
+    sequence (so a sequence published, withdrawn or gone changes it, whatever run did it)."""
+    return inputs_hash([dataset_export_inputs(config), published_versions(out_root)])
+
+
+def dataset_export_problem(folder: Path, key: str, deep: bool = False) -> str:
+    """Why the export in ``folder`` does not match ``key`` ("" when it does): missing, made of
+    other settings or sequences, or a file missing / of another size (``deep``: content)."""
+    if not folder.is_dir():
+        return f"{folder} is missing"
+    try:
+        record = read_record(folder, EXPORT_RECORD)
+    except ValueError as exc:
+        return str(exc)
+    if record.get("key") != key:
+        return "made of other settings or published sequences"
+    return check_files(folder, record["files"], deep)
+
+
+def _dataset_exports(config: Config, manifest: Manifest, report: RunReport, deep: bool) -> None:
+    """The Occ3D / nuScenes exports of the whole dataset (``export.formats``), made again
+    whenever they do not match the published sequences and their settings (its record:
+    :func:`dataset_export_problem`). Each is written aside and swapped in, so a failed or killed
+    export leaves the previous one. A failure is reported, not raised: the sequences are
+    published."""
+    ex, key = dataset_export_inputs(config), dataset_export_key(config, report.out_root)
+    done = manifest.meta.setdefault("dataset_exports", {})
     for fmt in ex.formats:
-        if not (published or done.get(fmt) != key):
+        final = report.out_root / "exports" / fmt
+        if not dataset_export_problem(final, key, deep):
             continue
-        final = Path(config.output.root) / "exports" / fmt
-        tmp = final.with_name(f".tmp-{fmt}-{uuid.uuid4().hex[:8]}")
         try:
-            export_dataset(ex, Path(config.output.root), Path(config.dataset.root), fmt, target=tmp)
-            _swap_in(tmp, final)
+            export_dataset(
+                ex, report.out_root, Path(config.dataset.root), fmt, final, key=key, ours=True
+            )
             done[fmt] = key
             report.dataset_exports[fmt] = "done"
         except Exception as exc:  # noqa: BLE001 - the sequences stay published
-            shutil.rmtree(tmp, ignore_errors=True)
             done.pop(fmt, None)
             report.dataset_exports[fmt] = f"failed: {type(exc).__name__}: {exc}"
 
 
 def _swap_in(new: Path, final: Path) -> None:
     """Replace the folder ``final`` by ``new`` (two renames; the old one is then deleted)."""
-    old = final.with_name(f".tmp-old-{final.name}-{uuid.uuid4().hex[:8]}")
+    old = final.with_name(f"{TMP_PREFIX}old-{final.name}-{uuid.uuid4().hex[:8]}")
     if final.exists():
         os.replace(final, old)
     os.replace(new, final)
@@ -481,15 +621,59 @@ def export_dataset(
     fmt: str,
     target: Path | None = None,
     gt: bool = False,
+    key: str = "",
+    ours: bool = False,
 ) -> Path:
-    """Export the published dataset (every sequence) for occupancy trainers; ``gt``: Occ3D labels
-    from the synthetic ground truth under ``data_root`` instead of the pipeline's."""
-    from storage.export.nuscenes import export_nuscenes
-    from storage.export.occ3d import export_occ3d
-
+    """Export the published dataset (every sequence) for occupancy trainers into ``target``
+    (default ``OUT/exports/<fmt>``): written aside, recorded (``.mobileocc-export.json``: the
+    files and ``key``) and swapped in whole; ``gt``: Occ3D labels from the synthetic ground truth
+    under ``data_root`` instead of the pipeline's. ``ours``: ``target`` is the store's own
+    export folder (else :func:`check_export_target` refuses a folder of other things). Read
+    under the store's read lock (storage.publish.reading) so no run changes the dataset
+    meanwhile."""
     target = Path(target) if target is not None else Path(out_root) / "exports" / fmt
     if gt and fmt != "occ3d":
         raise ValueError(f"--gt exports Occ3D labels; it does not apply to --format {fmt}")
+    if not ours:
+        check_export_target(target)
+    tmp = target.with_name(f"{TMP_PREFIX}{target.name}-{uuid.uuid4().hex[:8]}")
+    try:
+        _export_into(ex, out_root, data_root, fmt, tmp, gt)
+        write_record(tmp, EXPORT_RECORD, format=fmt, key=key)
+        _swap_in(tmp, target)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return target
+
+
+def check_export_target(target: Path) -> None:
+    """An export goes into a new folder, an empty one, or one holding an earlier export (its
+    record says so); anything else (a file, a folder of other things) is refused with
+    ExportTargetError, before any work."""
+    if os.path.lexists(target) and not target.is_dir():
+        raise ExportTargetError(f"export target {target} exists and is not a folder")
+    if target.is_dir() and any(target.iterdir()) and not (target / EXPORT_RECORD).is_file():
+        raise ExportTargetError(
+            f"export target {target} holds files that are not a mobileocc export; choose a new "
+            "or empty folder (an earlier export there is replaced as a whole)"
+        )
+    parent = target.parent
+    if not parent.is_dir():
+        raise ExportTargetError(f"export target {target}: its folder {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ExportTargetError(f"export target {target}: its folder {parent} is not writable")
+
+
+class ExportTargetError(ValueError):
+    """Where an export was asked to go cannot take it."""
+
+
+def _export_into(
+    ex: DatasetExportInputs, out_root: Path, data_root: Path, fmt: str, target: Path, gt: bool
+) -> None:
+    from storage.export.nuscenes import export_nuscenes
+    from storage.export.occ3d import export_occ3d
+
     if fmt == "occ3d":
         export_occ3d(
             out_root,
@@ -509,11 +693,14 @@ def export_dataset(
             val_sequences=ex.val_sequences,
             **({"infos_data_root": ex.infos_data_root} if ex.infos_data_root else {}),
         )
-    return target
 
 
 def _first_line(text: str) -> str:
     return text.splitlines()[0] if text else ""
+
+
+#: the reasons of units that run because their output was damaged (flows.pipeline.plan)
+DAMAGED_REASONS = ("output damaged", "not published as recorded")
 
 
 def summary_table(report: RunReport) -> str:
@@ -562,6 +749,22 @@ def summary_table(report: RunReport) -> str:
         lines.append(
             f"WITHDRAWN {', '.join(report.withdrawn)}: earlier published data removed (the sequences "
             "table marks them failed)"
+        )
+    for seq in report.recovered:
+        lines.append(f"RECOVERED {seq}: a publication a killed run left half done was completed")
+    for plan in report.plans:
+        for stage, unit in plan.units.items():
+            if unit.reason.startswith(DAMAGED_REASONS):
+                lines.append(f"REPAIRED {plan.sequence}/{stage}: {unit.reason}")
+    if report.pruned:
+        lines.append(
+            f"PRUNED {', '.join(report.pruned)}: no longer under the data root; taken out of "
+            "the dataset"
+        )
+    elif report.gone:
+        lines.append(
+            f"GONE {', '.join(report.gone)}: in the dataset but no longer under the data root; "
+            "`rebuild --prune` takes them out of the dataset"
         )
     for fmt, state in sorted(report.dataset_exports.items()):
         lines.append(f"{fmt} export: {state}")
