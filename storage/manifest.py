@@ -505,6 +505,45 @@ def check_writable(root: Path) -> None:
             pass
 
 
+#: what an output store holds at its top (anything else in a store without a manifest is not ours)
+STORE_ENTRIES = frozenset(
+    {MANIFEST, JOURNAL, ".lock", ".cache", ".publishing", "stages", "occupancy", "tables",
+     "exports", "report"}
+)  # fmt: skip
+
+
+def check_store_place(out: Path, data: Path) -> None:
+    """The output store is neither the data root nor a folder holding it, and a store without a
+    manifest holds nothing but a store's entries (``STORE_ENTRIES``, temporaries): else an
+    OutputError naming both, before any work (the store's sweep and publication must never touch
+    the user's files)."""
+    out_r, data_r = os.path.realpath(out), os.path.realpath(data)
+    if out_r == data_r:
+        raise OutputError(
+            f"output store {out} is the data root {data}: the store would mix with the data; "
+            "choose another folder for --out"
+        )
+    if data_r.startswith(out_r.rstrip(os.sep) + os.sep):
+        raise OutputError(
+            f"output store {out} holds the data root {data}; choose another folder for --out"
+        )
+    out = Path(out)
+    if not out.is_dir() or (out / MANIFEST).exists() or (out / JOURNAL).exists():
+        return
+    foreign = sorted(
+        p.name
+        for p in out.iterdir()
+        if p.name not in STORE_ENTRIES and not p.name.startswith(TMP_PREFIX)
+    )
+    if foreign:
+        more = f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
+        raise OutputError(
+            f"output store {out} holds files that are not a mobileocc store's "
+            f"({', '.join(repr(f) for f in foreign[:3])}{more}); choose a new or empty folder "
+            "for --out"
+        )
+
+
 #: the output stores whose lock this process holds (a caller holding it may hand the run to code
 #: that would take it again: :func:`holding_lock`)
 _HELD: set[str] = set()

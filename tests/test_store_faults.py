@@ -19,6 +19,11 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -300,3 +305,275 @@ def test_a_damaged_store_is_found_and_repaired(fault: Fault, built, tmp_path, ca
     code, text = _cli(env, "status --verify", capsys)
     assert code == 0, text
     print(f"\nCASE | {fault.name} | {fault.check} exit {fault.code} | {fault.says}")
+
+
+# ---- a kill at every step of a publication -------------------------------------------------------
+
+#: a run (the CLI's runner, without Prefect) that SIGKILLs itself at its N-th rename (0: never),
+#: logging every rename first: the injection hook of these tests
+KILL_AT_RENAME = textwrap.dedent("""
+    import json, os, signal, sys
+    from configs.schema import load_config
+    from flows.pipeline.units import run_units
+    config, data, out, n, log = sys.argv[1:6]
+    real, count = os.replace, [0]
+    def replace(src, dst, *args, **kwargs):
+        count[0] += 1
+        with open(log, "a") as fh:
+            fh.write(json.dumps([count[0], os.fspath(src), os.fspath(dst)]) + "\\n")
+        if count[0] == int(n):
+            os.kill(os.getpid(), signal.SIGKILL)
+        return real(src, dst, *args, **kwargs)
+    os.replace = replace
+    report = run_units(
+        load_config(config, {"dataset.root": data, "output.root": out}), progress=False
+    )
+    sys.exit(report.exit_code)
+""")
+
+
+def _run_killed_at(built, data: Path, out: Path, n: int, log: Path) -> int:
+    run = subprocess.run(
+        [sys.executable, "-c", KILL_AT_RENAME, str(built.config), str(data), str(out), str(n), log],
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert run.returncode in (0, 1, -signal.SIGKILL), run.stderr[-3000:]
+    return run.returncode
+
+
+def _publication_steps(log: Path, out: Path) -> list[int]:
+    """The renames that change what readers see: onto or out of the published places (arrays,
+    current.json, table partitions, a dataset export, the intent records, the manifest)."""
+    steps = []
+    for line in log.read_text().splitlines():
+        n, src, dst = json.loads(line)
+        rel = [os.path.relpath(p, out) for p in (src, dst)]
+        if any(
+            r.startswith(("occupancy/", "tables/", ".publishing/", "manifest.json"))
+            or r in ("exports/occ3d",)
+            for r in rel
+        ):
+            steps.append(n)
+    return steps
+
+
+def _consistent(out: Path, seq: str) -> str:
+    """What readers see of a sequence: "published" (current.json, its frames, a sequences row
+    "ok" naming the same version) or "withdrawn" (none of those, a row "failed"); AssertionError
+    on anything in between."""
+    from storage.tables import read_table
+
+    current = out / "occupancy" / seq / "current.json"
+    rows = read_table(out, "sequences", seq).to_pylist()
+    frames = read_table(out, "frames", seq).num_rows
+    if current.exists():
+        version = json.loads(current.read_text())["version"]
+        assert [(r["status"], r["occupancy_version"]) for r in rows] == [("ok", version)], rows
+        assert frames > 0
+        return "published"
+    assert [r["status"] for r in rows] == ["failed"] and frames == 0, (rows, frames)
+    return "withdrawn"
+
+
+@pytest.mark.parametrize("scenario", ["publish", "withdraw"])
+def test_a_kill_at_any_publication_step_leaves_one_version(scenario, built, tmp_path, capsys):
+    """publish: sequence 1 withdrawn, its calibration fixed, the run republishes it; withdraw:
+    sequence 1's calibration broken, the run withdraws it. The run is SIGKILLed at each rename
+    that changes what readers see; then a reader (``export``) sees one whole version, and the
+    next run gives the bytes of a run never killed. Regression: a kill between table partitions
+    left old arrays with a new frames table; a kill between a withdrawal and the dataset export
+    left the withdrawn sequence in the export for good."""
+    start, data = (
+        (built.withdrawn, built.data) if scenario == "publish" else (built.out, built.broken)
+    )
+    want = "published" if scenario == "publish" else "withdrawn"
+    probe = tmp_path / "probe"
+    log = tmp_path / "renames.jsonl"
+    assert _run_killed_at(built, data, _link_copy(start, probe), 0, log) == (
+        0 if scenario == "publish" else 1
+    )
+    expected = {"1": _published(probe, "1"), "exports": _exports(probe)}
+    assert _consistent(probe, "1") == want
+    steps = _publication_steps(log, probe)
+    assert len(steps) >= 5, log.read_text()
+    for n in steps:
+        out = _link_copy(start, tmp_path / f"out-{n}")
+        assert _run_killed_at(built, data, out, n, tmp_path / f"log-{n}") == -signal.SIGKILL
+        to = tmp_path / f"export-{n}"
+        capsys.readouterr()
+        code = cli.main(
+            ["export", "--config", str(built.config), "--data", str(data), "--out", str(out)]
+            + ["--format", "occ3d", "--to", str(to)]
+        )
+        assert code == 0, capsys.readouterr()
+        seen = _consistent(out, "1")
+        scenes = json.loads((to / "annotations.json").read_text())["scene_infos"]
+        assert ("coda-1" in scenes) == (seen == "published"), (n, seen, sorted(scenes))
+        report = run_units(
+            load_config(built.config, {"dataset.root": str(data), "output.root": str(out)}),
+            progress=False,
+        )
+        assert report.exit_code == (0 if scenario == "publish" else 1), summary_table(report)
+        assert _consistent(out, "1") == want
+        assert _published(out, "1") == expected["1"], n
+        assert _exports(out) == expected["exports"], n
+        assert _published(out, "0") == built.published["0"]
+        shutil.rmtree(out)
+    print(f"\nCASE | killed at each of {len(steps)} publication steps ({scenario}) | consistent")
+
+
+# ---- the data changed under the dataset ----------------------------------------------------------
+
+
+def _without_sequence(data: Path, seq: str) -> None:
+    for path in sorted(data.rglob("*"), reverse=True):
+        rel = path.relative_to(data)
+        if seq in rel.parts or rel.stem == seq or f"_{seq}_" in path.name:
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path)
+            elif os.path.lexists(path):
+                path.unlink()
+
+
+def test_a_sequence_gone_from_the_input_is_reported_and_pruned(
+    built, tmp_path, capsys, monkeypatch
+):
+    """Regression: a sequence deleted from --data stayed published and exported, never
+    mentioned."""
+    _inline_flow(monkeypatch)
+    env = _env(built, tmp_path)
+    _without_sequence(env.data, "1")
+    code, text = _cli(env, "status", capsys)
+    assert code == 1 and "1  in the dataset but no longer under the data root" in text, text
+    code, text = _cli(env, "rebuild", capsys)
+    assert code == 0 and "GONE 1: " in text and "--prune" in text, text
+    assert _published(env.out, "1") == built.published["1"]  # reported, not taken out
+    code, text = _cli(env, "rebuild", capsys, "--prune")
+    assert code == 0 and "PRUNED 1" in text, text
+    assert not (env.out / "occupancy" / "1").exists()
+    assert not list((env.out / "tables").glob("*/sequence=1"))
+    assert not list((env.out / "stages").glob("*/1"))
+    assert {seq for seq, _ in Manifest.load(env.out).rows} == {"0"}
+    scenes = json.loads((env.out / "exports/occ3d/annotations.json").read_text())["scene_infos"]
+    assert sorted(scenes) == ["coda-0"]
+    assert _published(env.out, "0") == built.published["0"]
+    code, text = _cli(env, "status", capsys)
+    assert code == 0, text
+
+
+def _rename_sequence(data: Path, old: str, new: str) -> None:
+    for path in sorted(data.rglob("*"), key=lambda p: -len(p.parts)):
+        name = path.name
+        renamed = name.replace(f"_{old}_", f"_{new}_")
+        if name == old:
+            renamed = new
+        elif path.is_file() and path.stem == old:
+            renamed = new + path.suffix
+        if path.suffix == ".json" and path.is_file():
+            text = path.read_text()
+            _put(path, text.replace(f"/{old}/", f"/{new}/").replace(f"_{old}_", f"_{new}_"))
+        if renamed != name:
+            path.rename(path.with_name(renamed))
+
+
+def test_a_renamed_sequence_is_reported(built, tmp_path, capsys):
+    """Regression: a renamed sequence was published twice, the old name never mentioned."""
+    env = _env(built, tmp_path)
+    _rename_sequence(env.data, "1", "5")
+    code, text = _cli(env, "status", capsys)
+    assert code == 1 and "1  in the dataset but no longer under the data root" in text, text
+    assert "5  detect  stale: never ran" in text, text
+
+
+@pytest.mark.parametrize("where", ["the data root", "a folder of other files"])
+def test_out_must_be_a_store_of_its_own(where, built, tmp_path, capsys):
+    """Regression: --out equal to --data was accepted (and the sweep of leftovers then deleted
+    the user's own .tmp-* files in the data root)."""
+    data = _link_copy(built.data, tmp_path / "data")
+    (data / ".tmp-mine").write_text("the user's")
+    out = data
+    if where != "the data root":
+        out = tmp_path / "elsewhere"
+        out.mkdir()
+        (out / "notes.txt").write_text("the user's")
+    capsys.readouterr()
+    code = cli.main(
+        ["rebuild", "--config", str(built.config), "--data", str(data), "--out", str(out)]
+    )
+    err = capsys.readouterr().err
+    says = "is the data root" if where == "the data root" else "not a mobileocc store's ('notes"
+    assert code == cli.EXIT_USAGE and says in err and len(err.strip().splitlines()) == 1, err
+    assert (data / ".tmp-mine").read_text() == "the user's"
+    assert not (out / "manifest.json").exists()
+
+
+# ---- signals ----------------------------------------------------------------------------------
+
+#: the real CLI, with one stage slowed down in this process (thread runner): it leaves a marker
+#: and sleeps, as a long stage computing in a pool thread would
+SLOW_CLI = textwrap.dedent("""
+    import os, sys, time
+    from pathlib import Path
+    import flows.stages as stages
+    stage, marker = sys.argv[1], Path(sys.argv[2])
+    run = stages.STAGE_FUNCTIONS[stage]
+    def slowed(ctx):
+        marker.write_text(str(os.getpid()))
+        time.sleep(600)
+        return run(ctx)
+    stages.STAGE_FUNCTIONS[stage] = slowed
+    from flows.cli import main
+    sys.exit(main(sys.argv[3:]))
+""")
+
+
+@pytest.mark.usefixtures("prefect_harness")
+@pytest.mark.xdist_group("prefect")
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_a_signal_stops_a_run_within_seconds(sig, built, tmp_path, capsys, monkeypatch):
+    """Regression: SIGTERM or Ctrl-C while a stage computed in a pool thread left the run
+    computing and holding the lock for minutes; Ctrl-C printed a 60-line traceback."""
+    from prefect.settings import PREFECT_API_URL
+
+    from storage.manifest import run_lock
+
+    env = _env(built, tmp_path)
+    shutil.rmtree(env.stage("export"))  # the export of sequence 1 runs again, slowed
+    marker = tmp_path / "started"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", SLOW_CLI, "export", str(marker), *env.args("rebuild")],
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT), "PREFECT_API_URL": PREFECT_API_URL.value()},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        deadline = time.time() + 300
+        while not marker.exists() and proc.poll() is None and time.time() < deadline:
+            time.sleep(0.1)  # a start-up timeout, not a speed check
+        assert marker.exists(), proc.communicate(timeout=60)
+        proc.send_signal(sig)
+        # the stage sleeps 600 s: ending before it means the run did not wait for it
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 128 + sig, err
+    lines = err.strip().splitlines()
+    assert lines[-1] == (
+        f"mobileocc rebuild: stopped by {signal.Signals(sig).name}; finished units are kept, "
+        "the same command resumes"
+    ), err
+    assert "Traceback" not in err
+    with run_lock(env.out):  # released
+        pass
+    _inline_flow(monkeypatch)
+    code, text = _cli(env, "rebuild", capsys)
+    assert code == 0, text
+    assert _published(env.out, "1") == built.published["1"]
+    assert _exports(env.out) == built.exports

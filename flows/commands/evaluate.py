@@ -556,6 +556,16 @@ def open_for_evaluation(dataset: Path, data: Path | None):
     return out, manifest, config, root, ds
 
 
+def withdrawn_sequences(ds) -> dict[str, str]:
+    """sequence -> the first line of why its last run failed, for every sequence the sequences
+    table marks failed (withdrawn from the dataset, so not evaluated)."""
+    return {
+        str(row["sequence"]): (row.get("error") or "").splitlines()[0][:200]
+        for row in ds.table("sequences").to_pylist()
+        if row.get("status") != "ok"
+    }
+
+
 def evaluate(
     dataset: Path,
     gt: Path | None,
@@ -576,6 +586,8 @@ def evaluate(
         raise EvaluateError(f"labels {labels!r}: expected 'synthetic' or 'coda'")
     out, manifest, config, gt_root, ds = open_for_evaluation(dataset, gt)
     tot = _Totals()
+    for seq, why in withdrawn_sequences(ds).items():
+        tot.notes[f"sequence {seq}"] = f"withdrawn, not evaluated: its last run failed ({why})"
     positions = _sample_positions(ds, sample_frames)
     for seq in ds.sequences:
         _evaluate_sequence(ds, out, manifest, gt_root, seq, tot, positions, config)

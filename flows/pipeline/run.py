@@ -17,6 +17,7 @@ from prefect.futures import as_completed
 from configs.schema import Config
 from flows.pipeline.inputs import Runtime
 from flows.pipeline.plan import UnitPlan
+from flows.pipeline.signals import keep_stop_handlers
 from flows.pipeline.units import (  # noqa: F401 - the pipeline's API, as before the split
     RunReport,
     Submitter,
@@ -66,16 +67,19 @@ def _run_units_flow(
     progress: bool,
     verify: bool = False,
     lock_held: bool = False,
+    prune: bool = False,
 ) -> RunReport:
-    return run_units(
-        config,
-        force=force,
-        sequences=sequences,
-        progress=progress,
-        verify=verify,
-        lock_held=lock_held,
-        submitter=PrefectSubmitter(config),
-    )
+    with keep_stop_handlers():  # Prefect's SIGTERM handler would wait for the stages in flight
+        return run_units(
+            config,
+            force=force,
+            sequences=sequences,
+            progress=progress,
+            verify=verify,
+            lock_held=lock_held,
+            submitter=PrefectSubmitter(config),
+            prune=prune,
+        )
 
 
 @flow(name="rebuild-dataset", log_prints=True)
@@ -86,10 +90,12 @@ def rebuild_dataset(
     progress: bool = True,
     verify: bool = False,
     lock_held: bool = False,
+    prune: bool = False,
 ) -> RunReport:
     """Every selected sequence through detect -> track -> fit / map -> fuse -> export, then the
-    dataset-level exports of ``export.formats`` when any sequence was (re)published or withdrawn,
-    or their settings changed. ``lock_held``: the caller (the CLI) holds the store's lock.
+    dataset-level exports of ``export.formats`` wherever they do not match the published
+    sequences. ``lock_held``: the caller (the CLI) holds the store's lock; ``prune``: take
+    sequences whose input is gone out of the dataset.
 
     The units run in a subflow on the task runner ``config.dask`` asks for (threads, a Dask
     LocalCluster, or ``dask.address``), however this flow was started (CLI, deployment, test).
@@ -97,7 +103,7 @@ def rebuild_dataset(
     from flows.pipeline.runtime import task_runner
 
     inner = _run_units_flow.with_options(task_runner=task_runner(config))
-    return inner(config, force, sequences, progress, verify, lock_held)
+    return inner(config, force, sequences, progress, verify, lock_held, prune)
 
 
 @flow(name="process-sequence", log_prints=True)

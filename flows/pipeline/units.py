@@ -61,6 +61,7 @@ from storage.manifest import (
     FingerprintCache,
     Manifest,
     StageRecord,
+    check_store_place,
     check_writable,
     holding_lock,
     remove_stale_versions,
@@ -157,9 +158,10 @@ def execute_unit(
 
 def reusable(unit: UnitPlan, final: Path) -> bool:
     """Whether an output folder found at a unit's key can stand for running it: it is whole
-    (its completion record verifies), the unit is not forced, and it is not the export stage,
+    (its completion record verifies, content hashes included: the plan may have run the unit
+    because hashing found it damaged), the unit is not forced, and it is not the export stage,
     whose work is the publication itself (made again whenever the plan says it must be)."""
-    return not unit.force and unit.stage != "export" and not check_record(final)
+    return not unit.force and unit.stage != "export" and not check_record(final, deep=True)
 
 
 def remove_output(final: Path) -> None:
@@ -271,6 +273,7 @@ def check_run_paths(config: Config, sequences: list[str] | None = None) -> list[
     """Before any work: the output store is writable and the dataset root holds sequences;
     returns the sequences to run. Raises storage.manifest.OutputError / storage.coda's
     CodaFormatError with one clear line."""
+    check_store_place(Path(config.output.root), Path(config.dataset.root))
     check_writable(Path(config.output.root))
     if sequences is not None:
         return [str(s) for s in sequences]
