@@ -1,7 +1,9 @@
 """Read a published dataset: ``ds = open_dataset(out); ds.sequences; ds.arrays(seq); ds.table(...)``.
 
 Only published data is seen: hidden ``.tmp-*`` staging directories are skipped, and each
-sequence's arrays are the version named by ``occupancy/<seq>/current.json``. Arrays are lazy
+sequence's arrays are the version named by ``occupancy/<seq>/current.json``; a store whose
+publication a killed run interrupted is refused until it is completed (storage.publish.reading
+completes it), so arrays and tables are always of one version. Arrays are lazy
 (dask arrays over the zarr arrays, or the zarr arrays themselves); the zarr metadata carries
 ``dimension_names`` so ``xarray.open_zarr`` can open a store directly. Tables are pyarrow Tables
 (``.to_pandas()`` for pandas).
@@ -20,6 +22,7 @@ import zarr
 from storage import tables
 from storage.layout import CURRENT_FILE, OCCUPANCY_DIR, StoreError
 from storage.occupancy_store import ARRAYS, read_attrs, store_path
+from storage.publish import pending_publications
 
 
 @dataclass(frozen=True)
@@ -73,6 +76,13 @@ def open_dataset(path: str | os.PathLike) -> Dataset:
     if not occ.is_dir() and not (root / tables.TABLES_DIR).is_dir():
         raise StoreError(
             f"{root} is not a mobileocc dataset (no {OCCUPANCY_DIR}/ or {tables.TABLES_DIR}/)"
+        )
+    pending = pending_publications(root)
+    if pending:  # its arrays and tables may be of two versions until it is completed
+        raise StoreError(
+            f"dataset {root}: the publication of sequence(s) {', '.join(pending)} was interrupted "
+            "by a killed run; `mobileocc export` or the next run completes it "
+            "(storage.publish.reading)"
         )
     seqs = sorted(
         p.name

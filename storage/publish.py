@@ -175,17 +175,19 @@ def _complete(root: Path, sequence: str, intent: dict) -> None:
         for staged_file in sorted((staging / "tables").glob("*.parquet")):
             publish_partition(root, staged_file.stem, sequence, staged_file)
         current = intent["current"]
-        problem = check_files(root, current["files"])
-        if problem:  # a killed run's staging was lost: readers must not see the mix
-            (seq_dir / CURRENT_FILE).unlink(missing_ok=True)
-        else:
-            atomic_write_bytes(
-                seq_dir / CURRENT_FILE, json.dumps(current, indent=1, sort_keys=True).encode()
-            )
-            if not intent.get("keep_old_versions"):
-                for old in seq_dir.glob("*.zarr"):
-                    if old != target:
-                        _remove(old)
+        if check_files(root, current["files"]):
+            # the staging of a killed run was lost (removed by hand): rather than a mix of
+            # versions, the sequence is taken out whole; its export unit publishes it again
+            _complete(root, sequence, {"action": "remove"})
+            shutil.rmtree(staging, ignore_errors=True)
+            return
+        atomic_write_bytes(
+            seq_dir / CURRENT_FILE, json.dumps(current, indent=1, sort_keys=True).encode()
+        )
+        if not intent.get("keep_old_versions"):
+            for old in seq_dir.glob("*.zarr"):
+                if old != target:
+                    _remove(old)
         _intent_path(root, sequence).unlink(missing_ok=True)
         shutil.rmtree(staging, ignore_errors=True)
         return

@@ -97,9 +97,7 @@ def publish_partition(
     part = partition_dir(root, name, sequence)
     part.mkdir(parents=True, exist_ok=True)
     target = part / PARTITION_FILE
-    hidden = part / f"{TMP_PREFIX}{uuid.uuid4().hex[:12]}.parquet"
-    os.replace(source, hidden)  # same filesystem: the staging dir is under root
-    os.replace(hidden, target)
+    os.replace(source, target)  # one rename on one file system: the staging dir is under root
     return target
 
 
