@@ -769,7 +769,7 @@ def test_a_sequence_id_that_is_not_a_number(built, tmp_path):
 
 def test_an_empty_precomputed_cliff_file_is_refused(tmp_path):
     """Regression: an empty precomputed CLIFF file gave a dataset without bodies, no warning."""
-    from flows.pipeline.inputs import PrecomputedProvider
+    from flows.pipeline.inputs import PrecomputedSpec
     from flows.stages.providers import PrecomputedCliff
     from storage.cliff_files import CliffFileError, cliff_path, write_cliff_estimates
 
@@ -778,7 +778,7 @@ def test_an_empty_precomputed_cliff_file_is_refused(tmp_path):
         path, np.zeros(0, int), np.zeros(0, int), np.zeros((0, 24, 3, 3)), np.zeros((0, 10))
     )
     cliff = PrecomputedCliff(
-        PrecomputedProvider(str(tmp_path)),
+        PrecomputedSpec(str(tmp_path)),
         SimpleNamespace(sequence="1"),
         None,
         SimpleNamespace(K=np.eye(3)),

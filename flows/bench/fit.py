@@ -95,13 +95,7 @@ def bench_fit(
                 sp.T_cam_from_lidar,
                 *ragged_points(sp.points_lidar[idx], sp.point_mask[idx]),
                 w,
-                iterations=its,
-                lr=settings.learning_rate,
-                device=device,
-                seed=seed,
-                nn_every=settings.nn_every,
-                chamfer_vertex_max_m=settings.chamfer_vertex_max_m,
-                converge_rtol=settings.converge_rtol,
+                dataclasses.replace(settings, iterations=its, device=device, seed=seed),
                 **extra,
             )
             if count:
@@ -336,7 +330,7 @@ def bench_throughput(
     from tasks.fit.icp import icp_align
     from tasks.fit.init_oracle import BodyParams
     from tasks.fit.metrics import mean_error_mm
-    from tasks.fit.optimize import fit_persons, ragged_points
+    from tasks.fit.optimize import LIDAR_MIN_POINTS, fit_persons, ragged_points
     from tasks.fit.visibility import vertex_parts, visibility_masks
 
     iterations = settings.iterations
@@ -354,15 +348,7 @@ def bench_throughput(
     rep = np.arange(persons) % n
     init = init0.take(rep)
     pts, counts = ragged_points(a["points_lidar"][rep], a["point_mask"][rep])
-    args = {
-        "weights": weights,
-        "iterations": iterations,
-        "device": device,
-        "nn_every": settings.nn_every,
-        "chamfer_vertex_max_m": settings.chamfer_vertex_max_m,
-        "lr": settings.learning_rate,
-        "converge_rtol": settings.converge_rtol,
-    }
+    fit_settings = dataclasses.replace(settings, device=device)
     w = min(4, persons)
     warm_pts, warm_counts = ragged_points(a["points_lidar"][rep[:w]], a["point_mask"][rep[:w]])
     fit_persons(
@@ -374,14 +360,24 @@ def bench_throughput(
         a["T_cam_from_lidar"],
         warm_pts,
         warm_counts,
-        **{**args, "iterations": min(iterations, 6)},
+        weights,
+        dataclasses.replace(fit_settings, iterations=min(iterations, 6)),
     )
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
     sync()
     t0 = time.perf_counter()
     r = fit_persons(
-        model, prior, init, a["keypoints"][rep], a["K"], a["T_cam_from_lidar"], pts, counts, **args
+        model,
+        prior,
+        init,
+        a["keypoints"][rep],
+        a["K"],
+        a["T_cam_from_lidar"],
+        pts,
+        counts,
+        weights,
+        fit_settings,
     )
     sync()
     wall = time.perf_counter() - t0
@@ -412,7 +408,7 @@ def bench_throughput(
     )
     sync()
     t1 = time.perf_counter()
-    icp_align(o.vertices, vis.vertex_mask, p_cam, person)
+    icp_align(o.vertices, vis.vertex_mask, p_cam, person, min_person_points=LIDAR_MIN_POINTS)
     sync()
     icp_s = time.perf_counter() - t1
     out = {
@@ -447,13 +443,14 @@ def device_agreement(pool_arrays: dict, device: str, weights, iterations: int = 
     from tasks.body.procedural import default_body_model
     from tasks.fit.init_oracle import BodyParams
     from tasks.fit.optimize import fit_persons, ragged_points
+    from tasks.fit.settings import FitSettings
 
     a, model = pool_arrays, default_body_model()
     g = generate_pose_prior()
     prior = GMMPosePrior(g["means"], g["covars"], g["weights"])
     init = BodyParams(*(a[f"init_{k}"] for k in ("betas", "global_orient", "body_pose", "transl")))
     pts, counts = ragged_points(a["points_lidar"], a["point_mask"])
-    kw = {"weights": weights, "iterations": iterations, "nn_every": 5, "chamfer_vertex_max_m": 0.03}
+    settings = dataclasses.replace(FitSettings(), iterations=iterations)
 
     def fit(dev):
         p = prior if dev == "cpu" else copy.deepcopy(prior).to(dev)
@@ -466,8 +463,8 @@ def device_agreement(pool_arrays: dict, device: str, weights, iterations: int = 
             a["T_cam_from_lidar"],
             pts,
             counts,
-            device=dev,
-            **kw,
+            weights,
+            dataclasses.replace(settings, device=dev),
         )
 
     c, d1, d2 = fit("cpu"), fit(device), fit(device)

@@ -18,13 +18,16 @@ from typing import Protocol
 import numpy as np
 
 from flows.pipeline.inputs import (
-    CliffProvider,
-    LidarClustersProvider,
-    ModelsProvider,
-    NoProvider,
-    OracleInitProvider,
-    OracleProvider,
-    PrecomputedProvider,
+    CliffSpec,
+    ImageSpec,
+    InitSpec,
+    LidarClustersSpec,
+    LidarDetectionsSpec,
+    ModelsSpec,
+    NoDetectionsSpec,
+    OracleInitSpec,
+    OracleSpec,
+    PrecomputedSpec,
 )
 from flows.stages.common import frame_rng, is_night
 from flows.stages.models import (
@@ -62,7 +65,7 @@ class LidarProvider(Protocol):
 class OracleImage:
     """Ground truth + the oracle's noise model (synthetic data only)."""
 
-    def __init__(self, spec: OracleProvider, seq: CodaSequence):
+    def __init__(self, spec: OracleSpec, seq: CodaSequence):
         self.spec, self.seq, self.night = spec, seq, is_night(seq)
 
     def image(
@@ -97,7 +100,7 @@ class OracleLidar(OracleImage):
 class PrecomputedFiles:
     """A model's outputs read from files (storage/PERCEPTION_FORMAT.md), keyed by raw frame."""
 
-    def __init__(self, spec: PrecomputedProvider, seq: CodaSequence):
+    def __init__(self, spec: PrecomputedSpec, seq: CodaSequence):
         self.files = PrecomputedPerception(Path(spec.directory) / seq.sequence)
 
     def image(self, frame: Frame, lidar: LidarDetections) -> tuple[ImagePerception, None]:
@@ -110,7 +113,7 @@ class PrecomputedFiles:
 class LidarClusters:
     """The weight-free LiDAR detector on the frame's sweep."""
 
-    def __init__(self, spec: LidarClustersProvider, seq: CodaSequence):
+    def __init__(self, spec: LidarClustersSpec, seq: CodaSequence):
         self.params = spec.params
 
     def lidar(self, frame: Frame) -> LidarDetections:
@@ -118,7 +121,7 @@ class LidarClusters:
 
 
 class NoLidar:
-    def __init__(self, spec: NoProvider, seq: CodaSequence):
+    def __init__(self, spec: NoDetectionsSpec, seq: CodaSequence):
         pass
 
     def lidar(self, frame: Frame) -> LidarDetections:
@@ -130,7 +133,7 @@ class ModelsImage:
     proposals when the detector is 'lidar'; with the oracle's semantics (synthetic data) the
     detections take ground-truth identities by box."""
 
-    def __init__(self, spec: ModelsProvider, seq: CodaSequence):
+    def __init__(self, spec: ModelsSpec, seq: CodaSequence):
         self.spec, self.seq = spec, seq
         self.cam = seq.info.calibration.cameras[spec.camera]
         self.oracle = OracleImage(spec.oracle, seq) if spec.oracle is not None else None
@@ -150,23 +153,23 @@ class ModelsImage:
 
 
 IMAGE_PROVIDERS = {
-    OracleProvider: OracleImage,
-    PrecomputedProvider: PrecomputedFiles,
-    ModelsProvider: ModelsImage,
+    OracleSpec: OracleImage,
+    PrecomputedSpec: PrecomputedFiles,
+    ModelsSpec: ModelsImage,
 }
 LIDAR_PROVIDERS = {
-    OracleProvider: OracleLidar,
-    PrecomputedProvider: PrecomputedFiles,
-    LidarClustersProvider: LidarClusters,
-    NoProvider: NoLidar,
+    OracleSpec: OracleLidar,
+    PrecomputedSpec: PrecomputedFiles,
+    LidarClustersSpec: LidarClusters,
+    NoDetectionsSpec: NoLidar,
 }
 
 
-def image_provider(spec, seq: CodaSequence) -> ImageProvider:
+def image_provider(spec: ImageSpec, seq: CodaSequence) -> ImageProvider:
     return IMAGE_PROVIDERS[type(spec)](spec, seq)
 
 
-def lidar_provider(spec, seq: CodaSequence) -> LidarProvider:
+def lidar_provider(spec: LidarDetectionsSpec, seq: CodaSequence) -> LidarProvider:
     return LIDAR_PROVIDERS[type(spec)](spec, seq)
 
 
@@ -174,7 +177,7 @@ class OracleInit:
     """The oracle's initial estimates (synthetic data): the ground-truth bodies perturbed like a
     monocular regressor; a false positive has none. One generator per batch of rows."""
 
-    def __init__(self, spec: OracleInitProvider, seq: CodaSequence, model, camera):
+    def __init__(self, spec: OracleInitSpec, seq: CodaSequence, model, camera):
         self.spec, self.seq, self.model, self.camera = spec, seq, model, camera
 
     def available(self, tracks: Tracks) -> np.ndarray:
@@ -204,7 +207,7 @@ class PrecomputedCliff:
     """CLIFF outputs precomputed by the user (``<directory>/<sequence>/cliff.parquet``), keyed by
     (frame, det_index), converted with the sequence's calibrated intrinsics."""
 
-    def __init__(self, spec: PrecomputedProvider, seq: CodaSequence, model, camera):
+    def __init__(self, spec: PrecomputedSpec, seq: CodaSequence, model, camera):
         self.path = cliff_path(spec.directory, seq.sequence)
         self.est = read_cliff_estimates(self.path)
         self.K = camera.K
@@ -246,7 +249,7 @@ class PrecomputedCliff:
 class CliffModel:
     """A CLIFF export on each tracked box (one image read per frame of the batch)."""
 
-    def __init__(self, spec: CliffProvider, seq: CodaSequence, model, camera):
+    def __init__(self, spec: CliffSpec, seq: CodaSequence, model, camera):
         self.spec, self.seq, self.camera = spec, seq, camera
         self.at = {raw: k for k, raw in enumerate(seq.info.frame_indices)}
 
@@ -271,11 +274,11 @@ class CliffModel:
 
 
 INIT_PROVIDERS = {
-    OracleInitProvider: OracleInit,
-    PrecomputedProvider: PrecomputedCliff,
-    CliffProvider: CliffModel,
+    OracleInitSpec: OracleInit,
+    PrecomputedSpec: PrecomputedCliff,
+    CliffSpec: CliffModel,
 }
 
 
-def init_provider(spec, seq: CodaSequence, model, camera):
+def init_provider(spec: InitSpec, seq: CodaSequence, model, camera):
     return INIT_PROVIDERS[type(spec)](spec, seq, model, camera)

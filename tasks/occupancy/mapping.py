@@ -45,33 +45,6 @@ from tasks.occupancy.static_map import (
 from tasks.occupancy.tiles import BLOCK_VOXELS, ground_halo_tiles, tiles_of_keys, voxels_per_tile
 
 
-def new_occupancy_map(p: FreeSpaceParams, threads: int | None = None) -> OccupancyMap:
-    """An empty occupancy map with the sensor model ``p``."""
-    return OccupancyMap(
-        p.voxel_size_m,
-        p.prob_hit,
-        p.prob_miss,
-        p.clamp_min,
-        p.clamp_max,
-        p.occupancy_threshold,
-        threads=threads,
-    )
-
-
-def load_occupancy_map(p: FreeSpaceParams, keys: np.ndarray, logodds: np.ndarray) -> OccupancyMap:
-    """The occupancy map stored as (keys, logodds) (storage.products.OccupancyMapProduct)."""
-    return OccupancyMap.from_arrays(
-        p.voxel_size_m,
-        keys,
-        logodds,
-        prob_hit=p.prob_hit,
-        prob_miss=p.prob_miss,
-        clamp_min=p.clamp_min,
-        clamp_max=p.clamp_max,
-        occupancy_threshold=p.occupancy_threshold,
-    )
-
-
 @dataclass(frozen=True)
 class SweepLabels:
     """One sweep's points: labels (N,) uint8 class ids (lifted, fallback outside the image),
@@ -124,10 +97,7 @@ class SweepLabeller:
             self.K,
             self.T_cam,
             self.lut,
-            fallback=p.outside_image_fallback,
-            ground_cell_m=p.ground_cell_m,
-            ground_tol_m=p.ground_max_deviation_m,
-            ground_lateral_scale=p.fallback_ground_lateral_scale,
+            p,
             projection=projection,
             threads=self.threads,
         )
@@ -150,17 +120,6 @@ class SweepLabeller:
             projection=projection,
         )
         return SweepLabels(labels, ~people & (labels != PEDESTRIAN), projection[1])
-
-
-def _vote_kwargs(p: MapParams, ground_class_ids: tuple[int, ...]) -> dict:
-    return dict(
-        ground_classes=tuple(ground_class_ids),
-        ground_tolerance_m=p.ground_max_deviation_m,
-        ground_cell_m=p.ground_cell_m,
-        ground_neighbourhood=p.ground_neighbourhood_cells,
-        ground_quantile=p.ground_quantile,
-        min_votes=p.min_votes,
-    )
 
 
 class SequenceMapper:
@@ -186,7 +145,7 @@ class SequenceMapper:
         )
         self.seen = StaticSemanticMap(params.voxel_size_m)
         self.unseen = StaticSemanticMap(params.voxel_size_m)
-        self.occupancy = new_occupancy_map(freespace, threads)
+        self.occupancy = OccupancyMap(freespace, threads=threads)
         self.kept = self.removed = 0
 
     def add_sweep(
@@ -220,9 +179,9 @@ class SequenceMapper:
     def finish(self, ground_class_ids: tuple[int, ...]) -> tuple[StaticMap, StaticMap]:
         """(the final static map, the camera-labelled part of it) after the ground check and max
         voting; the occupancy map is ``self.occupancy``."""
-        kw = _vote_kwargs(self.params, ground_class_ids)
-        camera = self.seen.finalize(**kw)
-        return merge_static_maps(camera, self.unseen.finalize(**kw)), camera
+        p, ground = self.params, tuple(ground_class_ids)
+        camera = self.seen.finalize(p, ground)
+        return merge_static_maps(camera, self.unseen.finalize(p, ground)), camera
 
 
 def world_points(T_world_from_lidar: np.ndarray, points_lidar: np.ndarray) -> np.ndarray:
@@ -240,12 +199,13 @@ TileVotes = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 class WindowVotes:
     """Static-map votes of a window of consecutive sweeps, split by tile (seen by the camera and
-    not, as :class:`SequenceMapper`). tile_m: tile edge (m). State lives on the instance."""
+    not, as :class:`SequenceMapper`) of ``params.voxel_size_m`` by tiles of ``params.tile_m``.
+    State lives on the instance."""
 
-    def __init__(self, voxel_size_m: float, tile_m: float):
-        self.n = voxels_per_tile(tile_m, voxel_size_m)
-        self.seen = StaticSemanticMap(voxel_size_m)
-        self.unseen = StaticSemanticMap(voxel_size_m)
+    def __init__(self, params: MapParams):
+        self.n = voxels_per_tile(params.tile_m, params.voxel_size_m)
+        self.seen = StaticSemanticMap(params.voxel_size_m)
+        self.unseen = StaticSemanticMap(params.voxel_size_m)
         self.kept = self.removed = 0
 
     def add(self, world: np.ndarray, sweep: SweepLabels) -> None:
@@ -291,9 +251,9 @@ def finalize_tiles(
     :meth:`SequenceMapper.finish` restricted to the tile. Tiles are loaded once per call while
     they are within the halo of the tiles still to come (give tiles in ascending order).
     """
-    p, kw = params, _vote_kwargs(params, ground_class_ids)
+    p, ground = params, tuple(ground_class_ids)
     n = voxels_per_tile(p.tile_m, p.voxel_size_m)
-    h = ground_halo_tiles(p.tile_m, p.ground_cell_m, p.ground_neighbourhood_cells, p.voxel_size_m)
+    h = ground_halo_tiles(p)
     cache: dict[tuple[int, int], TileVotes | None] = {}
     for tile in sorted(tiles):
         near = [(tile[0] + dx, tile[1] + dy) for dx in range(-h, h + 1) for dy in range(-h, h + 1)]
@@ -304,7 +264,7 @@ def finalize_tiles(
         for side in (0, 2):  # camera-seen, then unseen
             keys, counts = sum_votes([(v[side], v[side + 1]) for v in votes if v is not None])
             inside = np.all(tiles_of_keys(unpack_keys(keys), n) == tile, axis=1)
-            maps.append(vote(keys, counts, p.voxel_size_m, **kw, select=inside))
+            maps.append(vote(keys, counts, p, ground, select=inside))
         yield tile, merge_static_maps(maps[0], maps[1]), len(maps[0].keys)
 
 
@@ -327,7 +287,7 @@ def region_occupancy(
     :meth:`tasks.occupancy.tiles.MapPlan.region_keys`) from scans (points (N, 3) float32 world
     frame, origin (3,)) given in frame order: every scan that can reach the region
     (:func:`tasks.occupancy.tiles.plan_map`). Its voxels equal those of the whole-sequence map."""
-    m = new_occupancy_map(freespace, threads)
+    m = OccupancyMap(freespace, threads=threads)
     for points, origin in scans:
         m.insert_scan(
             points,

@@ -101,7 +101,8 @@ def crop_affine(
     size: np.ndarray,
     out_hw: tuple[int, int],
     rotation: np.ndarray | None = None,
-    udp: bool = False,
+    *,
+    udp: bool,
 ) -> np.ndarray:
     """Affine maps (N, 2, 3) from image pixels to crop pixels.
 
