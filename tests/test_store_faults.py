@@ -698,6 +698,26 @@ def _edge(kind: str, env: Env, tmp_path: Path) -> tuple[list[str], dict, int, st
     return {
         "--set without =": (run + ["--set", "fit.iterations"], {}, 2, "expected KEY=VALUE"),
         "--set broken YAML": (run + ["--set", "fit.iterations=[1"], {}, 2, "is not YAML"),
+        "1e12 for a number": (
+            run + ["--set", "fit.iterations=1e12"],
+            {},
+            2,
+            "YAML reads 1e12 as text (an exponent needs a decimal point and a sign",
+        ),
+        "fit.iterations that cannot finish": (
+            run + ["--set", "fit.iterations=1.0e+12"],
+            {},
+            2,
+            "one person-frame alone would take ~63.4 years",
+        ),
+        "a grid of 10^9 voxels": (
+            run
+            + ["--set", "fuse.grid.voxel_size_m=0.02", "--set", "fuse.grid.range_min=[-10,-10,-10]"]
+            + ["--set", "fuse.grid.range_max=[10,10,10]"],
+            {},
+            2,
+            "would take 9.0 GB of memory",
+        ),
         "simulate --frames 0": (
             ["simulate", "--out", str(tmp_path / "sim"), "--frames", "0"],
             {},
@@ -722,6 +742,9 @@ def _edge(kind: str, env: Env, tmp_path: Path) -> tuple[list[str], dict, int, st
 EDGES = [
     "--set without =",
     "--set broken YAML",
+    "1e12 for a number",
+    "fit.iterations that cannot finish",
+    "a grid of 10^9 voxels",
     "simulate --frames 0",
     "a stale PREFECT_API_URL",
     "--address of a dead scheduler",
