@@ -237,6 +237,15 @@ STORE_FAULTS = [
         says="does not hold what was written",
         repair="rebuild --verify",
     ),
+    Fault(
+        "stage product rewritten, same size, read by a unit that runs",
+        lambda e: (
+            _same_size_garbage(_first(e.stage("track"), "*.npz")),
+            shutil.rmtree(e.stage("export")),
+        ),
+        says="output damaged",
+        repair_says="REPAIRED 1/track: output damaged (found by export)",
+    ),
     # root cause 2: the published store is checked against what was published
     Fault("zarr chunk deleted", lambda e: _chunk(e).unlink(), says="is missing"),
     Fault("zarr chunk garbage", lambda e: _put(_chunk(e), b"garbage"), says="bytes"),

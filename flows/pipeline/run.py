@@ -32,9 +32,14 @@ from flows.pipeline.units import (  # noqa: F401 - the pipeline's API, as before
 
 @task(name="stage", cache_policy=NO_CACHE, task_run_name="{unit.stage}-{unit.sequence}")
 def stage_task(
-    unit: UnitPlan, out_root, upstream: dict[str, dict], fingerprint: str, runtime: Runtime
+    unit: UnitPlan,
+    out_root,
+    upstream: dict[str, dict],
+    fingerprint: str,
+    runtime: Runtime,
+    units: dict[str, UnitPlan] | None = None,
 ) -> dict:
-    return execute_unit(unit, out_root, upstream, fingerprint, runtime)
+    return execute_unit(unit, out_root, upstream, fingerprint, runtime, units)
 
 
 class PrefectSubmitter(Submitter):

@@ -93,8 +93,82 @@ def execute_unit(
     upstream: dict[str, dict],
     fingerprint: str = "",
     runtime: Runtime = Runtime(),
+    units: dict[str, UnitPlan] | None = None,
 ) -> dict:
-    """Run one (sequence, stage): returns an outcome dict; never raises for a stage error."""
+    """Run one (sequence, stage): returns an outcome dict; never raises for a stage error.
+
+    A damaged upstream output is a cache miss, not a failure: when the stage fails and an
+    upstream folder no longer holds what its completion record says (content hashes: a rewrite
+    that kept every size passes the plan's check), that upstream unit is computed again (from
+    ``units``, the sequence's unit plans; recursively, should its own upstream be damaged too)
+    and the stage runs once more. The outcome's ``repaired`` lists what was remade."""
+    before = _record_ids(out_root, upstream)
+    outcome = _execute_once(unit, out_root, upstream, fingerprint, runtime)
+    if outcome["status"] != "failed" or not units:
+        return outcome
+    damaged = {}
+    for stage, o in upstream.items():
+        problem = check_record(Path(out_root) / o["location"], deep=True)
+        if problem:
+            damaged[stage] = problem
+    if not damaged:
+        if _record_ids(out_root, upstream) != before:  # another unit repaired it meanwhile
+            return _execute_once(unit, out_root, upstream, fingerprint, runtime)
+        return outcome
+    repaired = []
+    for stage in (s for s in STAGES if s in damaged):
+        again = execute_unit(
+            units[stage],
+            out_root,
+            {u: _found(units[u], out_root) for u in STAGES[stage]},
+            fingerprint,
+            runtime,
+            units,
+        )
+        if again["status"] != "done":
+            outcome["error"] += (
+                f" (its upstream {stage} was damaged, {damaged[stage]}, and could not be made "
+                f"again: {again.get('error', again['status'])})"
+            )
+            return outcome
+        repaired += [*again.get("repaired", []), f"{stage}: {damaged[stage]}"]
+    outcome = _execute_once(unit, out_root, upstream, fingerprint, runtime)
+    outcome["repaired"] = repaired
+    return outcome
+
+
+def _record_ids(out_root: Path, upstream: dict[str, dict]) -> dict[str, tuple[int, int]]:
+    """(inode, mtime) of each upstream's completion record: changed when it was made again."""
+    ids = {}
+    for stage, o in upstream.items():
+        try:
+            st = os.stat(Path(out_root) / o["location"] / RECORD)
+            ids[stage] = (st.st_ino, st.st_mtime_ns)
+        except (OSError, KeyError):
+            ids[stage] = (0, 0)
+    return ids
+
+
+def _found(unit: UnitPlan, out_root: Path) -> dict:
+    """The outcome of a unit taken as it is in the store (an upstream of a unit being repaired)."""
+    final = stage_dir(out_root, unit.stage, unit.sequence, unit.key)
+    return {
+        "sequence": unit.sequence,
+        "stage": unit.stage,
+        "key": unit.key,
+        "parts": unit.parts,
+        "status": "cached",
+        "location": str(final.relative_to(out_root)),
+    }
+
+
+def _execute_once(
+    unit: UnitPlan,
+    out_root: Path,
+    upstream: dict[str, dict],
+    fingerprint: str = "",
+    runtime: Runtime = Runtime(),
+) -> dict:
     base = {"sequence": unit.sequence, "stage": unit.stage, "key": unit.key, "parts": unit.parts}
     blocked = [s for s, o in upstream.items() if o["status"] not in ("done", "cached")]
     if blocked:
@@ -114,6 +188,7 @@ def execute_unit(
                 "location": location,
                 "summary": summary,
                 "seconds": 0.0,
+                "ran": False,  # not computed: counted as cached
             }
         remove_output(final)  # damaged, forced, or a publication to make again
     from flows.pipeline.parallel import limit_threads
@@ -167,7 +242,10 @@ def reusable(unit: UnitPlan, final: Path) -> bool:
 def remove_output(final: Path) -> None:
     """Remove a unit's output folder: renamed aside (hidden, swept after a kill), then deleted."""
     aside = final.with_name(f"{TMP_PREFIX}{final.name}-{uuid.uuid4().hex[:8]}")
-    os.replace(final, aside)
+    try:
+        os.replace(final, aside)
+    except FileNotFoundError:  # removed meanwhile (another unit repairing the same output)
+        return
     shutil.rmtree(aside, ignore_errors=True)
 
 
@@ -346,6 +424,7 @@ class _Units:
             {u: mine[u] for u in STAGES[stage]},
             plan.fingerprint,
             runtime(self.config),
+            plan.units,
         )
         if isinstance(mine[stage], dict):  # ran here
             self.finish(mine[stage])
@@ -715,8 +794,8 @@ def summary_table(report: RunReport) -> str:
     lines.append("-" * len(header))
     for stage in STAGES:
         outs = [o for (s, st), o in report.outcomes.items() if st == stage]
-        ran = sum(o["status"] == "done" for o in outs)
-        cached = sum(o["status"] == "cached" for o in outs)
+        ran = sum(o["status"] == "done" and o.get("ran", True) for o in outs)
+        cached = sum(o["status"] == "cached" or not o.get("ran", True) for o in outs)
         failed = sum(o["status"] == "failed" for o in outs)
         skipped = sum(o["status"] == "skipped" for o in outs)
         secs = sum(o.get("seconds", 0.0) for o in outs)
@@ -759,6 +838,12 @@ def summary_table(report: RunReport) -> str:
         for stage, unit in plan.units.items():
             if unit.reason.startswith(DAMAGED_REASONS):
                 lines.append(f"REPAIRED {plan.sequence}/{stage}: {unit.reason}")
+    for (seq, stage), o in sorted(report.outcomes.items()):
+        lines += [
+            f"REPAIRED {seq}/{what.split(':', 1)[0]}: output damaged (found by {stage}): "
+            f"{what.split(': ', 1)[-1]}"
+            for what in o.get("repaired", [])
+        ]
     if report.pruned:
         lines.append(
             f"PRUNED {', '.join(report.pruned)}: no longer under the data root; taken out of "
