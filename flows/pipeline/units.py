@@ -490,7 +490,7 @@ def run_units(
             units.wait()
         _withdraw_failed(config, report)
         _gone(config, manifest, report, ids, prune)
-        _dataset_exports(config, manifest, report, verify)
+        _dataset_exports(config, manifest, report, verify, force)
         _save(manifest, report)
     report.seconds = time.perf_counter() - started
     return report
@@ -623,7 +623,9 @@ def dataset_export_problem(folder: Path, key: str, deep: bool = False) -> str:
     return check_files(folder, record["files"], deep)
 
 
-def _dataset_exports(config: Config, manifest: Manifest, report: RunReport, deep: bool) -> None:
+def _dataset_exports(
+    config: Config, manifest: Manifest, report: RunReport, deep: bool, force: bool = False
+) -> None:
     """The Occ3D / nuScenes exports of the whole dataset (``export.formats``), made again
     whenever they do not match the published sequences and their settings (its record:
     :func:`dataset_export_problem`). Each is written aside and swapped in, so a failed or killed
@@ -633,7 +635,7 @@ def _dataset_exports(config: Config, manifest: Manifest, report: RunReport, deep
     done = manifest.meta.setdefault("dataset_exports", {})
     for fmt in ex.formats:
         final = report.out_root / "exports" / fmt
-        if not dataset_export_problem(final, key, deep):
+        if not force and not dataset_export_problem(final, key, deep):
             continue
         try:
             export_dataset(
