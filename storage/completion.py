@@ -24,8 +24,8 @@ import os
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
+from storage.atomic import atomic_write_bytes
 from storage.layout import TMP_PREFIX
-from storage.manifest import atomic_write_bytes
 
 RECORD = "complete.json"
 RECORD_VERSION = 1

@@ -25,12 +25,12 @@ import contextlib
 import json
 import os
 import shutil
-import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from storage.atomic import atomic_write_bytes, move_into_place, swap_in, temporary_name
 from storage.completion import check_files, describe
 from storage.layout import (
     CURRENT_FILE,
@@ -41,7 +41,7 @@ from storage.layout import (
     StoreError,
     check_name,
 )
-from storage.manifest import atomic_write_bytes, read_lock, run_lock
+from storage.manifest import read_lock, run_lock
 from storage.schemas import TABLE_NAMES
 from storage.tables import (
     PARTITION_FILE,
@@ -78,7 +78,7 @@ def stage_sequence(root: str | os.PathLike, sequence: str, version: str) -> Stag
     check_name("sequence", sequence)
     check_name("version", version)
     root = Path(root)
-    staging = root / f"{TMP_PREFIX}{sequence}-{version}-{uuid.uuid4().hex[:12]}"
+    staging = temporary_name(root / f"{sequence}-{version}")
     staging.mkdir(parents=True)
     (staging / "tables").mkdir()
     return StagedSequence(root, sequence, version, staging)
@@ -145,7 +145,9 @@ def _intent_path(root: Path, sequence: str) -> Path:
 
 
 def _write_intent(root: Path, sequence: str, intent: dict) -> None:
-    atomic_write_bytes(_intent_path(root, sequence), json.dumps(intent, sort_keys=True).encode())
+    atomic_write_bytes(
+        _intent_path(root, sequence), json.dumps(intent, sort_keys=True).encode(), sync_folder=True
+    )
 
 
 def _remove(path: Path) -> None:
@@ -153,8 +155,7 @@ def _remove(path: Path) -> None:
     first, then deleted."""
     if not os.path.lexists(path):
         return
-    aside = path.with_name(f"{TMP_PREFIX}gone-{path.name}-{uuid.uuid4().hex[:8]}")
-    os.replace(path, aside)
+    aside = move_into_place(path, temporary_name(path))
     shutil.rmtree(aside, ignore_errors=True)
 
 
@@ -169,9 +170,7 @@ def _complete(root: Path, sequence: str, intent: dict) -> None:
         store = staging / "occupancy.zarr"
         if store.is_dir():
             # the same version published before is moved aside first (hidden): never a mix
-            if target.exists():
-                _remove(target)
-            os.replace(store, target)
+            swap_in(store, target)
         for staged_file in sorted((staging / "tables").glob("*.parquet")):
             publish_partition(root, staged_file.stem, sequence, staged_file)
         current = intent["current"]
@@ -182,7 +181,9 @@ def _complete(root: Path, sequence: str, intent: dict) -> None:
             shutil.rmtree(staging, ignore_errors=True)
             return
         atomic_write_bytes(
-            seq_dir / CURRENT_FILE, json.dumps(current, indent=1, sort_keys=True).encode()
+            seq_dir / CURRENT_FILE,
+            json.dumps(current, indent=1, sort_keys=True).encode(),
+            sync_folder=True,
         )
         if not intent.get("keep_old_versions"):
             for old in seq_dir.glob("*.zarr"):

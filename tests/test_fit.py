@@ -12,7 +12,7 @@ import torch
 from tasks.body.poses import sample_plausible_poses
 from tasks.body.prior import GMMPosePrior, generate_pose_prior
 from tasks.body.procedural import default_body_model
-from tasks.fit.init_oracle import BodyParams, cliff_to_params, oracle_initial_estimate
+from tasks.fit.init_oracle import cliff_to_params, oracle_initial_estimate
 from tasks.fit.lidar_sim import (
     R_CAM_FROM_LIDAR,
     SENSORS,
@@ -52,7 +52,7 @@ def scene():
         occlusion_prob=0.0,
         max_points=400,
     )
-    truth = BodyParams(sp.truth_betas, sp.truth_global_orient, sp.truth_body_pose, sp.truth_transl)
+    truth = sp.truth
     init = oracle_initial_estimate(model, truth, rng)
     return model, prior, sp, truth, init
 

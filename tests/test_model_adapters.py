@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import warnings
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from storage.model_files import ModelFileError, extract_bundled_models, open_onnx
+from storage.network_files import ModelFileError, extract_bundled_models, open_onnx
 from tasks.perception.models.blazepose import (
     BLAZEPOSE_TO_COCO,
     ROI_SCALE,
@@ -575,6 +576,32 @@ def test_bundled_extraction_checks_the_wheel(tmp_path):
     with pytest.raises(ModelFileError, match="has sha256"):
         extract_bundled_models(wheel, tmp_path / "cache")
     assert not (tmp_path / "cache" / "pose_detection.tflite").exists()
+
+
+def test_cli_unpacks_the_bundled_models(tmp_path, capsys):
+    """`mobileocc models unpack-bundled` (what set-up runs): a wheel holding the right files ->
+    both extracted, paths printed; a tampered one -> exit 1 naming the wheel."""
+    from flows.cli import main
+    from storage.network_files import BUNDLED_MODELS, DEFAULT_BUNDLED_CACHE
+
+    bad = tmp_path / "mediapipe-0.10.21-bad.whl"
+    with zipfile.ZipFile(bad, "w") as zf:
+        zf.writestr("mediapipe/modules/pose_detection/pose_detection.tflite", b"tampered")
+    cmd = ["models", "unpack-bundled", "--cache", str(tmp_path / "cache")]
+    assert main([*cmd, "--wheel", str(bad)]) == 1
+    assert f"{bad}: mediapipe/modules/pose_detection" in capsys.readouterr().err
+    have = Path(__file__).resolve().parents[1] / DEFAULT_BUNDLED_CACHE
+    if not all((have / n).is_file() for n in BUNDLED_MODELS):
+        pytest.skip(f"bundled models not extracted to {have} (make setup does it)")
+    good = tmp_path / "mediapipe-0.10.21-good.whl"
+    with zipfile.ZipFile(good, "w") as zf:
+        for name, (member, _) in BUNDLED_MODELS.items():
+            zf.writestr(member, (have / name).read_bytes())
+    assert main([*cmd, "--wheel", str(good)]) == 0
+    printed = capsys.readouterr().out.split()
+    assert printed == [str(tmp_path / "cache" / n) for n in BUNDLED_MODELS]
+    for name in BUNDLED_MODELS:
+        assert (tmp_path / "cache" / name).read_bytes() == (have / name).read_bytes()
 
 
 def test_blazepose_detector_regions_in_image_pixels():

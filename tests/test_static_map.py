@@ -27,7 +27,6 @@ from tasks.occupancy.static_map import (
     lift_image_semantics,
     pedestrian_boxes_for_masking,
     pedestrian_point_mask,
-    points_in_boxes,
     project_points,
 )
 
@@ -238,15 +237,11 @@ def test_pedestrian_point_mask_instances_and_rotated_boxes():
     mask = pedestrian_point_mask(pts, K=K, T_cam_from_lidar=T, instance_image=inst)
     assert mask.tolist() == [True, False, False, False, False]
     box = np.array([[0, 0, 0, 1.0, 0.2, 2.0, 0.0]])
-    assert points_in_boxes(pts, box, 0.1).tolist() == [False, False, True, False, False]
-    box_rot = box.copy()
-    box_rot[0, 6] = np.pi / 2  # now 1 m along y
-    assert points_in_boxes(pts, box_rot, 0.0).tolist() == [False, False, False, True, False]
-    box_diag = box.copy()
-    box_diag[0, 6] = np.pi / 4  # along the diagonal: (0.5, 0.5) is 0.707 m along the box
-    assert points_in_boxes(pts, box_diag, 0.0).tolist() == [False] * 5
-    # margin 0.25: half sizes 0.75 x 0.35; (0, 0.45) -> (0.32, 0.32) inside, (0.55, 0) -> (0.39, -0.39) not
-    assert points_in_boxes(pts, box_diag, 0.25).tolist() == [False, False, False, True, True]
+    mask = pedestrian_point_mask(pts, boxes_lidar=box, box_margin_m=0.1)
+    assert mask.tolist() == [False, False, True, False, False]
+    box[0, 6] = np.pi / 2  # now 1 m along y
+    mask = pedestrian_point_mask(pts, boxes_lidar=box, box_margin_m=0.0)
+    assert mask.tolist() == [False, False, False, True, False]
 
 
 def test_one_projection_serves_every_per_sweep_kernel():

@@ -54,7 +54,11 @@ CALIB = "calibrations/1/calib_os1_to_cam0.yaml"
 
 
 def _link_copy(src: Path, dst: Path) -> Path:
-    shutil.copytree(src, dst, copy_function=os.link, symlinks=True)
+    """A copy of hard links; without the store's lock file, which runs write into (and whose
+    flock, shared by every link, would make runs in two copies exclude each other)."""
+    shutil.copytree(
+        src, dst, copy_function=os.link, symlinks=True, ignore=shutil.ignore_patterns(".lock")
+    )
     return dst
 
 

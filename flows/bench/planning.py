@@ -37,6 +37,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from storage.atomic import atomic_write_text
+
 #: raw 10 Hz frames of the replicated sequence (10 frames at 5 Hz)
 RAW_FRAMES = 20
 #: the replicated sequence's own id: one that no replica's id or frame index can be mistaken for
@@ -61,7 +63,7 @@ def replicate_sequence(src_root: Path, dst_root: Path, source_id: int, ids: list
             target.parent.mkdir(parents=True, exist_ok=True)
             if p.parent.name == "metadata":
                 text = p.read_text().replace(f"/{sid}/", f"/{new}/").replace(f"_{sid}_", f"_{new}_")
-                target.write_text(text)
+                atomic_write_text(target, text)
             else:
                 os.link(p, target)
                 links += 1
@@ -172,11 +174,10 @@ def _fake_output(out: Path, folder: Path, stage: str, sequence: str, key: str) -
     import json
 
     from storage.completion import describe, write_record
-    from storage.manifest import atomic_write_bytes
 
     for i in range(FILES_PER_UNIT[stage]):
         (folder / f"part_{i}.npz").touch()
-    (folder / "summary.json").write_text("{}")
+    atomic_write_text(folder / "summary.json", "{}")
     write_record(folder, stage=stage, sequence=sequence, key=key)
     if stage == "export":
         store = out / "occupancy" / sequence / f"{key}.zarr"
@@ -184,7 +185,7 @@ def _fake_output(out: Path, folder: Path, stage: str, sequence: str, key: str) -
         for i in range(PUBLISHED_FILES):
             (store / f"chunk_{i}").touch()
         current = {"version": key, "files": describe(out, sorted(store.iterdir()))}
-        atomic_write_bytes(store.parent / "current.json", json.dumps(current).encode())
+        atomic_write_text(store.parent / "current.json", json.dumps(current))
 
 
 def _complete_store(config, out: Path) -> int:
@@ -375,7 +376,7 @@ def main(argv: list[str] | None = None) -> None:  # pragma: no cover - a measure
             shutil.rmtree(work, ignore_errors=True)
     print(format_table(result))
     if a.json is not None:
-        a.json.write_text(json.dumps(result, indent=1, default=str) + "\n")
+        atomic_write_text(a.json, json.dumps(result, indent=1, default=str) + "\n")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -24,7 +24,6 @@ import os
 import shutil
 import time
 import traceback
-import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,6 +46,7 @@ from flows.pipeline.plan import (
     iter_plans,
     selected_sequences,
 )
+from storage.atomic import atomic_write_text, move_into_place, staged_folder, temporary_name
 from storage.coda import check_dataset_root, sequence_ids
 from storage.completion import (
     RECORD,
@@ -56,7 +56,6 @@ from storage.completion import (
     read_record,
     write_record,
 )
-from storage.layout import TMP_PREFIX
 from storage.manifest import (
     FingerprintCache,
     Manifest,
@@ -67,7 +66,6 @@ from storage.manifest import (
     remove_stale_versions,
     run_lock,
     stage_dir,
-    staged_output,
     sweep_temporaries,
 )
 from storage.publish import (
@@ -200,7 +198,7 @@ def _execute_once(
     started = time.perf_counter()
     limit_threads(runtime.threads)
     try:
-        with staged_output(final) as tmp:
+        with staged_folder(final, replace=False) as tmp:
             ctx = StageContext(
                 unit.ref,
                 unit.inputs,
@@ -212,7 +210,7 @@ def _execute_once(
                 runtime=runtime,
             )
             summary = STAGE_FUNCTIONS[unit.stage](ctx)
-            (tmp / "summary.json").write_text(json.dumps(summary, sort_keys=True, indent=1))
+            atomic_write_text(tmp / "summary.json", json.dumps(summary, sort_keys=True, indent=1))
             write_record(tmp, stage=unit.stage, sequence=unit.sequence, key=unit.key)  # last
     except Exception as exc:  # noqa: BLE001 - one bad sequence fails alone, with its error
         return {
@@ -241,9 +239,8 @@ def reusable(unit: UnitPlan, final: Path) -> bool:
 
 def remove_output(final: Path) -> None:
     """Remove a unit's output folder: renamed aside (hidden, swept after a kill), then deleted."""
-    aside = final.with_name(f"{TMP_PREFIX}{final.name}-{uuid.uuid4().hex[:8]}")
     try:
-        os.replace(final, aside)
+        aside = move_into_place(final, temporary_name(final))
     except FileNotFoundError:  # removed meanwhile (another unit repairing the same output)
         return
     shutil.rmtree(aside, ignore_errors=True)
@@ -648,15 +645,6 @@ def _dataset_exports(
             report.dataset_exports[fmt] = f"failed: {type(exc).__name__}: {exc}"
 
 
-def _swap_in(new: Path, final: Path) -> None:
-    """Replace the folder ``final`` by ``new`` (two renames; the old one is then deleted)."""
-    old = final.with_name(f"{TMP_PREFIX}old-{final.name}-{uuid.uuid4().hex[:8]}")
-    if final.exists():
-        os.replace(final, old)
-    os.replace(new, final)
-    shutil.rmtree(old, ignore_errors=True)
-
-
 class _Progress:
     """One progress line for planning, then one per stage (never one per sequence)."""
 
@@ -720,13 +708,9 @@ def export_dataset(
         raise ValueError(f"--gt exports Occ3D labels; it does not apply to --format {fmt}")
     if not ours:
         check_export_target(target)
-    tmp = target.with_name(f"{TMP_PREFIX}{target.name}-{uuid.uuid4().hex[:8]}")
-    try:
+    with staged_folder(target) as tmp:
         _export_into(ex, out_root, data_root, fmt, tmp, gt)
         write_record(tmp, EXPORT_RECORD, format=fmt, key=key)
-        _swap_in(tmp, target)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     return target
 
 
@@ -744,8 +728,14 @@ def check_export_target(target: Path) -> None:
     parent = target.parent
     if not parent.is_dir():
         raise ExportTargetError(f"export target {target}: its folder {parent} does not exist")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise ExportTargetError(f"export target {target}: its folder {parent} is not writable")
+    probe = temporary_name(target)  # os.access says yes to root, even where nothing can go
+    try:
+        probe.mkdir()
+        probe.rmdir()
+    except OSError as exc:
+        raise ExportTargetError(
+            f"export target {target}: its folder {parent} is not writable ({exc.strerror})"
+        ) from None
 
 
 class ExportTargetError(ValueError):

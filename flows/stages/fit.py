@@ -21,8 +21,8 @@ from flows.pipeline.parallel import fan_out
 from flows.stages.common import StageContext, body_model, pose_prior
 from flows.stages.providers import init_provider
 from storage.products import Bodies, Tracks
+from tasks.body.params import BodyParams
 from tasks.fit.batch import concat_point_sets, drop_far_fits, fit_rows
-from tasks.fit.init_oracle import BodyParams
 from tasks.fit.optimize import fit_persons, torch_device
 from tasks.fit.warm_start import warm_started
 from tasks.track.velocity import velocities_in_base
@@ -117,12 +117,7 @@ def _warm_started(
             for k, r in enumerate(out["rows"]):
                 last[int(tracks.track_id[r])] = (
                     p,
-                    BodyParams(
-                        *(
-                            out[n][k : k + 1]
-                            for n in ("betas", "global_orient", "body_pose", "transl")
-                        )
-                    ),
+                    BodyParams.of(out).take(slice(k, k + 1)),
                 )
     return parts
 

@@ -28,7 +28,8 @@ from storage.products import (
     StaticMapProduct,
 )
 from tasks.body.motion import TrackedBodies
-from tasks.conventions import FREE, transform_points
+from tasks.conventions import FREE
+from tasks.geometry import transform_points
 from tasks.occupancy.frame import local_grids
 from tasks.occupancy.freespace import OccupancyMap
 from tasks.occupancy.fuse import CameraView, PedestrianMesh

@@ -1,7 +1,7 @@
 """Real networks from local files, built once per process from the stage inputs: the composite of
 ``detect.models`` (image_provider 'models') and the CLIFF estimator (init_provider 'cliff').
 
-Runners (storage/model_files.py) are opened once per file and device and reused across frames
+Runners (storage/network_files.py) are opened once per file and device and reused across frames
 and batches; the adapters and the composite live in tasks/perception/models/.
 """
 
@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from configs.schema import ModelsConfig
-from storage.model_files import bundled_model, open_onnx, open_tflite
-from tasks.metrics.detection import match_boxes
+from storage.network_files import bundled_model, open_onnx, open_tflite
+from tasks.geometry import match_boxes
 from tasks.perception.models.blazepose import BlazePoseLandmarks
 from tasks.perception.models.cliff import CliffEstimator
 from tasks.perception.models.composite import ModelPerception

@@ -2,7 +2,8 @@
 
 Perception (detect): a provider answers for one sequence, frame by frame: ``image(frame)`` gives the
 frame's 2D perception (and, for the oracle, which ground-truth person each detection is),
-``lidar(frame)`` its LiDAR pedestrian boxes; ``frame`` is the reader's :class:`storage.model.Frame`.
+``lidar(frame)`` its LiDAR pedestrian boxes; ``frame`` is the reader's
+:class:`storage.sequence_data.Frame`.
 Initial body estimates (fit): ``available(tracks)`` says which rows of the track product have an
 estimate, ``estimates(tracks, rows)`` gives them (cam frame).
 
@@ -40,10 +41,11 @@ from storage.cliff_files import CliffFileError, cliff_path, read_cliff_estimates
 from storage.coda import CodaSequence
 from storage.gt import read_frame_gt
 from storage.images import read_rgb
-from storage.model import Frame
 from storage.perception_files import PrecomputedPerception
 from storage.products import Tracks
-from tasks.fit.init_oracle import BodyParams, cliff_to_params, oracle_initial_estimate
+from storage.sequence_data import Frame
+from tasks.body.params import BodyParams
+from tasks.fit.init_oracle import cliff_to_params, oracle_initial_estimate
 from tasks.fit.reframe import reframe_params
 from tasks.perception.lidar_clusters import detect_pedestrians_lidar
 from tasks.perception.oracle import oracle_image_perception, oracle_lidar_detections
@@ -187,16 +189,8 @@ class OracleInit:
         truths = []
         for r in rows:
             gt = read_frame_gt(self.seq.root, self.seq.sequence, int(tracks.frame[r]))
-            g = [int(tracks.gt_index[r])]
-            truths.append(
-                BodyParams(gt.betas[g], gt.global_orient[g], gt.body_pose[g], gt.transl[g])
-            )
-        truth = BodyParams(
-            *(
-                np.concatenate([getattr(t, f) for t in truths])
-                for f in ("betas", "global_orient", "body_pose", "transl")
-            )
-        )
+            truths.append(BodyParams.of(gt).take([int(tracks.gt_index[r])]))
+        truth = BodyParams.concat(truths)
         rng = frame_rng(self.spec.seed, self.seq.sequence, int(rows[0]), 3)
         return oracle_initial_estimate(
             self.model, reframe_params(self.model, truth, self.camera.T_cam_from_lidar), rng
@@ -265,12 +259,7 @@ class CliffModel:
             rgb = read_rgb(frame.image_paths[cam.name], (cam.width, cam.height))
             parts.append((here, cliff(rgb, tracks.boxes_xyxy[here], cam.K)))
         order = np.argsort(np.concatenate([h for h, _ in parts]), kind="stable")
-        return BodyParams(
-            *(
-                np.concatenate([getattr(p, f) for _, p in parts])[order]
-                for f in ("betas", "global_orient", "body_pose", "transl")
-            )
-        )
+        return BodyParams.concat(p for _, p in parts).take(order)
 
 
 INIT_PROVIDERS = {

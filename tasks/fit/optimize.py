@@ -35,11 +35,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from tasks.body.params import BodyParams
 from tasks.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from tasks.conventions import COCO_TO_SMPL_JOINT
 from tasks.fit import losses as L
 from tasks.fit.icp import icp_align, rigid_update_params
-from tasks.fit.init_oracle import BodyParams
 from tasks.fit.settings import FitSettings
 from tasks.fit.visibility import Visibility, vertex_parts, visibility_masks
 from tasks.fit.weights import FitWeights
@@ -68,23 +68,19 @@ def torch_device(name: str) -> str:
 
 
 @dataclass(frozen=True)
-class FitResult:
-    """Fitted bodies, cam frame, numpy float32. betas (B, 10); global_orient (B, 3) and body_pose
-    (B, 69) axis-angle (rad); transl (B, 3) m; vertices (B, V, 3) m; joints (B, 24, 3) m;
+class FitResult(BodyParams):
+    """Fitted bodies, cam frame, numpy float32: the parameters (:class:`BodyParams`), and
+    vertices (B, V, 3) m; joints (B, 24, 3) m;
     residuals: dict of (B,) float64 final term values ('L_J', 'L_3D', 'L_theta', 'L_a',
     'L_beta', 'L_occ', 'total', 'icp_fitness', 'visible_vertices', 'steps': Adam steps taken)."""
 
-    betas: np.ndarray
-    global_orient: np.ndarray
-    body_pose: np.ndarray
-    transl: np.ndarray
     vertices: np.ndarray
     joints: np.ndarray
     residuals: dict
 
     def params(self) -> BodyParams:
-        """The fitted parameters (e.g. to warm-start the track's next frame)."""
-        return BodyParams(self.betas, self.global_orient, self.body_pose, self.transl)
+        """The fitted parameters alone (e.g. to warm-start the track's next frame)."""
+        return BodyParams.of(self)
 
 
 def model_keypoints(

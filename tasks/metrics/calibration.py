@@ -16,14 +16,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from tasks.geometry import transform_points
+
 
 def project(
     points: np.ndarray, K: np.ndarray, T_cam_from_lidar: np.ndarray, min_depth_m: float = 0.5
 ) -> tuple[np.ndarray, np.ndarray]:
     """(N, 2) float64 pixels (u, v) and (N,) bool in front (depth > min_depth_m) of points (N, 3)
     in the LiDAR frame, for the pinhole K (3, 3), T_cam_from_lidar (4, 4)."""
-    T = np.asarray(T_cam_from_lidar, np.float64)
-    pc = np.asarray(points, np.float64) @ T[:3, :3].T + T[:3, 3]
+    pc = transform_points(T_cam_from_lidar, points)
     front = pc[:, 2] > min_depth_m
     z = np.where(front, pc[:, 2], 1.0)
     uv = (
@@ -85,7 +86,7 @@ def ground_height_m(
     points (N, 3) LiDAR frame within inner_m..outer_m horizontally and in the lower half of their
     heights; ~0 when T_base_from_lidar (4, 4) is right. NaN with too few points."""
     T = np.asarray(T_base_from_lidar, np.float64)
-    pb = np.asarray(points, np.float64) @ T[:3, :3].T + T[:3, 3]
+    pb = transform_points(T, points)
     r = np.hypot(pb[:, 0] - T[0, 3], pb[:, 1] - T[1, 3])
     z = pb[(r >= inner_m) & (r <= outer_m), 2]
     if z.size < 100:

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from tasks.conventions import FREE, transform_points
+from tasks.conventions import FREE
+from tasks.geometry import transform_points
 from tasks.occupancy.fuse import CameraView, PedestrianMesh, fuse_frame
 from tasks.occupancy.grid import GridSpec
 from tasks.occupancy.resample import grid_reach_m, static_in_grid

@@ -26,7 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tasks.conventions import PEDESTRIAN, transform_points
+from tasks.conventions import PEDESTRIAN
+from tasks.geometry import transform_points
 from tasks.occupancy.freespace import OccupancyMap
 from tasks.occupancy.settings import FreeSpaceParams, MapParams
 from tasks.occupancy.static_map import (

@@ -19,6 +19,7 @@ import numpy as np
 from numba import njit
 
 from tasks.conventions import FREE, PEDESTRIAN, UNLABELED
+from tasks.geometry import points_in_boxes, yaw_rotations
 from tasks.occupancy.nearest import nearest_indices
 from tasks.occupancy.settings import MapParams
 from tasks.perception.lidar_clusters import ground_height
@@ -181,45 +182,6 @@ def lift_image_semantics(
     return labels
 
 
-@njit(cache=True)
-def _in_boxes(p, boxes, cos_yaw, sin_yaw, margin, inside):
-    for b in range(boxes.shape[0]):
-        cx, cy, cz = boxes[b, 0], boxes[b, 1], boxes[b, 2]
-        hx = boxes[b, 3] / 2 + margin
-        hy = boxes[b, 4] / 2 + margin
-        hz = boxes[b, 5] / 2 + margin
-        c, s = cos_yaw[b], sin_yaw[b]
-        # a conservative horizontal reach: skips far points before the exact test
-        r2 = (hx * hx + hy * hy) * (1.0 + 1e-6) + 1e-9
-        for i in range(p.shape[0]):
-            if inside[i]:
-                continue
-            dz = p[i, 2] - cz
-            if not abs(dz) <= hz:
-                continue
-            dx = p[i, 0] - cx
-            dy = p[i, 1] - cy
-            if dx * dx + dy * dy > r2:
-                continue
-            lx = c * dx + s * dy
-            ly = -s * dx + c * dy
-            inside[i] = abs(lx) <= hx and abs(ly) <= hy
-
-
-def points_in_boxes(points: np.ndarray, boxes: np.ndarray, margin_m: float = 0.0) -> np.ndarray:
-    """Which points lie inside any of the boxes (rotated about z).
-
-    points: (N, 3) float metres. boxes: (M, 7) [cx, cy, cz, l, w, h, yaw] in the same frame
-    (l along the box x, w along y, h along z; yaw rad). margin_m grows every half-size.
-    Returns (N,) bool.
-    """
-    p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
-    b = np.ascontiguousarray(np.asarray(boxes, dtype=np.float64).reshape(-1, 7))
-    inside = np.zeros(len(p), dtype=bool)
-    _in_boxes(p, b, np.cos(b[:, 6]), np.sin(b[:, 6]), float(margin_m), inside)
-    return inside
-
-
 def pedestrian_point_mask(
     points_lidar: np.ndarray,
     *,
@@ -247,7 +209,10 @@ def pedestrian_point_mask(
             pix, valid = project_points(p, K, T_cam_from_lidar, inst.shape[1], inst.shape[0])
         out[valid] = inst[pix[valid, 1], pix[valid, 0]] > 0
     if boxes_lidar is not None and len(boxes_lidar):
-        out |= points_in_boxes(p, boxes_lidar, box_margin_m)
+        b = np.ascontiguousarray(np.asarray(boxes_lidar, dtype=np.float64).reshape(-1, 7))
+        out |= points_in_boxes(
+            p, b[:, :3], b[:, 3:6], yaw_rotations(b[:, 6]), margin_m=box_margin_m
+        )
     return out
 
 

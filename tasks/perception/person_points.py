@@ -39,6 +39,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from tasks.bounds import AtLeastOne, NonNegative, Positive, PositiveFraction, Probability
+from tasks.geometry import box_iou
 from tasks.perception.lidar_clusters import ground_height
 from tasks.perception.types import box_corners
 
@@ -138,12 +139,7 @@ def associate_lidar_boxes(
     valid = ~np.isnan(uv).any(axis=(1, 2))
     rect = np.zeros((m, 4))
     rect[valid] = np.concatenate([uv[valid].min(axis=1), uv[valid].max(axis=1)], axis=1)
-    lo = np.maximum(boxes[:, None, :2], rect[None, :, :2])
-    hi = np.minimum(boxes[:, None, 2:], rect[None, :, 2:])
-    inter = np.prod(np.clip(hi - lo, 0, None), axis=2)
-    area_a = np.prod(boxes[:, 2:] - boxes[:, :2], axis=1)
-    area_b = np.prod(rect[:, 2:] - rect[:, :2], axis=1)
-    iou = inter / np.maximum(area_a[:, None] + area_b[None] - inter, 1e-9)
+    iou = box_iou(boxes, rect)
     iou[:, ~valid] = 0.0
     rows, cols = linear_sum_assignment(-iou)
     good = iou[rows, cols] >= min_iou

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tasks.conventions import transform_points
+from tasks.geometry import transform_points
 from tasks.perception.person_points import (
     PersonPointParams,
     associate_lidar_boxes,

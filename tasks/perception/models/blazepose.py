@@ -31,10 +31,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import expit
 
+from tasks.geometry import box_iou
 from tasks.perception.models.detector import Detections
 from tasks.perception.models.image import (
     apply_affine,
-    box_iou,
     crop_affine,
     invert_affine,
     letterbox,

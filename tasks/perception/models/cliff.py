@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from tasks.fit.init_oracle import BodyParams, cliff_to_params
+from tasks.body.params import BodyParams
+from tasks.fit.init_oracle import cliff_to_params
 from tasks.perception.models.image import (
     IMAGENET_MEAN,
     IMAGENET_STD,
@@ -81,8 +82,7 @@ class CliffEstimator:
         """Initial bodies (cam frame) of the persons in some boxes (D, 4), intrinsics K (3, 3)."""
         center, size = self.crops(boxes_xyxy)
         if len(center) == 0:
-            z = lambda *s: np.zeros(s, np.float32)
-            return BodyParams(z(0, 10), z(0, 3), z(0, 69), z(0, 3))
+            return BodyParams.empty()
         A = crop_affine(
             center,
             np.stack([size * self.width / self.height, size], 1),

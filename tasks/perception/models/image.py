@@ -13,7 +13,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from tasks.metrics.detection import box_iou
+from tasks.geometry import box_iou
 
 #: ImageNet statistics in RGB order on 0-255 pixels (mmpose / mmseg / Mask2Former / CLIFF)
 IMAGENET_MEAN = (123.675, 116.28, 103.53)

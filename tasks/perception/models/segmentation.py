@@ -23,7 +23,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from tasks.perception.models.image import IMAGENET_MEAN, IMAGENET_STD, box_iou, normalize, resize
+from tasks.geometry import box_iou
+from tasks.perception.models.image import IMAGENET_MEAN, IMAGENET_STD, normalize, resize
 from tasks.perception.models.runner import ModelRunner, expect, input_hw
 from tasks.perception.models.settings import MaskSettings, SemanticSettings
 
