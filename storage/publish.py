@@ -305,6 +305,26 @@ def check_publication(
     return check_files(root, current["files"], deep)
 
 
+def damaged_publication(root: str | os.PathLike, sequence: str) -> str:
+    """The first problem a reader must not go past in a published sequence ("" when none), one
+    ``stat`` per file: ``current.json`` missing or unreadable, or a file it lists missing or of
+    another size (a ``current.json`` of a store published before file lists: not checked)."""
+    path = Path(root) / OCCUPANCY_DIR / sequence / CURRENT_FILE
+    try:
+        current = json.loads(path.read_bytes())
+    except FileNotFoundError:
+        return f"{path} is missing"
+    except (OSError, ValueError) as exc:
+        return f"{path} cannot be read ({exc})"
+    version = current.get("version") if isinstance(current, dict) else None
+    if not isinstance(version, str):
+        return f"{path} does not name a version"
+    if not (path.parent / f"{version}.zarr").is_dir():
+        return f"{path} names version {version!r}, which is not there"
+    files = current.get("files")
+    return check_files(root, files) if isinstance(files, dict) else ""
+
+
 def discard(staged: StagedSequence | str | os.PathLike) -> None:
     """Remove a staging directory (a failed or abandoned write); published data is untouched."""
     path = staged.staging_dir if isinstance(staged, StagedSequence) else Path(staged)

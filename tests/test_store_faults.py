@@ -25,7 +25,7 @@ import sys
 import textwrap
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -209,8 +209,9 @@ class Fault:
     #: the command that repairs it (and must then give the clean bytes), and what it says
     repair: str = "rebuild"
     repair_says: str = ""
-    #: the repair with --verify (content damage that keeps sizes is found by hashing)
-    more: tuple[str, ...] = field(default=())
+    #: what `export` says refusing the damaged store ("": it exports, the published files are
+    #: whole or their damage keeps sizes, which only hashing finds)
+    export_says: str = ""
 
 
 def _chunk(env: Env) -> Path:
@@ -251,41 +252,67 @@ STORE_FAULTS = [
         repair_says="REPAIRED 1/track: output damaged (found by export)",
     ),
     # root cause 2: the published store is checked against what was published
-    Fault("zarr chunk deleted", lambda e: _chunk(e).unlink(), says="is missing"),
-    Fault("zarr chunk garbage", lambda e: _put(_chunk(e), b"garbage"), says="bytes"),
+    Fault(
+        "zarr chunk deleted",
+        lambda e: _chunk(e).unlink(),
+        says="is missing",
+        export_says="is damaged",
+    ),
+    Fault(
+        "zarr chunk garbage",
+        lambda e: _put(_chunk(e), b"garbage"),
+        says="bytes",
+        export_says="is damaged",
+    ),
     Fault(
         "zarr chunk rewritten, same size",
         lambda e: _same_size_garbage(_chunk(e)),
         check="status --verify",
         says="does not hold what was written",
         repair="rebuild --verify",
+        export_says="cannot be read",
     ),
     Fault(
         "zarr metadata garbage",
         lambda e: _put(e.store() / "semantics" / "zarr.json", "{"),
         says="bytes",
+        export_says="is damaged",
     ),
     Fault(
         "table partition garbage",
         lambda e: _put(e.out / "tables/frames/sequence=1/data.parquet", b"PAR1 garbage PAR1"),
         says="data.parquet",
+        export_says="is damaged",
     ),
     Fault(
         "table partition deleted",
         lambda e: (e.out / "tables/instances/sequence=1/data.parquet").unlink(),
         says="is missing",
+        export_says="is damaged",
     ),
-    Fault("current.json garbage", lambda e: _put(e.current(), "{oops"), says="current.json"),
-    Fault("current.json deleted", lambda e: e.current().unlink(), says="current.json"),
+    Fault(
+        "current.json garbage",
+        lambda e: _put(e.current(), "{oops"),
+        says="current.json",
+        export_says="is damaged",
+    ),
+    Fault(
+        "current.json deleted",
+        lambda e: e.current().unlink(),
+        says="current.json",
+        export_says="is damaged",
+    ),
     Fault(
         "current.json points at another version",
         lambda e: _put(e.current(), json.dumps({"version": "0" * 24})),
         says="current.json",
+        export_says="is damaged",
     ),
     Fault(
         "published arrays deleted",
         lambda e: shutil.rmtree(e.store()),
         says="is missing",
+        export_says="is damaged",
     ),
     # root cause 3: the dataset-level export is checked too
     Fault(
@@ -310,6 +337,13 @@ def test_a_damaged_store_is_found_and_repaired(fault: Fault, built, tmp_path, ca
     assert code == fault.code and fault.says in text, text
     assert "Traceback" not in text
     assert _published(env.out, "0") == built.published["0"]
+    to = env.out.parent / "export-to"
+    code, text = _cli(env, f"export --format occ3d --to {to}", capsys)
+    if fault.export_says:  # never a dataset exported from a damaged store, nor a traceback
+        assert code == 1 and fault.export_says in text and "rebuild" in text, text
+        assert len(text.strip().splitlines()) == 1 and not to.exists(), text
+    else:
+        assert code == 0, text
     code, text = _cli(env, fault.repair, capsys)
     assert code == 0, text
     assert fault.repair_says in text
@@ -342,6 +376,47 @@ def test_force_computes_every_unit_again(built, tmp_path, capsys, monkeypatch):
     )
     assert {s: _published(env.out, s) for s in ("0", "1")} == built.published
     assert _exports(env.out) == built.exports
+
+
+@pytest.mark.parametrize("change", ["calibration fixed", "config reverted"])
+def test_a_withdrawn_sequence_comes_back_when_its_input_or_config_does(
+    change, built, tmp_path, capsys, monkeypatch
+):
+    """Regression: fixing a broken calibration (or reverting a config) and re-running exited 0,
+    `status` said fresh, but the sequence stayed withdrawn and out of the exports (a unit whose
+    key folder existed counted as done). calibration fixed: sequence 1 was withdrawn for its
+    calibration, which is now fixed; config reverted: a config under which every sequence fails
+    (image detections read from an empty folder) is reverted. Either way `status` says what will
+    run, and a plain `rebuild` publishes the clean run's bytes, reusing the stage products of the
+    earlier keys."""
+    _inline_flow(monkeypatch)
+    if change == "calibration fixed":
+        env = _env(built, tmp_path, out=built.withdrawn)
+        failing = ["1"]
+    else:
+        env = _env(built, tmp_path)
+        (tmp_path / "empty").mkdir()
+        bad = ["--set", "detect.image_provider=precomputed"]
+        bad += ["--set", f"detect.precomputed_dir={tmp_path / 'empty'}"]
+        code, text = _cli(env, "rebuild", capsys, *bad)
+        assert code == 1 and "FAILED 0/detect" in text and "FAILED 1/detect" in text, text
+        assert not (env.out / "occupancy" / "1" / "current.json").exists()
+        assert not (env.out / "exports" / "occ3d").exists()  # no sequence: no export
+        failing = ["0", "1"]
+    code, text = _cli(env, "status", capsys)
+    assert code == 1, text
+    for seq in failing:
+        assert f"{seq}  detect  failed: " in text or f"{seq}  detect  stale: " in text, text
+    code, text = _cli(env, "rebuild", capsys)
+    assert code == 0, text
+    assert {s: _published(env.out, s) for s in ("0", "1")} == built.published
+    assert _exports(env.out) == built.exports
+    if change == "config reverted":  # the earlier keys' products are reused, not recomputed
+        assert "detect      0       2" in text and "fuse        0       2" in text, text
+        assert "export      2       0" in text, text
+    code, text = _cli(env, "status --verify", capsys)
+    assert code == 0 and "fresh" in text, text
+    print(f"\nCASE | {change} | rebuild exit 0 | the clean run's bytes")
 
 
 # ---- a kill at every step of a publication -------------------------------------------------------
@@ -623,6 +698,31 @@ def test_a_signal_stops_a_run_within_seconds(sig, built, tmp_path, capsys, monke
     assert code == 0, text
     assert _published(env.out, "1") == built.published["1"]
     assert _exports(env.out) == built.exports
+
+
+def test_ctrl_c_in_a_short_command_is_one_line():
+    """Regression: Ctrl-C during a short command printed a 60-line traceback. Every command runs
+    inside flows.pipeline.signals.stop_on_signals (flows.cli.main); a SIGINT arriving in the
+    main thread while it computes ends it with one line and exit 130."""
+    code = textwrap.dedent("""
+        import os, signal, time
+        from flows.pipeline.signals import stop_on_signals
+        with stop_on_signals("mobileocc status"):
+            sum(range(10**5))
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(60)
+        print("not stopped")
+    """)
+    run = subprocess.run(
+        [sys.executable, "-c", code],
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert run.returncode == 130 and run.stdout == "", (run.stdout, run.stderr)
+    assert run.stderr.strip() == "mobileocc status: stopped by SIGINT", run.stderr
 
 
 # ---- exports and readers ---------------------------------------------------------------------

@@ -537,8 +537,9 @@ def store_problems(config: Config, manifest: Manifest, deep: bool = False) -> li
         for seq in gone_sequences(config, manifest, selected)
     ]
     ex, key = dataset_export_inputs(config), dataset_export_key(config, out_root)
+    empty = not published_versions(out_root)
     for fmt in ex.formats:
-        problem = dataset_export_problem(out_root / "exports" / fmt, key, deep)
+        problem = dataset_export_problem(out_root / "exports" / fmt, key, deep, empty)
         if problem:
             lines.append(f"{fmt} export stale: {problem}")
     return lines
@@ -606,9 +607,15 @@ def dataset_export_key(config: Config, out_root: Path) -> str:
     return inputs_hash([dataset_export_inputs(config), published_versions(out_root)])
 
 
-def dataset_export_problem(folder: Path, key: str, deep: bool = False) -> str:
+def dataset_export_problem(
+    folder: Path, key: str, deep: bool = False, nothing_published: bool = False
+) -> str:
     """Why the export in ``folder`` does not match ``key`` ("" when it does): missing, made of
-    other settings or sequences, or a file missing / of another size (``deep``: content)."""
+    other settings or sequences, or a file missing / of another size (``deep``: content).
+    ``nothing_published``: no sequence is published, so there must be no export (an old one
+    would still offer withdrawn sequences)."""
+    if nothing_published:
+        return f"{folder} exports sequences none of which is published" if folder.exists() else ""
     if not folder.is_dir():
         return f"{folder} is missing"
     try:
@@ -626,13 +633,19 @@ def _dataset_exports(
     """The Occ3D / nuScenes exports of the whole dataset (``export.formats``), made again
     whenever they do not match the published sequences and their settings (its record:
     :func:`dataset_export_problem`). Each is written aside and swapped in, so a failed or killed
-    export leaves the previous one. A failure is reported, not raised: the sequences are
-    published."""
+    export leaves the previous one (reported stale by ``status``). A failure is reported, not
+    raised: the sequences are published. With no sequence published there is no export."""
     ex, key = dataset_export_inputs(config), dataset_export_key(config, report.out_root)
     done = manifest.meta.setdefault("dataset_exports", {})
+    empty = not published_versions(report.out_root)
     for fmt in ex.formats:
         final = report.out_root / "exports" / fmt
-        if not force and not dataset_export_problem(final, key, deep):
+        if not force and not dataset_export_problem(final, key, deep, empty):
+            continue
+        if empty:  # every sequence withdrawn: no export rather than one of withdrawn sequences
+            remove_output(final)
+            done.pop(fmt, None)
+            report.dataset_exports[fmt] = "done"
             continue
         try:
             export_dataset(
