@@ -8,8 +8,9 @@ import shutil
 import numpy as np
 import pytest
 
-from flows.bench.pipeline import make_config, run_local
+from flows.bench.common import make_config, run_stages
 from flows.commands.evaluate import _boxes_to_base, _condition, evaluate
+from flows.commands.evaluate_coda import evaluate_coda
 
 
 @pytest.fixture(scope="module")
@@ -21,7 +22,7 @@ def built(tmp_path_factory):
     data, out = root / "data", root / "out"
     simulate(data, sequences=1, frames=4, seed=5, pedestrians=3, crowd="crowded", progress=False)
     cfg = make_config(data, out, {"fuse.body_source": "ground-truth"})
-    run_local(cfg, stages=("detect", "track", "map", "fuse", "export"))
+    run_stages(cfg, ("detect", "track", "map", "fuse", "export"))
     return data, out
 
 
@@ -108,7 +109,7 @@ def test_coda_labels_reproduce_the_synthetic_figures(built, tmp_path):
     # terrain voxel: IoU >= the GT one), the same pedestrian boxes (written to 6 decimals).
     data, out = built
     syn = evaluate(out, None, tmp_path / "syn", sample_frames=0)
-    coda = evaluate(out, None, tmp_path / "coda", labels="coda")
+    coda = evaluate_coda(out, None, tmp_path / "coda")
     assert coda["labels"]["frames"] == coda["labels"]["frames with 3d_semantic"] == 2
     assert (
         coda["labels"]["pedestrian boxes"] > 0 and coda["labels"]["boxes skipped (malformed)"] == 0

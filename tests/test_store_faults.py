@@ -925,7 +925,7 @@ def test_a_sequence_id_that_is_not_a_number(built, tmp_path):
     [plan] = plan_run(cfg, Manifest(tmp_path / "out"))
     assert not plan.error, plan.error
     outcome = execute_unit(plan.units["detect"], tmp_path / "out", {}, plan.fingerprint)
-    assert outcome["status"] == "done", outcome.get("error")
+    assert outcome.status == "done", outcome.error
 
 
 def test_an_empty_precomputed_cliff_file_is_refused(tmp_path):

@@ -226,8 +226,6 @@ def _evaluate_sequence(
         tot.notes[f"sequence {seq}"] = f"no ground truth under {gt_root}/gt/{seq}: not evaluated"
         return
     gseq = read_sequence_gt(gt_root, seq)
-    from flows.commands.evaluate_coda import open_recorded_sequence
-
     coda = open_recorded_sequence(config, gt_root, seq)
     cam = coda.info.calibration.cameras[((config.get("dataset") or {}).get("camera")) or "cam0"]
     T_bl = np.asarray(gseq.T_base_from_lidar, np.float64)
@@ -544,6 +542,19 @@ def _sample_positions(ds, sample_frames: int) -> set:
     return {pairs[i] for i in pick}
 
 
+def open_recorded_sequence(config: dict, root: Path, sequence: str):
+    """The CODa reader of ``sequence`` under ``root`` with the dataset settings of a recorded
+    config (``OUT/manifest.json`` meta.config; the defaults when none was recorded)."""
+    from configs.schema import Config, load_config
+    from flows.pipeline.inputs import open_sequence
+
+    cfg = Config.model_validate(config) if config else load_config()
+    return open_sequence(
+        cfg.model_copy(update={"dataset": cfg.dataset.model_copy(update={"root": Path(root)})}),
+        sequence,
+    )
+
+
 def open_for_evaluation(dataset: Path, data: Path | None):
     """(OUT, its manifest, the recorded config, the raw data root holding the labels, the
     published dataset); EvaluateError naming what is missing."""
@@ -574,19 +585,11 @@ def evaluate(
     gt: Path | None,
     report_dir: Path,
     sample_frames: int = 3,
-    labels: str = "synthetic",
 ) -> dict:
     """Evaluate the dataset at ``dataset`` (OUT) against the ground truth under ``gt`` (the raw data
     root holding ``gt/``; None = the ``dataset.root`` recorded in OUT/manifest.json). Writes
     report.md, results.json and figures/ under ``report_dir``; returns the results dict.
-    labels: "synthetic" (the simulator's exact ground truth, gt/) or "coda" (CODa's own 3d_semantic
-    and 3d_bbox labels beside the raw data: flows/commands/evaluate_coda.py)."""
-    if labels == "coda":
-        from flows.commands.evaluate_coda import evaluate_coda
-
-        return evaluate_coda(dataset, gt, report_dir, sample_frames)
-    if labels != "synthetic":
-        raise EvaluateError(f"labels {labels!r}: expected 'synthetic' or 'coda'")
+    (CODa's own labels: flows/commands/evaluate_coda.py.)"""
     out, manifest, config, gt_root, ds = open_for_evaluation(dataset, gt)
     tot = _Totals()
     for seq, why in withdrawn_sequences(ds).items():

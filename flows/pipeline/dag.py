@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-#: stage -> upstream stages (DESIGN.md). Order is a topological order.
+#: stage -> the stages whose products it reads. Order is a topological order.
 STAGES: dict[str, tuple[str, ...]] = {
     "detect": (),
     "track": ("detect",),

@@ -16,6 +16,7 @@ from prefect.futures import as_completed
 
 from configs.schema import Config
 from flows.pipeline.inputs import Runtime
+from flows.pipeline.outcome import UnitOutcome
 from flows.pipeline.plan import UnitPlan
 from flows.pipeline.signals import keep_stop_handlers
 from flows.pipeline.units import (  # noqa: F401 - the pipeline's API, as before the split
@@ -34,11 +35,11 @@ from flows.pipeline.units import (  # noqa: F401 - the pipeline's API, as before
 def stage_task(
     unit: UnitPlan,
     out_root,
-    upstream: dict[str, dict],
+    upstream: dict[str, UnitOutcome],
     fingerprint: str,
     runtime: Runtime,
     units: dict[str, UnitPlan] | None = None,
-) -> dict:
+) -> UnitOutcome:
     return execute_unit(unit, out_root, upstream, fingerprint, runtime, units)
 
 
