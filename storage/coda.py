@@ -803,6 +803,9 @@ def image_size(path: Path, frame: int | None = None) -> tuple[int, int]:
 
 #: the EXIF tag of the orientation (1: as stored)
 EXIF_ORIENTATION = 0x0112
+#: more pixels than this in an image header is refused before decoding: Pillow's own default
+#: limit, kept here because other libraries (the nuScenes devkit) switch Pillow's off process-wide
+MAX_IMAGE_PIXELS = 2 * 89_478_485
 
 
 def decode_image(
@@ -823,6 +826,16 @@ def decode_image(
     try:
         with open_regular(path, frame, "image") as fh, Image.open(fh) as im:
             size = (int(im.size[0]), int(im.size[1]))
+            if size[0] * size[1] > MAX_IMAGE_PIXELS:
+                raise fail(
+                    f"image header claims an implausible size ({size[0]} x {size[1]} px, more "
+                    f"than {MAX_IMAGE_PIXELS} pixels; never decoded)"
+                    + (
+                        f"; the camera calibration says {expect_size[0]} x {expect_size[1]}"
+                        if expect_size
+                        else ""
+                    )
+                )
             if expect_size is not None and size != tuple(expect_size):
                 raise fail(
                     f"image is {size[0]} x {size[1]} px, the camera calibration says "
