@@ -40,6 +40,8 @@ from configs.sources import CameraTopics, LogSettings, PoseMode
 from tasks.bounds import AtLeastOne, Count, NonNegative, Positive, Probability, VoxelSize
 from tasks.conventions import CITYSCAPES_TO_CLASS, CLASS_NAMES, FREE, UNLABELED
 from tasks.fit.settings import (
+    MAX_ITERATIONS,
+    SECONDS_PER_PERSON_STEP,
     FitSettings,
     FlipSettings,
     GapSettings,
@@ -100,8 +102,31 @@ def _numbers_are_numbers(fields: dict[str, FieldInfo], name: str | None, value: 
     error, not 1 or 2."""
     field = fields.get(name or "")
     if field is not None and _number_kind(field.annotation) and _not_a_number(value):
-        raise ValueError(f"expected a number, got {value!r} ({type(value).__name__})")
+        raise ValueError(
+            f"expected a number, got {value!r} ({type(value).__name__}){_yaml_hint(value)}"
+        )
     return value
+
+
+def _yaml_hint(value: Any) -> str:
+    """Why a number written in YAML arrived as text: YAML 1.1 (PyYAML) reads ``1e12`` (no
+    decimal point, no exponent sign) as a string."""
+    text = (
+        next((v for v in value if isinstance(v, str)), None)
+        if isinstance(value, (list, tuple))
+        else value
+    )
+    if not isinstance(text, str):
+        return ""
+    try:
+        number = float(text)
+    except ValueError:
+        return ""
+    return (
+        f": YAML reads {text} as text (an exponent needs a decimal point and a sign in YAML "
+        f"1.1); write {number:.1e}".replace("e+0", "e+").replace("e-0", "e-")
+        + " or the plain number"
+    )
 
 
 class Strict(BaseModel):
@@ -137,11 +162,22 @@ class Section:
 Vec3 = tuple[float, float, float]
 
 
+def _duration(seconds: float) -> str:
+    for unit, length in (("years", 3.156e7), ("days", 86400.0), ("hours", 3600.0)):
+        if seconds >= length:
+            return f"~{seconds / length:.3g} {unit}"
+    return f"~{seconds:.3g} s"
+
+
 #: grid bounds: every range within +-MAX_GRID_RANGE_M of the robot, at most MAX_GRID_CELLS_PER_AXIS
-#: voxels along an axis and MAX_GRID_VOXELS in all (a uint8 frame of 1 GiB)
+#: voxels along an axis and MAX_GRID_VOXELS in all: 2.4 x the benchmark grid at 0.02 m
+#: (480 x 480 x 240); a frame's published arrays alone are BYTES_PER_VOXEL per voxel (1.2 GB at
+#: the bound) and the fuse stage holds several frames' worth while it works
 MAX_GRID_RANGE_M = 1000.0
 MAX_GRID_CELLS_PER_AXIS = 4096
-MAX_GRID_VOXELS = 2**30
+MAX_GRID_VOXELS = 2**27
+#: semantics (1) + instances (2) + mask_lidar (1) + mask_camera (1) + velocity (2 x 2), bytes
+BYTES_PER_VOXEL = 9
 
 
 class GridConfig(Strict):
@@ -172,10 +208,14 @@ class GridConfig(Strict):
                     f"extent {hi - lo:g} m along axis {axis} is not a multiple of "
                     f"voxel_size_m={self.voxel_size_m:g}"
                 )
-        if int(np.prod(self.shape, dtype=np.int64)) > MAX_GRID_VOXELS:
+        voxels = int(np.prod(self.shape, dtype=np.int64))
+        if voxels > MAX_GRID_VOXELS:
             raise ValueError(
-                f"grid of {' x '.join(map(str, self.shape))} voxels is more than {MAX_GRID_VOXELS} "
-                "(a uint8 frame over 1 GiB)"
+                f"grid of {' x '.join(map(str, self.shape))} = {voxels:.3g} voxels is more than "
+                f"{MAX_GRID_VOXELS} (2^27): one frame's published arrays alone would take "
+                f"{voxels * BYTES_PER_VOXEL / 1e9:.1f} GB of memory ({BYTES_PER_VOXEL} bytes per "
+                "voxel), and the fuse stage holds several; the benchmark grid at 0.02 m is "
+                "480 x 480 x 240 (55.3e6)"
             )
         return self
 
@@ -435,6 +475,18 @@ class FitConfig(ObjectiveSettings, FitSettings, Section):
             raise ValueError("fit.init_dir is required when fit.init_provider is 'precomputed'")
         if self.init_provider == "cliff" and self.cliff_path is None:
             raise ValueError("fit.cliff_path is required when fit.init_provider is 'cliff'")
+        return self
+
+    @model_validator(mode="after")
+    def _iterations_can_finish(self) -> FitConfig:
+        if self.iterations > MAX_ITERATIONS:
+            seconds = self.iterations * SECONDS_PER_PERSON_STEP
+            raise ValueError(
+                f"fit.iterations {self.iterations} is more than {MAX_ITERATIONS}: at "
+                f"~{SECONDS_PER_PERSON_STEP * 1e3:g} ms per person-frame and step on a CPU core "
+                f"(docs/fit-benchmark.md) one person-frame alone would take {_duration(seconds)}; "
+                "the default is 100"
+            )
         return self
 
     @model_validator(mode="after")

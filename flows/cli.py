@@ -7,6 +7,7 @@ import json
 import os
 import sys
 from pathlib import Path
+from typing import NoReturn
 
 import yaml
 
@@ -27,7 +28,10 @@ def _add_config_args(p: argparse.ArgumentParser, runtime: bool = True) -> None:
     p.add_argument("--out", type=Path, default=None, help="output store (output.root)")
     if runtime:
         p.add_argument(
-            "--workers", type=int, default=None, help="Dask / thread workers (dask.workers)"
+            "--workers",
+            type=_at_least(1),
+            default=None,
+            help="Dask / thread workers (dask.workers)",
         )
         p.add_argument(
             "--runner", choices=["thread", "dask"], default=None, help="task runner (dask.runner)"
@@ -45,9 +49,16 @@ def _config(args: argparse.Namespace):
     overrides = {}
     for item in args.overrides:
         key, sep, value = item.partition("=")
-        if not sep:
-            raise SystemExit(f"--set {item!r}: expected KEY=VALUE")
-        overrides[key.strip()] = yaml.safe_load(value)
+        if not sep or not key.strip():
+            raise UsageError(f"--set {item!r}: expected KEY=VALUE, e.g. --set fit.iterations=50")
+        try:
+            overrides[key.strip()] = yaml.safe_load(value)
+        except yaml.YAMLError as exc:
+            problem = str(getattr(exc, "problem", "") or exc).splitlines()[0]
+            raise UsageError(
+                f"--set {item!r}: the value {value!r} is not YAML ({problem}); quote it for a "
+                f"string, e.g. --set '{key.strip()}=\"{value}\"'"
+            ) from None
     for attr, key in (
         ("data", "dataset.root"),
         ("out", "output.root"),
@@ -61,6 +72,25 @@ def _config(args: argparse.Namespace):
     if getattr(args, "address", None):
         overrides["dask.runner"] = "dask"
     return load_config(args.config, overrides)
+
+
+class UsageError(ValueError):
+    """A command line that cannot be used (one line, exit 2)."""
+
+
+def _at_least(low: int):
+    """An argparse type: an integer >= ``low`` (argparse prints one usage error otherwise)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"must be at least {low}, got {value}")
+        return value
+
+    return parse
 
 
 def cmd_config(args: argparse.Namespace) -> int:
@@ -102,6 +132,11 @@ def _run(args: argparse.Namespace, force: bool) -> int:
 
     cfg = _config(args)
     ids, out, verify = check_run_paths(cfg), Path(cfg.output.root), getattr(args, "verify", False)
+    prune = getattr(args, "prune", False)
+    if cfg.dask.address:
+        from flows.pipeline.runtime import check_scheduler
+
+        check_scheduler(cfg.dask.address)
     with run_lock(out):  # a second run is refused here, before any server starts
         costs = PlanCosts()
         plans = plan_without_hashing(
@@ -114,21 +149,30 @@ def _run(args: argparse.Namespace, force: bool) -> int:
         )
         if plans is not None and all(u.fresh for plan in plans for u in plan.units.values()):
             report = run_units(
-                cfg, force, ids, progress=False, verify=verify, plans=plans, lock_held=True
+                cfg,
+                force,
+                ids,
+                progress=False,
+                verify=verify,
+                plans=plans,
+                lock_held=True,
+                prune=prune,
             )
             report.costs = costs  # nothing to run: no task runner, no Prefect server
         else:
-            report = _run_flow(cfg, force, not args.quiet, verify)
+            report = _run_flow(cfg, force, not args.quiet, verify, prune=prune)
     print(summary_table(report))
     return report.exit_code
 
 
-def _run_flow(cfg, force: bool, progress: bool, verify: bool):
+def _run_flow(cfg, force: bool, progress: bool, verify: bool, prune: bool = False):
     from flows.pipeline.run import rebuild_dataset
     from flows.pipeline.runtime import prefect_api
 
     with prefect_api():
-        return rebuild_dataset(cfg, force=force, progress=progress, verify=verify, lock_held=True)
+        return rebuild_dataset(
+            cfg, force=force, progress=progress, verify=verify, lock_held=True, prune=prune
+        )
 
 
 def cmd_rebuild(args: argparse.Namespace) -> int:
@@ -161,36 +205,44 @@ def cmd_export(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
+    from storage.publish import reading
+
     cfg = _config(args)
     explicit = args.data is not None or any(
         o.partition("=")[0].strip() == "dataset.root" for o in args.overrides
     )
-    target = export_dataset(
-        dataset_export_inputs(cfg),
-        cfg.output.root,
-        cfg.dataset.root if explicit else None,  # None: where the dataset was built from
-        args.format,
-        args.to,
-        gt=args.gt,
-    )
+    with reading(cfg.output.root):  # no run changes the dataset while it is exported
+        target = export_dataset(
+            dataset_export_inputs(cfg),
+            cfg.output.root,
+            cfg.dataset.root if explicit else None,  # None: where the dataset was built from
+            args.format,
+            args.to,
+            gt=args.gt,
+        )
     print(f"{args.format} export{' of the ground truth' if args.gt else ''} written to {target}")
     return 0
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from flows.commands.report import section_table
+    from storage.publish import reading
 
-    if args.labels == "coda":
-        from flows.commands.evaluate_coda import evaluate_coda
+    with reading(args.dataset):  # no run changes the dataset while it is evaluated
+        if args.labels == "coda":
+            from flows.commands.evaluate_coda import evaluate_coda
 
-        res = evaluate_coda(args.dataset, args.gt, args.report)
-    else:
-        from flows.commands.evaluate import evaluate
+            res = evaluate_coda(args.dataset, args.gt, args.report)
+        else:
+            from flows.commands.evaluate import evaluate
 
-        res = evaluate(args.dataset, args.gt, args.report)
+            res = evaluate(args.dataset, args.gt, args.report)
     for key, title in (("detection", "automatic"), ("detection_manual_qa", "manual QA")):
         if key in res:  # the paper's Table 4 bottom, computed and checked by hand
             print(f"detection robustness ({title}):\n{section_table(key, res[key])}\n")
+    for key, note in sorted((res.get("notes") or {}).items()):
+        if "withdrawn" in note["note"]:
+            print(f"NOT EVALUATED {key}: {note['note']}")
     print(
         f"report: {args.report / 'report.md'} (figures in {args.report / 'figures'}, "
         f"numbers in {args.report / 'results.json'})"
@@ -766,8 +818,16 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return status
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse, with a usage error in one line (argparse prints the whole usage first, which
+    for a command of many options buries the one line that says what is wrong)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (`{self.prog} --help` lists the options)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="mobileocc",
         description="Human-aware 3D semantic occupancy datasets from raw robot sensor logs.",
     )
@@ -796,11 +856,23 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument(
             "--verify",
             action="store_true",
-            help="hash every input file (default: a sequence whose files kept their size, mtime "
-            "and inode is taken as unchanged, without reading it)",
+            help="hash every input file and every output against its record (default: a "
+            "sequence whose files kept their size, mtime and inode is taken as unchanged, "
+            "without reading it, and outputs are checked by their sizes)",
         )
         if name == "rebuild":
-            p.add_argument("--force", action="store_true", help="ignore the cache, run everything")
+            p.add_argument(
+                "--force",
+                action="store_true",
+                help="compute every unit again (outputs of the same key are replaced)",
+            )
+        if name in ("rebuild", "reprocess"):
+            p.add_argument(
+                "--prune",
+                action="store_true",
+                help="take sequences whose input is no longer under --data out of the dataset "
+                "(without it they are reported)",
+            )
         if name == "reprocess":
             p.add_argument("--dry-run", action="store_true", help="list what would run and why")
         p.set_defaults(func=func)
@@ -858,8 +930,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="generate synthetic campus sequences (CODa layout or robot logs + ground truth)",
     )
     p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--sequences", type=int, default=1)
-    p.add_argument("--frames", type=int, default=20, help="raw 10 Hz frames per sequence")
+    p.add_argument("--sequences", type=_at_least(1), default=1)
+    p.add_argument("--frames", type=_at_least(1), default=20, help="raw 10 Hz frames per sequence")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--pedestrians", type=int, default=None)
     p.add_argument("--crowd", choices=["crowded", "uncrowded"], default="uncrowded")
@@ -889,7 +961,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--workers",
-        type=int,
+        type=_at_least(1),
         default=1,
         help="frame worker processes (the files are the same bytes for any number)",
     )
@@ -964,7 +1036,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="generate the synthetic demo data (if missing) and process it")
     _add_config_args(p)
     p.add_argument(
-        "--frames", type=int, default=30, help="raw 10 Hz frames per demo sequence (15 at 5 Hz)"
+        "--frames",
+        type=_at_least(1),
+        default=30,
+        help="raw 10 Hz frames per demo sequence (15 at 5 Hz)",
     )
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_demo)
@@ -977,20 +1052,39 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     args.argv = argv
     from configs.schema import ConfigError
+    from flows.pipeline.runtime import RunnerUnavailable
+    from flows.pipeline.signals import stop_on_signals
+    from flows.pipeline.units import ExportTargetError
     from storage.files import InputError
+    from storage.layout import StoreError
     from storage.manifest import OutputError, StoreLockedError
 
+    name = f"mobileocc {args.command}"
+    after = (
+        "; finished units are kept, the same command resumes"
+        if args.command in RUN_COMMANDS
+        else ""
+    )
     try:
-        return args.func(args)
+        with stop_on_signals(name, after):
+            return args.func(args)
     except ConfigError as exc:
         print(exc, file=sys.stderr)
         return EXIT_USAGE
-    except (InputError, OutputError) as exc:  # --data / --out / a manifest that cannot be read
-        print(f"mobileocc {args.command}: {exc}", file=sys.stderr)
+    except (InputError, OutputError, UsageError, ExportTargetError, RunnerUnavailable) as exc:
+        # --data / --out / --set / --to / the runner / a manifest that cannot be read
+        print(f"{name}: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except StoreLockedError as exc:
-        print(f"mobileocc {args.command}: {exc}", file=sys.stderr)
+        print(f"{name}: {exc}", file=sys.stderr)
         return EXIT_BUSY
+    except StoreError as exc:  # a published store that cannot be read (export, evaluate)
+        print(f"{name}: {exc}", file=sys.stderr)
+        return EXIT_FAILED
+
+
+#: commands that run units (a stop leaves finished units in the store)
+RUN_COMMANDS = ("rebuild", "reprocess", "demo")
 
 
 if __name__ == "__main__":

@@ -1,7 +1,11 @@
 """Read a published dataset: ``ds = open_dataset(out); ds.sequences; ds.arrays(seq); ds.table(...)``.
 
 Only published data is seen: hidden ``.tmp-*`` staging directories are skipped, and each
-sequence's arrays are the version named by ``occupancy/<seq>/current.json``. Arrays are lazy
+sequence's arrays are the version named by ``occupancy/<seq>/current.json``; a store whose
+publication a killed run interrupted is refused until it is completed (storage.publish.reading
+completes it), so arrays and tables are always of one version; so is a sequence whose
+``current.json`` is missing or unreadable, or a file it lists missing or of another size (one
+``stat`` per file; content is checked by ``mobileocc status --verify``). Arrays are lazy
 (dask arrays over the zarr arrays, or the zarr arrays themselves); the zarr metadata carries
 ``dimension_names`` so ``xarray.open_zarr`` can open a store directly. Tables are pyarrow Tables
 (``.to_pandas()`` for pandas).
@@ -18,8 +22,9 @@ import pyarrow as pa
 import zarr
 
 from storage import tables
-from storage.layout import CURRENT_FILE, OCCUPANCY_DIR, StoreError
+from storage.layout import OCCUPANCY_DIR, StoreError
 from storage.occupancy_store import ARRAYS, read_attrs, store_path
+from storage.publish import damaged_publication, pending_publications
 
 
 @dataclass(frozen=True)
@@ -74,9 +79,23 @@ def open_dataset(path: str | os.PathLike) -> Dataset:
         raise StoreError(
             f"{root} is not a mobileocc dataset (no {OCCUPANCY_DIR}/ or {tables.TABLES_DIR}/)"
         )
+    pending = pending_publications(root)
+    if pending:  # its arrays and tables may be of two versions until it is completed
+        raise StoreError(
+            f"dataset {root}: the publication of sequence(s) {', '.join(pending)} was interrupted "
+            "by a killed run; `mobileocc export` or the next run completes it "
+            "(storage.publish.reading)"
+        )
     seqs = sorted(
         p.name
         for p in (occ.iterdir() if occ.is_dir() else ())
-        if p.is_dir() and not p.name.startswith((".", "_")) and (p / CURRENT_FILE).is_file()
+        if p.is_dir() and not p.name.startswith((".", "_"))
     )
+    for seq in seqs:  # a damaged sequence is never read as if it were whole (nor left out)
+        problem = damaged_publication(root, seq)
+        if problem:
+            raise StoreError(
+                f"dataset {root}: sequence {seq} is damaged: {problem}; `mobileocc rebuild` "
+                "publishes it again (`mobileocc status --verify` lists what is damaged)"
+            )
     return Dataset(root, tuple(seqs))

@@ -123,14 +123,14 @@ def frame_path(root: Path, seq: int | str, frame: int) -> Path:
     return gt_dir(root, seq) / f"gt_{seq}_{frame}.npz"
 
 
-def write_sequence_gt(root: Path, seq: int, arrays: dict[str, np.ndarray]) -> Path:
+def write_sequence_gt(root: Path, seq: int | str, arrays: dict[str, np.ndarray]) -> Path:
     """Write ``sequence.npz`` (fields SEQUENCE_FIELDS)."""
     path = gt_dir(root, seq) / "sequence.npz"
     _check(path, arrays, SEQUENCE_FIELDS)
     return write_npz_deterministic(path, {k: np.asarray(arrays[k]) for k in SEQUENCE_FIELDS})
 
 
-def write_frame_gt(root: Path, seq: int, frame: int, arrays: dict[str, np.ndarray]) -> Path:
+def write_frame_gt(root: Path, seq: int | str, frame: int, arrays: dict[str, np.ndarray]) -> Path:
     """Write one frame's ground truth (fields FRAME_FIELDS and those of OPTIONAL_FRAME_FIELDS
     given, validated)."""
     path = frame_path(root, seq, frame)

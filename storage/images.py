@@ -15,14 +15,17 @@ def read_rgb(path: str | os.PathLike, expect_size: tuple[int, int] | None = None
     path = Path(path)
     try:
         with Image.open(path) as im:
+            size = im.size  # from the header: a wrong size is refused before decoding
+            if expect_size is not None and tuple(size) != tuple(expect_size):
+                raise ValueError(
+                    f"{path}: image is {size[0]} x {size[1]} px, the camera calibration "
+                    f"says {expect_size[0]} x {expect_size[1]}"
+                )
             rgb = np.array(im.convert("RGB"))
     except FileNotFoundError:
         raise FileNotFoundError(f"{path}: image file not found") from None
+    except Image.DecompressionBombError as error:
+        raise ValueError(f"{path}: image header claims an implausible size ({error})") from None
     except (UnidentifiedImageError, OSError) as error:
         raise ValueError(f"{path}: not a readable image ({error})") from error
-    if expect_size is not None and (rgb.shape[1], rgb.shape[0]) != tuple(expect_size):
-        raise ValueError(
-            f"{path}: image is {rgb.shape[1]} x {rgb.shape[0]} px, the camera calibration "
-            f"says {expect_size[0]} x {expect_size[1]}"
-        )
     return rgb

@@ -10,6 +10,8 @@ from __future__ import annotations
 OCCUPANCY_DIR = "occupancy"
 TABLES_DIR = "tables"
 CURRENT_FILE = "current.json"
+#: ``OUT/.publishing/<sequence>.json``: a publication in progress (storage.publish)
+PUBLISHING_DIR = ".publishing"
 TMP_PREFIX = ".tmp-"
 
 

@@ -355,8 +355,10 @@ class Manifest:
         (self.root / JOURNAL).unlink(missing_ok=True)
         self.journal_lines = 0
 
-    def output_exists(self, record: StageRecord) -> bool:
-        return bool(record.location) and (self.root / record.location).exists()
+    def drop_sequence(self, sequence: str) -> None:
+        """Forget every row of a sequence (its input is gone; kept by the next :meth:`save`)."""
+        for key in [k for k in self.rows if k[0] == sequence]:
+            del self.rows[key]
 
     def remember_inputs(self, inputs: dict[str, tuple[str, Any]]) -> None:
         """Keep each stage's inputs (hash -> JSON) so a later plan can say which setting changed;
@@ -498,6 +500,45 @@ def check_writable(root: Path) -> None:
             pass
 
 
+#: what an output store holds at its top (anything else in a store without a manifest is not ours)
+STORE_ENTRIES = frozenset(
+    {MANIFEST, JOURNAL, ".lock", ".cache", ".publishing", "stages", "occupancy", "tables",
+     "exports", "report"}
+)  # fmt: skip
+
+
+def check_store_place(out: Path, data: Path) -> None:
+    """The output store is neither the data root nor a folder holding it, and a store without a
+    manifest holds nothing but a store's entries (``STORE_ENTRIES``, temporaries): else an
+    OutputError naming both, before any work (the store's sweep and publication must never touch
+    the user's files)."""
+    out_r, data_r = os.path.realpath(out), os.path.realpath(data)
+    if out_r == data_r:
+        raise OutputError(
+            f"output store {out} is the data root {data}: the store would mix with the data; "
+            "choose another folder for --out"
+        )
+    if data_r.startswith(out_r.rstrip(os.sep) + os.sep):
+        raise OutputError(
+            f"output store {out} holds the data root {data}; choose another folder for --out"
+        )
+    out = Path(out)
+    if not out.is_dir() or (out / MANIFEST).exists() or (out / JOURNAL).exists():
+        return
+    foreign = sorted(
+        p.name
+        for p in out.iterdir()
+        if p.name not in STORE_ENTRIES and not p.name.startswith(TMP_PREFIX)
+    )
+    if foreign:
+        more = f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
+        raise OutputError(
+            f"output store {out} holds files that are not a mobileocc store's "
+            f"({', '.join(repr(f) for f in foreign[:3])}{more}); choose a new or empty folder "
+            "for --out"
+        )
+
+
 #: the output stores whose lock this process holds (a caller holding it may hand the run to code
 #: that would take it again: :func:`holding_lock`)
 _HELD: set[str] = set()
@@ -547,6 +588,33 @@ def run_lock(root: Path) -> Iterator[None]:
 
 
 @contextmanager
+def read_lock(root: Path) -> Iterator[None]:
+    """Readers of the published store (``mobileocc export``, ``evaluate``): many at once, never
+    while a run holds :func:`run_lock` (refused with :class:`StoreLockedError`), and a run is
+    refused while they read. A shared ``flock`` on the same ``OUT/.lock``; a reader neither writes
+    the file nor unlinks it (other readers may hold it), so a store only ever read keeps an empty
+    lock file, which the next run takes and removes."""
+    root = Path(root)
+    if not root.is_dir():
+        raise OutputError(f"output store {root} does not exist")
+    path = root / LOCK_FILE
+    with _HELD_GUARD:
+        if os.path.abspath(path) in _HELD:  # this process runs: it sees its own writes
+            held = True
+        else:
+            held = False
+    if held:
+        yield
+        return
+    fd = _acquire(path, exclusive=False)
+    try:
+        yield
+    finally:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        os.close(fd)
+
+
+@contextmanager
 def holding_lock(root: Path) -> Iterator[None]:
     """For code run on behalf of a caller that holds :func:`run_lock` of ``root`` (the CLI takes it
     before starting Prefect, then runs the flow): checks that this process holds it."""
@@ -559,24 +627,16 @@ def holding_lock(root: Path) -> Iterator[None]:
     yield
 
 
-def _acquire(path: Path) -> int:
+def _acquire(path: Path, exclusive: bool = True) -> int:
     me = {"host": socket.gethostname(), "pid": os.getpid(), "started": time.time()}
     for _ in range(100):
         fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(fd, (fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH) | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = _holder(fd)
             os.close(fd)
-            when = (
-                time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(holder["started"]))
-                if isinstance(holder.get("started"), (int, float))
-                else "?"
-            )
-            raise StoreLockedError(
-                f"{path.parent} is in use by another run (host {holder.get('host', '?')}, pid "
-                f"{holder.get('pid', '?')}, started {when}); wait for it to finish"
-            ) from None
+            raise StoreLockedError(_in_use(path.parent, holder, exclusive)) from None
         except OSError as exc:
             os.close(fd)
             raise StoreLockedError(
@@ -591,6 +651,8 @@ def _acquire(path: Path) -> int:
             fcntl.flock(fd, fcntl.LOCK_UN)
             os.close(fd)
             continue
+        if not exclusive:
+            return fd
         try:
             os.ftruncate(fd, 0)
             os.pwrite(fd, json.dumps(me).encode(), 0)
@@ -598,6 +660,42 @@ def _acquire(path: Path) -> int:
             pass  # the kernel lock is held; only the refusal message of another run loses host / pid
         return fd
     raise StoreLockedError(f"{path}: the lock changed hands 100 times while taking it; try again")
+
+
+def _in_use(root: Path, holder: dict, exclusive: bool) -> str:
+    """Why the lock was refused: a run (it writes its host, pid and start into the file) or
+    readers (they write nothing; the file may still name a run of this host that was killed
+    before it could remove it: a pid no longer alive, so readers hold it)."""
+    if not holder or _dead_here(holder):
+        return (
+            f"{root} is being read (e.g. by `mobileocc export` or `evaluate`); wait for it to finish"
+            if exclusive
+            else f"{root} is in use by a run; wait for it to finish"
+        )
+    when = (
+        time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(holder["started"]))
+        if isinstance(holder.get("started"), (int, float))
+        else "?"
+    )
+    return (
+        f"{root} is in use by {'another' if exclusive else 'a'} run (host "
+        f"{holder.get('host', '?')}, pid {holder.get('pid', '?')}, started {when}); wait for it "
+        "to finish"
+    )
+
+
+def _dead_here(holder: dict) -> bool:
+    """Whether ``holder`` names a process of this host that no longer exists."""
+    pid = holder.get("pid")
+    if holder.get("host") != socket.gethostname() or not isinstance(pid, int) or pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except OSError:  # alive, another user's
+        return False
+    return False
 
 
 def _holder(fd: int) -> dict:

@@ -278,7 +278,14 @@ def read_frames(
     for name in names or tuple(ARRAYS):
         if name not in ARRAYS:
             raise StoreError(f"read_frames({path}): unknown array {name!r}")
-        out[name] = group[name][sl]
+        try:
+            out[name] = group[name][sl]
+        except (RuntimeError, ValueError, OSError) as exc:  # a codec refusing a damaged chunk
+            raise StoreError(
+                f"{Path(path) / name} frames {sl.start}-{sl.stop}: cannot be read "
+                f"({type(exc).__name__}: {exc}); a published file is damaged: `mobileocc status "
+                "--verify` names it, `mobileocc rebuild --verify` publishes the sequence again"
+            ) from None
     return out
 
 

@@ -1,10 +1,22 @@
-"""Publication of a sequence: write everything aside, then make it visible by renames.
+"""Publication of a sequence: write everything aside, record the intent, then rename into place.
 
 A sequence is written into a hidden staging directory (``OUT/.tmp-*``): the Zarr store by the
-fuse / export stages, the table partitions by :func:`stage_table`. :func:`publish_sequence` renames
-the store into ``occupancy/<sequence>/<version>.zarr``, each partition onto its place, and last
-replaces ``occupancy/<sequence>/current.json``, so readers see the old version or the new one,
-never a mix. :func:`sequence_writer` wraps this (publish on success, discard on error).
+fuse / export stages, the table partitions by :func:`stage_table`. :func:`publish_sequence` then
+
+1. lists every file to be published with its size and sha256 (storage.completion),
+2. writes the *intent* ``OUT/.publishing/<sequence>.json`` (which staging directory, which
+   version, the ``current.json`` to write), fsynced: from here the publication is committed,
+3. renames the store to ``occupancy/<sequence>/<version>.zarr`` and each table file onto its
+   partition, replaces ``occupancy/<sequence>/current.json`` (``{"version", "files"}``: the file
+   list is what the published sequence must hold), removes older versions,
+4. removes the intent, then the staging directory.
+
+A kill between 2 and 4 leaves the intent: the next run (and any reader taking the store's read
+lock, :func:`reading`) completes the publication from the staging directory before anything else
+(:func:`recover_publications`, "roll forward"), so no reader ever works on a mix of an old
+version's arrays and a new version's tables. :func:`withdraw_sequence` and :func:`remove_sequence`
+go through an intent the same way. :func:`check_publication` compares a published sequence with
+its ``current.json`` (``status --verify``); a sequence that does not match is published again.
 """
 
 from __future__ import annotations
@@ -18,15 +30,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from storage.atomic import atomic_write_bytes, swap_in, temporary_name
+from storage.atomic import atomic_write_bytes, move_into_place, swap_in, temporary_name
+from storage.completion import check_files, describe
 from storage.layout import (
     CURRENT_FILE,
     OCCUPANCY_DIR,
+    PUBLISHING_DIR,
+    TABLES_DIR,
     TMP_PREFIX,
     StoreError,
     check_name,
 )
+from storage.manifest import read_lock, run_lock
+from storage.schemas import TABLE_NAMES
 from storage.tables import (
+    PARTITION_FILE,
     partition_dir,
     publish_partition,
     to_table,
@@ -67,35 +85,30 @@ def stage_sequence(root: str | os.PathLike, sequence: str, version: str) -> Stag
 
 
 def publish_sequence(staged: StagedSequence, keep_old_versions: bool = False) -> Path:
-    """Make a staged sequence visible; returns the published store path.
-
-    Order: the store directory is renamed to ``occupancy/<seq>/<version>.zarr``; each staged
-    table file replaces its partition file (one atomic rename each); finally ``current.json``
-    is replaced to point at the new version. Until that last rename, readers keep seeing the
-    previous version's arrays. Older versions are removed unless ``keep_old_versions``.
-    """
+    """Make a staged sequence visible; returns the published store path (module docstring: the
+    steps, and what a kill at any of them leaves). Older versions are removed unless
+    ``keep_old_versions``."""
     if not staged.staging_dir.is_dir():
         raise StoreError(f"publish_sequence: staging dir {staged.staging_dir} is gone")
-    seq_dir = staged.root / OCCUPANCY_DIR / staged.sequence
-    seq_dir.mkdir(parents=True, exist_ok=True)
-    target = seq_dir / f"{staged.version}.zarr"
-    if staged.store_path.exists():
-        # the same version published before is moved aside first (hidden): never a mix of the two
-        swap_in(staged.store_path, target)
-    for staged_file in sorted(staged.tables_dir.glob("*.parquet")):
-        publish_partition(staged.root, staged_file.stem, staged.sequence, staged_file)
-    if target.exists():
-        atomic_write_bytes(
-            seq_dir / CURRENT_FILE,
-            json.dumps({"version": staged.version}, indent=1, sort_keys=True).encode(),
-            sync_folder=True,
-        )
-    if not keep_old_versions:
-        for old in seq_dir.glob("*.zarr"):
-            if old != target and target.exists():
-                shutil.rmtree(old, ignore_errors=True)
-    shutil.rmtree(staged.staging_dir, ignore_errors=True)
-    return target
+    seq = staged.sequence
+    rename = {
+        "occupancy.zarr": f"{OCCUPANCY_DIR}/{seq}/{staged.version}.zarr",
+        **{
+            f"tables/{p.name}": f"{TABLES_DIR}/{p.stem}/sequence={seq}/{PARTITION_FILE}"
+            for p in staged.tables_dir.glob("*.parquet")
+        },
+    }
+    files = describe(staged.staging_dir, rename=rename)
+    intent = {
+        "action": "publish",
+        "staging": staged.staging_dir.name,
+        "version": staged.version,
+        "keep_old_versions": keep_old_versions,
+        "current": {"version": staged.version, "files": files},
+    }
+    _write_intent(staged.root, seq, intent)
+    _complete(staged.root, seq, intent)
+    return staged.root / OCCUPANCY_DIR / seq / f"{staged.version}.zarr"
 
 
 def withdraw_sequence(root: str | os.PathLike, sequence: str, error: str, row: dict) -> bool:
@@ -106,21 +119,210 @@ def withdraw_sequence(root: str | os.PathLike, sequence: str, error: str, row: d
     code_version). Returns whether anything had been published."""
     check_name("sequence", sequence)
     root = Path(root)
-    seq_dir = root / OCCUPANCY_DIR / sequence
-    had = (seq_dir / CURRENT_FILE).exists()
-    (seq_dir / CURRENT_FILE).unlink(missing_ok=True)
-    shutil.rmtree(seq_dir, ignore_errors=True)
-    for name in ("frames", "instances"):
-        part = partition_dir(root, name, sequence)
-        had |= part.exists()
-        shutil.rmtree(part, ignore_errors=True)
-    write_partition(
-        root,
-        "sequences",
-        sequence,
-        [{**row, "status": "failed", "error": error, "num_frames": 0, "occupancy_version": None}],
+    had = (root / OCCUPANCY_DIR / sequence).exists() or any(
+        partition_dir(root, name, sequence).exists() for name in ("frames", "instances")
     )
+    failed = {**row, "status": "failed", "error": error, "num_frames": 0}
+    intent = {"action": "withdraw", "row": {**failed, "occupancy_version": None}}
+    _write_intent(root, sequence, intent)
+    _complete(root, sequence, intent)
     return had
+
+
+def remove_sequence(root: str | os.PathLike, sequence: str) -> bool:
+    """Take a sequence out of the dataset entirely (its input is gone: ``--prune``): arrays,
+    ``current.json`` and the partitions of every table. Returns whether anything was there."""
+    check_name("sequence", sequence)
+    root = Path(root)
+    had = sequence in published_names(root)
+    _write_intent(root, sequence, {"action": "remove"})
+    _complete(root, sequence, {"action": "remove"})
+    return had
+
+
+def _intent_path(root: Path, sequence: str) -> Path:
+    return Path(root) / PUBLISHING_DIR / f"{sequence}.json"
+
+
+def _write_intent(root: Path, sequence: str, intent: dict) -> None:
+    atomic_write_bytes(
+        _intent_path(root, sequence), json.dumps(intent, sort_keys=True).encode(), sync_folder=True
+    )
+
+
+def _remove(path: Path) -> None:
+    """Remove a published folder without readers ever seeing half of it: renamed aside (hidden)
+    first, then deleted."""
+    if not os.path.lexists(path):
+        return
+    aside = move_into_place(path, temporary_name(path))
+    shutil.rmtree(aside, ignore_errors=True)
+
+
+def _complete(root: Path, sequence: str, intent: dict) -> None:
+    """Carry out an intent (again): every step may already have been done by a killed run."""
+    root, seq_dir = Path(root), Path(root) / OCCUPANCY_DIR / sequence
+    action = intent.get("action")
+    if action == "publish":
+        staging = root / str(intent["staging"])
+        target = seq_dir / f"{intent['version']}.zarr"
+        seq_dir.mkdir(parents=True, exist_ok=True)
+        store = staging / "occupancy.zarr"
+        if store.is_dir():
+            # the same version published before is moved aside first (hidden): never a mix
+            swap_in(store, target)
+        for staged_file in sorted((staging / "tables").glob("*.parquet")):
+            publish_partition(root, staged_file.stem, sequence, staged_file)
+        current = intent["current"]
+        if check_files(root, current["files"]):
+            # the staging of a killed run was lost (removed by hand): rather than a mix of
+            # versions, the sequence is taken out whole; its export unit publishes it again
+            _complete(root, sequence, {"action": "remove"})
+            shutil.rmtree(staging, ignore_errors=True)
+            return
+        atomic_write_bytes(
+            seq_dir / CURRENT_FILE,
+            json.dumps(current, indent=1, sort_keys=True).encode(),
+            sync_folder=True,
+        )
+        if not intent.get("keep_old_versions"):
+            for old in seq_dir.glob("*.zarr"):
+                if old != target:
+                    _remove(old)
+        _intent_path(root, sequence).unlink(missing_ok=True)
+        shutil.rmtree(staging, ignore_errors=True)
+        return
+    if action not in ("withdraw", "remove"):
+        raise StoreError(f"{_intent_path(root, sequence)}: unknown publication step {action!r}")
+    (seq_dir / CURRENT_FILE).unlink(missing_ok=True)  # readers stop listing it at once
+    _remove(seq_dir)
+    for name in ("frames", "instances") if action == "withdraw" else TABLE_NAMES:
+        _remove(partition_dir(root, name, sequence))
+    if action == "withdraw":
+        write_partition(root, "sequences", sequence, [intent["row"]])
+    _intent_path(root, sequence).unlink(missing_ok=True)
+
+
+def pending_publications(root: str | os.PathLike) -> list[str]:
+    """Sequences whose publication, withdrawal or removal was interrupted (their intent is left)."""
+    folder = Path(root) / PUBLISHING_DIR
+    if not folder.is_dir():
+        return []
+    return sorted(p.stem for p in folder.glob("*.json") if not p.name.startswith("."))
+
+
+def recover_publications(root: str | os.PathLike) -> list[str]:
+    """Complete every interrupted publication (call it holding the run lock, before the
+    temporaries are swept: the staging directories it reads are temporaries); returns them."""
+    done = []
+    for sequence in pending_publications(root):
+        path = _intent_path(Path(root), sequence)
+        try:
+            intent = json.loads(path.read_bytes())
+        except (OSError, ValueError):  # written atomically: only a foreign file is unreadable
+            raise StoreError(
+                f"{path}: not a publication intent; remove it and run `mobileocc rebuild`"
+            ) from None
+        _complete(Path(root), sequence, intent)
+        done.append(sequence)
+    return done
+
+
+@contextlib.contextmanager
+def reading(root: str | os.PathLike) -> Iterator[None]:
+    """Read the published dataset under the store's read lock (shared with other readers, refused
+    while a run holds it: storage.manifest.StoreLockedError). A publication interrupted by a
+    killed run is completed first (briefly holding the run lock), so a reader sees whole
+    versions only."""
+    root = Path(root)
+    if pending_publications(root):
+        with run_lock(root):
+            recover_publications(root)
+    with read_lock(root):
+        yield
+
+
+def published_version(root: str | os.PathLike, sequence: str) -> str | None:
+    """The version ``current.json`` names (None when there is none or it cannot be read)."""
+    try:
+        current = json.loads((Path(root) / OCCUPANCY_DIR / sequence / CURRENT_FILE).read_bytes())
+        version = current.get("version") if isinstance(current, dict) else None
+    except (OSError, ValueError):
+        return None
+    return version if isinstance(version, str) else None
+
+
+def published_versions(root: str | os.PathLike) -> dict[str, str]:
+    """sequence -> version of every sequence readers see (a ``current.json`` naming a version)."""
+    occ = Path(root) / OCCUPANCY_DIR
+    if not occ.is_dir():
+        return {}
+    found = {}
+    for p in sorted(occ.iterdir()):
+        if p.is_dir() and not p.name.startswith((".", "_")):
+            version = published_version(root, p.name)
+            if version is not None:
+                found[p.name] = version
+    return found
+
+
+def published_names(root: str | os.PathLike) -> set[str]:
+    """Every sequence with anything in the dataset: arrays, or a partition of any table (a
+    withdrawn sequence keeps its sequences-table row)."""
+    root = Path(root)
+    names = set()
+    occ = root / OCCUPANCY_DIR
+    if occ.is_dir():
+        names |= {p.name for p in occ.iterdir() if not p.name.startswith((".", "_"))}
+    for name in TABLE_NAMES:
+        base = root / TABLES_DIR / name
+        if base.is_dir():
+            names |= {p.name.split("=", 1)[1] for p in base.glob("sequence=*") if "=" in p.name}
+    return names
+
+
+def check_publication(
+    root: str | os.PathLike, sequence: str, version: str, deep: bool = False
+) -> str:
+    """The first problem of a published sequence ("" when it holds what was published as
+    ``version``): an interrupted publication, ``current.json`` missing, unreadable or naming
+    another version, or a published file (arrays, table partitions) missing, of another size or
+    (``deep``) of other content."""
+    root = Path(root)
+    if sequence in pending_publications(root):
+        return "its publication was interrupted (the next run completes it)"
+    path = root / OCCUPANCY_DIR / sequence / CURRENT_FILE
+    try:
+        current = json.loads(path.read_bytes())
+    except FileNotFoundError:
+        return f"{path} is missing"
+    except (OSError, ValueError) as exc:
+        return f"{path} cannot be read ({exc})"
+    if not isinstance(current, dict) or not isinstance(current.get("files"), dict):
+        return f"{path} does not list the published files"
+    if current.get("version") != version:
+        return f"{path} names version {current.get('version')!r}, the manifest {version!r}"
+    return check_files(root, current["files"], deep)
+
+
+def damaged_publication(root: str | os.PathLike, sequence: str) -> str:
+    """The first problem a reader must not go past in a published sequence ("" when none), one
+    ``stat`` per file: ``current.json`` missing or unreadable, or a file it lists missing or of
+    another size (a ``current.json`` of a store published before file lists: not checked)."""
+    path = Path(root) / OCCUPANCY_DIR / sequence / CURRENT_FILE
+    try:
+        current = json.loads(path.read_bytes())
+    except FileNotFoundError:
+        return f"{path} is missing"
+    except (OSError, ValueError) as exc:
+        return f"{path} cannot be read ({exc})"
+    version = current.get("version") if isinstance(current, dict) else None
+    if not isinstance(version, str):
+        return f"{path} does not name a version"
+    if not (path.parent / f"{version}.zarr").is_dir():
+        return f"{path} names version {version!r}, which is not there"
+    files = current.get("files")
+    return check_files(root, files) if isinstance(files, dict) else ""
 
 
 def discard(staged: StagedSequence | str | os.PathLike) -> None:

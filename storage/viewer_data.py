@@ -235,15 +235,17 @@ class ViewerSource:
         return points, image
 
     def _ground_truth(self, sequence, raw_frame, info, arrays, attrs, notes):
-        if self.data_root is None or not sequence.isdigit():
+        if self.data_root is None:
             return None
-        if not (gt_dir(self.data_root, int(sequence)) / "sequence.npz").exists():
+        root = Path(self.data_root)  # a single robot log: its gt/ lies beside it
+        root = root if root.is_dir() else root.parent
+        if not (gt_dir(root, sequence) / "sequence.npz").exists():
             return None  # real data: no ground truth, nothing to say
         try:
             if sequence not in self._gt_seq:
-                self._gt_seq[sequence] = read_sequence_gt(self.data_root, int(sequence))
+                self._gt_seq[sequence] = read_sequence_gt(root, sequence)
             gseq = self._gt_seq[sequence]
-            gtf = read_frame_gt(self.data_root, int(sequence), raw_frame)
+            gtf = read_frame_gt(root, sequence, raw_frame)
         except (GTFormatError, OSError) as exc:
             notes.append(f"ground truth not shown: {exc}")
             return None

@@ -202,6 +202,32 @@ def _image(size: tuple[int, int]) -> Callable[[Path], None]:
     return damage
 
 
+def _huge_header(path: Path) -> None:
+    """A valid small JPEG whose frame header claims 60000 x 60000 px."""
+    import io
+
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.new("RGB", (16, 16)).save(buffer, format="JPEG")
+    data = bytearray(buffer.getvalue())
+    at = data.index(b"\xff\xc0")  # SOF0: length (2), precision (1), height (2), width (2)
+    data[at + 5 : at + 9] = (60000).to_bytes(2, "big") * 2
+    _put(path, bytes(data))
+
+
+def _exif_rotated(path: Path) -> None:
+    """The same image, saved with an EXIF orientation of 6 (viewers turn it 90 degrees)."""
+    from PIL import Image
+
+    with Image.open(path) as im:
+        rgb = im.convert("RGB")
+    exif = rgb.getexif()
+    exif[0x0112] = 6
+    path.unlink()
+    rgb.save(path, format="JPEG", exif=exif)
+
+
 def _npz_garbage(path: Path) -> None:
     _put(path, b"PK\x03\x04 this is not a zip archive")
 
@@ -286,6 +312,16 @@ CASES = [
     ),
     Case("image cut in half", CAM0.format(2), _cut(keep=0.5), "cannot be decoded", "frame"),
     Case("image of the wrong size", CAM0.format(2), _image((640, 480)), "640 x 480 px", "frame"),
+    Case(
+        "image header claims 60000 x 60000 px",
+        CAM0.format(2),
+        _huge_header,
+        "image header claims an implausible size",
+        "frame",
+    ),
+    Case(
+        "image with an EXIF rotation", CAM0.format(2), _exif_rotated, "EXIF orientation 6", "frame"
+    ),
     Case(
         "cam1 image corrupt",
         "2d_rect/cam1/1/2d_rect_cam1_1_2.jpg",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import multiprocessing
+import os
 import zipfile
 from concurrent.futures import ProcessPoolExecutor
 
@@ -228,3 +229,141 @@ def test_npz_deterministic_and_loadable(tmp_path):
     assert raw.stat().st_size > a.stat().st_size - 1000
     with pytest.raises(ValueError, match="object"):
         save_npz_deterministic(tmp_path / "o.npz", x=np.array([None]))
+
+
+class _Killed(BaseException):
+    """Stands for a SIGKILL at a rename: nothing after it runs (no handler catches it)."""
+
+
+def _stage_with_tables(root, seq, version, value):
+    staged = pub.stage_sequence(root, seq, version)
+    occ.create_store(staged.store_path, 4, GRID, 2, ATTRS)
+    occ.write_frames(staged.store_path, 0, {"semantics": np.full((4, *GRID), value, np.uint8)})
+    pub.stage_table(staged, "frames", _frame_rows(value))
+    pub.stage_table(staged, "sequences", [_sequence_row(version)])
+    return staged
+
+
+def _publish_with_tables(root, seq, version, value):
+    pub.publish_sequence(_stage_with_tables(root, seq, version, value))
+
+
+def _counting_renames(monkeypatch, kill_at: int = 0) -> list[int]:
+    """Count os.replace calls from now on; raise _Killed at the ``kill_at``-th."""
+    real, count = os.replace, [0]
+
+    def replace(src, dst):
+        count[0] += 1
+        if count[0] == kill_at:
+            raise _Killed
+        return real(src, dst)
+
+    monkeypatch.setattr(os, "replace", replace)
+    return count
+
+
+def _frame_rows(value):
+    return [
+        {
+            "frame": k,
+            "raw_frame": 2 * k,
+            "stamp_ns": value * 1000 + k,
+            "T_world_from_lidar": [0.0] * 16,
+        }
+        for k in range(4)
+    ]
+
+
+def _sequence_row(version):
+    return {"fingerprint": "f", "config_hash": "c", "code_version": "1", "status": "ok",
+            "num_frames": 4, "occupancy_version": version}  # fmt: skip
+
+
+def _seen(root):
+    """(version, semantics value, frames stamp value, sequences row version) a reader sees."""
+    from storage.tables import read_table
+
+    ds = open_dataset(root)
+    value = int(occ.read_frames(ds.store_path("seq0"))["semantics"].max())
+    stamp = read_table(root, "frames", "seq0").column("stamp_ns").to_pylist()[0] // 1000
+    row = read_table(root, "sequences", "seq0").column("occupancy_version").to_pylist()
+    return ds.store_path("seq0").stem, value, stamp, row
+
+
+#: the renames of publish_sequence replacing v1 by v2: intent, store, two partitions,
+#: current.json, v1 moved aside (test_the_publication_steps_are_counted keeps this true)
+PUBLICATION_RENAMES = 6
+
+
+def test_the_publication_steps_are_counted(tmp_path, monkeypatch):
+    _publish_with_tables(tmp_path, "seq0", "v1", 3)
+    staged = _stage_with_tables(tmp_path, "seq0", "v2", 5)
+    count = _counting_renames(monkeypatch)
+    pub.publish_sequence(staged)
+    assert count[0] == PUBLICATION_RENAMES
+
+
+@pytest.mark.parametrize("step", range(1, PUBLICATION_RENAMES + 1))
+def test_a_publication_killed_at_any_rename_is_completed_by_the_next_reader(
+    step, tmp_path, monkeypatch
+):
+    """Every rename of a publication (intent, store, partitions, current.json, old version):
+    after a "kill" there, readers are refused until the publication is completed, and
+    storage.publish.reading completes it: v2 whole, never v1's arrays with v2's tables."""
+    _publish_with_tables(tmp_path, "seq0", "v1", 3)
+    assert _seen(tmp_path) == ("v1", 3, 3, ["v1"])
+    staged = _stage_with_tables(tmp_path, "seq0", "v2", 5)
+    real = os.replace
+    _counting_renames(monkeypatch, kill_at=step)
+    with pytest.raises(_Killed):
+        pub.publish_sequence(staged)
+    monkeypatch.setattr(os, "replace", real)
+    if step == 1:  # before the intent: nothing changed
+        assert not pub.pending_publications(tmp_path) and _seen(tmp_path)[0] == "v1"
+    else:  # the intent is there: readers are refused until it is completed
+        with pytest.raises(occ.StoreError, match="was interrupted by a killed run"):
+            open_dataset(tmp_path)
+    with pub.reading(tmp_path):
+        seen = _seen(tmp_path)
+    assert seen == (("v1", 3, 3, ["v1"]) if step == 1 else ("v2", 5, 5, ["v2"])), (step, seen)
+    assert not pub.pending_publications(tmp_path)
+    assert pub.check_publication(tmp_path, "seq0", seen[0], deep=True) == ""
+    assert not (tmp_path / "occupancy" / "seq0" / ("v1.zarr" if step > 1 else "v2.zarr")).exists()
+
+
+def test_check_publication_names_what_is_wrong(tmp_path):
+    _publish_with_tables(tmp_path, "seq0", "v1", 3)
+    assert pub.check_publication(tmp_path, "seq0", "v1", deep=True) == ""
+    assert "names version 'v1'" in pub.check_publication(tmp_path, "seq0", "v2")
+    part = tmp_path / "tables/frames/sequence=seq0/data.parquet"
+    data = part.read_bytes()
+    part.unlink()
+    assert pub.check_publication(tmp_path, "seq0", "v1") == f"{part} is missing"
+    part.write_bytes(data[:-1] + bytes([data[-1] ^ 1]))  # same size, other content
+    assert pub.check_publication(tmp_path, "seq0", "v1") == ""
+    assert "does not hold what was written" in pub.check_publication(
+        tmp_path, "seq0", "v1", deep=True
+    )
+    (tmp_path / "occupancy/seq0/current.json").write_text("{")
+    assert "cannot be read" in pub.check_publication(tmp_path, "seq0", "v1")
+
+
+def test_completion_records(tmp_path):
+    from storage.completion import check_record, write_record
+
+    folder = tmp_path / "unit"
+    (folder / "sub").mkdir(parents=True)
+    (folder / "a.npz").write_bytes(b"abc")
+    (folder / "sub" / "b.npz").write_bytes(b"defg")
+    files = write_record(folder, stage="fit", sequence="0", key="k")
+    assert sorted(files) == ["a.npz", "sub/b.npz"] and files["a.npz"][0] == 3
+    assert check_record(folder, deep=True) == ""
+    (folder / "a.npz").unlink()
+    (folder / "a.npz").write_bytes(b"abd")
+    assert check_record(folder) == ""  # the quick check sees sizes only
+    assert "does not hold what was written" in check_record(folder, deep=True)
+    (folder / "sub" / "b.npz").write_bytes(b"de")
+    assert check_record(folder).endswith("b.npz is 2 bytes, 4 were written")
+    (folder / "complete.json").unlink()
+    assert "complete.json is missing" in check_record(folder)
+    assert "is missing" in check_record(tmp_path / "nowhere")

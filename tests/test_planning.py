@@ -4,6 +4,7 @@ changed file is the only one hashed again, ``--verify`` sees what size + mtime +
 from __future__ import annotations
 
 import builtins
+import json
 import os
 from pathlib import Path
 
@@ -11,7 +12,14 @@ import pytest
 
 from configs.schema import load_config
 from flows.pipeline.plan import PlanCosts, plan_run, plan_without_hashing
-from storage.manifest import FingerprintCache, Manifest, StageRecord, stage_dir
+from storage.completion import write_record
+from storage.manifest import (
+    FingerprintCache,
+    Manifest,
+    StageRecord,
+    atomic_write_bytes,
+    stage_dir,
+)
 from tests.coda_fixture import make_coda
 
 
@@ -41,6 +49,12 @@ def _all_done(plans, out: Path) -> None:
         for stage, unit in plan.units.items():
             folder = stage_dir(out, stage, plan.sequence, unit.key)
             folder.mkdir(parents=True)
+            write_record(folder, stage=stage, sequence=plan.sequence, key=unit.key)
+            if stage == "export":  # published, with nothing in it
+                atomic_write_bytes(
+                    out / "occupancy" / plan.sequence / "current.json",
+                    json.dumps({"version": unit.key, "files": {}}).encode(),
+                )
             manifest.put(
                 StageRecord(
                     plan.sequence,

@@ -104,6 +104,42 @@ def test_a_killed_holder_leaves_no_lock(tmp_path):
         assert (tmp_path / ".lock").read_text().startswith('{"host"')
 
 
+def test_readers_behind_a_killed_runs_lock_file_are_named_as_readers(tmp_path):
+    """A run killed leaves its host and pid in the lock file; readers then hold the file (they
+    write nothing), and a run refused must say it is being read, not name the dead run."""
+    import socket
+
+    from storage.manifest import read_lock
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)  # fmt: skip
+    (tmp_path / ".lock").write_text(
+        f'{{"host": "{socket.gethostname()}", "pid": {int(dead.stdout)}, "started": 0}}'
+    )
+    code = (
+        "import sys\nfrom storage.manifest import read_lock\n"
+        "with read_lock(sys.argv[1]):\n    print('in', flush=True)\n    sys.stdin.read()\n"
+    )
+    reader = subprocess.Popen(
+        [sys.executable, "-c", code, str(tmp_path)],
+        cwd=ROOT,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    try:
+        assert reader.stdout.readline().strip() == "in"
+        with pytest.raises(StoreLockedError, match="is being read"), run_lock(tmp_path):
+            pass
+        with read_lock(tmp_path):  # readers share it
+            pass
+    finally:
+        reader.communicate("", timeout=60)
+    with run_lock(tmp_path):  # released with the reader
+        pass
+
+
 def _row(seq: str, stage: str, status: str = "done") -> StageRecord:
     return StageRecord(
         seq,

@@ -41,7 +41,7 @@ def bench_perception(config, boxes: str = "provider") -> dict:
         with tempfile.TemporaryDirectory() as tmp:
             for i in range(seq.info.num_frames):
                 frame = seq.frame(i)
-                gt = read_frame_gt(seq.root, int(seq_id), frame.index)
+                gt = read_frame_gt(seq.root, seq_id, frame.index)
                 rows = np.flatnonzero(np.all(np.isfinite(gt.box2d), 1) & (gt.visible_fraction > 0))
                 vis = gt.visible_fraction[rows] >= VISIBLE_FRACTION
                 t = time.perf_counter()

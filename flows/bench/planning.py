@@ -141,9 +141,44 @@ def _summaries(frames: int) -> dict[str, dict]:
     }
 
 
+#: files of a unit's output folder beside summary.json and complete.json, as a real run of the
+#: replicated sequence leaves them (detect: one per frame; map: tiles; fuse: the Zarr store), and
+#: of a published sequence (arrays and the three partitions)
+FILES_PER_UNIT = {
+    "detect": RAW_FRAMES // 2,
+    "track": 1,
+    "fit": 1,
+    "map": 9,
+    "fuse": 12,
+    "export": 0,
+}
+PUBLISHED_FILES = 14
+
+
+def _fake_output(out: Path, folder: Path, stage: str, sequence: str, key: str) -> None:
+    """An output folder of empty files with its completion record (what a plan stats), and for
+    the export stage a published sequence whose current.json lists its files."""
+    import json
+
+    from storage.completion import describe, write_record
+
+    for i in range(FILES_PER_UNIT[stage]):
+        (folder / f"part_{i}.npz").touch()
+    atomic_write_text(folder / "summary.json", "{}")
+    write_record(folder, stage=stage, sequence=sequence, key=key)
+    if stage == "export":
+        store = out / "occupancy" / sequence / f"{key}.zarr"
+        store.mkdir(parents=True, exist_ok=True)
+        for i in range(PUBLISHED_FILES):
+            (store / f"chunk_{i}").touch()
+        current = {"version": key, "files": describe(out, sorted(store.iterdir()))}
+        atomic_write_text(store.parent / "current.json", json.dumps(current))
+
+
 def _complete_store(config, out: Path) -> int:
-    """Record every unit of every sequence as done (with an output folder), as a finished run
-    would leave the store; returns the number of rows."""
+    """Record every unit of every sequence as done (with an output folder and its completion
+    record, and a published sequence), as a finished run would leave the store; returns the
+    number of rows."""
     from flows.pipeline.plan import plan_run
     from storage.manifest import FingerprintCache, Manifest, StageRecord, stage_dir
 
@@ -154,6 +189,7 @@ def _complete_store(config, out: Path) -> int:
         for stage, unit in plan.units.items():
             folder = stage_dir(out, stage, plan.sequence, unit.key)
             folder.mkdir(parents=True, exist_ok=True)
+            _fake_output(out, folder, stage, plan.sequence, unit.key)
             manifest.put(
                 StageRecord(
                     plan.sequence,
@@ -167,7 +203,7 @@ def _complete_store(config, out: Path) -> int:
                     parts=unit.parts,
                 )
             )
-    manifest.meta.update({"config": config.model_dump(mode="json")})
+    manifest.meta.update({"config": config.model_dump(mode="json"), "completion_records": 1})
     manifest.save()
     return len(manifest.rows)
 

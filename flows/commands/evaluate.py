@@ -231,10 +231,10 @@ def _evaluate_sequence(
     vs = float(attrs["voxel_size_m"])
     raw_frames = [int(r) for r in ds.table("frames", seq).column("raw_frame").to_pylist()]
     data_root, gt_root = gt_root, gt_root if gt_root.is_dir() else gt_root.parent
-    if not (gt_dir(gt_root, int(seq)) / "sequence.npz").exists() if seq.isdigit() else True:
+    if not (gt_dir(gt_root, seq) / "sequence.npz").exists():
         tot.notes[f"sequence {seq}"] = f"no ground truth under {gt_root}/gt/{seq}: not evaluated"
         return
-    gseq = read_sequence_gt(gt_root, int(seq))
+    gseq = read_sequence_gt(gt_root, seq)
     coda = open_recorded_sequence(config, data_root, seq)
     cam = coda.info.calibration.cameras[((config.get("dataset") or {}).get("camera")) or "cam0"]
     T_bl = np.asarray(gseq.T_base_from_lidar, np.float64)
@@ -294,7 +294,7 @@ def _evaluate_sequence(
     )
     gt_poses = []
     for k, raw in enumerate(raw_frames):
-        gtf = read_frame_gt(gt_root, int(seq), raw)
+        gtf = read_frame_gt(gt_root, seq, raw)
         gt_poses.append(gtf.T_world_from_lidar)
         pred = np.asarray(arrays["semantics"][k])
         mask_cam = np.asarray(arrays["mask_camera"][k]).astype(bool)
@@ -710,6 +710,16 @@ def open_for_evaluation(dataset: Path, data: Path | None):
     return out, manifest, config, root, ds
 
 
+def withdrawn_sequences(ds) -> dict[str, str]:
+    """sequence -> the first line of why its last run failed, for every sequence the sequences
+    table marks failed (withdrawn from the dataset, so not evaluated)."""
+    return {
+        str(row["sequence"]): (row.get("error") or "").splitlines()[0][:200]
+        for row in ds.table("sequences").to_pylist()
+        if row.get("status") != "ok"
+    }
+
+
 def evaluate(
     dataset: Path,
     gt: Path | None,
@@ -722,6 +732,8 @@ def evaluate(
     (CODa's own labels: flows/commands/evaluate_coda.py.)"""
     out, manifest, config, gt_root, ds = open_for_evaluation(dataset, gt)
     tot = _Totals()
+    for seq, why in withdrawn_sequences(ds).items():
+        tot.notes[f"sequence {seq}"] = f"withdrawn, not evaluated: its last run failed ({why})"
     positions = _sample_positions(ds, sample_frames)
     for seq in ds.sequences:
         _evaluate_sequence(ds, out, manifest, gt_root, seq, tot, positions, config)

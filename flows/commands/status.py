@@ -9,6 +9,7 @@ from configs.schema import Config
 from flows.pipeline.inputs import source
 from flows.pipeline.outcome import Status
 from flows.pipeline.plan import PlanCosts, plan_run, selected_sequences
+from flows.pipeline.units import DAMAGED_REASONS, store_problems
 from storage.manifest import FingerprintCache, Manifest
 
 
@@ -27,7 +28,9 @@ def _unit_state(manifest, plan, stage: str, unit, dry_run: bool) -> list[str]:
 
 def print_plan(cfg: Config, dry_run: bool, verify: bool = False) -> int:
     """Print per sequence and stage what is stale (or would run, ``dry_run``) and why, and what
-    failed; returns the number of sequences with failures (or that cannot be read)."""
+    failed or is damaged, then what is wrong with the store as a whole (interrupted publications,
+    sequences gone from the input, stale dataset exports); returns the number of sequences with
+    failures (or that cannot be read) plus the number of store problems."""
     if cfg.dataset.sequences == "all":
         source(cfg).check_root(cfg.dataset.root)
     out, costs = Path(cfg.output.root), PlanCosts()
@@ -46,7 +49,11 @@ def print_plan(cfg: Config, dry_run: bool, verify: bool = False) -> int:
             for line in _unit_state(manifest, plan, stage, unit, dry_run)
         ]
         runs += sum(not u.fresh for u in plan.units.values())
-        problems += any(line.startswith(("failed", "skipped", "fresh, ")) for _, line in lines)
+        problems += any(
+            line.startswith(("failed", "skipped", "fresh, "))
+            or line.split(": ", 1)[-1].startswith(DAMAGED_REASONS)
+            for _, line in lines
+        )
         for stage, line in lines:
             print(f"{plan.sequence:>6}  {stage:<7} {line}")
         if not lines and not dry_run:
@@ -55,4 +62,7 @@ def print_plan(cfg: Config, dry_run: bool, verify: bool = False) -> int:
         f"{len(plans)} sequence(s): {runs} unit(s) {'would run' if dry_run else 'stale or failed'}, "
         f"{problems} sequence(s) with failures; {costs.line()}"
     )
-    return problems
+    store = store_problems(cfg, manifest, verify) if out.is_dir() else []
+    for line in store:
+        print(line)
+    return problems + len(store)

@@ -34,11 +34,16 @@ class UnitOutcome:
     seconds: float = 0.0
     error: str = ""
     traceback: str = ""
+    #: done without computing: a whole output of the same key was found (its completion record
+    #: verifies) and taken as it is; counted as cached
+    reused: bool = False
+    #: upstream units found damaged and computed again for this one ("<stage>: <problem>")
+    repaired: tuple[str, ...] = ()
 
     @property
     def ran(self) -> bool:
-        """Run in this run (finished or failed), not taken from the manifest or skipped."""
-        return self.status in (Status.DONE, Status.FAILED)
+        """Run in this run (finished or failed), not taken from the manifest, reused or skipped."""
+        return self.status == Status.FAILED or (self.status == Status.DONE and not self.reused)
 
     @property
     def finished(self) -> bool:

@@ -30,15 +30,18 @@ from flows.pipeline.inputs import (
     to_jsonable,
 )
 from flows.pipeline.outcome import Status
+from storage.completion import check_record
 from storage.files import InputError, regular_stat
 from storage.manifest import (
     FileHasher,
     FingerprintCache,
     Manifest,
+    StageRecord,
     layout_signature,
     sequence_fingerprint,
     stage_key,
 )
+from storage.publish import check_publication
 
 
 @dataclass
@@ -53,6 +56,8 @@ class UnitPlan:
     inputs: StageInputs
     #: the sequence: where it is, what the config says about it alone
     ref: SequenceRef
+    #: ``--force``: computed again even where a whole output of the key exists
+    force: bool = False
 
 
 @dataclass
@@ -217,7 +222,15 @@ def iter_plans(
             runs: set[str] = set()
             for stage, (key, parts) in unit_keys(inputs, plan.fingerprint, hashes).items():
                 reason = _stale_reason(
-                    manifest, plan.sequence, stage, key, parts, STAGES[stage], runs, force
+                    manifest,
+                    plan.sequence,
+                    stage,
+                    key,
+                    parts,
+                    STAGES[stage],
+                    runs,
+                    force,
+                    cache.verify,
                 )
                 if reason:
                     runs.add(stage)
@@ -230,6 +243,7 @@ def iter_plans(
                     reason=reason,
                     inputs=inputs[stage],
                     ref=ref,
+                    force=force,
                 )
         costs.sequences += 1
         costs.memo_hits += plan.memo_hit
@@ -279,6 +293,7 @@ def _stale_reason(
     upstream: tuple[str, ...],
     runs: set[str],
     force: bool,
+    deep: bool = False,
 ) -> str:
     if force:
         return "forced (--force)"
@@ -292,7 +307,7 @@ def _stale_reason(
     if rerun_up:  # also when keys match: the upstream output it was built from is being rebuilt
         return f"upstream {', '.join(rerun_up)} runs"
     if rec.key == key:
-        return "" if manifest.output_exists(rec) else f"output missing ({rec.location})"
+        return output_problem(manifest, rec, deep)
     old = rec.parts or {}
     if old.get("code") != parts["code"]:
         return f"code version {old.get('code')} -> {parts['code']}"
@@ -302,3 +317,24 @@ def _stale_reason(
     if "fingerprint" in parts["inputs"] and old.get("inputs") != parts["inputs"]:
         return "input files changed"
     return "key changed"
+
+
+def output_problem(manifest: Manifest, rec: StageRecord, deep: bool = False) -> str:
+    """Why a unit recorded done with the current key is not done after all ("" when it is): its
+    output folder fails its completion record (storage.completion: missing, no record, a file
+    missing or of another size; ``deep``: of other content), or, for the export stage, the
+    published sequence does not hold what was published (storage.publish.check_publication).
+    Stores written before completion records: a folder with its summary counts as whole (as it
+    did then) until a run records it (flows.pipeline.units.adopt_unrecorded_outputs)."""
+    folder = manifest.root / rec.location
+    if not rec.location:
+        return "output missing (no location recorded)"
+    if manifest.meta.get("completion_records") or not (folder / "summary.json").is_file():
+        problem = check_record(folder, deep)
+        if problem:
+            return f"output damaged: {problem}"
+    if rec.stage == "export":
+        problem = check_publication(manifest.root, rec.sequence, rec.key, deep)
+        if problem:
+            return f"not published as recorded: {problem}"
+    return ""

@@ -18,6 +18,7 @@ from configs.schema import Config
 from flows.pipeline.inputs import Runtime
 from flows.pipeline.outcome import UnitOutcome
 from flows.pipeline.plan import UnitPlan
+from flows.pipeline.signals import keep_stop_handlers
 from flows.pipeline.units import (  # noqa: F401 - the pipeline's API, as before the split
     RunReport,
     Submitter,
@@ -32,9 +33,14 @@ from flows.pipeline.units import (  # noqa: F401 - the pipeline's API, as before
 
 @task(name="stage", cache_policy=NO_CACHE, task_run_name="{unit.stage}-{unit.sequence}")
 def stage_task(
-    unit: UnitPlan, out_root, upstream: dict[str, UnitOutcome], fingerprint: str, runtime: Runtime
+    unit: UnitPlan,
+    out_root,
+    upstream: dict[str, UnitOutcome],
+    fingerprint: str,
+    runtime: Runtime,
+    units: dict[str, UnitPlan] | None = None,
 ) -> UnitOutcome:
-    return execute_unit(unit, out_root, upstream, fingerprint, runtime)
+    return execute_unit(unit, out_root, upstream, fingerprint, runtime, units)
 
 
 class PrefectSubmitter(Submitter):
@@ -67,16 +73,19 @@ def _run_units_flow(
     progress: bool,
     verify: bool = False,
     lock_held: bool = False,
+    prune: bool = False,
 ) -> RunReport:
-    return run_units(
-        config,
-        force=force,
-        sequences=sequences,
-        progress=progress,
-        verify=verify,
-        lock_held=lock_held,
-        submitter=PrefectSubmitter(config),
-    )
+    with keep_stop_handlers():  # Prefect's SIGTERM handler would wait for the stages in flight
+        return run_units(
+            config,
+            force=force,
+            sequences=sequences,
+            progress=progress,
+            verify=verify,
+            lock_held=lock_held,
+            submitter=PrefectSubmitter(config),
+            prune=prune,
+        )
 
 
 @flow(name="rebuild-dataset", log_prints=True)
@@ -87,10 +96,12 @@ def rebuild_dataset(
     progress: bool = True,
     verify: bool = False,
     lock_held: bool = False,
+    prune: bool = False,
 ) -> RunReport:
     """Every selected sequence through detect -> track -> fit / map -> fuse -> export, then the
-    dataset-level exports of ``export.formats`` when any sequence was (re)published or withdrawn,
-    or their settings changed. ``lock_held``: the caller (the CLI) holds the store's lock.
+    dataset-level exports of ``export.formats`` wherever they do not match the published
+    sequences. ``lock_held``: the caller (the CLI) holds the store's lock; ``prune``: take
+    sequences whose input is gone out of the dataset.
 
     The units run in a subflow on the task runner ``config.dask`` asks for (threads, a Dask
     LocalCluster, or ``dask.address``), however this flow was started (CLI, deployment, test).
@@ -98,7 +109,7 @@ def rebuild_dataset(
     from flows.pipeline.runtime import task_runner
 
     inner = _run_units_flow.with_options(task_runner=task_runner(config))
-    return inner(config, force, sequences, progress, verify, lock_held)
+    return inner(config, force, sequences, progress, verify, lock_held, prune)
 
 
 @flow(name="process-sequence", log_prints=True)

@@ -5,6 +5,11 @@ processes would each start their own (measured with prefect 3.8). So when no API
 configured we start one temporary server here and export its address, which the Dask worker
 processes inherit. The server is a child process that the kernel ends when this process ends in
 any way (``PR_SET_PDEATHSIG`` on Linux, a ``kill -9`` included), so no server outlives its CLI.
+
+Before any work, a configured API (``PREFECT_API_URL``) and a configured scheduler
+(``dask.address``) must answer; a temporary server must start within its time limit. Otherwise
+:class:`RunnerUnavailable` says which address, what happened and what to do (one line; the CLI
+exits 2), where Prefect or Dask would raise deep inside the run.
 """
 
 from __future__ import annotations
@@ -16,6 +21,53 @@ import tempfile
 from collections.abc import Iterator
 
 from configs.schema import Config
+
+#: seconds a configured Prefect API or Dask scheduler has to answer before a run starts
+ANSWER_TIMEOUT_S = 10.0
+#: seconds the temporary Prefect server has to start
+SERVER_START_TIMEOUT_S = 120
+
+
+class RunnerUnavailable(RuntimeError):
+    """The Prefect API or the Dask scheduler a run needs cannot be reached (checked first)."""
+
+
+def check_prefect_api(url: str, timeout_s: float = ANSWER_TIMEOUT_S) -> None:
+    """``url`` (a Prefect API, ``.../api``) answers its health check, else RunnerUnavailable."""
+    import httpx
+
+    try:
+        response = httpx.get(f"{url.rstrip('/')}/health", timeout=timeout_s)
+        response.raise_for_status()
+    except (httpx.HTTPError, OSError) as exc:
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise RunnerUnavailable(
+            f"PREFECT_API_URL={url} does not answer ({reason}): start that Prefect server, or "
+            "unset PREFECT_API_URL so that mobileocc starts a temporary one"
+        ) from None
+
+
+def check_scheduler(address: str, timeout_s: float = ANSWER_TIMEOUT_S) -> None:
+    """A ``tcp://host:port`` Dask scheduler accepts a connection, else RunnerUnavailable (other
+    schemes are left to Dask)."""
+    import socket
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(address if "://" in address else f"tcp://{address}")
+    if parts.scheme != "tcp":
+        return
+    try:
+        host, port = parts.hostname, parts.port or 8786
+    except ValueError as exc:  # a port that is not a number
+        raise RunnerUnavailable(f"dask.address {address!r} is not host:port ({exc})") from None
+    try:
+        with socket.create_connection((host, port), timeout=timeout_s):
+            pass
+    except OSError as exc:
+        raise RunnerUnavailable(
+            f"dask.address {address}: no Dask scheduler answers there "
+            f"({exc.strerror or exc}); start it, or leave out --address to run on this machine"
+        ) from None
 
 
 def _die_with(parent: int):
@@ -59,6 +111,7 @@ def _server_dies_with_this_process() -> Iterator[None]:
 def prefect_api() -> Iterator[str | None]:
     """Use the configured Prefect API, or a temporary local server for the duration."""
     if os.environ.get("PREFECT_API_URL"):
+        check_prefect_api(os.environ["PREFECT_API_URL"])
         yield os.environ["PREFECT_API_URL"]
         return
     home = tempfile.mkdtemp(prefix="mobileocc-prefect-")
@@ -69,8 +122,16 @@ def prefect_api() -> Iterator[str | None]:
     from prefect.settings import PREFECT_API_URL, temporary_settings
 
     server = SubprocessASGIServer()
-    with _server_dies_with_this_process():
-        server.start(timeout=120)
+    try:
+        with _server_dies_with_this_process():
+            server.start(timeout=SERVER_START_TIMEOUT_S)
+    except RuntimeError as exc:  # Prefect's own message carries the server's output
+        server.stop()
+        raise RunnerUnavailable(
+            f"the temporary Prefect server did not start within {SERVER_START_TIMEOUT_S} s "
+            f"({str(exc).splitlines()[0][:200]}); on a busy machine, start one "
+            "(`prefect server start`) and set PREFECT_API_URL to it"
+        ) from None
     os.environ["PREFECT_API_URL"] = server.api_url
     try:
         with temporary_settings(updates={PREFECT_API_URL: server.api_url}):

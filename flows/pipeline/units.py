@@ -19,6 +19,9 @@ out of the dataset-level exports.
 
 from __future__ import annotations
 
+import dataclasses
+import os
+import shutil
 import time
 import traceback
 from collections.abc import Callable, Collection
@@ -45,11 +48,20 @@ from flows.pipeline.plan import (
     iter_plans,
     selected_sequences,
 )
-from storage.atomic import staged_folder
+from storage.atomic import move_into_place, staged_folder, temporary_name
+from storage.completion import (
+    RECORD,
+    RECORD_VERSION,
+    check_files,
+    check_record,
+    read_record,
+    write_record,
+)
 from storage.manifest import (
     FingerprintCache,
     Manifest,
     StageRecord,
+    check_store_place,
     check_writable,
     data_root_for,
     holding_lock,
@@ -59,8 +71,15 @@ from storage.manifest import (
     stage_dir,
     sweep_temporaries,
 )
-from storage.products import SUMMARY, read_summary, write_summary
-from storage.publish import withdraw_sequence
+from storage.products import read_summary, write_summary
+from storage.publish import (
+    pending_publications,
+    published_names,
+    published_versions,
+    recover_publications,
+    remove_sequence,
+    withdraw_sequence,
+)
 
 
 def _error_text(exc: BaseException, where: Path) -> str:
@@ -76,9 +95,84 @@ def execute_unit(
     upstream: dict[str, UnitOutcome],
     fingerprint: str = "",
     runtime: Runtime = Runtime(),
+    units: dict[str, UnitPlan] | None = None,
 ) -> UnitOutcome:
-    """Run one (sequence, stage); never raises for a stage error (the outcome is failed)."""
+    """Run one (sequence, stage); never raises for a stage error (the outcome is failed).
 
+    A damaged upstream output is a cache miss, not a failure: when the stage fails and an
+    upstream folder no longer holds what its completion record says (content hashes: a rewrite
+    that kept every size passes the plan's check), that upstream unit is computed again (from
+    ``units``, the sequence's unit plans; recursively, should its own upstream be damaged too)
+    and the stage runs once more. The outcome's ``repaired`` lists what was remade."""
+    before = _record_ids(out_root, upstream)
+    outcome = _execute_once(unit, out_root, upstream, fingerprint, runtime)
+    if outcome.status != Status.FAILED or not units:
+        return outcome
+    damaged = {}
+    for stage, o in upstream.items():
+        problem = check_record(Path(out_root) / o.location, deep=True)
+        if problem:
+            damaged[stage] = problem
+    if not damaged:
+        if _record_ids(out_root, upstream) != before:  # another unit repaired it meanwhile
+            return _execute_once(unit, out_root, upstream, fingerprint, runtime)
+        return outcome
+    repaired = []
+    for stage in (s for s in STAGES if s in damaged):
+        again = execute_unit(
+            units[stage],
+            out_root,
+            {u: _found(units[u], out_root) for u in STAGES[stage]},
+            fingerprint,
+            runtime,
+            units,
+        )
+        if again.status != Status.DONE:
+            return dataclasses.replace(
+                outcome,
+                error=outcome.error
+                + (
+                    f" (its upstream {stage} was damaged, {damaged[stage]}, and could not be made "
+                    f"again: {again.error or again.status.value})"
+                ),
+            )
+        repaired += [*again.repaired, f"{stage}: {damaged[stage]}"]
+    outcome = _execute_once(unit, out_root, upstream, fingerprint, runtime)
+    return dataclasses.replace(outcome, repaired=tuple(repaired))
+
+
+def _record_ids(out_root: Path, upstream: dict[str, UnitOutcome]) -> dict[str, tuple[int, int]]:
+    """(inode, mtime) of each upstream's completion record: changed when it was made again."""
+    ids = {}
+    for stage, o in upstream.items():
+        try:
+            st = os.stat(Path(out_root) / o.location / RECORD)
+            ids[stage] = (st.st_ino, st.st_mtime_ns)
+        except (OSError, KeyError):
+            ids[stage] = (0, 0)
+    return ids
+
+
+def _found(unit: UnitPlan, out_root: Path) -> UnitOutcome:
+    """The outcome of a unit taken as it is in the store (an upstream of a unit being repaired)."""
+    final = stage_dir(out_root, unit.stage, unit.sequence, unit.key)
+    return UnitOutcome(
+        unit.sequence,
+        unit.stage,
+        unit.key,
+        unit.parts,
+        Status.CACHED,
+        location=str(final.relative_to(out_root)),
+    )
+
+
+def _execute_once(
+    unit: UnitPlan,
+    out_root: Path,
+    upstream: dict[str, UnitOutcome],
+    fingerprint: str = "",
+    runtime: Runtime = Runtime(),
+) -> UnitOutcome:
     def outcome(status: Status, **more) -> UnitOutcome:
         return UnitOutcome(unit.sequence, unit.stage, unit.key, unit.parts, status, **more)
 
@@ -87,9 +181,11 @@ def execute_unit(
         return outcome(Status.SKIPPED, error=f"upstream {', '.join(blocked)} did not finish")
     final = stage_dir(out_root, unit.stage, unit.sequence, unit.key)
     location = str(final.relative_to(out_root))
-    if (final / SUMMARY).exists():  # finished by a run that was killed before recording it
-        summary = read_summary(final)
-        return outcome(Status.DONE, location=location, summary=summary)
+    if final.exists():
+        if reusable(unit, final):  # a whole output of this key (a run killed before recording it)
+            summary = read_summary(final)
+            return outcome(Status.DONE, location=location, summary=summary, reused=True)
+        remove_output(final)  # damaged, forced, or a publication to make again
     from flows.pipeline.parallel import limit_threads
     from flows.stages import (  # the kernels: only where a unit runs
         STAGE_FUNCTIONS,
@@ -112,6 +208,7 @@ def execute_unit(
             )
             summary = STAGE_FUNCTIONS[unit.stage](ctx)
             write_summary(tmp, summary)
+            write_record(tmp, stage=unit.stage, sequence=unit.sequence, key=unit.key)  # last
     except Exception as exc:  # noqa: BLE001 - one bad sequence fails alone, with its error
         return outcome(
             Status.FAILED,
@@ -122,6 +219,23 @@ def execute_unit(
     return outcome(
         Status.DONE, location=location, summary=summary, seconds=time.perf_counter() - started
     )
+
+
+def reusable(unit: UnitPlan, final: Path) -> bool:
+    """Whether an output folder found at a unit's key can stand for running it: it is whole
+    (its completion record verifies, content hashes included: the plan may have run the unit
+    because hashing found it damaged), the unit is not forced, and it is not the export stage,
+    whose work is the publication itself (made again whenever the plan says it must be)."""
+    return not unit.force and unit.stage != "export" and not check_record(final, deep=True)
+
+
+def remove_output(final: Path) -> None:
+    """Remove a unit's output folder: renamed aside (hidden, swept after a kill), then deleted."""
+    try:
+        aside = move_into_place(final, temporary_name(final))
+    except FileNotFoundError:  # removed meanwhile (another unit repairing the same output)
+        return
+    shutil.rmtree(aside, ignore_errors=True)
 
 
 @dataclass
@@ -138,6 +252,14 @@ class RunReport:
     withdrawn: list[str] = field(default_factory=list)
     #: manifest / memo files that could not be written (a full disk), with the error
     write_errors: list[str] = field(default_factory=list)
+    #: leftovers of earlier runs removed at the start
+    swept: int = 0
+    #: publications (or withdrawals) a killed run left half done, completed at the start
+    recovered: list[str] = field(default_factory=list)
+    #: sequences in the store (published, withdrawn or in the manifest) whose input is no longer
+    #: under the data root, and those of them this run took out of the store (``prune``)
+    gone: list[str] = field(default_factory=list)
+    pruned: list[str] = field(default_factory=list)
 
     @property
     def failed(self) -> list[UnitOutcome]:
@@ -214,6 +336,7 @@ def check_run_paths(config: Config, sequences: list[str] | None = None) -> list[
     """Before any work: the output store is writable and the dataset root holds sequences;
     returns the sequences to run. Raises storage.manifest.OutputError / the source's InputError
     (storage.files) with one clear line."""
+    check_store_place(Path(config.output.root), Path(config.dataset.root))
     check_writable(Path(config.output.root))
     if sequences is not None:
         return [str(s) for s in sequences]
@@ -281,6 +404,7 @@ class _Units:
             {u: mine[u] for u in STAGES[stage] if u in mine},  # all but in a stage-level run
             plan.fingerprint,
             runtime(self.config),
+            plan.units,
         )
         if isinstance(mine[stage], UnitOutcome):  # ran here
             self.finish(mine[stage])
@@ -301,12 +425,15 @@ def run_units(
     plans: list[SequencePlan] | None = None,
     lock_held: bool = False,
     submitter: Submitter | None = None,
+    prune: bool = False,
     stages: Collection[str] | None = None,
 ) -> RunReport:
     """Plan and run; the body of both flows (which pass a Prefect ``submitter``). Without one
-    (``inline``) every unit runs here, in order. ``verify``: hash every input file.
+    (``inline``) every unit runs here, in order. ``verify``: hash every input file and every
+    output (stage products, published sequences, dataset-level exports) against its record.
     ``plans``: already made under this run's lock (flows.pipeline.plan.plan_without_hashing).
     ``lock_held``: the caller holds the output store's lock (checked) and keeps it.
+    ``prune``: take sequences whose input is gone out of the store (else they are reported).
     ``stages``: a stage-level run of these stages only (benchmarks, tests): the others neither run
     nor count as anyone's upstream (fuse with ``body_source: ground-truth`` needs no fit), and
     the run publishes nothing dataset-level (no dataset export made, no sequence withdrawn)."""
@@ -317,8 +444,10 @@ def run_units(
         raise ValueError(f"stages {sorted(stages or ())}: expected some of {list(STAGES)}")
     with holding_lock(out_root) if lock_held else run_lock(out_root):
         report = RunReport(out_root, [])
-        sweep_temporaries(out_root)  # leftovers of earlier (killed) runs
+        report.recovered = recover_publications(out_root)  # before the sweep: it reads temporaries
+        report.swept = sweep_temporaries(out_root)
         manifest = Manifest.load(out_root)
+        adopt_unrecorded_outputs(manifest)
         manifest.meta.update(
             {"config_hash": config_hash(config), "config": config.model_dump(mode="json")}
         )
@@ -349,10 +478,82 @@ def run_units(
             units.wait()
         if stages is None:
             _withdraw_failed(config, report)
-            _dataset_exports(config, manifest, report)
+            _gone(config, manifest, report, ids, prune)
+            _dataset_exports(config, manifest, report, verify, force)
         _save(manifest, report)
     report.seconds = time.perf_counter() - started
     return report
+
+
+def adopt_unrecorded_outputs(manifest: Manifest) -> None:
+    """A store written before completion records (no ``completion_records`` in the manifest's
+    meta): record every unit output it calls done as it is (what the code of then trusted), once;
+    from then on a folder without its record is a unit that did not finish."""
+    if manifest.meta.get("completion_records"):
+        return
+    for rec in manifest.rows.values():
+        folder = manifest.root / rec.location
+        if (
+            rec.status == "done"
+            and rec.location
+            and (folder / "summary.json").is_file()
+            and not (folder / RECORD).exists()
+        ):
+            write_record(folder, stage=rec.stage, sequence=rec.sequence, key=rec.key)
+    manifest.meta["completion_records"] = RECORD_VERSION
+
+
+def gone_sequences(config: Config, manifest: Manifest, selected: list[str]) -> list[str]:
+    """Sequences the store knows (published, withdrawn, or in the manifest) whose input is not
+    under the data root any more (deleted, renamed), the selected ones aside (they fail)."""
+    root = Path(config.dataset.root)
+    known = published_names(manifest.root) | {seq for seq, _ in manifest.rows}
+    present = set(source(config).sequence_ids(root)) if root.exists() else set()
+    return sorted(known - present - set(selected))
+
+
+def store_problems(config: Config, manifest: Manifest, deep: bool = False) -> list[str]:
+    """What ``status`` reports beyond the units (one line each): publications a killed run left
+    half done, sequences whose input is gone, dataset-level exports that do not match the
+    published sequences."""
+    out_root = Path(config.output.root)
+    lines = [
+        f"{seq:>6}  publication interrupted by a killed run (the next rebuild or export "
+        "completes it)"
+        for seq in pending_publications(out_root)
+    ]
+    selected = selected_sequences(config) if Path(config.dataset.root).is_dir() else []
+    lines += [
+        f"{seq:>6}  in the dataset but no longer under the data root {config.dataset.root}; "
+        "`rebuild --prune` takes it out"
+        for seq in gone_sequences(config, manifest, selected)
+    ]
+    ex, key = dataset_export_inputs(config), dataset_export_key(config, out_root)
+    empty = not published_versions(out_root)
+    for fmt in ex.formats:
+        problem = dataset_export_problem(out_root / "exports" / fmt, key, deep, empty)
+        if problem:
+            lines.append(f"{fmt} export stale: {problem}")
+    return lines
+
+
+def _gone(
+    config: Config, manifest: Manifest, report: RunReport, selected: list[str], prune: bool
+) -> None:
+    report.gone = gone_sequences(config, manifest, selected)
+    if not prune:
+        return
+    for seq in report.gone:
+        try:
+            remove_sequence(report.out_root, seq)
+            for folder in (report.out_root / "stages").glob(f"*/{seq}"):
+                remove_output(folder)
+            (report.out_root / ".cache" / "sequences" / f"{seq}.json").unlink(missing_ok=True)
+        except (OSError, ValueError) as exc:
+            report.write_errors.append(f"pruning sequence {seq}: {exc}")
+            continue
+        manifest.drop_sequence(seq)
+        report.pruned.append(seq)
 
 
 def _first_problem(report: RunReport, plan: SequencePlan) -> str | None:
@@ -389,26 +590,61 @@ def _withdraw_failed(config: Config, report: RunReport) -> None:
             report.write_errors.append(f"withdrawing sequence {plan.sequence}: {exc}")
 
 
-def _dataset_exports(config: Config, manifest: Manifest, report: RunReport) -> None:
-    """The Occ3D / nuScenes exports of the whole dataset (``export.formats``), made again when a
-    sequence was (re)published or withdrawn, or their settings changed. Each is written aside and
-    swapped in, so a failed or killed export leaves the previous one. A failure is reported, not
-    raised: the sequences are published."""
-    ex = dataset_export_inputs(config)
-    published = report.withdrawn or any(
-        st == "export" and o.status == Status.DONE for (_, st), o in report.outcomes.items()
+EXPORT_RECORD = ".mobileocc-export.json"
+
+
+def dataset_export_key(config: Config, out_root: Path) -> str:
+    """What a dataset-level export is made of: its settings and the published version of every
+    sequence (so a sequence published, withdrawn or gone changes it, whatever run did it)."""
+    return inputs_hash(
+        [dataset_export_inputs(config), published_versions(out_root), DATASET_EXPORTS_VERSION]
     )
-    key = f"{inputs_hash(ex)}-v{DATASET_EXPORTS_VERSION}"
+
+
+def dataset_export_problem(
+    folder: Path, key: str, deep: bool = False, nothing_published: bool = False
+) -> str:
+    """Why the export in ``folder`` does not match ``key`` ("" when it does): missing, made of
+    other settings or sequences, or a file missing / of another size (``deep``: content).
+    ``nothing_published``: no sequence is published, so there must be no export (an old one
+    would still offer withdrawn sequences)."""
+    if nothing_published:
+        return f"{folder} exports sequences none of which is published" if folder.exists() else ""
+    if not folder.is_dir():
+        return f"{folder} is missing"
+    try:
+        record = read_record(folder, EXPORT_RECORD)
+    except ValueError as exc:
+        return str(exc)
+    if record.get("key") != key:
+        return "made of other settings or published sequences"
+    return check_files(folder, record["files"], deep)
+
+
+def _dataset_exports(
+    config: Config, manifest: Manifest, report: RunReport, deep: bool, force: bool = False
+) -> None:
+    """The Occ3D / nuScenes exports of the whole dataset (``export.formats``), made again
+    whenever they do not match the published sequences and their settings (its record:
+    :func:`dataset_export_problem`). Each is written aside and swapped in, so a failed or killed
+    export leaves the previous one (reported stale by ``status``). A failure is reported, not
+    raised: the sequences are published. With no sequence published there is no export."""
+    ex, key = dataset_export_inputs(config), dataset_export_key(config, report.out_root)
     done = manifest.meta.setdefault("dataset_exports", {})
+    empty = not published_versions(report.out_root)
     for fmt in ex.formats:
-        if not (published or done.get(fmt) != key):
+        final = report.out_root / "exports" / fmt
+        if not force and not dataset_export_problem(final, key, deep, empty):
             continue
-        final = Path(config.output.root) / "exports" / fmt
+        if empty:  # every sequence withdrawn: no export rather than one of withdrawn sequences
+            remove_output(final)
+            done.pop(fmt, None)
+            report.dataset_exports[fmt] = "done"
+            continue
         try:
-            with staged_folder(final) as tmp:
-                export_dataset(
-                    ex, Path(config.output.root), Path(config.dataset.root), fmt, target=tmp
-                )
+            export_dataset(
+                ex, report.out_root, Path(config.dataset.root), fmt, final, key=key, ours=True
+            )
             done[fmt] = key
             report.dataset_exports[fmt] = "done"
         except Exception as exc:  # noqa: BLE001 - the sequences stay published
@@ -463,16 +699,62 @@ def export_dataset(
     fmt: str,
     target: Path | None = None,
     gt: bool = False,
+    key: str = "",
+    ours: bool = False,
 ) -> Path:
-    """Export the published dataset (every sequence) for occupancy trainers; ``gt``: Occ3D labels
-    from the synthetic ground truth under ``data_root`` instead of the pipeline's. ``data_root``
-    None: the raw data root recorded by the run that built the dataset."""
-    from storage.export.nuscenes import export_nuscenes
-    from storage.export.occ3d import export_occ3d
-
+    """Export the published dataset (every sequence) for occupancy trainers into ``target``
+    (default ``OUT/exports/<fmt>``): written aside, recorded (``.mobileocc-export.json``: the
+    files and ``key``) and swapped in whole; ``gt``: Occ3D labels from the synthetic ground truth
+    under ``data_root`` instead of the pipeline's; ``data_root`` None: the raw data root recorded
+    by the run that built the dataset. ``ours``: ``target`` is the store's own
+    export folder (else :func:`check_export_target` refuses a folder of other things). Read
+    under the store's read lock (storage.publish.reading) so no run changes the dataset
+    meanwhile."""
     target = Path(target) if target is not None else Path(out_root) / "exports" / fmt
     if gt and fmt != "occ3d":
         raise ValueError(f"--gt exports Occ3D labels; it does not apply to --format {fmt}")
+    if not ours:
+        check_export_target(target)
+    with staged_folder(target) as tmp:
+        _export_into(ex, out_root, data_root, fmt, tmp, gt)
+        write_record(tmp, EXPORT_RECORD, format=fmt, key=key)
+    return target
+
+
+def check_export_target(target: Path) -> None:
+    """An export goes into a new folder, an empty one, or one holding an earlier export (its
+    record says so); anything else (a file, a folder of other things) is refused with
+    ExportTargetError, before any work."""
+    if os.path.lexists(target) and not target.is_dir():
+        raise ExportTargetError(f"export target {target} exists and is not a folder")
+    if target.is_dir() and any(target.iterdir()) and not (target / EXPORT_RECORD).is_file():
+        raise ExportTargetError(
+            f"export target {target} holds files that are not a mobileocc export; choose a new "
+            "or empty folder (an earlier export there is replaced as a whole)"
+        )
+    parent = target.parent
+    if not parent.is_dir():
+        raise ExportTargetError(f"export target {target}: its folder {parent} does not exist")
+    probe = temporary_name(target)  # os.access says yes to root, even where nothing can go
+    try:
+        probe.mkdir()
+        probe.rmdir()
+    except OSError as exc:
+        raise ExportTargetError(
+            f"export target {target}: its folder {parent} is not writable ({exc.strerror})"
+        ) from None
+
+
+class ExportTargetError(ValueError):
+    """Where an export was asked to go cannot take it."""
+
+
+def _export_into(
+    ex: DatasetExportInputs, out_root: Path, data_root: Path, fmt: str, target: Path, gt: bool
+) -> None:
+    from storage.export.nuscenes import export_nuscenes
+    from storage.export.occ3d import export_occ3d
+
     if fmt == "occ3d":
         export_occ3d(
             out_root,
@@ -492,11 +774,14 @@ def export_dataset(
             val_sequences=ex.val_sequences,
             **({"infos_data_root": ex.infos_data_root} if ex.infos_data_root else {}),
         )
-    return target
 
 
 def _first_line(text: str) -> str:
     return text.splitlines()[0] if text else ""
+
+
+#: the reasons of units that run because their output was damaged (flows.pipeline.plan)
+DAMAGED_REASONS = ("output damaged", "not published as recorded")
 
 
 def summary_table(report: RunReport) -> str:
@@ -508,10 +793,10 @@ def summary_table(report: RunReport) -> str:
     lines.append("-" * len(header))
     for stage in STAGES:
         outs = [o for (s, st), o in report.outcomes.items() if st == stage]
-        ran, cached, failed, skipped = (
-            sum(o.status == status for o in outs)
-            for status in (Status.DONE, Status.CACHED, Status.FAILED, Status.SKIPPED)
-        )
+        ran = sum(o.status == Status.DONE and not o.reused for o in outs)
+        cached = sum(o.status == Status.CACHED or o.reused for o in outs)
+        failed = sum(o.status == Status.FAILED for o in outs)
+        skipped = sum(o.status == Status.SKIPPED for o in outs)
         secs = sum(o.seconds for o in outs)
         lines.append(f"{stage:<8}{ran:>5}{cached:>8}{failed:>8}{skipped:>9}{secs:>10.1f}")
     frames = sum(p.num_frames for p in report.plans)
@@ -541,6 +826,28 @@ def summary_table(report: RunReport) -> str:
         lines.append(
             f"WITHDRAWN {', '.join(report.withdrawn)}: earlier published data removed (the sequences "
             "table marks them failed)"
+        )
+    for seq in report.recovered:
+        lines.append(f"RECOVERED {seq}: a publication a killed run left half done was completed")
+    for plan in report.plans:
+        for stage, unit in plan.units.items():
+            if unit.reason.startswith(DAMAGED_REASONS):
+                lines.append(f"REPAIRED {plan.sequence}/{stage}: {unit.reason}")
+    for (seq, stage), o in sorted(report.outcomes.items()):
+        lines += [
+            f"REPAIRED {seq}/{what.split(':', 1)[0]}: output damaged (found by {stage}): "
+            f"{what.split(': ', 1)[-1]}"
+            for what in o.repaired
+        ]
+    if report.pruned:
+        lines.append(
+            f"PRUNED {', '.join(report.pruned)}: no longer under the data root; taken out of "
+            "the dataset"
+        )
+    elif report.gone:
+        lines.append(
+            f"GONE {', '.join(report.gone)}: in the dataset but no longer under the data root; "
+            "`rebuild --prune` takes them out of the dataset"
         )
     for fmt, state in sorted(report.dataset_exports.items()):
         lines.append(f"{fmt} export: {state}")

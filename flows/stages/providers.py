@@ -38,7 +38,7 @@ from flows.stages.models import (
     lidar_proposals,
     model_perception,
 )
-from storage.cliff_files import cliff_path, read_cliff_estimates
+from storage.cliff_files import CliffFileError, cliff_path, read_cliff_estimates
 from storage.gt import read_frame_gt
 from storage.perception_files import PrecomputedPerception
 from storage.products import Tracks
@@ -202,7 +202,8 @@ class PrecomputedCliff:
     (frame, det_index), converted with the sequence's calibrated intrinsics."""
 
     def __init__(self, spec: PrecomputedSpec, seq: SequenceSource, model, camera):
-        self.est = read_cliff_estimates(cliff_path(spec.directory, seq.sequence))
+        self.path = cliff_path(spec.directory, seq.sequence)
+        self.est = read_cliff_estimates(self.path)
         self.K = camera.K
         self.where = {
             key: i
@@ -213,7 +214,15 @@ class PrecomputedCliff:
         return [self.where.get((int(tracks.frame[r]), int(tracks.det_index[r]))) for r in rows]
 
     def available(self, tracks: Tracks) -> np.ndarray:
+        """Rows with an estimate. A file with no estimate at all for a sequence with tracked
+        persons is refused (it would publish the sequence without a single body, silently)."""
         rows = np.arange(len(tracks.track_id))
+        if len(rows) and not len(self.est["frame"]):
+            raise CliffFileError(
+                f"{self.path}: holds no CLIFF estimate, but {len(rows)} tracked detection(s) are "
+                "to be fitted: write the estimates (storage/PERCEPTION_FORMAT.md) or set "
+                "fit.init_provider to oracle"
+            )
         return rows[[i is not None for i in self._index(tracks, rows)]].astype(np.int64)
 
     def estimates(self, tracks: Tracks, rows: np.ndarray) -> BodyParams:

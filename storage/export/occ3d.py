@@ -170,11 +170,7 @@ def _gt_reader(gt_root, sequence: str, grid: dict):
     exported grid (ValueError naming the ground-truth file when it differs)."""
     from storage.gt import gt_dir, read_frame_gt, read_sequence_gt
 
-    if not sequence.isdigit():
-        raise ValueError(
-            f"export_occ3d: sequence {sequence!r} has no synthetic ground truth (ids are integers)"
-        )
-    seq_id = int(sequence)
+    seq_id = sequence
     gseq = read_sequence_gt(Path(gt_root), seq_id)
     same = (
         list(gseq.grid_shape) == grid["shape"]

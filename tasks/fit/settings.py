@@ -7,6 +7,13 @@ from typing import Literal
 
 from tasks.bounds import AtLeastOne, Count, NonNegative, Positive, PositiveFraction, Probability
 
+#: at most this many Adam steps: 100 x the default. A CPU core fits ~5 person-frames per second
+#: at 100 steps (docs/fit-benchmark.md), ~2 ms per person-frame and step: 10,000 steps are
+#: ~20 s per person-frame, and a sequence has thousands of them
+MAX_ITERATIONS = 10_000
+#: measured CPU seconds per person-frame and Adam step (one core; docs/fit-benchmark.md)
+SECONDS_PER_PERSON_STEP = 2e-3
+
 
 @dataclass(frozen=True)
 class FitSettings:

@@ -575,33 +575,65 @@ def image_size(path: Path, frame: int | None = None) -> tuple[int, int]:
         ) from None
 
 
+#: the EXIF tag of the orientation (1: as stored)
+EXIF_ORIENTATION = 0x0112
+#: more pixels than this in an image header is refused before decoding: Pillow's own default
+#: limit, kept here because other libraries (the nuScenes devkit) switch Pillow's off process-wide
+MAX_IMAGE_PIXELS = 2 * 89_478_485
+
+
 def decode_image(
     path: Path,
     frame: int | None,
     expect_size: tuple[int, int] | None = None,
     sequence: str | None = None,
 ) -> None:
-    """Decode an image fully (a corrupt or cut file fails here) and check its size."""
+    """Decode an image fully (a corrupt or cut file fails here) and check its size, from the
+    header before decoding (a header claiming 60000 x 60000 px is never decoded). An EXIF
+    orientation other than "as stored" is refused: viewers and OpenCV turn such an image, our
+    readers take the stored pixels, and which of the two the calibration fits cannot be told."""
     from PIL import Image, UnidentifiedImageError
+
+    def fail(message: str) -> CodaFrameError:
+        return CodaFrameError(f"{_where(path, frame)}: {message}", path, frame, sequence)
 
     try:
         with open_regular(path, frame, "image") as fh, Image.open(fh) as im:
-            im.load()
             size = (int(im.size[0]), int(im.size[1]))
+            if size[0] * size[1] > MAX_IMAGE_PIXELS:
+                raise fail(
+                    f"image header claims an implausible size ({size[0]} x {size[1]} px, more "
+                    f"than {MAX_IMAGE_PIXELS} pixels; never decoded)"
+                    + (
+                        f"; the camera calibration says {expect_size[0]} x {expect_size[1]}"
+                        if expect_size
+                        else ""
+                    )
+                )
+            if expect_size is not None and size != tuple(expect_size):
+                raise fail(
+                    f"image is {size[0]} x {size[1]} px, the camera calibration says "
+                    f"{expect_size[0]} x {expect_size[1]}"
+                )
+            orientation = im.getexif().get(EXIF_ORIENTATION, 1)
+            if orientation != 1:
+                raise fail(
+                    f"image has EXIF orientation {orientation} (stored rotated or mirrored; "
+                    "viewers turn it, the pipeline reads the stored pixels): write it without "
+                    "the orientation tag, as the camera stored it"
+                )
+            im.load()
+    except CodaFrameError:
+        raise
     except InputError as exc:
         raise _frame_error(exc, frame) from None
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
-        raise CodaFrameError(
-            f"{_where(path, frame)}: image cannot be decoded ({exc})", path, frame, sequence
+    except Image.DecompressionBombError as exc:  # raised by the header alone: nothing decoded
+        expected = f"; the camera calibration says {expect_size[0]} x {expect_size[1]}"
+        raise fail(
+            f"image header claims an implausible size ({exc}){expected if expect_size else ''}"
         ) from None
-    if expect_size is not None and size != tuple(expect_size):
-        raise CodaFrameError(
-            f"{_where(path, frame)}: image is {size[0]} x {size[1]} px, the camera calibration "
-            f"says {expect_size[0]} x {expect_size[1]}",
-            path,
-            frame,
-            sequence,
-        )
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
+        raise fail(f"image cannot be decoded ({exc})") from None
 
 
 def read_semantic(path: Path, frame: int | None = None) -> np.ndarray:
