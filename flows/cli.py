@@ -216,9 +216,12 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    from flows.commands.confusion_report import console_text
     from flows.commands.evaluate import evaluate
 
-    evaluate(args.dataset, args.gt, args.report, labels=args.labels)
+    text = console_text(evaluate(args.dataset, args.gt, args.report, labels=args.labels))
+    if text:
+        print(text + "\n")
     print(
         f"report: {args.report / 'report.md'} (figures in {args.report / 'figures'}, "
         f"numbers in {args.report / 'results.json'})"

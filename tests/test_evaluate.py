@@ -40,8 +40,23 @@ def test_report_sections_and_gt_bodies_near_perfect(built, tmp_path):
         "Pedestrian velocity (AVE) per limb group",
         "Notes",
         "Sample frames",
+        "Occupancy per class: IoU beside the voxel counts",
+        "Occupancy confusion matrices",
+        "Where the wrong voxels lie",
     ):
         assert title in md, title
+    # issue 30: a confusion matrix per sequence (and summed) over the Occ3D metric's voxels, the
+    # counts behind each class's IoU, and where each class's wrong voxels lie
+    cm = np.array(res["confusion"]["0"]["matrix"])
+    assert cm.shape == (10, 10) and cm.sum() == res["occupancy"]["num_voxels"]
+    assert res["confusion"]["all"]["matrix"] == res["confusion"]["0"]["matrix"]
+    ped = res["occupancy_classes"]["0"]["pedestrian"]
+    assert ped["gt_voxels"] == cm[0].sum() and ped["labelled_voxels"] == cm[:, 0].sum()
+    assert ped["iou"] == pytest.approx(res["occupancy"]["per_class_iou"]["pedestrian"])
+    for name, kinds in res["error_locations"]["0"].items():
+        c = list(res["confusion"]["0"]["classes"]).index(name)
+        assert sum(kinds["false"].values()) == cm[:, c].sum() - cm[c, c]
+        assert sum(kinds["missed"].values()) == cm[c].sum() - cm[c, c]
     saved = json.loads((tmp_path / "report" / "results.json").read_text())
     assert saved["pedestrian_lidar"]["all"] == res["pedestrian_lidar"]["all"]
     figs = sorted(p.name for p in (tmp_path / "report" / "figures").glob("*.png"))

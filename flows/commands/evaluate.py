@@ -11,6 +11,9 @@ Definitions beyond the kernels' own (each kernel's docstring has the rest):
 - frames: the published frames of each sequence (frames table ``raw_frame``), base frame grids;
 - static: GT LiDAR points of the frame (organised sweep order, reader's ``min_range_m``) in the
   base frame, pedestrian points (class 0 or a pedestrian instance) left out;
+- per-class counts, confusion matrices, where each class's wrong voxels lie: over the same
+  camera-visible voxels as the Occ3D metric, the sensor the LiDAR centre
+  (flows/commands/confusion_report.py, tasks/metrics/confusion.py);
 - pedestrian vs boxes: GT boxes (LiDAR frame) moved to the base frame, mask_camera visible voxels;
 - pedestrian vs LiDAR body: GT points with a pedestrian instance that project into cam0, voxelised;
   evaluated region = voxels whose centre projects into cam0 (the camera frustum on the grid);
@@ -46,6 +49,7 @@ from storage.manifest import Manifest
 from storage.products import Bodies, Detections, Tracks
 from tasks import conventions as C
 from tasks.metrics._common import PRCounts
+from tasks.metrics.confusion import ErrorLocations, error_locations
 from tasks.metrics.detection import DetectionCounts, detection_counts, match_boxes
 from tasks.metrics.heading import heading_errors_deg, heading_summary
 from tasks.metrics.occupancy import OccupancyMetric
@@ -183,6 +187,7 @@ class _Totals:
 
     def __init__(self) -> None:
         self.occ: dict[str, OccupancyMetric] = {}
+        self.locations: dict[str, ErrorLocations] = {}  # where each class's wrong voxels lie
         self.static: dict[str, StaticCounts] = {}
         self.boxes: dict[str, PRCounts] = {}
         self.lidar: dict[str, PRCounts] = {}
@@ -302,6 +307,9 @@ def _evaluate_sequence(
         )
         if same_grid:
             occ.update(pred, gtf.occupancy, mask_cam)
+            tot.locations[seq] = tot.locations.get(seq, ErrorLocations()) + error_locations(
+                pred, gtf.occupancy, mask_cam, (T_bl[:3, 3] - range_min) / vs
+            )
             gvel = np.zeros(shape + (2,), np.float32)
             for j, tid in enumerate(gtf.track_id):
                 gvel[gtf.occupancy_instance == tid] = gtf.velocity_base[j]
@@ -400,6 +408,7 @@ def _evaluate_sequence(
         tot.velocity_vertex[seq] = vv
     if not same_grid:
         tot.occ.pop(seq)
+        tot.locations.pop(seq, None)
         tot.velocity.pop(seq)
     if tracks is not None:
         tot.tracking[seq] = tracking_scores(track_frames)
@@ -597,6 +606,9 @@ def evaluate(
         results["occupancy_by_sequence"] = {
             s: _brief(m.compute().as_dict()) for s, m in tot.occ.items()
         }
+        from flows.commands.confusion_report import sections
+
+        results.update(sections(tot.occ, tot.locations))
     if tot.static:
         results["static"] = _sum(tot.static.values()).as_dict()
         results["static_by_sequence"] = {s: _brief(v.as_dict()) for s, v in tot.static.items()}

@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flows.commands import confusion_report
 from tasks import conventions as C
 
 _PERCENT = {
@@ -154,6 +155,8 @@ _COLUMNS = {
     "velocity_vertex_gt": ["ave_o", "ave_t", "num_voxels_o", "num_voxels_t"],
 }
 _MAX_PNG_BYTES = 300_000
+_TITLES.update(confusion_report.TITLES)
+_HOW_TO_READ.update(confusion_report.HOW_TO_READ)
 
 
 class ReportError(ValueError):
@@ -287,6 +290,8 @@ def _section_markdown(name: str, section, figure_names: list[str]) -> str:
         parts.append(f"{_fmt(name, section)}")
     elif name == "static":
         parts.append(_static_table(section))
+    elif name in confusion_report.SECTIONS:
+        parts.append(confusion_report.markdown(name, section))
     elif name in ("pedestrian_boxes", "pedestrian_lidar") and all(
         isinstance(v, dict) for v in section.values()
     ):
