@@ -19,7 +19,7 @@ def built(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("evaluate")
     data, out = root / "data", root / "out"
-    simulate(data, sequences=1, frames=4, seed=5, pedestrians=3, crowd="crowded", progress=False)
+    simulate(data, sequences=1, frames=4, seed=9, pedestrians=3, crowd="crowded", progress=False)
     cfg = make_config(data, out, {"fuse.body_source": "ground-truth"})
     run_local(cfg, stages=("detect", "track", "map", "fuse", "export"))
     return data, out
