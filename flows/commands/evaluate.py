@@ -10,7 +10,9 @@ truth for a sequence, a grid that is not the ground truth's) is replaced by a no
 Definitions beyond the kernels' own (each kernel's docstring has the rest):
 - frames: the published frames of each sequence (frames table ``raw_frame``), base frame grids;
 - static: GT LiDAR points of the frame (organised sweep order, reader's ``min_range_m``) in the
-  base frame, pedestrian points (class 0 or a pedestrian instance) left out;
+  base frame, pedestrian points (class 0 or a pedestrian instance) left out; a point in a free
+  voxel takes the voxel 3 ``map.surface_noise_m`` further along its ray when that one is occupied
+  (the voxel of the surface the range noise threw it in front of: tasks/metrics/static.py);
 - per-class counts, confusion matrices, where each class's wrong voxels lie: over the same
   camera-visible voxels as the Occ3D metric, the sensor the LiDAR centre
   (flows/commands/confusion_report.py, tasks/metrics/confusion.py);
@@ -71,6 +73,7 @@ from tasks.metrics.velocity import (
     voxel_velocity_errors,
 )
 from tasks.occupancy.grid import GridSpec
+from tasks.occupancy.settings import MapParams
 
 #: a GT person counts as "visible" for detection when at least this fraction of its silhouette shows
 VISIBLE_FRACTION = 0.3
@@ -247,6 +250,10 @@ def _evaluate_sequence(
         )
     condition = "night" if coda.info.is_night else _condition(coda.info.metadata)
     min_range = float((config.get("dataset") or {}).get("min_range_m", coda.min_range_m))
+    # a return up to 3 sigma of range noise in front of its surface belongs to the surface's voxel
+    noise_tol = 3 * float(
+        (config.get("map") or {}).get("surface_noise_m", MapParams.surface_noise_m)
+    )
     frustum = _frustum(shape, range_min, vs, T_bl, cam)
 
     detect_dir = _stage_folder(out, manifest, seq, "detect")
@@ -295,7 +302,7 @@ def _evaluate_sequence(
         is_ped = (pcls == C.PEDESTRIAN) | ((pinst >= 1) & (pinst < 1000))
         pcls[is_ped] = C.UNLABELED
         pts_base = C.transform_points(T_bl, sweep.points)
-        st = st + static_counts(pred, range_min, vs, pts_base, pcls)
+        st = st + static_counts(pred, range_min, vs, pts_base, pcls, T_bl[:3, 3], noise_tol)
         # pedestrian vs boxes and vs LiDAR body points
         centers, yaws = _boxes_to_base(T_bl, gtf.box_center, gtf.box_yaw)
         bx = bx + pedestrian_box_counts(

@@ -26,18 +26,23 @@ CODE_VERSIONS: dict[str, str] = {
     #                that moved more than fit.max_shift_m from their estimate are dropped;
     #             4: bodies carry chamfer_m and reproj_px (typed products); the rectified camera;
     #                the kernel rewritten for speed (batched ICP, vertex subset, grid pairs); torch on 1 thread
-    "map": "4",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path;
+    "map": "5",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path;
     #             3: 2d_rect cameras read as the rectified pinhole (real CODa calibration);
     #             4: both maps written by spatial tile (map_tiles.npz + tiles/*.npz, map.tile_m), built in
     #                parallel windows / regions; the voxels are the same, the product files are not.
     #             (fuse not bumped: it reads the tiles near its frames and writes the same bytes; its key
     #             follows the map's key)
-    "fuse": "3",  # 2: mask_camera is inside mask_lidar (Occ3D); class_counts among voxels with
+    #             5: voxels holding only the range noise of a neighbour's surface dropped, each voxel's
+    #                surface kept (tasks/occupancy/surface.py; window votes carry point moments)
+    "fuse": "4",  # 2: mask_camera is inside mask_lidar (Occ3D); class_counts among voxels with
     #               mask_lidar = 1 (as documented); store attrs carry the stage key, not a config hash;
     #               the rectified camera; 3: pedestrian voxel velocity from each vertex's motion along
-    #               the track (fuse.velocity "vertex"), the mean over the body surface in the voxel
-    "export": "3",  # 2: instances carry the fitted bodies, 3D boxes and velocities; 3: source paths
+    #               the track (fuse.velocity "vertex"), the mean over the body surface in the voxel;
+    #               4: static voxels from points on each map voxel's surface (right at any offset of
+    #               the grid, e.g. 10 Hz); every occupied voxel in mask_lidar
+    "export": "4",  # 2: instances carry the fitted bodies, 3D boxes and velocities; 3: source paths
     #                 relative to the dataset root, box yaw from the body's forward axis, no NaN
     #                 velocity, chamfer_m / reproj_px written, config_hash of the stage inputs; the
-    #                 rectified camera's K and T in the sequences table
+    #                 rectified camera's K and T in the sequences table; 4: the Occ3D metadata says
+    #                 semantics is free where mask_lidar is 0 and keeps hidden occupied voxels' class
 }
