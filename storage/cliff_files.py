@@ -17,6 +17,8 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from storage.atomic import write_atomically
+
 CLIFF_FILE = "cliff.parquet"
 #: tolerance of the rotation check: max |R^T R - I| and |det R - 1|
 ROTATION_TOL = 1e-3
@@ -56,7 +58,7 @@ def write_cliff_estimates(
     bbox_size=None,
     transl=None,
 ) -> Path:
-    """Write N estimates atomically (a ``.tmp-write`` file renamed into place).
+    """Write N estimates atomically (:func:`storage.atomic.write_atomically`).
 
     frame, det_index (N,) int; rotmats (N, 24, 3, 3) (joint 0 = global orientation in the OpenCV
     camera frame, the others relative to their parent); betas (N, 10). The placement is either
@@ -94,10 +96,8 @@ def write_cliff_estimates(
         },
         schema=CLIFF_SCHEMA,
     )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp-write")
-    pq.write_table(table, tmp)
-    os.replace(tmp, path)
+    with write_atomically(path) as tmp:
+        pq.write_table(table, tmp)
     return path
 
 

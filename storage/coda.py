@@ -23,7 +23,7 @@ Cameras. ``2d_rect`` images are made by the devkit with ``cv2.initUndistortRecti
 whose map uses ``P[:, :3] @ R`` (the 4th column of P is not read), so a LiDAR point x lands on the
 rectified pixel ``P[:, :3] @ R @ T_cam_from_lidar @ x``. Each camera is therefore exposed as the
 pinhole (``K = P[:, :3]``, ``T_cam_from_lidar = [[R, 0], [0, 1]] @ T_cam_from_lidar``) of its
-rectified frame (storage.model.CameraCalibration); the files' values stay on ``.raw``.
+rectified frame (storage.sequence_data.CameraCalibration); the files' values stay on ``.raw``.
 
 Every error names the file, the frame where there is one, the value and what was expected. All are
 :class:`CodaFormatError` (a :class:`storage.files.InputError`, a ValueError); those of one frame's
@@ -55,7 +55,7 @@ import numpy as np
 import yaml
 
 from storage.files import InputError, open_regular, read_bytes, read_text, regular_stat, where
-from storage.model import (
+from storage.sequence_data import (
     Box3D,
     Calibration,
     CameraCalibration,
@@ -266,13 +266,6 @@ def box_rotation(rpy: np.ndarray) -> np.ndarray:
     ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
     rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
     return rz @ ry @ rx
-
-
-def points_in_box(points: np.ndarray, box: Box3D, margin_m: float = 0.0) -> np.ndarray:
-    """(N,) bool: points (N, 3) inside the rotated box (the devkit's own test ignores yaw)."""
-    local = (points.astype(np.float64) - box.center) @ box_rotation(box.rpy)
-    half = box.size / 2.0 + margin_m
-    return np.all(np.abs(local) <= half, axis=1)
 
 
 def rectified_camera(

@@ -18,7 +18,6 @@ inputs (JPEG / PNG via Pillow, JSON with sorted keys, YAML via safe_dump).
 from __future__ import annotations
 
 import json
-import os
 from io import BytesIO
 from pathlib import Path
 
@@ -26,21 +25,14 @@ import numpy as np
 import yaml
 from PIL import Image
 
-from storage.model import Box3D, Calibration
+from storage.atomic import atomic_write_bytes
+from storage.sequence_data import Box3D, Calibration
 
 NUM_POINTS = 128 * 1024
 CHANNELS = 5
 LIDAR_SOURCE = "3d_comp"
 IMAGE_EXTS = (".jpg", ".png")
 JPEG_QUALITY = 95
-
-
-def _atomic_write(path: Path, data: bytes) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
-    return path
 
 
 def _name(root: Path, modality: str, sensor: str, seq: int, frame: int, ext: str) -> Path:
@@ -87,7 +79,7 @@ def write_lidar(
     data[:, :3] = points_lidar
     data[:, 3] = intensity
     data[:, 4] = np.round(np.asarray(time_s, np.float64) * 1e9)
-    return _atomic_write(lidar_path(root, seq, frame), data.tobytes())
+    return atomic_write_bytes(lidar_path(root, seq, frame), data.tobytes())
 
 
 def image_bytes(image: np.ndarray, ext: str = ".png") -> bytes:
@@ -111,7 +103,7 @@ def write_image(
         raise ValueError(
             f"sequence {seq} frame {frame} {cam}: expected (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}"
         )
-    return _atomic_write(image_path(root, seq, cam, frame, ext), image_bytes(rgb, ext))
+    return atomic_write_bytes(image_path(root, seq, cam, frame, ext), image_bytes(rgb, ext))
 
 
 def write_semantic(root: Path, seq: int, frame: int, ids: np.ndarray) -> Path:
@@ -122,7 +114,7 @@ def write_semantic(root: Path, seq: int, frame: int, ids: np.ndarray) -> Path:
             f"sequence {seq} frame {frame}: semantic ids {ids.shape} {ids.dtype}, "
             f"expected ({NUM_POINTS},) uint8"
         )
-    return _atomic_write(semantic_path(root, seq, frame), ids.tobytes())
+    return atomic_write_bytes(semantic_path(root, seq, frame), ids.tobytes())
 
 
 def box_record(box: Box3D) -> dict:
@@ -154,7 +146,7 @@ def _r6(v: float) -> float:
 def write_boxes(root: Path, seq: int, frame: int, boxes: list[Box3D]) -> Path:
     """The 3D boxes of a frame (os1 frame) as CODa json ``{"3dbbox": [...]}``."""
     doc = {"3dbbox": [box_record(b) for b in boxes]}
-    return _atomic_write(
+    return atomic_write_bytes(
         bbox_path(root, seq, frame), (json.dumps(doc, sort_keys=True, indent=1) + "\n").encode()
     )
 
@@ -169,7 +161,7 @@ def _matrix(a: np.ndarray) -> dict:
 
 
 def _yaml(path: Path, doc: dict) -> Path:
-    return _atomic_write(
+    return atomic_write_bytes(
         path, yaml.safe_dump(doc, sort_keys=True, default_flow_style=None).encode()
     )
 
@@ -177,10 +169,11 @@ def _yaml(path: Path, doc: dict) -> Path:
 def write_calibration(root: Path, seq: int, calib: Calibration) -> list[Path]:
     """The calibration files of a sequence, as CODa's.
 
-    A camera with ``raw`` (storage.model.RawCameraCalibration) is written from it: intrinsics K, D,
-    rectification R and projection P, and the raw camera's extrinsic; one without is written as an
-    already rectified camera (K, R = I, P = [K | p4]). p4 = -fx * baseline on cam1 (ROS / OpenCV
-    stereo convention), 0 on cam0. Also os1 -> base and, with cam1, cam0 -> cam1 as ``{R, T}``."""
+    A camera with ``raw`` (storage.sequence_data.RawCameraCalibration) is written from it:
+    intrinsics K, D, rectification R and projection P, and the raw camera's extrinsic; one without
+    is written as an already rectified camera (K, R = I, P = [K | p4]). p4 = -fx * baseline on
+    cam1 (ROS / OpenCV stereo convention), 0 on cam0. Also os1 -> base and, with cam1, cam0 -> cam1
+    as ``{R, T}``."""
     d = Path(root) / "calibrations" / str(seq)
     out = []
     cam0 = calib.cameras["cam0"]
@@ -239,7 +232,7 @@ def _stamp_str(stamp_ns: int) -> str:
 def write_timestamps(root: Path, seq: int, stamps_ns: np.ndarray) -> Path:
     """timestamps/{SEQ}.txt: one Unix time in seconds (%.6f) per frame."""
     text = "".join(_stamp_str(s) + "\n" for s in stamps_ns)
-    return _atomic_write(Path(root) / "timestamps" / f"{seq}.txt", text.encode())
+    return atomic_write_bytes(Path(root) / "timestamps" / f"{seq}.txt", text.encode())
 
 
 def write_poses(root: Path, seq: int, stamps_ns: np.ndarray, poses: np.ndarray) -> Path:
@@ -254,7 +247,7 @@ def write_poses(root: Path, seq: int, stamps_ns: np.ndarray, poses: np.ndarray) 
         q = np.array([w, x, y, z]) * (1.0 if w >= 0 else -1.0)
         vals = [*T[:3, 3], *q]
         lines.append(_stamp_str(s) + " " + " ".join(f"{v:.9f}" for v in vals) + "\n")
-    return _atomic_write(
+    return atomic_write_bytes(
         Path(root) / "poses" / "dense_global" / f"{seq}.txt", "".join(lines).encode()
     )
 
@@ -279,7 +272,7 @@ def annotation_lists(seq: int, bbox_frames, semantic_frames) -> dict:
 
 def write_metadata(root: Path, seq: int, metadata: dict) -> Path:
     """metadata/{SEQ}.json (sorted keys)."""
-    return _atomic_write(
+    return atomic_write_bytes(
         Path(root) / "metadata" / f"{seq}.json",
         (json.dumps(metadata, sort_keys=True, indent=1) + "\n").encode(),
     )

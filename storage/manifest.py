@@ -44,6 +44,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from storage.atomic import atomic_write_bytes, named
 from storage.files import InputError, open_regular
 from storage.layout import TMP_PREFIX
 
@@ -62,30 +63,6 @@ def _hash_bytes(*parts: bytes) -> str:
 
 def canonical_json(value: Any) -> bytes:
     return json.dumps(value, sort_keys=True, separators=(",", ":"), default=str).encode()
-
-
-def _named(exc: OSError, path: Path) -> OSError:
-    """The same OSError with the file named (a failed write() does not say which file)."""
-    if exc.filename:
-        return exc
-    return type(exc)(exc.errno, exc.strerror or str(exc), str(path))
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` so readers see the old or the new file, never a part. A disk
-    error (ENOSPC, EFBIG, ...) is raised with the file named and leaves no temporary file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{TMP_PREFIX}{path.name}-{uuid.uuid4().hex[:8]}")
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise _named(exc, path) from None
 
 
 class FileHasher:
@@ -355,7 +332,7 @@ class Manifest:
                 fh.flush()
                 os.fsync(fh.fileno())
         except OSError as exc:
-            raise _named(exc, path) from None
+            raise named(exc, path) from None
         self.journal_lines += 1
 
     def save(self) -> None:
@@ -373,6 +350,7 @@ class Manifest:
                 indent=1,
                 sort_keys=True,
             ).encode(),
+            sync_folder=True,
         )
         (self.root / JOURNAL).unlink(missing_ok=True)
         self.journal_lines = 0
@@ -405,33 +383,6 @@ class Manifest:
 def stage_dir(root: Path, stage: str, sequence: str, key: str) -> Path:
     """Key-named output location of one (sequence, stage)."""
     return Path(root) / "stages" / stage / sequence / key
-
-
-@contextmanager
-def staged_output(final: Path) -> Iterator[Path]:
-    """Yield a hidden sibling directory to write into; publish it as ``final`` by rename on success.
-
-    An exception (or a killed process) leaves ``final`` untouched: the temporary directory is removed
-    (or, after a kill, ignored and swept by :func:`sweep_temporaries`).
-    """
-    final = Path(final)
-    final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = final.with_name(f"{TMP_PREFIX}{final.name}-{uuid.uuid4().hex[:8]}")
-    tmp.mkdir()
-    try:
-        yield tmp
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    if final.exists():  # same key = same content: keep the one already published
-        shutil.rmtree(tmp, ignore_errors=True)
-        return
-    try:
-        os.replace(tmp, final)
-    except OSError:
-        if not final.exists():
-            raise
-        shutil.rmtree(tmp, ignore_errors=True)  # another writer published the same key meanwhile
 
 
 #: where runs leave temporary files, relative to OUT (a killed run, a full disk): stage outputs

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from storage.atomic import write_atomically
+
 _ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
 
 
@@ -24,38 +26,26 @@ def save_npz_deterministic(
     """Write ``arrays`` to ``path`` as an ``.npz`` readable by ``np.load``; returns the path.
 
     compressed: deflate each entry (as ``np.savez_compressed``) or store it (as ``np.savez``).
-    The file is written to a hidden temporary name beside ``path`` and renamed into place, so a
-    reader never sees half a file. Object arrays are refused (they would need pickle to load).
+    Written atomically (:func:`storage.atomic.write_atomically`): a reader never sees half a
+    file. Object arrays are refused (they would need pickle to load).
     """
     path = Path(path)
     if not arrays:
         raise ValueError(f"save_npz_deterministic({path}): no arrays given")
+    for key, value in arrays.items():
+        if np.asanyarray(value).dtype.hasobject:
+            raise ValueError(f"save_npz_deterministic({path}): array {key!r} has dtype object")
     method = zipfile.ZIP_DEFLATED if compressed else zipfile.ZIP_STORED
-    tmp = path.with_name(f".tmp-{path.name}-{os.getpid()}")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        with zipfile.ZipFile(tmp, mode="w", compression=method, allowZip64=True) as zf:
-            for key, value in arrays.items():
-                array = np.asanyarray(value)
-                if array.dtype.hasobject:
-                    raise ValueError(
-                        f"save_npz_deterministic({path}): array {key!r} has dtype object"
-                    )
-                buffer = io.BytesIO()
-                np.lib.format.write_array(buffer, array, allow_pickle=False)
-                info = zipfile.ZipInfo(f"{key}.npy", date_time=_ZIP_EPOCH)
-                info.compress_type = method
-                info.external_attr = 0o644 << 16
-                info.create_system = 3  # unix, independent of the host
-                zf.writestr(info, buffer.getvalue())
-        os.replace(tmp, path)
-    except (
-        OSError
-    ) as exc:  # a failed write() does not say which file (a full disk, a file size limit)
-        if exc.filename:
-            raise
-        raise type(exc)(exc.errno, exc.strerror or str(exc), str(path)) from None
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with (
+        write_atomically(path) as tmp,
+        zipfile.ZipFile(tmp, mode="w", compression=method, allowZip64=True) as zf,
+    ):
+        for key, value in arrays.items():
+            buffer = io.BytesIO()
+            np.lib.format.write_array(buffer, np.asanyarray(value), allow_pickle=False)
+            info = zipfile.ZipInfo(f"{key}.npy", date_time=_ZIP_EPOCH)
+            info.compress_type = method
+            info.external_attr = 0o644 << 16
+            info.create_system = 3  # unix, independent of the host
+            zf.writestr(info, buffer.getvalue())
     return path

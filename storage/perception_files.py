@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -22,6 +21,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from PIL import Image
 
+from storage.atomic import atomic_write_text, staged_folder
 from tasks.conventions import CITYSCAPES_IGNORE
 
 FORMAT_NAME = "mobileocc-perception"
@@ -157,10 +157,13 @@ def write_perception(
     masks as COCO compressed RLE, semantics as one 8-bit PNG per frame.
     """
     root = Path(root)
-    tmp = root.with_name(root.name + ".tmp-write")
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    (tmp / SEMANTIC_DIR).mkdir(parents=True)
+    with staged_folder(root) as tmp:
+        _write_perception(tmp, root, image_width, image_height, images, lidar)
+    return root
+
+
+def _write_perception(tmp: Path, root: Path, image_width, image_height, images, lidar) -> None:
+    (tmp / SEMANTIC_DIR).mkdir()
     columns: dict[str, list] = {name: [] for name in DETECTION_SCHEMA.names}
     frames: list[int] = []
     for frame, det in images:
@@ -211,11 +214,7 @@ def write_perception(
         "semantic": True,
         "lidar": has_lidar,
     }
-    (tmp / META_FILE).write_text(json.dumps(meta, indent=1))
-    if root.exists():
-        shutil.rmtree(root)
-    os.replace(tmp, root)
-    return root
+    atomic_write_text(tmp / META_FILE, json.dumps(meta, indent=1))
 
 
 # --- reading ------------------------------------------------------------------------------------

@@ -13,12 +13,12 @@ import contextlib
 import json
 import os
 import shutil
-import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from storage.atomic import atomic_write_bytes, swap_in, temporary_name
 from storage.layout import (
     CURRENT_FILE,
     OCCUPANCY_DIR,
@@ -26,7 +26,6 @@ from storage.layout import (
     StoreError,
     check_name,
 )
-from storage.manifest import atomic_write_bytes
 from storage.tables import (
     partition_dir,
     publish_partition,
@@ -61,7 +60,7 @@ def stage_sequence(root: str | os.PathLike, sequence: str, version: str) -> Stag
     check_name("sequence", sequence)
     check_name("version", version)
     root = Path(root)
-    staging = root / f"{TMP_PREFIX}{sequence}-{version}-{uuid.uuid4().hex[:12]}"
+    staging = temporary_name(root / f"{sequence}-{version}")
     staging.mkdir(parents=True)
     (staging / "tables").mkdir()
     return StagedSequence(root, sequence, version, staging)
@@ -81,20 +80,15 @@ def publish_sequence(staged: StagedSequence, keep_old_versions: bool = False) ->
     seq_dir.mkdir(parents=True, exist_ok=True)
     target = seq_dir / f"{staged.version}.zarr"
     if staged.store_path.exists():
-        if target.exists():
-            # same version published before: move it aside first (hidden), never mix the two
-            aside = seq_dir / f"{TMP_PREFIX}old-{staged.version}-{uuid.uuid4().hex[:8]}"
-            os.replace(target, aside)
-            os.replace(staged.store_path, target)
-            shutil.rmtree(aside, ignore_errors=True)
-        else:
-            os.replace(staged.store_path, target)
+        # the same version published before is moved aside first (hidden): never a mix of the two
+        swap_in(staged.store_path, target)
     for staged_file in sorted(staged.tables_dir.glob("*.parquet")):
         publish_partition(staged.root, staged_file.stem, staged.sequence, staged_file)
     if target.exists():
         atomic_write_bytes(
             seq_dir / CURRENT_FILE,
             json.dumps({"version": staged.version}, indent=1, sort_keys=True).encode(),
+            sync_folder=True,
         )
     if not keep_old_versions:
         for old in seq_dir.glob("*.zarr"):

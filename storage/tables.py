@@ -1,15 +1,14 @@
 """Parquet tables of the dataset (frames, instances, sequences), partitioned by sequence.
 
 Layout: ``<root>/tables/<name>/sequence=<seq>/data.parquet``, one file per partition. A partition
-is written to a hidden file (``.tmp-*``, skipped by pyarrow / pandas discovery) and moved onto
-``data.parquet`` with one ``os.replace``: a reader sees the old partition or the new one, never a
+is written to a hidden file (``.tmp-*``, skipped by pyarrow / pandas discovery) and renamed onto
+``data.parquet`` (:mod:`storage.atomic`): a reader sees the old partition or the new one, never a
 mix or an empty directory. Schemas: :mod:`storage.schemas`.
 """
 
 from __future__ import annotations
 
 import os
-import uuid
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -19,7 +18,8 @@ import pyarrow as pa
 import pyarrow.dataset as pads
 import pyarrow.parquet as pq
 
-from storage.layout import TABLES_DIR, TMP_PREFIX, StoreError, check_name
+from storage.atomic import move_into_place, write_atomically
+from storage.layout import TABLES_DIR, StoreError, check_name
 from storage.schemas import PARTITION_FIELD, TABLE_NAMES, dataset_schema, file_schema
 
 PARTITION_FILE = "data.parquet"
@@ -96,25 +96,16 @@ def publish_partition(
     """Move a written Parquet file onto the partition ``name/sequence=<seq>`` atomically."""
     part = partition_dir(root, name, sequence)
     part.mkdir(parents=True, exist_ok=True)
-    target = part / PARTITION_FILE
-    hidden = part / f"{TMP_PREFIX}{uuid.uuid4().hex[:12]}.parquet"
-    os.replace(source, hidden)  # same filesystem: the staging dir is under root
-    os.replace(hidden, target)
-    return target
+    # one rename on one file system: the staging dir is under root
+    return move_into_place(source, part / PARTITION_FILE)
 
 
 def write_partition(root: str | os.PathLike, name: str, sequence: str, data: Any) -> Path:
     """Write one sequence's partition of table ``name`` now, atomically replacing any old one."""
-    part = partition_dir(root, name, sequence)
-    part.mkdir(parents=True, exist_ok=True)
-    hidden = part / f"{TMP_PREFIX}{uuid.uuid4().hex[:12]}.parquet"
-    try:
-        write_table_file(to_table(name, data), hidden)
-        os.replace(hidden, part / PARTITION_FILE)
-    finally:
-        if hidden.exists():
-            hidden.unlink()
-    return part / PARTITION_FILE
+    target = partition_dir(root, name, sequence) / PARTITION_FILE
+    with write_atomically(target) as tmp:
+        write_table_file(to_table(name, data), tmp)
+    return target
 
 
 def read_table(

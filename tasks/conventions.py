@@ -216,9 +216,14 @@ COCO_TO_SMPL_JOINT: dict[int, int] = {
 }
 #: COCO-17 face keypoints given by SMPL vertex ids (official SMPL topology).
 COCO_TO_SMPL_VERTEX: dict[int, int] = {0: 332, 1: 2800, 2: 6260, 3: 583, 4: 4071}
-
-
-def transform_points(T_target_from_source: np.ndarray, points_source: np.ndarray) -> np.ndarray:
-    """(N, 3) points in the source frame -> (N, 3) float64 in the target frame (4x4 rigid T)."""
-    T = np.asarray(T_target_from_source, dtype=np.float64)
-    return np.asarray(points_source, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
+#: the arrays every SMPL-format body model holds (the official model files' keys; their shapes:
+#: tasks.body.model); a file may hold more (e.g. ``coco_vertex_ids``)
+SMPL_MODEL_KEYS: tuple[str, ...] = (
+    "v_template",
+    "f",
+    "shapedirs",
+    "posedirs",
+    "weights",
+    "kintree_table",
+    "J_regressor",
+)

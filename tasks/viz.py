@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from tasks import conventions as C
+from tasks.geometry import transform_points
 
 
 def instance_colors(ids: np.ndarray) -> np.ndarray:
@@ -104,7 +105,7 @@ def draw_points(
     H, W = out.shape[:2]
     p = np.asarray(points_lidar, np.float64)
     p = p[np.any(p != 0, axis=1)]
-    pc = p @ T_cam_from_lidar[:3, :3].T + T_cam_from_lidar[:3, 3]
+    pc = transform_points(T_cam_from_lidar, p)
     pc = pc[pc[:, 2] > 0.1]
     u = np.rint(pc[:, 0] / pc[:, 2] * K[0, 0] + K[0, 2]).astype(np.int64)
     v = np.rint(pc[:, 1] / pc[:, 2] * K[1, 1] + K[1, 2]).astype(np.int64)

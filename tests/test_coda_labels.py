@@ -1,4 +1,4 @@
-"""The CODa label mapping and the box-content kernel of `evaluate --labels coda`."""
+"""The CODa label mapping of `evaluate --labels coda`."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ from tasks.metrics.coda_labels import (
     CODA_SEMANTIC_IDS,
     CODA_SEMANTIC_NAMES,
     box_class,
-    points_in_boxes,
     semantic_to_classes,
 )
 
@@ -45,19 +44,3 @@ def test_box_table():
     assert box_class("Segway") == C.TWO_WHEELER and box_class("Tree") == C.VEGETATION
     assert box_class("Bench") == C.OTHER_STRUCTURE and box_class("Horse") == C.UNLABELED
     assert box_class("Spaceship") is None
-
-
-def test_points_in_boxes_rotated_with_bottom_slab():
-    yaw = np.pi / 2
-    R = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
-    pts = np.array(
-        [
-            [5.0, 0.9, 0.0],  # inside: l = 2 lies along y after the 90 deg yaw
-            [5.9, 0.0, 0.0],  # outside: w = 0.5 along x
-            [5.0, 0.0, -0.85],  # in the bottom 0.1 m (box z -0.9 .. 0.9): left out
-            [5.0, 0.0, -0.75],
-        ]
-    )  # above the slab
-    inside = points_in_boxes(pts, [[5.0, 0.0, 0.0]], [[2.0, 0.5, 1.8]], [R], bottom_exclude_m=0.1)
-    assert inside.tolist() == [True, False, False, True]
-    assert points_in_boxes(pts, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3))).sum() == 0

@@ -12,13 +12,14 @@ from storage.coda import (
     CodaFormatError,
     CodaFrameError,
     CodaSequence,
+    box_rotation,
     list_sequences,
-    points_in_box,
     read_boxes,
     read_extrinsic,
     read_lidar_bin,
     stride_frames,
 )
+from tasks.geometry import points_in_boxes
 from tests.coda_fixture import (
     K_RECT,
     POINTS,
@@ -352,7 +353,8 @@ def test_rotated_box_test_uses_yaw(tmp_path):
     box = CodaSequence(tmp_path, 0, frame_stride=1).frame(0).boxes[0]
     # l = 2 along the box x axis, yaw 90 deg: the long side lies along the LiDAR y axis
     pts = np.array([[5.0, 1.9, 0.0], [5.9, 1.0, 0.0]])
-    assert points_in_box(pts, box).tolist() == [True, False]
+    inside = points_in_boxes(pts, [box.center], [box.size], [box_rotation(box.rpy)])
+    assert inside.tolist() == [True, False]
 
 
 def test_truncated_bin_is_a_frame_error(tmp_path):

@@ -34,7 +34,7 @@ def test_paper_presets():
     cfg = load_config(overrides={"fit.preset": "sloper4d"})
     assert cfg.fit.weights.lambda_occ == 55 and cfg.fit.weights.j_conf == 0.7
     mine = {
-        "rho": 50,
+        "rho_px": 50,
         "lambda_theta": 1,
         "lambda_a": 2,
         "lambda_beta": 3,
@@ -44,7 +44,7 @@ def test_paper_presets():
         "j_conf": 0.5,
     }
     cfg = load_config(
-        overrides={"fit.presets": {"mine": mine}, "fit.preset": "mine", "fit.confidence_power": 1.0}
+        overrides={"fit.presets": {"mine": mine}, "fit.preset": "mine", "fit.conf_power": 1.0}
     )
     w = cfg.fit.weights
     assert (w.rho_px, w.lambda_occ, w.conf_power, w.square_lambdas) == (50, 5, 1.0, True)
@@ -131,53 +131,6 @@ def test_kernel_sections_take_their_defaults_from_the_kernels():
         (cfg.fuse, FuseSettings),
     ):
         assert section.to(kernel) == kernel(), kernel.__name__
-        assert {f.name for f in dataclasses.fields(kernel)} <= set(type(section).model_fields)
-
-
-def test_no_kernel_repeats_a_config_default_as_a_keyword_default():
-    """Kernel functions take their settings as the parameter dataclass (or as required
-    arguments); a keyword default may point at the dataclass (``iterations=FitSettings.iterations``)
-    but a literal with a config setting's name and default value would be a third copy."""
-    import ast
-
-    defaults = {
-        (k.split(".")[-1], repr(v)) for k, v in _yaml_leaves(load_config().model_dump(mode="json"))
-    }
-    coincidences = {  # same name and value, another setting (documented at the function)
-        ("icp.py", "icp_align", "min_points"),  # ICP's own minimum correspondences
-        ("oracle.py", "oracle_lidar_detections", "min_points"),  # the oracle's visibility
-        ("offline.py", "stitch_ids", "window"),  # the pixel-velocity window
-        ("optimize.py", "fit_persons", "min_points"),  # skip ICP / L_3D below this, per person
-        ("calibration.py", "project", "min_depth_m"),  # check-data's sanity projection
-        ("blazepose.py", "weighted_nms", "iou_threshold"),  # BlazePose's own detector NMS
-        ("cliff.py", "__init__", "batch_size"),  # crops per CLIFF run
-        ("segmentation.py", "__init__", "input_size"),  # Mask2Former's input (None: the export's)
-        (
-            "sensors.py",
-            "make_rig",
-            "lidar_height_m",
-        ),  # the simulated robot (the reader's fallback for
-        # a missing calib_os1_to_base.yaml is a setting)
-    }
-    found = []
-    for path in sorted((Path(__file__).resolve().parents[1] / "tasks").rglob("*.py")):
-        for node in ast.walk(ast.parse(path.read_text())):
-            if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
-                continue
-            args = node.args.posonlyargs + node.args.args
-            pairs = list(zip(args[len(args) - len(node.args.defaults) :], node.args.defaults))
-            pairs += [
-                (a, d) for a, d in zip(node.args.kwonlyargs, node.args.kw_defaults) if d is not None
-            ]
-            for arg, default in pairs:
-                try:
-                    value = ast.literal_eval(default)
-                except ValueError:
-                    continue  # not a literal: e.g. a dataclass attribute
-                if (
-                    arg.arg != "seed"
-                    and (arg.arg, repr(value)) in defaults
-                    and (path.name, node.name, arg.arg) not in coincidences
-                ):
-                    found.append(f"{path.name}:{node.name}({arg.arg}={value!r})")
-    assert not found, found
+        assert {f.name for f in dataclasses.fields(kernel)} <= {
+            f.name for f in dataclasses.fields(section)
+        }

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 
 import numpy as np
 import pytest
@@ -11,7 +12,7 @@ import torch
 from tasks.body.poses import sample_plausible_poses
 from tasks.body.prior import GMMPosePrior, generate_pose_prior
 from tasks.body.procedural import default_body_model
-from tasks.fit.init_oracle import BodyParams, cliff_to_params, oracle_initial_estimate
+from tasks.fit.init_oracle import cliff_to_params, oracle_initial_estimate
 from tasks.fit.lidar_sim import (
     R_CAM_FROM_LIDAR,
     SENSORS,
@@ -22,8 +23,18 @@ from tasks.fit.lidar_sim import (
 )
 from tasks.fit.metrics import mean_error_mm
 from tasks.fit.optimize import fit_persons, ragged_points
+from tasks.fit.settings import FitSettings
+from tasks.fit.weights import FIT_PRESETS
 
 K = np.array([[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]])
+#: the fits here: the 3DPW weights, on the CPU, with the exact gradient (Chamfer pairs refreshed
+#: every step) and the paper's uncapped L_3D unless a test says otherwise
+WEIGHTS = FIT_PRESETS["3dpw"]
+EXACT = dataclasses.replace(FitSettings(), device="cpu", nn_every=1, chamfer_vertex_max_m=None)
+
+
+def settings(**changes) -> FitSettings:
+    return dataclasses.replace(EXACT, **changes)
 
 
 @pytest.fixture(scope="module")
@@ -41,15 +52,13 @@ def scene():
         occlusion_prob=0.0,
         max_points=400,
     )
-    truth = BodyParams(sp.truth_betas, sp.truth_global_orient, sp.truth_body_pose, sp.truth_transl)
+    truth = sp.truth
     init = oracle_initial_estimate(model, truth, rng)
     return model, prior, sp, truth, init
 
 
 def _fit(scene, rows=slice(None), device="cpu", **kw):
     model, prior, sp, _, init = scene
-    args = dict(iterations=25, lr=0.03)
-    args.update(kw)
     prior = prior if device == "cpu" else copy.deepcopy(prior).to(device)
     return fit_persons(
         model,
@@ -59,8 +68,8 @@ def _fit(scene, rows=slice(None), device="cpu", **kw):
         K,
         sp.T_cam_from_lidar,
         *ragged_points(sp.points_lidar[rows], sp.point_mask[rows]),
-        device=device,
-        **args,
+        WEIGHTS,
+        settings(**{"iterations": 25, "learning_rate": 0.03, "device": device, **kw}),
     )
 
 
@@ -141,9 +150,8 @@ def test_fit_from_the_truth_stays_put_with_the_vertex_cap(scene, cap, bound_mm):
         K,
         sp.T_cam_from_lidar,
         *ragged_points(sp.points_lidar, sp.point_mask),
-        iterations=60,
-        nn_every=5,
-        chamfer_vertex_max_m=cap,
+        WEIGHTS,
+        settings(iterations=60, nn_every=5, chamfer_vertex_max_m=cap),
     )
     ray = sp.truth_joints[:, 0] / np.linalg.norm(sp.truth_joints[:, 0], axis=1, keepdims=True)
     towards_mm = -((r.joints[:, 0] - sp.truth_joints[:, 0]) * ray).sum(1) * 1000
@@ -166,8 +174,8 @@ def test_fit_is_deterministic_and_handles_a_person_without_points(scene):
         sp.T_cam_from_lidar,
         *ragged_points(sp.points_lidar, mask),
     )
-    a = fit_persons(*args, iterations=5, seed=3)
-    b = fit_persons(*args, iterations=5, seed=3)
+    a = fit_persons(*args, WEIGHTS, settings(iterations=5, seed=3))
+    b = fit_persons(*args, WEIGHTS, settings(iterations=5, seed=3))
     assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.betas, b.betas)
     assert a.residuals["L_3D"][1] == 0.0 and a.residuals["icp_fitness"][1] == 0.0
 
@@ -229,9 +237,31 @@ def test_fit_rejects_mismatched_inputs(scene):
     model, prior, sp, _, init = scene
     pts, counts = ragged_points(sp.points_lidar, sp.point_mask)
     with pytest.raises(ValueError, match="keypoints"):
-        fit_persons(model, prior, init, sp.keypoints[:1], K, sp.T_cam_from_lidar, pts, counts)
+        fit_persons(
+            model,
+            prior,
+            init,
+            sp.keypoints[:1],
+            K,
+            sp.T_cam_from_lidar,
+            pts,
+            counts,
+            WEIGHTS,
+            EXACT,
+        )
     with pytest.raises(ValueError, match="counts"):
-        fit_persons(model, prior, init, sp.keypoints, K, sp.T_cam_from_lidar, pts, counts + 1)
+        fit_persons(
+            model,
+            prior,
+            init,
+            sp.keypoints,
+            K,
+            sp.T_cam_from_lidar,
+            pts,
+            counts + 1,
+            WEIGHTS,
+            EXACT,
+        )
 
 
 def test_drop_far_fits_keeps_rows_aligned():

@@ -13,6 +13,7 @@ from tasks.fit import losses as L
 from tasks.fit.icp import icp_align, rigid_update_params
 from tasks.fit.metrics import fit_metrics, mpere, pa_mpjpe_mm, umeyama_align
 from tasks.fit.visibility import front_facing_faces, visibility_masks
+from tasks.fit.weights import FIT_PRESETS
 
 
 def _rot(axis, deg):
@@ -36,12 +37,14 @@ def test_reprojection_zero_at_exact_projection_and_confidence_power():
     uv = L.project_points(X, K)
     assert uv[0, 0].tolist() == pytest.approx([665.0, 310.0])
     kp = torch.cat([uv, torch.tensor([[[0.5], [1.0]]])], -1)
-    assert L.reprojection_loss(X, kp, K).item() == pytest.approx(0.0, abs=1e-6)
+    assert L.reprojection_loss(X, kp, K, 100.0, 2.0).item() == pytest.approx(0.0, abs=1e-6)
     kp2 = kp.clone()
     kp2[0, 0, 0] += 10.0  # 10 px error on a keypoint with confidence 0.5
     expect = 0.5**2 * (1e4 * 100 / (1e4 + 100))
-    assert L.reprojection_loss(X, kp2, K, conf_power=2.0).item() == pytest.approx(expect, rel=1e-5)
-    assert L.reprojection_loss(X, kp2, K, conf_power=1.0).item() == pytest.approx(
+    assert L.reprojection_loss(X, kp2, K, 100.0, conf_power=2.0).item() == pytest.approx(
+        expect, rel=1e-5
+    )
+    assert L.reprojection_loss(X, kp2, K, 100.0, conf_power=1.0).item() == pytest.approx(
         2 * expect, rel=1e-5
     )
 
@@ -126,10 +129,10 @@ def test_hyperextension_shape_occlusion_terms():
 
 
 def test_weights_presets_and_squaring():
-    w = L.FIT_PRESETS["humanm3"]
+    w = FIT_PRESETS["humanm3"]
     assert (w.lambda_3d, w.lambda_occ, w.w, w.j_conf) == (600.0, 135.0, -1.0, 0.6)
-    assert w.scale("3d") == 600.0**2  # squared by default
-    assert w.with_(square_lambdas=False).scale("beta") == 17.5
+    assert w.factor(w.lambda_3d) == 600.0**2  # squared by default
+    assert w.with_(square_lambdas=False).factor(w.lambda_beta) == 17.5
 
 
 def _sphere(radius=1.0, center=(0.0, 0.0, 5.0)):

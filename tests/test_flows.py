@@ -253,8 +253,8 @@ def test_warm_start_carries_a_tracks_fit_into_its_next_frame(tmp_path, monkeypat
 
     import flows.stages.fit as fit_stage
     from flows.pipeline.inputs import Runtime, fit_inputs
+    from tasks.body.params import BodyParams
     from tasks.body.rotations import axis_angle_to_matrix
-    from tasks.fit.init_oracle import BodyParams
     from tasks.fit.reframe import reframe_params
 
     cfg = load_config(
@@ -318,18 +318,11 @@ def test_warm_start_carries_a_tracks_fit_into_its_next_frame(tmp_path, monkeypat
     for k in order:
         r = int(out["rows"][k])
         p = info.frame_indices.index(int(tracks.frame[r]))
-        body = BodyParams(
-            *(out[f][k : k + 1] for f in ("betas", "global_orient", "body_pose", "transl"))
-        )
+        body = BodyParams.of(out).take(slice(k, k + 1))
         with torch.no_grad():
             w = reframe_params(model, body, info.poses[p])
             world[r] = (
-                model(
-                    *(
-                        torch.as_tensor(getattr(w, f))
-                        for f in ("betas", "global_orient", "body_pose", "transl")
-                    )
-                )
+                model(*(torch.as_tensor(getattr(w, f)) for f in BodyParams.FIELDS))
                 .vertices[0]
                 .numpy()
             )

@@ -17,6 +17,7 @@ from tasks.occupancy.fuse import (
     voxelize_mesh,
 )
 from tasks.occupancy.grid import GridError, GridSpec
+from tasks.occupancy.settings import FreeSpaceParams, FuseSettings
 from tasks.occupancy.synthetic import box_mesh
 from tasks.occupancy.visibility import camera_mask, lidar_mask
 
@@ -243,10 +244,10 @@ def test_lidar_mask_traversed_and_hit():
 
 
 def test_fuse_frame_states_and_masks():
-    occ_map = OccupancyMap(0.1)
+    occ_map = OccupancyMap(FreeSpaceParams(voxel_size_m=0.1))
     ys, zs = np.meshgrid(np.arange(-0.95, 1.0, 0.1), np.arange(0.05, 2.0, 0.1), indexing="ij")
     wall = np.stack([np.full(ys.size, 2.05), ys.ravel(), zs.ravel()], 1)
-    occ_map.insert_scan(wall, np.array([-0.5, 0.05, 1.05]))
+    occ_map.insert_scan(wall, np.array([-0.5, 0.05, 1.05]), max_range_m=-1.0, discretize=False)
     labels = np.full(len(wall), OTHER_STRUCTURE, np.uint8)
     g = fuse_frame(
         SPEC,
@@ -257,7 +258,7 @@ def test_fuse_frame_states_and_masks():
         lidar_points_base=wall,
         lidar_origin_base=np.array([-0.5, 0.05, 1.05]),
         camera=_camera(),
-        pixel_stride=1,
+        fusion=FuseSettings(camera_pixel_stride=1),
     )
     np.testing.assert_array_equal(g.occupancy_state, occ_map.query_grid(SPEC, np.eye(4)))
     assert (g.occupancy_state[20] == 1).all() and (g.semantics[20] == OTHER_STRUCTURE).all()

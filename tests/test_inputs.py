@@ -124,7 +124,7 @@ def _candidates(value: Any) -> list[Any]:
             {},
             {
                 "mine": {
-                    "rho": 100,
+                    "rho_px": 100,
                     "lambda_theta": 1,
                     "lambda_a": 1,
                     "lambda_beta": 1,
@@ -219,7 +219,7 @@ def test_the_old_slice_table_misses_the_map_stages_iou_and_the_inputs_do_not():
 
 def test_a_chosen_custom_preset_is_in_the_fit_key():
     mine = {
-        "rho": 100,
+        "rho_px": 100,
         "lambda_theta": 1,
         "lambda_a": 1,
         "lambda_beta": 1,
@@ -268,4 +268,25 @@ def test_a_sequences_own_settings_rerun_it_alone():
     assert sequence_ref(b, "7").fingerprint(files) != sequence_ref(a, "7").fingerprint(files)
     assert (
         sequence_ref(b, "8").fingerprint(files) == sequence_ref(a, "8").fingerprint(files) == files
+    )
+
+
+def test_a_spec_keeps_its_name_in_the_key():
+    """The provider specs were renamed (OracleProvider -> OracleSpec, ...): the JSON of a key
+    names each by its KEY_TYPE, its old name, so no key changed; two specs never share one."""
+    import dataclasses
+
+    from flows.pipeline import inputs
+
+    specs = [
+        c
+        for c in vars(inputs).values()
+        if isinstance(c, type) and dataclasses.is_dataclass(c) and hasattr(c, "KEY_TYPE")
+    ]
+    assert len(specs) == 7 and len({c.KEY_TYPE for c in specs}) == len(specs)
+    assert all(c.__name__.endswith("Spec") and c.KEY_TYPE.endswith("Provider") for c in specs)
+    detect = inputs.to_jsonable(stage_inputs(load_config())["detect"])
+    assert (detect["image"]["type"], detect["lidar"]["type"]) == (
+        "OracleProvider",
+        "LidarClustersProvider",
     )

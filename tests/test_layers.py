@@ -23,7 +23,7 @@ FORBIDDEN = {
         "storage",
         "flows",
         "configs",
-        # model files open in storage/model_files.py; adapters take runners
+        # model files open in storage/network_files.py; adapters take runners
         "onnxruntime",
         "ai_edge_litert",
     ),

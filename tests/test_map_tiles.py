@@ -17,7 +17,6 @@ from tasks.occupancy.mapping import (
     WindowVotes,
     final_maps,
     finalize_tiles,
-    new_occupancy_map,
     occupancy_tiles,
     region_occupancy,
     sum_tile_votes,
@@ -95,13 +94,18 @@ def _whole(drive):
     seen, unseen, occ = (
         StaticSemanticMap(PARAMS.voxel_size_m, moments=True),
         StaticSemanticMap(PARAMS.voxel_size_m, moments=True),
-        new_occupancy_map(FREESPACE),
+        OccupancyMap(FREESPACE),
     )
     for pts, T, labels in drive:
         s, w = _sweep(pts, labels), world_points(T, pts)
         seen.add_sweep(w, s.labels, keep=s.keep & s.in_image, origin_world=T[:3, 3])
         unseen.add_sweep(w, s.labels, keep=s.keep & ~s.in_image, origin_world=T[:3, 3])
-        occ.insert_scan(w[s.keep], T[:3, 3], max_range_m=FREESPACE.max_range_m)
+        occ.insert_scan(
+            w[s.keep],
+            T[:3, 3],
+            max_range_m=FREESPACE.max_range_m,
+            discretize=FREESPACE.discretize,
+        )
     final, camera = final_maps(
         [(*m.packed_counts(), m.packed_moments()) for m in (seen, unseen)], PARAMS, GROUND
     )
@@ -110,17 +114,10 @@ def _whole(drive):
 
 def _tiled(drive):
     """The same drive by windows, regions and tiles."""
-    plan = plan_map(
-        np.array([T[:3, 3] for _, T, _ in drive]),
-        PARAMS.window_frames,
-        PARAMS.tile_m,
-        PARAMS.region_tiles,
-        FREESPACE.voxel_size_m,
-        FREESPACE.max_range_m,
-    )
+    plan = plan_map(np.array([T[:3, 3] for _, T, _ in drive]), PARAMS, FREESPACE)
     votes: dict = {}
     for w, (a, b) in enumerate(plan.windows):
-        wv = WindowVotes(PARAMS.voxel_size_m, PARAMS.tile_m)
+        wv = WindowVotes(PARAMS)
         for pts, T, labels in drive[a:b]:
             wv.add(world_points(T, pts), _sweep(pts, labels), T[:3, 3])
         for tile, arrays in wv.by_tile():
@@ -128,7 +125,7 @@ def _tiled(drive):
     groups = static_groups(
         plan,
         [(w, [t for (ww, t) in votes if ww == w]) for w in range(len(plan.windows))],
-        ground_halo_tiles(PARAMS.tile_m, 1.0, 1, PARAMS.voxel_size_m),
+        ground_halo_tiles(PARAMS),
     )
     static = []
     for tiles, where in groups:
@@ -182,9 +179,9 @@ def test_the_ground_check_needs_the_halo(drive):
         seen.add_sweep(world_points(T, pts), s.labels, keep=s.keep & s.in_image)
     keys, counts = seen.packed_counts()
     tiles = tiles_of_keys(unpack_keys(keys), 16)
-    whole = vote(keys, counts, PARAMS.voxel_size_m, GROUND)
+    whole = vote(keys, counts, PARAMS, GROUND)
     alone = [
-        vote(keys[inside], counts[inside], PARAMS.voxel_size_m, GROUND)
+        vote(keys[inside], counts[inside], PARAMS, GROUND)
         for inside in (np.all(tiles == t, axis=1) for t in np.unique(tiles, axis=0))
     ]
     order = np.argsort(pack_keys(np.concatenate([m.keys for m in alone])))
@@ -212,7 +209,11 @@ def test_plan_regions_hold_every_frame_that_reaches_them():
     origins = np.column_stack(
         [np.cumsum(rng.normal(0, 3, 200)), np.cumsum(rng.normal(0, 3, 200)), np.ones(200)]
     )
-    plan = plan_map(origins, 50, 25.6, 2, 0.2, 20.0)
+    plan = plan_map(
+        origins,
+        MapParams(window_frames=50, tile_m=25.6, region_tiles=2),
+        FreeSpaceParams(voxel_size_m=0.2, max_range_m=20.0),
+    )
     assert plan.windows == [(0, 50), (50, 100), (100, 150), (150, 200)]
     n = voxels_per_tile(25.6, 0.2, 8)
     for region, frames in plan.regions:
@@ -246,7 +247,11 @@ def test_tile_sizes_that_do_not_cut_whole_voxels_fail():
     with pytest.raises(ConfigError, match="map.tile_m"):
         load_config(overrides={"map.tile_m": 10.0})
     with pytest.raises(ValueError, match="finite max_range_m"):
-        plan_map(np.zeros((3, 3)), 10, 25.6, 4, 0.2, -1.0)
+        plan_map(
+            np.zeros((3, 3)),
+            MapParams(window_frames=10, tile_m=25.6, region_tiles=4),
+            FreeSpaceParams(voxel_size_m=0.2, max_range_m=-1.0),
+        )
 
 
 def test_tiles_near_grids_cover_the_reach():
@@ -285,17 +290,21 @@ def test_region_pieces_of_an_occupancy_map_on_every_path(monkeypatch):
         (fs._DENSE_MAX_BLOCKS, True),
     ):
         monkeypatch.setattr(fs, "_DENSE_MAX_BLOCKS", dense_max)
-        whole = OccupancyMap(0.2, threads=2)
+        whole = OccupancyMap(FreeSpaceParams(voxel_size_m=0.2), threads=2)
         for p, o in scans:
-            whole.insert_scan(p, o, 10.0, discretize=discretize)
+            whole.insert_scan(p, o, max_range_m=10.0, discretize=discretize)
         keys, vals = whole.to_arrays()
         got = {}
         for x0 in range(-64, 96, 16):
             for y0 in range(-64, 64, 24):
-                m = OccupancyMap(0.2, threads=2)
+                m = OccupancyMap(FreeSpaceParams(voxel_size_m=0.2), threads=2)
                 for p, o in scans:
                     m.insert_scan(
-                        p, o, 10.0, discretize=discretize, region=(x0, x0 + 16, y0, y0 + 24)
+                        p,
+                        o,
+                        max_range_m=10.0,
+                        discretize=discretize,
+                        region=(x0, x0 + 16, y0, y0 + 24),
                     )
                 k, v = m.to_arrays()
                 assert np.all(
@@ -306,9 +315,11 @@ def test_region_pieces_of_an_occupancy_map_on_every_path(monkeypatch):
 
 
 def test_a_region_must_be_whole_blocks():
-    m = OccupancyMap(0.2)
+    m = OccupancyMap(FreeSpaceParams(voxel_size_m=0.2))
     with pytest.raises(ValueError, match="multiples of 8"):
-        m.insert_scan(np.ones((2, 3)), np.zeros(3), region=(0, 12, 0, 8))
+        m.insert_scan(
+            np.ones((2, 3)), np.zeros(3), max_range_m=-1.0, discretize=False, region=(0, 12, 0, 8)
+        )
 
 
 def _grids(out, outcome) -> dict[str, bytes]:

@@ -5,14 +5,16 @@ from __future__ import annotations
 
 import warnings
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from storage.model_files import ModelFileError, extract_bundled_models, open_onnx
+from storage.network_files import ModelFileError, extract_bundled_models, open_onnx
 from tasks.perception.models.blazepose import (
     BLAZEPOSE_TO_COCO,
+    ROI_SCALE,
     BlazePoseLandmarks,
     decode_detections,
     regions_from_keypoints,
@@ -38,6 +40,19 @@ from tasks.perception.models.segmentation import (
     assign_masks,
     semantic_person_masks,
 )
+from tasks.perception.models.settings import (
+    BlazePoseSettings,
+    DetectorSettings,
+    KeypointSettings,
+    MaskSettings,
+    SemanticSettings,
+)
+
+#: the settings the adapters ran with before they took settings objects (udp: ViTPose's codec;
+#: box_scale: MediaPipe's region scale)
+VITPOSE = KeypointSettings(kind="vitpose", udp=True)
+RTMPOSE = KeypointSettings(kind="rtmpose")
+BLAZEPOSE = BlazePoseSettings(box_scale=ROI_SCALE)
 
 
 def export(
@@ -105,7 +120,7 @@ def test_yolox_grid_decoding_letterbox_and_nms(tmp_path):
         ["images"],
         ["output"],
     )
-    det = YoloxDetector(runner, score_threshold=0.3, nms_iou=0.45)(image(96, 128))
+    det = YoloxDetector(runner, DetectorSettings(score_threshold=0.3, nms_iou=0.45))(image(96, 128))
     # letterbox ratio min(64/96, 64/128) = 0.5; row a: centre ((0.5+3)8, (0.5+2)8) = (28, 20) in the
     # input, size (2*8, 4*8) = (16, 32) -> image centre (56, 40), size (32, 64)
     # row c: centre (2*16, 1*16) = (32, 16), size (16, 16) -> image centre (64, 32), size (32, 32)
@@ -119,12 +134,12 @@ def test_yolox_decoded_export_and_contract(tmp_path):
     runner = export(
         Const(rows[None]), (torch.zeros(1, 3, 64, 64),), tmp_path / "y.onnx", ["images"], ["output"]
     )
-    det = YoloxDetector(runner, decoded=True)(image(96, 128))
+    det = YoloxDetector(runner, DetectorSettings(decoded=True))(image(96, 128))
     np.testing.assert_allclose(det.boxes_xyxy, [[40, 8, 72, 72]], atol=1e-4)
     with pytest.raises(
         ValueError, match="rows"
     ):  # a decoded export read as raw: the row count says so
-        YoloxDetector(runner)(image(96, 128))
+        YoloxDetector(runner, DetectorSettings())(image(96, 128))
     bad = export(
         Const(np.zeros((1, 17, 8, 6))),
         (torch.zeros(1, 3, 64, 64),),
@@ -133,7 +148,7 @@ def test_yolox_decoded_export_and_contract(tmp_path):
         ["heatmaps"],
     )
     with pytest.raises(ModelContractError, match=r"bad\.onnx: not a YOLOX export"):
-        YoloxDetector(bad)
+        YoloxDetector(bad, DetectorSettings())
 
 
 def test_yolox_preprocessing_is_the_published_one():
@@ -149,7 +164,7 @@ def test_yolox_preprocessing_is_the_published_one():
             return {"output": np.zeros((1, 84, 6), np.float32)}
 
     probe = Probe()
-    YoloxDetector(probe)(image(96, 128, rgb=(10, 20, 30)))
+    YoloxDetector(probe, DetectorSettings())(image(96, 128, rgb=(10, 20, 30)))
     x = probe.seen[0]
     assert x.shape == (3, 64, 64)
     np.testing.assert_allclose(x[:, :48, :64].reshape(3, -1).mean(1), [30, 20, 10])  # BGR, 0-255
@@ -163,7 +178,7 @@ def test_decoded_boxes_form(tmp_path):
     runner = export(
         m, (torch.zeros(1, 3, 64, 64),), tmp_path / "d.onnx", ["input"], ["dets", "labels"]
     )
-    out = DecodedBoxesDetector(runner, score_threshold=0.3)(image(96, 128))
+    out = DecodedBoxesDetector(runner, DetectorSettings(score_threshold=0.3))(image(96, 128))
     # class 2 dropped, score 0.2 dropped; input box / 0.5
     np.testing.assert_allclose(out.boxes_xyxy, [[16, 8, 48, 72]])
     np.testing.assert_allclose(out.scores, [0.9])
@@ -186,13 +201,13 @@ def test_letterbox_centred_and_mapping_back():
 
 
 def test_crop_affine_standard_udp_and_rotation():
-    A = crop_affine([[115, 80]], [[56.25, 75]], (32, 24))
+    A = crop_affine([[115, 80]], [[56.25, 75]], (32, 24), udp=False)
     np.testing.assert_allclose(
         apply_affine(A, [[[115, 80], [115 - 28.125, 80 - 37.5]]]), [[[12, 16], [0, 0]]]
     )
     U = crop_affine([[115, 80]], [[56.25, 75]], (32, 24), udp=True)
     np.testing.assert_allclose(apply_affine(U, [[[115 + 28.125, 80 + 37.5]]]), [[[23, 31]]])
-    R = crop_affine([[0, 0]], [[10, 10]], (10, 10), rotation=[np.pi / 2])
+    R = crop_affine([[0, 0]], [[10, 10]], (10, 10), rotation=[np.pi / 2], udp=False)
     # the region's x axis points down the image (+v): image (0, 1) is 1 px along the crop's +x
     np.testing.assert_allclose(apply_affine(R, [[[0, 1]]]), [[[6, 5]]], atol=1e-12)
     np.testing.assert_allclose(
@@ -203,7 +218,9 @@ def test_crop_affine_standard_udp_and_rotation():
 def test_warp_crops_samples_bilinearly():
     img = np.zeros((4, 6, 3), np.uint8)
     img[:, :, 0] = np.arange(6) * 10  # red grows along u
-    A = crop_affine([[2.5, 1.5]], [[2, 2]], (2, 2))  # crop pixel (0, 0) <- image (1.5, 0.5)
+    A = crop_affine(
+        [[2.5, 1.5]], [[2, 2]], (2, 2), udp=False
+    )  # crop pixel (0, 0) <- image (1.5, 0.5)
     out = warp_crops(img, A, (2, 2))
     np.testing.assert_allclose(out[0, :, :, 0], [[15, 25], [15, 25]], atol=1e-4)
 
@@ -239,7 +256,7 @@ def test_vitpose_udp_heatmaps_to_image_keypoints(tmp_path):
         dynamic={"input": {0: "n"}, "heatmaps": {0: "n"}},
     )
     boxes = np.array([[100, 50, 130, 110], [20, 30, 60, 70]], np.float32)
-    kp = TopDownKeypoints(runner, "heatmap", udp=True)(image(200, 300), boxes)
+    kp = TopDownKeypoints(runner, VITPOSE)(image(200, 300), boxes)
     for i, (x0, y0, x1, y1) in enumerate(boxes):
         # crop: centre, size (w, h) x 1.25 with the short side grown to 48:64; UDP: heatmap k ->
         # image k size / (hm - 1) + centre - size / 2
@@ -259,7 +276,7 @@ def test_vitpose_classic_quarter_offset(tmp_path):
     runner = export(
         Const(maps), (torch.zeros(1, 3, 64, 48),), tmp_path / "hm.onnx", ["input"], ["heatmaps"]
     )
-    kp = TopDownKeypoints(runner, "heatmap", udp=False)(
+    kp = TopDownKeypoints(runner, KeypointSettings(kind="vitpose", udp=False))(
         image(200, 300), np.array([[100, 50, 130, 110]])
     )
     # heatmap (4.25, 4.75) -> input x4 -> (17, 19); standard crop: centre (115, 80), size (56.25, 75)
@@ -280,7 +297,7 @@ def test_rtmpose_simcc(tmp_path):
         ["input"],
         ["simcc_x", "simcc_y"],
     )
-    kp = TopDownKeypoints(runner, "simcc")(image(200, 300), np.array([[100, 50, 130, 110]]))
+    kp = TopDownKeypoints(runner, RTMPOSE)(image(200, 300), np.array([[100, 50, 130, 110]]))
     want = np.array([15, 50.5]) * [56.25 / 48, 75 / 64] + [115 - 28.125, 80 - 37.5]
     ok = np.arange(17) != 3
     np.testing.assert_allclose(kp[0, ok, :2], np.broadcast_to(want, (16, 2)), atol=1e-4)
@@ -293,9 +310,9 @@ def test_keypoints_of_no_box_and_wrong_export(tmp_path):
     runner = export(
         Const(maps), (torch.zeros(1, 3, 64, 48),), tmp_path / "hm.onnx", ["input"], ["heatmaps"]
     )
-    assert TopDownKeypoints(runner, "heatmap")(image(), np.zeros((0, 4))).shape == (0, 17, 3)
+    assert TopDownKeypoints(runner, VITPOSE)(image(), np.zeros((0, 4))).shape == (0, 17, 3)
     with pytest.raises(ModelContractError, match="RTMPose"):
-        TopDownKeypoints(runner, "simcc")
+        TopDownKeypoints(runner, RTMPOSE)
 
 
 # ---- semantics and masks --------------------------------------------------------------------
@@ -308,7 +325,7 @@ def test_semantic_logits_resized_and_argmaxed(tmp_path):
     runner = export(
         Const(logits), (torch.zeros(1, 3, 8, 8),), tmp_path / "seg.onnx", ["input"], ["logits"]
     )
-    sem = SemanticSegmenter(runner)(image(6, 8))
+    sem = SemanticSegmenter(runner, SemanticSettings())(image(6, 8))
     assert sem.dtype == np.uint8 and sem.shape == (6, 8)
     assert np.all(sem[:, :4] == 11) and np.all(sem[:, 4:] == 0)
 
@@ -331,7 +348,7 @@ def test_mask2former_queries_to_boxes(tmp_path):
     boxes = np.array(
         [[10, 8, 13, 15], [4, 2, 7, 9], [0, 0, 2, 2]], np.float32
     )  # q2's, q0's, nobody's
-    got = QueryInstanceMasks(runner, person_class=0)(image(16, 16), boxes)
+    got = QueryInstanceMasks(runner, MaskSettings(person_class=0))(image(16, 16), boxes)
     want = np.zeros((3, 16, 16), bool)
     want[0, 8:16, 10:14] = True  # query 2 doubled (bilinear edges fall between pixels)
     want[1, 2:10, 4:8] = True  # query 0 doubled
@@ -480,7 +497,7 @@ def test_blazepose_landmarks_on_a_fake_runner():
             }
 
     box = np.array([[100, 100, 164, 228]], np.float32)  # 64 x 128: the square region is 160 x 160
-    kp, masks, flag = BlazePoseLandmarks(Fake(0.9))(image(300, 300), box)
+    kp, masks, flag = BlazePoseLandmarks(Fake(0.9), BLAZEPOSE)(image(300, 300), box)
     # crop px x -> image: centre 132 + (x - 128) * 160 / 256
     want_u = 132 + (np.arange(39)[list(BLAZEPOSE_TO_COCO)] * 4 + 32.5 - 128) * 160 / 256
     np.testing.assert_allclose(kp[0, :, 0], want_u, atol=1e-4)
@@ -494,9 +511,9 @@ def test_blazepose_landmarks_on_a_fake_runner():
     outside = np.ones((300, 300), bool)
     outside[124:205, 112:153] = False
     assert masks[0][inside].all() and not masks[0][outside].any()
-    kp, _, _ = BlazePoseLandmarks(Fake(0.2))(image(300, 300), box)
+    kp, _, _ = BlazePoseLandmarks(Fake(0.2), BLAZEPOSE)(image(300, 300), box)
     assert np.all(kp[0, :, 2] == 0)  # no pose in the region: no confidence
-    comp = ModelPerception(blazepose=BlazePoseLandmarks(Fake(0.2)))(
+    comp = ModelPerception(blazepose=BlazePoseLandmarks(Fake(0.2), BLAZEPOSE))(
         image(300, 300), Detections(box, np.ones(1, np.float32))
     )
     assert len(comp) == 0 and comp.semantic.shape == (300, 300) and np.all(comp.semantic == 255)
@@ -513,21 +530,23 @@ def test_composite_yolox_vitpose_semantic_fallback(tmp_path):
             tmp_path / "y.onnx",
             ["images"],
             ["output"],
-        )
+        ),
+        DetectorSettings(),
     )
     maps = gaussian_maps(1, 16, 12, [np.full((17, 2), 5.0)])
     vit = TopDownKeypoints(
         export(
             Const(maps), (torch.zeros(1, 3, 64, 48),), tmp_path / "v.onnx", ["input"], ["heatmaps"]
         ),
-        "heatmap",
+        VITPOSE,
     )
     logits = np.zeros((1, 19, 4, 4), np.float32)
     logits[0, 11] = 5.0
     seg = SemanticSegmenter(
         export(
             Const(logits), (torch.zeros(1, 3, 8, 8),), tmp_path / "s.onnx", ["input"], ["logits"]
-        )
+        ),
+        SemanticSettings(),
     )
     out = ModelPerception(detector=yolox, keypoints=vit, semantic=seg)(image(96, 128))
     assert len(out) == 2 and out.keypoints.shape == (2, 17, 3) and np.all(out.semantic == 11)
@@ -557,6 +576,32 @@ def test_bundled_extraction_checks_the_wheel(tmp_path):
     with pytest.raises(ModelFileError, match="has sha256"):
         extract_bundled_models(wheel, tmp_path / "cache")
     assert not (tmp_path / "cache" / "pose_detection.tflite").exists()
+
+
+def test_cli_unpacks_the_bundled_models(tmp_path, capsys):
+    """`mobileocc models unpack-bundled` (what set-up runs): a wheel holding the right files ->
+    both extracted, paths printed; a tampered one -> exit 1 naming the wheel."""
+    from flows.cli import main
+    from storage.network_files import BUNDLED_MODELS, DEFAULT_BUNDLED_CACHE
+
+    bad = tmp_path / "mediapipe-0.10.21-bad.whl"
+    with zipfile.ZipFile(bad, "w") as zf:
+        zf.writestr("mediapipe/modules/pose_detection/pose_detection.tflite", b"tampered")
+    cmd = ["models", "unpack-bundled", "--cache", str(tmp_path / "cache")]
+    assert main([*cmd, "--wheel", str(bad)]) == 1
+    assert f"{bad}: mediapipe/modules/pose_detection" in capsys.readouterr().err
+    have = Path(__file__).resolve().parents[1] / DEFAULT_BUNDLED_CACHE
+    if not all((have / n).is_file() for n in BUNDLED_MODELS):
+        pytest.skip(f"bundled models not extracted to {have} (make setup does it)")
+    good = tmp_path / "mediapipe-0.10.21-good.whl"
+    with zipfile.ZipFile(good, "w") as zf:
+        for name, (member, _) in BUNDLED_MODELS.items():
+            zf.writestr(member, (have / name).read_bytes())
+    assert main([*cmd, "--wheel", str(good)]) == 0
+    printed = capsys.readouterr().out.split()
+    assert printed == [str(tmp_path / "cache" / n) for n in BUNDLED_MODELS]
+    for name in BUNDLED_MODELS:
+        assert (tmp_path / "cache" / name).read_bytes() == (have / name).read_bytes()
 
 
 def test_blazepose_detector_regions_in_image_pixels():

@@ -14,7 +14,7 @@ import torch
 from configs.schema import load_config
 from flows.pipeline.run import rebuild_dataset
 from storage.manifest import Manifest
-from storage.model_files import BUNDLED_MODELS, DEFAULT_BUNDLED_CACHE
+from storage.network_files import BUNDLED_MODELS, DEFAULT_BUNDLED_CACHE
 from storage.products import Detections
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -82,7 +82,7 @@ def _scene(seed=0):
 
 
 def _mask_of(points, K, T, dilate_px=3):
-    uv, depth = project_points(points, K, T)
+    uv, depth = project_points(points, K, T, 0.1)
     mask = np.zeros((H, W), bool)
     cols, rows = uv[:, 0].astype(int), uv[:, 1].astype(int)
     mask[rows, cols] = True
@@ -127,7 +127,9 @@ def test_box_corners_and_projection():
     )
     np.testing.assert_allclose(corners[0].min(axis=0), [0, 0, 2.5], atol=1e-12)
     np.testing.assert_allclose(corners[0].max(axis=0), [2, 4, 3.5], atol=1e-12)
-    uv, depth = project_points(np.array([[10.0, -1.0, 0.5], [-1.0, 0, 0]]), K, T_CAM_FROM_LIDAR)
+    uv, depth = project_points(
+        np.array([[10.0, -1.0, 0.5], [-1.0, 0, 0]]), K, T_CAM_FROM_LIDAR, 0.1
+    )
     np.testing.assert_allclose(uv[0], [320 + 50, 240 - 25])
     assert depth[0] == 10.0 and np.isnan(uv[1]).all()
 
@@ -341,7 +343,7 @@ def test_person_points_grow_past_the_image_side():
     cut = (5.0 * np.cos(right_edge), 5.0 * np.sin(right_edge), 0.25, 1.75)
     beside = (cut[0] - 0.3, cut[1] - 1.5, 0.25, 1.75)
     points, owner = _raycast_sweep([cut, beside])
-    uv, _ = project_points(points, K, T_CAM_FROM_LIDAR)
+    uv, _ = project_points(points, K, T_CAM_FROM_LIDAR, 0.1)
     in_image = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
     truth = np.flatnonzero(owner == 0)
     assert (
@@ -432,7 +434,7 @@ def bench_track_and_person_points(frames: int = 30, width: int = 1224, height: i
     persons = [(5.0 + 2 * p, -3.0 + 1.5 * p, 0.22, 1.75) for p in range(5)]
     points, owner = _raycast_sweep(persons)
     k = np.array([[700.0, 0, width / 2], [0, 700.0, height / 2], [0, 0, 1]])
-    uv, _ = project_points(points, k, T_CAM_FROM_LIDAR)
+    uv, _ = project_points(points, k, T_CAM_FROM_LIDAR, 0.1)
     masks = np.zeros((len(persons), height, width), bool)
     for p in range(len(persons)):
         sel = uv[owner == p]

@@ -13,9 +13,10 @@ import yaml
 from storage import coda_writer as W
 from storage import gt as GT
 from tasks import conventions as C
+from tasks.geometry import transform_points
 from tasks.sim import GridSpec, SimOptions, Simulator
 from tasks.sim import groundtruth as G
-from tasks.sim.geometry import box_solid, ground_tile, transform_points
+from tasks.sim.geometry import box_solid, ground_tile
 from tasks.sim.sensors import LidarNoise, make_rig
 
 SEED = 3

@@ -3,6 +3,8 @@ the ghost trail a walking person leaves when its points are not removed."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -18,17 +20,22 @@ from tasks.conventions import (
     VEGETATION,
 )
 from tasks.occupancy.freespace import OccupancyMap
+from tasks.occupancy.settings import FreeSpaceParams, MapParams
 from tasks.occupancy.static_map import (
     StaticMapError,
     StaticSemanticMap,
     lift_image_semantics,
     pedestrian_boxes_for_masking,
     pedestrian_point_mask,
-    points_in_boxes,
     project_points,
 )
 
 VS = 0.2
+#: the map's settings (their defaults: voxels of VS) and its ground classes
+MAP = MapParams(voxel_size_m=VS)
+GROUND = (ROAD, TERRAIN)
+#: lift_image_semantics with plain nearest-neighbour matching for out-of-view ground
+PLAIN = dataclasses.replace(MAP, fallback_ground_lateral_scale=1.0)
 
 
 def _at(keys, n):
@@ -49,7 +56,7 @@ def test_max_voting_ties_and_pedestrian_votes():
     m.add_sweep(_at([[5, 1, 1]], 2), np.full(2, UNLABELED, np.uint8))  # no votes at all
     # keep-mask: these 5 votes for the road are dropped by the caller's pedestrian mask
     m.add_sweep(_at([[1, 1, 1]], 5), np.full(5, ROAD, np.uint8), keep=np.zeros(5, bool))
-    res = m.finalize(ground_classes=())
+    res = m.finalize(MAP, ())
     assert _labels(res) == {
         (1, 1, 1): OTHER_STRUCTURE,
         (2, 1, 1): OTHER_STRUCTURE,
@@ -80,7 +87,7 @@ def test_ground_consistency_rejects_far_ground_votes():
     below = [[5, 5, -2]]  # centre -0.3: 0.4 m below
     m.add_sweep(_at(near + far + far_only + below, 4), np.full(16, TERRAIN, np.uint8))
     m.add_sweep(_at(far, 1), np.full(1, OTHER_STRUCTURE, np.uint8))
-    res = m.finalize(ground_tolerance_m=0.3, ground_cell_m=1.0)
+    res = m.finalize(MAP, GROUND)  # tolerance 0.3 m, cells of 1 m
     lab = _labels(res)
     assert lab[(2, 2, 1)] == TERRAIN
     assert lab[(3, 3, 2)] == OTHER_STRUCTURE
@@ -88,7 +95,7 @@ def test_ground_consistency_rejects_far_ground_votes():
     assert res.ground_rejected == 12
     assert sum(v == ROAD for v in lab.values()) == len(ground)
     # without the check the far votes win
-    lab_nocheck = _labels(m.finalize(ground_classes=()))
+    lab_nocheck = _labels(m.finalize(MAP, ()))
     assert lab_nocheck[(3, 3, 2)] == TERRAIN and lab_nocheck[(4, 4, 7)] == TERRAIN
 
 
@@ -116,7 +123,7 @@ def test_crop_to_grid_and_sample_points():
         _at([[0, 0, 0], [20, 0, 0], [-20, 0, 0], [0, 30, 0]], 1),
         np.array([ROAD, VEGETATION, TERRAIN, OTHER_STRUCTURE], np.uint8),
     )
-    res = m.finalize(ground_classes=())
+    res = m.finalize(MAP, ())
     spec = GridSpec((0.0, -1.0, -1.0), (5.0, 1.0, 1.0), 0.1)
     T = np.eye(4)
     T[:3, :3] = [[-1.0, 0, 0], [0, -1.0, 0], [0, 0, 1]]  # facing -x: the voxel at x = -4 is inside
@@ -152,9 +159,16 @@ def test_lift_image_semantics_and_fallback():
     img[:2, :] = CITYSCAPES_TRAIN_IDS["sky"]
     pts = np.array([[5, 1, 0], [5, -1, 0], [5, 0, 2.25], [-5, 1.2, 0], [5, 40, 0]], float)
     # u = 19.5 - 20 y / x, v = 9.5 - 20 z / x
-    lab = lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS, fallback="nearest")
+    lab = lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS, PLAIN)
     assert lab.tolist() == [OTHER_STRUCTURE, ROAD, UNLABELED, OTHER_STRUCTURE, OTHER_STRUCTURE]
-    lab = lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS, fallback="unknown")
+    lab = lift_image_semantics(
+        pts,
+        img,
+        K,
+        T,
+        CITYSCAPES_TO_CLASS,
+        dataclasses.replace(MAP, outside_image_fallback="unknown"),
+    )
     assert lab.tolist() == [OTHER_STRUCTURE, ROAD, UNLABELED, UNLABELED, UNLABELED]
 
 
@@ -180,13 +194,13 @@ def test_nearest_fallback_keeps_ground_and_objects_apart():
     img[pix[valid & is_car, 1], pix[valid & is_car, 0]] = CITYSCAPES_TRAIN_IDS["car"]
     out = ~valid
     assert out[is_car].sum() > 20 and valid[is_car].sum() > 5 and out[~is_car].sum() > 100
-    lab = lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS, fallback="nearest")
+    lab = lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS, PLAIN)
     assert np.all(lab[valid & is_car] == CAR)
     assert np.all(lab[out & is_car] == CAR)
     assert np.all(lab[out & ~is_car] == ROAD)
     # one level for all (the plain nearest neighbour) labels much of the car's side road
     plain = lift_image_semantics(
-        pts, img, K, T, CITYSCAPES_TO_CLASS, fallback="nearest", ground_tol_m=1e3
+        pts, img, K, T, CITYSCAPES_TO_CLASS, dataclasses.replace(PLAIN, ground_max_deviation_m=1e3)
     )
     assert np.mean(plain[out & is_car] == ROAD) > 0.3
 
@@ -208,8 +222,8 @@ def test_lateral_scale_carries_ground_strips_along_the_path():
     out = ~valid
     assert (valid & lawn).sum() > 10 and (out & lawn).sum() > 50
     truth = np.where(lawn, TERRAIN, ROAD)
-    plain = lift_image_semantics(ground, img, K, T, CITYSCAPES_TO_CLASS)
-    along = lift_image_semantics(ground, img, K, T, CITYSCAPES_TO_CLASS, ground_lateral_scale=4.0)
+    plain = lift_image_semantics(ground, img, K, T, CITYSCAPES_TO_CLASS, PLAIN)
+    along = lift_image_semantics(ground, img, K, T, CITYSCAPES_TO_CLASS, MAP)  # lateral scale 4
     assert np.mean(plain[out & lawn] == TERRAIN) < 0.6
     assert np.mean(along[out & lawn] == TERRAIN) > 0.9
     assert np.mean(along[out] == truth[out]) > np.mean(plain[out] == truth[out])
@@ -223,15 +237,11 @@ def test_pedestrian_point_mask_instances_and_rotated_boxes():
     mask = pedestrian_point_mask(pts, K=K, T_cam_from_lidar=T, instance_image=inst)
     assert mask.tolist() == [True, False, False, False, False]
     box = np.array([[0, 0, 0, 1.0, 0.2, 2.0, 0.0]])
-    assert points_in_boxes(pts, box, 0.1).tolist() == [False, False, True, False, False]
-    box_rot = box.copy()
-    box_rot[0, 6] = np.pi / 2  # now 1 m along y
-    assert points_in_boxes(pts, box_rot, 0.0).tolist() == [False, False, False, True, False]
-    box_diag = box.copy()
-    box_diag[0, 6] = np.pi / 4  # along the diagonal: (0.5, 0.5) is 0.707 m along the box
-    assert points_in_boxes(pts, box_diag, 0.0).tolist() == [False] * 5
-    # margin 0.25: half sizes 0.75 x 0.35; (0, 0.45) -> (0.32, 0.32) inside, (0.55, 0) -> (0.39, -0.39) not
-    assert points_in_boxes(pts, box_diag, 0.25).tolist() == [False, False, False, True, True]
+    mask = pedestrian_point_mask(pts, boxes_lidar=box, box_margin_m=0.1)
+    assert mask.tolist() == [False, False, True, False, False]
+    box[0, 6] = np.pi / 2  # now 1 m along y
+    mask = pedestrian_point_mask(pts, boxes_lidar=box, box_margin_m=0.0)
+    assert mask.tolist() == [False, False, False, True, False]
 
 
 def test_one_projection_serves_every_per_sweep_kernel():
@@ -246,8 +256,8 @@ def test_one_projection_serves_every_per_sweep_kernel():
     proj = project_points(pts, K, T, 40, 20)
     assert 50 < proj[1].sum() < 350
     np.testing.assert_array_equal(
-        lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS, projection=proj),
-        lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS),
+        lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS, PLAIN, projection=proj),
+        lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS, PLAIN),
     )
     np.testing.assert_array_equal(
         pedestrian_point_mask(pts, instance_image=inst, projection=proj),
@@ -255,7 +265,7 @@ def test_one_projection_serves_every_per_sweep_kernel():
     )
     wide = project_points(pts, K * [[2], [2], [1]], T, 80, 40)
     with pytest.raises(StaticMapError, match="80 x 40|40 x 20"):
-        lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS, projection=wide)
+        lift_image_semantics(pts, img, K, T, CITYSCAPES_TO_CLASS, PLAIN, projection=wide)
     with pytest.raises(StaticMapError, match="shapes"):
         pedestrian_point_mask(pts[:10], instance_image=inst, projection=proj)
 
@@ -309,7 +319,7 @@ def test_ghost_trail_removed_by_pedestrian_boxes():
     origin = np.array([0.0, 0.0, 1.0])
 
     def run(remove: bool):
-        smap, omap = StaticSemanticMap(VS), OccupancyMap(VS)
+        smap, omap = StaticSemanticMap(VS), OccupancyMap(FreeSpaceParams(voxel_size_m=VS))
         for y in np.linspace(-3, 3, 13):
             person = (4.0, y, 0.85, 0.5, 0.5, 1.7, 0.3)
             pts, _ = raycast(scene + [box_mesh(person[:3], person[3:6], person[6])], origin, dirs)
@@ -321,8 +331,8 @@ def test_ghost_trail_removed_by_pedestrian_boxes():
                 else np.ones(len(pts), bool)
             )
             smap.add_sweep(pts, lab, keep)
-            omap.insert_scan(pts[keep], origin, max_range_m=20.0)
-        res = smap.finalize()
+            omap.insert_scan(pts[keep], origin, max_range_m=20.0, discretize=False)
+        res = smap.finalize(MAP, GROUND)
         c = res.centers()
         corridor = (np.abs(c[:, 0] - 4.0) < 0.6) & (np.abs(c[:, 1]) < 3.5) & (c[:, 2] > 0.25)
         xs, ys, zs = np.meshgrid(

@@ -202,12 +202,12 @@ def test_stitch_ids_chains_and_never_overlaps_in_time():
             bx.append(walker(f + 2))
         ids.append(np.asarray(rows, np.int64))
         boxes.append(np.asarray(bx, np.float64).reshape(-1, 4))
-    out = stitch_ids(ids, boxes, max_gap=5, max_distance=0.5, max_scale=1.5)
+    out = stitch_ids(ids, boxes, OfflineParams(stitch_max_gap=5))
     walker_ids = {int(row[0]) for row in out if len(row)}
     assert walker_ids == {1}  # renumbered from 1 by first appearance, one id over all fragments
     assert out[8].tolist() == [1, 2]
     # max_gap 0: no joins, ids only renumbered (7, 3, 5, 9 -> 1, 2, 3, 4)
-    assert stitch_ids(ids, boxes, max_gap=0, max_distance=0.5, max_scale=1.5)[14].tolist() == [4]
+    assert stitch_ids(ids, boxes, OfflineParams(stitch_max_gap=0))[14].tolist() == [4]
 
 
 def test_offline_ids_are_deterministic():
@@ -252,9 +252,7 @@ def _refine(ids, boxes, positions, tentative=frozenset()):
     return stitch_ids(
         split,
         boxes,
-        10,
-        0.5,
-        1.5,
+        OfflineParams(stitch_max_gap=10),
         positions=clean,
         times_s=times,
         parent=parent,
@@ -315,7 +313,7 @@ def test_a_lost_person_rejoins_on_position_and_a_stranger_does_not():
     out = _refine(ids, boxes, positions)
     assert out[0].tolist() == [1] and out[12].tolist() == [1, 2] and out[19].tolist() == [1, 2]
     # on pixels alone the stranger takes A's id
-    assert stitch_ids(ids, boxes, 10, 0.5, 1.5)[12].tolist() == [2, 1]
+    assert stitch_ids(ids, boxes, OfflineParams(stitch_max_gap=10))[12].tolist() == [2, 1]
 
 
 def test_the_trackers_own_continuation_stands_where_no_position_judges_it():

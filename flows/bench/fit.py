@@ -23,6 +23,9 @@ import dataclasses
 import sys
 import time
 
+from storage.atomic import atomic_write_text
+from storage.npzio import save_npz_deterministic
+
 
 def _variants(weights, ablations: bool):
     out = [("Ours", weights, {})]
@@ -65,7 +68,7 @@ def bench_fit(
     from tasks.body.poses import sample_plausible_poses
     from tasks.body.prior import GMMPosePrior, generate_pose_prior
     from tasks.body.procedural import default_body_model
-    from tasks.fit.init_oracle import BodyParams, oracle_initial_estimate
+    from tasks.fit.init_oracle import oracle_initial_estimate
     from tasks.fit.lidar_sim import SENSORS, synthesize_persons
     from tasks.fit.metrics import fit_metrics
     from tasks.fit.optimize import fit_persons, ragged_points
@@ -95,13 +98,7 @@ def bench_fit(
                 sp.T_cam_from_lidar,
                 *ragged_points(sp.points_lidar[idx], sp.point_mask[idx]),
                 w,
-                iterations=its,
-                lr=settings.learning_rate,
-                device=device,
-                seed=seed,
-                nn_every=settings.nn_every,
-                chamfer_vertex_max_m=settings.chamfer_vertex_max_m,
-                converge_rtol=settings.converge_rtol,
+                dataclasses.replace(settings, iterations=its, device=device, seed=seed),
                 **extra,
             )
             if count:
@@ -118,9 +115,7 @@ def bench_fit(
         rng = np.random.default_rng(seed + 1000 * si)
         poses = sample_plausible_poses(persons, rng)
         sp = synthesize_persons(model, poses, SENSORS[sensor], rng)
-        truth = BodyParams(
-            sp.truth_betas, sp.truth_global_orient, sp.truth_body_pose, sp.truth_transl
-        )
+        truth = sp.truth
         init = oracle_initial_estimate(model, truth, rng)
         occ = sp.occluded_limb >= 0
         table: dict = {}
@@ -179,17 +174,13 @@ def _warm_start_rows(
     import numpy as np
     import torch
 
-    from tasks.fit.init_oracle import BodyParams, oracle_initial_estimate
+    from tasks.body.params import BodyParams
+    from tasks.fit.init_oracle import oracle_initial_estimate
     from tasks.fit.lidar_sim import SENSORS, synthesize_persons
 
     B = len(truth)
     _, _, first = run_fits(sp, init, weights, {"count": False})
-    prev = BodyParams(
-        *(
-            np.concatenate([getattr(r, k) for r in first])
-            for k in ("betas", "global_orient", "body_pose", "transl")
-        )
-    )
+    prev = BodyParams.concat(first)
     # frame 2 ground truth: same person, moved and re-posed slightly; new sweep and keypoints
     pose2 = truth.body_pose + rng.normal(0.0, 0.05, truth.body_pose.shape).astype(np.float32)
     sp2 = synthesize_persons(model, pose2, SENSORS[sensor], rng)
@@ -289,24 +280,19 @@ def simulated_pool(pool: int, sensor: str, seed: int, **synthesize) -> dict:
     on a machine without the simulator's dependencies (``--pool-file``)."""
     import numpy as np
 
+    from tasks.body.params import BodyParams
     from tasks.body.poses import sample_plausible_poses
     from tasks.body.procedural import default_body_model
-    from tasks.fit.init_oracle import BodyParams, oracle_initial_estimate
+    from tasks.fit.init_oracle import oracle_initial_estimate
     from tasks.fit.lidar_sim import SENSORS, synthesize_persons
 
     model, rng = default_body_model(), np.random.default_rng(seed)
     sp = synthesize_persons(
         model, sample_plausible_poses(pool, rng), SENSORS[sensor], rng, **synthesize
     )
-    init = oracle_initial_estimate(
-        model,
-        BodyParams(sp.truth_betas, sp.truth_global_orient, sp.truth_body_pose, sp.truth_transl),
-        rng,
-    )
+    init = oracle_initial_estimate(model, sp.truth, rng)
     arrays = {k: getattr(sp, k) for k in POOL_FIELDS if not k.startswith("init_")}
-    arrays.update(
-        {f"init_{k}": getattr(init, k) for k in ("betas", "global_orient", "body_pose", "transl")}
-    )
+    arrays.update({f"init_{k}": getattr(init, k) for k in BodyParams.FIELDS})
     return arrays
 
 
@@ -331,12 +317,12 @@ def bench_throughput(
     import numpy as np
     import torch
 
+    from tasks.body.params import BodyParams
     from tasks.body.prior import GMMPosePrior, generate_pose_prior
     from tasks.body.procedural import default_body_model
     from tasks.fit.icp import icp_align
-    from tasks.fit.init_oracle import BodyParams
     from tasks.fit.metrics import mean_error_mm
-    from tasks.fit.optimize import fit_persons, ragged_points
+    from tasks.fit.optimize import LIDAR_MIN_POINTS, fit_persons, ragged_points
     from tasks.fit.visibility import vertex_parts, visibility_masks
 
     iterations = settings.iterations
@@ -350,19 +336,11 @@ def bench_throughput(
     prior = GMMPosePrior(g["means"], g["covars"], g["weights"]).to(device)
     a = pool_arrays if pool_arrays is not None else simulated_pool(min(pool, persons), sensor, seed)
     n = len(a["keypoints"])
-    init0 = BodyParams(*(a[f"init_{k}"] for k in ("betas", "global_orient", "body_pose", "transl")))
+    init0 = BodyParams(*(a[f"init_{k}"] for k in BodyParams.FIELDS))
     rep = np.arange(persons) % n
     init = init0.take(rep)
     pts, counts = ragged_points(a["points_lidar"][rep], a["point_mask"][rep])
-    args = {
-        "weights": weights,
-        "iterations": iterations,
-        "device": device,
-        "nn_every": settings.nn_every,
-        "chamfer_vertex_max_m": settings.chamfer_vertex_max_m,
-        "lr": settings.learning_rate,
-        "converge_rtol": settings.converge_rtol,
-    }
+    fit_settings = dataclasses.replace(settings, device=device)
     w = min(4, persons)
     warm_pts, warm_counts = ragged_points(a["points_lidar"][rep[:w]], a["point_mask"][rep[:w]])
     fit_persons(
@@ -374,14 +352,24 @@ def bench_throughput(
         a["T_cam_from_lidar"],
         warm_pts,
         warm_counts,
-        **{**args, "iterations": min(iterations, 6)},
+        weights,
+        dataclasses.replace(fit_settings, iterations=min(iterations, 6)),
     )
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
     sync()
     t0 = time.perf_counter()
     r = fit_persons(
-        model, prior, init, a["keypoints"][rep], a["K"], a["T_cam_from_lidar"], pts, counts, **args
+        model,
+        prior,
+        init,
+        a["keypoints"][rep],
+        a["K"],
+        a["T_cam_from_lidar"],
+        pts,
+        counts,
+        weights,
+        fit_settings,
     )
     sync()
     wall = time.perf_counter() - t0
@@ -390,10 +378,7 @@ def bench_throughput(
     kp = torch.as_tensor(a["keypoints"][rep], device=device)
     with torch.no_grad():
         o = dev_model(
-            *(
-                torch.as_tensor(getattr(init, k), device=device)
-                for k in ("betas", "global_orient", "body_pose", "transl")
-            )
+            *(torch.as_tensor(getattr(init, k), device=device) for k in BodyParams.FIELDS)
         )
         vis = visibility_masks(
             o.vertices,
@@ -412,7 +397,7 @@ def bench_throughput(
     )
     sync()
     t1 = time.perf_counter()
-    icp_align(o.vertices, vis.vertex_mask, p_cam, person)
+    icp_align(o.vertices, vis.vertex_mask, p_cam, person, min_person_points=LIDAR_MIN_POINTS)
     sync()
     icp_s = time.perf_counter() - t1
     out = {
@@ -443,17 +428,18 @@ def device_agreement(pool_arrays: dict, device: str, weights, iterations: int = 
 
     import numpy as np
 
+    from tasks.body.params import BodyParams
     from tasks.body.prior import GMMPosePrior, generate_pose_prior
     from tasks.body.procedural import default_body_model
-    from tasks.fit.init_oracle import BodyParams
     from tasks.fit.optimize import fit_persons, ragged_points
+    from tasks.fit.settings import FitSettings
 
     a, model = pool_arrays, default_body_model()
     g = generate_pose_prior()
     prior = GMMPosePrior(g["means"], g["covars"], g["weights"])
-    init = BodyParams(*(a[f"init_{k}"] for k in ("betas", "global_orient", "body_pose", "transl")))
+    init = BodyParams(*(a[f"init_{k}"] for k in BodyParams.FIELDS))
     pts, counts = ragged_points(a["points_lidar"], a["point_mask"])
-    kw = {"weights": weights, "iterations": iterations, "nn_every": 5, "chamfer_vertex_max_m": 0.03}
+    settings = dataclasses.replace(FitSettings(), iterations=iterations)
 
     def fit(dev):
         p = prior if dev == "cpu" else copy.deepcopy(prior).to(dev)
@@ -466,8 +452,8 @@ def device_agreement(pool_arrays: dict, device: str, weights, iterations: int = 
             a["T_cam_from_lidar"],
             pts,
             counts,
-            device=dev,
-            **kw,
+            weights,
+            dataclasses.replace(settings, device=dev),
         )
 
     c, d1, d2 = fit("cpu"), fit(device), fit(device)
@@ -586,7 +572,7 @@ def main(argv=None) -> None:
     if a.save_pool:
         import numpy as np
 
-        np.savez_compressed(a.save_pool, **simulated_pool(a.pool, sensor, a.seed))
+        save_npz_deterministic(a.save_pool, **simulated_pool(a.pool, sensor, a.seed))
         print(f"{a.pool} persons ({sensor}) saved to {a.save_pool}")
         return
     pool_arrays = None
@@ -637,8 +623,8 @@ def main(argv=None) -> None:
     }
     if a.json:
         import json
-        from pathlib import Path
 
-        Path(a.json).write_text(
-            json.dumps({"argv": argv if argv is not None else sys.argv[1:], **results}, indent=1)
+        atomic_write_text(
+            a.json,
+            json.dumps({"argv": argv if argv is not None else sys.argv[1:], **results}, indent=1),
         )

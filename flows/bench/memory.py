@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from storage.atomic import atomic_write_text, move_into_place
+
 STEP_M = 0.2
 #: ray range of the synthetic sweeps, m (the OS1's nominal range)
 SWEEP_RANGE_M = 120.0
@@ -57,8 +59,9 @@ def _write_detections(
         if not target.exists():
             os.link(first, target)
     # the frames the detect stage produced (the later stages read them from its summary)
-    (folder / "summary.json").write_text(
-        json.dumps({"implemented": True, "frames": list(raw_frames), "failed_frames": []})
+    atomic_write_text(
+        folder / "summary.json",
+        json.dumps({"implemented": True, "frames": list(raw_frames), "failed_frames": []}),
     )
 
 
@@ -89,12 +92,12 @@ def make_sequences(root: Path, frames: list[int], seed: int = 0) -> dict[int, di
             path = W.write_lidar(
                 pool, 0, k, organised_sweep(scene, poses[k], dirs, SWEEP_RANGE_M), zeros, zeros
             )
-            os.replace(path, pool / f"{k}.bin")
+            move_into_place(path, pool / f"{k}.bin")
     sim_s = time.perf_counter() - t0
     cam = rig.camera("cam0")
     image = pool / "image.jpg"
     if not image.exists():  # the reader wants each frame's camera files; nothing here reads them
-        os.replace(
+        move_into_place(
             W.write_image(pool, 0, "cam0", 0, np.full((cam.height, cam.width, 3), 128, np.uint8)),
             image,
         )
@@ -339,6 +342,6 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(sys.argv[1:] if argv is None else argv)
     r = bench_memory(a.frames, a.work, untiled=a.untiled, stages=tuple(a.stages))
     if a.json:
-        a.json.write_text(json.dumps(r, indent=1, default=str))
+        atomic_write_text(a.json, json.dumps(r, indent=1, default=str))
     print(format_table(r))
     return 0

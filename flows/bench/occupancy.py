@@ -76,6 +76,7 @@ def bench_freespace(
 
     from tasks.occupancy.freespace import OccupancyMap
     from tasks.occupancy.grid import GridSpec
+    from tasks.occupancy.settings import FreeSpaceParams
     from tasks.occupancy.synthetic import campus_scene, os1_directions, raycast
 
     origin = np.array([0.0, 0.0, 0.8])
@@ -84,11 +85,14 @@ def bench_freespace(
     repeats = 2 if quick else 5
 
     threads = max(1, os.cpu_count() or 1)
-    OccupancyMap(voxel_size_m).insert_scan(pts[:100], origin, max_range_m)  # JIT / cache load
+    params = FreeSpaceParams(voxel_size_m=voxel_size_m)  # OctoMap's probabilities
+    OccupancyMap(params).insert_scan(  # JIT / cache load
+        pts[:100], origin, max_range_m=max_range_m, discretize=False
+    )
 
     def ours(n_threads: int = threads):
-        m = OccupancyMap(voxel_size_m, threads=n_threads)
-        m.insert_scan(pts, origin, max_range_m, discretize=discretize)
+        m = OccupancyMap(params, threads=n_threads)
+        m.insert_scan(pts, origin, max_range_m=max_range_m, discretize=discretize)
         return m
 
     def theirs():
@@ -150,9 +154,11 @@ def bench_map_fuse(
     """
     import open3d as o3d
 
+    from tasks.conventions import ROAD, TERRAIN
     from tasks.occupancy.freespace import OccupancyMap
     from tasks.occupancy.fuse import CameraView, PedestrianMesh, fuse_frame
     from tasks.occupancy.grid import GridSpec
+    from tasks.occupancy.settings import FreeSpaceParams, FuseSettings, MapParams
     from tasks.occupancy.static_map import StaticSemanticMap, pedestrian_point_mask
     from tasks.occupancy.synthetic import (
         box_mesh,
@@ -180,8 +186,9 @@ def bench_map_fuse(
         pts, _ = raycast(scene + [box_mesh(world_person[:3], world_person[3:6])], origin, dirs)
         frames.append((pose, origin, pts, person, world_person))
     # -- map stage
-    smap, omap = StaticSemanticMap(map_vs), OccupancyMap(map_vs)
-    omap.insert_scan(frames[0][2][:10], frames[0][1], max_range_m)  # JIT / cache load
+    smap, omap = StaticSemanticMap(map_vs), OccupancyMap(FreeSpaceParams(voxel_size_m=map_vs))
+    scan = {"max_range_m": max_range_m, "discretize": False}
+    omap.insert_scan(frames[0][2][:10], frames[0][1], **scan)  # JIT / cache load
     pedestrian_point_mask(frames[0][2][:10], boxes_lidar=frames[0][4][None], box_margin_m=0.1)
 
     def map_stage():
@@ -189,13 +196,13 @@ def bench_map_fuse(
             keep = ~pedestrian_point_mask(pts, boxes_lidar=world_person[None], box_margin_m=0.1)
             lab = np.where(pts[:, 2] < 0.05, 4, 2).astype(np.uint8)
             smap.add_sweep(pts, lab, keep)
-            omap.insert_scan(pts[keep], origin, max_range_m)
+            omap.insert_scan(pts[keep], origin, **scan)
 
     t0 = time.process_time()
     map_stage()
     t_map = time.process_time() - t0
     t0 = time.process_time()
-    static = smap.finalize()
+    static = smap.finalize(MapParams(voxel_size_m=map_vs), (ROAD, TERRAIN))
     t_finalize = time.process_time() - t0
     # -- fuse stage
     spec = GridSpec(BENCH_RANGE_MIN, BENCH_RANGE_MAX, voxel_size_m)
@@ -221,6 +228,7 @@ def bench_map_fuse(
             lidar_points_base=pts_base,
             lidar_origin_base=np.array([0, 0, lidar_h]),
             camera=cam,
+            fusion=FuseSettings(camera_pixel_stride=None),  # the stride for the voxel size
         )
         if i > 0 or n_frames == 1:  # the first frame includes JIT / cache loading
             fuse_s.append(time.process_time() - t0)

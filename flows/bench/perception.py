@@ -28,10 +28,12 @@ from flows.pipeline.inputs import detect_inputs, open_sequence, sequence_ref
 from flows.pipeline.plan import selected_sequences
 from flows.stages.detect import detect_frames
 from flows.stages.models import model_perception
+from storage.atomic import atomic_write_text
 from storage.gt import read_frame_gt
 from storage.images import read_rgb
 from storage.products import Detections as DetectionsProduct
-from tasks.metrics.detection import DetectionCounts, detection_counts, match_boxes
+from tasks.geometry import match_boxes
+from tasks.metrics.detection import DetectionCounts, detection_counts
 from tasks.metrics.keypoints import mask_iou, pck_counts
 from tasks.perception.models.detector import Detections
 
@@ -123,4 +125,4 @@ def main(argv: list[str] | None = None) -> None:
     text = json.dumps(result, indent=1)
     print(text)
     if a.json:
-        a.json.write_text(text + "\n")
+        atomic_write_text(a.json, text + "\n")

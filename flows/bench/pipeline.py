@@ -221,7 +221,7 @@ def _octomap_same_scans(data_root: str, out_root: str, overrides: dict) -> dict:
 
     from flows.bench.occupancy import octomap_seconds_per_scan
     from flows.pipeline.inputs import open_sequence
-    from tasks.conventions import transform_points
+    from tasks.geometry import transform_points
 
     cfg = make_config(Path(data_root), Path(out_root), overrides)
     seq = open_sequence(cfg, "0")

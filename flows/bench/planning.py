@@ -37,6 +37,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from storage.atomic import atomic_write_text
+
 #: raw 10 Hz frames of the replicated sequence (10 frames at 5 Hz)
 RAW_FRAMES = 20
 #: the replicated sequence's own id: one that no replica's id or frame index can be mistaken for
@@ -61,7 +63,7 @@ def replicate_sequence(src_root: Path, dst_root: Path, source_id: int, ids: list
             target.parent.mkdir(parents=True, exist_ok=True)
             if p.parent.name == "metadata":
                 text = p.read_text().replace(f"/{sid}/", f"/{new}/").replace(f"_{sid}_", f"_{new}_")
-                target.write_text(text)
+                atomic_write_text(target, text)
             else:
                 os.link(p, target)
                 links += 1
@@ -338,7 +340,7 @@ def main(argv: list[str] | None = None) -> None:  # pragma: no cover - a measure
             shutil.rmtree(work, ignore_errors=True)
     print(format_table(result))
     if a.json is not None:
-        a.json.write_text(json.dumps(result, indent=1, default=str) + "\n")
+        atomic_write_text(a.json, json.dumps(result, indent=1, default=str) + "\n")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -50,6 +50,7 @@ from pathlib import Path
 from flows.bench.planning import (
     SOURCE_ID,  # the simulated long sequence's id (a number no copy takes)
 )
+from storage.atomic import atomic_write_text
 
 DEFAULT_FRAMES = (10, 20, 40)
 DEFAULT_SEQUENCES = (10, 100, 1000)
@@ -98,10 +99,13 @@ def link_sequence(
         target.parent.mkdir(parents=True, exist_ok=True)
         if p.parent.name in ("timestamps", "dense_global"):
             lines = p.read_text().splitlines(keepends=True)
-            target.write_text("".join(lines[:raw_frames] if raw_frames is not None else lines))
+            atomic_write_text(
+                target, "".join(lines[:raw_frames] if raw_frames is not None else lines)
+            )
         elif p.parent.name == "metadata":
-            target.write_text(
-                p.read_text().replace(f"/{sid}/", f"/{dst_id}/").replace(f"_{sid}_", f"_{dst_id}_")
+            atomic_write_text(
+                target,
+                p.read_text().replace(f"/{sid}/", f"/{dst_id}/").replace(f"_{sid}_", f"_{dst_id}_"),
             )
         else:
             os.link(p, target)

@@ -50,9 +50,10 @@ from storage.gt import gt_dir, read_frame_gt, read_sequence_gt
 from storage.manifest import Manifest
 from storage.products import Bodies, Detections, Tracks
 from tasks import conventions as C
+from tasks.geometry import match_boxes, transform_points
 from tasks.metrics._common import PRCounts
 from tasks.metrics.confusion import ErrorLocations, error_locations
-from tasks.metrics.detection import DetectionCounts, detection_counts, match_boxes
+from tasks.metrics.detection import DetectionCounts, detection_counts
 from tasks.metrics.heading import heading_errors_deg, heading_summary
 from tasks.metrics.occupancy import OccupancyMetric
 from tasks.metrics.pedestrian import (
@@ -125,14 +126,14 @@ def _gt_root(out: Path, manifest: Manifest, gt: Path | None) -> Path:
 def _boxes_to_base(T_base_from_lidar: np.ndarray, centers, yaws) -> tuple[np.ndarray, np.ndarray]:
     """Box centres (B, 3) and yaws (B,) from the LiDAR frame to the base frame (rotation about z)."""
     R = T_base_from_lidar[:3, :3]
-    return C.transform_points(T_base_from_lidar, centers), np.asarray(
-        yaws, np.float64
-    ) + np.arctan2(R[1, 0], R[0, 0])
+    return transform_points(T_base_from_lidar, centers), np.asarray(yaws, np.float64) + np.arctan2(
+        R[1, 0], R[0, 0]
+    )
 
 
 def _in_image(points_lidar: np.ndarray, cam) -> np.ndarray:
     """(N,) bool: the LiDAR-frame points that project into the camera image (in front of it)."""
-    pc = C.transform_points(cam.T_cam_from_lidar, points_lidar)
+    pc = transform_points(cam.T_cam_from_lidar, points_lidar)
     z = pc[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         u = cam.K[0, 0] * pc[:, 0] / z + cam.K[0, 2]
@@ -144,7 +145,7 @@ def _frustum(shape, range_min, voxel_size_m: float, T_base_from_lidar, cam) -> n
     """(X, Y, Z) bool: voxels whose centre projects into the camera image."""
     idx = np.indices(shape).reshape(3, -1).T
     centres = np.asarray(range_min) + (idx + 0.5) * voxel_size_m
-    return _in_image(C.transform_points(np.linalg.inv(T_base_from_lidar), centres), cam).reshape(
+    return _in_image(transform_points(np.linalg.inv(T_base_from_lidar), centres), cam).reshape(
         shape
     )
 
@@ -161,7 +162,7 @@ def _condition(metadata: dict) -> str:
 
 
 def _body_model(config: dict):
-    from storage.body_files import load_body_model
+    from storage.body_model_files import load_body_model
     from tasks.body.model import BodyModel
     from tasks.body.procedural import default_body_model
 
@@ -172,11 +173,13 @@ def _body_model(config: dict):
 def _posed(model, params: dict, rows) -> tuple[np.ndarray, np.ndarray]:
     import torch
 
+    from tasks.body.params import BodyParams
+
     with torch.no_grad():
         out = model(
             *(
                 torch.as_tensor(np.asarray(params[k])[rows], dtype=torch.float32)
-                for k in ("betas", "global_orient", "body_pose", "transl")
+                for k in BodyParams.FIELDS
             )
         )
     return out.vertices.numpy(), out.joints.numpy()
@@ -301,7 +304,7 @@ def _evaluate_sequence(
         pinst = gtf.point_instance[sweep.index]
         is_ped = (pcls == C.PEDESTRIAN) | ((pinst >= 1) & (pinst < 1000))
         pcls[is_ped] = C.UNLABELED
-        pts_base = C.transform_points(T_bl, sweep.points)
+        pts_base = transform_points(T_bl, sweep.points)
         st = st + static_counts(pred, range_min, vs, pts_base, pcls, T_bl[:3, 3], noise_tol)
         # pedestrian vs boxes and vs LiDAR body points
         centers, yaws = _boxes_to_base(T_bl, gtf.box_center, gtf.box_yaw)
@@ -463,7 +466,7 @@ def _vertex_velocity(
         )
         return vv
     verts = (
-        np.stack([C.transform_points(T_bl, v) for v in gtf.vertices])
+        np.stack([transform_points(T_bl, v) for v in gtf.vertices])
         if len(gtf.vertices)
         else gtf.vertices
     )

@@ -28,8 +28,9 @@ from pathlib import Path
 import numpy as np
 
 from tasks import conventions as C
+from tasks.geometry import points_in_boxes, transform_points
 from tasks.metrics._common import PRCounts
-from tasks.metrics.coda_labels import box_class, points_in_boxes, semantic_to_classes
+from tasks.metrics.coda_labels import box_class, semantic_to_classes
 from tasks.metrics.pedestrian import (
     pedestrian_box_counts,
     pedestrian_lidar_counts,
@@ -108,7 +109,7 @@ def evaluate_coda(
             frame = coda.frame(coda.position(raw))
             labels["frames"] += 1
             pred = np.asarray(arrays["semantics"][k])
-            pts_base = C.transform_points(T_bl, frame.points_lidar)
+            pts_base = transform_points(T_bl, frame.points_lidar)
             if frame.semantic_labels is not None:
                 labels["frames with 3d_semantic"] += 1
                 st = st + static_counts(
@@ -147,7 +148,9 @@ def evaluate_coda(
                     visible=mask_cam,
                     bottom_exclude_m=BOTTOM_EXCLUDE_M,
                 )
-                body = points_in_boxes(frame.points_lidar, centers, sizes, rots, BOTTOM_EXCLUDE_M)
+                body = points_in_boxes(
+                    frame.points_lidar, centers, sizes, rots, bottom_exclude_m=BOTTOM_EXCLUDE_M
+                )
                 body &= _in_image(frame.points_lidar, cam)
                 gt_body = voxelize_points(pts_base[body], range_min, vs, shape)
             else:

@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from flows.commands import confusion_report
+from storage.atomic import atomic_write_text, write_atomically
 from tasks import conventions as C
 
 _PERCENT = {
@@ -188,10 +189,7 @@ def to_jsonable(value):
 
 def write_json(path: Path | str, value) -> Path:
     """``value`` (:func:`to_jsonable`) as indented JSON at ``path``, folders made."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(to_jsonable(value), indent=1) + "\n")
-    return path
+    return atomic_write_text(path, json.dumps(to_jsonable(value), indent=1) + "\n")
 
 
 # ---- Markdown -----------------------------------------------------------------------------------
@@ -313,9 +311,10 @@ def _new_figure(w: float, h: float):
 
 
 def _save(fig, path: Path) -> Path:
-    fig.savefig(path, dpi=100)
-    if path.stat().st_size > _MAX_PNG_BYTES:  # keep the report light: retry smaller
-        fig.savefig(path, dpi=70)
+    with write_atomically(path) as tmp:
+        fig.savefig(tmp, dpi=100, format="png")
+        if tmp.stat().st_size > _MAX_PNG_BYTES:  # keep the report light: retry smaller
+            fig.savefig(tmp, dpi=70, format="png")
     return path
 
 
@@ -490,7 +489,7 @@ def write_report(report_dir, results: dict, figures: dict | None = None) -> Path
     fig_dir = out / "figures"
     fig_dir.mkdir(parents=True, exist_ok=True)
     jsonable = to_jsonable(results)
-    (out / "results.json").write_text(json.dumps(jsonable, indent=2, allow_nan=False) + "\n")
+    atomic_write_text(out / "results.json", json.dumps(jsonable, indent=2, allow_nan=False) + "\n")
 
     section_figs: dict[str, list[str]] = {}
     for name in ("occupancy", "static"):
@@ -553,6 +552,4 @@ def write_report(report_dir, results: dict, figures: dict | None = None) -> Path
             fig = f"hist_{_slug(name)}"
             _histogram(fig_dir / f"{fig}.png", name, values, xlabel)
             md += [f"![{name}](figures/{fig}.png)", ""]
-    path = out / "report.md"
-    path.write_text("\n".join(md).rstrip() + "\n")
-    return path
+    return atomic_write_text(out / "report.md", "\n".join(md).rstrip() + "\n")

@@ -18,6 +18,7 @@ def show(path: Path, out_png: Path, frame: int | None = None) -> Path:
 
     from storage import coda_writer as W
     from storage import gt as GT
+    from storage.atomic import write_atomically
     from tasks import viz
 
     path = Path(path)
@@ -44,7 +45,7 @@ def show(path: Path, out_png: Path, frame: int | None = None) -> Path:
     K_small[:2, 2] = (K[:2, 2] + 0.5) * small.shape[0] / image.shape[0] - 0.5
     cam = viz.draw_points(small, points, K_small, T, max_depth=25.0, radius=1)
     picture = viz.side_by_side([bev, cam], height=height)
-    out_png = Path(out_png)
-    out_png.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(np.ascontiguousarray(picture)).save(out_png, optimize=True)
-    return out_png
+    with write_atomically(out_png) as tmp:
+        fmt = Image.registered_extensions().get(Path(out_png).suffix.lower(), "PNG")
+        Image.fromarray(np.ascontiguousarray(picture)).save(tmp, format=fmt, optimize=True)
+    return Path(out_png)

@@ -34,7 +34,7 @@ def split_style_frames(frames: int) -> list[int]:
 
 def _calibration(rig):
     """The rig as a storage Calibration: the rectified cameras with their raw cameras attached."""
-    from storage.model import Calibration, CameraCalibration, RawCameraCalibration
+    from storage.sequence_data import Calibration, CameraCalibration, RawCameraCalibration
 
     T0 = rig.camera("cam0").T_cam_from_lidar
     cams = {}
@@ -53,7 +53,7 @@ def _calibration(rig):
 
 
 def _boxes(frame) -> list:
-    from storage.model import Box3D
+    from storage.sequence_data import Box3D
 
     out = []
     p = frame.people

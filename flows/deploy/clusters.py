@@ -31,6 +31,8 @@ from typing import Any, Literal
 
 import yaml
 
+from storage.atomic import atomic_write_text
+
 #: Placeholder scheduler address written into rendered SLURM scripts (the real one is filled in
 #: by ``build_cluster``).
 RENDER_SCHEDULER = "tcp://scheduler:8786"
@@ -405,7 +407,7 @@ def hold_cluster(spec: ClusterSpec, address_file: Path | None = None, wait=None)
         address = handle.address
         print(address, flush=True)
         if address_file is not None:
-            Path(address_file).write_text(address + "\n")
+            atomic_write_text(address_file, address + "\n")
         try:
             (wait or _sleep_forever)(address)
         except KeyboardInterrupt:

@@ -19,11 +19,15 @@ import dataclasses
 import hashlib
 import json
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
-from configs.schema import Config
+from pydantic import BaseModel, TypeAdapter
+from pydantic.dataclasses import is_pydantic_dataclass
+
+from configs.schema import Config, ModelsConfig
 from flows.pipeline.dag import CODE_VERSIONS, STAGES
 from storage.coda import CodaSequence
 from tasks.conventions import CLASS_NAMES
@@ -46,14 +50,15 @@ PER_SEQUENCE_KEYS = ("dataset.lighting",)
 
 def to_jsonable(value: Any) -> Any:
     """Plain JSON of an inputs object: dataclasses (tagged with their type, so two providers with
-    the same fields differ), pydantic models, tuples, paths."""
+    the same fields differ: its ``KEY_TYPE`` where it has one, else its class name), config
+    sections held whole (``detect.models``: their config JSON), tuples, paths."""
+    if is_pydantic_dataclass(type(value)) or isinstance(value, BaseModel):
+        return TypeAdapter(type(value)).dump_python(value, mode="json")
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return {
-            "type": type(value).__name__,
+            "type": getattr(value, "KEY_TYPE", type(value).__name__),
             **{f.name: to_jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)},
         }
-    if hasattr(value, "model_dump"):
-        return value.model_dump(mode="json")
     if isinstance(value, dict):
         return {str(k): to_jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
@@ -173,76 +178,87 @@ def source(config: Config) -> Source:
     )
 
 
-# ---- providers, each with only its own settings ---------------------------------------------------
+# ---- provider specifications, each with only its own settings -------------------------------------
+#
+# A spec says which provider a stage uses and with which settings (flows/stages/providers.py builds
+# the provider from it). KEY_TYPE: the spec's type in the cache key's JSON, the name the class had
+# when the keys were first written (renaming a class must not rerun every stage).
 
 
 @dataclass(frozen=True)
-class OracleProvider:
+class OracleSpec:
     """Detections from the synthetic ground truth with the oracle's noise model."""
 
     NAME: ClassVar[str] = "oracle"
+    KEY_TYPE: ClassVar[str] = "OracleProvider"
 
     noise: OracleNoise
     seed: int
 
 
 @dataclass(frozen=True)
-class PrecomputedProvider:
+class PrecomputedSpec:
     """Model outputs read from files (storage/PERCEPTION_FORMAT.md) under ``directory``."""
 
     NAME: ClassVar[str] = "precomputed"
+    KEY_TYPE: ClassVar[str] = "PrecomputedProvider"
 
     directory: str
 
 
 @dataclass(frozen=True)
-class LidarClustersProvider:
+class LidarClustersSpec:
     """The weight-free LiDAR pedestrian detector."""
 
     NAME: ClassVar[str] = "lidar-clusters"
+    KEY_TYPE: ClassVar[str] = "LidarClustersProvider"
 
     params: LidarClusterParams
 
 
 @dataclass(frozen=True)
-class ModelsProvider:
+class ModelsSpec:
     """Real networks from local files (the ``detect.models`` section; model files are named by
     path: replacing a file at the same path is not seen by the key), with the oracle's semantics
     and ground-truth identities where ``models.semantic.kind`` is 'oracle' (synthetic data)."""
 
     NAME: ClassVar[str] = "models"
+    KEY_TYPE: ClassVar[str] = "ModelsProvider"
 
-    models: Any
-    oracle: OracleProvider | None
+    models: ModelsConfig
+    oracle: OracleSpec | None
     #: the camera whose images the networks see (dataset.camera)
     camera: str
 
 
 @dataclass(frozen=True)
-class CliffProvider:
+class CliffSpec:
     """Initial bodies from a CLIFF ONNX export run on each tracked box."""
 
     NAME: ClassVar[str] = "cliff"
+    KEY_TYPE: ClassVar[str] = "CliffProvider"
 
     path: str
     device: str
 
 
 @dataclass(frozen=True)
-class OracleInitProvider:
+class OracleInitSpec:
     """Initial body estimates from the synthetic ground truth, perturbed like a monocular
     regressor (tasks.fit.init_oracle)."""
 
     NAME: ClassVar[str] = "oracle"
+    KEY_TYPE: ClassVar[str] = "OracleInitProvider"
 
     seed: int
 
 
 @dataclass(frozen=True)
-class NoProvider:
+class NoDetectionsSpec:
     """No detections of this kind."""
 
     NAME: ClassVar[str] = "none"
+    KEY_TYPE: ClassVar[str] = "NoProvider"
 
 
 @dataclass(frozen=True)
@@ -254,14 +270,20 @@ class BodyModelFiles:
     pose_prior_path: str | None
 
 
+#: what each kind of provider can be
+ImageSpec = OracleSpec | PrecomputedSpec | ModelsSpec
+LidarDetectionsSpec = LidarClustersSpec | OracleSpec | PrecomputedSpec | NoDetectionsSpec
+InitSpec = OracleInitSpec | PrecomputedSpec | CliffSpec
+
+
 # ---- the stages ------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
 class DetectInputs:
     source: Source
-    image: OracleProvider | PrecomputedProvider | ModelsProvider
-    lidar: LidarClustersProvider | OracleProvider | PrecomputedProvider | NoProvider
+    image: ImageSpec
+    lidar: LidarDetectionsSpec
     #: frames with bad input are left out; the stage fails when more than this share of them are
     max_failed_frame_share: float
 
@@ -280,7 +302,7 @@ class TrackInputs:
 class FitInputs:
     source: Source
     #: initial estimates: the oracle (perturbed ground truth) or precomputed CLIFF files
-    init: OracleInitProvider | PrecomputedProvider | CliffProvider
+    init: InitSpec
     body: BodyModelFiles
     #: the loss weights of the chosen preset (its name, and the weights resolved)
     preset: str
@@ -337,20 +359,21 @@ class DatasetExportInputs:
     infos_data_root: str | None
 
 
-def _provider(name: str, config: Config, seed: int) -> Any:
+def _spec(name: str, config: Config, seed: int) -> Any:
+    """The spec of the detect provider called ``name`` (detect.image_provider / lidar_provider)."""
     det = config.detect
     if name == "oracle":
-        return OracleProvider(det.oracle.to(OracleNoise), seed)
+        return OracleSpec(det.oracle.to(OracleNoise), seed)
     if name == "precomputed":
-        return PrecomputedProvider(str(det.precomputed_dir))
+        return PrecomputedSpec(str(det.precomputed_dir))
     if name == "lidar-clusters":
-        return LidarClustersProvider(det.lidar_clusters.to(LidarClusterParams))
+        return LidarClustersSpec(det.lidar_clusters.to(LidarClusterParams))
     if name == "none":
-        return NoProvider()
+        return NoDetectionsSpec()
     if name == "models":
         oracle = det.models.semantic.kind == "oracle"
-        return ModelsProvider(
-            det.models, _provider("oracle", config, seed) if oracle else None, config.dataset.camera
+        return ModelsSpec(
+            det.models, _spec("oracle", config, seed) if oracle else None, config.dataset.camera
         )
     raise ValueError(f"unknown provider {name!r}")  # the schema's Literal types prevent this
 
@@ -367,8 +390,8 @@ def detect_inputs(config: Config) -> DetectInputs:
     det = config.detect
     return DetectInputs(
         source(config),
-        _provider(det.image_provider, config, det.seed),
-        _provider(det.lidar_provider, config, det.seed),
+        _spec(det.image_provider, config, det.seed),
+        _spec(det.lidar_provider, config, det.seed),
         det.max_failed_frame_share,
     )
 
@@ -390,9 +413,9 @@ def track_inputs(config: Config) -> TrackInputs:
 def fit_inputs(config: Config) -> FitInputs:
     f = config.fit
     init = {
-        "oracle": lambda: OracleInitProvider(f.seed),
-        "precomputed": lambda: PrecomputedProvider(str(f.init_dir)),
-        "cliff": lambda: CliffProvider(str(f.cliff_path), f.device),
+        "oracle": lambda: OracleInitSpec(f.seed),
+        "precomputed": lambda: PrecomputedSpec(str(f.init_dir)),
+        "cliff": lambda: CliffSpec(str(f.cliff_path), f.device),
     }[f.init_provider]()
     return FitInputs(source(config), init, _body(config), f.preset, f.weights, f.to(FitSettings))
 
@@ -446,8 +469,11 @@ def dataset_export_inputs(config: Config) -> DatasetExportInputs:
     )
 
 
+#: a stage's inputs object (the type of ``StageContext.inputs``)
+StageInputs = DetectInputs | TrackInputs | FitInputs | MapInputs | FuseInputs | ExportInputs
+
 #: stage -> the function making its inputs object
-INPUTS = {
+INPUTS: dict[str, Callable[[Config], StageInputs]] = {
     "detect": detect_inputs,
     "track": track_inputs,
     "fit": fit_inputs,
@@ -457,6 +483,6 @@ INPUTS = {
 }
 
 
-def stage_inputs(config: Config) -> dict[str, Any]:
+def stage_inputs(config: Config) -> dict[str, StageInputs]:
     """Every stage's inputs object."""
     return {stage: make(config) for stage, make in INPUTS.items()}

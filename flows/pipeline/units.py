@@ -20,11 +20,8 @@ out of the dataset-level exports.
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import time
 import traceback
-import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,6 +44,7 @@ from flows.pipeline.plan import (
     iter_plans,
     selected_sequences,
 )
+from storage.atomic import atomic_write_text, staged_folder
 from storage.coda import check_dataset_root
 from storage.manifest import (
     FingerprintCache,
@@ -57,7 +55,6 @@ from storage.manifest import (
     remove_stale_versions,
     run_lock,
     stage_dir,
-    staged_output,
     sweep_temporaries,
 )
 from storage.publish import withdraw_sequence
@@ -100,7 +97,7 @@ def execute_unit(
     started = time.perf_counter()
     limit_threads(runtime.threads)
     try:
-        with staged_output(final) as tmp:
+        with staged_folder(final, replace=False) as tmp:
             ctx = StageContext(
                 unit.ref,
                 unit.inputs,
@@ -112,7 +109,7 @@ def execute_unit(
                 runtime=runtime,
             )
             summary = STAGE_FUNCTIONS[unit.stage](ctx)
-            (tmp / "summary.json").write_text(json.dumps(summary, sort_keys=True, indent=1))
+            atomic_write_text(tmp / "summary.json", json.dumps(summary, sort_keys=True, indent=1))
     except Exception as exc:  # noqa: BLE001 - one bad sequence fails alone, with its error
         return {
             **base,
@@ -412,25 +409,16 @@ def _dataset_exports(config: Config, manifest: Manifest, report: RunReport) -> N
         if not (published or done.get(fmt) != key):
             continue
         final = Path(config.output.root) / "exports" / fmt
-        tmp = final.with_name(f".tmp-{fmt}-{uuid.uuid4().hex[:8]}")
         try:
-            export_dataset(ex, Path(config.output.root), Path(config.dataset.root), fmt, target=tmp)
-            _swap_in(tmp, final)
+            with staged_folder(final) as tmp:
+                export_dataset(
+                    ex, Path(config.output.root), Path(config.dataset.root), fmt, target=tmp
+                )
             done[fmt] = key
             report.dataset_exports[fmt] = "done"
         except Exception as exc:  # noqa: BLE001 - the sequences stay published
-            shutil.rmtree(tmp, ignore_errors=True)
             done.pop(fmt, None)
             report.dataset_exports[fmt] = f"failed: {type(exc).__name__}: {exc}"
-
-
-def _swap_in(new: Path, final: Path) -> None:
-    """Replace the folder ``final`` by ``new`` (two renames; the old one is then deleted)."""
-    old = final.with_name(f".tmp-old-{final.name}-{uuid.uuid4().hex[:8]}")
-    if final.exists():
-        os.replace(final, old)
-    os.replace(new, final)
-    shutil.rmtree(old, ignore_errors=True)
 
 
 class _Progress:

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from flows.pipeline.inputs import BodyModelFiles, Runtime, SequenceRef
-from storage.body_files import (
+from storage.body_model_files import (
     load_body_model,
     load_pose_prior,
     save_body_model_npz,

@@ -18,8 +18,8 @@ from storage.export.common import source_relative
 from storage.products import Bodies, FusedFrames, Tracks
 from storage.publish import sequence_writer, stage_table
 from tasks.body.boxes import upright_box
+from tasks.body.params import BodyParams
 from tasks.body.posing import posed_vertices
-from tasks.fit.init_oracle import BodyParams
 from tasks.fit.reframe import reframe_params
 
 
@@ -43,7 +43,7 @@ def instance_rows(
     fitted = {(int(f), int(d)): r for r, (f, d) in enumerate(zip(bodies.frame, bodies.det_index))}
     base = reframe_params(
         body_model(ctx.inputs.body, ctx.out_root),
-        BodyParams(bodies.betas, bodies.global_orient, bodies.body_pose, bodies.transl),
+        BodyParams.of(bodies),
         T_base_from_lidar,
     )
     verts = posed_vertices(

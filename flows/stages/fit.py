@@ -15,16 +15,15 @@ import functools
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from flows.pipeline.inputs import FitInputs, SequenceRef
 from flows.pipeline.parallel import fan_out
 from flows.stages.common import StageContext, body_model, pose_prior
 from flows.stages.providers import init_provider
 from storage.products import Bodies, Tracks
+from tasks.body.params import BodyParams
 from tasks.fit.batch import concat_point_sets, drop_far_fits, fit_rows
-from tasks.fit.init_oracle import BodyParams
-from tasks.fit.optimize import fit_persons
+from tasks.fit.optimize import fit_persons, torch_device
 from tasks.fit.warm_start import warm_started
 from tasks.track.velocity import velocities_in_base
 
@@ -32,10 +31,6 @@ from tasks.track.velocity import velocities_in_base
 @functools.lru_cache(maxsize=2)
 def _tracks(folder: str) -> Tracks:
     return Tracks.read(Path(folder))  # key-named, never rewritten: safe to keep per process
-
-
-def device(name: str) -> str:
-    return ("cuda" if torch.cuda.is_available() else "cpu") if name == "auto" else name
 
 
 def fit_batch(
@@ -68,14 +63,8 @@ def fit_batch(
         cam.K,
         cam.T_cam_from_lidar,
         *concat_point_sets(points),
-        weights=inputs.weights,
-        iterations=s.iterations,
-        lr=s.learning_rate,
-        device=device(s.device),
-        seed=s.seed,
-        nn_every=s.nn_every,
-        converge_rtol=s.converge_rtol,
-        chamfer_vertex_max_m=s.chamfer_vertex_max_m,
+        inputs.weights,
+        s,
     )
     return {
         "rows": np.asarray(rows, np.int64),
@@ -128,12 +117,7 @@ def _warm_started(
             for k, r in enumerate(out["rows"]):
                 last[int(tracks.track_id[r])] = (
                     p,
-                    BodyParams(
-                        *(
-                            out[n][k : k + 1]
-                            for n in ("betas", "global_orient", "body_pose", "transl")
-                        )
-                    ),
+                    BodyParams.of(out).take(slice(k, k + 1)),
                 )
     return parts
 
@@ -199,6 +183,6 @@ def run_fit(ctx: StageContext) -> dict:
         "skipped_without_estimate": int(len(tracks.track_id) - len(rows) - int(few.sum())),
         "skipped_few_points": int(few.sum()),
         "dropped_far_from_estimate": far,
-        "device": device(s.device),
+        "device": torch_device(s.device),
         "preset": inp.preset,
     }

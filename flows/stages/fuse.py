@@ -28,11 +28,12 @@ from storage.products import (
     StaticMapProduct,
 )
 from tasks.body.motion import TrackedBodies
-from tasks.conventions import FREE, transform_points
+from tasks.conventions import FREE
+from tasks.geometry import transform_points
 from tasks.occupancy.frame import local_grids
 from tasks.occupancy.freespace import OccupancyMap
 from tasks.occupancy.fuse import CameraView, PedestrianMesh
-from tasks.occupancy.mapping import join_static_tiles, load_occupancy_map
+from tasks.occupancy.mapping import join_static_tiles
 from tasks.occupancy.resample import grid_reach_m
 from tasks.occupancy.static_map import StaticMap
 from tasks.occupancy.tiles import tiles_near_grids
@@ -129,7 +130,7 @@ def maps_near(
     logodds = np.concatenate([o.logodds for o in occ]) if occ else np.empty(0, np.float32)
     return (
         join_static_tiles(sv, [(p.keys, p.labels, p.counts, p.surface) for p in static]),
-        load_occupancy_map(inputs.freespace, keys, logodds),
+        OccupancyMap.from_arrays(inputs.freespace, keys, logodds),
     )
 
 
@@ -174,8 +175,7 @@ def fuse_chunk(
             frame.points_lidar,
             T_base_from_lidar,
             camera,
-            inputs.fusion.camera_pixel_stride,
-            inputs.fusion.camera_method,
+            inputs.fusion,
             threads,
         )
         for name, value in grids.items():

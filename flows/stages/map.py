@@ -83,7 +83,7 @@ def map_window(
     seq = inp.source.open(ref)
     labeller, votes = (
         _labeller(inp, seq, threads),
-        WindowVotes(inp.settings.voxel_size_m, inp.settings.tile_m),
+        WindowVotes(inp.settings),
     )
     frames, masks = [], []
     for i in positions:
@@ -201,14 +201,7 @@ def map_static(
 def run_map(ctx: StageContext) -> dict:
     inp, seq, work, threads = ctx.inputs, ctx.open(), ctx.out_dir / "work", ctx.runtime.threads
     s, fs, at = inp.settings, inp.freespace, np.asarray(detected_positions(ctx, seq), np.int64)
-    plan = plan_map(
-        seq.info.poses[at, :3, 3],
-        s.window_frames,
-        s.tile_m,
-        s.region_tiles,
-        fs.voxel_size_m,
-        fs.max_range_m,
-    )
+    plan = plan_map(seq.info.poses[at, :3, 3], s, fs)
     windows = fan_out(
         map_window,
         [
@@ -230,10 +223,7 @@ def run_map(ctx: StageContext) -> dict:
         )
         for t in part
     ]
-    halo = ground_halo_tiles(
-        s.tile_m, s.ground_cell_m, s.ground_neighbourhood_cells, s.voxel_size_m
-    )
-    groups = static_groups(plan, [(w["window"], w["tiles"]) for w in windows], halo)
+    groups = static_groups(plan, [(w["window"], w["tiles"]) for w in windows], ground_halo_tiles(s))
     static = [
         t
         for part in fan_out(

@@ -1,7 +1,7 @@
 """Real networks from local files, built once per process from the stage inputs: the composite of
 ``detect.models`` (image_provider 'models') and the CLIFF estimator (init_provider 'cliff').
 
-Runners (storage/model_files.py) are opened once per file and device and reused across frames
+Runners (storage/network_files.py) are opened once per file and device and reused across frames
 and batches; the adapters and the composite live in tasks/perception/models/.
 """
 
@@ -12,8 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.model_files import bundled_model, open_onnx, open_tflite
-from tasks.metrics.detection import match_boxes
+from configs.schema import ModelsConfig
+from storage.network_files import bundled_model, open_onnx, open_tflite
+from tasks.geometry import match_boxes
 from tasks.perception.models.blazepose import BlazePoseLandmarks
 from tasks.perception.models.cliff import CliffEstimator
 from tasks.perception.models.composite import ModelPerception
@@ -21,6 +22,13 @@ from tasks.perception.models.detector import DecodedBoxesDetector, Detections, Y
 from tasks.perception.models.keypoints import TopDownKeypoints
 from tasks.perception.models.proposals import project_lidar_boxes
 from tasks.perception.models.segmentation import QueryInstanceMasks, SemanticSegmenter
+from tasks.perception.models.settings import (
+    BlazePoseSettings,
+    DetectorSettings,
+    KeypointSettings,
+    MaskSettings,
+    SemanticSettings,
+)
 from tasks.perception.types import LidarDetections
 
 #: 2D IoU for a model detection to take a ground-truth person's identity (synthetic data)
@@ -38,43 +46,32 @@ def _tflite(path: str):
 
 
 @functools.lru_cache(maxsize=4)
-def model_perception(m) -> ModelPerception:
+def model_perception(m: ModelsConfig) -> ModelPerception:
     """The composite of a ``detect.models`` section (frozen, hashable: cached per process)."""
     onnx = lambda p: _onnx(str(p), m.device)  # noqa: E731 - a local shorthand
     d, k, s, mk = m.detector, m.keypoints, m.semantic, m.masks
     detector = None
     if d.kind == "yolox":
-        detector = YoloxDetector(
-            onnx(d.path), d.person_class, d.score_threshold, d.nms_iou, decoded=d.decoded
-        )
+        detector = YoloxDetector(onnx(d.path), d.to(DetectorSettings))
     elif d.kind == "decoded-boxes":
-        detector = DecodedBoxesDetector(onnx(d.path), d.person_class, d.score_threshold, d.nms_iou)
+        detector = DecodedBoxesDetector(onnx(d.path), d.to(DetectorSettings))
     keypoints = (
-        TopDownKeypoints(
-            onnx(k.path),
-            "heatmap" if k.kind == "vitpose" else "simcc",
-            udp=k.udp,
-            batch_size=k.batch_size,
-        )
+        TopDownKeypoints(onnx(k.path), k.to(KeypointSettings))
         if k.kind in ("vitpose", "rtmpose")
         else None
     )
     blaze = (
         BlazePoseLandmarks(
             _tflite(str(bundled_model(m.bundled_dir, "pose_landmark_full.tflite"))),
-            box_scale=m.box_scale,
+            m.to(BlazePoseSettings),
         )
         if k.kind == "blazepose"
         else None
     )
     masks = (
-        QueryInstanceMasks(onnx(mk.path), mk.person_class, mk.score_threshold)
-        if mk.kind == "mask2former"
-        else None
+        QueryInstanceMasks(onnx(mk.path), mk.to(MaskSettings)) if mk.kind == "mask2former" else None
     )
-    semantic = (
-        SemanticSegmenter(onnx(s.path), input_size=s.input_size) if s.kind == "onnx" else None
-    )
+    semantic = SemanticSegmenter(onnx(s.path), s.to(SemanticSettings)) if s.kind == "onnx" else None
     source = {
         "mask2former": "masks",
         "blazepose": "blazepose",
@@ -87,7 +84,6 @@ def model_perception(m) -> ModelPerception:
         masks=masks,
         semantic=semantic,
         blazepose=blaze,
-        min_pose_flag=m.min_pose_flag,
         mask_source=source,
     )
 

@@ -2,7 +2,8 @@
 
 Perception (detect): a provider answers for one sequence, frame by frame: ``image(frame)`` gives the
 frame's 2D perception (and, for the oracle, which ground-truth person each detection is),
-``lidar(frame)`` its LiDAR pedestrian boxes; ``frame`` is the reader's :class:`storage.model.Frame`.
+``lidar(frame)`` its LiDAR pedestrian boxes; ``frame`` is the reader's
+:class:`storage.sequence_data.Frame`.
 Initial body estimates (fit): ``available(tracks)`` says which rows of the track product have an
 estimate, ``estimates(tracks, rows)`` gives them (cam frame).
 
@@ -18,13 +19,16 @@ from typing import Protocol
 import numpy as np
 
 from flows.pipeline.inputs import (
-    CliffProvider,
-    LidarClustersProvider,
-    ModelsProvider,
-    NoProvider,
-    OracleInitProvider,
-    OracleProvider,
-    PrecomputedProvider,
+    CliffSpec,
+    ImageSpec,
+    InitSpec,
+    LidarClustersSpec,
+    LidarDetectionsSpec,
+    ModelsSpec,
+    NoDetectionsSpec,
+    OracleInitSpec,
+    OracleSpec,
+    PrecomputedSpec,
 )
 from flows.stages.common import frame_rng, is_night
 from flows.stages.models import (
@@ -37,10 +41,11 @@ from storage.cliff_files import cliff_path, read_cliff_estimates
 from storage.coda import CodaSequence
 from storage.gt import read_frame_gt
 from storage.images import read_rgb
-from storage.model import Frame
 from storage.perception_files import PrecomputedPerception
 from storage.products import Tracks
-from tasks.fit.init_oracle import BodyParams, cliff_to_params, oracle_initial_estimate
+from storage.sequence_data import Frame
+from tasks.body.params import BodyParams
+from tasks.fit.init_oracle import cliff_to_params, oracle_initial_estimate
 from tasks.fit.reframe import reframe_params
 from tasks.perception.lidar_clusters import detect_pedestrians_lidar
 from tasks.perception.oracle import oracle_image_perception, oracle_lidar_detections
@@ -62,7 +67,7 @@ class LidarProvider(Protocol):
 class OracleImage:
     """Ground truth + the oracle's noise model (synthetic data only)."""
 
-    def __init__(self, spec: OracleProvider, seq: CodaSequence):
+    def __init__(self, spec: OracleSpec, seq: CodaSequence):
         self.spec, self.seq, self.night = spec, seq, is_night(seq)
 
     def image(
@@ -97,7 +102,7 @@ class OracleLidar(OracleImage):
 class PrecomputedFiles:
     """A model's outputs read from files (storage/PERCEPTION_FORMAT.md), keyed by raw frame."""
 
-    def __init__(self, spec: PrecomputedProvider, seq: CodaSequence):
+    def __init__(self, spec: PrecomputedSpec, seq: CodaSequence):
         self.files = PrecomputedPerception(Path(spec.directory) / seq.sequence)
 
     def image(self, frame: Frame, lidar: LidarDetections) -> tuple[ImagePerception, None]:
@@ -110,7 +115,7 @@ class PrecomputedFiles:
 class LidarClusters:
     """The weight-free LiDAR detector on the frame's sweep."""
 
-    def __init__(self, spec: LidarClustersProvider, seq: CodaSequence):
+    def __init__(self, spec: LidarClustersSpec, seq: CodaSequence):
         self.params = spec.params
 
     def lidar(self, frame: Frame) -> LidarDetections:
@@ -118,7 +123,7 @@ class LidarClusters:
 
 
 class NoLidar:
-    def __init__(self, spec: NoProvider, seq: CodaSequence):
+    def __init__(self, spec: NoDetectionsSpec, seq: CodaSequence):
         pass
 
     def lidar(self, frame: Frame) -> LidarDetections:
@@ -130,7 +135,7 @@ class ModelsImage:
     proposals when the detector is 'lidar'; with the oracle's semantics (synthetic data) the
     detections take ground-truth identities by box."""
 
-    def __init__(self, spec: ModelsProvider, seq: CodaSequence):
+    def __init__(self, spec: ModelsSpec, seq: CodaSequence):
         self.spec, self.seq = spec, seq
         self.cam = seq.info.calibration.cameras[spec.camera]
         self.oracle = OracleImage(spec.oracle, seq) if spec.oracle is not None else None
@@ -150,23 +155,23 @@ class ModelsImage:
 
 
 IMAGE_PROVIDERS = {
-    OracleProvider: OracleImage,
-    PrecomputedProvider: PrecomputedFiles,
-    ModelsProvider: ModelsImage,
+    OracleSpec: OracleImage,
+    PrecomputedSpec: PrecomputedFiles,
+    ModelsSpec: ModelsImage,
 }
 LIDAR_PROVIDERS = {
-    OracleProvider: OracleLidar,
-    PrecomputedProvider: PrecomputedFiles,
-    LidarClustersProvider: LidarClusters,
-    NoProvider: NoLidar,
+    OracleSpec: OracleLidar,
+    PrecomputedSpec: PrecomputedFiles,
+    LidarClustersSpec: LidarClusters,
+    NoDetectionsSpec: NoLidar,
 }
 
 
-def image_provider(spec, seq: CodaSequence) -> ImageProvider:
+def image_provider(spec: ImageSpec, seq: CodaSequence) -> ImageProvider:
     return IMAGE_PROVIDERS[type(spec)](spec, seq)
 
 
-def lidar_provider(spec, seq: CodaSequence) -> LidarProvider:
+def lidar_provider(spec: LidarDetectionsSpec, seq: CodaSequence) -> LidarProvider:
     return LIDAR_PROVIDERS[type(spec)](spec, seq)
 
 
@@ -174,7 +179,7 @@ class OracleInit:
     """The oracle's initial estimates (synthetic data): the ground-truth bodies perturbed like a
     monocular regressor; a false positive has none. One generator per batch of rows."""
 
-    def __init__(self, spec: OracleInitProvider, seq: CodaSequence, model, camera):
+    def __init__(self, spec: OracleInitSpec, seq: CodaSequence, model, camera):
         self.spec, self.seq, self.model, self.camera = spec, seq, model, camera
 
     def available(self, tracks: Tracks) -> np.ndarray:
@@ -184,16 +189,8 @@ class OracleInit:
         truths = []
         for r in rows:
             gt = read_frame_gt(self.seq.root, int(self.seq.sequence), int(tracks.frame[r]))
-            g = [int(tracks.gt_index[r])]
-            truths.append(
-                BodyParams(gt.betas[g], gt.global_orient[g], gt.body_pose[g], gt.transl[g])
-            )
-        truth = BodyParams(
-            *(
-                np.concatenate([getattr(t, f) for t in truths])
-                for f in ("betas", "global_orient", "body_pose", "transl")
-            )
-        )
+            truths.append(BodyParams.of(gt).take([int(tracks.gt_index[r])]))
+        truth = BodyParams.concat(truths)
         rng = frame_rng(self.spec.seed, self.seq.sequence, int(rows[0]), 3)
         return oracle_initial_estimate(
             self.model, reframe_params(self.model, truth, self.camera.T_cam_from_lidar), rng
@@ -204,7 +201,7 @@ class PrecomputedCliff:
     """CLIFF outputs precomputed by the user (``<directory>/<sequence>/cliff.parquet``), keyed by
     (frame, det_index), converted with the sequence's calibrated intrinsics."""
 
-    def __init__(self, spec: PrecomputedProvider, seq: CodaSequence, model, camera):
+    def __init__(self, spec: PrecomputedSpec, seq: CodaSequence, model, camera):
         self.est = read_cliff_estimates(cliff_path(spec.directory, seq.sequence))
         self.K = camera.K
         self.where = {
@@ -237,7 +234,7 @@ class PrecomputedCliff:
 class CliffModel:
     """A CLIFF export on each tracked box (one image read per frame of the batch)."""
 
-    def __init__(self, spec: CliffProvider, seq: CodaSequence, model, camera):
+    def __init__(self, spec: CliffSpec, seq: CodaSequence, model, camera):
         self.spec, self.seq, self.camera = spec, seq, camera
         self.at = {raw: k for k, raw in enumerate(seq.info.frame_indices)}
 
@@ -253,20 +250,15 @@ class CliffModel:
             rgb = read_rgb(frame.image_paths[cam.name], (cam.width, cam.height))
             parts.append((here, cliff(rgb, tracks.boxes_xyxy[here], cam.K)))
         order = np.argsort(np.concatenate([h for h, _ in parts]), kind="stable")
-        return BodyParams(
-            *(
-                np.concatenate([getattr(p, f) for _, p in parts])[order]
-                for f in ("betas", "global_orient", "body_pose", "transl")
-            )
-        )
+        return BodyParams.concat(p for _, p in parts).take(order)
 
 
 INIT_PROVIDERS = {
-    OracleInitProvider: OracleInit,
-    PrecomputedProvider: PrecomputedCliff,
-    CliffProvider: CliffModel,
+    OracleInitSpec: OracleInit,
+    PrecomputedSpec: PrecomputedCliff,
+    CliffSpec: CliffModel,
 }
 
 
-def init_provider(spec, seq: CodaSequence, model, camera):
+def init_provider(spec: InitSpec, seq: CodaSequence, model, camera):
     return INIT_PROVIDERS[type(spec)](spec, seq, model, camera)

@@ -33,7 +33,7 @@ def _frame(ctx: StageContext, seq, cam, i: int) -> tuple[int, dict, FramePersons
         cam.T_cam_from_lidar,
         (cam.width, cam.height),
         inp.person_points,
-        inp.world_check.min_points,
+        inp.world_check,
     )
     rows = {k: getattr(d, k) for k in ("boxes_xyxy", "scores", "keypoints", "gt_index")}
     return frame.index, rows, persons

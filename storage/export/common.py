@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from storage.atomic import atomic_write_text
 from storage.dataset import Dataset
 
 CAM_CHANNEL = "CAM_FRONT"
@@ -246,18 +247,7 @@ def grid_metadata(ds: Dataset, sequences: list[str]) -> dict:
 
 
 def write_json(path: Path, obj) -> None:
-    """Write JSON (sorted keys, NaN refused) through a hidden file and a rename."""
+    """Write JSON (sorted keys, NaN refused) atomically (:mod:`storage.atomic`)."""
     import json
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".tmp-{path.name}")
-    tmp.write_text(json.dumps(obj, indent=1, sort_keys=True, allow_nan=False))
-    os.replace(tmp, path)
-
-
-def write_bytes(path: Path, data: bytes) -> None:
-    """Write bytes through a hidden file and a rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".tmp-{path.name}")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+    atomic_write_text(path, json.dumps(obj, indent=1, sort_keys=True, allow_nan=False))

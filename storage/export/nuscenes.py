@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from storage.atomic import atomic_write_bytes, atomic_write_text, write_atomically
 from storage.dataset import open_dataset
 from storage.export.common import (
     CAM_CHANNEL,
@@ -46,12 +47,12 @@ from storage.export.common import (
     scene_name,
     sequence_info,
     token,
-    write_bytes,
     write_json,
 )
 from storage.occupancy_store import open_layout, read_frames
 from storage.plain_pickle import dumps_plain
 from tasks.conventions import CLASS_NAMES, FREE, PEDESTRIAN, ROAD, TERRAIN
+from tasks.geometry import points_in_boxes, rot_z
 from tasks.occupancy.instance_visibility import box_lattice, visible_fractions
 
 TABLES = (
@@ -108,11 +109,6 @@ def visibility_token(fraction: float) -> str:
     return tok
 
 
-def _rot_z(yaw: float) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def read_sweep(path: Path, min_range_m: float, frame: int) -> np.ndarray:
     """(N, 5) float32 x y z intensity ring of a CODa .bin (no-returns dropped), LiDAR frame."""
     from storage.coda import read_lidar_bin
@@ -123,12 +119,6 @@ def read_sweep(path: Path, min_range_m: float, frame: int) -> np.ndarray:
     out[:, 3] = sweep.intensity
     out[:, 4] = sweep.ring
     return out
-
-
-def _points_in_box(points_base: np.ndarray, center, size_lwh, yaw: float) -> int:
-    local = (points_base - np.asarray(center)) @ _rot_z(yaw)  # R^T applied to rows
-    half = np.asarray(size_lwh) / 2.0
-    return int(np.all(np.abs(local) <= half, axis=1).sum())
 
 
 def _static_tables(log_tokens: list[str], map_token: str) -> dict[str, list]:
@@ -407,15 +397,13 @@ def export_nuscenes(
             )
 
     # a tiny all-zero semantic prior: the devkit needs the file, nothing reads its content here
-    mask = out / t["map"][0]["filename"]
-    mask.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(np.zeros((8, 8), np.uint8)).save(mask)
-    table_dir = out / version
-    table_dir.mkdir(parents=True, exist_ok=True)
+    with write_atomically(out / t["map"][0]["filename"]) as mask:
+        Image.fromarray(np.zeros((8, 8), np.uint8)).save(mask, format="PNG")
     for name in TABLES:
-        tmp = table_dir / f".tmp-{name}.json"
-        tmp.write_text(json.dumps(t[name], indent=0, sort_keys=True, allow_nan=False))
-        os.replace(tmp, table_dir / f"{name}.json")
+        atomic_write_text(
+            out / version / f"{name}.json",
+            json.dumps(t[name], indent=0, sort_keys=True, allow_nan=False),
+        )
     meta = {
         **metadata,
         "version": version,
@@ -426,9 +414,11 @@ def export_nuscenes(
         "infos_data_root": prefix,
     }
     for split, records in infos.items():
-        write_bytes(out / meta["infos"][split], dumps_plain({"infos": records, "metadata": meta}))
+        atomic_write_bytes(
+            out / meta["infos"][split], dumps_plain({"infos": records, "metadata": meta})
+        )
     write_json(out / METADATA_FILE, meta)
-    return table_dir
+    return out / version
 
 
 def _annotations(
@@ -467,7 +457,7 @@ def _annotations(
             T_wb = base_by_frame[f]
             yaw = float(r["box3d_yaw"] or 0.0)
             center_w = T_wb[:3, :3] @ np.asarray(r["box3d_center"]) + T_wb[:3, 3]
-            R_w = T_wb[:3, :3] @ _rot_z(yaw)
+            R_w = T_wb[:3, :3] @ rot_z(yaw)
             l, w, h = (float(v) for v in r["box3d_size"])
             v_base = None
             if (
@@ -477,7 +467,11 @@ def _annotations(
             ):
                 v_base = np.array([float(r["vx"]), float(r["vy"]), 0.0])
             moving = v_base is not None and np.hypot(v_base[0], v_base[1]) > moving_speed_mps
-            n_pts = _points_in_box(points_by_frame[f], r["box3d_center"], (l, w, h), yaw)
+            n_pts = int(
+                points_in_boxes(
+                    points_by_frame[f], [r["box3d_center"]], [(l, w, h)], [rot_z(yaw)]
+                ).sum()
+            )
             fraction = visible.get((f, track_id), 0.0)
             t["sample_annotation"].append(
                 {
@@ -539,7 +533,7 @@ def _info(
     num_pts = np.zeros(n, np.int64)
     for k, b in enumerate(boxes):
         c_lidar = R_lb @ (b["center"] - T_bl[:3, 3])
-        R = R_lb @ _rot_z(b["yaw"])
+        R = R_lb @ rot_z(b["yaw"])
         v = (
             b["velocity"] if b["velocity"] is not None else np.zeros(3)
         )  # unknown: 0, as the loaders make NaN

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from storage.atomic import atomic_write_text
 from storage.dataset import open_dataset
 from storage.export.common import (
     CAM_CHANNEL,
@@ -112,11 +113,9 @@ def export_occ3d(
         "val_split": [scene_name(scene_prefix, s) for s in chosen if s in val],
         "scene_infos": scene_infos,
     }
-    path = out / "annotations.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(".tmp-annotations.json")
-    tmp.write_text(json.dumps(annotations, indent=1, sort_keys=True))
-    os.replace(tmp, path)
+    path = atomic_write_text(
+        out / "annotations.json", json.dumps(annotations, indent=1, sort_keys=True)
+    )
     write_json(
         out / METADATA_FILE,
         {

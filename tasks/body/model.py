@@ -26,22 +26,13 @@ import torch
 from torch import Tensor
 
 from tasks.body.rotations import axis_angle_to_matrix
-from tasks.conventions import COCO_TO_SMPL_VERTEX
+from tasks.conventions import COCO_TO_SMPL_VERTEX, SMPL_MODEL_KEYS
 
 NUM_JOINTS = 24
 NUM_BODY_JOINTS = 23
 NUM_POSE_FEATURES = NUM_BODY_JOINTS * 9
 #: Official SMPL vertex ids of the COCO face keypoints (nose, l_eye, r_eye, l_ear, r_ear).
 OFFICIAL_COCO_VERTEX_IDS = np.array([COCO_TO_SMPL_VERTEX[i] for i in range(5)], dtype=np.int64)
-REQUIRED_KEYS = (
-    "v_template",
-    "f",
-    "shapedirs",
-    "posedirs",
-    "weights",
-    "kintree_table",
-    "J_regressor",
-)
 
 
 class BodyModelError(ValueError):
@@ -78,7 +69,7 @@ def _parents_from_kintree(kintree_table: np.ndarray) -> np.ndarray:
 
 def validate_body_params(params: dict[str, np.ndarray]) -> None:
     """Raise BodyModelError naming the key when a required key is missing or mis-shaped."""
-    missing = [k for k in REQUIRED_KEYS if k not in params]
+    missing = [k for k in SMPL_MODEL_KEYS if k not in params]
     if missing:
         raise BodyModelError(f"body model parameters lack keys {missing}; have {sorted(params)}")
     V = np.shape(params["v_template"])[0]

@@ -363,8 +363,8 @@ def _skinning_weights(verts: np.ndarray, J: np.ndarray, sigma: float = 0.02) -> 
     return w / w.sum(1, keepdims=True)
 
 
-def _joint_regressor(verts: np.ndarray, J: np.ndarray, tol_m: float = 5e-4) -> np.ndarray:
-    """(24, V) non-negative rows summing to 1 with J_regressor @ verts ~= J (within tol_m).
+def _joint_regressor(verts: np.ndarray, J: np.ndarray, fit_tol_m: float = 5e-4) -> np.ndarray:
+    """(24, V) non-negative rows summing to 1 with J_regressor @ verts ~= J (within fit_tol_m).
 
     Per joint: NNLS over the k nearest vertices with a soft sum-to-one row and a small pull
     toward uniform weights (so weight spreads over a ring instead of a few vertices); k doubles
@@ -383,7 +383,7 @@ def _joint_regressor(verts: np.ndarray, J: np.ndarray, tol_m: float = 5e-4) -> n
             b = np.concatenate((J[j], [lam], np.sqrt(mu) * np.full(kk, 1.0 / kk)))
             w, _ = nnls(A, b, maxiter=50 * kk)
             w = w / w.sum()
-            if np.linalg.norm(w @ P - J[j]) < tol_m or kk >= min(1280, len(verts)):
+            if np.linalg.norm(w @ P - J[j]) < fit_tol_m or kk >= min(1280, len(verts)):
                 break
             k *= 2
         reg[j, idx] = w

@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from tasks.fit.init_oracle import BodyParams
+from tasks.body.params import BodyParams
 from tasks.fit.optimize import FitResult, model_keypoints
 from tasks.fit.quality import fit_residuals
 from tasks.fit.reframe import reframe_params
+from tasks.geometry import transform_points
 
 
 def concat_point_sets(points: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -35,9 +36,7 @@ def fit_rows(
     shift_m (how far the fit moved the root translation from the initial estimate, m)."""
     T_lidar_from_cam = np.linalg.inv(T_cam_from_lidar)
     lidar = reframe_params(model, result.params(), T_lidar_from_cam)
-    R, t = T_lidar_from_cam[:3, :3], T_lidar_from_cam[:3, 3]
-    T = np.asarray(T_cam_from_lidar, np.float64)
-    points_cam = [np.asarray(p, np.float64) @ T[:3, :3].T + T[:3, 3] for p in points_lidar]
+    points_cam = [transform_points(T_cam_from_lidar, p) for p in points_lidar]
     kp_model = model_keypoints(
         torch.as_tensor(result.joints), torch.as_tensor(result.vertices), model.keypoint_vertex_ids
     ).numpy()
@@ -50,7 +49,7 @@ def fit_rows(
         "global_orient": lidar.global_orient,
         "body_pose": lidar.body_pose,
         "transl": lidar.transl,
-        "pelvis_lidar": result.joints[:, 0].astype(np.float64) @ R.T + t,
+        "pelvis_lidar": transform_points(T_lidar_from_cam, result.joints[:, 0]),
         "loss_j": np.asarray(res["L_J"], np.float32),
         "loss_3d": np.asarray(res["L_3D"], np.float32),
         "loss_total": np.asarray(res["total"], np.float32),

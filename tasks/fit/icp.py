@@ -53,7 +53,7 @@ def icp_align(
     max_iterations: int = 30,
     center_init: bool = True,
     max_rotation_deg: float = 30.0,
-    min_points: int = 10,
+    min_person_points: int = 10,
     relative_change: float = 1e-4,
 ) -> IcpResult:
     """Rigid point-to-point ICP of each person's visible vertices onto its LiDAR points, batched.
@@ -69,7 +69,8 @@ def icp_align(
     at 1e-4) or max_iterations; a stage that finds no
     correspondence keeps the previous transform. If the result rotates by more than
     max_rotation_deg (a partial front view can make ICP spin the body), or the last stage found
-    nothing, the translation-only start is kept. Nearest points: an exact grid search on the CPU
+    nothing, the translation-only start is kept. A person with fewer than min_person_points
+    points (or fewer than 3 visible vertices) is not moved. Nearest points: an exact grid search on the CPU
     (:mod:`tasks.fit.nearest`), distance matrices elsewhere; no per-person Python loop.
     """
     B = vertex_mask.shape[0]
@@ -79,7 +80,7 @@ def icp_align(
     P = points.detach().to(f64)
     n_pts = torch.bincount(point_person, minlength=B)[:B]
     n_src = vertex_mask.sum(1)
-    ok = (n_pts >= max(min_points, 1)) & (n_src >= 3)
+    ok = (n_pts >= max(min_person_points, 1)) & (n_src >= 3)
     vm = vertex_mask & ok[:, None]
     T0 = torch.eye(4, dtype=f64, device=dev).repeat(B, 1, 1)
     if center_init:

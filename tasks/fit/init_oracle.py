@@ -4,32 +4,11 @@ of ``precomputed`` CLIFF outputs to our parameters. All outputs are in the cam f
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import torch
 
+from tasks.body.params import BodyParams
 from tasks.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-
-
-@dataclass(frozen=True)
-class BodyParams:
-    """SMPL parameters of B persons, float32 numpy, cam frame: betas (B, 10), global_orient
-    (B, 3) and body_pose (B, 69) axis-angle (rad), transl (B, 3) m."""
-
-    betas: np.ndarray
-    global_orient: np.ndarray
-    body_pose: np.ndarray
-    transl: np.ndarray
-
-    def __len__(self) -> int:
-        return int(self.betas.shape[0])
-
-    def take(self, idx) -> BodyParams:
-        """Rows ``idx`` of every array."""
-        return BodyParams(
-            self.betas[idx], self.global_orient[idx], self.body_pose[idx], self.transl[idx]
-        )
 
 
 def _rest_root(model, betas: np.ndarray) -> np.ndarray:

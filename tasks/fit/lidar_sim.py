@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
+from tasks.body.params import BodyParams
+
 #: Rotation taking lidar-frame vectors to the cam frame for a sensor at the camera centre.
 R_CAM_FROM_LIDAR = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
 
@@ -103,16 +105,12 @@ _LIMBS: tuple[tuple[tuple[int, ...], tuple[int, ...]], ...] = (
 
 @dataclass(frozen=True)
 class SyntheticPersons:
-    """B simulated persons seen by one camera + co-located LiDAR. truth_*: ground truth in the
-    cam frame (betas (B, 10), global_orient (B, 3), body_pose (B, 69), transl (B, 3), vertices
-    (B, V, 3), joints (B, 24, 3)); keypoints (B, 17, 3) (u, v, conf) pixels; K (3, 3);
+    """B simulated persons seen by one camera + co-located LiDAR. truth, truth_*: ground truth in
+    the cam frame (body parameters, vertices (B, V, 3), joints (B, 24, 3)); keypoints (B, 17, 3) (u, v, conf) pixels; K (3, 3);
     points_lidar (B, P, 3) float32 padded, point_mask (B, P) bool; T_cam_from_lidar (4, 4);
     occluded_limb (B,) int (-1 none, else index into the limb table)."""
 
-    truth_betas: np.ndarray
-    truth_global_orient: np.ndarray
-    truth_body_pose: np.ndarray
-    truth_transl: np.ndarray
+    truth: BodyParams
     truth_vertices: np.ndarray
     truth_joints: np.ndarray
     keypoints: np.ndarray
@@ -214,10 +212,9 @@ def synthesize_persons(
     T[:3, :3] = R_CAM_FROM_LIDAR
     f32 = np.float32
     return SyntheticPersons(
-        betas.astype(f32),
-        go.astype(f32),
-        np.asarray(body_pose, f32),
-        transl.astype(f32),
+        BodyParams(
+            betas.astype(f32), go.astype(f32), np.asarray(body_pose, f32), transl.astype(f32)
+        ),
         verts.astype(f32),
         joints.astype(f32),
         np.concatenate([uv, conf[..., None]], -1).astype(f32),

@@ -13,8 +13,6 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from tasks.fit.weights import FIT_PRESETS, FitWeights  # noqa: F401 - the objective's weights, torch-free
-
 #: 69-d body-pose indices (left elbow y, right elbow y, left knee x, right knee x) and the sign
 #: that makes the unnatural bending direction positive (SMPLify's hyperextension prior).
 HYPEREXTENSION_IDS: tuple[int, ...] = (52, 55, 9, 12)
@@ -22,16 +20,16 @@ HYPEREXTENSION_SIGNS: tuple[float, ...] = (1.0, -1.0, -1.0, -1.0)
 
 
 def project_points(
-    points_cam: torch.Tensor, K: torch.Tensor, min_depth_m: float = 1e-3
+    points_cam: torch.Tensor, K: torch.Tensor, depth_floor_m: float = 1e-3
 ) -> torch.Tensor:
     """Pinhole projection. points_cam (B, N, 3) float, cam frame, m; K (B, 3, 3) or (3, 3).
 
-    Returns pixels (B, N, 2) (u right, v down). Depth is clamped at ``min_depth_m`` so that a
+    Returns pixels (B, N, 2) (u right, v down). Depth is clamped at ``depth_floor_m`` so that a
     point behind the camera gives a large finite residual instead of inf / NaN.
     """
     if K.dim() == 2:
         K = K.expand(points_cam.shape[0], 3, 3)
-    z = points_cam[..., 2:3].clamp(min=min_depth_m)
+    z = points_cam[..., 2:3].clamp(min=depth_floor_m)
     xy = points_cam[..., :2] / z
     fx, fy = K[:, 0, 0, None], K[:, 1, 1, None]
     cx, cy = K[:, 0, 2, None], K[:, 1, 2, None]
@@ -52,8 +50,8 @@ def reprojection_loss(
     keypoints_cam: torch.Tensor,
     keypoints_2d: torch.Tensor,
     K: torch.Tensor,
-    rho_px: float = 100.0,
-    conf_power: float = 2.0,
+    rho_px: float,
+    conf_power: float,
     keypoint_weights: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """L_J: confidence-weighted Geman-McClure reprojection error, per person (B,), pixels^2.

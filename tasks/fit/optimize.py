@@ -35,13 +35,14 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from tasks.body.params import BodyParams
 from tasks.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from tasks.conventions import COCO_TO_SMPL_JOINT
 from tasks.fit import losses as L
 from tasks.fit.icp import icp_align, rigid_update_params
-from tasks.fit.init_oracle import BodyParams
 from tasks.fit.settings import FitSettings
 from tasks.fit.visibility import Visibility, vertex_parts, visibility_masks
+from tasks.fit.weights import FitWeights
 
 _COCO_JOINT_IDX = [COCO_TO_SMPL_JOINT[i] for i in range(5, 17)]
 #: layout of the packed parameter rows (B, 85): betas, global_orient, body_pose, transl
@@ -53,26 +54,33 @@ _SLICES = {
 }
 _ADAM_BETAS = (0.9, 0.999)
 _ADAM_EPS = 1e-8
+#: a person with fewer LiDAR points is fitted to its keypoints alone (no ICP, no L_3D): a few
+#: returns pin nothing down. Not ``fit.min_points`` (10 by default), which leaves such
+#: detections out of the fit stage altogether; this is the kernel's own floor below it.
+LIDAR_MIN_POINTS = 10
+
+
+def torch_device(name: str) -> str:
+    """The device of ``FitSettings.device``: 'auto' is CUDA where present, else the CPU."""
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return name
 
 
 @dataclass(frozen=True)
-class FitResult:
-    """Fitted bodies, cam frame, numpy float32. betas (B, 10); global_orient (B, 3) and body_pose
-    (B, 69) axis-angle (rad); transl (B, 3) m; vertices (B, V, 3) m; joints (B, 24, 3) m;
+class FitResult(BodyParams):
+    """Fitted bodies, cam frame, numpy float32: the parameters (:class:`BodyParams`), and
+    vertices (B, V, 3) m; joints (B, 24, 3) m;
     residuals: dict of (B,) float64 final term values ('L_J', 'L_3D', 'L_theta', 'L_a',
     'L_beta', 'L_occ', 'total', 'icp_fitness', 'visible_vertices', 'steps': Adam steps taken)."""
 
-    betas: np.ndarray
-    global_orient: np.ndarray
-    body_pose: np.ndarray
-    transl: np.ndarray
     vertices: np.ndarray
     joints: np.ndarray
     residuals: dict
 
     def params(self) -> BodyParams:
-        """The fitted parameters (e.g. to warm-start the track's next frame)."""
-        return BodyParams(self.betas, self.global_orient, self.body_pose, self.transl)
+        """The fitted parameters alone (e.g. to warm-start the track's next frame)."""
+        return BodyParams.of(self)
 
 
 def model_keypoints(
@@ -99,19 +107,12 @@ def fit_persons(
     T_cam_from_lidar,
     points,
     counts,
-    weights: L.FitWeights = L.FIT_PRESETS["3dpw"],
-    iterations: int = FitSettings.iterations,
-    lr: float = 0.02,
-    device: str = "cpu",
-    seed: int = 0,
+    weights: FitWeights,
+    settings: FitSettings,
+    *,
     use_visibility: bool = True,
     use_icp: bool = True,
     keypoint_weights=None,
-    icp_max_rotation_deg: float = 30.0,
-    min_points: int = 10,
-    nn_every: int = 1,
-    chamfer_vertex_max_m: float | None = None,
-    converge_rtol: float | None = FitSettings.converge_rtol,
 ) -> FitResult:
     """Fit B persons jointly (batched Adam), returning cam-frame bodies.
 
@@ -120,26 +121,28 @@ def fit_persons(
     frame for a warm start); keypoints (B, 17, 3) COCO-17 (u, v, confidence), pixels;
     K (B, 3, 3) or (3, 3); T_cam_from_lidar (4, 4) or (B, 4, 4) float64; points (P, 3) lidar
     frame (m), the persons' points one after another, counts (B,) how many belong to each
-    (:func:`ragged_points` converts padded sets). Persons with fewer than ``min_points`` points
-    skip ICP and L_3D. nn_every: recompute the Chamfer nearest pairs and the pose blend shapes
-    every this many steps (both change slowly; 1 = the exact gradient); chamfer_vertex_max_m:
-    cap of the vertex -> point distances in L_3D (see :func:`tasks.fit.losses.chamfer_loss`;
-    None = the paper's uncapped Chamfer);
-    converge_rtol: a person stops when its objective fell by less than this fraction between
-    two pair refreshes (None: always ``iterations`` steps). use_visibility=False uses every
-    vertex and flags no joint occluded (ablation). Deterministic for a fixed seed on a device.
+    (:func:`ragged_points` converts padded sets). Persons with fewer than
+    :data:`LIDAR_MIN_POINTS` points skip ICP and L_3D. weights: the objective's (a preset with
+    its settings); settings: iterations, learning rate, ``nn_every`` (recompute the Chamfer
+    nearest pairs and the pose blend shapes every this many steps: both change slowly; 1 = the
+    exact gradient), ``chamfer_vertex_max_m`` (see :func:`tasks.fit.losses.chamfer_loss`),
+    ``converge_rtol``, device (:func:`torch_device`) and seed; the rest of
+    :class:`tasks.fit.settings.FitSettings` is the stage's (which persons, batches).
+    use_visibility=False uses every vertex and flags no joint occluded, use_icp=False skips the
+    rigid alignment (ablations). Deterministic for a fixed seed on a device.
     """
     B = len(init)
     kp_np, pts_l, counts = np.asarray(keypoints), np.asarray(points), np.asarray(counts).reshape(-1)
     _check_inputs(B, kp_np, pts_l, counts)
-    torch.manual_seed(seed)
-    dev = torch.device(device)
+    s = settings
+    torch.manual_seed(s.seed)
+    dev = torch.device(torch_device(s.device))
     if model.v_template.device != dev:
         model = copy.deepcopy(model).to(dev)  # never move a shared (memoised) model in place
     buffers = list(prior.buffers()) if isinstance(prior, torch.nn.Module) else []
     if buffers and buffers[0].device != dev:
         prior = copy.deepcopy(prior).to(dev)  # not one host-to-device copy per step
-    pts = _PersonPoints.build(pts_l, counts, T_cam_from_lidar, min_points, dev)
+    pts = _PersonPoints.build(pts_l, counts, T_cam_from_lidar, LIDAR_MIN_POINTS, dev)
     f32 = torch.float32
     kp = torch.as_tensor(kp_np, dtype=f32, device=dev)
     Kt = torch.as_tensor(np.asarray(K), dtype=f32, device=dev).expand(B, 3, 3)
@@ -159,13 +162,11 @@ def fit_persons(
 
     icp_fitness = np.zeros(B)
     if use_icp:
-        x, icp_fitness = _align_rigidly(
-            model, x, vis_fn(_posed(model, x).vertices), pts, icp_max_rotation_deg, min_points
-        )
+        x, icp_fitness = _align_rigidly(model, x, vis_fn(_posed(model, x).vertices), pts)
     problem = _Problem.build(
-        model, prior, x, vis_fn, pts, kp, Kt, kw, weights, chamfer_vertex_max_m
+        model, prior, x, vis_fn, pts, kp, Kt, kw, weights, s.chamfer_vertex_max_m
     )
-    x, steps = _optimize(problem, x, iterations, lr, nn_every, converge_rtol)
+    x, steps = _optimize(problem, x, s.iterations, s.learning_rate, s.nn_every, s.converge_rtol)
 
     with torch.no_grad():
         full = _posed(model, x)
@@ -205,7 +206,7 @@ def _posed(model, x: torch.Tensor, vertex_subset=None):
 @dataclass(frozen=True)
 class _PersonPoints:
     """Ragged cam-frame points: xyz (P, 3) float32, person (P,) int64, has (B,) bool (persons
-    with at least min_points points; the others' points are dropped)."""
+    with at least min_count points; the others' points are dropped)."""
 
     xyz: torch.Tensor
     person: torch.Tensor
@@ -213,13 +214,13 @@ class _PersonPoints:
 
     @staticmethod
     def build(
-        points_lidar: np.ndarray, counts: np.ndarray, T_cam_from_lidar, min_points: int, dev
+        points_lidar: np.ndarray, counts: np.ndarray, T_cam_from_lidar, min_count: int, dev
     ) -> _PersonPoints:
         B = len(counts)
         person = np.repeat(np.arange(B), counts)
         T = np.broadcast_to(np.asarray(T_cam_from_lidar, dtype=np.float64), (B, 4, 4))[person]
         cam = np.einsum("pij,pj->pi", T[:, :3, :3], points_lidar.astype(np.float64)) + T[:, :3, 3]
-        has = counts >= max(min_points, 1)
+        has = counts >= max(min_count, 1)
         keep = has[person]
         return _PersonPoints(
             torch.as_tensor(cam[keep], dtype=torch.float32, device=dev),
@@ -228,7 +229,7 @@ class _PersonPoints:
         )
 
 
-def _visibility_fn(model, conf: torch.Tensor, weights: L.FitWeights, use_visibility: bool):
+def _visibility_fn(model, conf: torch.Tensor, weights: FitWeights, use_visibility: bool):
     """verts (B, V, 3) -> Visibility of the persons whose keypoint confidences are conf (B, 17)."""
     faces = model.faces_tensor
     parts = torch.as_tensor(vertex_parts(model.lbs_weights), device=conf.device)
@@ -245,12 +246,7 @@ def _visibility_fn(model, conf: torch.Tensor, weights: L.FitWeights, use_visibil
 
 
 def _align_rigidly(
-    model,
-    x: torch.Tensor,
-    vis: Visibility,
-    pts: _PersonPoints,
-    max_rotation_deg: float,
-    min_points: int,
+    model, x: torch.Tensor, vis: Visibility, pts: _PersonPoints
 ) -> tuple[torch.Tensor, np.ndarray]:
     """Steps 1-2: ICP of each person's visible vertices onto its points; returns the packed rows
     with global_orient and transl moved by the rigid motion, and the ICP fitness (B,)."""
@@ -263,8 +259,7 @@ def _align_rigidly(
         valid,
         pts.xyz,
         pts.person,
-        max_rotation_deg=max_rotation_deg,
-        min_points=min_points,
+        min_person_points=LIDAR_MIN_POINTS,
     )
     Rg = axis_angle_to_matrix(x[:, _SLICES["global_orient"]].double()).cpu().numpy()
     tr = x[:, _SLICES["transl"]].double().cpu().numpy()
@@ -401,11 +396,11 @@ class _Problem:
         }
         t["total"] = (
             t["L_J"]
-            + w.scale("3d") * t["L_3D"]
-            + w.scale("theta") * t["L_theta"]
-            + w.scale("a") * t["L_a"]
-            + w.scale("beta") * t["L_beta"]
-            + w.scale("occ") * t["L_occ"]
+            + w.factor(w.lambda_3d) * t["L_3D"]
+            + w.factor(w.lambda_theta) * t["L_theta"]
+            + w.factor(w.lambda_a) * t["L_a"]
+            + w.factor(w.lambda_beta) * t["L_beta"]
+            + w.factor(w.lambda_occ) * t["L_occ"]
         )
         return o, t
 

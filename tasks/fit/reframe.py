@@ -6,8 +6,8 @@ import numpy as np
 import torch
 
 from tasks.body.model import rigid_transform_params
+from tasks.body.params import BodyParams
 from tasks.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-from tasks.fit.init_oracle import BodyParams
 
 
 def reframe_params(model, params: BodyParams, T_new_from_old: np.ndarray) -> BodyParams:

@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from tasks.bounds import AtLeastOne, Count, Positive
+
 
 @dataclass(frozen=True)
 class FitSettings:
@@ -26,14 +28,14 @@ class FitSettings:
     run in order). seed: of the optimiser and the oracle's initial estimates.
     """
 
-    iterations: int = 100
-    learning_rate: float = 0.02
-    nn_every: int = 5
-    converge_rtol: float | None = None
-    chamfer_vertex_max_m: float | None = 0.03
-    min_points: int = 10
-    max_shift_m: float | None = 1.5
-    batch_persons: int = 64
+    iterations: Count = 100
+    learning_rate: Positive = 0.02
+    nn_every: AtLeastOne = 5
+    converge_rtol: Positive | None = None
+    chamfer_vertex_max_m: Positive | None = 0.03
+    min_points: Count = 10
+    max_shift_m: Positive | None = 1.5
+    batch_persons: AtLeastOne = 64
     device: Literal["cpu", "cuda", "auto"] = "auto"
     warm_start: bool = False
     seed: int = 0

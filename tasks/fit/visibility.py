@@ -110,8 +110,8 @@ def visibility_masks(
     faces: torch.Tensor,
     parts: torch.Tensor,
     keypoint_conf: torch.Tensor | None,
-    w: float = 0.2,
-    j_conf: float = 0.6,
+    w: float,
+    j_conf: float,
     camera_center=None,
 ) -> Visibility:
     """Visible vertex set V of appendix A.

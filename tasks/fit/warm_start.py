@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tasks.fit.init_oracle import BodyParams
+from tasks.body.params import BodyParams
 from tasks.fit.reframe import reframe_params
 
 
@@ -22,10 +22,7 @@ def warm_started(
     into this frame's cam frame: T = T_cam_from_lidar inv(T_world_from_lidar_now)
     T_world_from_lidar_prev. Poses: (4, 4) float64."""
     T = T_cam_from_lidar @ np.linalg.inv(T_world_from_lidar_now) @ T_world_from_lidar_prev
-    fields = {
-        k: np.array(getattr(init, k), copy=True)
-        for k in ("betas", "global_orient", "body_pose", "transl")
-    }
+    fields = {k: np.array(getattr(init, k), copy=True) for k in BodyParams.FIELDS}
     for k, prev in enumerate(previous):
         if prev is None:
             continue

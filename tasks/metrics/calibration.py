@@ -16,14 +16,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from tasks.geometry import transform_points
+
 
 def project(
     points: np.ndarray, K: np.ndarray, T_cam_from_lidar: np.ndarray, min_depth_m: float = 0.5
 ) -> tuple[np.ndarray, np.ndarray]:
     """(N, 2) float64 pixels (u, v) and (N,) bool in front (depth > min_depth_m) of points (N, 3)
     in the LiDAR frame, for the pinhole K (3, 3), T_cam_from_lidar (4, 4)."""
-    T = np.asarray(T_cam_from_lidar, np.float64)
-    pc = np.asarray(points, np.float64) @ T[:3, :3].T + T[:3, 3]
+    pc = transform_points(T_cam_from_lidar, points)
     front = pc[:, 2] > min_depth_m
     z = np.where(front, pc[:, 2], 1.0)
     uv = (
@@ -77,17 +78,17 @@ def projection_difference_px(
 def ground_height_m(
     points: np.ndarray,
     T_base_from_lidar: np.ndarray,
-    near_m: float = 2.0,
-    far_m: float = 15.0,
+    inner_m: float = 2.0,
+    outer_m: float = 15.0,
     bin_m: float = 0.05,
 ) -> float:
     """Height (m, base frame) of the ground seen in a sweep: the most populated ``bin_m`` layer among
-    points (N, 3) LiDAR frame within near_m..far_m horizontally and in the lower half of their
+    points (N, 3) LiDAR frame within inner_m..outer_m horizontally and in the lower half of their
     heights; ~0 when T_base_from_lidar (4, 4) is right. NaN with too few points."""
     T = np.asarray(T_base_from_lidar, np.float64)
-    pb = np.asarray(points, np.float64) @ T[:3, :3].T + T[:3, 3]
+    pb = transform_points(T, points)
     r = np.hypot(pb[:, 0] - T[0, 3], pb[:, 1] - T[1, 3])
-    z = pb[(r >= near_m) & (r <= far_m), 2]
+    z = pb[(r >= inner_m) & (r <= outer_m), 2]
     if z.size < 100:
         return float("nan")
     z = z[z <= np.median(z)]

@@ -177,32 +177,3 @@ def semantic_to_classes(coda_ids: np.ndarray) -> np.ndarray:
 def box_class(class_name: str) -> int | None:
     """Our class id of a CODa 3d_bbox classId (UNLABELED for Horse), None for an unknown name."""
     return CODA_BOX_CLASS_TO_CLASS.get(class_name)
-
-
-def points_in_boxes(
-    points: np.ndarray,
-    centers: np.ndarray,
-    sizes: np.ndarray,
-    rotations: np.ndarray,
-    bottom_exclude_m: float = 0.0,
-) -> np.ndarray:
-    """(N,) bool: points inside any oriented box, above the bottom ``bottom_exclude_m`` of it.
-
-    points: (N, 3) metres; centers (B, 3) metres, sizes (B, 3) (l, w, h) metres along the box's own
-    x, y, z; rotations (B, 3, 3) box-to-points-frame rotations (CODa: Rz(yaw) Ry(pitch) Rx(roll));
-    all in one frame. The bottom slab holds the ground at a pedestrian's feet (the paper leaves
-    out 0.1 m of each box).
-    """
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    inside = np.zeros(len(pts), dtype=bool)
-    for c, s, R in zip(
-        np.asarray(centers, np.float64).reshape(-1, 3),
-        np.asarray(sizes, np.float64).reshape(-1, 3),
-        np.asarray(rotations, np.float64).reshape(-1, 3, 3),
-    ):
-        local = (pts - c) @ R  # R^T (p - c) for row vectors
-        half = s / 2.0
-        inside |= np.all(np.abs(local) <= half, axis=1) & (
-            local[:, 2] >= -half[2] + bottom_exclude_m
-        )
-    return inside

@@ -13,44 +13,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
+from tasks.geometry import match_boxes
 from tasks.metrics._common import MetricInputError, ratio
-
-
-def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU of axis-aligned boxes. a (N, 4), b (M, 4) as (x1, y1, x2, y2) (pixels or metres) -> (N, M)."""
-    a = np.asarray(a, dtype=np.float64).reshape(-1, 4)
-    b = np.asarray(b, dtype=np.float64).reshape(-1, 4)
-    iw = np.clip(
-        np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None
-    )
-    ih = np.clip(
-        np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None
-    )
-    inter = iw * ih
-    area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
-    area_b = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
-    union = area_a[:, None] + area_b[None, :] - inter
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
-
-
-def match_boxes(
-    gt_boxes: np.ndarray, det_boxes: np.ndarray, iou_threshold: float = 0.5
-) -> tuple[np.ndarray, np.ndarray]:
-    """One-to-one matches maximising total IoU, pairs below ``iou_threshold`` dropped.
-
-    gt_boxes (G, 4), det_boxes (D, 4) as (x1, y1, x2, y2). Returns (gt_index (K,), det_index (K,)) int64.
-    """
-    iou = box_iou(gt_boxes, det_boxes)
-    if iou.size == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    # forbid sub-threshold pairs inside the assignment so they cannot displace a valid match
-    cost = np.where(iou >= iou_threshold, -iou, 1.0)
-    r, c = linear_sum_assignment(cost)
-    ok = iou[r, c] >= iou_threshold
-    return r[ok].astype(np.int64), c[ok].astype(np.int64)
 
 
 @dataclass(frozen=True)

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from tasks.geometry import box_iou
 from tasks.metrics._common import MetricInputError, ratio
-from tasks.metrics.detection import box_iou
 
 HOTA_ALPHAS: np.ndarray = np.arange(1, 20) * 0.05
 _EPS = 1e-9

@@ -7,7 +7,7 @@ Conventions (frames, array dtypes, class ids) are those of :mod:`tasks.conventio
 - :mod:`.freespace`: ``OccupancyMap`` (insert_scan / query / query_grid / to_arrays / from_arrays).
 - :mod:`.static_map`: ``StaticSemanticMap`` (add_sweep / finalize -> ``StaticMap``),
   ``project_points`` (once per sweep), ``lift_image_semantics``, ``pedestrian_point_mask``,
-  ``pedestrian_boxes_for_masking``, ``points_in_boxes``, ``lookup_labels``.
+  ``pedestrian_boxes_for_masking``, ``lookup_labels`` (points in boxes: :mod:`tasks.geometry`).
 - :mod:`.nearest`: ``nearest_indices`` (exact 3D nearest neighbours, the out-of-view fallback).
 - :mod:`.tiles`: spatial tiles of the sequence maps and the map stage's split (``plan_map``:
   windows of frames, regions of tiles; ``tiles_near_grids``: what a fuse chunk reads).

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from tasks.conventions import FREE, transform_points
+from tasks.conventions import FREE
+from tasks.geometry import transform_points
 from tasks.occupancy.fuse import CameraView, PedestrianMesh, fuse_frame
 from tasks.occupancy.grid import GridSpec
 from tasks.occupancy.resample import grid_reach_m, static_in_grid
+from tasks.occupancy.settings import FuseSettings
 from tasks.occupancy.static_map import StaticMap
 
 
@@ -20,8 +22,7 @@ def local_grids(
     points_lidar: np.ndarray,
     T_base_from_lidar: np.ndarray,
     camera: CameraView | None,
-    pixel_stride: int | None,
-    camera_method: str,
+    fusion: FuseSettings,
     threads: int | None = None,
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """The dataset's grids of one frame (arrays of storage/SCHEMA.md) and its class counts.
@@ -47,8 +48,7 @@ def local_grids(
         lidar_points_base=transform_points(T_base_from_lidar, points_lidar),
         lidar_origin_base=T_base_from_lidar[:3, 3],
         camera=camera,
-        pixel_stride=pixel_stride,
-        camera_method=camera_method,
+        fusion=fusion,
         threads=threads,
     )
     mask_lidar = (

@@ -671,50 +671,48 @@ def _rays_reaching(pts: np.ndarray, origin: np.ndarray, res: float, region) -> n
 class OccupancyMap:
     """A sparse occupancy map of one sequence in the world frame, fed scan by scan.
 
-    voxel_size_m: resolution (OctoMap's ``res``). prob_hit / prob_miss / clamp_min / clamp_max /
-    occupancy_threshold: OctoMap's probabilities (defaults are OctoMap's).
+    params: its resolution (``voxel_size_m``, OctoMap's ``res``) and sensor model (``prob_hit``,
+    ``prob_miss``, ``clamp_min``, ``clamp_max``, ``occupancy_threshold``: OctoMap's
+    probabilities, OctoMap's defaults); ``max_range_m`` and ``discretize`` are given per scan
+    (:meth:`insert_scan`, as OctoMap's ``insertPointCloud`` takes them).
     State lives on the instance; ``insert_scan`` advances it by one scan.
     """
 
     def __init__(
         self,
-        voxel_size_m: float,
-        prob_hit: float = FreeSpaceParams.prob_hit,
-        prob_miss: float = FreeSpaceParams.prob_miss,
-        clamp_min: float = FreeSpaceParams.clamp_min,
-        clamp_max: float = FreeSpaceParams.clamp_max,
-        occupancy_threshold: float = FreeSpaceParams.occupancy_threshold,
+        params: FreeSpaceParams,
         initial_blocks: int = 1024,
         threads: int | None = None,
     ) -> None:
-        if not voxel_size_m > 0:
-            raise OccupancyError(f"voxel_size_m must be > 0, got {voxel_size_m}")
-        for name, p in (
-            ("prob_hit", prob_hit),
-            ("prob_miss", prob_miss),
-            ("clamp_min", clamp_min),
-            ("clamp_max", clamp_max),
-            ("occupancy_threshold", occupancy_threshold),
+        p = params
+        if not p.voxel_size_m > 0:
+            raise OccupancyError(f"voxel_size_m must be > 0, got {p.voxel_size_m}")
+        for name, value in (
+            ("prob_hit", p.prob_hit),
+            ("prob_miss", p.prob_miss),
+            ("clamp_min", p.clamp_min),
+            ("clamp_max", p.clamp_max),
+            ("occupancy_threshold", p.occupancy_threshold),
         ):
-            if not 0.0 < p < 1.0:
-                raise OccupancyError(f"{name} must be in (0, 1), got {p}")
-        if not (prob_miss < 0.5 < prob_hit and clamp_min < clamp_max):
+            if not 0.0 < value < 1.0:
+                raise OccupancyError(f"{name} must be in (0, 1), got {value}")
+        if not (p.prob_miss < 0.5 < p.prob_hit and p.clamp_min < p.clamp_max):
             raise OccupancyError(
                 f"expected prob_miss < 0.5 < prob_hit and clamp_min < clamp_max, got "
-                f"{prob_miss}, {prob_hit}, {clamp_min}, {clamp_max}"
+                f"{p.prob_miss}, {p.prob_hit}, {p.clamp_min}, {p.clamp_max}"
             )
         if threads is not None and threads < 1:
             raise OccupancyError(f"threads must be >= 1, got {threads}")
         #: threads marking a scan's rays (None: one per core, os.cpu_count(); a Dask worker passes
         #: its allotment); the map does not depend on it
         self.threads = resolve_threads(threads)
-        self.voxel_size_m = float(voxel_size_m)
-        self.params = (prob_hit, prob_miss, clamp_min, clamp_max, occupancy_threshold)
-        self._hit = np.float32(_logit(prob_hit))
-        self._miss = np.float32(_logit(prob_miss))
-        self._lo_min = np.float32(_logit(clamp_min))
-        self._lo_max = np.float32(_logit(clamp_max))
-        self._thres = np.float32(_logit(occupancy_threshold))
+        self.params = params
+        self.voxel_size_m = float(p.voxel_size_m)
+        self._hit = np.float32(_logit(p.prob_hit))
+        self._miss = np.float32(_logit(p.prob_miss))
+        self._lo_min = np.float32(_logit(p.clamp_min))
+        self._lo_max = np.float32(_logit(p.clamp_max))
+        self._thres = np.float32(_logit(p.occupancy_threshold))
         cap = 1 << max(4, int(np.ceil(np.log2(max(1, initial_blocks)))))
         self._logodds = np.full((cap, _BLOCK_CELLS), np.nan, dtype=np.float32)
         self._fbits = np.zeros((cap, _BLOCK_CELLS // 64), dtype=np.uint64)
@@ -767,8 +765,9 @@ class OccupancyMap:
         self,
         points_world: np.ndarray,
         origin_world: np.ndarray,
-        max_range_m: float = -1.0,
-        discretize: bool = FreeSpaceParams.discretize,
+        *,
+        max_range_m: float,
+        discretize: bool,
         region: tuple[int, int, int, int] | None = None,
     ) -> None:
         """Insert one scan (OctoMap ``insertPointCloud``).
@@ -981,7 +980,11 @@ class OccupancyMap:
 
     @classmethod
     def from_arrays(
-        cls, voxel_size_m: float, keys: np.ndarray, logodds: np.ndarray, **params
+        cls,
+        params: FreeSpaceParams,
+        keys: np.ndarray,
+        logodds: np.ndarray,
+        threads: int | None = None,
     ) -> OccupancyMap:
         """Rebuild a map from :meth:`to_arrays` output (scan count restarts at 0)."""
         keys = np.ascontiguousarray(np.asarray(keys, dtype=np.int64).reshape(-1, 3))
@@ -989,7 +992,7 @@ class OccupancyMap:
         if len(keys) != len(vals):
             raise OccupancyError(f"{len(keys)} keys but {len(vals)} log-odds values")
         # a guess of the block count (exports hold ~100-500 voxels per block); the pool grows
-        m = cls(voxel_size_m, initial_blocks=max(1, len(keys) // 128), **params)
+        m = cls(params, initial_blocks=max(1, len(keys) // 128), threads=threads)
         row = 0
         while row >= 0:
             row = _import(keys, vals, row, m._hkeys, m._hvals, m._bkeys, m._logodds, m._nused)
@@ -1000,7 +1003,6 @@ class OccupancyMap:
     def __getstate__(self):
         keys, vals = self.to_arrays()
         return {
-            "voxel_size_m": self.voxel_size_m,
             "params": self.params,
             "keys": keys,
             "logodds": vals,
@@ -1009,17 +1011,8 @@ class OccupancyMap:
         }
 
     def __setstate__(self, state):
-        ph, pm, cmin, cmax, thr = state["params"]
         other = OccupancyMap.from_arrays(
-            state["voxel_size_m"],
-            state["keys"],
-            state["logodds"],
-            prob_hit=ph,
-            prob_miss=pm,
-            clamp_min=cmin,
-            clamp_max=cmax,
-            occupancy_threshold=thr,
-            threads=state.get("threads"),
+            state["params"], state["keys"], state["logodds"], threads=state.get("threads")
         )
         self.__dict__.update(other.__dict__)
         self.num_scans = state["num_scans"]

@@ -400,8 +400,7 @@ def fuse_frame(
     lidar_points_base: np.ndarray | None = None,
     lidar_origin_base: np.ndarray | None = None,
     camera: CameraView | None = None,
-    pixel_stride: int | None = None,
-    camera_method: str = FuseSettings.camera_method,
+    fusion: FuseSettings = FuseSettings(),
     velocity_dtype=np.float16,
     threads: int | None = None,
 ) -> FrameGrids:
@@ -416,9 +415,10 @@ def fuse_frame(
     occupancy: a :class:`tasks.occupancy.freespace.OccupancyMap` (world frame) or None.
     lidar_points_base (M, 3) / lidar_origin_base (3,): this frame's LiDAR endpoints and centre in
     the base frame (None: mask_lidar all 0). camera: the view for mask_camera (None: all 0);
-    camera_method / pixel_stride: see :func:`tasks.occupancy.visibility.camera_mask`; "auto":
-    "rays" for voxels >= 0.1 m (exact DDA, cheap), "zbuffer" for finer grids (98.8 % agreement
-    with "rays" at 0.05 m, 3.5x faster; rays would take seconds per frame at 0.02 m).
+    fusion: its ``camera_method`` and ``camera_pixel_stride`` (see
+    :func:`tasks.occupancy.visibility.camera_mask`; "auto": "rays" for voxels >= 0.1 m (exact
+    DDA, cheap), "zbuffer" for finer grids (98.8 % agreement with "rays" at 0.05 m, 3.5x faster;
+    rays would take seconds per frame at 0.02 m)).
     velocity_dtype: float16 (default, 221 MB at 0.02 m on the benchmark extent) or float32.
     threads: for the visibility rays (None: one thread per core; the grids do not depend on it).
     """
@@ -474,7 +474,7 @@ def fuse_frame(
     else:
         m_lidar = np.zeros(spec.shape, dtype=np.uint8)
     if camera is not None:
-        method = camera_method
+        method = fusion.camera_method
         if method == "auto":
             method = "rays" if spec.voxel_size_m >= 0.1 else "zbuffer"
         m_cam = camera_mask(
@@ -484,7 +484,7 @@ def fuse_frame(
             camera.width,
             camera.height,
             camera.T_base_from_cam,
-            pixel_stride,
+            fusion.camera_pixel_stride,
             method,
             threads,
         )

@@ -26,7 +26,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from tasks.conventions import PEDESTRIAN, ROAD, TERRAIN, transform_points
+from tasks.conventions import PEDESTRIAN, ROAD, TERRAIN
+from tasks.geometry import transform_points
 from tasks.occupancy.freespace import OccupancyMap
 from tasks.occupancy.settings import FreeSpaceParams, MapParams
 from tasks.occupancy.static_map import (
@@ -44,33 +45,6 @@ from tasks.occupancy.static_map import (
 )
 from tasks.occupancy.surface import NUM_MOMENTS, group_sum, surface_fit
 from tasks.occupancy.tiles import BLOCK_VOXELS, ground_halo_tiles, tiles_of_keys, voxels_per_tile
-
-
-def new_occupancy_map(p: FreeSpaceParams, threads: int | None = None) -> OccupancyMap:
-    """An empty occupancy map with the sensor model ``p``."""
-    return OccupancyMap(
-        p.voxel_size_m,
-        p.prob_hit,
-        p.prob_miss,
-        p.clamp_min,
-        p.clamp_max,
-        p.occupancy_threshold,
-        threads=threads,
-    )
-
-
-def load_occupancy_map(p: FreeSpaceParams, keys: np.ndarray, logodds: np.ndarray) -> OccupancyMap:
-    """The occupancy map stored as (keys, logodds) (storage.products.OccupancyMapProduct)."""
-    return OccupancyMap.from_arrays(
-        p.voxel_size_m,
-        keys,
-        logodds,
-        prob_hit=p.prob_hit,
-        prob_miss=p.prob_miss,
-        clamp_min=p.clamp_min,
-        clamp_max=p.clamp_max,
-        occupancy_threshold=p.occupancy_threshold,
-    )
 
 
 @dataclass(frozen=True)
@@ -128,10 +102,7 @@ class SweepLabeller:
             self.K,
             self.T_cam,
             self.lut,
-            fallback=p.outside_image_fallback,
-            ground_cell_m=p.ground_cell_m,
-            ground_tol_m=p.ground_max_deviation_m,
-            ground_lateral_scale=p.fallback_ground_lateral_scale,
+            p,
             projection=projection,
             threads=self.threads,
         )
@@ -199,17 +170,6 @@ def _ground_under_people(
     return out
 
 
-def _vote_kwargs(p: MapParams, ground_class_ids: tuple[int, ...]) -> dict:
-    return dict(
-        ground_classes=tuple(ground_class_ids),
-        ground_tolerance_m=p.ground_max_deviation_m,
-        ground_cell_m=p.ground_cell_m,
-        ground_neighbourhood=p.ground_neighbourhood_cells,
-        ground_quantile=p.ground_quantile,
-        min_votes=p.min_votes,
-    )
-
-
 class SequenceMapper:
     """The static semantic map and the occupancy map of one sequence, fed sweep by sweep, whole
     maps in memory (the tiled pipeline's reference). Arguments as :class:`SweepLabeller`. State
@@ -242,7 +202,7 @@ class SequenceMapper:
         )
         self.seen = StaticSemanticMap(params.voxel_size_m, moments=True)
         self.unseen = StaticSemanticMap(params.voxel_size_m, moments=True)
-        self.occupancy = new_occupancy_map(freespace, threads)
+        self.occupancy = OccupancyMap(freespace, threads=threads)
         self.kept = self.removed = 0
 
     def add_sweep(
@@ -293,7 +253,7 @@ def final_maps(
     points together (one geometry) and drops the voxels that only hold noise in front of a
     neighbour's surface; each side is then voted (ground check, max voting) and the camera's side
     wins where both have a voxel. select(packed keys) -> bool: the voxels to return (all: None)."""
-    vs, kw = params.voxel_size_m, _vote_kwargs(params, ground_class_ids)
+    vs, ground = params.voxel_size_m, tuple(ground_class_ids)
     keys, moments = group_sum(
         np.concatenate([k for k, _, _ in sides]), np.concatenate([m for _, _, m in sides])
     )
@@ -303,7 +263,7 @@ def final_maps(
         keep = fit.keep[np.searchsorted(keys, k)] if len(k) else np.zeros(0, bool)
         if select is not None:
             keep &= select(k)
-        maps.append(vote(k, counts, vs, **kw, select=keep))
+        maps.append(vote(k, counts, params, ground, select=keep))
     merged = merge_static_maps(maps[0], maps[1])
     surface = fit.surface[np.searchsorted(keys, pack_keys(merged.keys))]
     return replace(merged, surface=surface), maps[0]
@@ -325,12 +285,13 @@ TileVotes = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np
 
 class WindowVotes:
     """Static-map votes of a window of consecutive sweeps, split by tile (seen by the camera and
-    not, as :class:`SequenceMapper`). tile_m: tile edge (m). State lives on the instance."""
+    not, as :class:`SequenceMapper`) of ``params.voxel_size_m`` by tiles of ``params.tile_m``.
+    State lives on the instance."""
 
-    def __init__(self, voxel_size_m: float, tile_m: float):
-        self.n = voxels_per_tile(tile_m, voxel_size_m)
-        self.seen = StaticSemanticMap(voxel_size_m, moments=True)
-        self.unseen = StaticSemanticMap(voxel_size_m, moments=True)
+    def __init__(self, params: MapParams):
+        self.n = voxels_per_tile(params.tile_m, params.voxel_size_m)
+        self.seen = StaticSemanticMap(params.voxel_size_m, moments=True)
+        self.unseen = StaticSemanticMap(params.voxel_size_m, moments=True)
         self.kept = self.removed = 0
 
     def add(self, world: np.ndarray, sweep: SweepLabels, origin_world: np.ndarray) -> None:
@@ -393,7 +354,7 @@ def finalize_tiles(
     """
     p = params
     n = voxels_per_tile(p.tile_m, p.voxel_size_m)
-    h = ground_halo_tiles(p.tile_m, p.ground_cell_m, p.ground_neighbourhood_cells, p.voxel_size_m)
+    h = ground_halo_tiles(p)
     cache: dict[tuple[int, int], TileVotes | None] = {}
     for tile in sorted(tiles):
         near = [(tile[0] + dx, tile[1] + dy) for dx in range(-h, h + 1) for dy in range(-h, h + 1)]
@@ -445,7 +406,7 @@ def region_occupancy(
     :meth:`tasks.occupancy.tiles.MapPlan.region_keys`) from scans (points (N, 3) float32 world
     frame, origin (3,)) given in frame order: every scan that can reach the region
     (:func:`tasks.occupancy.tiles.plan_map`). Its voxels equal those of the whole-sequence map."""
-    m = new_occupancy_map(freespace, threads)
+    m = OccupancyMap(freespace, threads=threads)
     for points, origin in scans:
         m.insert_scan(
             points,

@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Annotated, Literal
+
+from annotated_types import Interval
+
+from tasks.bounds import AtLeastOne, Count, NonNegative, Positive, Probability, VoxelSize, Widening
 
 
 @dataclass(frozen=True)
@@ -15,13 +19,13 @@ class FreeSpaceParams:
     discretize: OctoMap's ``discretize``, one ray per distinct endpoint voxel.
     """
 
-    voxel_size_m: float = 0.2
-    prob_hit: float = 0.7
-    prob_miss: float = 0.4
-    clamp_min: float = 0.1192
-    clamp_max: float = 0.971
-    occupancy_threshold: float = 0.5
-    max_range_m: float = 20.0
+    voxel_size_m: VoxelSize = 0.2
+    prob_hit: Annotated[float, Interval(gt=0.5, lt=1)] = 0.7
+    prob_miss: Annotated[float, Interval(gt=0, lt=0.5)] = 0.4
+    clamp_min: Annotated[float, Interval(gt=0, lt=0.5)] = 0.1192
+    clamp_max: Annotated[float, Interval(gt=0.5, lt=1)] = 0.971
+    occupancy_threshold: Annotated[float, Interval(gt=0, lt=1)] = 0.5
+    max_range_m: Positive = 20.0
     discretize: bool = False
 
 
@@ -58,21 +62,21 @@ class MapParams:
     the maps do not depend on them.
     """
 
-    voxel_size_m: float = 0.2
+    voxel_size_m: VoxelSize = 0.2
     outside_image_fallback: Literal["nearest", "unknown"] = "nearest"
-    fallback_ground_lateral_scale: float = 4.0
-    pedestrian_box_margin_m: float = 0.15
-    person_ground_keep_m: float = 0.03
-    ground_max_deviation_m: float = 0.3
-    ground_cell_m: float = 1.0
-    ground_neighbourhood_cells: int = 1
-    ground_quantile: float = 0.5
-    min_votes: int = 1
-    surface_noise_m: float = 0.01
-    surface_min_points: int = 8
-    tile_m: float = 25.6
-    window_frames: int = 100
-    region_tiles: int = 4
+    fallback_ground_lateral_scale: Widening = 4.0
+    pedestrian_box_margin_m: NonNegative = 0.15
+    person_ground_keep_m: NonNegative = 0.03
+    ground_max_deviation_m: Positive = 0.3
+    ground_cell_m: Positive = 1.0
+    ground_neighbourhood_cells: Count = 1
+    ground_quantile: Probability = 0.5
+    min_votes: AtLeastOne = 1
+    surface_noise_m: NonNegative = 0.01
+    surface_min_points: AtLeastOne = 8
+    tile_m: Positive = 25.6
+    window_frames: AtLeastOne = 100
+    region_tiles: AtLeastOne = 4
 
 
 @dataclass(frozen=True)
@@ -95,6 +99,6 @@ class FuseSettings:
 
     camera_mask: bool = True
     camera_method: Literal["auto", "rays", "zbuffer"] = "auto"
-    camera_pixel_stride: int | None = 2
+    camera_pixel_stride: AtLeastOne | None = 2
     velocity: Literal["vertex", "person"] = "vertex"
-    velocity_max_gap_s: float = 0.25
+    velocity_max_gap_s: Positive = 0.25

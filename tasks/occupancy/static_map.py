@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from tasks.conventions import FREE, PEDESTRIAN, ROAD, TERRAIN, UNLABELED
+from tasks.conventions import FREE, PEDESTRIAN, UNLABELED
+from tasks.geometry import points_in_boxes, yaw_rotations
 from tasks.occupancy.nearest import nearest_indices
 from tasks.occupancy.settings import MapParams
 from tasks.occupancy.surface import NUM_MOMENTS, group_sum, point_moments
@@ -131,10 +132,7 @@ def lift_image_semantics(
     K: np.ndarray,
     T_cam_from_lidar: np.ndarray,
     class_lut: np.ndarray,
-    fallback: str = MapParams.outside_image_fallback,
-    ground_cell_m: float = MapParams.ground_cell_m,
-    ground_tol_m: float = MapParams.ground_max_deviation_m,
-    ground_lateral_scale: float = 1.0,
+    params: MapParams,
     projection: tuple[np.ndarray, np.ndarray] | None = None,
     threads: int | None = None,
 ) -> np.ndarray:
@@ -143,19 +141,20 @@ def lift_image_semantics(
     points_lidar: (N, 3) float metres, LiDAR frame. semantic_image: (H, W) uint8 Cityscapes train
     ids of a rectified image. K: (3, 3). T_cam_from_lidar: (4, 4). class_lut: (256,) uint8 train id
     -> our class (UNLABELED for none, e.g. :data:`tasks.conventions.CITYSCAPES_TO_CLASS`).
-    fallback for points not in the image: "nearest" (class of the nearest labelled point, 3D, at
-    the same level: a point less than ground_tol_m above the local ground (the lowest point of its
-    ground_cell_m cell's 3 x 3 neighbourhood) takes the label of the nearest such in-image point,
-    any other point that of the nearest other in-image point, so the side of a car beside the
-    robot is not labelled road and the road beside it not car; on exact distance ties the
-    in-image point that comes first) or "unknown" (UNLABELED).
-    ground_lateral_scale > 1 stretches the LiDAR y axis (across the direction of travel, LiDAR x
-    forward) when matching ground points: roads, sidewalks and lawn strips run along the robot's
+    params.outside_image_fallback for points not in the image: "nearest" (class of the nearest
+    labelled point, 3D, at the same level: a point less than ``ground_max_deviation_m`` above the
+    local ground (the lowest point of its ``ground_cell_m`` cell's 3 x 3 neighbourhood) takes the
+    label of the nearest such in-image point, any other point that of the nearest other in-image
+    point, so the side of a car beside the robot is not labelled road and the road beside it not
+    car; on exact distance ties the in-image point that comes first) or "unknown" (UNLABELED).
+    ``fallback_ground_lateral_scale`` > 1 stretches the LiDAR y axis (across the direction of
+    travel, LiDAR x forward) when matching ground points: roads, sidewalks and lawn strips run along the robot's
     path, so the ground beside the robot takes the label seen ahead at the same lateral offset
     rather than that of the nearest in-view (mostly road) point. projection: this sweep's
     :func:`project_points` into an image of this size (computed here when None). threads: for
     the nearest-neighbour search (None: one per core). Returns (N,) uint8.
     """
+    fallback = params.outside_image_fallback
     if fallback not in ("nearest", "unknown"):
         raise StaticMapError(f"fallback must be 'nearest' or 'unknown', got {fallback!r}")
     img = np.asarray(semantic_image)
@@ -172,9 +171,9 @@ def lift_image_semantics(
     labels = np.full(len(p), UNLABELED, dtype=np.uint8)
     labels[valid] = lut[img[pix[valid, 1], pix[valid, 0]].astype(np.uint8)]
     if fallback == "nearest" and not valid.all():
-        low = p[:, 2] - ground_height(p, ground_cell_m) < ground_tol_m
+        low = p[:, 2] - ground_height(p, params.ground_cell_m) < params.ground_max_deviation_m
         labelled = valid & (labels != UNLABELED)
-        stretched = p * np.array([1.0, ground_lateral_scale, 1.0])
+        stretched = p * np.array([1.0, params.fallback_ground_lateral_scale, 1.0])
         for level, q in ((low, stretched), (~low, p)):
             src, dst = labelled & level, ~valid & level
             if not src.any():  # nothing of this level in view: any in-view label
@@ -182,45 +181,6 @@ def lift_image_semantics(
             if src.any() and dst.any():
                 labels[dst] = labels[src][nearest_indices(q[src], q[dst], threads)]
     return labels
-
-
-@njit(cache=True)
-def _in_boxes(p, boxes, cos_yaw, sin_yaw, margin, inside):
-    for b in range(boxes.shape[0]):
-        cx, cy, cz = boxes[b, 0], boxes[b, 1], boxes[b, 2]
-        hx = boxes[b, 3] / 2 + margin
-        hy = boxes[b, 4] / 2 + margin
-        hz = boxes[b, 5] / 2 + margin
-        c, s = cos_yaw[b], sin_yaw[b]
-        # a conservative horizontal reach: skips far points before the exact test
-        r2 = (hx * hx + hy * hy) * (1.0 + 1e-6) + 1e-9
-        for i in range(p.shape[0]):
-            if inside[i]:
-                continue
-            dz = p[i, 2] - cz
-            if not abs(dz) <= hz:
-                continue
-            dx = p[i, 0] - cx
-            dy = p[i, 1] - cy
-            if dx * dx + dy * dy > r2:
-                continue
-            lx = c * dx + s * dy
-            ly = -s * dx + c * dy
-            inside[i] = abs(lx) <= hx and abs(ly) <= hy
-
-
-def points_in_boxes(points: np.ndarray, boxes: np.ndarray, margin_m: float = 0.0) -> np.ndarray:
-    """Which points lie inside any of the boxes (rotated about z).
-
-    points: (N, 3) float metres. boxes: (M, 7) [cx, cy, cz, l, w, h, yaw] in the same frame
-    (l along the box x, w along y, h along z; yaw rad). margin_m grows every half-size.
-    Returns (N,) bool.
-    """
-    p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
-    b = np.ascontiguousarray(np.asarray(boxes, dtype=np.float64).reshape(-1, 7))
-    inside = np.zeros(len(p), dtype=bool)
-    _in_boxes(p, b, np.cos(b[:, 6]), np.sin(b[:, 6]), float(margin_m), inside)
-    return inside
 
 
 def pedestrian_point_mask(
@@ -250,7 +210,10 @@ def pedestrian_point_mask(
             pix, valid = project_points(p, K, T_cam_from_lidar, inst.shape[1], inst.shape[0])
         out[valid] = inst[pix[valid, 1], pix[valid, 0]] > 0
     if boxes_lidar is not None and len(boxes_lidar):
-        out |= points_in_boxes(p, boxes_lidar, box_margin_m)
+        b = np.ascontiguousarray(np.asarray(boxes_lidar, dtype=np.float64).reshape(-1, 7))
+        out |= points_in_boxes(
+            p, b[:, :3], b[:, 3:6], yaw_rotations(b[:, 6]), margin_m=box_margin_m
+        )
     return out
 
 
@@ -483,57 +446,42 @@ class StaticSemanticMap:
 
     def finalize(
         self,
-        ground_classes: tuple[int, ...] = (ROAD, TERRAIN),
-        ground_tolerance_m: float = MapParams.ground_max_deviation_m,
-        ground_cell_m: float = MapParams.ground_cell_m,
-        ground_neighbourhood: int = MapParams.ground_neighbourhood_cells,
-        ground_quantile: float = MapParams.ground_quantile,
+        params: MapParams,
+        ground_classes: tuple[int, ...],
         ignore_classes: tuple[int, ...] = (PEDESTRIAN,),
-        min_votes: int = MapParams.min_votes,
     ) -> StaticMap:
-        """Ground check, then max voting.
+        """Ground check, then max voting (params: its ``voxel_size_m`` is this map's).
 
-        Ground check: per xy cell of ground_cell_m, the local ground height is the vote-weighted
-        ground_quantile of the z of voxels with ground-class votes, over the
-        (2 * ground_neighbourhood + 1)^2 surrounding cells; ground votes of a voxel whose centre is
-        more than ground_tolerance_m from it are rejected. Voting: the class with most votes
-        (ties: the lower id), ignoring ignore_classes (the map is human-free); voxels with fewer
-        than min_votes remaining votes are dropped.
+        Ground check: per xy cell of ``ground_cell_m``, the local ground height is the
+        vote-weighted ``ground_quantile`` of the z of voxels with votes of ground_classes, over the
+        (2 * ``ground_neighbourhood_cells`` + 1)^2 surrounding cells; ground votes of a voxel whose
+        centre is more than ``ground_max_deviation_m`` from it are rejected. Voting: the class with
+        most votes (ties: the lower id), ignoring ignore_classes (the map is human-free); voxels
+        with fewer than ``min_votes`` remaining votes are dropped.
         """
+        if params.voxel_size_m != self.voxel_size_m:
+            raise StaticMapError(
+                f"params.voxel_size_m {params.voxel_size_m} is not the map's {self.voxel_size_m}"
+            )
         self._flush()
-        return vote(
-            self._keys,
-            self._counts,
-            self.voxel_size_m,
-            ground_classes,
-            ground_tolerance_m,
-            ground_cell_m,
-            ground_neighbourhood,
-            ground_quantile,
-            ignore_classes,
-            min_votes,
-        )
+        return vote(self._keys, self._counts, params, ground_classes, ignore_classes)
 
 
 def vote(
     packed_keys: np.ndarray,
     counts: np.ndarray,
-    voxel_size_m: float,
-    ground_classes: tuple[int, ...] = (ROAD, TERRAIN),
-    ground_tolerance_m: float = MapParams.ground_max_deviation_m,
-    ground_cell_m: float = MapParams.ground_cell_m,
-    ground_neighbourhood: int = MapParams.ground_neighbourhood_cells,
-    ground_quantile: float = MapParams.ground_quantile,
+    params: MapParams,
+    ground_classes: tuple[int, ...],
     ignore_classes: tuple[int, ...] = (PEDESTRIAN,),
-    min_votes: int = MapParams.min_votes,
     select: np.ndarray | None = None,
 ) -> StaticMap:
     """:meth:`StaticSemanticMap.finalize` of raw votes: packed_keys (K,) int64 ascending, counts
-    (K, 9) uint16. select: (K,) bool, the voxels to return (default all); the ground heights use
+    (K, 9) uint16 of voxels of ``params.voxel_size_m``. select: (K,) bool, the voxels to return (default all); the ground heights use
     every voxel given, so the votes of a tile plus its halo (:func:`tasks.occupancy.tiles.
     ground_halo_tiles`) give the tile's voxels exactly as the whole map does (the weights are
     integer vote counts: their sums are exact in float64). ground_rejected counts selected voxels.
     """
+    voxel_size_m = params.voxel_size_m
     keys = unpack_keys(packed_keys)
     counts = np.asarray(counts).astype(np.int64)
     centers = (keys + 0.5) * voxel_size_m
@@ -543,12 +491,16 @@ def vote(
     if len(g_idx) and len(keys):
         gvotes = counts[:, g_idx].sum(axis=1)
         height = _local_ground_height(
-            centers, gvotes, ground_cell_m, ground_neighbourhood, ground_quantile
+            centers,
+            gvotes,
+            params.ground_cell_m,
+            params.ground_neighbourhood_cells,
+            params.ground_quantile,
         )
         bad = (
             (gvotes > 0)
             & np.isfinite(height)
-            & (np.abs(centers[:, 2] - height) > ground_tolerance_m)
+            & (np.abs(centers[:, 2] - height) > params.ground_max_deviation_m)
         )
         rejected = int(gvotes[bad & sel].sum())
         counts[np.ix_(bad, g_idx)] = 0
@@ -556,7 +508,7 @@ def vote(
     if ignore_classes:
         vote[:, list(ignore_classes)] = 0
     labels = np.argmax(vote, axis=1).astype(np.uint8)
-    keep = (vote.max(axis=1) >= max(1, min_votes)) & sel
+    keep = (vote.max(axis=1) >= max(1, params.min_votes)) & sel
     return StaticMap(
         voxel_size_m,
         keys[keep],

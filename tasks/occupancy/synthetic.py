@@ -36,19 +36,19 @@ def build_scene(meshes: list) -> o3d.t.geometry.RaycastingScene:
 
 
 def raycast(
-    meshes, origin: np.ndarray, directions: np.ndarray, max_range_m: float = np.inf
+    meshes, origin: np.ndarray, directions: np.ndarray, sensor_range_m: float = np.inf
 ) -> tuple[np.ndarray, np.ndarray]:
     """Cast rays from ``origin`` (3,) along ``directions`` (N, 3) into the meshes (same frame; a
     list of meshes or a :func:`build_scene`).
 
     Returns (points (M, 3) float32 hit points, ray_index (M,) int64) for the rays that hit within
-    ``max_range_m``.
+    ``sensor_range_m``.
     """
     scene = build_scene(meshes) if isinstance(meshes, (list, tuple)) else meshes
     d = np.asarray(directions, dtype=np.float32)
     rays = np.concatenate([np.broadcast_to(np.asarray(origin, np.float32), d.shape), d], axis=1)
     t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-    ok = np.isfinite(t) & (t <= max_range_m)
+    ok = np.isfinite(t) & (t <= sensor_range_m)
     idx = np.nonzero(ok)[0]
     return (rays[idx, :3] + d[idx] * t[idx, None]).astype(np.float32), idx
 

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tasks.occupancy.settings import FreeSpaceParams, MapParams
+
 #: voxels per occupancy-map block edge (tasks/occupancy/freespace.py): occupancy tiles hold whole blocks
 BLOCK_VOXELS = 8
 #: margin (voxels) around a ray's origin and end voxels holding every voxel it crosses (as in
@@ -80,13 +82,14 @@ def tiles_in_box(tile_m: float, lo_xy, hi_xy, pad_m: float = 0.0) -> list[tuple[
     return [(tx, ty) for tx in range(t0[0], t1[0] + 1) for ty in range(t0[1], t1[1] + 1)]
 
 
-def ground_halo_tiles(
-    tile_m: float, ground_cell_m: float, neighbourhood_cells: int, voxel_size_m: float
-) -> int:
+def ground_halo_tiles(params: MapParams) -> int:
     """Tiles of halo a tile's ground check reads on each side: the check pools the ground votes of
-    cells up to ``neighbourhood_cells`` away, i.e. voxel centres less than
-    ``(neighbourhood_cells + 1) * ground_cell_m`` away (one voxel more for the centres' rounding)."""
-    return max(1, math.ceil(((neighbourhood_cells + 1) * ground_cell_m + voxel_size_m) / tile_m))
+    cells up to ``ground_neighbourhood_cells`` away, i.e. voxel centres less than
+    ``(ground_neighbourhood_cells + 1) * ground_cell_m`` away (one voxel more for the centres'
+    rounding)."""
+    p = params
+    reach_m = (p.ground_neighbourhood_cells + 1) * p.ground_cell_m + p.voxel_size_m
+    return max(1, math.ceil(reach_m / p.tile_m))
 
 
 @dataclass(frozen=True)
@@ -139,21 +142,17 @@ def static_groups(
     return out
 
 
-def plan_map(
-    origins_world: np.ndarray,
-    window_frames: int,
-    tile_m: float,
-    region_tiles: int,
-    occupancy_voxel_m: float,
-    reach_m: float,
-) -> MapPlan:
-    """Windows of ``window_frames`` frames, and per region of region_tiles x region_tiles tiles the
-    frames whose rays can reach it.
+def plan_map(origins_world: np.ndarray, params: MapParams, freespace: FreeSpaceParams) -> MapPlan:
+    """Windows of ``params.window_frames`` frames, and per region of region_tiles x region_tiles
+    tiles of ``params.tile_m`` the frames whose rays can reach it.
 
-    origins_world: (F, 3) float64 LiDAR origins, world frame, m. reach_m: the occupancy map's
-    max_range_m (no ray goes farther). A frame reaches a region when the voxel box of its origin
-    +- reach_m (grown by RAY_MARGIN_VOXELS, in occupancy voxel keys) meets the region's keys.
+    origins_world: (F, 3) float64 LiDAR origins, world frame, m. The occupancy map's
+    ``freespace.max_range_m`` is how far a ray reaches: a frame reaches a region when the voxel box
+    of its origin +- that (grown by RAY_MARGIN_VOXELS, in occupancy voxel keys) meets the
+    region's keys.
     """
+    window_frames, tile_m, region_tiles = params.window_frames, params.tile_m, params.region_tiles
+    occupancy_voxel_m, reach_m = freespace.voxel_size_m, freespace.max_range_m
     if not reach_m > 0 or not math.isfinite(reach_m):
         raise TileError(
             f"the occupancy map needs a finite max_range_m > 0 to be split by region, got {reach_m}"

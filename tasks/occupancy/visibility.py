@@ -266,15 +266,15 @@ def camera_mask(
     width: int,
     height: int,
     T_base_from_cam: np.ndarray,
-    pixel_stride: int | None = None,
-    method: str = "zbuffer",
+    pixel_stride: int | None,
+    method: str,
     threads: int | None = None,
 ) -> np.ndarray:
     """Voxels visible from the camera.
 
     spec: GridSpec (base frame). occupied: (X, Y, Z) bool/uint8, non-zero where a voxel blocks the
     view. K: (3, 3); width, height: image size (pixels). T_base_from_cam: (4, 4) float64.
-    method "zbuffer" (default): one ray per voxel centre; a voxel is observed when it projects into
+    method "zbuffer": one ray per voxel centre; a voxel is observed when it projects into
     the image and no occupied voxel in front covers that pixel (occupied voxels splat square
     footprints into a depth buffer whose pixels are no larger than a voxel at the grid's farthest
     corner). method "rays": one ray per sampled pixel (pixel_stride, None: auto) walked with a DDA

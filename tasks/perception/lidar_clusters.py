@@ -23,6 +23,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from tasks.bounds import AtLeastOne, NonNegative, Positive
 from tasks.perception.types import LidarDetections
 
 
@@ -31,17 +32,17 @@ class LidarClusterParams:
     """Settings of :func:`detect_pedestrians_lidar` (steps and gates: the module docstring).
     Lengths in metres, heights above the local ground."""
 
-    ground_cell_m: float = 2.0
-    ground_tol_m: float = 0.2
-    ceiling_m: float = 2.4
-    voxel_m: float = 0.1
-    cluster_tol_m: float = 0.3
-    min_points: int = 10
-    min_height_m: float = 1.0
-    max_height_m: float = 2.1
-    max_footprint_m: float = 1.2
+    ground_cell_m: Positive = 2.0
+    ground_tol_m: NonNegative = 0.2
+    ceiling_m: Positive = 2.4
+    voxel_m: Positive = 0.1
+    cluster_tol_m: Positive = 0.3
+    min_points: AtLeastOne = 10
+    min_height_m: Positive = 1.0
+    max_height_m: Positive = 2.1
+    max_footprint_m: Positive = 1.2
     #: points farther (horizontally) from the sensor are not clustered
-    max_range_m: float = 40.0
+    max_range_m: Positive = 40.0
 
 
 def ground_height(points_lidar: np.ndarray, cell_m: float) -> np.ndarray:

@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from tasks.bounds import NonNegative, Positive, Probability
 from tasks.perception.types import NUM_KEYPOINTS, ImagePerception, LidarDetections
 
 _VALID_TRAIN_IDS = np.arange(19, dtype=np.uint8)
@@ -47,27 +48,27 @@ _VALID_TRAIN_IDS = np.arange(19, dtype=np.uint8)
 class OracleNoise:
     """Plain parameters of the oracle noise model (see the module docstring)."""
 
-    day_recall: float = 0.99
-    night_recall: float = 0.77
-    occlusion_miss: float = 0.9
-    occlusion_power: float = 6.0
-    min_visible_fraction: float = 0.05
-    distance_miss: float = 0.1
-    near_m: float = 10.0
-    far_m: float = 40.0
-    fp_per_frame: float = 0.02
+    day_recall: Probability = 0.99
+    night_recall: Probability = 0.77
+    occlusion_miss: Probability = 0.9
+    occlusion_power: Positive = 6.0
+    min_visible_fraction: Probability = 0.05
+    distance_miss: Probability = 0.1
+    near_m: Positive = 10.0
+    far_m: Positive = 40.0
+    fp_per_frame: NonNegative = 0.02
     fp_score_range: tuple[float, float] = (0.3, 0.75)
-    box_jitter: float = 0.03
-    keypoint_sigma: float = 0.01
-    mask_flip_prob: float = 0.3
-    semantic_patches: float = 3.0
+    box_jitter: NonNegative = 0.03
+    keypoint_sigma: NonNegative = 0.01
+    mask_flip_prob: Probability = 0.3
+    semantic_patches: NonNegative = 3.0
     semantic_patch_px: tuple[int, int] = (8, 48)
-    night_noise_scale: float = 2.0
-    lidar_recall: float = 0.97
-    lidar_far_m: float = 40.0
-    lidar_center_sigma_m: float = 0.05
-    lidar_size_sigma_m: float = 0.05
-    lidar_yaw_sigma_rad: float = 0.1
+    night_noise_scale: NonNegative = 2.0
+    lidar_recall: Probability = 0.97
+    lidar_far_m: Positive = 40.0
+    lidar_center_sigma_m: NonNegative = 0.05
+    lidar_size_sigma_m: NonNegative = 0.05
+    lidar_yaw_sigma_rad: NonNegative = 0.1
 
 
 def detection_probability(
@@ -239,12 +240,13 @@ def oracle_lidar_detections(
     num_points: np.ndarray,
     rng: np.random.Generator,
     noise: OracleNoise = OracleNoise(),
-    min_points: int = 5,
+    min_returns: int = 5,
 ) -> tuple[LidarDetections, np.ndarray]:
     """Noisy LiDAR pedestrian boxes from ground-truth boxes (LiDAR frame; lighting does not matter).
 
     gt_centers, gt_sizes: (M, 3) float metres (l, w, h); gt_yaws: (M,) radians; num_points: (M,)
-    int LiDAR points inside each box (boxes with fewer than ``min_points`` are never detected).
+    int LiDAR points inside each box (boxes with fewer than ``min_returns`` are never detected: the oracle's own visibility,
+    not a setting).
     Returns (detections, gt_index (K,) int64 row of each detection).
     """
     centers = np.asarray(gt_centers, np.float64).reshape(-1, 3)
@@ -253,7 +255,7 @@ def oracle_lidar_detections(
     yaws = np.asarray(gt_yaws, np.float64).reshape(count)
     distance = np.linalg.norm(centers[:, :2], axis=1)
     p = noise.lidar_recall * np.clip(1.0 - distance / noise.lidar_far_m, 0.0, 1.0) ** 0.25
-    p = np.where(np.asarray(num_points).reshape(count) < min_points, 0.0, p)
+    p = np.where(np.asarray(num_points).reshape(count) < min_returns, 0.0, p)
     keep = np.flatnonzero(rng.random(count) < p)
     k = keep.size
     out = LidarDetections(

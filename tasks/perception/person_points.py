@@ -38,8 +38,13 @@ from scipy import ndimage
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
+from tasks.bounds import AtLeastOne, NonNegative, Positive, PositiveFraction, Probability
+from tasks.geometry import box_iou
 from tasks.perception.lidar_clusters import ground_height
 from tasks.perception.types import box_corners
+
+#: a LiDAR box whose corner is nearer the camera plane than this has no image box (is not matched)
+BOX_CORNER_MIN_DEPTH_M = 0.1
 
 
 @dataclass(frozen=True)
@@ -48,25 +53,25 @@ class PersonPointParams:
     metres, LiDAR z up."""
 
     #: step 3: split the range-sorted points at gaps larger than this
-    gap_m: float = 0.3
+    gap_m: Positive = 0.3
     #: step 3: a segment needs this many points
-    min_points: int = 3
+    min_points: AtLeastOne = 3
     #: step 3: expected range from the box's pixel height for a person this tall
-    person_height_m: float = 1.7
-    range_sigma_frac: float = 0.25
-    core_frac: float = 0.5
+    person_height_m: Positive = 1.7
+    range_sigma_frac: Positive = 0.25
+    core_frac: PositiveFraction = 0.5
     #: step 1: points at camera depth z <= this are not projected
-    min_depth_m: float = 0.5
+    min_depth_m: NonNegative = 0.5
     #: step 1: points less than this above the local ground are ground (None keeps all)
     ground_tol_m: float | None = 0.15
-    ground_cell_m: float = 2.0
-    feet_radius_m: float = 0.1
+    ground_cell_m: Positive = 2.0
+    feet_radius_m: NonNegative = 0.1
     #: step 4 (0 = off)
-    edge_grow_m: float = 0.25
-    edge_extent_m: float = 0.7
-    edge_margin_px: float = 20.0
+    edge_grow_m: NonNegative = 0.25
+    edge_extent_m: Positive = 0.7
+    edge_margin_px: NonNegative = 20.0
     #: LiDAR boxes match image detections at this IoU or more (:func:`associate_lidar_boxes`)
-    assoc_min_iou: float = 0.3
+    assoc_min_iou: Probability = 0.3
 
 
 def _rigid(points: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -91,7 +96,7 @@ def _in_image(uv: np.ndarray, width: int, height: int) -> np.ndarray:
 
 
 def project_points(
-    points_lidar: np.ndarray, K: np.ndarray, T_cam_from_lidar: np.ndarray, min_depth_m: float = 0.1
+    points_lidar: np.ndarray, K: np.ndarray, T_cam_from_lidar: np.ndarray, min_depth_m: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Pinhole projection (no distortion: undistort the image or the detections first).
 
@@ -129,17 +134,12 @@ def associate_lidar_boxes(
         np.asarray(sizes).reshape(-1, 3),
         np.asarray(yaws).reshape(-1),
     )
-    uv, _ = project_points(corners.reshape(-1, 3), K, T_cam_from_lidar)
+    uv, _ = project_points(corners.reshape(-1, 3), K, T_cam_from_lidar, BOX_CORNER_MIN_DEPTH_M)
     uv = uv.reshape(m, 8, 2)
     valid = ~np.isnan(uv).any(axis=(1, 2))
     rect = np.zeros((m, 4))
     rect[valid] = np.concatenate([uv[valid].min(axis=1), uv[valid].max(axis=1)], axis=1)
-    lo = np.maximum(boxes[:, None, :2], rect[None, :, :2])
-    hi = np.minimum(boxes[:, None, 2:], rect[None, :, 2:])
-    inter = np.prod(np.clip(hi - lo, 0, None), axis=2)
-    area_a = np.prod(boxes[:, 2:] - boxes[:, :2], axis=1)
-    area_b = np.prod(rect[:, 2:] - rect[:, :2], axis=1)
-    iou = inter / np.maximum(area_a[:, None] + area_b[None] - inter, 1e-9)
+    iou = box_iou(boxes, rect)
     iou[:, ~valid] = 0.0
     rows, cols = linear_sum_assignment(-iou)
     good = iou[rows, cols] >= min_iou

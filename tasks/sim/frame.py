@@ -15,14 +15,9 @@ import open3d.core as o3c
 import torch
 
 from tasks import conventions as C
+from tasks.geometry import make_transform, rot_x, rot_z, transform_points
 from tasks.sim import groundtruth as G
-from tasks.sim.geometry import (
-    make_transform,
-    rot_x,
-    rot_z,
-    rotation_to_axis_angle,
-    transform_points,
-)
+from tasks.sim.geometry import rotation_to_axis_angle
 from tasks.sim.scene import LabelledObject, Scene, SimOptions, build_scene, pedestrian_state
 from tasks.sim.sensors import (
     ALBEDO,

@@ -1,4 +1,5 @@
-"""Mesh primitives and rigid-transform helpers for the synthetic campus (world frame, metres).
+"""Mesh primitives for the synthetic campus (world frame, metres; rigid transforms in
+:mod:`tasks.geometry`).
 
 A :class:`Solid` is one closed convex triangle mesh with its half-space planes (for exact
 inside tests of the ground-truth occupancy), a class id (:mod:`tasks.conventions`) and an
@@ -11,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import ConvexHull
+
+from tasks.geometry import rot_z
 
 
 @dataclass(frozen=True)
@@ -61,18 +64,6 @@ def convex_solid(points: np.ndarray, class_id: int, instance_id: int) -> Solid:
     )
 
 
-def rot_z(yaw: float) -> np.ndarray:
-    """(3, 3) float64 rotation about z by ``yaw`` radians."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def rot_x(angle: float) -> np.ndarray:
-    """(3, 3) float64 rotation about x by ``angle`` radians."""
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
-
-
 def box_solid(center, size, yaw: float, class_id: int, instance_id: int) -> Solid:
     """A box: center (3,) m, size (l, w, h) m along its own x, y, z, rotated by yaw about z."""
     l, w, h = (float(v) for v in size)
@@ -116,19 +107,6 @@ def ground_tile(
     v = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]], dtype=np.float64)
     f = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int32)
     return Surface(v, f, int(class_id), int(instance_id))
-
-
-def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Apply a (4, 4) transform to (N, 3) points; returns (N, 3) in the input dtype."""
-    return (points @ T[:3, :3].T + T[:3, 3]).astype(points.dtype, copy=False)
-
-
-def make_transform(R: np.ndarray, t) -> np.ndarray:
-    """(4, 4) float64 from a (3, 3) rotation and a (3,) translation."""
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = t
-    return T
 
 
 def rotation_to_axis_angle(R: np.ndarray) -> np.ndarray:

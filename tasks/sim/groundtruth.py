@@ -162,18 +162,18 @@ def keypoint_visibility(
     track_id: int,
     depth_image: np.ndarray,
     instance_image: np.ndarray,
-    tol_m: float = 0.3,
+    occluder_margin_m: float = 0.3,
 ) -> np.ndarray:
     """COCO visibility flags (N,) uint8 of keypoints at pixels uv (N, 2) with camera depth (N,):
     0 outside the image (or behind the camera), 2 visible (the pixel shows this person, or nothing
-    nearer than depth - tol_m), 1 occluded."""
+    nearer than depth - occluder_margin_m), 1 occluded."""
     H, W = depth_image.shape
     px = np.rint(uv).astype(np.int64) if len(uv) else np.zeros((0, 2), np.int64)
     inside = (depth > 0.05) & (px[:, 0] >= 0) & (px[:, 0] < W) & (px[:, 1] >= 0) & (px[:, 1] < H)
     flags = np.zeros(len(uv), dtype=np.uint8)
     u, v = px[inside, 0], px[inside, 1]
     own = instance_image[v, u] == track_id
-    clear = depth_image[v, u] >= depth[inside] - tol_m
+    clear = depth_image[v, u] >= depth[inside] - occluder_margin_m
     flags[inside] = np.where(own | clear, 2, 1)
     return flags
 

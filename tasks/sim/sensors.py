@@ -19,7 +19,7 @@ import open3d as o3d
 import open3d.core as o3c
 
 from tasks import conventions as C
-from tasks.sim.geometry import make_transform
+from tasks.geometry import make_transform
 
 ROWS, COLUMNS = 128, 1024
 NUM_POINTS = ROWS * COLUMNS

@@ -31,6 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tasks.bounds import AtLeastOne, Probability
+
 
 @dataclass(frozen=True)
 class TrackerParams:
@@ -44,12 +46,12 @@ class TrackerParams:
     (False = reference OC-SORT output).
     """
 
-    det_thresh: float = 0.6
-    max_age: int = 30
-    min_hits: int = 3
-    iou_threshold: float = 0.3
-    delta_t: int = 3
-    inertia: float = 0.2
+    det_thresh: Probability = 0.6
+    max_age: AtLeastOne = 30
+    min_hits: AtLeastOne = 3
+    iou_threshold: Probability = 0.3
+    delta_t: AtLeastOne = 3
+    inertia: Probability = 0.2
     keep_confirmed_ids: bool = True
 
 

@@ -13,13 +13,13 @@ steps use that (the first and last are standard in offline MOT post-processing):
   position leaves the constant-velocity prediction (``WorldCheck``); the stitcher then re-joins the
   fragments. Tracklets OC-SORT never confirmed may join too (``tentative``), and are kept only if
   they do.
-- stitching: a track B that starts at most ``max_gap`` frames after track A ends is joined to A
+- stitching: a track B that starts at most ``stitch_max_gap`` frames after track A ends is joined to A
   when constant-velocity extrapolation of each towards the other lands near the other. On world
   positions (both ends have some): error = mean of |A's last position carried to B's first - B's|
   and the reverse, candidates within ``WorldCheck.gate`` of the time between them. Otherwise on
   pixels: ``d = mean(|c_A(t_B) - c_B(t_B)|, |c_B(t_A) - c_A(t_A)|) / h``, box centres c, h the
-  mean height of the two end boxes, candidates with ``d <= max_distance`` and a height ratio within
-  ``max_scale``; consecutive fragments of one OC-SORT track that no position can judge stay joined.
+  mean height of the two end boxes, candidates with ``d <= stitch_max_distance`` and a height ratio
+  within ``stitch_max_scale``; consecutive fragments of one OC-SORT track that no position can judge stay joined.
   Velocities are least-squares lines over each end's last (first) ``window`` observations. A
   one-to-one assignment (Hungarian, cost = error / gate) between track ends and track starts picks
   the joins. Joins chain (A -> B -> C); they never make a track hold two boxes in one frame.
@@ -44,6 +44,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+
+from tasks.bounds import AtLeastOne, Count, NonNegative, Positive, Widening
 
 
 def backfill_ids(
@@ -77,6 +79,10 @@ def _end_motion(
     return coef[0], coef[1]
 
 
+#: a track end's pixel velocity is fitted to its last (a start's: first) this many boxes
+PIXEL_WINDOW = 5
+
+
 @dataclass(frozen=True)
 class OfflineParams:
     """Back-fill and pixel stitching (the module docstring). stitch_max_gap: join fragments at most
@@ -84,9 +90,9 @@ class OfflineParams:
     heights; stitch_max_scale: largest height ratio of the two end boxes."""
 
     backfill: bool = True
-    stitch_max_gap: int = 10
-    stitch_max_distance: float = 0.5
-    stitch_max_scale: float = 1.5
+    stitch_max_gap: Count = 10
+    stitch_max_distance: Positive = 0.5
+    stitch_max_scale: Widening = 1.5
 
 
 @dataclass(frozen=True)
@@ -108,12 +114,12 @@ class WorldCheck:
     """
 
     enabled: bool = True
-    min_points: int = 5
-    max_speed_mps: float = 2.5
-    tol_m: float = 0.6
-    speed_sigma_mps: float = 0.5
-    window: int = 5
-    continuation_gate_scale: float = 1.5
+    min_points: AtLeastOne = 5
+    max_speed_mps: Positive = 2.5
+    tol_m: Positive = 0.6
+    speed_sigma_mps: NonNegative = 0.5
+    window: AtLeastOne = 5
+    continuation_gate_scale: Widening = 1.5
     tentative: bool = True
 
     def predict(self, times: np.ndarray, xy: np.ndarray, at: float) -> np.ndarray:
@@ -222,10 +228,7 @@ def split_tracks(
 def stitch_ids(
     ids: list[np.ndarray],
     boxes_xyxy: list[np.ndarray],
-    max_gap: int,
-    max_distance: float,
-    max_scale: float,
-    window: int = 5,
+    offline: OfflineParams,
     positions: list[np.ndarray] | None = None,
     times_s: np.ndarray | None = None,
     motion: WorldCheck = WorldCheck(),
@@ -235,9 +238,10 @@ def stitch_ids(
     """Join track fragments across gaps (see the module docstring); ids renumbered 1, 2, ...
 
     ids: per frame (D_f,) int64 (-1 = untracked, left alone); boxes_xyxy: per frame (D_f, 4) float
-    pixels. max_gap: largest frame gap (frames between A's last and B's first box, >= 1) to join;
-    0 disables joining. max_distance: gate on d, in box heights. max_scale: gate on the ratio of
-    the end boxes' heights (>= 1). window: observations per end for the velocity fit.
+    pixels. offline: ``stitch_max_gap``, the largest frame gap (frames between A's last and B's
+    first box, >= 1) to join (0 disables joining); ``stitch_max_distance``, the gate on d, in box
+    heights; ``stitch_max_scale``, the gate on the ratio of the end boxes' heights (>= 1). The
+    pixel velocity of an end is fitted to its last (first) PIXEL_WINDOW observations.
     positions / times_s (optional): per frame (D_f, 2) world xy metres (NaN = unknown) and (F,)
     frame times; where both ends have positions the join is judged on them instead (each end's
     constant-velocity extrapolation within ``motion.gate`` of the other end), cost = error / gate.
@@ -245,6 +249,8 @@ def stitch_ids(
     cannot judge a join between consecutive fragments of one parent, the tracker's decision stands.
     Returns per frame (D_f,) int64.
     """
+    max_gap, max_distance = offline.stitch_max_gap, offline.stitch_max_distance
+    max_scale, window = offline.stitch_max_scale, PIXEL_WINDOW
     tracks = _observations(ids)
     merged = {tid: tid for tid in tracks}
     if max_gap >= 1 and len(tracks) > 1:
@@ -390,9 +396,7 @@ def track_offline(
     return stitch_ids(
         ids,
         boxes_xyxy,
-        offline.stitch_max_gap,
-        offline.stitch_max_distance,
-        offline.stitch_max_scale,
+        offline,
         positions=positions,
         times_s=times_s,
         motion=check,

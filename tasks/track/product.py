@@ -11,13 +11,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tasks.conventions import transform_points
+from tasks.geometry import transform_points
 from tasks.perception.person_points import (
     PersonPointParams,
     associate_lidar_boxes,
     in_image_first,
     person_point_indices,
 )
+from tasks.track.offline import WorldCheck
 
 
 @dataclass(frozen=True)
@@ -63,9 +64,10 @@ def frame_persons(
     T_cam_from_lidar: np.ndarray,
     image_size: tuple[int, int],
     params: PersonPointParams,
-    position_min_points: int,
+    check: WorldCheck,
 ) -> FramePersons:
-    """Each detection's LiDAR points (tasks.perception.person_points) and world position.
+    """Each detection's LiDAR points (tasks.perception.person_points) and world position (none
+    with fewer than ``check.min_points`` points: tasks.track.offline.WorldCheck).
 
     points_lidar: (N, 3) float32, LiDAR frame. boxes_xyxy (D, 4) pixels, masks (D, H, W) bool.
     lidar_*: the frame's LiDAR boxes (M, 3) / (M,), LiDAR frame. A LiDAR box matched to a detection
@@ -95,7 +97,7 @@ def frame_persons(
         lidar_box,
         sets,
         in_image,
-        person_world_xy(points_lidar, sets, T_world_from_lidar, position_min_points),
+        person_world_xy(points_lidar, sets, T_world_from_lidar, check.min_points),
     )
 
 

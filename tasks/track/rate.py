@@ -25,6 +25,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+from tasks.bounds import Positive
 from tasks.track.ocsort import TrackerParams
 from tasks.track.offline import OfflineParams, WorldCheck
 
@@ -34,7 +35,7 @@ class GateRate:
     """gates_rate_hz: the frame rate at which the frame-counted gates are given (their defaults
     were measured at 5 Hz). scale_min_hits: scale OC-SORT's min_hits with the rate too."""
 
-    gates_rate_hz: float = 5.0
+    gates_rate_hz: Positive = 5.0
     scale_min_hits: bool = False
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tasks.conventions import transform_points
+from tasks.geometry import transform_points
 
 
 def track_velocities(

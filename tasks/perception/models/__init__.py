@@ -3,7 +3,7 @@
 An adapter never opens a file. It takes a *runner*: an object with ``source`` (a name for error
 messages, e.g. the model file), ``input_shapes`` and ``output_shapes`` (name -> shape, ``None``
 for a dynamic axis) and ``__call__(feeds: dict[str, ndarray]) -> dict[str, ndarray]``
-(:class:`tasks.perception.models.runner.ModelRunner`). ``storage.model_files`` opens ONNX files
+(:class:`tasks.perception.models.runner.ModelRunner`). ``storage.network_files`` opens ONNX files
 (onnxruntime) and TFLite files (ai-edge-litert) into runners; tests build tiny ONNX models or
 plain Python fakes.
 

@@ -31,10 +31,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import expit
 
+from tasks.geometry import box_iou
 from tasks.perception.models.detector import Detections
 from tasks.perception.models.image import (
     apply_affine,
-    box_iou,
     crop_affine,
     invert_affine,
     letterbox,
@@ -42,6 +42,7 @@ from tasks.perception.models.image import (
     warp_crops,
 )
 from tasks.perception.models.runner import ModelRunner, expect
+from tasks.perception.models.settings import BlazePoseSettings
 
 #: BlazePose landmark index of each COCO-17 keypoint (nose, eyes, ears, shoulders, elbows,
 #: wrists, hips, knees, ankles; left before right)
@@ -50,6 +51,8 @@ DETECTOR_SIZE = 224
 LANDMARK_SIZE = 256
 NUM_ANCHORS = 2254
 ROI_SCALE = 1.25
+#: MediaPipe's pose detector merges detections overlapping by more than this (weighted NMS)
+DETECTOR_MERGE_IOU = 0.3
 REFINE_KERNEL = 7
 REFINE_MIN_CONFIDENCE = 0.5
 
@@ -89,17 +92,20 @@ def decode_detections(
 
 
 def weighted_nms(
-    boxes: np.ndarray, keypoints: np.ndarray, scores: np.ndarray, iou_threshold: float = 0.3
+    boxes: np.ndarray,
+    keypoints: np.ndarray,
+    scores: np.ndarray,
+    merge_iou: float = DETECTOR_MERGE_IOU,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """MediaPipe's WEIGHTED non-max suppression: the best remaining detection gathers every
-    remaining one overlapping it by IoU > iou_threshold (itself included); their boxes and
+    remaining one overlapping it by IoU > merge_iou (itself included); their boxes and
     keypoints are averaged with the scores as weights, the score is the best one's."""
     order = list(np.argsort(-scores, kind="stable"))
     out_b, out_k, out_s = [], [], []
     iou = box_iou(boxes, boxes)
     while order:
         top = order[0]
-        group = [i for i in order if i == top or iou[top, i] > iou_threshold]
+        group = [i for i in order if i == top or iou[top, i] > merge_iou]
         w = scores[group][:, None]
         out_b.append((boxes[group] * w).sum(0) / w.sum())
         out_k.append((keypoints[group] * w[:, :, None]).sum(0) / w.sum())
@@ -122,7 +128,7 @@ class Regions:
         """Maps (N, 2, 3) image -> crop pixels, the region's edges on the crop's pixel corners
         (MediaPipe's ImageToTensor)."""
         A = crop_affine(
-            self.center, np.stack([self.side, self.side], 1), (size, size), self.rotation
+            self.center, np.stack([self.side, self.side], 1), (size, size), self.rotation, udp=False
         )
         A[:, :, 2] -= 0.5
         return A
@@ -180,14 +186,16 @@ class BlazePoseDetector:
     """MediaPipe's pose detector on a whole image (module docstring). Boxes: the region of
     interest's axis-aligned bounds clipped to the image; :attr:`last_regions` keeps the regions."""
 
-    def __init__(self, runner: ModelRunner, min_score: float = 0.5, nms_iou: float = 0.3):
+    def __init__(
+        self, runner: ModelRunner, min_score: float = 0.5, merge_iou: float = DETECTOR_MERGE_IOU
+    ):
         expect(
             runner,
             "BlazePose detector",
             {"*": (1, DETECTOR_SIZE, DETECTOR_SIZE, 3)},
             {"*": (1, NUM_ANCHORS, 12), "**": (1, NUM_ANCHORS, 1)},
         )
-        self.runner, self.min_score, self.nms_iou = runner, min_score, nms_iou
+        self.runner, self.min_score, self.merge_iou = runner, min_score, merge_iou
         self.input = next(iter(runner.input_shapes))
         self.anchors = ssd_anchors()
 
@@ -199,7 +207,7 @@ class BlazePoseDetector:
         boxes, kps, scores = decode_detections(
             raw_boxes[0], raw_scores[0], self.anchors, self.min_score
         )
-        _, kps, scores = weighted_nms(boxes, kps, scores, self.nms_iou)
+        _, kps, scores = weighted_nms(boxes, kps, scores, self.merge_iou)
         px = lb.to_image(kps * DETECTOR_SIZE) - 0.5  # input pixel corners -> image, OpenCV pixels
         return regions_from_keypoints(px[:, 0], px[:, 1]), scores
 
@@ -219,12 +227,14 @@ class BlazePoseDetector:
 
 
 class BlazePoseLandmarks:
-    """COCO-17 keypoints and person masks from MediaPipe's landmark model (module docstring)."""
+    """COCO-17 keypoints and person masks from MediaPipe's landmark model (module docstring).
+    settings: the region around a box (``box_scale``) and the pose flag a box needs
+    (``min_pose_flag``, applied by :class:`tasks.perception.models.composite.ModelPerception`)."""
 
     def __init__(
         self,
         runner: ModelRunner,
-        box_scale: float = ROI_SCALE,
+        settings: BlazePoseSettings,
         mask_threshold: float = 0.5,
         refine: bool = True,
     ):
@@ -236,9 +246,9 @@ class BlazePoseLandmarks:
                 f"{runner.source}: not a BlazePose landmark model: outputs {dict(runner.output_shapes)}, "
                 f"expected among them {need}"
             )
-        self.runner, self.box_scale, self.mask_threshold, self.refine = (
+        self.runner, self.settings, self.mask_threshold, self.refine = (
             runner,
-            box_scale,
+            settings,
             mask_threshold,
             refine,
         )
@@ -256,7 +266,7 @@ class BlazePoseLandmarks:
         H, W = image.shape[:2]
         boxes = np.asarray(boxes_xyxy, np.float64).reshape(-1, 4)
         D = len(boxes)
-        reg = regions if regions is not None else regions_from_boxes(boxes, self.box_scale)
+        reg = regions if regions is not None else regions_from_boxes(boxes, self.settings.box_scale)
         A = reg.affine()
         crops = warp_crops(image, A, (LANDMARK_SIZE, LANDMARK_SIZE)) / 255.0
         kp = np.zeros((D, 17, 3), np.float32)

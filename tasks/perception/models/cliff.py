@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from tasks.fit.init_oracle import BodyParams, cliff_to_params
+from tasks.body.params import BodyParams
+from tasks.fit.init_oracle import cliff_to_params
 from tasks.perception.models.image import (
     IMAGENET_MEAN,
     IMAGENET_STD,
@@ -45,7 +46,9 @@ def cliff_bbox_info(center: np.ndarray, size: np.ndarray, K: np.ndarray) -> np.n
 class CliffEstimator:
     """CLIFF on detection boxes (module docstring)."""
 
-    def __init__(self, runner: ModelRunner, rescale: float = CLIFF_RESCALE, batch_size: int = 16):
+    def __init__(
+        self, runner: ModelRunner, rescale: float = CLIFF_RESCALE, crops_per_run: int = 16
+    ):
         ins = list(runner.input_shapes.items())
         outs = dict(runner.output_shapes)
         rot = [s for s in outs.values() if len(s) == 4]
@@ -60,7 +63,7 @@ class CliffEstimator:
                 f"{outs}; expected inputs image (N, 3, h, w) and bbox_info (N, 3), outputs "
                 "rotations (N, 24, 3, 3), betas (N, 10), crop camera (N, 3)"
             )
-        self.runner, self.rescale, self.batch_size = runner, rescale, batch_size
+        self.runner, self.rescale, self.crops_per_run = runner, rescale, crops_per_run
         self.image_input = next(n for n, s in ins if len(s) == 4)
         self.info_input = next(n for n, s in ins if len(s) == 2)
         self.height, self.width = input_hw(runner, self.image_input)
@@ -79,16 +82,18 @@ class CliffEstimator:
         """Initial bodies (cam frame) of the persons in some boxes (D, 4), intrinsics K (3, 3)."""
         center, size = self.crops(boxes_xyxy)
         if len(center) == 0:
-            z = lambda *s: np.zeros(s, np.float32)
-            return BodyParams(z(0, 10), z(0, 3), z(0, 69), z(0, 3))
+            return BodyParams.empty()
         A = crop_affine(
-            center, np.stack([size * self.width / self.height, size], 1), (self.height, self.width)
+            center,
+            np.stack([size * self.width / self.height, size], 1),
+            (self.height, self.width),
+            udp=False,
         )
         x = normalize(warp_crops(image, A, (self.height, self.width)), IMAGENET_MEAN, IMAGENET_STD)
         out = run_batched(
             self.runner,
             {self.image_input: x, self.info_input: cliff_bbox_info(center, size, K)},
-            self.batch_size,
+            self.crops_per_run,
         )
         rot = next(v for v in out.values() if v.ndim == 4).reshape(-1, 24, 3, 3)
         flat = [v for v in out.values() if v.ndim == 2]

@@ -4,7 +4,7 @@ Parts (any may be absent): a person ``detector`` (YOLOX, decoded boxes) or boxes
 (``proposals``, e.g. the LiDAR boxes projected into the camera); top-down ``keypoints``
 (ViTPose / RTMPose); instance ``masks`` (Mask2Former-style); a Cityscapes ``semantic`` model;
 ``blazepose`` landmarks, which give keypoints and masks at once and check each box (a box whose
-pose flag is under ``min_pose_flag`` is dropped: its region shows no person; the others' scores
+pose flag is under its settings' ``min_pose_flag`` is dropped: its region shows no person; the others' scores
 are multiplied by their flag). Without a mask
 model the masks are the semantic person pixels in each box when a semantic model is present,
 else all False (consumers fall back to the box); ``mask_source`` picks one explicitly. Without a semantic model the semantic image is
@@ -32,7 +32,6 @@ class ModelPerception:
     masks: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
     semantic: Callable[[np.ndarray], np.ndarray] | None = None
     blazepose: BlazePoseLandmarks | None = None
-    min_pose_flag: float = 0.3
     #: where masks come from: "masks" (the mask model), "blazepose", "semantic" (person pixels
     #: in the box), "none", or "auto" (the first of those three that the setup has)
     mask_source: str = "auto"
@@ -69,7 +68,7 @@ class ModelPerception:
         masks = None
         if self.blazepose is not None:
             kp, masks, flag = self.blazepose(image, boxes)
-            keep = flag >= self.min_pose_flag
+            keep = flag >= self.blazepose.settings.min_pose_flag
             boxes, scores, kp, masks = boxes[keep], scores[keep] * flag[keep], kp[keep], masks[keep]
         if self.keypoints is not None:
             kp = np.asarray(self.keypoints(image, boxes), np.float32)

@@ -80,17 +80,17 @@ class YoloxDetector:
     def __init__(
         self,
         runner: ModelRunner,
-        person_class: int = DetectorSettings.person_class,
-        score_threshold: float = DetectorSettings.score_threshold,
-        nms_iou: float = DetectorSettings.nms_iou,
-        decoded: bool = DetectorSettings.decoded,
+        settings: DetectorSettings,
         mean=(0.0, 0.0, 0.0),
         std=(1.0, 1.0, 1.0),
         bgr: bool = True,
     ):
+        """settings: the person class, score threshold, NMS IoU and whether the export decoded
+        its boxes already (``decoded``)."""
         expect(runner, "YOLOX", {"*": (1, 3, None, None)}, {"*": (1, None, None)})
-        self.runner, self.person_class, self.decoded = runner, person_class, decoded
-        self.score_threshold, self.nms_iou = score_threshold, nms_iou
+        s = settings
+        self.runner, self.person_class, self.decoded = runner, s.person_class, s.decoded
+        self.score_threshold, self.nms_iou = s.score_threshold, s.nms_iou
         self.mean, self.std, self.bgr = mean, std, bgr
         self.input = next(iter(runner.input_shapes))
         self.height, self.width = input_hw(runner, self.input)
@@ -124,9 +124,7 @@ class DecodedBoxesDetector:
     def __init__(
         self,
         runner: ModelRunner,
-        person_class: int = DetectorSettings.person_class,
-        score_threshold: float = DetectorSettings.score_threshold,
-        nms_iou: float = DetectorSettings.nms_iou,
+        settings: DetectorSettings,
         mean=(0.0, 0.0, 0.0),
         std=(1.0, 1.0, 1.0),
         bgr: bool = True,
@@ -139,8 +137,8 @@ class DecodedBoxesDetector:
             {"*": (1, 3, None, None)},
             {"dets": (1, None, 5), "labels": (1, None)},
         )
-        self.runner, self.person_class = runner, person_class
-        self.score_threshold, self.nms_iou = score_threshold, nms_iou
+        self.runner, self.person_class = runner, settings.person_class
+        self.score_threshold, self.nms_iou = settings.score_threshold, settings.nms_iou
         self.mean, self.std, self.bgr, self.center, self.pad_value = (
             mean,
             std,

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from tasks.metrics.detection import box_iou
+from tasks.geometry import box_iou
 
 #: ImageNet statistics in RGB order on 0-255 pixels (mmpose / mmseg / Mask2Former / CLIFF)
 IMAGENET_MEAN = (123.675, 116.28, 103.53)
@@ -101,7 +101,8 @@ def crop_affine(
     size: np.ndarray,
     out_hw: tuple[int, int],
     rotation: np.ndarray | None = None,
-    udp: bool = False,
+    *,
+    udp: bool,
 ) -> np.ndarray:
     """Affine maps (N, 2, 3) from image pixels to crop pixels.
 

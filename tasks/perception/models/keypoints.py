@@ -129,22 +129,31 @@ def decode_simcc(
     return xy, val
 
 
+#: the output form of each top-down keypoint model
+FORMS = {"vitpose": "heatmap", "rtmpose": "simcc"}
+
+
 class TopDownKeypoints:
-    """COCO-17 keypoints of boxes with a ViTPose (``form='heatmap'``) or RTMPose
-    (``form='simcc'``) export: one image input (N, 3, h, w), heatmaps (N, 17, h', w') or
-    simcc_x (N, 17, Wx), simcc_y (N, 17, Wy)."""
+    """COCO-17 keypoints of boxes with a ViTPose (``kind='vitpose'``: heatmaps) or RTMPose
+    (``kind='rtmpose'``: SimCC) export: one image input (N, 3, h, w), heatmaps (N, 17, h', w') or
+    simcc_x (N, 17, Wx), simcc_y (N, 17, Wy). settings: the kind, ViTPose's ``udp`` codec and
+    the crops per run (``batch_size``)."""
 
     def __init__(
         self,
         runner: ModelRunner,
-        form: str,
-        udp: bool = KeypointSettings.udp,
+        settings: KeypointSettings,
         padding: float = 1.25,
         split_ratio: float = 2.0,
-        batch_size: int = KeypointSettings.batch_size,
         mean=IMAGENET_MEAN,
         std=IMAGENET_STD,
     ):
+        if settings.kind not in FORMS:
+            raise ValueError(
+                f"keypoints kind {settings.kind!r}: expected one of {sorted(FORMS)} (a top-down "
+                "ONNX export)"
+            )
+        form, udp, batch_size = FORMS[settings.kind], settings.udp, settings.batch_size
         if form == "heatmap":
             expect(
                 runner,

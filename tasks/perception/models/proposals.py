@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from tasks.geometry import transform_points
 from tasks.perception.types import box_corners
 
 
@@ -35,8 +36,7 @@ def project_lidar_boxes(
         np.asarray(sizes).reshape(-1, 3),
         np.asarray(yaws).reshape(-1),
     )
-    T = np.asarray(T_cam_from_lidar, np.float64)
-    cam = corners @ T[:3, :3].T + T[:3, 3]
+    cam = transform_points(T_cam_from_lidar, corners)  # (B, 8, 3)
     z = cam[..., 2]
     front = (z >= min_depth_m).all(axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -23,7 +23,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from tasks.perception.models.image import IMAGENET_MEAN, IMAGENET_STD, box_iou, normalize, resize
+from tasks.geometry import box_iou
+from tasks.perception.models.image import IMAGENET_MEAN, IMAGENET_STD, normalize, resize
 from tasks.perception.models.runner import ModelRunner, expect, input_hw
 from tasks.perception.models.settings import MaskSettings, SemanticSettings
 
@@ -63,10 +64,12 @@ class SemanticSegmenter:
     def __init__(
         self,
         runner: ModelRunner,
+        settings: SemanticSettings,
         mean=IMAGENET_MEAN,
         std=IMAGENET_STD,
-        input_size: tuple[int, int] | None = SemanticSettings.input_size,
     ):
+        """settings.input_size: (height, width) for an export with a dynamic input (None: the
+        export's)."""
         expect(runner, "Cityscapes segmentation", {"*": (1, 3, None, None)}, 1)
         shape = next(iter(runner.output_shapes.values()))
         if not (len(shape) == 3 or (len(shape) == 4 and shape[1] in (None, 1, NUM_CITYSCAPES))):
@@ -76,7 +79,7 @@ class SemanticSegmenter:
             )
         self.runner, self.mean, self.std = runner, mean, std
         self.input = next(iter(runner.input_shapes))
-        self.height, self.width = input_size or input_hw(runner, self.input)
+        self.height, self.width = settings.input_size or input_hw(runner, self.input)
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
         """(H, W) uint8 train ids."""
@@ -157,8 +160,7 @@ class QueryInstanceMasks:
     def __init__(
         self,
         runner: ModelRunner,
-        person_class: int = MaskSettings.person_class,
-        score_threshold: float = MaskSettings.score_threshold,
+        settings: MaskSettings,
         min_box_iou: float = 0.5,
         mean=IMAGENET_MEAN,
         std=IMAGENET_STD,
@@ -171,9 +173,9 @@ class QueryInstanceMasks:
                 f"{dict(runner.output_shapes)}, expected class logits (1, Q, C + 1) and "
                 "mask logits (1, Q, h, w)"
             )
-        self.runner, self.person_class = runner, person_class
+        self.runner, self.person_class = runner, settings.person_class
         self.score_threshold, self.min_box_iou, self.mean, self.std = (
-            score_threshold,
+            settings.score_threshold,
             min_box_iou,
             mean,
             std,

@@ -7,6 +7,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from tasks.bounds import AtLeastOne, Count, Positive, PositiveFraction, Probability
+
 
 @dataclass(frozen=True)
 class DetectorSettings:
@@ -17,9 +19,9 @@ class DetectorSettings:
     kind: Literal["lidar", "yolox", "decoded-boxes"] = "lidar"
     path: str | None = None
     decoded: bool = False
-    person_class: int = 0
-    score_threshold: float = 0.3
-    nms_iou: float = 0.45
+    person_class: Count = 0
+    score_threshold: Probability = 0.3
+    nms_iou: PositiveFraction = 0.45
 
 
 @dataclass(frozen=True)
@@ -30,7 +32,7 @@ class KeypointSettings:
     kind: Literal["blazepose", "vitpose", "rtmpose", "none"] = "blazepose"
     path: str | None = None
     udp: bool = True
-    batch_size: int = 16
+    batch_size: AtLeastOne = 16
 
 
 @dataclass(frozen=True)
@@ -40,8 +42,8 @@ class MaskSettings:
 
     kind: Literal["blazepose", "mask2former", "semantic", "none"] = "blazepose"
     path: str | None = None
-    person_class: int = 0
-    score_threshold: float = 0.5
+    person_class: Count = 0
+    score_threshold: Probability = 0.5
 
 
 @dataclass(frozen=True)
@@ -62,5 +64,5 @@ class BlazePoseSettings:
     / 0.87 / 0.87); box_scale: the square region around a box is max(w, h) x box_scale (1.0 / 1.1
     / 1.25 / 1.5 give PCK@0.1 0.75 / 0.78 / 0.69 / 0.64, mask IoU 0.83 / 0.83 / 0.78 / 0.80)."""
 
-    min_pose_flag: float = 0.3
-    box_scale: float = 1.1
+    min_pose_flag: Probability = 0.3
+    box_scale: Positive = 1.1

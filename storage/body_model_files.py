@@ -31,17 +31,10 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse
 
-from storage.manifest import atomic_write_bytes
+from storage.atomic import atomic_write_bytes
+from storage.npzio import save_npz_deterministic
+from tasks.conventions import SMPL_MODEL_KEYS
 
-BODY_MODEL_KEYS = (
-    "v_template",
-    "f",
-    "shapedirs",
-    "posedirs",
-    "weights",
-    "kintree_table",
-    "J_regressor",
-)
 POSE_PRIOR_KEYS = ("means", "covars", "weights")
 
 
@@ -53,8 +46,9 @@ class BodyFileError(ValueError):
     """A body model / prior file with a missing key, a wrong shape or an unknown format."""
 
 
-class _ChumpyStandIn:
-    """Receives the state of a pickled chumpy object (``chumpy.ch.Ch`` and friends)."""
+class _StandIn:
+    """Receives the state of a pickled object in place of its class; ``to_array`` makes the
+    array it stands for."""
 
     state = None  # pickles may build the object with __new__ only
 
@@ -64,10 +58,18 @@ class _ChumpyStandIn:
     def __setstate__(self, state):
         self.state = state
 
-    def to_array(self) -> np.ndarray:
+    def _state(self):
         st = self.state
         if isinstance(st, tuple) and len(st) == 2 and isinstance(st[0], dict):
             st = st[0]  # (dict state, slot state)
+        return st
+
+
+class _ChumpyStandIn(_StandIn):
+    """Receives the state of a pickled chumpy object (``chumpy.ch.Ch`` and friends)."""
+
+    def to_array(self) -> np.ndarray:
+        st = self._state()
         if isinstance(st, dict):
             for key in ("x", "r", "a"):
                 if key in st:
@@ -83,22 +85,13 @@ class _ChumpyStandIn:
         )
 
 
-class _SparseStandIn:
+class _SparseStandIn(_StandIn):
     """Receives the state of a pickled scipy.sparse matrix (``data``/``indices``/``indptr``)."""
 
-    state = None
     kind = "csc"
 
-    def __init__(self, *args, **kwargs):
-        self.state = None
-
-    def __setstate__(self, state):
-        self.state = state
-
     def to_array(self) -> np.ndarray:
-        st = self.state
-        if isinstance(st, tuple) and len(st) == 2 and isinstance(st[0], dict):
-            st = st[0]
+        st = self._state()
         if not isinstance(st, dict):
             raise BodyFileError(f"a pickled sparse matrix with state {type(st).__name__}")
         shape = st.get("_shape", st.get("shape"))
@@ -220,7 +213,7 @@ def _restricted_load(path: Path) -> dict:
         try:
             out[key] = _to_plain(v)
         except BodyFileError as e:
-            if key in BODY_MODEL_KEYS or key in POSE_PRIOR_KEYS:
+            if key in SMPL_MODEL_KEYS or key in POSE_PRIOR_KEYS:
                 raise BodyFileError(f"{path}: key {key!r}: {e}") from e
             # an auxiliary chumpy expression we cannot evaluate: not needed, dropped
     return out
@@ -229,7 +222,7 @@ def _restricted_load(path: Path) -> dict:
 def load_body_model(path) -> dict[str, np.ndarray]:
     """Read SMPL-format parameters from ``.npz`` or an official ``.pkl`` (restricted unpickler).
 
-    Returns a dict of numpy arrays with at least BODY_MODEL_KEYS (J_regressor dense);
+    Returns a dict of numpy arrays with at least SMPL_MODEL_KEYS (J_regressor dense);
     non-array entries of a pkl (e.g. ``bs_style`` strings) are dropped.
     """
     path = Path(path)
@@ -250,7 +243,7 @@ def load_body_model(path) -> dict[str, np.ndarray]:
                 params[k] = np.asarray(v.toarray())
     else:
         raise BodyFileError(f"{path}: expected a .npz or .pkl body model file")
-    missing = [k for k in BODY_MODEL_KEYS if k not in params]
+    missing = [k for k in SMPL_MODEL_KEYS if k not in params]
     if missing:
         raise BodyFileError(f"{path}: body model lacks keys {missing}; has {sorted(params)}")
     V = params["v_template"].shape[0]
@@ -262,15 +255,21 @@ def load_body_model(path) -> dict[str, np.ndarray]:
     return params
 
 
-def save_body_model_npz(path, params: dict) -> None:
-    """Write body model parameters (dict of arrays, SMPL keys) as an uncompressed ``.npz``."""
-    path = Path(path)
-    missing = [k for k in BODY_MODEL_KEYS if k not in params]
+def _refuse_incomplete(path, params: dict) -> Path:
+    missing = [k for k in SMPL_MODEL_KEYS if k not in params]
     if missing:
         raise BodyFileError(f"{path}: refusing to write a body model without keys {missing}")
-    buffer = io.BytesIO()
-    np.savez(buffer, **{k: np.asarray(v) for k, v in params.items()})
-    atomic_write_bytes(path, buffer.getvalue())  # writers may race: each renames a whole file
+    return Path(path)
+
+
+def save_body_model_npz(path, params: dict) -> None:
+    """Write body model parameters (dict of arrays, SMPL keys) as an uncompressed ``.npz`` with
+    deterministic bytes (:mod:`storage.npzio`); writers may race: each renames a whole file."""
+    save_npz_deterministic(
+        _refuse_incomplete(path, params),
+        compressed=False,
+        **{k: np.asarray(v) for k, v in params.items()},
+    )
 
 
 def save_body_model_pkl(path, params: dict) -> None:
@@ -278,11 +277,10 @@ def save_body_model_pkl(path, params: dict) -> None:
     such as ``coco_vertex_ids`` kept). Deterministic for equal parameters."""
     from storage.plain_pickle import dumps_plain
 
-    path = Path(path)
-    missing = [k for k in BODY_MODEL_KEYS if k not in params]
-    if missing:
-        raise BodyFileError(f"{path}: refusing to write a body model without keys {missing}")
-    atomic_write_bytes(path, dumps_plain({k: np.array(params[k]) for k in sorted(params)}))
+    atomic_write_bytes(
+        _refuse_incomplete(path, params),
+        dumps_plain({k: np.array(params[k]) for k in sorted(params)}),
+    )
 
 
 def smplx_vertex_ids(params: dict) -> dict[str, int]:

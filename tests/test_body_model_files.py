@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import scipy.sparse
 
-from storage.body_files import (
+from storage.body_model_files import (
     BodyFileError,
     UnsafePickleError,
     load_body_model,
@@ -18,36 +18,12 @@ from storage.body_files import (
     save_body_model_npz,
     save_pose_prior_pkl,
 )
+from tasks.conventions import SMPL_PARENTS
 
 
 def _tiny_params(rng: np.random.Generator, V: int = 30) -> dict[str, np.ndarray]:
     kt = np.zeros((2, 24), dtype=np.int64)
-    kt[0] = [
-        2**32 - 1,
-        0,
-        0,
-        0,
-        1,
-        2,
-        3,
-        4,
-        5,
-        6,
-        7,
-        8,
-        9,
-        9,
-        9,
-        12,
-        13,
-        14,
-        16,
-        17,
-        18,
-        19,
-        20,
-        21,
-    ]
+    kt[0] = [2**32 - 1, *SMPL_PARENTS[1:]]  # the official files' root parent
     kt[1] = np.arange(24)
     w = rng.random((V, 24))
     reg = rng.random((24, V)) * (rng.random((24, V)) < 0.2)
@@ -195,9 +171,10 @@ def test_generated_model_loads_into_body_model(tmp_path):
 
 def test_plain_numpy_smpl_pickle_of_the_procedural_model(tmp_path):
     """The procedural stand-in as an SMPL pickle: official keys, plain numpy inside (issue 19)."""
-    from storage.body_files import BODY_MODEL_KEYS, save_body_model_pkl
+    from storage.body_model_files import save_body_model_pkl
     from storage.plain_pickle import pickle_globals
     from tasks.body.procedural import default_body_params
+    from tasks.conventions import SMPL_MODEL_KEYS
 
     params = default_body_params()
     path = tmp_path / "procedural_smpl.pkl"
@@ -205,7 +182,7 @@ def test_plain_numpy_smpl_pickle_of_the_procedural_model(tmp_path):
     assert pickle_globals(path.read_bytes()) == {("numpy", "ndarray"), ("builtins", "bytearray")}
     with open(path, "rb") as f:  # how smplx reads it
         raw = pickle.load(f, encoding="latin1")
-    assert set(BODY_MODEL_KEYS) <= set(raw) and raw["v_template"].shape == (6470, 3)
+    assert set(SMPL_MODEL_KEYS) <= set(raw) and raw["v_template"].shape == (6470, 3)
     loaded = load_body_model(path)  # and our restricted reader
     for k in params:
         np.testing.assert_array_equal(loaded[k], params[k])
@@ -219,7 +196,7 @@ def test_smplx_poses_our_bodies_like_our_model(tmp_path):
     smplx = pytest.importorskip("smplx")
     import torch
 
-    from storage.body_files import save_body_model_pkl, smplx_vertex_ids
+    from storage.body_model_files import save_body_model_pkl, smplx_vertex_ids
     from tasks.body.model import BodyModel
     from tasks.body.procedural import default_body_params
 

