@@ -16,7 +16,7 @@ from tasks import conventions as C
 from tasks.occupancy.fuse import CameraView, PedestrianMesh
 from tasks.occupancy.grid import GridSpec
 from tasks.occupancy.mapping import SequenceMapper
-from tasks.occupancy.settings import FreeSpaceParams, MapParams
+from tasks.occupancy.settings import FreeSpaceParams, FuseSettings, MapParams
 from tasks.occupancy.synthetic import box_mesh
 
 VOXEL = 0.2
@@ -139,8 +139,7 @@ def test_every_occupied_voxel_is_inside_mask_lidar():
         front,
         np.eye(4),
         CameraView(K, 640, 480, np.linalg.inv(T_CAM_FROM_LIDAR)),
-        2,
-        "rays",
+        FuseSettings(camera_method="rays", camera_pixel_stride=2),
         threads=1,
     )
     occupied = grids["semantics"] != C.FREE
