@@ -126,7 +126,7 @@ class SweepLabeller:
         )
         people |= labels == PEDESTRIAN
         if p.person_ground_keep_m > 0 and people.any():
-            labels = _ground_under_people(
+            labels, ground_back = _ground_under_people(
                 points_lidar,
                 labels,
                 people,
@@ -135,7 +135,10 @@ class SweepLabeller:
                 p.ground_cell_m,
                 self.threads,
             )
-            people &= labels == PEDESTRIAN
+            # only the ground under a person goes back to the map: every other point of the
+            # person stays removed whatever its label (a point out of the image takes the label of
+            # the nearest in-view point, a mask's edge the background's)
+            people &= ~ground_back
         return SweepLabels(labels, ~people, projection[1])
 
 
@@ -147,14 +150,16 @@ def _ground_under_people(
     keep_m: float,
     cell_m: float,
     threads: int | None,
-) -> np.ndarray:
-    """Labels (N,) uint8 where the points of ``people`` (N,) bool at most keep_m above the local
+) -> tuple[np.ndarray, np.ndarray]:
+    """(labels (N,) uint8, given back (N,) bool) where the points of ``people`` (N,) bool at
+    most keep_m above the local
     ground (the lowest point of their cell_m cell and its neighbours, LiDAR frame) are ground (a
     class of ``ground``), not person: the ground a person stands on (a box with its margin, the person's image mask or
     label seen from the camera's other viewpoint holds it). Such a point keeps its label when the
     image says ground, else takes the label of the nearest ground-level point outside the people
     (PEDESTRIAN where none). Soles within keep_m of the ground are taken too: they lie within
-    the range noise of the ground plane, which the surface fit assigns to the ground's voxel."""
+    the range noise of the ground plane, which the surface fit assigns to the ground's voxel.
+    given back: the points of people that now carry a ground label (the only ones to keep)."""
     from tasks.occupancy.nearest import nearest_indices
     from tasks.perception.lidar_clusters import ground_height
 
@@ -167,7 +172,7 @@ def _ground_under_people(
     src = np.flatnonzero(low & ~people & np.isin(labels, ground))
     if len(ask) and len(src):
         out[ask] = labels[src][nearest_indices(p[src], p[ask], threads)]
-    return out
+    return out, under & np.isin(out, ground)
 
 
 class SequenceMapper:
