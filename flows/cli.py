@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from pathlib import Path
@@ -92,6 +93,9 @@ def _run(args: argparse.Namespace, force: bool) -> int:
     # before prefect is imported: its settings are read once; per-task INFO lines would bury the
     # progress bars and the summary (PREFECT_LOGGING_LEVEL=INFO brings them back)
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+    # Prefect's temporary server gets 20 s to start by default: a busy machine (a build beside
+    # the run, other agents) misses that and the run fails before its first stage
+    os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
     from flows.pipeline.plan import PlanCosts, plan_without_hashing
     from flows.pipeline.units import check_run_paths, run_units, summary_table
     from storage.manifest import FingerprintCache, Manifest, run_lock
@@ -137,55 +141,10 @@ def cmd_reprocess(args: argparse.Namespace) -> int:
     return _run(args, force=False)
 
 
-def _unit_state(manifest, plan, stage: str, unit, dry_run: bool) -> list[str]:
-    """Lines for one unit: nothing when fresh and whole; its reason, failure or lost frames."""
-    rec = manifest.get(plan.sequence, stage)
-    if unit.fresh:
-        bad = (rec.summary or {}).get("failed_frames") or [] if rec is not None else []
-        return [f"fresh, frame {b['frame']} left out: {b['error']}" for b in bad[:3]] + (
-            [f"fresh, {len(bad)} frame(s) left out in all"] if len(bad) > 3 else []
-        )
-    if rec is not None and rec.status in ("failed", "skipped") and not dry_run:
-        return [f"{rec.status}: {rec.error.splitlines()[0] if rec.error else ''}"]
-    return [f"{'would run' if dry_run else 'stale'}: {unit.reason}"]
-
-
 def _print_plan(args: argparse.Namespace, dry_run: bool) -> int:
-    from flows.pipeline.plan import PlanCosts, plan_run, selected_sequences
-    from storage.coda import check_dataset_root
-    from storage.manifest import FingerprintCache, Manifest
+    from flows.commands.status import print_plan
 
-    cfg = _config(args)
-    if cfg.dataset.sequences == "all":
-        check_dataset_root(cfg.dataset.root)
-    out, costs = Path(cfg.output.root), PlanCosts()
-    manifest = Manifest.load(out)
-    cache = FingerprintCache(
-        out / ".cache" / "sequences" if out.is_dir() else None, getattr(args, "verify", False)
-    )
-    plans = plan_run(cfg, manifest, cache, sequences=selected_sequences(cfg), costs=costs)
-    runs = problems = 0
-    for plan in plans:
-        if plan.error:
-            print(f"{plan.sequence:>6}  cannot be read: {plan.error}")
-            problems += 1
-            continue
-        lines = [
-            (stage, line)
-            for stage, unit in plan.units.items()
-            for line in _unit_state(manifest, plan, stage, unit, dry_run)
-        ]
-        runs += sum(not u.fresh for u in plan.units.values())
-        problems += any(line.startswith(("failed", "skipped", "fresh, ")) for _, line in lines)
-        for stage, line in lines:
-            print(f"{plan.sequence:>6}  {stage:<7} {line}")
-        if not lines and not dry_run:
-            print(f"{plan.sequence:>6}  fresh ({len(plan.units)} stages)")
-    print(
-        f"{len(plans)} sequence(s): {runs} unit(s) {'would run' if dry_run else 'stale or failed'}, "
-        f"{problems} sequence(s) with failures; {costs.line()}"
-    )
-    return EXIT_FAILED if problems else EXIT_OK
+    return EXIT_FAILED if print_plan(_config(args), dry_run, args.verify) else EXIT_OK
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -203,10 +162,13 @@ def cmd_export(args: argparse.Namespace) -> int:
         )
         return 2
     cfg = _config(args)
+    explicit = args.data is not None or any(
+        o.partition("=")[0].strip() == "dataset.root" for o in args.overrides
+    )
     target = export_dataset(
         dataset_export_inputs(cfg),
         cfg.output.root,
-        cfg.dataset.root,
+        cfg.dataset.root if explicit else None,  # None: where the dataset was built from
         args.format,
         args.to,
         gt=args.gt,
@@ -217,9 +179,16 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from flows.commands.confusion_report import console_text
-    from flows.commands.evaluate import evaluate
 
-    text = console_text(evaluate(args.dataset, args.gt, args.report, labels=args.labels))
+    if args.labels == "coda":
+        from flows.commands.evaluate_coda import evaluate_coda
+
+        results = evaluate_coda(args.dataset, args.gt, args.report)
+    else:
+        from flows.commands.evaluate import evaluate
+
+        results = evaluate(args.dataset, args.gt, args.report)
+    text = console_text(results)
     if text:
         print(text + "\n")
     print(
@@ -237,39 +206,352 @@ def cmd_check_data(args: argparse.Namespace) -> int:
     return code
 
 
-#: `mobileocc bench [WHAT] ...`: the module whose ``main(argv)`` parses the rest of the line
-BENCHMARKS = {
-    "pipeline": "flows.bench.pipeline",
-    "fit": "flows.bench.fit",
-    "occupancy": "flows.bench.occupancy",
-    "perception": "flows.bench.perception",
-    "planning": "flows.bench.planning",
-    "memory": "flows.bench.memory",
-}
+def _write_json(path: Path | None, value) -> None:
+    if path is not None:
+        from storage.atomic import atomic_write_text
+
+        atomic_write_text(path, json.dumps(value, indent=1, default=str) + "\n")
 
 
-def run_bench(argv: list[str]) -> int:
-    import importlib
+def _csv(kind=str, choices: tuple = ()):
+    """An argparse type: comma-separated values of ``kind`` (each one of ``choices``, if any)."""
 
-    what = argv[0] if argv and argv[0] in BENCHMARKS else "pipeline"
-    rest = argv[1:] if argv and argv[0] in BENCHMARKS else argv
-    return importlib.import_module(BENCHMARKS[what]).main(rest) or 0
+    def parse(text: str) -> tuple:
+        values = tuple(kind(v.strip()) for v in text.split(",") if v.strip())
+        unknown = sorted(set(values) - set(choices)) if choices else []
+        if unknown:
+            raise argparse.ArgumentTypeError(f"unknown {unknown}; expected some of {list(choices)}")
+        return values
 
-
-def run_cluster(argv: list[str]) -> int:
-    from flows.deploy.clusters import main
-
-    return main(argv)
-
-
-def run_deploy(argv: list[str]) -> int:
-    from flows.deploy.prefect import main
-
-    return main(argv)
+    return parse
 
 
-#: subcommands that parse their own options (`mobileocc bench fit --help`)
-PASSTHROUGH = {"bench": run_bench, "cluster": run_cluster, "deploy": run_deploy}
+def cmd_bench(args: argparse.Namespace) -> int:
+    from flows.bench.pipeline import bench
+
+    bench(args.quick, args.json, args.workers)
+    return 0
+
+
+def cmd_bench_scale(args: argparse.Namespace) -> int:
+    from flows.bench.scale import bench_scale
+
+    bench_scale(
+        args.frames,
+        args.sequences,
+        args.cluster_workers,
+        args.parts,
+        args.json,
+        sim_long_frames=args.sim_frames,
+        sim_workers=args.workers,
+        memory_frames=args.memory_frames,
+    )
+    return 0
+
+
+def cmd_bench_fit(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from flows.bench import fit as fb
+    from tasks.fit.settings import FitSettings
+
+    fit = _config(args).fit
+    weights, settings = fit.weights, fit.to(FitSettings)
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    sensor = args.sensors[-1]
+    if args.save_pool:
+        fb.save_pool(args.save_pool, fb.simulated_pool(args.pool, sensor, args.seed))
+        print(f"{args.pool} persons ({sensor}) saved to {args.save_pool}")
+        return 0
+    pool = fb.load_pool(args.pool_file) if args.pool_file else None
+    if args.agreement:
+        pool = pool or fb.simulated_pool(args.pool, sensor, args.seed)
+        print(json.dumps(fb.device_agreement(pool, args.device, weights)))
+        return 0
+    if args.throughput:
+        rate = fb.bench_throughput(
+            args.persons, args.device, weights, settings, args.pool, sensor, args.seed, pool
+        )
+        print(json.dumps(rate))
+        return 0
+    results = fb.bench_fit(
+        args.persons,
+        weights,
+        settings,
+        args.sensors,
+        not args.no_ablations,
+        args.device,
+        seed=args.seed,
+        warm_start=args.warm_start,
+        ablation_sensors=args.ablation_sensors,
+    )
+    results["settings"] = {
+        "preset": fit.preset,
+        "weights": dataclasses.asdict(weights),
+        "fit": dataclasses.asdict(settings),
+    }
+    _write_json(args.json, {"argv": args.argv, **results})
+    return 0
+
+
+def cmd_bench_occupancy(args: argparse.Namespace) -> int:
+    from flows.bench.occupancy import bench_occupancy, format_table
+
+    out = bench_occupancy(args.quick)
+    print(json.dumps(out, indent=2))
+    print(format_table(out))
+    return 0
+
+
+def cmd_bench_perception(args: argparse.Namespace) -> int:
+    from flows.bench.perception import bench_perception
+
+    result = bench_perception(_config(args), args.boxes)
+    print(json.dumps(result, indent=1))
+    _write_json(args.json, result)
+    return 0
+
+
+def cmd_bench_planning(args: argparse.Namespace) -> int:
+    import shutil
+    import tempfile
+
+    from flows.bench.planning import bench_planning, format_table
+
+    work = args.work or Path(tempfile.mkdtemp(prefix="mobileocc-bench-planning-"))
+    try:
+        result = bench_planning(args.sizes, work)
+    finally:
+        if args.work is None:
+            shutil.rmtree(work, ignore_errors=True)
+    print(format_table(result))
+    _write_json(args.json, result)
+    return 0
+
+
+def cmd_bench_memory(args: argparse.Namespace) -> int:
+    from flows.bench.memory import bench_memory, format_table
+
+    result = bench_memory(args.frames, args.work, untiled=args.untiled, stages=tuple(args.stages))
+    _write_json(args.json, result)
+    print(format_table(result))
+    return 0
+
+
+def cmd_bench_overhead(args: argparse.Namespace) -> int:
+    from flows.bench.overhead import bench_overhead
+
+    print(json.dumps(bench_overhead(args.sequences, args.frames), indent=1))
+    return 0
+
+
+def _add_bench_parsers(sub) -> None:
+    from flows.bench import scale
+
+    p = sub.add_parser(
+        "bench",
+        help="measure speeds, memory and reference ratios: `mobileocc bench [--quick]` (the "
+        "pipeline) or `mobileocc bench fit | occupancy | perception | planning | memory | scale "
+        "| overhead [options]`",
+        description="Without BENCHMARK: the pipeline benchmark (flows/bench/pipeline.py) with the "
+        "options below; `mobileocc bench BENCHMARK --help` for the others.",
+    )
+    p.add_argument("--quick", action="store_true", help="20 raw frames instead of 60")
+    p.add_argument("--json", type=Path, default=None, help="also write the results here")
+    p.add_argument("--workers", type=int, default=2, help="fuse fan-out workers")
+    p.set_defaults(func=cmd_bench)
+    bench = p.add_subparsers(dest="benchmark", metavar="BENCHMARK")
+
+    s = bench.add_parser(
+        "scale",
+        help="long sequences, many sequences, a loopback cluster, the 116k-frame projection "
+        "(flows/bench/scale.py, docs/scale.md)",
+    )
+    for flag, default, text in (
+        ("--frames", scale.DEFAULT_FRAMES, "5 Hz frames of the long-sequence runs"),
+        ("--sequences", scale.DEFAULT_SEQUENCES, "sequences of the planning datasets"),
+        ("--cluster-workers", scale.DEFAULT_CLUSTER_WORKERS, "worker counts of the Dask cluster"),
+        ("--memory-frames", scale.MEMORY_FRAMES, "5 Hz frames of the memory part's sequences"),
+    ):
+        shown = ",".join(map(str, default))
+        s.add_argument(flag, type=_csv(int), default=default, help=f"{text} (default {shown})")
+    s.add_argument(
+        "--parts",
+        type=_csv(str, scale.PARTS),
+        default=scale.PARTS,
+        help=f"which parts (default {','.join(scale.PARTS)})",
+    )
+    s.add_argument(
+        "--sim-frames", type=int, default=2000, help="raw frames of the simulator's long sequence"
+    )
+    s.add_argument("--workers", type=int, default=2, help="simulator worker processes")
+    s.add_argument("--json", type=Path, default=None)
+    s.set_defaults(func=cmd_bench_scale)
+
+    f = bench.add_parser(
+        "fit", help="the body fit on simulated persons: accuracy per sensor, ablations, fits/s"
+    )
+    _add_config_args(f, runtime=False)
+    f.add_argument("--persons", type=int, default=32)
+    f.add_argument("--sensors", type=_csv(), default=("ouster-32", "ouster-64", "ouster-128"))
+    f.add_argument("--no-ablations", action="store_true")
+    f.add_argument(
+        "--ablation-sensors",
+        type=_csv(),
+        default=None,
+        help="comma-separated sensors that get the ablation rows (default: all)",
+    )
+    f.add_argument("--device", default="cpu")
+    f.add_argument("--warm-start", action="store_true")
+    f.add_argument("--seed", type=int, default=0)
+    f.add_argument(
+        "--json", type=Path, default=None, help="also write the results (means, stds) here"
+    )
+    f.add_argument(
+        "--throughput",
+        action="store_true",
+        help="only speed: fits/s of one batch of --persons on --device, one JSON line",
+    )
+    f.add_argument("--pool", type=int, default=64, help="--throughput: distinct simulated persons")
+    f.add_argument(
+        "--save-pool",
+        type=Path,
+        default=None,
+        help="simulate the --pool persons (and their initial estimates), save them to this .npz, exit",
+    )
+    f.add_argument(
+        "--pool-file",
+        type=Path,
+        default=None,
+        help="--throughput / --agreement: persons saved by --save-pool (no simulator needed)",
+    )
+    f.add_argument(
+        "--agreement",
+        action="store_true",
+        help="fit the pool on the CPU and on --device (twice); print how they agree, one JSON line",
+    )
+    f.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch intra-op threads (default: torch's, every core); on a shared CPU 1 per "
+        "process avoids OpenMP spin-waiting",
+    )
+    f.set_defaults(func=cmd_bench_fit)
+
+    o = bench.add_parser(
+        "occupancy", help="free-space insertion vs octomap-python; map and fuse frames/s"
+    )
+    o.add_argument("--quick", action="store_true")
+    o.set_defaults(func=cmd_bench_occupancy)
+
+    q = bench.add_parser(
+        "perception", help="2D detection, keypoints and masks of the configured providers vs GT"
+    )
+    _add_config_args(q, runtime=False)
+    q.add_argument("--boxes", choices=["provider", "gt"], default="provider")
+    q.add_argument("--json", type=Path, default=None)
+    q.set_defaults(func=cmd_bench_perception)
+
+    n = bench.add_parser(
+        "planning", help="status / reprocess --dry-run / no-op rebuild vs dataset size"
+    )
+    n.add_argument("sizes", nargs="*", type=int, default=[10, 100, 1000])
+    n.add_argument(
+        "--work", type=Path, default=None, help="working folder (default: a temporary one, removed)"
+    )
+    n.add_argument("--json", type=Path, default=None)
+    n.set_defaults(func=cmd_bench_planning)
+
+    m = bench.add_parser("memory", help="peak RSS of map and fuse vs sequence length")
+    m.add_argument(
+        "--work", type=Path, required=True, help="folder for the sequences and outputs (kept)"
+    )
+    m.add_argument(
+        "--frames", type=int, nargs="+", default=[200, 1000, 2000], help="sequence lengths, 5 Hz"
+    )
+    m.add_argument("--untiled", action="store_true", help="also the whole-sequence SequenceMapper")
+    m.add_argument("--stages", nargs="+", default=["map", "fuse"], choices=["map", "fuse"])
+    m.add_argument("--json", type=Path, help="write the results here")
+    m.set_defaults(func=cmd_bench_memory)
+
+    v = bench.add_parser(
+        "overhead", help="Prefect overhead per sequence on the thread and Dask runners"
+    )
+    v.add_argument("--sequences", type=int, default=8)
+    v.add_argument("--frames", type=int, default=2, help="raw frames per sequence")
+    v.set_defaults(func=cmd_bench_overhead)
+
+
+def cmd_cluster(args: argparse.Namespace) -> int:
+    from flows.deploy.clusters import ClusterSpecError, hold_cluster, load_cluster_spec, render
+
+    try:
+        spec = load_cluster_spec(args.spec)
+    except ClusterSpecError as exc:  # it names the file and the field
+        print(exc, file=sys.stderr)
+        return 1
+    if args.action == "up":
+        hold_cluster(spec, args.address_file)
+        return 0
+    try:
+        print(render(spec, args.scheduler), end="")
+    except ClusterSpecError as exc:
+        print(f"{args.spec}: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def cmd_deploy(args: argparse.Namespace) -> int:
+    from flows.deploy import prefect as deploy
+
+    if args.action == "serve":
+        deploy.serve()
+    elif args.action == "apply":
+        for dep_id in deploy.apply_deployments():
+            print(dep_id)
+    else:
+        from configs.schema import load_config
+
+        cfg = load_config(args.config)
+        key = args.key or deploy.default_idempotency_key(cfg, args.force, window=args.window)
+        run = deploy.trigger_rebuild(cfg, force=args.force, idempotency_key=key)
+        print(f"flow run {run.id} ({run.state.name if run.state else 'unknown'}), key {key}")
+    return 0
+
+
+def _add_deploy_parsers(sub) -> None:
+    from flows.deploy.clusters import RENDER_SCHEDULER
+
+    p = sub.add_parser("cluster", help="Dask clusters from a spec (infra/slurm.yaml, ...)")
+    cluster = p.add_subparsers(dest="action", required=True)
+    r = cluster.add_parser("render", help="print the SLURM job scripts or the Kubernetes resources")
+    r.add_argument("spec", type=Path)
+    r.add_argument("--scheduler", default=RENDER_SCHEDULER, help="scheduler address (SLURM)")
+    u = cluster.add_parser(
+        "up",
+        help="start the spec's cluster (both pools, one scheduler), print the scheduler "
+        "address and hold the cluster until interrupted",
+    )
+    u.add_argument("spec", type=Path)
+    u.add_argument("--address-file", type=Path, default=None, help="also write the address here")
+    p.set_defaults(func=cmd_cluster)
+
+    p = sub.add_parser("deploy", help="Prefect deployments of the flows, and their trigger")
+    deploy = p.add_subparsers(dest="action", required=True)
+    deploy.add_parser("serve", help="serve both flows from this process (needs PREFECT_API_URL)")
+    deploy.add_parser("apply", help="register both deployments without serving them")
+    t = deploy.add_parser("trigger", help="trigger the rebuild deployment")
+    t.add_argument("--config", default=None, help="config YAML (default: configs/default.yaml)")
+    t.add_argument("--force", action="store_true")
+    t.add_argument(
+        "--key", default=None, help="idempotency key (default: from the config and --window)"
+    )
+    t.add_argument("--window", default="", help="part of the default key, e.g. today's date")
+    p.set_defaults(func=cmd_deploy)
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -396,7 +678,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--gt",
         action="store_true",
-        help="occ3d: labels from the synthetic ground truth under --data (dataset.root)",
+        help="occ3d: labels from the synthetic ground truth under the raw data root (--data; "
+        "default: the one the dataset was built from)",
     )
     p.set_defaults(func=cmd_export)
 
@@ -431,20 +714,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_check_data)
 
-    for name, text in (
-        (
-            "bench",
-            "measure speeds, memory and reference ratios in one run: `mobileocc bench "
-            "[pipeline | fit | occupancy | perception | planning | memory] [--help | options]` "
-            "(default pipeline)",
-        ),
-        ("cluster", "render a Dask cluster spec: `mobileocc cluster render infra/slurm.yaml`"),
-        (
-            "deploy",
-            "Prefect deployments: `mobileocc deploy serve | apply | trigger [--config FILE]`",
-        ),
-    ):  # listed for --help; main() hands their arguments to the module's own parser
-        sub.add_parser(name, help=text, add_help=False)
+    _add_bench_parsers(sub)
+    _add_deploy_parsers(sub)
 
     p = sub.add_parser(
         "simulate", help="generate synthetic campus sequences (CODa layout + ground truth)"
@@ -524,10 +795,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    if argv and argv[0] in PASSTHROUGH:
-        return PASSTHROUGH[argv[0]](argv[1:])
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.argv = argv
     from configs.schema import ConfigError
     from storage.files import InputError
     from storage.manifest import OutputError, StoreLockedError

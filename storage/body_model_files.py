@@ -283,6 +283,21 @@ def save_body_model_pkl(path, params: dict) -> None:
     )
 
 
+#: the procedural stand-in's "gender": smplx.SMPL finds ``SMPL_<GENDER>.pkl`` in a folder
+SMPLX_GENDER = "procedural"
+
+
+def save_smplx_model(folder, params: dict, gender: str = SMPLX_GENDER) -> Path:
+    """Write body model parameters where ``smplx`` finds them: ``<folder>/smpl/SMPL_<GENDER>.pkl``
+    (:func:`save_body_model_pkl`). smplx.create reads the model type from the file name's first
+    ``_`` part (``smpl``), so both ``smplx.create(that_file)`` and ``smplx.create(folder,
+    model_type="smpl", gender=gender)`` load it (pass :func:`smplx_vertex_ids` as
+    ``vertex_ids`` for a mesh other than SMPL's). Returns the file's path."""
+    path = Path(folder) / "smpl" / f"SMPL_{gender.upper()}.pkl"
+    save_body_model_pkl(path, params)
+    return path
+
+
 def smplx_vertex_ids(params: dict) -> dict[str, int]:
     """The ``vertex_ids`` to pass to ``smplx.SMPL`` for a model other than the official SMPL
     (smplx's default indices are SMPL's 6,890-vertex ids): its face keypoints from

@@ -70,7 +70,6 @@ COLUMNS_PER_BEAM = 1024
 LIDAR_SOURCES = ("3d_comp", "3d_raw")
 IMAGE_SOURCES = ("2d_rect", "2d_raw")
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
-OCCLUSION_LEVELS = ("None", "Light", "Medium", "Heavy", "Full", "Unknown")
 FRAME_SELECTIONS = ("files", "metadata")
 #: the metadata lists that name annotated frames (coda-devkit helpers/metadata.py)
 METADATA_TASKS = ("ObjectTracking", "SemanticSegmentation")

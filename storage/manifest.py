@@ -380,6 +380,50 @@ class Manifest:
         return ", ".join(diffs[:limit]) + more
 
 
+#: manifest meta key: the absolute raw data root the dataset was last built from
+DATA_ROOT_KEY = "data_root"
+
+
+def record_data_root(manifest: Manifest, data_root: Path | str) -> None:
+    """Remember where the dataset is built from (absolute, symlinks resolved): what the frames
+    table's relative source paths are relative to, wherever the next command runs from."""
+    manifest.meta[DATA_ROOT_KEY] = str(Path(data_root).resolve())
+
+
+def recorded_data_root(out_root: Path | str) -> Path | None:
+    """The raw data root recorded in ``OUT/manifest.json`` (None: none recorded). Manifests
+    written before the record existed: the run's ``dataset.root``, relative to this directory."""
+    meta = Manifest.load(Path(out_root)).meta
+    root = meta.get(DATA_ROOT_KEY) or ((meta.get("config") or {}).get("dataset") or {}).get("root")
+    return Path(root) if root else None
+
+
+def data_root_for(out_root: Path | str, given: Path | str | None = None) -> Path:
+    """The raw data root of the dataset at ``out_root``: ``given`` (``--data``) when set, else the
+    one recorded by the run that built it. InputError naming both paths when the root to use is
+    not a folder (a moved data root), or when none is known."""
+    out = Path(out_root)
+    if given is not None and Path(given).is_dir():
+        return Path(given)
+    recorded = recorded_data_root(out)
+    if given is not None:
+        built = f"; the dataset was built from {recorded}" if recorded else ""
+        raise InputError(f"data root {given} (--data) is not a folder{built}", Path(given))
+    if recorded is None:
+        raise InputError(
+            f"{out / MANIFEST}: no raw data root recorded (no pipeline run wrote it); pass --data",
+            out / MANIFEST,
+        )
+    if not recorded.is_dir():
+        raise InputError(
+            f"the dataset {out} was built from the raw data root {recorded} (recorded in "
+            f"{out / MANIFEST}), which is not a folder any more; if the raw data moved, pass "
+            "--data NEW_ROOT",
+            recorded,
+        )
+    return recorded
+
+
 def stage_dir(root: Path, stage: str, sequence: str, key: str) -> Path:
     """Key-named output location of one (sequence, stage)."""
     return Path(root) / "stages" / stage / sequence / key

@@ -14,12 +14,15 @@ the Zarr store and the Parquet tables.
 from __future__ import annotations
 
 import dataclasses
+import json
+import shutil
 import zipfile
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 
+from storage.atomic import atomic_write_text
 from storage.npzio import save_npz_deterministic
 
 P = TypeVar("P", bound="Product")
@@ -126,15 +129,6 @@ class Product:
                 name: np.zeros(tuple(size(s) for s in spec.shape), spec.dtype)
                 for name, spec in cls.specs().items()
             }
-        )
-
-    @classmethod
-    def concat(cls: type[P], parts: list[P]) -> P:
-        """Rows of several products of a row-indexed kind (every field's first axis is the row)."""
-        if not parts:
-            return cls.empty()
-        return cls(
-            **{name: np.concatenate([getattr(p, name) for p in parts]) for name in cls.specs()}
         )
 
     def take(self: P, rows: np.ndarray) -> P:
@@ -442,3 +436,20 @@ def masks_to_labels(masks: np.ndarray) -> np.ndarray:
 def labels_to_masks(labels: np.ndarray, count: int) -> np.ndarray:
     """(H, W) uint16 label image -> (count, H, W) bool masks."""
     return labels[None, :, :] == np.arange(1, count + 1, dtype=np.uint16)[:, None, None]
+
+
+#: a stage's JSON-able summary, beside its products
+SUMMARY = "summary.json"
+
+
+def write_summary(folder: Path, summary: dict) -> None:
+    atomic_write_text(Path(folder) / SUMMARY, json.dumps(summary, sort_keys=True, indent=1))
+
+
+def read_summary(folder: Path) -> dict:
+    return json.loads((Path(folder) / SUMMARY).read_text())
+
+
+def remove_scratch(folder: Path) -> None:
+    """Remove a folder of scratch products (a stage's work files, not part of its output)."""
+    shutil.rmtree(folder, ignore_errors=True)

@@ -133,14 +133,6 @@ def discard(staged: StagedSequence | str | os.PathLike) -> None:
     shutil.rmtree(path, ignore_errors=True)
 
 
-def discard_stale(root: str | os.PathLike) -> list[Path]:
-    """Remove every staging directory left under ``root`` by killed runs; returns them."""
-    stale = sorted(p for p in Path(root).glob(f"{TMP_PREFIX}*") if p.is_dir())
-    for path in stale:
-        shutil.rmtree(path, ignore_errors=True)
-    return stale
-
-
 @contextlib.contextmanager
 def sequence_writer(
     root: str | os.PathLike, sequence: str, version: str
@@ -153,6 +145,19 @@ def sequence_writer(
         discard(staged)
         raise
     publish_sequence(staged)
+
+
+def stage_store(staged: StagedSequence, store: Path) -> None:
+    """Put a finished Zarr store (the fuse stage's) into a staged sequence: its files hard-linked
+    (copied where a link is refused, e.g. across file systems)."""
+
+    def link(a, b):
+        try:
+            os.link(a, b)
+        except OSError:
+            shutil.copy2(a, b)
+
+    shutil.copytree(store, staged.store_path, copy_function=link, dirs_exist_ok=True)
 
 
 def stage_table(staged: StagedSequence, name: str, data: Any) -> Path:

@@ -132,13 +132,3 @@ def read_table(
     table = dataset.to_table(filter=flt)
     keys = {"frames": ["frame"], "instances": ["track_id", "frame"], "sequences": []}[name]
     return table.sort_by([("sequence", "ascending")] + [(k, "ascending") for k in keys])
-
-
-def list_partitions(root: str | os.PathLike, name: str) -> list[str]:
-    """Sequences that have a published partition of table ``name``."""
-    base = Path(root) / TABLES_DIR / name
-    if not base.is_dir():
-        return []
-    return sorted(
-        p.name.split("=", 1)[1] for p in base.glob("sequence=*") if (p / PARTITION_FILE).is_file()
-    )

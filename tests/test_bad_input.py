@@ -591,7 +591,7 @@ def test_a_bad_frame_is_left_out_and_the_sequence_goes_on(clean, tmp_path, capsy
     }  # 1 of 2 frames may go
     cfg = load_config(clean.config, {"dataset.root": str(data), "output.root": str(out), **over})
     report = run_units(cfg, progress=False)
-    assert {o["status"] for o in report.outcomes.values()} == {"done"}, summary_table(report)
+    assert {o.status for o in report.outcomes.values()} == {"done"}, summary_table(report)
     assert report.exit_code == 1  # a frame was lost: the run says so
     [bad] = report.failed_frames()[BAD]
     assert (

@@ -196,20 +196,26 @@ def test_smplx_poses_our_bodies_like_our_model(tmp_path):
     smplx = pytest.importorskip("smplx")
     import torch
 
-    from storage.body_model_files import save_body_model_pkl, smplx_vertex_ids
+    from storage.body_model_files import save_body_model_pkl, save_smplx_model, smplx_vertex_ids
     from tasks.body.model import BodyModel
     from tasks.body.procedural import default_body_params
 
     params = default_body_params()
-    path = tmp_path / "procedural_smpl.pkl"
-    save_body_model_pkl(path, params)
-    model = smplx.SMPL(
-        model_path=str(path),
+    path = save_smplx_model(tmp_path / "body_models", params)
+    kwargs = dict(
         vertex_ids=smplx_vertex_ids(params),
         use_hands=False,
         use_feet_keypoints=False,
         dtype=torch.float64,
     )
+    # smplx.create reads the model type from the file name (issue 32: "procedural_smpl.pkl"
+    # gave "Unknown model type procedural"); the file and the folder layout both load
+    assert path.name == "SMPL_PROCEDURAL.pkl"
+    assert isinstance(smplx.create(str(tmp_path / "body_models"), gender="procedural"), smplx.SMPL)
+    model = smplx.create(str(path), **kwargs)
+    save_body_model_pkl(tmp_path / "procedural_smpl.pkl", params)
+    with pytest.raises(ValueError, match="Unknown model type procedural"):
+        smplx.create(str(tmp_path / "procedural_smpl.pkl"))
     rng = np.random.default_rng(0)
     betas, go, pose, transl = (
         torch.as_tensor(rng.normal(0, s, (2, n)))

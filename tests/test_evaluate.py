@@ -8,8 +8,9 @@ import shutil
 import numpy as np
 import pytest
 
-from flows.bench.pipeline import make_config, run_local
+from flows.bench.common import make_config, run_stages
 from flows.commands.evaluate import _boxes_to_base, _condition, evaluate
+from flows.commands.evaluate_coda import evaluate_coda
 
 
 @pytest.fixture(scope="module")
@@ -21,7 +22,7 @@ def built(tmp_path_factory):
     data, out = root / "data", root / "out"
     simulate(data, sequences=1, frames=4, seed=9, pedestrians=3, crowd="crowded", progress=False)
     cfg = make_config(data, out, {"fuse.body_source": "ground-truth"})
-    run_local(cfg, stages=("detect", "track", "map", "fuse", "export"))
+    run_stages(cfg, ("detect", "track", "map", "fuse", "export"))
     return data, out
 
 
@@ -75,6 +76,21 @@ def test_report_sections_and_gt_bodies_near_perfect(built, tmp_path):
     assert all(limbs[g]["ave_t_vertex_gt"] < 0.05 for g in ("legs", "arms", "torso"))
     assert limbs["legs"]["ave_o_person_gt"] > 2 * limbs["legs"]["ave_o_vertex_gt"]
     assert res["occupancy"]["geometric_iou"] > 0.6
+    # RayIoU / OccScore (SparseOcc / OpenOcc), in the report and results.json
+    ray = saved["ray_iou"]["all"]
+    assert "RayIoU and OccScore" in md and ray == saved["ray_iou"]["0"]  # one sequence
+    assert ray["rays"] > 1000 and 0 < ray["ray_iou_4m"] <= 1
+    assert ray["ray_iou_1m"] <= ray["ray_iou_2m"] <= ray["ray_iou_4m"]
+    # a class is n/a at every threshold or none (gt + pred - tp > 0 whenever gt + pred > 0)
+    assert ray["ray_iou"] == pytest.approx(
+        np.mean([ray[f"ray_iou_{t}m"] for t in (1, 2, 4)]), abs=1e-12
+    )
+    assert ray["occ_score"] == pytest.approx(
+        0.9 * ray["ray_iou"] + 0.1 * max(1 - ray["mave"], 0.0), abs=1e-12
+    )
+    # the exact GT bodies and vertex velocities are in: pedestrian rays near perfect
+    assert saved["ray_iou_per_class"]["2m"]["pedestrian"] > 0.9
+    assert saved["ray_ave_per_class"]["all"]["pedestrian (m/s)"] < 0.2
     # detection: every GT person in view counted once (T + misses), condition from the metadata
     d = res["detection"]["crowded"]
     assert d["T"] + d["M_vis"] + d["M_occ"] > 0 and d["T"] >= d["M_vis"]
@@ -99,6 +115,7 @@ def test_corrupted_semantics_lower_miou(built, tmp_path):
     arr[0] = frame
     bad = evaluate(bad_out, data, tmp_path / "bad", sample_frames=0)
     assert bad["occupancy"]["miou"] < good["occupancy"]["miou"] - 0.2
+    assert bad["ray_iou"]["all"]["ray_iou"] < good["ray_iou"]["all"]["ray_iou"] - 0.2
     assert bad["static"]["point_accuracy"] < good["static"]["point_accuracy"] - 0.2
     # geometry unchanged: the geometric IoU does not move
     assert bad["occupancy"]["geometric_iou"] == pytest.approx(good["occupancy"]["geometric_iou"])
@@ -123,7 +140,7 @@ def test_coda_labels_reproduce_the_synthetic_figures(built, tmp_path):
     # terrain voxel: IoU >= the GT one), the same pedestrian boxes (written to 6 decimals).
     data, out = built
     syn = evaluate(out, None, tmp_path / "syn", sample_frames=0)
-    coda = evaluate(out, None, tmp_path / "coda", labels="coda")
+    coda = evaluate_coda(out, None, tmp_path / "coda")
     assert coda["labels"]["frames"] == coda["labels"]["frames with 3d_semantic"] == 2
     assert (
         coda["labels"]["pedestrian boxes"] > 0 and coda["labels"]["boxes skipped (malformed)"] == 0

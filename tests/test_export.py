@@ -82,6 +82,8 @@ def build_tiny_dataset(root: Path, src: Path) -> Path:
             sem[:, 0, 0, 0] = np.arange(NF) + 10 * si  # frame marker
             mask = np.zeros((NF, *GRID), np.uint8)
             mask[:, :, :, :12] = 1
+            vel = np.zeros((NF, *GRID, 2), np.float16)
+            vel[:, 18:21, 28:31, 5:14] = (1.0, 0.5)
             for start, stop in layout.write_units():
                 occ.write_frames(
                     staged.store_path,
@@ -90,6 +92,7 @@ def build_tiny_dataset(root: Path, src: Path) -> Path:
                         "semantics": sem[start:stop],
                         "mask_lidar": mask[start:stop],
                         "mask_camera": mask[start:stop] * 0 + 1,
+                        "velocity": vel[start:stop],
                     },
                 )
             rows = []
@@ -189,6 +192,16 @@ def test_occ3d_labels_and_annotations(tiny):
     )
     assert ml[:, :, :12].all() and not ml[:, :, 12:].any() and mc.all()
     assert rec["gt_path"] == f"gts/coda-s1/{tok2}/labels.npz"
+    # OpenOcc's flow beside the labels: (X, Y, Z, 2) float16 m/s, the store's velocity
+    flow = labels["flow"]
+    assert flow.shape == (*GRID, 2) and flow.dtype == np.float16
+    assert tuple(flow[19, 29, 8]) == (1.0, 0.5) and not flow[5, 5, 4].any()
+    # time order (issue 32: a scene's samples were listed by token): scenes by first sample,
+    # samples as recorded, prev / next chaining them
+    assert list(ann["scene_infos"]) == ["coda-s0", "coda-s1"]
+    assert list(infos) == [sample_token("s1", f) for f in range(NF)]
+    stamps = [r["timestamp"] for r in infos.values()]
+    assert stamps == sorted(stamps) and len(set(stamps)) == NF
     # deterministic: a second export is byte-identical
     export_occ3d(root, base / "occ3d_again", val_sequences=("s1",))
     for rel in ("annotations.json", f"gts/coda-s1/{tok2}/labels.npz"):
@@ -304,3 +317,82 @@ def test_plain_pickle_holds_only_numpy_ndarray_and_bytearray():
     for bad in ({"x": np.float64(1.0)}, {"x": np.array([object()])}, {"x": {1.5: 1}}):
         with pytest.raises(TypeError, match="object"):
             dumps_plain(bad)
+
+
+def test_infos_carry_the_occupancy_challenge_fields(tiny):
+    """prev / next / frame_idx / can_bus / occ_gt_path (the CVPR 2023 challenge's and BEVFormer-occ's
+    NuSceneOcc.get_data_info read them: KeyError 'prev' before issue 32), in time order."""
+    import pickle
+
+    root, base = tiny
+    out = base / "nusc_challenge"
+    export_nuscenes(root, out, version="v1.0-mini", val_sequences=("s1",))
+    for split, seq in (("train", "s0"), ("val", "s1")):
+        with open(out / f"mobileocc_infos_{split}.pkl", "rb") as f:  # our own file
+            infos = pickle.load(f)["infos"]
+        assert [i["timestamp"] for i in infos] == sorted(i["timestamp"] for i in infos)
+        toks = [sample_token(seq, f) for f in range(NF)]
+        assert [i["token"] for i in infos] == toks
+        for k, info in enumerate(infos):
+            assert info["frame_idx"] == k
+            assert info["prev"] == (toks[k - 1] if k else "")
+            assert info["next"] == (toks[k + 1] if k + 1 < NF else "")
+            assert info["occ_gt_path"] == f"gts/coda-{seq}/{toks[k]}/labels.npz"
+            assert info["can_bus"].shape == (18,) and not info["can_bus"].any()
+        assert infos[0]["can_bus"] is not infos[1]["can_bus"]  # the dataset writes into it
+
+
+def test_overlapping_scenes_are_refused():
+    from storage.export.nuscenes import time_ordered
+
+    a = [{"scene_name": "a", "timestamp": t} for t in (10, 20, 30)]
+    b = [{"scene_name": "b", "timestamp": t} for t in (40, 50)]
+    assert [r["timestamp"] for r in time_ordered(b + a, "train")] == [10, 20, 30, 40, 50]
+    c = [{"scene_name": "c", "timestamp": t} for t in (25, 35)]
+    with pytest.raises(ValueError, match="scenes 'a' and 'c' of the val split overlap"):
+        time_ordered(a + c, "val")
+
+
+def test_flashocc_settings_for_an_asymmetric_grid(tiny):
+    """The BEV x-flip is off on our grid (x 0.4..10 m: flipping moves every frustum point out),
+    the y-flip stays; a larger input reaches more of the camera-visible cells; the depth bins
+    reach past the grid's far corner."""
+    root, base = tiny
+    export_occ3d(root, base / "occ3d_meta")
+    meta = json.loads((base / "occ3d_meta" / "occ3d_metadata.json").read_text())["flashocc"]
+    assert meta["bda_aug_conf"]["flip_dx_ratio"] == 0.0
+    assert meta["bda_aug_conf"]["flip_dy_ratio"] == 0.5
+    assert meta["num_classes"] == 10 and meta["Dz"] == 24 and meta["src_size"] == [H, W]
+    cover = [s["frustum_coverage"] for s in meta["input_sizes"]]
+    assert all(0 < a < b <= 1 for a, b in zip(cover, cover[1:])), cover
+    assert all(
+        h % 16 == 0 and w % 16 == 0 for h, w in (s["input_size"] for s in meta["input_sizes"])
+    )
+    cam = (T_BASE_FROM_LIDAR @ np.linalg.inv(T_CAM0_FROM_LIDAR))[:3, 3]
+    far = max(
+        np.linalg.norm(np.array([x, y, z]) - cam)
+        for x in (0.4, 10.0)
+        for y in (-4.8, 4.8)
+        for z in (-1.0, 3.8)
+    )
+    lo, hi, step = meta["grid_config"]["depth"]
+    assert far < hi and step == 0.25 and lo == 0.5
+
+
+def test_frustum_points_project_back_to_their_input_pixels():
+    """FlashOcc's test-time resize + crop inverted: each frustum point projects to the original
+    pixel ((u_in + crop_w) / s, (v_in + crop_h) / s), at its depth."""
+    from tasks.occupancy.lss_frustum import frustum_points_base
+
+    T_base_from_cam = T_BASE_FROM_LIDAR @ np.linalg.inv(T_CAM0_FROM_LIDAR)
+    K1 = np.array([[730.0, 0, 611.5], [0, 730.0, 511.5], [0, 0, 1]])
+    pts = frustum_points_base(K1, T_base_from_cam, (1224, 1024), (256, 304), (1.0, 3.0, 1.0))
+    s = 304 / 1224
+    crop_h = int(1024 * s) - 256  # 254 - 256 = -2: two padded rows on top
+    u_in, v_in = np.linspace(0, 303, 19), np.linspace(0, 255, 16)
+    pc = (np.c_[pts, np.ones(len(pts))] @ np.linalg.inv(T_base_from_cam).T)[:, :3]
+    uv = (pc @ K1.T)[:, :2] / pc[:, 2:3]
+    dd, vv, uu = np.meshgrid([1.0, 2.0], v_in, u_in, indexing="ij")
+    np.testing.assert_allclose(pc[:, 2], dd.ravel(), atol=1e-9)
+    np.testing.assert_allclose(uv[:, 0], uu.ravel() / s, atol=1e-6)
+    np.testing.assert_allclose(uv[:, 1], (vv.ravel() + crop_h) / s, atol=1e-6)

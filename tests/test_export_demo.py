@@ -311,3 +311,162 @@ def test_gt_export_holds_exact_labels_with_the_dataset_masks(demo):
         )
         == 2
     )
+
+
+# ---- a re-implementation of the field access of the CVPR 2023 occupancy challenge's NuSceneOcc
+# (CVPR2023-3D-Occupancy-Prediction, projects/mmdet3d_plugin/datasets/nuscenes_occ.py:
+# load_annotations, get_data_info, prepare_train_data, union2one) and its LoadOccGTFromFile
+# (datasets/pipelines/loading.py), which BEVFormer-occ trains with; before issue 32 it stopped at
+# KeyError 'prev', and without occ_gt_path it silently loads all-zero labels.
+
+
+def _challenge_get_data_info(infos: list[dict], index: int) -> dict:
+    from nuscenes.eval.common.utils import quaternion_yaw
+    from nuscenes.utils.geometry_utils import transform_matrix
+
+    info = infos[index]
+    d = dict(
+        sample_idx=info["token"],
+        pts_filename=info["lidar_path"],
+        sweeps=info["sweeps"],
+        ego2global_translation=info["ego2global_translation"],
+        ego2global_rotation=info["ego2global_rotation"],
+        prev_idx=info["prev"],
+        next_idx=info["next"],
+        scene_token=info["scene_token"],
+        can_bus=info["can_bus"],
+        frame_idx=info["frame_idx"],
+        timestamp=info["timestamp"] / 1e6,
+    )
+    if "occ_gt_path" in info:
+        d["occ_gt_path"] = info["occ_gt_path"]
+    d["ego2lidar"] = transform_matrix(
+        translation=info["lidar2ego_translation"],
+        rotation=Quaternion(info["lidar2ego_rotation"]),
+        inverse=True,
+    )
+    lidar2img = []
+    for _, cam in info["cams"].items():
+        lidar2cam_r = np.linalg.inv(cam["sensor2lidar_rotation"])
+        lidar2cam_t = cam["sensor2lidar_translation"] @ lidar2cam_r.T
+        rt = np.eye(4)
+        rt[:3, :3] = lidar2cam_r.T
+        rt[3, :3] = -lidar2cam_t
+        intrinsic = cam["cam_intrinsic"]
+        viewpad = np.eye(4)
+        viewpad[: intrinsic.shape[0], : intrinsic.shape[1]] = intrinsic
+        lidar2img.append(viewpad @ rt.T)
+    d["lidar2img"] = lidar2img
+    rotation = Quaternion(d["ego2global_rotation"])
+    can_bus = d["can_bus"]
+    can_bus[:3] = d["ego2global_translation"]
+    can_bus[3:7] = rotation
+    angle = quaternion_yaw(rotation) / np.pi * 180
+    if angle < 0:
+        angle += 360
+    can_bus[-2] = angle / 180 * np.pi
+    can_bus[-1] = angle
+    return d
+
+
+def _challenge_union2one(metas: list[dict]) -> list[dict]:
+    prev_scene, prev_pos, prev_angle = None, None, None
+    for m in metas:
+        if m["scene_token"] != prev_scene:
+            m["prev_bev_exists"] = False
+            prev_scene = m["scene_token"]
+            prev_pos, prev_angle = m["can_bus"][:3].copy(), m["can_bus"][-1].copy()
+            m["can_bus"][:3] = 0
+            m["can_bus"][-1] = 0
+        else:
+            m["prev_bev_exists"] = True
+            pos, angle = m["can_bus"][:3].copy(), m["can_bus"][-1].copy()
+            m["can_bus"][:3] -= prev_pos
+            m["can_bus"][-1] -= prev_angle
+            prev_pos, prev_angle = pos, angle
+    return metas
+
+
+def _load_occ_gt(data_root: Path, d: dict) -> dict:
+    if "occ_gt_path" in d:
+        labels = np.load(os.path.join(data_root, d["occ_gt_path"]))
+        return {k: labels[k] for k in ("semantics", "mask_lidar", "mask_camera")}
+    return {
+        k: np.zeros((200, 200, 16), np.uint8) for k in ("semantics", "mask_lidar", "mask_camera")
+    }
+
+
+def test_infos_read_like_the_occupancy_challenge(demo):
+    pytest.importorskip("nuscenes")
+    work, _ = demo
+    root = work / "data" / "nuscenes"  # both exports in one folder: occ_gt_data_root = data_root
+    ds = open_dataset(work / "demo-out")
+    for split in ("train", "val"):
+        with open(root / f"mobileocc_infos_{split}.pkl", "rb") as f:  # our own file
+            data = pickle.load(f)
+        infos = list(sorted(data["infos"], key=lambda e: e["timestamp"]))  # load_annotations
+        assert data["metadata"]["version"] == "v1.0-trainval"
+        queue_length = 3
+        for index in range(len(infos)):
+            idx = list(range(index - queue_length, index))  # prepare_train_data, unshuffled
+            metas = [_challenge_get_data_info(infos, max(0, i)) for i in [*idx[1:], index]]
+            metas = _challenge_union2one(metas)
+            d, info = metas[-1], infos[index]
+            # the can_bus deltas are the ego moves inside one scene
+            if d["prev_bev_exists"]:
+                prev = infos[max(0, index - 1)]
+                np.testing.assert_allclose(
+                    d["can_bus"][:3],
+                    np.subtract(info["ego2global_translation"], prev["ego2global_translation"]),
+                    atol=1e-9,
+                )
+            # frame_idx 0 starts a scene: no prev, no previous BEV (index 0 queues itself)
+            assert (d["frame_idx"] == 0) == (d["prev_idx"] == "")
+            if d["frame_idx"]:
+                assert d["prev_idx"] == infos[index - 1]["token"] and d["prev_bev_exists"]
+                assert infos[index - 1]["next"] == info["token"]
+            elif index:
+                assert not d["prev_bev_exists"]
+            gt = _load_occ_gt(root, d)  # LoadOccGTFromFile
+            seq = info["scene_name"].split("-", 1)[1]
+            frame = next(
+                r["frame"]
+                for r in ds.table("frames", seq).to_pylist()
+                if sample_token(seq, r["frame"]) == info["token"]
+            )
+            ours = np.asarray(ds.arrays(seq, lazy="zarr")["semantics"][frame])
+            np.testing.assert_array_equal(gt["semantics"], ours)  # not the all-zero fallback
+            assert gt["semantics"].any() and gt["mask_camera"].any()
+            assert (gt["semantics"] != 9).any()
+
+
+def test_export_needs_no_data_after_a_rebuild_from_elsewhere(demo, tmp_path, monkeypatch, capsys):
+    """The dataset was built with a relative --data from its own folder; export from another
+    folder without --data finds the sources through the recorded root (issue 32: it looked under
+    the config's default root); a moved data root is named in the error, --data overrides."""
+    work, _ = demo
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    out = str(work / "demo-out")
+    assert main(["export", "--out", out, "--format", "nuscenes", "--to", "nus"]) == 0
+    assert any((elsewhere / "nus" / "samples" / "CAM_FRONT").iterdir())
+    assert main(["export", "--out", out, "--format", "occ3d", "--gt", "--to", "gt"]) == 0
+    moved = work / "moved-data"
+    os.replace(work / "demo-data", moved)
+    try:
+        capsys.readouterr()
+        assert main(["export", "--out", out, "--format", "nuscenes", "--to", "nus2"]) == 2
+        err = capsys.readouterr().err
+        assert str((work / "demo-data").resolve()) in err and out in err and "--data" in err
+        assert not (elsewhere / "nus2").exists()  # refused before writing
+        args = ["export", "--out", out, "--data", str(moved), "--format", "nuscenes"]
+        assert main([*args, "--to", "nus3"]) == 0
+        assert (
+            main(["export", "--out", out, "--data", "nowhere", "--format", "nuscenes", "--to", "x"])
+            == 2
+        )
+        err = capsys.readouterr().err
+        assert "nowhere" in err and str((work / "demo-data").resolve()) in err
+    finally:
+        os.replace(moved, work / "demo-data")

@@ -284,7 +284,7 @@ def test_worker_killed_mid_stage(cluster, dataset, reference, tmp_path):
         cluster.slow(None)
     assert len(killed) == 1 and killed[0] in [w.pid for w in cluster.workers]
     assert cluster.worker_count() == 1  # the killed worker stayed dead: the other one finished
-    assert report.outcomes[("0", "track")]["status"] == "done"
+    assert report.outcomes[("0", "track")].status == "done"
     assert _published(out) == _only(reference, ONE)
 
 

@@ -36,7 +36,7 @@ def _run(cfg, **kw):
 
 
 def _ran(report) -> set[tuple[str, str]]:
-    return {k for k, o in report.outcomes.items() if o["status"] in ("done", "failed")}
+    return {k for k, o in report.outcomes.items() if o.ran}
 
 
 @pytest.fixture()
@@ -49,9 +49,9 @@ def test_thread_runner_and_cache_consequences(dataset, tmp_path):
     cfg = _config(dataset, out)
     first = _run(cfg)
     assert _ran(first) == {(s, st) for s in ("0", "1") for st in STAGES}
-    assert all(o["status"] == "done" for o in first.outcomes.values())
+    assert all(o.status == "done" for o in first.outcomes.values())
     # every stage says plainly whether it computes its product yet
-    assert all("implemented" in o["summary"] for o in first.outcomes.values())
+    assert all("implemented" in o.summary for o in first.outcomes.values())
     # the published instances carry the fitted bodies (regression: the export left the 3D boxes
     # empty, so the nuScenes export had no pedestrian annotations)
     inst = read_table(out, "instances").to_pandas().dropna(subset=["box3d_center"])
@@ -109,12 +109,10 @@ def test_bad_sequence_fails_alone(dataset, tmp_path):
     # tests/test_faults.py, test_a_bad_frame_is_left_out_and_the_sequence_goes_on)
     report = _run(_config(dataset, out, **{"detect.max_failed_frame_share": 0}))
     failed = report.failed
-    assert [(o["sequence"], o["stage"]) for o in failed] == [("0", "detect")]
-    assert (
-        "3d_comp_os1_0_2.bin (frame 2)" in failed[0]["error"] and "truncated" in failed[0]["error"]
-    )
-    assert all(report.outcomes[("1", st)]["status"] == "done" for st in STAGES)
-    assert report.outcomes[("0", "fuse")]["status"] == "skipped"
+    assert [(o.sequence, o.stage) for o in failed] == [("0", "detect")]
+    assert "3d_comp_os1_0_2.bin (frame 2)" in failed[0].error and "truncated" in failed[0].error
+    assert all(report.outcomes[("1", st)].status == "done" for st in STAGES)
+    assert report.outcomes[("0", "fuse")].status == "skipped"
     manifest = Manifest.load(out)
     assert manifest.get("0", "detect").status == "failed"
     assert "truncated" in manifest.get("0", "detect").error
@@ -124,9 +122,9 @@ def test_bad_sequence_fails_alone(dataset, tmp_path):
 def test_unknown_sequence_is_recorded(dataset, tmp_path):
     cfg = _config(dataset, tmp_path / "out", **{"dataset.sequences": ["1", "9"]})
     report = _run(cfg)
-    assert report.outcomes[("9", "detect")]["status"] == "failed"
-    assert "unknown sequence id '9'" in report.outcomes[("9", "detect")]["error"]
-    assert report.outcomes[("1", "export")]["status"] == "done"
+    assert report.outcomes[("9", "detect")].status == "failed"
+    assert "unknown sequence id '9'" in report.outcomes[("9", "detect")].error
+    assert report.outcomes[("1", "export")].status == "done"
 
 
 def test_second_run_on_same_store_is_refused(dataset, tmp_path):
@@ -139,8 +137,8 @@ def test_second_run_on_same_store_is_refused(dataset, tmp_path):
 def test_dask_process_runner_matches_thread_runner(dataset, tmp_path):
     threads = _run(_config(dataset, tmp_path / "a"))
     dask = _run(_config(dataset, tmp_path / "b", **{"dask.runner": "dask", "dask.workers": 2}))
-    assert {k: o["status"] for k, o in dask.outcomes.items()} == {
-        k: o["status"] for k, o in threads.outcomes.items()
+    assert {k: o.status for k, o in dask.outcomes.items()} == {
+        k: o.status for k, o in threads.outcomes.items()
     }
     ma, mb = Manifest.load(tmp_path / "a"), Manifest.load(tmp_path / "b")
     assert {k: r.key for k, r in ma.rows.items()} == {k: r.key for k, r in mb.rows.items()}
@@ -163,7 +161,7 @@ def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle
     from tasks.fit.init_oracle import params_to_cliff_camera
 
     oracle_cfg = _config(dataset, tmp_path / "oracle", **{"fit.batch_persons": 2})
-    assert all(o["status"] == "done" for o in _run(oracle_cfg).outcomes.values())
+    assert all(o.status == "done" for o in _run(oracle_cfg).outcomes.values())
     init_dir = tmp_path / "cliff"
     few = {}
     for seq in ("0", "1"):
@@ -214,7 +212,7 @@ def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle
         },
     )
     report = _run(cliff_cfg)
-    assert all(o["status"] == "done" for o in report.outcomes.values())
+    assert all(o.status == "done" for o in report.outcomes.values())
     for seq in ("0", "1"):
         bodies = [
             Bodies.read(next((tmp_path / out / "stages" / "fit" / seq).iterdir())).arrays()
@@ -225,10 +223,10 @@ def test_precomputed_cliff_estimates_written_from_the_oracle_fit_like_the_oracle
             assert np.array_equal(bodies[0][key], bodies[1][key])
         for key in ("betas", "global_orient", "body_pose", "transl"):  # float32 storage of the file
             np.testing.assert_allclose(bodies[0][key], bodies[1][key], atol=2e-3)
-        assert report.outcomes[(seq, "fit")]["summary"]["skipped_without_estimate"] == 0
-        assert report.outcomes[(seq, "fit")]["summary"]["skipped_few_points"] == few[seq]
+        assert report.outcomes[(seq, "fit")].summary["skipped_without_estimate"] == 0
+        assert report.outcomes[(seq, "fit")].summary["skipped_few_points"] == few[seq]
         assert np.all(bodies[0]["num_points"] >= oracle_cfg.fit.min_points)
-        summary = report.outcomes[(seq, "fit")]["summary"]
+        summary = report.outcomes[(seq, "fit")].summary
         assert np.all(bodies[1]["shift_m"] <= cliff_cfg.fit.max_shift_m)
         assert (
             summary["fitted"] == len(bodies[1]["frame"])
@@ -349,7 +347,7 @@ def test_labels_at_the_sensor_rate_end_to_end(dataset, tmp_path):
     out = tmp_path / "out"
     cfg = _config(dataset, out, **{"dataset.rate_hz": 10.0, "dataset.sequences": ["0"]})
     report = _run(cfg)
-    assert all(o["status"] == "done" for o in report.outcomes.values()), report.failed
+    assert all(o.status == "done" for o in report.outcomes.values()), report.failed
     inputs = track_inputs(cfg)
     assert (inputs.tracker.max_age, inputs.tracker.delta_t, inputs.offline.stitch_max_gap) == (
         60,

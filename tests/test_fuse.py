@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from tasks.conventions import FREE, OTHER_STRUCTURE, PEDESTRIAN, ROAD, TERRAIN, VEGETATION
+from tasks.occupancy.frame import relative_pose
 from tasks.occupancy.freespace import OccupancyMap
 from tasks.occupancy.fuse import (
     CameraView,
@@ -33,6 +34,21 @@ def _box(lo, hi):
 def _idx_box(lo, hi):
     ax = [np.arange(a, b + 1) for a, b in zip(lo, hi)]
     return {tuple(i) for i in np.stack(np.meshgrid(*ax, indexing="ij"), -1).reshape(-1, 3)}
+
+
+def test_relative_pose_of_a_frame_stack():
+    """T_world_from_base from T_world_from_lidar and T_base_from_lidar: a quarter turn about z and
+    a shift; one pose or a stack of them against one."""
+    T_base_from_lidar = np.eye(4)
+    T_base_from_lidar[:3, 3] = [0.5, 0.0, 1.2]
+    T_world_from_base = np.eye(4)
+    T_world_from_base[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    T_world_from_base[:3, 3] = [10.0, 2.0, 0.0]
+    T_world_from_lidar = T_world_from_base @ T_base_from_lidar
+    assert np.allclose(relative_pose(T_world_from_lidar, T_base_from_lidar), T_world_from_base)
+    np.testing.assert_allclose(T_world_from_lidar[:3, 3], [10.0, 2.5, 1.2])
+    stack = relative_pose(np.stack([T_world_from_lidar, T_base_from_lidar]), T_base_from_lidar)
+    assert stack.shape == (2, 4, 4) and np.allclose(stack, [T_world_from_base, np.eye(4)])
 
 
 def test_grid_spec_shapes_and_errors():

@@ -105,6 +105,24 @@ def test_cluster_spec_errors_name_the_field():
         cluster_spec_from_dict({"kind": "slurm", "cpu": {"cores": 6, "processes": 4}})
 
 
+def test_cluster_render_is_a_subcommand_of_the_one_cli(capsys, tmp_path):
+    from flows import cli
+
+    spec = load_cluster_spec(INFRA / "slurm.yaml")
+    assert (
+        cli.main(["cluster", "render", str(INFRA / "slurm.yaml"), "--scheduler", "tcp://s:1"]) == 0
+    )
+    printed = capsys.readouterr().out
+    assert printed == (
+        f"# ---- cpu pool ----\n{render_slurm_job_script(spec, 'cpu', 'tcp://s:1')}\n"
+        f"# ---- gpu pool ----\n{render_slurm_job_script(spec, 'gpu', 'tcp://s:1')}\n"
+    )
+    local = tmp_path / "local.yaml"
+    local.write_text("kind: local\n")
+    assert cli.main(["cluster", "render", str(local)]) == 1
+    assert capsys.readouterr().err == f"{local}: a local cluster has nothing to render\n"
+
+
 def test_prefect_yaml_entrypoints_import():
     from prefect.flows import load_flow_from_entrypoint
 

@@ -36,7 +36,6 @@ OTHER_MEANING: dict[tuple[str, str], str] = {
     # association gate is TrackerParams.iou_threshold)
     ("match_boxes", "iou_threshold"): "the benchmark's matching IoU",
     ("detection_counts", "iou_threshold"): "the benchmark's matching IoU",
-    ("detection_table", "iou_threshold"): "the benchmark's matching IoU",
     ("tracking_scores", "iou_threshold"): "the benchmark's matching IoU",
     # a projection's own near plane (PersonPointParams.min_depth_m is the person-points step's)
     ("project", "min_depth_m"): "check-data's sanity projection",

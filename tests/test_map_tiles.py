@@ -325,7 +325,7 @@ def test_a_region_must_be_whole_blocks():
 def _grids(out, outcome) -> dict[str, bytes]:
     import zarr
 
-    g = zarr.open_group(str(out / outcome["location"] / "occupancy.zarr"), mode="r")
+    g = zarr.open_group(str(out / outcome.location / "occupancy.zarr"), mode="r")
     return {
         name: g[name][:].tobytes()
         for name in ("semantics", "instances", "mask_lidar", "mask_camera", "velocity")
@@ -336,7 +336,7 @@ def test_map_and_fuse_stages_by_tile_equal_the_whole_maps(synthetic_root, tmp_pa
     """Stage level, small tiles, one-frame windows, one-tile regions: the tiles are the
     whole-sequence maps of SequenceMapper; a fuse chunk reads only tiles near its frames; its grids
     equal those fused from maps in four huge tiles (the whole maps, every tile read)."""
-    from flows.bench.pipeline import make_config, run_local
+    from flows.bench.common import make_config, run_stages
     from flows.pipeline.inputs import map_inputs, open_sequence
     from storage.products import (
         TILES,
@@ -372,11 +372,11 @@ def test_map_and_fuse_stages_by_tile_equal_the_whole_maps(synthetic_root, tmp_pa
         out,
         {**base, "map.tile_m": 6.4, "map.window_frames": 1, "map.region_tiles": 1},
     )
-    small = run_local(small_cfg, stages=("detect", "map", "fuse"))
+    small = run_stages(small_cfg, ("detect", "map", "fuse")).outcomes
     fuse_reads = {name for kind, name in reads if kind.endswith("MapProduct")}
-    map_dir = out / small[("0", "map")]["location"]
+    map_dir = out / small[("0", "map")].location
     index = MapTiles.read(map_dir)
-    assert small[("0", "map")]["summary"]["windows"] == 2 and len(index.static_tiles) > 10
+    assert small[("0", "map")].summary["windows"] == 2 and len(index.static_tiles) > 10
     # the tiles are the sequential maps
     inp, seq = map_inputs(small_cfg), open_sequence(small_cfg, "0")
     cam = seq.info.calibration.cameras[inp.source.camera]
@@ -394,7 +394,7 @@ def test_map_and_fuse_stages_by_tile_equal_the_whole_maps(synthetic_root, tmp_pa
     )
     for i in range(len(seq)):
         f = seq.frame(i)
-        d = Detections.read(out / small[("0", "detect")]["location"], Detections.file_name(f.index))
+        d = Detections.read(out / small[("0", "detect")].location, Detections.file_name(f.index))
         mapper.add_sweep(
             f.points_lidar,
             f.T_world_from_lidar,
@@ -442,11 +442,10 @@ def test_map_and_fuse_stages_by_tile_equal_the_whole_maps(synthetic_root, tmp_pa
         _grids(out, small[("0", "fuse")]),
         reads.clear(),
     )  # (a new run removes older versions)
-    whole = run_local(
-        make_config(synthetic_root, out, {**base, "map.tile_m": 819.2}),
-        stages=("detect", "map", "fuse"),
-    )
-    whole_index = MapTiles.read(out / whole[("0", "map")]["location"])
+    whole = run_stages(
+        make_config(synthetic_root, out, {**base, "map.tile_m": 819.2}), ("detect", "map", "fuse")
+    ).outcomes
+    whole_index = MapTiles.read(out / whole[("0", "map")].location)
     assert len([n for k, n in reads if k.endswith("MapProduct")]) == len(
         whole_index.static_tiles
     ) + len(whole_index.occupancy_tiles)

@@ -19,8 +19,8 @@ from tasks.metrics.bev import (
     bev_difference,
     bev_top_labels,
 )
-from tasks.metrics.detection import DetectionCounts, detection_counts, detection_table
-from tasks.metrics.occupancy import OccupancyMetric, occupancy_scores
+from tasks.metrics.detection import DetectionCounts, detection_counts
+from tasks.metrics.occupancy import OccupancyMetric
 from tasks.metrics.pedestrian import (
     box_voxel_masks,
     pedestrian_box_counts,
@@ -40,6 +40,13 @@ def col(values) -> np.ndarray:
 
 
 # ---- occupancy (Occ3D) -------------------------------------------------------------------------
+
+
+def occupancy_scores(pred, gt, mask=None):
+    """One frame's scores."""
+    metric = OccupancyMetric()
+    metric.update(pred, gt, mask)
+    return metric.compute()
 
 
 def test_occupancy_iou_by_hand():
@@ -213,18 +220,6 @@ def test_detection_rates_match_paper_table():
         97.6,
         23.1,
     ]
-
-
-def test_detection_table_groups_conditions():
-    box = [[0, 0, 10, 10]]
-    frames = [
-        ("crowded", box, [True], box),
-        ("night", box, [True], []),
-        ("crowded", box, [False], []),
-    ]
-    t = detection_table(frames)
-    assert list(t) == ["crowded", "night"]
-    assert t["crowded"] == DetectionCounts(1, 0, 1, 0) and t["night"] == DetectionCounts(0, 1, 0, 0)
 
 
 # ---- tracking -----------------------------------------------------------------------------------

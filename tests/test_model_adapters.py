@@ -16,10 +16,6 @@ from tasks.perception.models.blazepose import (
     BLAZEPOSE_TO_COCO,
     ROI_SCALE,
     BlazePoseLandmarks,
-    decode_detections,
-    regions_from_keypoints,
-    ssd_anchors,
-    weighted_nms,
 )
 from tasks.perception.models.cliff import CliffEstimator
 from tasks.perception.models.composite import ModelPerception
@@ -427,42 +423,6 @@ def test_cliff_inputs_and_conversion(tmp_path):
 # ---- BlazePose ------------------------------------------------------------------------------
 
 
-def test_blazepose_anchors_and_detection_decoding():
-    anchors = ssd_anchors()
-    assert anchors.shape == (2254, 2)
-    # first anchors: 28 x 28 grid, two per cell; last: the 7 x 7 grid shared by three layers
-    np.testing.assert_allclose(anchors[:2], [[0.5 / 28, 0.5 / 28]] * 2)
-    np.testing.assert_allclose(anchors[-1], [6.5 / 7, 6.5 / 7])
-    raw = np.zeros((2254, 12))
-    raw[10, :4] = [22.4, -22.4, 44.8, 22.4]
-    raw[10, 4:6] = [0, 0]
-    raw[10, 6:8] = [0, -44.8]
-    scores = np.full((2254, 1), -10.0)
-    scores[10] = 2.0
-    boxes, kps, s = decode_detections(raw, scores, anchors, 0.5)
-    a = anchors[10]
-    np.testing.assert_allclose(
-        boxes, [[a[0] + 0.1 - 0.1, a[1] - 0.1 - 0.05, a[0] + 0.1 + 0.1, a[1] - 0.1 + 0.05]]
-    )
-    np.testing.assert_allclose(kps[0, 1], a + [0, -0.2])
-    np.testing.assert_allclose(s, [1 / (1 + np.exp(-2.0))])
-
-
-def test_blazepose_weighted_nms_and_regions():
-    boxes = np.array([[0, 0, 1, 1], [0.1, 0, 1.1, 1], [3, 3, 4, 4]], float)
-    kps = np.zeros((3, 4, 2))
-    kps[0, 0], kps[1, 0], kps[2, 0] = [1, 1], [2, 1], [5, 5]
-    b, k, s = weighted_nms(boxes, kps, np.array([0.6, 0.2, 0.5]))
-    np.testing.assert_allclose(k[0, 0], [1.25, 1.0])  # (0.6 * 1 + 0.2 * 2) / 0.8
-    np.testing.assert_allclose(s, [0.6, 0.5])
-    reg = regions_from_keypoints(np.array([[100.0, 200.0]]), np.array([[100.0, 100.0]]))
-    np.testing.assert_allclose([reg.side[0], reg.rotation[0]], [250.0, 0.0], atol=1e-12)
-    reg = regions_from_keypoints(
-        np.array([[100.0, 200.0]]), np.array([[200.0, 200.0]])
-    )  # lying: kp1 to the right
-    np.testing.assert_allclose(reg.rotation, [np.pi / 2])
-
-
 def test_blazepose_landmarks_on_a_fake_runner():
     """Landmarks at known crop pixels come back at the expected image pixels; COCO order; the
     pose flag gates the confidences; the segmentation comes back as the box's mask."""
@@ -602,41 +562,6 @@ def test_cli_unpacks_the_bundled_models(tmp_path, capsys):
     assert printed == [str(tmp_path / "cache" / n) for n in BUNDLED_MODELS]
     for name in BUNDLED_MODELS:
         assert (tmp_path / "cache" / name).read_bytes() == (have / name).read_bytes()
-
-
-def test_blazepose_detector_regions_in_image_pixels():
-    """A detection whose mid-hip is the letterboxed input's centre and whose size point lies 56
-    input px above it: the region is centred on the image, side 2 x 112 image px x 1.25, upright."""
-    from tasks.perception.models.blazepose import BlazePoseDetector
-
-    anchors = ssd_anchors()
-
-    class Fake:
-        source = "fake-detector"
-        input_shapes = {"input_1": (1, 224, 224, 3)}
-        output_shapes = {"Identity": (1, 2254, 12), "Identity_1": (1, 2254, 1)}
-
-        def __call__(self, feeds):
-            raw = np.zeros((1, 2254, 12), np.float32)
-            scores = np.full((1, 2254, 1), -20.0, np.float32)
-            i = 1000
-            a = anchors[i] * 224
-            raw[0, i, :4] = [*(np.array([112, 80]) - a), 20, 20]
-            raw[0, i, 4:6] = np.array([112, 112]) - a
-            raw[0, i, 6:8] = np.array([112, 56]) - a
-            scores[0, i] = 3.0
-            return {"Identity": raw, "Identity_1": scores}
-
-    det = BlazePoseDetector(Fake())
-    out = det(image(224, 448))
-    reg = det.last_regions
-    # letterbox: scale 0.5, 56 px of padding above; input corner coords -> image OpenCV pixels
-    np.testing.assert_allclose(reg.center, [[223.5, 111.5]], atol=1e-6)
-    np.testing.assert_allclose(reg.side, [2 * 112 * 1.25], atol=1e-6)
-    np.testing.assert_allclose(reg.rotation, [0.0], atol=1e-9)
-    # box: the region's edges (centre -+ 140), clipped to the image's rows 0..223
-    np.testing.assert_allclose(out.boxes_xyxy, [[83.5, 0, 363.5, 223]], atol=1e-3)
-    np.testing.assert_allclose(out.scores, [1 / (1 + np.exp(-3.0))], atol=1e-6)
 
 
 def test_model_detections_take_ground_truth_identities_by_box():

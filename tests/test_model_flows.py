@@ -82,7 +82,7 @@ def test_bundled_models_and_cliff_in_the_flow(copy_dataset, tmp_path):
     report = rebuild_dataset(
         cfg, progress=False, sequences=["1"]
     )  # one sequence: 2 frames, 3 people
-    assert all(o["status"] == "done" for o in report.outcomes.values()), report.outcomes
+    assert all(o.status == "done" for o in report.outcomes.values()), report.outcomes
     manifest = Manifest.load(out)
     dets = fitted = 0
     for seq in ("1",):

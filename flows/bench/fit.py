@@ -18,12 +18,9 @@ JSON line.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import sys
 import time
 
-from storage.atomic import atomic_write_text
 from storage.npzio import save_npz_deterministic
 
 
@@ -53,7 +50,8 @@ def bench_fit(
 
     weights (tasks.fit.weights.FitWeights) and settings (tasks.fit.settings.FitSettings: iterations,
     learning rate, nn_every, the L_3D cap, converge_rtol, batch_persons as the chunk): the
-    pipeline's, from the config loader (``main``: the default config, ``--config``, ``--set``).
+    pipeline's, from the config loader (``mobileocc bench fit``: the default config, ``--config``,
+    ``--set``).
 
     Metrics (mean over persons): pve, mpjpe (sensor frame, no alignment, mm), pve_root /
     mpjpe_root (pelvis-aligned, mm), pa_mpjpe (mm), mpere; per sensor also 'occluded_subset'
@@ -219,7 +217,6 @@ def _warm_start_rows(
 
 def _resimulate(model, sp, verts, joints, sensor, rng):
     """Keypoints and a sweep for given true meshes (B, V, 3) / joints, cam frame."""
-    import dataclasses
 
     import numpy as np
     import torch
@@ -272,6 +269,19 @@ POOL_FIELDS = (
     "init_body_pose",
     "init_transl",
 )
+
+
+def save_pool(path, arrays: dict) -> None:
+    """Persons of :func:`simulated_pool` to an .npz (``mobileocc bench fit --save-pool``)."""
+    save_npz_deterministic(path, **arrays)
+
+
+def load_pool(path) -> dict:
+    """Persons saved by :func:`save_pool` (``--pool-file``)."""
+    import numpy as np
+
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in POOL_FIELDS}
 
 
 def simulated_pool(pool: int, sensor: str, seed: int, **synthesize) -> dict:
@@ -493,138 +503,3 @@ def _print_table(sensor: str, table: dict, persons: int, occluded: int) -> None:
                 f"  occluded subset, {name:18s}"
                 + "".join(f"{o[c]:11.1f}" if c != "mpere" else f"{o[c]:11.3f}" for c in cols)
             )
-
-
-def main(argv=None) -> None:
-    import yaml
-
-    from configs.schema import load_config
-    from tasks.fit.settings import FitSettings
-
-    ap = argparse.ArgumentParser(prog="mobileocc bench fit", description=__doc__.splitlines()[0])
-    ap.add_argument(
-        "--config",
-        default=None,
-        help="the fit settings of this config (default: configs/default.yaml)",
-    )
-    ap.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a config key, e.g. --set fit.iterations=60 (repeatable)",
-    )
-    ap.add_argument("--persons", type=int, default=32)
-    ap.add_argument("--sensors", default="ouster-32,ouster-64,ouster-128")
-    ap.add_argument("--no-ablations", action="store_true")
-    ap.add_argument(
-        "--ablation-sensors",
-        default=None,
-        help="comma-separated sensors that get the ablation rows (default: all)",
-    )
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--warm-start", action="store_true")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument(
-        "--json", default=None, help="also write the results (means, stds) to this file"
-    )
-    ap.add_argument(
-        "--throughput",
-        action="store_true",
-        help="only speed: fits/s of one batch of --persons on --device, one JSON line",
-    )
-    ap.add_argument("--pool", type=int, default=64, help="--throughput: distinct simulated persons")
-    ap.add_argument(
-        "--save-pool",
-        default=None,
-        help="simulate the --pool persons (and their initial estimates), save them to this .npz, exit",
-    )
-    ap.add_argument(
-        "--pool-file",
-        default=None,
-        help="--throughput / --agreement: persons saved by --save-pool (no simulator needed)",
-    )
-    ap.add_argument(
-        "--agreement",
-        action="store_true",
-        help="fit the pool on the CPU and on --device (twice); print how they agree, one JSON line",
-    )
-    ap.add_argument(
-        "--threads",
-        type=int,
-        default=None,
-        help="torch intra-op threads (default: torch's, every core); on a shared CPU 1 per "
-        "process avoids OpenMP spin-waiting",
-    )
-    a = ap.parse_args(argv)
-    overrides = {}
-    for item in a.overrides:
-        key, _, value = item.partition("=")
-        overrides[key.strip()] = yaml.safe_load(value)
-    fit = load_config(a.config, overrides).fit
-    weights, settings = fit.weights, fit.to(FitSettings)
-    if a.threads:
-        import torch
-
-        torch.set_num_threads(a.threads)
-    sensor = a.sensors.split(",")[-1]
-    if a.save_pool:
-        import numpy as np
-
-        save_npz_deterministic(a.save_pool, **simulated_pool(a.pool, sensor, a.seed))
-        print(f"{a.pool} persons ({sensor}) saved to {a.save_pool}")
-        return
-    pool_arrays = None
-    if a.pool_file:
-        import numpy as np
-
-        with np.load(a.pool_file, allow_pickle=False) as z:
-            pool_arrays = {k: z[k] for k in POOL_FIELDS}
-    if a.agreement:
-        import json
-
-        print(
-            json.dumps(
-                device_agreement(
-                    pool_arrays or simulated_pool(a.pool, sensor, a.seed), a.device, weights
-                )
-            )
-        )
-        return
-    if a.throughput:
-        import json
-
-        print(
-            json.dumps(
-                bench_throughput(
-                    a.persons, a.device, weights, settings, a.pool, sensor, a.seed, pool_arrays
-                )
-            )
-        )
-        return
-    results = bench_fit(
-        a.persons,
-        weights,
-        settings,
-        tuple(a.sensors.split(",")),
-        not a.no_ablations,
-        a.device,
-        seed=a.seed,
-        warm_start=a.warm_start,
-        ablation_sensors=None
-        if a.ablation_sensors is None
-        else tuple(a.ablation_sensors.split(",")),
-    )
-    results["settings"] = {
-        "preset": fit.preset,
-        "weights": dataclasses.asdict(weights),
-        "fit": dataclasses.asdict(settings),
-    }
-    if a.json:
-        import json
-
-        atomic_write_text(
-            a.json,
-            json.dumps({"argv": argv if argv is not None else sys.argv[1:], **results}, indent=1),
-        )

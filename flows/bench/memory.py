@@ -21,12 +21,12 @@ from __future__ import annotations
 import json
 import os
 import resource
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from flows.bench.common import machine, make_config, spawned
 from storage.atomic import atomic_write_text, move_into_place
 
 STEP_M = 0.2
@@ -152,14 +152,21 @@ def _unit(cfg, sequence: str, stage: str):
     )
 
 
+def _made(sequence: str, stage: str, location: str):
+    """The outcome of a unit whose product the bench made itself at ``location``."""
+    from flows.pipeline.outcome import Status, UnitOutcome
+
+    return UnitOutcome(sequence, stage, "", {}, Status.DONE, location=location)
+
+
 def _stage_process(
     data_root: str, out_root: str, sequence: str, stage: str, upstream: dict, overrides: dict
 ) -> dict:
     """In a fresh process: one stage of one sequence; its peak RSS and its baseline."""
     import flows.stages  # noqa: F401  (every stage and kernel imported before the baseline)
-    from flows.bench.pipeline import make_config
     from flows.pipeline.inputs import runtime, source
-    from flows.pipeline.run import execute_unit
+    from flows.pipeline.outcome import Status
+    from flows.pipeline.units import execute_unit
 
     cfg = make_config(Path(data_root), Path(out_root), overrides)
     frames = len(source(cfg).open(_unit(cfg, sequence, stage).ref))
@@ -167,10 +174,8 @@ def _stage_process(
     outcome = execute_unit(
         _unit(cfg, sequence, stage), Path(out_root), upstream, "bench", runtime(cfg)
     )
-    if outcome["status"] != "done":
-        raise RuntimeError(
-            f"{stage} of sequence {sequence}: {outcome.get('error')}\n{outcome.get('traceback', '')}"
-        )
+    if outcome.status != Status.DONE:
+        raise RuntimeError(f"{stage} of sequence {sequence}: {outcome.error}\n{outcome.traceback}")
     return {
         "frames": frames,
         "peak_rss_mb": _peak_mb(),
@@ -186,7 +191,6 @@ def _untiled_process(data_root: str, sequence: str, detect_dir: str, overrides: 
     """In a fresh process: the whole-sequence SequenceMapper over the sequence (the design before
     tiles: both maps whole in memory), peak RSS as :func:`_stage_process`."""
     import flows.stages  # noqa: F401
-    from flows.bench.pipeline import make_config
     from flows.pipeline.inputs import map_inputs, sequence_ref, source
     from storage.products import Detections
     from tasks.conventions import UNLABELED
@@ -247,7 +251,6 @@ def bench_memory(
     Returns {"frames": [...], "map": {n: {...}}, "fuse": {n: {...}}, "untiled_map": {n: {...}}
     (with ``untiled``), "ratio": {stage: peak(longest) / peak(shortest)}, "sequences": {...},
     "machine": {...}}. work_dir keeps the data between calls (sweeps are made once)."""
-    from flows.bench.pipeline import _spawned, machine
 
     work = Path(work_dir)
     frames = sorted(int(n) for n in frames)
@@ -258,31 +261,31 @@ def bench_memory(
         seq, detect = made[n]["sequence"], made[n]["detect_dir"]
         outroot = work / "out" / str(n)
         if "map" in stages or "fuse" in stages:
-            m = _spawned(
+            m = spawned(
                 _stage_process,
                 str(work / "data"),
                 str(outroot),
                 seq,
                 "map",
-                {"detect": {"status": "done", "location": detect}},
+                {"detect": _made(seq, "detect", detect)},
                 overrides,
             )
             out.setdefault("map", {})[n] = {k: v for k, v in m.items() if k != "outcome"} | {
-                "summary": m["outcome"]["summary"]
+                "summary": m["outcome"].summary
             }
         if "fuse" in stages:
-            f = _spawned(
+            f = spawned(
                 _stage_process,
                 str(work / "data"),
                 str(outroot),
                 seq,
                 "fuse",
-                {"map": m["outcome"], "detect": {"status": "done", "location": detect}},
+                {"map": m["outcome"], "detect": _made(seq, "detect", detect)},
                 overrides,
             )
             out.setdefault("fuse", {})[n] = {k: v for k, v in f.items() if k != "outcome"}
         if untiled:
-            out.setdefault("untiled_map", {})[n] = _spawned(
+            out.setdefault("untiled_map", {})[n] = spawned(
                 _untiled_process, str(work / "data"), seq, detect, overrides
             )
     lo, hi = frames[0], frames[-1]
@@ -320,28 +323,3 @@ def format_table(r: dict) -> str:
         f"peak({r['frames'][0]})"
     )
     return "\n".join(lines)
-
-
-def main(argv: list[str] | None = None) -> int:
-    import argparse
-
-    ap = argparse.ArgumentParser(prog="mobileocc bench memory", description=__doc__.splitlines()[0])
-    ap.add_argument(
-        "--work", type=Path, required=True, help="folder for the sequences and outputs (kept)"
-    )
-    ap.add_argument(
-        "--frames",
-        type=int,
-        nargs="+",
-        default=[200, 1000, 2000],
-        help="sequence lengths, 5 Hz frames",
-    )
-    ap.add_argument("--untiled", action="store_true", help="also the whole-sequence SequenceMapper")
-    ap.add_argument("--stages", nargs="+", default=["map", "fuse"], choices=["map", "fuse"])
-    ap.add_argument("--json", type=Path, help="write the results here")
-    a = ap.parse_args(sys.argv[1:] if argv is None else argv)
-    r = bench_memory(a.frames, a.work, untiled=a.untiled, stages=tuple(a.stages))
-    if a.json:
-        atomic_write_text(a.json, json.dumps(r, indent=1, default=str))
-    print(format_table(r))
-    return 0

@@ -4,8 +4,9 @@
 octomap-python's ``insertPointCloud`` in the same run, best of several repeats, plus the agreement
 of the voxel states on the benchmark grid. Ours is timed on one thread and on one thread per core;
 wall-clock seconds give the speed ratio (what a user waits for; octomap-python is one thread), and
-process CPU seconds are reported beside them (they count less of other load on the machine). ``bench_map_fuse``: static-map accumulation and per-frame fusion in frames per second,
-and (in ``main``) their seconds per frame over octomap's seconds per scan of the same run
+process CPU seconds are reported beside them (they count less of other load on the machine).
+``bench_map_fuse``: static-map accumulation and per-frame fusion in frames per second, and (in
+``bench_occupancy``) their seconds per frame over octomap's seconds per scan of the same run
 (``map_fuse_over_octomap_cpu``; the issue's target is <= 0.2 at 0.2 m).
 
 Run: ``mobileocc bench occupancy [--quick]`` (prints JSON, then a table).
@@ -13,13 +14,12 @@ Run: ``mobileocc bench occupancy [--quick]`` (prints JSON, then a table).
 
 from __future__ import annotations
 
-import json
 import os
-import resource
-import sys
 import time
 
 import numpy as np
+
+from flows.bench.common import peak_rss_mb, spawned
 
 BENCH_RANGE_MIN = (0.4, -4.8, -1.0)
 BENCH_RANGE_MAX = (10.0, 4.8, 3.8)
@@ -32,10 +32,6 @@ def _best(fn, repeats: int, clock=time.process_time) -> float:
         fn()
         best = min(best, clock() - t0)
     return best
-
-
-def _peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def octomap_seconds_per_scan(
@@ -136,7 +132,7 @@ def bench_freespace(
         "query_grid_ours_s": t_query_ours,
         "getLabels_octomap_s": t_query_theirs,
         "ours_map_bytes": m.memory_bytes,
-        "peak_rss_mb": _peak_rss_mb(),
+        "peak_rss_mb": peak_rss_mb(),
     }
 
 
@@ -251,27 +247,19 @@ def bench_map_fuse(
         "occupancy_map_bytes": omap.memory_bytes,
         "fuse_fps": 1.0 / float(np.mean(fuse_s)),
         "last_frame_counts": counts,
-        "peak_rss_mb": _peak_rss_mb(),
+        "peak_rss_mb": peak_rss_mb(),
     }
 
 
-def _in_subprocess(fn, *args, **kwargs) -> dict:
-    """Run a benchmark in a fresh process so its peak RSS is its own."""
-    import multiprocessing as mp
-
-    with mp.get_context("spawn").Pool(1) as pool:
-        return pool.apply(fn, args, kwargs)
-
-
-def main(argv: list[str] | None = None) -> None:
-    argv = sys.argv[1:] if argv is None else argv
-    quick = "--quick" in argv
+def bench_occupancy(quick: bool) -> dict:
+    """Free-space insertion vs octomap-python, then map and fuse frames/s at each voxel size (each
+    measurement in a fresh process), and map + fuse per frame over octomap's CPU per scan."""
     out = {
-        "freespace": _in_subprocess(bench_freespace, quick),
-        "freespace_discretize": _in_subprocess(bench_freespace, quick, discretize=True),
+        "freespace": spawned(bench_freespace, quick),
+        "freespace_discretize": spawned(bench_freespace, quick, discretize=True),
     }
     for vs in (0.2, 0.05) if quick else (0.2, 0.05, 0.02):
-        r = out[f"map_fuse_{vs}"] = _in_subprocess(
+        r = out[f"map_fuse_{vs}"] = spawned(
             bench_map_fuse, quick, vs, map_voxel_size_m=max(vs, 0.05)
         )
         # the issue's target: map + fuse per frame <= 0.2 x octomap's insertion of one scan
@@ -279,12 +267,11 @@ def main(argv: list[str] | None = None) -> None:
         per_frame = 1.0 / r["map_fps"] + 1.0 / r["fuse_fps"]
         r["map_fuse_s_per_frame"] = per_frame
         r["map_fuse_over_octomap_cpu"] = per_frame / out["freespace"]["octomap_cpu_s"]
-    print(json.dumps(out, indent=2))
-    print(format_table(out))
+    return out
 
 
 def format_table(out: dict) -> str:
-    """Headline figures of :func:`main`'s JSON as an aligned text table."""
+    """Headline figures of :func:`bench_occupancy` as an aligned text table."""
     fs = out["freespace"]
     lines = [
         f"{'measure':<46}{'value':>12}",

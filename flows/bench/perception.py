@@ -13,22 +13,17 @@ of the detector: the keypoint and mask quality on their own.
 
 from __future__ import annotations
 
-import argparse
-import json
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-import yaml
 
-from configs.schema import load_config
 from flows.commands.evaluate import VISIBLE_FRACTION
 from flows.pipeline.inputs import detect_inputs, open_sequence, sequence_ref
 from flows.pipeline.plan import selected_sequences
 from flows.stages.detect import detect_frames
 from flows.stages.models import model_perception
-from storage.atomic import atomic_write_text
 from storage.gt import read_frame_gt
 from storage.images import read_rgb
 from storage.products import Detections as DetectionsProduct
@@ -105,24 +100,3 @@ def bench_perception(config, boxes: str = "provider") -> dict:
         "matched": int(ious.size),
         "ms_per_frame": 1000 * seconds / max(frames, 1),
     }
-
-
-def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(
-        prog="mobileocc bench perception", description=__doc__.splitlines()[0]
-    )
-    p.add_argument("--data", type=Path, required=True)
-    p.add_argument("--config", type=Path, default=None)
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
-    p.add_argument("--boxes", choices=["provider", "gt"], default="provider")
-    p.add_argument("--json", type=Path, default=None)
-    a = p.parse_args(argv)
-    overrides = {"dataset.root": str(a.data)}
-    for item in a.overrides:
-        key, _, value = item.partition("=")
-        overrides[key] = yaml.safe_load(value)
-    result = bench_perception(load_config(a.config, overrides), a.boxes)
-    text = json.dumps(result, indent=1)
-    print(text)
-    if a.json:
-        atomic_write_text(a.json, text + "\n")

@@ -1,8 +1,9 @@
 """``mobileocc bench``: what a (re)build costs on this machine, measured in one run.
 
-``bench(quick, json_path, workers)`` makes a small synthetic dataset (flows/commands/simulate.py), runs the
-six stages through ``flows.pipeline.run.execute_unit`` without Prefect (``run_local``) and times each
-stage, then calls the other benchmark functions of the project in the same run:
+``bench(quick, json_path, workers)`` makes a small synthetic dataset (flows/commands/simulate.py),
+runs the six stages through the pipeline's runner without Prefect (flows.pipeline.units.run_units,
+inline; flows/bench/common.py ``run_stages``) and times each stage, then calls the other benchmark
+functions of the project in the same run:
 
 - frames/s per stage and end to end (simulation excluded), at 0.2 m and, for fuse, at 0.05 m;
 - peak RSS: ``resource.getrusage(RUSAGE_SELF).ru_maxrss`` of a fresh spawned process per measured
@@ -18,136 +19,25 @@ stage, then calls the other benchmark functions of the project in the same run:
   and fuse (a cProfile rerun of each; library time charged to the calling function of ours).
 
 Ratios are computed inside the run. CPU counts, model name, memory and library versions go in the
-JSON's ``machine``. Run: ``mobileocc bench [--quick] [--json FILE]``; ``mobileocc bench --scale``
+JSON's ``machine``. Run: ``mobileocc bench [--quick] [--json FILE]``; ``mobileocc bench scale``
 runs the scale benchmark instead (flows/bench/scale.py).
 """
 
 from __future__ import annotations
 
 import json
-import os
-import platform
-import resource
 import shutil
 import tempfile
 import time
 from pathlib import Path
 
-STAGE_ORDER = ("detect", "track", "fit", "map", "fuse", "export")
+from flows.bench.common import machine, make_config, peak_rss_mb, run_stages, spawned
+from flows.pipeline.dag import STAGES
 
-
-# ---- running the stages without Prefect ----------------------------------------------------------
-
-
-def make_config(data_root: Path, out_root: Path, overrides: dict | None = None):
-    """The default config pointed at ``data_root`` / ``out_root`` with dotted ``overrides``."""
-    from configs.schema import load_config
-
-    return load_config(
-        overrides={
-            "dataset.root": str(data_root),
-            "output.root": str(out_root),
-            **{k: v for k, v in (overrides or {}).items()},
-        }
-    )
-
-
-def run_local(config, stages=STAGE_ORDER, sequences: list[str] | None = None) -> dict:
-    """Plan and run ``stages`` of every sequence in this process (no Prefect), recording each
-    outcome and the resolved config in ``OUT/manifest.json`` as a flow run does. Stages left out
-    are absent upstream (fuse with ``body_source: ground-truth`` needs no fit). Returns
-    {(sequence, stage): outcome} with ``seconds`` per unit; raises on a failed unit."""
-    from configs.schema import config_hash
-    from flows.pipeline.dag import STAGES
-    from flows.pipeline.inputs import runtime
-    from flows.pipeline.plan import plan_run
-    from flows.pipeline.run import _record, execute_unit
-    from storage.manifest import FileHasher, Manifest
-
-    out = Path(config.output.root)
-    out.mkdir(parents=True, exist_ok=True)
-    manifest = Manifest.load(out)
-    manifest.meta.update(
-        {"config_hash": config_hash(config), "config": config.model_dump(mode="json")}
-    )
-    outcomes: dict = {}
-    for plan in plan_run(config, manifest, FileHasher(None), sequences=sequences):
-        if plan.error:
-            raise RuntimeError(f"sequence {plan.sequence}: {plan.error}")
-        done: dict[str, dict] = {}
-        for stage in STAGES:
-            if stage not in stages:
-                continue
-            ups = {u: done[u] for u in STAGES[stage] if u in done}
-            outcome = execute_unit(plan.units[stage], out, ups, plan.fingerprint, runtime(config))
-            _record(manifest, outcome)
-            if outcome["status"] != "done":
-                raise RuntimeError(
-                    f"sequence {plan.sequence} stage {stage} {outcome['status']}: "
-                    f"{outcome.get('error')}\n{outcome.get('traceback', '')}"
-                )
-            done[stage] = outcome
-            outcomes[(plan.sequence, stage)] = outcome
-    manifest.save()
-    return outcomes
-
-
-# ---- machine description -----------------------------------------------------------------------
-
-
-def machine() -> dict:
-    import numpy as np
-
-    model = ""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    mem_gb = None
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemTotal"):
-                mem_gb = round(int(line.split()[1]) / 1024**2, 1)
-    except OSError:
-        pass
-    try:
-        import torch
-
-        torch_v, cuda = torch.__version__, torch.cuda.is_available()
-        gpu = torch.cuda.get_device_name(0) if cuda else None
-    except ImportError:  # pragma: no cover
-        torch_v, cuda, gpu = None, False, None
-    return {
-        "cpu_count": os.cpu_count(),
-        "cpu_affinity": len(os.sched_getaffinity(0)),
-        "cpu_model": model,
-        "memory_gb": mem_gb,
-        "load_avg_1m": os.getloadavg()[0],
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "torch": torch_v,
-        "cuda": cuda,
-        "gpu": gpu,
-    }
+STAGE_ORDER = tuple(STAGES)
 
 
 # ---- measurements ------------------------------------------------------------------------------
-
-
-def _peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def _spawned(fn, *args):
-    """``fn(*args)`` in a fresh spawned process: its peak RSS is its own."""
-    import multiprocessing as mp
-
-    with mp.get_context("spawn").Pool(1) as pool:
-        return pool.apply(fn, args)
 
 
 def _stage_in_process(data_root: str, out_root: str, overrides: dict, stages: tuple) -> dict:
@@ -156,19 +46,19 @@ def _stage_in_process(data_root: str, out_root: str, overrides: dict, stages: tu
     res = {}
     for stage in stages:
         c0, t0 = time.process_time(), time.perf_counter()
-        outcomes = run_local(cfg, stages=_with_upstream(stage))
+        outcomes = run_stages(cfg, _with_upstream(stage)).outcomes
         res[stage] = {
-            "wall_s": sum(o["seconds"] for (s, st), o in outcomes.items() if st == stage),
+            "wall_s": sum(o.seconds for (s, st), o in outcomes.items() if st == stage),
             "cpu_s": time.process_time() - c0,
             "total_wall_s": time.perf_counter() - t0,
-            "peak_rss_mb": _peak_rss_mb(),
+            "peak_rss_mb": peak_rss_mb(),
         }
     return res
 
 
 def _with_upstream(stage: str) -> tuple:
-    """``stage`` and everything before it in STAGE_ORDER (earlier ones are cached in the manifest:
-    execute_unit returns a finished key folder at once)."""
+    """``stage`` and every stage before it (the earlier ones are fresh in the manifest: the runner
+    takes them from the cache)."""
     return STAGE_ORDER[: STAGE_ORDER.index(stage) + 1]
 
 
@@ -210,7 +100,7 @@ def _fuse_fanout(data_root: str, out_root: str, overrides: dict, n_workers: int)
         t0 = time.perf_counter()
         client.submit(unit, pure=False).result()
         wall = time.perf_counter() - t0
-        rss = client.run(lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
+        rss = client.run(peak_rss_mb)
     return {"workers": n_workers, "wall_s": wall, "worker_peak_rss_mb": max(rss.values())}
 
 
@@ -367,7 +257,7 @@ def _fit_rate(data_root: str, out_root: str, overrides: dict, device: str) -> di
         "iterations": cfg.fit.iterations,
         "wall_s": wall,
         "fits_per_s": len(rows) / wall,
-        "peak_rss_mb": _peak_rss_mb(),
+        "peak_rss_mb": peak_rss_mb(),
     }
 
 
@@ -416,7 +306,7 @@ def bench(
         over = {"output.frames_per_chunk": 2}  # several write units, for the fan-out figures
         stages: dict = {}
         out02 = work / "out-0.2"
-        per = _spawned(_stage_in_process, str(data), str(out02), over, STAGE_ORDER)
+        per = spawned(_stage_in_process, str(data), str(out02), over, STAGE_ORDER)
         for st, v in per.items():
             stages[st] = {
                 **v,
@@ -437,7 +327,7 @@ def bench(
         )
         (out005 / "manifest.json").unlink(missing_ok=True)
         fine = {**over, "fuse.grid.voxel_size_m": 0.05}
-        per_fine = _spawned(_stage_in_process, str(data), str(out005), fine, ("fuse",))
+        per_fine = spawned(_stage_in_process, str(data), str(out005), fine, ("fuse",))
         f = per_fine["fuse"]
         result["fuse_0.05m"] = {
             **f,
@@ -461,7 +351,7 @@ def bench(
             }
         }
         if torch.cuda.is_available():
-            fits["cuda"] = _spawned(_fit_rate, str(data), str(out02), over, "cuda")
+            fits["cuda"] = spawned(_fit_rate, str(data), str(out02), over, "cuda")
             fits["cuda_over_cpu"] = fits["cuda"]["fits_per_s"] / fits["cpu"]["fits_per_s"]
         result["person_fits"] = fits
         # fan-out speed-up of fuse
@@ -474,11 +364,11 @@ def bench(
             "frames": frames,
             "chunks": -(-frames // 2),
         }
-        result["freespace_vs_octomap"] = _spawned(bench_freespace, quick)
+        result["freespace_vs_octomap"] = spawned(bench_freespace, quick)
         # the issue's target: map + fuse per frame <= 0.2 x octomap's insertPointCloud of the
         # same scan (the bench sequence's sweeps, same run): wall seconds on both sides, and
         # process CPU seconds (less sensitive to other load on the machine; ours counts all threads)
-        octo = _spawned(_octomap_same_scans, str(data), str(out02), over)
+        octo = spawned(_octomap_same_scans, str(data), str(out02), over)
         map_fuse = (per["map"]["wall_s"] + per["fuse"]["wall_s"]) / frames
         map_fuse_cpu = (per["map"]["cpu_s"] + per["fuse"]["cpu_s"]) / frames
         result["map_fuse_vs_octomap"] = {
@@ -496,8 +386,8 @@ def bench(
             "note": "stage seconds include the stage's fixed costs (process start-up of its kernels, "
             "sequence-level reads and writes) spread over the bench's few frames",
         }
-        result["stage_costs"] = _spawned(_stage_costs, str(data), str(out02), over)
-        result["store_vs_numpy"] = _spawned(bench_store, quick)
+        result["stage_costs"] = spawned(_stage_costs, str(data), str(out02), over)
+        result["store_vs_numpy"] = spawned(bench_store, quick)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     result["bench_wall_s"] = time.perf_counter() - started
@@ -592,71 +482,3 @@ def format_table(r: dict) -> str:
                     row(f"store {part} {k}", float(v))
     row("bench wall s", r.get("bench_wall_s"))
     return "\n".join(lines)
-
-
-def main(argv: list[str] | None = None) -> None:  # pragma: no cover - the CLI calls bench()
-    import argparse
-
-    from flows.bench import scale
-
-    def ints(text: str) -> list[int]:
-        return [int(v) for v in text.split(",") if v.strip()]
-
-    p = argparse.ArgumentParser(prog="mobileocc bench", description=__doc__.splitlines()[0])
-    p.add_argument("--quick", action="store_true")
-    p.add_argument("--json", type=Path, default=None)
-    p.add_argument("--workers", type=int, default=2)
-    g = p.add_argument_group(
-        "--scale: long sequences, many sequences, a loopback cluster, the 116k-frame "
-        "projection (flows/bench/scale.py, docs/scale.md)"
-    )
-    g.add_argument("--scale", action="store_true", help="run the scale benchmark instead")
-    g.add_argument(
-        "--frames",
-        type=ints,
-        default=list(scale.DEFAULT_FRAMES),
-        help="5 Hz frames of the long-sequence runs (default %(default)s; the issue's 200,1000,2000 "
-        "take hours here)",
-    )
-    g.add_argument(
-        "--sequences",
-        type=ints,
-        default=list(scale.DEFAULT_SEQUENCES),
-        help="sequences of the planning datasets (default %(default)s)",
-    )
-    g.add_argument(
-        "--cluster-workers",
-        type=ints,
-        default=list(scale.DEFAULT_CLUSTER_WORKERS),
-        help="worker counts of the loopback Dask cluster (default %(default)s)",
-    )
-    g.add_argument(
-        "--memory-frames",
-        type=ints,
-        default=list(scale.MEMORY_FRAMES),
-        help="5 Hz frames of the memory part's sequences (default %(default)s)",
-    )
-    g.add_argument(
-        "--parts", default=",".join(scale.PARTS), help="which parts (default %(default)s)"
-    )
-    g.add_argument(
-        "--sim-frames", type=int, default=2000, help="raw frames of the simulator's long sequence"
-    )
-    a = p.parse_args(argv)
-    if a.scale:
-        parts = tuple(v.strip() for v in a.parts.split(",") if v.strip())
-        unknown = sorted(set(parts) - set(scale.PARTS))
-        if unknown:
-            p.error(f"--parts: unknown {unknown}; expected some of {list(scale.PARTS)}")
-        scale.bench_scale(
-            a.frames,
-            a.sequences,
-            a.cluster_workers,
-            parts,
-            a.json,
-            sim_long_frames=a.sim_frames,
-            sim_workers=a.workers,
-            memory_frames=a.memory_frames,
-        )
-        return
-    bench(a.quick, a.json, a.workers)

@@ -20,7 +20,7 @@ each N in ``sequences``, and measures, per N:
   full save: what recording a whole run cost when the manifest was rewritten after every unit
   (measured save time x units, not run).
 
-Run: ``python -m flows.bench.planning 10 100 1000`` (``mobileocc bench --scale`` calls
+Run: ``mobileocc bench planning 10 100 1000`` (``mobileocc bench scale`` calls
 :func:`bench_planning`).
 """
 
@@ -28,12 +28,10 @@ from __future__ import annotations
 
 import contextlib
 import io
-import json
 import os
 import shutil
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -68,17 +66,6 @@ def replicate_sequence(src_root: Path, dst_root: Path, source_id: int, ids: list
                 os.link(p, target)
                 links += 1
     return links
-
-
-def _cli(argv: list[str]) -> tuple[int, float, str]:
-    """(exit code, seconds, stdout) of ``mobileocc <argv>`` in this process."""
-    from flows import cli
-
-    buf = io.StringIO()
-    t0 = time.perf_counter()
-    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(io.StringIO()):
-        code = cli.main(argv)
-    return code, time.perf_counter() - t0, buf.getvalue()
 
 
 def _command(argv: list[str]) -> tuple[int, float, str]:
@@ -240,8 +227,9 @@ def bench_planning(sequences: list[int], work_dir: Path | str) -> dict:
     """Planning figures for datasets of each size in ``sequences`` (see the module docstring).
     Returns {"machine", "raw_frames", "sizes": {N: figures}}."""
     from configs.schema import load_config
-    from flows.bench.pipeline import machine
+    from flows.bench.common import machine
     from flows.commands.simulate import simulate
+    from flows.commands.status import print_plan
     from flows.pipeline.plan import PlanCosts, plan_run
     from storage.manifest import FingerprintCache, Manifest
 
@@ -294,7 +282,8 @@ def bench_planning(sequences: list[int], work_dir: Path | str) -> dict:
             code, seconds, text = _command(argv)
             figures[f"{name}_s"], figures[f"{name}_exit"] = seconds, code
             figures[f"{name}_lines"] = len(text.splitlines())
-        opened, _ = _opened_during(lambda: _cli(["status", *args]), data)
+        with contextlib.redirect_stdout(io.StringIO()):  # ``mobileocc status``, in this process
+            opened, _ = _opened_during(lambda: print_plan(config), data)
         figures["files_opened_in_plan"] = opened
         figures.update(_manifest_costs(out))
         result["sizes"][n] = figures
@@ -318,30 +307,3 @@ def format_table(result: dict) -> str:
             f"{f['journal_append_ms']:>5.2f}ms {f['full_rewrite_per_unit_run_s']:>11.0f}s"
         )
     return "\n".join(lines)
-
-
-def main(argv: list[str] | None = None) -> None:  # pragma: no cover - a measurement, run by hand
-    import argparse
-
-    p = argparse.ArgumentParser(
-        prog="python -m flows.bench.planning", description=__doc__.splitlines()[0]
-    )
-    p.add_argument("sizes", nargs="*", type=int, default=[10, 100, 1000])
-    p.add_argument(
-        "--work", type=Path, default=None, help="working folder (default: a temporary one, removed)"
-    )
-    p.add_argument("--json", type=Path, default=None)
-    a = p.parse_args(argv)
-    work = a.work or Path(tempfile.mkdtemp(prefix="mobileocc-bench-planning-"))
-    try:
-        result = bench_planning(a.sizes, work)
-    finally:
-        if a.work is None:
-            shutil.rmtree(work, ignore_errors=True)
-    print(format_table(result))
-    if a.json is not None:
-        atomic_write_text(a.json, json.dumps(result, indent=1, default=str) + "\n")
-
-
-if __name__ == "__main__":  # pragma: no cover
-    main()

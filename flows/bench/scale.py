@@ -1,4 +1,4 @@
-"""``mobileocc bench --scale``: what a 116k-frame rebuild costs, measured in one run of minutes.
+"""``mobileocc bench scale``: what a 116k-frame rebuild costs, measured in one run of minutes.
 
 Parts (``parts``), each in its own spawned process where it matters:
 
@@ -39,7 +39,6 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import resource
 import shutil
 import subprocess
 import sys
@@ -47,9 +46,11 @@ import tempfile
 import time
 from pathlib import Path
 
+from flows.bench.common import machine, make_config, run_stages, spawned
 from flows.bench.planning import (
     SOURCE_ID,  # the simulated long sequence's id (a number no copy takes)
 )
+from flows.pipeline.dag import STAGES
 from storage.atomic import atomic_write_text
 
 DEFAULT_FRAMES = (10, 20, 40)
@@ -116,69 +117,21 @@ def link_sequence(
 # ---- stages with per-stage peak RSS ----------------------------------------------------------------
 
 
-def _rss_mb() -> float:
-    with open("/proc/self/statm") as fh:
-        return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
-
-
 def _run_stages_forked(data_root: str, out_root: str, overrides: dict) -> dict:
-    """In a fresh (spawned) runner: import everything, plan, then run each stage of the one
-    sequence in a forked child; per stage wall / CPU seconds, the child's peak RSS and the
-    runner's RSS when it forked (the baseline)."""
+    """In a fresh (spawned) runner: import everything, then run the one sequence through the
+    pipeline's runner, each stage in a forked child (flows/bench/forked.py); per stage wall / CPU
+    seconds, the child's peak RSS and the runner's baseline."""
     import flows.stages  # noqa: F401  (every stage module and its kernels, before the forks)
-    from flows.bench.pipeline import STAGE_ORDER, make_config
-    from flows.pipeline.inputs import runtime
-    from flows.pipeline.plan import plan_run
-    from flows.pipeline.run import _record, execute_unit
-    from storage.manifest import FileHasher, Manifest
+    from flows.bench.forked import ForkedUnits
 
-    cfg = make_config(Path(data_root), Path(out_root), overrides)
-    out = Path(out_root)
-    out.mkdir(parents=True, exist_ok=True)
-    manifest = Manifest.load(out)
-    (plan,) = plan_run(cfg, manifest, FileHasher(None))
-    if plan.error:
-        raise RuntimeError(f"{data_root}: {plan.error}")
-    done: dict[str, dict] = {}
+    forked = ForkedUnits()
+    report = run_stages(
+        make_config(Path(data_root), Path(out_root), overrides), tuple(STAGES), forked
+    )
+    (plan,) = report.plans
     res: dict = {"frames": plan.num_frames}
-    for stage in STAGE_ORDER:
-        from flows.pipeline.dag import STAGES
-
-        ups = {u: done[u] for u in STAGES[stage] if u in done}
-        r, w = os.pipe()
-        pid = os.fork()
-        if pid == 0:  # the child: one stage, then report and leave without cleanup handlers
-            code = 0
-            try:
-                os.close(r)
-                start_rss = _rss_mb()  # what the fork maps of the runner (its anonymous pages)
-                c0, t0 = time.process_time(), time.perf_counter()
-                outcome = execute_unit(plan.units[stage], out, ups, plan.fingerprint, runtime(cfg))
-                msg = {
-                    "outcome": outcome,
-                    "wall_s": time.perf_counter() - t0,
-                    "cpu_s": time.process_time() - c0,
-                    "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-                    "start_rss_mb": start_rss,
-                }
-                os.write(w, json.dumps(msg, default=str).encode())
-            except BaseException as exc:  # noqa: BLE001 - reported to the runner
-                os.write(w, json.dumps({"error": f"{type(exc).__name__}: {exc}"}).encode())
-                code = 1
-            finally:
-                os._exit(code)
-        os.close(w)
-        with os.fdopen(r, "rb") as fh:
-            data = fh.read()
-        os.waitpid(pid, 0)
-        msg = json.loads(data.decode() or '{"error": "the stage process died"}')
-        if "error" in msg or msg["outcome"]["status"] != "done":
-            raise RuntimeError(
-                f"{data_root} stage {stage}: {msg.get('error') or msg['outcome'].get('error')}"
-            )
-        _record(manifest, msg["outcome"])
-        done[stage] = msg["outcome"]
-        n = max(1, plan.num_frames)
+    n = max(1, plan.num_frames)
+    for stage, msg in forked.measured.items():
         res[stage] = {
             "wall_s": msg["wall_s"],
             "cpu_s": msg["cpu_s"],
@@ -189,15 +142,6 @@ def _run_stages_forked(data_root: str, out_root: str, overrides: dict) -> dict:
             "stage_rss_mb": msg["peak_rss_mb"] - msg["start_rss_mb"],
         }
     return res
-
-
-def _spawned(fn, *args):
-    """``fn(*args)`` in a fresh spawned process (not a daemon: it may start processes itself)."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
-    with ProcessPoolExecutor(1, mp_context=mp.get_context("spawn")) as pool:
-        return pool.submit(fn, *args).result()
 
 
 # ---- the loopback Dask cluster -------------------------------------------------------------------
@@ -285,7 +229,6 @@ def loopback_cluster(n_workers: int, work: Path, memory_limit: str = "3GiB", thr
 def _rebuild_on(data_root: str, out_root: str, address: str, overrides: dict) -> dict:
     """``rebuild`` of a dataset on the cluster at ``address`` (in a fresh process)."""
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
-    from flows.bench.pipeline import make_config
     from flows.pipeline.run import rebuild_dataset
     from flows.pipeline.runtime import prefect_api
 
@@ -299,7 +242,7 @@ def _rebuild_on(data_root: str, out_root: str, address: str, overrides: dict) ->
         report = rebuild_dataset(cfg, progress=False)
         wall = time.perf_counter() - t0
     if report.failed:
-        raise RuntimeError(f"cluster rebuild failed: {report.failed[0]['error']}")
+        raise RuntimeError(f"cluster rebuild failed: {report.failed[0].error}")
     return {
         "wall_s": wall,
         "units_s": report.seconds,
@@ -317,7 +260,7 @@ def _rebuild_with_task_stream(address: str, slots: int, data: str, out: str, ove
     with Client(address, timeout=120) as client:
         client.get_task_stream(start=time.time())  # installs the scheduler's task-stream plugin
         t0 = time.time()
-        run = _spawned(_rebuild_on, data, out, address, over)
+        run = spawned(_rebuild_on, data, out, address, over)
         stream = client.get_task_stream(start=t0)
     compute = sum(
         ss["stop"] - ss["start"]
@@ -402,10 +345,9 @@ def project(
     workers=PROJECT_WORKERS,
 ) -> dict:
     """Projected wall hours of ``frames`` frames on N workers (see the module docstring)."""
-    from flows.bench.pipeline import STAGE_ORDER
 
-    cpu_per_frame = sum(cost[s]["cpu_s_per_frame"] for s in STAGE_ORDER)
-    wall_per_frame = sum(cost[s]["wall_s_per_frame"] for s in STAGE_ORDER)
+    cpu_per_frame = sum(cost[s]["cpu_s_per_frame"] for s in STAGES)
+    wall_per_frame = sum(cost[s]["wall_s_per_frame"] for s in STAGES)
     # a worker is one process of one thread on a core of its own: its wall time per frame is the
     # CPU time measured here (the wall time on a shared, loaded machine is not)
     per_frame = cpu_per_frame
@@ -462,7 +404,6 @@ def bench_scale(
     memory_frames=MEMORY_FRAMES,
 ) -> dict:
     """Run the parts listed in the module docstring; print a table; write JSON when asked."""
-    from flows.bench.pipeline import machine
     from flows.bench.planning import bench_planning
     from flows.bench.simulator import bench_simulator
     from flows.commands.simulate import simulate
@@ -479,7 +420,7 @@ def bench_scale(
     }
     try:
         if "simulator" in parts:
-            result["simulator"] = _spawned(
+            result["simulator"] = spawned(
                 bench_simulator,
                 sim_long_frames,
                 sim_sample,
@@ -512,7 +453,7 @@ def bench_scale(
             for n in frames:
                 data = work / f"long-{n}"
                 link_sequence(src, SOURCE_ID, data, 0, raw_frames=2 * n)
-                result["long"][n] = _spawned(
+                result["long"][n] = spawned(
                     _run_stages_forked,
                     str(data),
                     str(work / f"long-out-{n}"),
@@ -522,13 +463,13 @@ def bench_scale(
         if "cost" in parts:
             data = work / "cost-data"
             link_sequence(src, SOURCE_ID, data, 0, raw_frames=2 * frames[0])
-            result["cost"] = _spawned(_run_stages_forked, str(data), str(work / "cost-out"), {})
+            result["cost"] = spawned(_run_stages_forked, str(data), str(work / "cost-out"), {})
         if "memory" in parts:
             from flows.bench.memory import bench_memory
 
             result["memory"] = bench_memory(list(memory_frames), work / "memory")
         if "planning" in parts:
-            result["planning"] = _spawned(bench_planning, list(sequences), str(work))
+            result["planning"] = spawned(bench_planning, list(sequences), str(work))
         if "cluster" in parts:
             result["cluster"] = bench_cluster(src, SOURCE_ID, work, tuple(cluster_workers))
         if "cost" in result:
@@ -548,7 +489,6 @@ def bench_scale(
 
 def format_scale(r: dict) -> str:
     """The scale figures as aligned text tables (what docs/scale.md shows)."""
-    from flows.bench.pipeline import STAGE_ORDER
     from flows.bench.simulator import format_simulator
 
     m = r["machine"]
@@ -562,7 +502,7 @@ def format_scale(r: dict) -> str:
             "peak RSS per stage, MB (stage's own = peak - runner baseline), vs 5 Hz frames of one sequence:"
         )
         lines.append(f"  {'stage':<8}" + "".join(f"{n:>22}" for n in r["long"]))
-        for st in STAGE_ORDER:
+        for st in STAGES:
             lines.append(
                 f"  {st:<8}"
                 + "".join(
@@ -573,7 +513,7 @@ def format_scale(r: dict) -> str:
         lines.append(
             f"wall s per frame per stage vs frames (fit at {LONG_FIT_ITERATIONS} iterations here):"
         )
-        for st in STAGE_ORDER:
+        for st in STAGES:
             lines.append(
                 f"  {st:<8}"
                 + "".join(f"{v[st]['wall_s_per_frame']:>22.3f}" for v in r["long"].values())
@@ -584,7 +524,7 @@ def format_scale(r: dict) -> str:
             f"per-frame cost, default settings ({c['frames']} frames): "
             + ", ".join(
                 f"{st} {c[st]['cpu_s_per_frame']:.2f} CPU / {c[st]['wall_s_per_frame']:.2f} wall s"
-                for st in STAGE_ORDER
+                for st in STAGES
             )
         )
     if "memory" in r:

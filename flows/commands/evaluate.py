@@ -33,7 +33,9 @@ Definitions beyond the kernels' own (each kernel's docstring has the rest):
 - box heading: the published box yaw (instances table) of each matched fitted row vs the GT
   person's heading (box_yaw), both about base z (tasks/metrics/heading.py);
 - box visibility: the nuScenes export's visible fraction of each matched fitted row's box vs the
-  GT person's visible_fraction, and their nuScenes visibility bins.
+  GT person's visible_fraction, and their nuScenes visibility bins;
+- RayIoU / OccScore (SparseOcc / OpenOcc's ray metric, full grids, flow = velocity):
+  flows/commands/evaluate_rays.py, tasks/metrics/rayiou.py.
 """
 
 from __future__ import annotations
@@ -42,12 +44,13 @@ from pathlib import Path
 
 import numpy as np
 
+from flows.commands.evaluate_rays import SequenceRays, ray_sections
 from storage.coda import read_lidar_bin
 from storage.dataset import open_dataset
 from storage.export.common import sequence_info
 from storage.export.nuscenes import visibility_token, visible_fractions_of_boxes
 from storage.gt import gt_dir, read_frame_gt, read_sequence_gt
-from storage.manifest import Manifest
+from storage.manifest import Manifest, data_root_for
 from storage.products import Bodies, Detections, Tracks
 from tasks import conventions as C
 from tasks.geometry import match_boxes, transform_points
@@ -112,15 +115,8 @@ def _stage_folder(out: Path, manifest: Manifest, sequence: str, stage: str) -> P
 
 
 def _gt_root(out: Path, manifest: Manifest, gt: Path | None) -> Path:
-    if gt is not None:
-        return Path(gt)
-    root = ((manifest.meta.get("config") or {}).get("dataset") or {}).get("root")
-    if not root:
-        raise EvaluateError(
-            f"{out / 'manifest.json'}: no meta.config.dataset.root recorded; pass --gt GT "
-            "(the raw data root holding gt/)"
-        )
-    return Path(root)
+    """``--gt`` when given, else the raw data root the dataset was built from (OUT's manifest)."""
+    return data_root_for(out, gt)
 
 
 def _boxes_to_base(T_base_from_lidar: np.ndarray, centers, yaws) -> tuple[np.ndarray, np.ndarray]:
@@ -213,6 +209,7 @@ class _Totals:
         self.notes: dict[str, str] = {}
         self.hist: dict[str, list] = {"velocity_error": [], "PVE_mm": [], "MPJPE_mm": []}
         self.samples: list[dict] = []
+        self.rays: dict = {}  # sequence -> evaluate_rays.SequenceRays (RayIoU / OccScore)
 
 
 def _evaluate_sequence(
@@ -234,8 +231,6 @@ def _evaluate_sequence(
         tot.notes[f"sequence {seq}"] = f"no ground truth under {gt_root}/gt/{seq}: not evaluated"
         return
     gseq = read_sequence_gt(gt_root, int(seq))
-    from flows.commands.evaluate_coda import open_recorded_sequence
-
     coda = open_recorded_sequence(config, gt_root, seq)
     cam = coda.info.calibration.cameras[((config.get("dataset") or {}).get("camera")) or "cam0"]
     T_bl = np.asarray(gseq.T_base_from_lidar, np.float64)
@@ -258,6 +253,10 @@ def _evaluate_sequence(
         (config.get("map") or {}).get("surface_noise_m", MapParams.surface_noise_m)
     )
     frustum = _frustum(shape, range_min, vs, T_bl, cam)
+    if same_grid:
+        tot.rays[seq] = SequenceRays(
+            ds.table("frames", seq), range_min, range_min + np.asarray(shape) * vs, vs
+        )
 
     detect_dir = _stage_folder(out, manifest, seq, "detect")
     track_dir = _stage_folder(out, manifest, seq, "track")
@@ -325,6 +324,7 @@ def _evaluate_sequence(
                 gvel[gtf.occupancy_instance == tid] = gtf.velocity_base[j]
             pvel = np.asarray(arrays["velocity"][k]).astype(np.float32)
             ve = ve + velocity_errors(pred, pvel, gtf.occupancy, gvel, mask_cam)
+            tot.rays[seq].add(k, pred, gtf.occupancy, pvel, gvel)
             vv = _vertex_velocity(
                 tot,
                 seq,
@@ -560,6 +560,19 @@ def _sample_positions(ds, sample_frames: int) -> set:
     return {pairs[i] for i in pick}
 
 
+def open_recorded_sequence(config: dict, root: Path, sequence: str):
+    """The CODa reader of ``sequence`` under ``root`` with the dataset settings of a recorded
+    config (``OUT/manifest.json`` meta.config; the defaults when none was recorded)."""
+    from configs.schema import Config, load_config
+    from flows.pipeline.inputs import open_sequence
+
+    cfg = Config.model_validate(config) if config else load_config()
+    return open_sequence(
+        cfg.model_copy(update={"dataset": cfg.dataset.model_copy(update={"root": Path(root)})}),
+        sequence,
+    )
+
+
 def open_for_evaluation(dataset: Path, data: Path | None):
     """(OUT, its manifest, the recorded config, the raw data root holding the labels, the
     published dataset); EvaluateError naming what is missing."""
@@ -567,8 +580,6 @@ def open_for_evaluation(dataset: Path, data: Path | None):
     manifest = Manifest.load(out)
     config = manifest.meta.get("config") or {}
     root = _gt_root(out, manifest, data)
-    if not root.is_dir():
-        raise EvaluateError(f"data root {root} does not exist (pass --gt DATA, the raw data root)")
     ds = open_dataset(out)
     if not ds.sequences:
         raise EvaluateError(f"{out}: no published sequence to evaluate (run the pipeline first)")
@@ -580,19 +591,11 @@ def evaluate(
     gt: Path | None,
     report_dir: Path,
     sample_frames: int = 3,
-    labels: str = "synthetic",
 ) -> dict:
     """Evaluate the dataset at ``dataset`` (OUT) against the ground truth under ``gt`` (the raw data
     root holding ``gt/``; None = the ``dataset.root`` recorded in OUT/manifest.json). Writes
     report.md, results.json and figures/ under ``report_dir``; returns the results dict.
-    labels: "synthetic" (the simulator's exact ground truth, gt/) or "coda" (CODa's own 3d_semantic
-    and 3d_bbox labels beside the raw data: flows/commands/evaluate_coda.py)."""
-    if labels == "coda":
-        from flows.commands.evaluate_coda import evaluate_coda
-
-        return evaluate_coda(dataset, gt, report_dir, sample_frames)
-    if labels != "synthetic":
-        raise EvaluateError(f"labels {labels!r}: expected 'synthetic' or 'coda'")
+    (CODa's own labels: flows/commands/evaluate_coda.py.)"""
     out, manifest, config, gt_root, ds = open_for_evaluation(dataset, gt)
     tot = _Totals()
     positions = _sample_positions(ds, sample_frames)
@@ -619,6 +622,7 @@ def evaluate(
         from flows.commands.confusion_report import sections
 
         results.update(sections(tot.occ, tot.locations))
+    results.update(ray_sections(tot.rays))
     if tot.static:
         results["static"] = _sum(tot.static.values()).as_dict()
         results["static_by_sequence"] = {s: _brief(v.as_dict()) for s, v in tot.static.items()}

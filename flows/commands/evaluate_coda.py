@@ -27,6 +27,14 @@ from pathlib import Path
 
 import numpy as np
 
+from flows.commands.evaluate import (
+    _boxes_to_base,
+    _frustum,
+    _in_image,
+    open_for_evaluation,
+    open_recorded_sequence,
+)
+from flows.commands.report import to_jsonable, write_report
 from tasks import conventions as C
 from tasks.geometry import points_in_boxes, transform_points
 from tasks.metrics._common import PRCounts
@@ -43,19 +51,6 @@ from tasks.occupancy.settings import MapParams
 BOTTOM_EXCLUDE_M = 0.1
 
 
-def open_recorded_sequence(config: dict, root: Path, sequence: str):
-    """The CODa reader of ``sequence`` under ``root`` with the dataset settings of a recorded
-    config (``OUT/manifest.json`` meta.config; the defaults when none was recorded)."""
-    from configs.schema import Config, load_config
-    from flows.pipeline.inputs import open_sequence
-
-    cfg = Config.model_validate(config) if config else load_config()
-    return open_sequence(
-        cfg.model_copy(update={"dataset": cfg.dataset.model_copy(update={"root": Path(root)})}),
-        sequence,
-    )
-
-
 def _sum(values, zero):
     total = zero
     for v in values:
@@ -69,13 +64,6 @@ def evaluate_coda(
     """Evaluate the dataset at ``dataset`` (OUT) against the CODa labels of the raw data at
     ``data`` (None: the recorded dataset.root). Writes report.md and results.json under
     ``report_dir``; returns the results dict."""
-    from flows.commands.evaluate import (
-        _boxes_to_base,
-        _frustum,
-        _in_image,
-        open_for_evaluation,
-    )
-    from flows.commands.report import to_jsonable, write_report
 
     out, manifest, config, root, ds = open_for_evaluation(dataset, data)
     camera = ((config.get("dataset") or {}).get("camera")) or "cam0"

@@ -11,6 +11,8 @@ and renders what it finds. ``results`` (JSON-like; numpy scalars / arrays allowe
 - ``occupancy``: ``OccupancyScores.as_dict()``, or {name: that} for several rows.
 - ``fit``: {metric: value} or {row: {metric: value}} (PVE / MPJPE / PA-MPJPE in mm, MPERE).
 - ``tracking``: {sequence: ``TrackingScores.as_dict()``}.
+- ``ray_iou``: {sequence and "all": RayIoU, RayIoU@t, mAVE, OccScore, rays}; ``ray_iou_per_class``
+  {threshold: {class: IoU}}; ``ray_ave_per_class`` (flows/commands/evaluate_rays.py).
 - ``velocity``, ``velocity_vertex_gt``: ``VelocityErrors.as_dict()`` or {name: that};
   ``velocity_by_limb``: {limb group: AVE against the per-vertex / per-person GT}.
 - any other key: a table of its scalars (rows when its values are dicts).
@@ -79,6 +81,12 @@ _LABELS = {
     "ref_total": "ref. voxels",
     "num_objects": "GT boxes",
     "num_voxels": "voxels",
+    "ray_iou": "RayIoU",
+    "ray_iou_1m": "RayIoU@1m",
+    "ray_iou_2m": "RayIoU@2m",
+    "ray_iou_4m": "RayIoU@4m",
+    "mave": "mAVE (m/s)",
+    "occ_score": "OccScore",
     "ave_o_vertex_gt": "AVE-O vs vertex GT",
     "ave_t_vertex_gt": "AVE-T vs vertex GT",
     "ave_o_person_gt": "AVE-O vs person GT",
@@ -129,6 +137,15 @@ _HOW_TO_READ = {
     "velocity_vertex_gt": "AVE as above against the per-vertex ground truth: each GT pedestrian voxel moves with "
     "the mean velocity of the body surface in it (a swinging leg's voxels faster than the "
     "torso's).",
+    "ray_iou": "SparseOcc / OpenOcc's RayIoU over the full grids (no masks): query rays from up to 8 LiDAR "
+    "positions of the sequence (the frame's own and those over the grid, evenly thinned in time), "
+    "LiDAR-like rings, 1 deg azimuth; a ray counts "
+    "when its ground-truth first hit is occupied; true positive: same class and first-hit depth "
+    "within 1 / 2 / 4 m; mean over classes (free excluded) and thresholds. mAVE: velocity error "
+    "(m/s) at the true-positive rays at 2 m, mean over the moving classes with any (pedestrian, "
+    "car, truck, two-wheeler, as the reference; our labels move pedestrians only, so a vehicle's "
+    "AVE is 0 where both sides say 0); OccScore = 0.9 RayIoU + 0.1 max(1 - mAVE, 0).",
+    "ray_iou_per_class": "RayIoU per class at each depth threshold (n/a: no ray hits the class on either side).",
     "velocity_by_limb": "AVE per limb group of the GT voxel (the group of its nearest GT vertex, from the body "
     "model's skinning weights), against the per-vertex GT and against the per-person GT; "
     "m/s, lower is better.",
@@ -146,6 +163,9 @@ _TITLES = {
     "velocity": "Pedestrian velocity (AVE)",
     "velocity_vertex_gt": "Pedestrian velocity (AVE) vs per-vertex GT",
     "velocity_by_limb": "Pedestrian velocity (AVE) per limb group",
+    "ray_iou": "RayIoU and OccScore (ray-based, SparseOcc / OpenOcc)",
+    "ray_iou_per_class": "RayIoU per class",
+    "ray_ave_per_class": "Ray AVE per moving class (m/s, true positives at 2 m)",
 }
 _COLUMNS = {
     "pedestrian_boxes": ["precision", "recall", "f1", "pred_total", "ref_total"],
@@ -203,7 +223,13 @@ def _fmt(key: str, value) -> str:
     if isinstance(value, int):
         return str(value)
     if isinstance(value, float):
-        if key in _PERCENT or key.endswith("_iou") or key in C.CLASS_NAMES:
+        if (
+            key in _PERCENT
+            or key.endswith("_iou")
+            or key in C.CLASS_NAMES
+            or key.startswith("ray_iou_")
+            or key == "occ_score"
+        ):
             return f"{100 * value:.1f}"
         return f"{value:.1f}" if abs(value) >= 10 else f"{value:.3f}"
     return str(value)

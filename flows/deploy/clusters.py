@@ -22,9 +22,7 @@ them. ``build_cluster`` starts real resources.
 
 from __future__ import annotations
 
-import argparse
 import copy
-import sys
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Literal
@@ -294,6 +292,19 @@ def render_kubernetes_yaml(spec: ClusterSpec) -> str:
     return yaml.safe_dump_all(render_kubernetes_cluster(spec), sort_keys=False)
 
 
+def render(spec: ClusterSpec, scheduler_address: str = RENDER_SCHEDULER) -> str:
+    """What ``mobileocc cluster render`` prints: the job script of each SLURM pool, or the
+    Kubernetes resources; ClusterSpecError for a local cluster (nothing to render)."""
+    if spec.kind == "slurm":
+        return "".join(
+            f"# ---- {pool} pool ----\n{render_slurm_job_script(spec, pool, scheduler_address)}\n"
+            for pool in (("cpu", "gpu") if spec.gpu else ("cpu",))
+        )
+    if spec.kind == "kubernetes":
+        return render_kubernetes_yaml(spec)
+    raise ClusterSpecError("a local cluster has nothing to render")
+
+
 # ------------------------------------------------------------------------------------------ building
 
 
@@ -423,37 +434,3 @@ def _sleep_forever(address: str) -> None:  # pragma: no cover - ended by an inte
 
     while True:
         time.sleep(3600)
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="mobileocc cluster")
-    sub = parser.add_subparsers(dest="command", required=True)
-    r = sub.add_parser("render", help="print the SLURM job scripts or the Kubernetes resources")
-    r.add_argument("spec", type=Path)
-    r.add_argument("--scheduler", default=RENDER_SCHEDULER, help="scheduler address (SLURM)")
-    u = sub.add_parser(
-        "up",
-        help="start the spec's cluster (both pools, one scheduler), print the scheduler "
-        "address and hold the cluster until interrupted",
-    )
-    u.add_argument("spec", type=Path)
-    u.add_argument("--address-file", type=Path, default=None, help="also write the address here")
-    args = parser.parse_args(argv)
-    try:
-        spec = load_cluster_spec(args.spec)
-    except ClusterSpecError as exc:
-        print(exc, file=sys.stderr)
-        return 1
-    if args.command == "up":
-        hold_cluster(spec, args.address_file)
-        return 0
-    if spec.kind == "slurm":
-        for pool in ("cpu", "gpu") if spec.gpu else ("cpu",):
-            print(f"# ---- {pool} pool ----")
-            print(render_slurm_job_script(spec, pool, args.scheduler))
-    elif spec.kind == "kubernetes":
-        print(render_kubernetes_yaml(spec), end="")
-    else:
-        print(f"{args.spec}: a local cluster has nothing to render", file=sys.stderr)
-        return 1
-    return 0

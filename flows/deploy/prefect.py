@@ -14,7 +14,6 @@ same key returns the flow run of the first instead of starting another (the serv
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 from typing import Any
@@ -110,31 +109,3 @@ def trigger_rebuild(
         idempotency_key=idempotency_key,
         **kwargs,
     )
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="mobileocc deploy")
-    sub = parser.add_subparsers(dest="command", required=True)
-    sub.add_parser("serve", help="serve both flows from this process (needs PREFECT_API_URL)")
-    sub.add_parser("apply", help="register both deployments without serving them")
-    t = sub.add_parser("trigger", help="trigger the rebuild deployment")
-    t.add_argument("--config", default=None, help="config YAML (default: configs/default.yaml)")
-    t.add_argument("--force", action="store_true")
-    t.add_argument(
-        "--key", default=None, help="idempotency key (default: from the config and --window)"
-    )
-    t.add_argument("--window", default="", help="part of the default key, e.g. today's date")
-    args = parser.parse_args(argv)
-    if args.command == "serve":
-        serve()
-    elif args.command == "apply":
-        for dep_id in apply_deployments():
-            print(dep_id)
-    else:
-        from configs.schema import load_config
-
-        cfg = load_config(args.config)
-        key = args.key or default_idempotency_key(cfg, args.force, window=args.window)
-        run = trigger_rebuild(cfg, force=args.force, idempotency_key=key)
-        print(f"flow run {run.id} ({run.state.name if run.state else 'unknown'}), key {key}")
-    return 0

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-#: stage -> upstream stages (DESIGN.md). Order is a topological order.
+#: stage -> the stages whose products it reads. Order is a topological order.
 STAGES: dict[str, tuple[str, ...]] = {
     "detect": (),
     "track": ("detect",),
@@ -33,7 +33,8 @@ CODE_VERSIONS: dict[str, str] = {
     #             (fuse not bumped: it reads the tiles near its frames and writes the same bytes; its key
     #             follows the map's key)
     #             5: voxels holding only the range noise of a neighbour's surface dropped, each voxel's
-    #                surface kept (tasks/occupancy/surface.py; window votes carry point moments)
+    #                surface kept (tasks/occupancy/surface.py; window votes carry point moments); the
+    #                ground under a person kept; a person's other points removed whatever their label
     "fuse": "4",  # 2: mask_camera is inside mask_lidar (Occ3D); class_counts among voxels with
     #               mask_lidar = 1 (as documented); store attrs carry the stage key, not a config hash;
     #               the rectified camera; 3: pedestrian voxel velocity from each vertex's motion along
@@ -46,3 +47,11 @@ CODE_VERSIONS: dict[str, str] = {
     #                 rectified camera's K and T in the sequences table; 4: the Occ3D metadata says
     #                 semantics is free where mask_lidar is 0 and keeps hidden occupied voxels' class
 }
+#: Version of the dataset-level Occ3D / nuScenes exports (OUT/exports/, made after the sequences
+#: are published; part of their key in the manifest): bump when their files change for the same
+#: dataset. 2: labels.npz carries OpenOcc's flow; annotations.json and the training infos in time
+#: order, the infos with the occupancy challenge's prev / next / frame_idx / can_bus / occ_gt_path;
+#: the metadata's FlashOcc settings (depth, BEV flips, input sizes and their frustum coverage);
+#: 3: the metadata says semantics is free where mask_lidar is 0 and keeps the class of occupied
+#: voxels hidden from the camera (issue 30)
+DATASET_EXPORTS_VERSION = "3"

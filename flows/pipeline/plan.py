@@ -22,12 +22,14 @@ from configs.schema import Config
 from flows.pipeline.dag import CODE_VERSIONS, STAGES
 from flows.pipeline.inputs import (
     SequenceRef,
+    StageInputs,
     inputs_hash,
     sequence_ref,
     source,
     stage_inputs,
     to_jsonable,
 )
+from flows.pipeline.outcome import Status
 from storage.coda import READER_VERSION, frame_number, sequence_ids, sequence_layout
 from storage.files import InputError, regular_stat
 from storage.manifest import (
@@ -49,9 +51,9 @@ class UnitPlan:
     fresh: bool
     reason: str  # why it runs ("" when fresh)
     #: the stage's inputs object (the only settings the stage reads)
-    inputs: Any = None
+    inputs: StageInputs
     #: the sequence: where it is, what the config says about it alone
-    ref: SequenceRef | None = None
+    ref: SequenceRef
 
 
 @dataclass
@@ -285,8 +287,8 @@ def _stale_reason(
     rec = manifest.get(seq, stage)
     if rec is None:
         return "never ran"
-    if rec.status != "done":
-        what = "was skipped" if rec.status == "skipped" else "failed"
+    if rec.status != Status.DONE:
+        what = "was skipped" if rec.status == Status.SKIPPED else "failed"
         return f"last run {what}: {rec.error.splitlines()[0][:120] if rec.error else rec.status}"
     rerun_up = [u for u in upstream if u in runs]
     if rerun_up:  # also when keys match: the upstream output it was built from is being rebuilt

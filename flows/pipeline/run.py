@@ -16,6 +16,7 @@ from prefect.futures import as_completed
 
 from configs.schema import Config
 from flows.pipeline.inputs import Runtime
+from flows.pipeline.outcome import UnitOutcome
 from flows.pipeline.plan import UnitPlan
 from flows.pipeline.units import (  # noqa: F401 - the pipeline's API, as before the split
     RunReport,
@@ -31,8 +32,8 @@ from flows.pipeline.units import (  # noqa: F401 - the pipeline's API, as before
 
 @task(name="stage", cache_policy=NO_CACHE, task_run_name="{unit.stage}-{unit.sequence}")
 def stage_task(
-    unit: UnitPlan, out_root, upstream: dict[str, dict], fingerprint: str, runtime: Runtime
-) -> dict:
+    unit: UnitPlan, out_root, upstream: dict[str, UnitOutcome], fingerprint: str, runtime: Runtime
+) -> UnitOutcome:
     return execute_unit(unit, out_root, upstream, fingerprint, runtime)
 
 

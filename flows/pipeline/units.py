@@ -19,16 +19,15 @@ out of the dataset-level exports.
 
 from __future__ import annotations
 
-import json
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from configs.schema import Config, config_hash
-from flows.pipeline.dag import CODE_VERSIONS, STAGES
+from flows.pipeline.dag import CODE_VERSIONS, DATASET_EXPORTS_VERSION, STAGES
 from flows.pipeline.inputs import (
     DatasetExportInputs,
     Runtime,
@@ -37,6 +36,7 @@ from flows.pipeline.inputs import (
     inputs_hash,
     runtime,
 )
+from flows.pipeline.outcome import Status, UnitOutcome
 from flows.pipeline.plan import (
     PlanCosts,
     SequencePlan,
@@ -44,19 +44,22 @@ from flows.pipeline.plan import (
     iter_plans,
     selected_sequences,
 )
-from storage.atomic import atomic_write_text, staged_folder
+from storage.atomic import staged_folder
 from storage.coda import check_dataset_root
 from storage.manifest import (
     FingerprintCache,
     Manifest,
     StageRecord,
     check_writable,
+    data_root_for,
     holding_lock,
+    record_data_root,
     remove_stale_versions,
     run_lock,
     stage_dir,
     sweep_temporaries,
 )
+from storage.products import SUMMARY, read_summary, write_summary
 from storage.publish import withdraw_sequence
 
 
@@ -70,24 +73,23 @@ def _error_text(exc: BaseException, where: Path) -> str:
 def execute_unit(
     unit: UnitPlan,
     out_root: Path,
-    upstream: dict[str, dict],
+    upstream: dict[str, UnitOutcome],
     fingerprint: str = "",
     runtime: Runtime = Runtime(),
-) -> dict:
-    """Run one (sequence, stage): returns an outcome dict; never raises for a stage error."""
-    base = {"sequence": unit.sequence, "stage": unit.stage, "key": unit.key, "parts": unit.parts}
-    blocked = [s for s, o in upstream.items() if o["status"] not in ("done", "cached")]
+) -> UnitOutcome:
+    """Run one (sequence, stage); never raises for a stage error (the outcome is failed)."""
+
+    def outcome(status: Status, **more) -> UnitOutcome:
+        return UnitOutcome(unit.sequence, unit.stage, unit.key, unit.parts, status, **more)
+
+    blocked = [s for s, o in upstream.items() if not o.finished]
     if blocked:
-        return {
-            **base,
-            "status": "skipped",
-            "error": f"upstream {', '.join(blocked)} did not finish",
-        }
+        return outcome(Status.SKIPPED, error=f"upstream {', '.join(blocked)} did not finish")
     final = stage_dir(out_root, unit.stage, unit.sequence, unit.key)
     location = str(final.relative_to(out_root))
-    if (final / "summary.json").exists():  # finished by a run that was killed before recording it
-        summary = json.loads((final / "summary.json").read_text())
-        return {**base, "status": "done", "location": location, "summary": summary, "seconds": 0.0}
+    if (final / SUMMARY).exists():  # finished by a run that was killed before recording it
+        summary = read_summary(final)
+        return outcome(Status.DONE, location=location, summary=summary)
     from flows.pipeline.parallel import limit_threads
     from flows.stages import (  # the kernels: only where a unit runs
         STAGE_FUNCTIONS,
@@ -103,35 +105,30 @@ def execute_unit(
                 unit.inputs,
                 Path(out_root),
                 tmp,
-                {s: Path(out_root) / o["location"] for s, o in upstream.items()},
+                {s: Path(out_root) / o.location for s, o in upstream.items()},
                 key=unit.key,
                 fingerprint=fingerprint,
                 runtime=runtime,
             )
             summary = STAGE_FUNCTIONS[unit.stage](ctx)
-            atomic_write_text(tmp / "summary.json", json.dumps(summary, sort_keys=True, indent=1))
+            write_summary(tmp, summary)
     except Exception as exc:  # noqa: BLE001 - one bad sequence fails alone, with its error
-        return {
-            **base,
-            "status": "failed",
-            "seconds": time.perf_counter() - started,
-            "error": _error_text(exc, final.parent),
-            "traceback": traceback.format_exc(limit=8),
-        }
-    return {
-        **base,
-        "status": "done",
-        "location": location,
-        "summary": summary,
-        "seconds": time.perf_counter() - started,
-    }
+        return outcome(
+            Status.FAILED,
+            seconds=time.perf_counter() - started,
+            error=_error_text(exc, final.parent),
+            traceback=traceback.format_exc(limit=8),
+        )
+    return outcome(
+        Status.DONE, location=location, summary=summary, seconds=time.perf_counter() - started
+    )
 
 
 @dataclass
 class RunReport:
     out_root: Path
     plans: list[SequencePlan]
-    outcomes: dict[tuple[str, str], dict] = field(default_factory=dict)
+    outcomes: dict[tuple[str, str], UnitOutcome] = field(default_factory=dict)
     seconds: float = 0.0
     #: format -> "done" or "failed: <error>" for the dataset-level exports made in this run
     dataset_exports: dict[str, str] = field(default_factory=dict)
@@ -141,23 +138,21 @@ class RunReport:
     withdrawn: list[str] = field(default_factory=list)
     #: manifest / memo files that could not be written (a full disk), with the error
     write_errors: list[str] = field(default_factory=list)
-    #: leftovers of earlier runs removed at the start
-    swept: int = 0
 
     @property
-    def failed(self) -> list[dict]:
-        return [o for o in self.outcomes.values() if o["status"] == "failed"]
+    def failed(self) -> list[UnitOutcome]:
+        return [o for o in self.outcomes.values() if o.status == Status.FAILED]
 
     @property
-    def skipped(self) -> list[dict]:
-        return [o for o in self.outcomes.values() if o["status"] == "skipped"]
+    def skipped(self) -> list[UnitOutcome]:
+        return [o for o in self.outcomes.values() if o.status == Status.SKIPPED]
 
     def failed_frames(self) -> dict[str, list[dict]]:
         """sequence -> the frames detect left out for bad input (run now or cached)."""
         out = {}
         for (seq, stage), o in sorted(self.outcomes.items()):
-            bad = (o.get("summary") or {}).get("failed_frames") if stage == "detect" else None
-            if bad and o["status"] in ("done", "cached"):
+            bad = o.summary.get("failed_frames") if stage == "detect" else None
+            if bad and o.finished:
                 out[seq] = bad
         return out
 
@@ -177,30 +172,26 @@ class RunReport:
 
     def ran(self, stage: str | None = None) -> list[tuple[str, str]]:
         return sorted(
-            k
-            for k, o in self.outcomes.items()
-            if o["status"] in ("done", "failed")
-            and o.get("ran", True)
-            and (stage is None or k[1] == stage)
+            k for k, o in self.outcomes.items() if o.ran and (stage is None or k[1] == stage)
         )
 
 
-def _record(manifest: Manifest, outcome: dict, report: RunReport | None = None) -> None:
+def _record(manifest: Manifest, outcome: UnitOutcome, report: RunReport | None = None) -> None:
     """Journal a unit's outcome (done, failed or skipped); a disk error is reported, not raised:
     the row stays in memory for the final save and the run goes on."""
-    if outcome["status"] not in ("done", "failed", "skipped"):
+    if outcome.status == Status.CACHED:
         return
     rec = StageRecord(
-        sequence=outcome["sequence"],
-        stage=outcome["stage"],
-        key=outcome["key"],
-        status=outcome["status"],
-        location=outcome.get("location", ""),
-        error=outcome.get("error", ""),
-        seconds=round(outcome.get("seconds", 0.0), 3),
+        sequence=outcome.sequence,
+        stage=outcome.stage,
+        key=outcome.key,
+        status=outcome.status.value,
+        location=outcome.location,
+        error=outcome.error,
+        seconds=round(outcome.seconds, 3),
         finished_at=time.time(),
-        summary=outcome.get("summary", {}),
-        parts=outcome["parts"],
+        summary=outcome.summary,
+        parts=outcome.parts,
     )
     try:
         manifest.record(rec)
@@ -208,8 +199,8 @@ def _record(manifest: Manifest, outcome: dict, report: RunReport | None = None) 
         if report is None:
             raise
         report.write_errors.append(f"manifest journal {exc.filename}: {exc.strerror}")
-    if outcome["status"] == "done":
-        remove_stale_versions(manifest.root, outcome["stage"], outcome["sequence"], outcome["key"])
+    if outcome.status == Status.DONE:
+        remove_stale_versions(manifest.root, outcome.stage, outcome.sequence, outcome.key)
 
 
 def _save(manifest: Manifest, report: RunReport) -> None:
@@ -234,7 +225,7 @@ class Submitter:
     """How units run. This one: here, at once (``submit`` returns the outcome). The Prefect flows
     use one that returns futures and yields outcomes as they complete (flows/pipeline/run.py)."""
 
-    def submit(self, stage: str, *args) -> Any:
+    def submit(self, stage: str, *args) -> UnitOutcome | Any:
         return execute_unit(*args)
 
     def completed(self, futures: list) -> Any:
@@ -244,30 +235,26 @@ class Submitter:
 class _Units:
     """Submits units and records their outcomes."""
 
-    def __init__(self, config: Config, manifest: Manifest, report: RunReport, submitter: Submitter):
-        self.config, self.manifest, self.report, self.submitter = (
-            config,
-            manifest,
-            report,
-            submitter,
-        )
+    def __init__(
+        self,
+        config: Config,
+        manifest: Manifest,
+        report: RunReport,
+        submitter: Submitter,
+        stages: tuple[str, ...],
+    ):
+        self.config, self.manifest, self.report = config, manifest, report
+        self.submitter, self.stages = submitter, stages
+        #: sequence -> stage -> its outcome, or a future of it
         self.results: dict[str, dict[str, Any]] = {}
         self.futures: list = []
-        self.on_done: Callable[[dict], None] = lambda outcome: None
+        self.on_done: Callable[[UnitOutcome], None] = lambda outcome: None
 
     def fail_plan(self, plan: SequencePlan) -> None:
-        outcome = {
-            "sequence": plan.sequence,
-            "stage": "detect",
-            "key": "",
-            "parts": {},
-            "status": "failed",
-            "error": plan.error,
-        }
-        self.finish(outcome)
+        self.finish(UnitOutcome(plan.sequence, "detect", "", {}, Status.FAILED, error=plan.error))
 
-    def finish(self, outcome: dict) -> None:
-        self.report.outcomes[(outcome["sequence"], outcome["stage"])] = outcome
+    def finish(self, outcome: UnitOutcome) -> None:
+        self.report.outcomes[(outcome.sequence, outcome.stage)] = outcome
         _record(self.manifest, outcome, self.report)
         self.on_done(outcome)
 
@@ -275,28 +262,27 @@ class _Units:
         mine, unit = self.results.setdefault(plan.sequence, {}), plan.units[stage]
         if unit.fresh:
             rec = self.manifest.get(plan.sequence, stage)
-            mine[stage] = {
-                "sequence": plan.sequence,
-                "stage": stage,
-                "key": unit.key,
-                "parts": unit.parts,
-                "status": "cached",
-                "location": rec.location,
-                "summary": rec.summary,
-                "seconds": 0.0,
-                "ran": False,
-            }
+            assert rec is not None  # fresh: recorded done
+            mine[stage] = UnitOutcome(
+                plan.sequence,
+                stage,
+                unit.key,
+                unit.parts,
+                Status.CACHED,
+                location=rec.location,
+                summary=rec.summary,
+            )
             self.report.outcomes[(plan.sequence, stage)] = mine[stage]
             return
         mine[stage] = self.submitter.submit(
             stage,
             unit,
             self.report.out_root,
-            {u: mine[u] for u in STAGES[stage]},
+            {u: mine[u] for u in STAGES[stage] if u in mine},  # all but in a stage-level run
             plan.fingerprint,
             runtime(self.config),
         )
-        if isinstance(mine[stage], dict):  # ran here
+        if isinstance(mine[stage], UnitOutcome):  # ran here
             self.finish(mine[stage])
         else:
             self.futures.append(mine[stage])
@@ -315,21 +301,29 @@ def run_units(
     plans: list[SequencePlan] | None = None,
     lock_held: bool = False,
     submitter: Submitter | None = None,
+    stages: Collection[str] | None = None,
 ) -> RunReport:
     """Plan and run; the body of both flows (which pass a Prefect ``submitter``). Without one
     (``inline``) every unit runs here, in order. ``verify``: hash every input file.
     ``plans``: already made under this run's lock (flows.pipeline.plan.plan_without_hashing).
-    ``lock_held``: the caller holds the output store's lock (checked) and keeps it."""
+    ``lock_held``: the caller holds the output store's lock (checked) and keeps it.
+    ``stages``: a stage-level run of these stages only (benchmarks, tests): the others neither run
+    nor count as anyone's upstream (fuse with ``body_source: ground-truth`` needs no fit), and
+    the run publishes nothing dataset-level (no dataset export made, no sequence withdrawn)."""
     out_root, started = Path(config.output.root), time.perf_counter()
     ids = check_run_paths(config, sequences)
+    run = tuple(s for s in STAGES if stages is None or s in stages)
+    if not run or set(stages or ()) - set(run):
+        raise ValueError(f"stages {sorted(stages or ())}: expected some of {list(STAGES)}")
     with holding_lock(out_root) if lock_held else run_lock(out_root):
         report = RunReport(out_root, [])
-        report.swept = sweep_temporaries(out_root)
+        sweep_temporaries(out_root)  # leftovers of earlier (killed) runs
         manifest = Manifest.load(out_root)
         manifest.meta.update(
             {"config_hash": config_hash(config), "config": config.model_dump(mode="json")}
         )
-        units = _Units(config, manifest, report, submitter or Submitter())
+        record_data_root(manifest, config.dataset.root)  # export / evaluate default to it
+        units = _Units(config, manifest, report, submitter or Submitter(), run)
         cache = FingerprintCache(out_root / ".cache" / "sequences", verify)
         with _Progress(report, units, progress, len(ids)) as bars:
             for plan in (
@@ -342,19 +336,20 @@ def run_units(
                 if plan.error:
                     units.fail_plan(plan)
                 else:
-                    units.submit(plan, "detect")  # now: the next sequences are hashed meanwhile
+                    units.submit(plan, run[0])  # now: the next sequences are hashed meanwhile
             report.write_errors += cache.errors
             _save(manifest, report)  # the meta (config, inputs) with the rows so far
             bars.start(units)
             # stage-major order: a thread pool runs tasks in submission order and a task waiting on
             # its upstream holds a thread, so every sequence's track goes first, then every fit, ...
-            for stage in list(STAGES)[1:]:
+            for stage in run[1:]:
                 for plan in report.plans:
                     if not plan.error:
                         units.submit(plan, stage)
             units.wait()
-        _withdraw_failed(config, report)
-        _dataset_exports(config, manifest, report)
+        if stages is None:
+            _withdraw_failed(config, report)
+            _dataset_exports(config, manifest, report)
         _save(manifest, report)
     report.seconds = time.perf_counter() - started
     return report
@@ -365,12 +360,12 @@ def _first_problem(report: RunReport, plan: SequencePlan) -> str | None:
     if plan.error:
         return plan.error
     export = report.outcomes.get((plan.sequence, "export"))
-    if export is not None and export["status"] in ("done", "cached"):
+    if export is not None and export.finished:
         return None
     for stage in STAGES:
         o = report.outcomes.get((plan.sequence, stage))
-        if o is not None and o["status"] == "failed":
-            return f"{stage}: {o.get('error', '')}"
+        if o is not None and o.status == Status.FAILED:
+            return f"{stage}: {o.error}"
     return "export did not run"
 
 
@@ -401,10 +396,10 @@ def _dataset_exports(config: Config, manifest: Manifest, report: RunReport) -> N
     raised: the sequences are published."""
     ex = dataset_export_inputs(config)
     published = report.withdrawn or any(
-        st == "export" and o["status"] == "done" and o.get("ran", True)
-        for (_, st), o in report.outcomes.items()
+        st == "export" and o.status == Status.DONE for (_, st), o in report.outcomes.items()
     )
-    key, done = inputs_hash(ex), manifest.meta.setdefault("dataset_exports", {})
+    key = f"{inputs_hash(ex)}-v{DATASET_EXPORTS_VERSION}"
+    done = manifest.meta.setdefault("dataset_exports", {})
     for fmt in ex.formats:
         if not (published or done.get(fmt) != key):
             continue
@@ -425,7 +420,8 @@ class _Progress:
     """One progress line for planning, then one per stage (never one per sequence)."""
 
     def __init__(self, report: RunReport, units: _Units, enabled: bool, sequences: int):
-        self.report, self.enabled, self.bars, self.plan_bar = report, enabled, {}, None
+        self.report, self.enabled, self.plan_bar = report, enabled, None
+        self.bars: dict[str, Any] = {}
         if enabled and sequences > 1:
             from tqdm import tqdm
 
@@ -443,7 +439,7 @@ class _Progress:
             self.plan_bar.close()
         todo = {
             s: sum(1 for p in self.report.plans if not p.error and not p.units[s].fresh)
-            for s in STAGES
+            for s in units.stages
         }
         if not self.enabled or not any(todo.values()):
             return
@@ -451,11 +447,9 @@ class _Progress:
 
         self.bars = {
             s: tqdm(total=todo[s], desc=f"{s:>6}", unit="seq", position=i, leave=True)
-            for i, s in enumerate(STAGES)
+            for i, s in enumerate(units.stages)
         }
-        units.on_done = lambda o: (
-            self.bars[o["stage"]].update(1) if o["stage"] in self.bars else None
-        )
+        units.on_done = lambda o: self.bars[o.stage].update(1) if o.stage in self.bars else None
 
     def __exit__(self, *exc) -> None:
         for bar in [*self.bars.values(), *([self.plan_bar] if self.plan_bar is not None else [])]:
@@ -465,13 +459,14 @@ class _Progress:
 def export_dataset(
     ex: DatasetExportInputs,
     out_root: Path,
-    data_root: Path,
+    data_root: Path | None,
     fmt: str,
     target: Path | None = None,
     gt: bool = False,
 ) -> Path:
     """Export the published dataset (every sequence) for occupancy trainers; ``gt``: Occ3D labels
-    from the synthetic ground truth under ``data_root`` instead of the pipeline's."""
+    from the synthetic ground truth under ``data_root`` instead of the pipeline's. ``data_root``
+    None: the raw data root recorded by the run that built the dataset."""
     from storage.export.nuscenes import export_nuscenes
     from storage.export.occ3d import export_occ3d
 
@@ -484,7 +479,7 @@ def export_dataset(
             target,
             scene_prefix=ex.scene_prefix,
             val_sequences=ex.val_sequences,
-            gt_root=Path(data_root) if gt else None,
+            gt_root=data_root_for(out_root, data_root) if gt else None,
         )
     else:
         export_nuscenes(
@@ -492,7 +487,7 @@ def export_dataset(
             target,
             version=ex.nuscenes_version,
             scene_prefix=ex.scene_prefix,
-            source_root=Path(data_root),
+            source_root=data_root_for(out_root, data_root),
             min_range_m=ex.min_range_m,
             val_sequences=ex.val_sequences,
             **({"infos_data_root": ex.infos_data_root} if ex.infos_data_root else {}),
@@ -513,11 +508,11 @@ def summary_table(report: RunReport) -> str:
     lines.append("-" * len(header))
     for stage in STAGES:
         outs = [o for (s, st), o in report.outcomes.items() if st == stage]
-        ran = sum(o["status"] == "done" for o in outs)
-        cached = sum(o["status"] == "cached" for o in outs)
-        failed = sum(o["status"] == "failed" for o in outs)
-        skipped = sum(o["status"] == "skipped" for o in outs)
-        secs = sum(o.get("seconds", 0.0) for o in outs)
+        ran, cached, failed, skipped = (
+            sum(o.status == status for o in outs)
+            for status in (Status.DONE, Status.CACHED, Status.FAILED, Status.SKIPPED)
+        )
+        secs = sum(o.seconds for o in outs)
         lines.append(f"{stage:<8}{ran:>5}{cached:>8}{failed:>8}{skipped:>9}{secs:>10.1f}")
     frames = sum(p.num_frames for p in report.plans)
     lines.append(
@@ -525,20 +520,16 @@ def summary_table(report: RunReport) -> str:
         f"{report.costs.line()}"
     )
     not_impl = sorted(
-        {
-            st
-            for (s, st), o in report.outcomes.items()
-            if o.get("summary", {}).get("implemented") is False
-        }
+        {st for (s, st), o in report.outcomes.items() if o.summary.get("implemented") is False}
     )
     if not_impl:
         lines.append(f"not implemented yet (placeholders): {', '.join(not_impl)}")
     for o in report.failed:
-        lines.append(f"FAILED {o['sequence']}/{o['stage']}: {_first_line(o['error'])}")
-    skipped: dict[str, list[str]] = {}
+        lines.append(f"FAILED {o.sequence}/{o.stage}: {_first_line(o.error)}")
+    skipped_stages: dict[str, list[str]] = {}
     for o in report.skipped:
-        skipped.setdefault(o["sequence"], []).append(o["stage"])
-    for seq, stages in sorted(skipped.items()):
+        skipped_stages.setdefault(o.sequence, []).append(o.stage)
+    for seq, stages in sorted(skipped_stages.items()):
         lines.append(f"SKIPPED {seq}/{', '.join(stages)}: an upstream stage did not finish")
     for seq, bad in report.failed_frames().items():
         more = f" (+{len(bad) - 3} more)" if len(bad) > 3 else ""

@@ -9,6 +9,7 @@ now, the flag stays so a future placeholder says so plainly).
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 from flows.stages.common import StageContext, chunks
 from flows.stages.detect import run_detect
@@ -18,7 +19,7 @@ from flows.stages.fuse import run_fuse
 from flows.stages.map import run_map
 from flows.stages.track import run_track
 
-STAGE_FUNCTIONS: dict[str, Callable[[StageContext], dict]] = {
+STAGE_FUNCTIONS: dict[str, Callable[[StageContext[Any]], dict]] = {
     "detect": run_detect,
     "track": run_track,
     "fit": run_fit,

@@ -3,15 +3,14 @@
 from __future__ import annotations
 
 import functools
-import json
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Generic, TypeVar
 
 import numpy as np
 
-from flows.pipeline.inputs import BodyModelFiles, Runtime, SequenceRef
+from flows.pipeline.inputs import BodyModelFiles, Runtime, SequenceRef, StageInputs
 from storage.body_model_files import (
     load_body_model,
     load_pose_prior,
@@ -19,19 +18,23 @@ from storage.body_model_files import (
     save_pose_prior_pkl,
 )
 from storage.coda import CodaSequence
+from storage.products import read_summary
 from tasks.body.model import BodyModel
 from tasks.body.prior import GMMPosePrior, generate_pose_prior
 from tasks.body.procedural import generate_body_model
 
+#: the inputs type of one stage: ``StageContext[FitInputs]`` is the fit stage's context
+InputsT = TypeVar("InputsT", bound=StageInputs)
+
 
 @dataclass(frozen=True)
-class StageContext:
+class StageContext(Generic[InputsT]):
     """One (sequence, stage) unit: its inputs object (the only settings it reads), the sequence
-    (where it lives, what the config says about it alone), where its upstream products are and where it writes (a hidden staging folder
-    published by rename when the stage returns)."""
+    (where it lives, what the config says about it alone), where its upstream products are and
+    where it writes (a hidden staging folder published by rename when the stage returns)."""
 
     ref: SequenceRef
-    inputs: Any
+    inputs: InputsT
     out_root: Path
     out_dir: Path
     upstream: dict[str, Path] = field(default_factory=dict)
@@ -52,7 +55,7 @@ class StageContext:
 def detected_positions(ctx: StageContext, seq: CodaSequence) -> list[int]:
     """Positions (in ``seq.info.frame_indices``) of the frames the detect stage produced: a frame
     whose input was bad is in its ``failed_frames`` instead and no later stage reads it."""
-    summary = json.loads((ctx.upstream["detect"] / "summary.json").read_text())
+    summary = read_summary(ctx.upstream["detect"])
     at = {raw: k for k, raw in enumerate(seq.info.frame_indices)}
     return [at[int(raw)] for raw in summary["frames"]]
 

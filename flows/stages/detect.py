@@ -94,7 +94,7 @@ def check_failed_frames(rows: list[dict], max_share: float) -> list[dict]:
     return failed
 
 
-def run_detect(ctx: StageContext) -> dict:
+def run_detect(ctx: StageContext[DetectInputs]) -> dict:
     n = len(ctx.open())
     resources = {"GPU": 1} if ctx.runtime.gpu_detect else None
     rows = [

@@ -8,33 +8,21 @@ sequences (flows/pipeline/run.py, ``mobileocc export``).
 
 from __future__ import annotations
 
-import os
-import shutil
-
 import numpy as np
 
+from flows.pipeline.inputs import ExportInputs
 from flows.stages.common import StageContext, body_model, is_night
 from storage.export.common import source_relative
 from storage.products import Bodies, FusedFrames, Tracks
-from storage.publish import sequence_writer, stage_table
+from storage.publish import sequence_writer, stage_store, stage_table
 from tasks.body.boxes import upright_box
 from tasks.body.params import BodyParams
 from tasks.body.posing import posed_vertices
 from tasks.fit.reframe import reframe_params
 
 
-def _link_tree(src, dst) -> None:
-    def link(a, b):
-        try:
-            os.link(a, b)
-        except OSError:
-            shutil.copy2(a, b)
-
-    shutil.copytree(src, dst, copy_function=link, dirs_exist_ok=True)
-
-
 def instance_rows(
-    ctx: StageContext, frame_pos: dict[int, int], T_base_from_lidar: np.ndarray
+    ctx: StageContext[ExportInputs], frame_pos: dict[int, int], T_base_from_lidar: np.ndarray
 ) -> list[dict]:
     """One row per tracked person and frame: 2D box and keypoints from track; body parameters,
     3D box and velocity (base frame) from the fit where that person was fitted."""
@@ -87,7 +75,7 @@ def instance_rows(
     return rows
 
 
-def frame_rows(ctx: StageContext, seq, fused: FusedFrames) -> list[dict]:
+def frame_rows(ctx: StageContext[ExportInputs], seq, fused: FusedFrames) -> list[dict]:
     """One row per frame of the fused store (the frames detect produced); source paths relative
     to the dataset root."""
     night, cams = is_night(seq), seq.info.calibration.cameras
@@ -112,7 +100,7 @@ def frame_rows(ctx: StageContext, seq, fused: FusedFrames) -> list[dict]:
     ]
 
 
-def run_export(ctx: StageContext) -> dict:
+def run_export(ctx: StageContext[ExportInputs]) -> dict:
     seq = ctx.open()
     calib = seq.info.calibration
     cam = calib.cameras[ctx.inputs.source.camera]
@@ -138,7 +126,7 @@ def run_export(ctx: StageContext) -> dict:
         ctx, {int(raw): k for k, raw in enumerate(fused.frame.tolist())}, calib.T_base_from_lidar
     )
     with sequence_writer(ctx.out_root, ctx.sequence, ctx.key) as staged:
-        _link_tree(ctx.upstream["fuse"] / "occupancy.zarr", staged.store_path)
+        stage_store(staged, ctx.upstream["fuse"] / "occupancy.zarr")
         stage_table(staged, "frames", frames)
         stage_table(staged, "sequences", sequences)
         stage_table(staged, "instances", instances)

@@ -82,7 +82,7 @@ def fit_batch(
 
 
 def _warm_started(
-    ctx: StageContext, seq, tracks: Tracks, rows: np.ndarray, resources
+    ctx: StageContext[FitInputs], seq, tracks: Tracks, rows: np.ndarray, resources
 ) -> list[dict]:
     """Fit frame by frame; a track fitted in the previous frame starts from that fit."""
     inp, step = ctx.inputs, ctx.inputs.settings.batch_persons
@@ -144,7 +144,7 @@ def _bodies(seq, tracks: Tracks, out: dict) -> Bodies:
     )
 
 
-def run_fit(ctx: StageContext) -> dict:
+def run_fit(ctx: StageContext[FitInputs]) -> dict:
     inp, seq = ctx.inputs, ctx.open()
     s, tracks = inp.settings, _tracks(str(ctx.upstream["track"]))
     cam = seq.info.calibration.cameras[inp.source.camera]

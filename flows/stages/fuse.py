@@ -30,7 +30,7 @@ from storage.products import (
 from tasks.body.motion import TrackedBodies
 from tasks.conventions import FREE
 from tasks.geometry import transform_points
-from tasks.occupancy.frame import local_grids
+from tasks.occupancy.frame import local_grids, relative_pose
 from tasks.occupancy.freespace import OccupancyMap
 from tasks.occupancy.fuse import CameraView, PedestrianMesh
 from tasks.occupancy.mapping import join_static_tiles
@@ -151,12 +151,12 @@ def fuse_chunk(
     calib = seq.info.calibration
     cam, T_base_from_lidar = calib.cameras[inputs.source.camera], calib.T_base_from_lidar
     smap, occupancy = maps_near(
-        map_dir, inputs, seq.info.poses[positions] @ np.linalg.inv(T_base_from_lidar)
+        map_dir, inputs, relative_pose(seq.info.poses[positions], T_base_from_lidar)
     )
     people = _People(inputs, seq, out_root, fit_dir)
     camera = (
         CameraView(
-            cam.K, cam.width, cam.height, T_base_from_lidar @ np.linalg.inv(cam.T_cam_from_lidar)
+            cam.K, cam.width, cam.height, relative_pose(T_base_from_lidar, cam.T_cam_from_lidar)
         )
         if inputs.fusion.camera_mask
         else None
@@ -164,7 +164,7 @@ def fuse_chunk(
     stacks, rows = {}, []
     for i in positions:
         frame = seq.frame(i)
-        T_world_from_base = frame.T_world_from_lidar @ np.linalg.inv(T_base_from_lidar)
+        T_world_from_base = relative_pose(frame.T_world_from_lidar, T_base_from_lidar)
         persons = people(i, frame.index)
         grids, counts = local_grids(
             inputs.grid,
@@ -193,7 +193,7 @@ def fuse_chunk(
     return rows
 
 
-def run_fuse(ctx: StageContext) -> dict:
+def run_fuse(ctx: StageContext[FuseInputs]) -> dict:
     inp, spec = ctx.inputs, ctx.inputs.grid
     fit_dir = ctx.upstream.get("fit") if inp.body_source == "fit" else None
     store, at = ctx.out_dir / "occupancy.zarr", detected_positions(ctx, ctx.open())

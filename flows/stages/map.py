@@ -16,7 +16,6 @@ holds a bounded part of the sequence: memory does not grow with its length.
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +31,7 @@ from storage.products import (
     OccupancyMapProduct,
     StaticMapProduct,
     WindowVotesProduct,
+    remove_scratch,
 )
 from tasks.conventions import UNLABELED
 from tasks.occupancy.mapping import (
@@ -198,7 +198,7 @@ def map_static(
     return out
 
 
-def run_map(ctx: StageContext) -> dict:
+def run_map(ctx: StageContext[MapInputs]) -> dict:
     inp, seq, work, threads = ctx.inputs, ctx.open(), ctx.out_dir / "work", ctx.runtime.threads
     s, fs, at = inp.settings, inp.freespace, np.asarray(detected_positions(ctx, seq), np.int64)
     plan = plan_map(seq.info.poses[at, :3, 3], s, fs)
@@ -233,7 +233,7 @@ def run_map(ctx: StageContext) -> dict:
         )
         for t in part
     ]
-    shutil.rmtree(work, ignore_errors=True)
+    remove_scratch(work)
     MapTiles.of(
         s.tile_m,
         s.voxel_size_m,

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from flows.pipeline.inputs import TrackInputs
 from flows.stages.common import StageContext, detected_positions
 from storage.products import Detections, Tracks, labels_to_masks
 from tasks.track.ocsort import PedestrianTracker
@@ -16,7 +17,7 @@ from tasks.track.offline import track_offline
 from tasks.track.product import FramePersons, frame_persons, track_rows
 
 
-def _frame(ctx: StageContext, seq, cam, i: int) -> tuple[int, dict, FramePersons]:
+def _frame(ctx: StageContext[TrackInputs], seq, cam, i: int) -> tuple[int, dict, FramePersons]:
     """Frame i's raw number, detections (without the image-sized arrays: a sequence's worth of
     them would not fit in memory) and persons."""
     inp, frame = ctx.inputs, seq.frame(i)
@@ -39,7 +40,7 @@ def _frame(ctx: StageContext, seq, cam, i: int) -> tuple[int, dict, FramePersons
     return frame.index, rows, persons
 
 
-def run_track(ctx: StageContext) -> dict:
+def run_track(ctx: StageContext[TrackInputs]) -> dict:
     inp, seq = ctx.inputs, ctx.open()
     cam, at = seq.info.calibration.cameras[inp.source.camera], detected_positions(ctx, seq)
     raws, dets, persons = zip(*(_frame(ctx, seq, cam, i) for i in at)) if at else ((), (), ())

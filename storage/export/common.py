@@ -101,6 +101,12 @@ def sequence_info(ds: Dataset, sequence: str) -> SequenceExportInfo:
                 f"dataset {ds.root}: sequence {sequence!r} has no {key} in the sequences table"
             )
     frames = ds.table("frames", sequence).to_pylist()
+    for a, b in zip(frames, frames[1:]):  # scenes are listed in time order (prev / next, infos)
+        if int(b["stamp_ns"]) <= int(a["stamp_ns"]):
+            raise ValueError(
+                f"dataset {ds.root}: sequence {sequence!r} frame {b['frame']} has stamp_ns "
+                f"{b['stamp_ns']}, not after frame {a['frame']}'s {a['stamp_ns']}"
+            )
     return SequenceExportInfo(
         sequence=sequence,
         frames=frames,
@@ -126,19 +132,31 @@ def source_relative(path: str | os.PathLike, source_root: str | os.PathLike) -> 
 
 
 def resolve(
-    path: str | None, source_root: Path | None, what: str, sequence: str, frame: int
+    path: str | None,
+    source_root: Path | None,
+    what: str,
+    sequence: str,
+    frame: int,
+    built_from: Path | None = None,
 ) -> Path:
     """A source path from the frames table (relative to the raw data root), made absolute against
-    ``source_root``; an absolute path (tables written by other tools) is taken as it is."""
+    ``source_root``; an absolute path (tables written by other tools) is taken as it is.
+    FileNotFoundError names the file, the root used and ``built_from`` (the recorded data root)
+    when it differs."""
     if not path:
         raise ValueError(f"sequence {sequence!r} frame {frame}: no {what} path in the frames table")
     p = Path(path)
     if not p.is_absolute() and source_root is not None:
         p = Path(source_root) / p
     if not p.is_file():
+        moved = (
+            f"; the dataset was built from the raw data root {built_from}"
+            if built_from is not None and Path(built_from) != Path(source_root or "")
+            else ""
+        )
         raise FileNotFoundError(
             f"sequence {sequence!r} frame {frame}: {what} file {p} does not exist "
-            f"(frames table path {path!r}, source root {source_root})"
+            f"(frames table path {path!r}, source root {source_root}{moved})"
         )
     return p
 
@@ -157,16 +175,14 @@ def link_or_copy(src: Path, dst: Path) -> None:
 
 
 def recorded_source_root(dataset_root: str | os.PathLike) -> Path | None:
-    """The raw data root the dataset was built from (``dataset.root`` recorded in OUT/manifest.json;
-    a relative root is relative to the directory the pipeline ran in), or None."""
-    from storage.manifest import Manifest
+    """The raw data root the dataset was built from (OUT/manifest.json, storage.manifest), or
+    None (no manifest, or none recorded)."""
+    from storage.manifest import OutputError, recorded_data_root
 
     try:
-        meta = Manifest.load(Path(dataset_root)).meta
-    except (OSError, ValueError):
+        return recorded_data_root(Path(dataset_root))
+    except (OSError, OutputError):
         return None
-    root = ((meta.get("config") or {}).get("dataset") or {}).get("root")
-    return Path(root) if root else None
 
 
 #: FlashOcc / BEVDet's nuScenes detection classes (their configs' ``class_names``): the label
@@ -231,18 +247,84 @@ def grid_metadata(ds: Dataset, sequences: list[str]) -> dict:
         "are unknown to that sensor; semantics holds the free id where mask_lidar == 0 (every "
         "occupied voxel is in mask_lidar) and keeps the class of occupied voxels hidden from the "
         "camera (mask_camera == 0)",
-        "flashocc": {
-            "grid_config": {
-                "x": [lo[0], hi[0], vs],
-                "y": [lo[1], hi[1], vs],
-                "z": [lo[2], hi[2], hi[2] - lo[2]],
-            },
-            "Dz": g["shape"][2],
-            "num_classes": len(g["class_names"]),
-            "free_index": g["free_class"],
-            "cams": [CAM_CHANNEL],
-            "detection_classes": list(DETECTION_CLASSES),
+        "flashocc": flashocc_settings(ds, sequences, g),
+    }
+
+
+#: FlashOcc's LSS feature stride (``downsample``) and the input heights whose frustum coverage the
+#: metadata lists (widths: the source aspect, rounded to multiples of the stride)
+FLASHOCC_DOWNSAMPLE = 16
+FLASHOCC_INPUT_HEIGHTS = (256, 384, 512, 768)
+#: LSS depth bins: from FLASHOCC_DEPTH_MIN_M in FLASHOCC_DEPTH_STEP_M steps past the grid's far
+#: corner (seen from the camera)
+FLASHOCC_DEPTH_MIN_M = 0.5
+FLASHOCC_DEPTH_STEP_M = 0.25
+
+
+def flashocc_settings(ds: Dataset, sequences: list[str], grid: dict) -> dict:
+    """FlashOcc config values for ``grid`` (:func:`grid_metadata`'s): grid_config with a depth
+    range covering the grid, Dz, num_classes, the BEV augmentation flips that keep the grid onto
+    itself (a flip about an axis the grid is not symmetric about moves every frustum point out),
+    and per input size the share of camera-visible BEV cells the frustum reaches (the smallest
+    over the sequences' cameras; tasks/occupancy/lss_frustum.py)."""
+    from tasks.occupancy.lss_frustum import frustum_coverage
+
+    lo, hi, vs, shape = grid["range_min"], grid["range_max"], grid["voxel_size_m"], grid["shape"]
+    cams = {}
+    for seq in sequences:
+        info = sequence_info(ds, seq)
+        key = (info.K.tobytes(), info.T_base_from_cam0.tobytes(), info.width, info.height)
+        cams.setdefault(key, info)
+    corners = np.array(
+        [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+    )
+    far = max(
+        float(np.linalg.norm(corners - i.T_base_from_cam0[:3, 3], axis=1).max())
+        for i in cams.values()
+    )
+    depth = [FLASHOCC_DEPTH_MIN_M, float(np.ceil(far)) + 0.5, FLASHOCC_DEPTH_STEP_M]
+    first = next(iter(cams.values()))
+    sizes = []
+    for h in FLASHOCC_INPUT_HEIGHTS:
+        w = int(round(h * first.width / first.height / FLASHOCC_DOWNSAMPLE)) * FLASHOCC_DOWNSAMPLE
+        cover = min(
+            frustum_coverage(
+                i.K,
+                i.T_base_from_cam0,
+                (i.width, i.height),
+                (h, w),
+                tuple(depth),
+                tuple(shape),
+                lo,
+                hi,
+                vs,
+                FLASHOCC_DOWNSAMPLE,
+            )
+            for i in cams.values()
+        )
+        sizes.append({"input_size": [h, w], "frustum_coverage": round(cover, 4)})
+    symmetric = [abs(lo[a] + hi[a]) < 1e-9 for a in (0, 1)]
+    return {
+        "grid_config": {
+            "x": [lo[0], hi[0], vs],
+            "y": [lo[1], hi[1], vs],
+            "z": [lo[2], hi[2], hi[2] - lo[2]],
+            "depth": depth,
         },
+        "Dz": shape[2],
+        "num_classes": len(grid["class_names"]),
+        "free_index": grid["free_class"],
+        "cams": [CAM_CHANNEL],
+        "detection_classes": list(DETECTION_CLASSES),
+        "bda_aug_conf": {
+            "rot_lim": [0.0, 0.0],
+            "scale_lim": [1.0, 1.0],
+            "flip_dx_ratio": 0.5 if symmetric[0] else 0.0,
+            "flip_dy_ratio": 0.5 if symmetric[1] else 0.0,
+        },
+        "src_size": [first.height, first.width],
+        "downsample": FLASHOCC_DOWNSAMPLE,
+        "input_sizes": sizes,
     }
 
 

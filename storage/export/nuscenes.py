@@ -90,6 +90,10 @@ VISIBILITY_LEVELS = (
     ("3", "v60-80", 0.6),
     ("4", "v80-100", 0.8),
 )
+#: length of the ``can_bus`` vector of the occupancy challenge's infos (position 3, orientation 4,
+#: acceleration 3, rotation rate 3, velocity 3, 2 zeros); ours are zeros (no CAN bus on a robot):
+#: its dataset class writes position, orientation and yaw from ego2global itself
+CAN_BUS_LENGTH = 18
 #: where FlashOcc's configs keep the nuScenes data (``data_root``), relative to its checkout
 INFOS_DATA_ROOT = "./data/nuscenes"
 INFOS_PREFIX = "mobileocc"
@@ -244,10 +248,15 @@ def export_nuscenes(
         )
     ds = open_dataset(dataset_root)
     out = Path(out_dir)
+    built_from = recorded_source_root(dataset_root)
     if source_root is None:
-        source_root = recorded_source_root(dataset_root) or dataset_root
+        source_root = built_from or dataset_root
     src_root = Path(source_root)
     chosen = list(ds.sequences if sequences is None else sequences)
+    for seq in chosen:  # a moved data root fails here, before anything is written
+        for row in ds.table("frames", seq).to_pylist()[:1]:
+            for key, what in (("cam0_path", "cam0 image"), ("lidar_path", "LiDAR")):
+                resolve(row[key], src_root, what, seq, row["frame"], built_from)
     val = set(val_sequences)
     if val - set(chosen):
         raise ValueError(
@@ -327,10 +336,10 @@ def export_nuscenes(
                 t["ego_pose"].append(
                     {"token": sd_list[i], "timestamp": stamp_us, **pose_record(T_wb)}
                 )
-            img_src = resolve(row["cam0_path"], src_root, "cam0 image", seq, f)
+            img_src = resolve(row["cam0_path"], src_root, "cam0 image", seq, f, built_from)
             img_rel = sample_file_name(scene, CAM_CHANNEL, stamp_us, img_src.suffix)
             link_or_copy(img_src, out / img_rel)
-            lidar_src = resolve(row["lidar_path"], src_root, "LiDAR", seq, f)
+            lidar_src = resolve(row["lidar_path"], src_root, "LiDAR", seq, f, built_from)
             sweep = read_sweep(lidar_src, min_range_m, f)
             lidar_rel = sample_file_name(scene, LIDAR_CHANNEL, stamp_us, ".pcd.bin")
             (out / lidar_rel).parent.mkdir(parents=True, exist_ok=True)
@@ -392,9 +401,18 @@ def export_nuscenes(
         split = "val" if seq in val else "train"
         for i, row in enumerate(frames):
             f = int(row["frame"])
-            infos[split].append(
-                _info(info, scene, seq, row, sd_cam[i], files_by_frame[f], boxes.get(f, []), prefix)
+            rec = _info(
+                info, scene, seq, row, sd_cam[i], files_by_frame[f], boxes.get(f, []), prefix
             )
+            # the occupancy challenge's / BEVFormer-occ's temporal fields (NuSceneOcc.get_data_info)
+            rec.update(
+                prev=samples[i - 1] if i else "",
+                next=samples[i + 1] if i + 1 < len(samples) else "",
+                frame_idx=i,
+                can_bus=np.zeros(CAN_BUS_LENGTH),
+                occ_gt_path=f"gts/{scene}/{samples[i]}/labels.npz",
+            )
+            infos[split].append(rec)
 
     # a tiny all-zero semantic prior: the devkit needs the file, nothing reads its content here
     with write_atomically(out / t["map"][0]["filename"]) as mask:
@@ -414,11 +432,31 @@ def export_nuscenes(
         "infos_data_root": prefix,
     }
     for split, records in infos.items():
+        records = time_ordered(records, split)
         atomic_write_bytes(
             out / meta["infos"][split], dumps_plain({"infos": records, "metadata": meta})
         )
     write_json(out / METADATA_FILE, meta)
     return out / version
+
+
+def time_ordered(records: list[dict], split: str) -> list[dict]:
+    """The infos sorted by timestamp, as mmdet3d's NuScenesDataset and the occupancy challenge's
+    NuSceneOcc sort them on loading; ValueError when two scenes overlap in time (sorting would
+    interleave their frames, and temporal models would pair frames of different scenes)."""
+    spans: dict[str, list[int]] = {}
+    for r in records:
+        lo_hi = spans.setdefault(r["scene_name"], [r["timestamp"], r["timestamp"]])
+        lo_hi[0], lo_hi[1] = min(lo_hi[0], r["timestamp"]), max(lo_hi[1], r["timestamp"])
+    ordered = sorted(spans.items(), key=lambda kv: kv[1][0])
+    for (a, (_, a_end)), (b, (b_start, _)) in zip(ordered, ordered[1:]):
+        if b_start <= a_end:
+            raise ValueError(
+                f"export_nuscenes: scenes {a!r} and {b!r} of the {split} split overlap in time "
+                f"({b!r} starts at {b_start} us, before {a!r} ends at {a_end} us): trainers that "
+                "sort samples by timestamp would interleave them; put them in different splits"
+            )
+    return sorted(records, key=lambda r: r["timestamp"])
 
 
 def _annotations(

@@ -1,12 +1,16 @@
 """Occ3D export: ``gts/<scene>/<sample_token>/labels.npz``, ``annotations.json``, ``occ3d_metadata.json``.
 
 labels.npz (written deterministically, np.load reads it): ``semantics``, ``mask_lidar``,
-``mask_camera``, uint8, shape (X, Y, Z) in [x, y, z] order, free = 9 (last class); masks 0/1.
-Scene names and sample tokens equal those of the nuScenes export, so trainers that look labels up
-by nuScenes sample token (BEVDet, FlashOcc) find them. ``occ3d_metadata.json``: grid spec, class names,
-free id (storage/SCHEMA.md). With ``gt_root`` (synthetic data) ``semantics`` is the exact
-ground-truth occupancy of the frame instead of the pipeline's labels, masks unchanged, so a
-network is scored against exact labels on the same voxels.
+``mask_camera``, uint8, shape (X, Y, Z) in [x, y, z] order, free = 9 (last class); masks 0/1;
+and OpenOcc's ``flow``, float16 (X, Y, Z, 2): (vx, vy) m/s of each voxel, base-frame axes, the
+robot's own motion removed (the store's ``velocity``: non-zero at pedestrian voxels), read with
+the same masks. Scene names and sample tokens equal those of the nuScenes export, so trainers
+that look labels up by nuScenes sample token (BEVDet, FlashOcc) find them; ``annotations.json``
+lists scenes and each scene's samples in time order. ``occ3d_metadata.json``: grid spec, class
+names, free id (storage/SCHEMA.md). With ``gt_root`` (synthetic data) ``semantics`` is the exact
+ground-truth occupancy of the frame instead of the pipeline's labels and ``flow`` each GT
+person's velocity on its voxels, masks unchanged, so a network is scored against exact labels on
+the same voxels.
 """
 
 from __future__ import annotations
@@ -35,6 +39,8 @@ from storage.npzio import save_npz_deterministic
 from storage.occupancy_store import open_layout, read_frames
 
 LABEL_KEYS = ("semantics", "mask_lidar", "mask_camera")
+#: the store's array written as OpenOcc's ``flow``
+FLOW_KEY = "velocity"
 #: grid spec, class names, free id, which labels (beside the nuScenes export's own, same folder)
 METADATA_FILE = "occ3d_metadata.json"
 
@@ -75,19 +81,20 @@ def export_occ3d(
                 f"export_occ3d: sequence {seq!r} has {len(info.frames)} frame rows but "
                 f"{layout.num_frames} frames in {store}"
             )
-        gt_semantics = _gt_reader(gt_root, seq, metadata["grid"]) if gt_root is not None else None
+        gt_labels = _gt_reader(gt_root, seq, metadata["grid"]) if gt_root is not None else None
         tokens = [sample_token(seq, row["frame"]) for row in info.frames]
         cam = pose_record(info.T_base_from_cam0)
         samples: dict[str, dict] = {}
         for start, stop in layout.write_units():  # read whole chunks: zarr is slow on small reads
-            grids = read_frames(store, slice(start, stop), LABEL_KEYS)
+            grids = read_frames(store, slice(start, stop), (*LABEL_KEYS, FLOW_KEY))
             for i in range(start, stop):
                 row = info.frames[i]
                 tok = tokens[i]
                 gt_rel = f"gts/{scene}/{tok}/labels.npz"
                 labels = {k: np.ascontiguousarray(grids[k][i - start]) for k in LABEL_KEYS}
-                if gt_semantics is not None:
-                    labels["semantics"] = gt_semantics(int(row["raw_frame"]))
+                labels["flow"] = np.ascontiguousarray(grids[FLOW_KEY][i - start], np.float16)
+                if gt_labels is not None:
+                    labels["semantics"], labels["flow"] = gt_labels(int(row["raw_frame"]))
                 save_npz_deterministic(out / gt_rel, compressed=True, **labels)
                 stamp_us = int(row["stamp_ns"]) // 1000
                 ego = pose_record(mat4(row["T_world_from_base"]))
@@ -108,13 +115,21 @@ def export_occ3d(
                     "next": tokens[i + 1] if i + 1 < len(tokens) else "",
                 }
         scene_infos[scene] = samples
+    # time order: scenes by their first sample, a scene's samples as recorded (not by token)
+    first = {
+        sc: min((v["timestamp"] for v in smp.values()), default=0)
+        for sc, smp in scene_infos.items()
+    }
+    scene_infos = {
+        sc: scene_infos[sc] for sc in sorted(scene_infos, key=lambda sc: (first[sc], sc))
+    }
     annotations = {
         "train_split": [scene_name(scene_prefix, s) for s in chosen if s not in val],
         "val_split": [scene_name(scene_prefix, s) for s in chosen if s in val],
         "scene_infos": scene_infos,
     }
     path = atomic_write_text(
-        out / "annotations.json", json.dumps(annotations, indent=1, sort_keys=True)
+        out / "annotations.json", json.dumps(_time_ordered_json(annotations), indent=1)
     )
     write_json(
         out / METADATA_FILE,
@@ -129,8 +144,29 @@ def export_occ3d(
     return path
 
 
+def _sort_keys(obj):
+    """``obj`` with every dict's keys sorted (deterministic JSON)."""
+    if isinstance(obj, dict):
+        return {k: _sort_keys(obj[k]) for k in sorted(obj)}
+    if isinstance(obj, list):
+        return [_sort_keys(v) for v in obj]
+    return obj
+
+
+def _time_ordered_json(annotations: dict) -> dict:
+    """Keys sorted everywhere except ``scene_infos``' scenes and their sample tokens, which
+    keep their (time) order."""
+    return {
+        k: {sc: {tok: _sort_keys(r) for tok, r in smp.items()} for sc, smp in v.items()}
+        if k == "scene_infos"
+        else _sort_keys(v)
+        for k, v in sorted(annotations.items())
+    }
+
+
 def _gt_reader(gt_root, sequence: str, grid: dict):
-    """raw frame -> (X, Y, Z) uint8 ground-truth occupancy of ``sequence``, checked against the
+    """raw frame -> ((X, Y, Z) uint8 ground-truth occupancy, (X, Y, Z, 2) float16 flow: each GT
+    person's velocity (base axes, m/s) on its voxels) of ``sequence``, checked against the
     exported grid (ValueError naming the ground-truth file when it differs)."""
     from storage.gt import gt_dir, read_frame_gt, read_sequence_gt
 
@@ -153,9 +189,11 @@ def _gt_reader(gt_root, sequence: str, grid: dict):
             "truth's grid to export it"
         )
 
-    def semantics(raw_frame: int) -> np.ndarray:
-        return np.ascontiguousarray(
-            read_frame_gt(Path(gt_root), seq_id, raw_frame).occupancy, dtype=np.uint8
-        )
+    def labels(raw_frame: int) -> tuple[np.ndarray, np.ndarray]:
+        gtf = read_frame_gt(Path(gt_root), seq_id, raw_frame)
+        flow = np.zeros(gtf.occupancy.shape + (2,), np.float16)
+        for tid, v in zip(gtf.track_id, gtf.velocity_base):
+            flow[gtf.occupancy_instance == tid] = np.asarray(v, np.float32)[:2]
+        return np.ascontiguousarray(gtf.occupancy, dtype=np.uint8), flow
 
-    return semantics
+    return labels

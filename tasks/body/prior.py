@@ -17,8 +17,6 @@ from torch import Tensor
 
 from tasks.body.poses import sample_plausible_poses
 
-POSE_DIM = 69
-
 
 def _log_gauss(X: np.ndarray, means: np.ndarray, prec_chol: np.ndarray) -> np.ndarray:
     """(N, K) log N(x_n; mu_k, Sigma_k) given Cholesky factors L_k of the precisions (P = L L^T)."""

@@ -72,14 +72,3 @@ def detection_counts(
     return DetectionCounts(
         len(gi), int(np.sum(missed & vis)), int(np.sum(missed & ~vis)), len(det_boxes) - len(gi)
     )
-
-
-def detection_table(frames, iou_threshold: float = 0.5) -> dict[str, DetectionCounts]:
-    """Counts per condition. frames: iterable of (condition str, gt_boxes (G, 4), gt_visible (G,),
-    det_boxes (D, 4)); conditions keep their first-seen order."""
-    table: dict[str, DetectionCounts] = {}
-    for condition, gt_boxes, gt_visible, det_boxes in frames:
-        table[condition] = table.get(condition, DetectionCounts()) + detection_counts(
-            gt_boxes, gt_visible, det_boxes, iou_threshold
-        )
-    return table

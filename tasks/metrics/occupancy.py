@@ -82,12 +82,3 @@ class OccupancyMetric:
         den = occ_tp + occ_fn + occ_fp
         geo = float(occ_tp / den) if den else float("nan")
         return OccupancyScores(occ.copy(), miou, geo, cm.copy(), int(cm.sum()))
-
-
-def occupancy_scores(
-    pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None
-) -> OccupancyScores:
-    """Occ3D scores of a single frame (see :class:`OccupancyMetric` for the arrays)."""
-    metric = OccupancyMetric()
-    metric.update(pred, gt, mask)
-    return metric.compute()

@@ -13,6 +13,13 @@ from tasks.occupancy.settings import FuseSettings
 from tasks.occupancy.static_map import StaticMap
 
 
+def relative_pose(T_a_from_b: np.ndarray, T_c_from_b: np.ndarray) -> np.ndarray:
+    """``T_a_from_c = T_a_from_b @ inv(T_c_from_b)``: frame c in frame a, from frame b's pose in
+    each (e.g. T_world_from_base from T_world_from_lidar and T_base_from_lidar). (..., 4, 4)
+    float64 (a stack of poses against one, or one against one)."""
+    return T_a_from_b @ np.linalg.inv(T_c_from_b)
+
+
 def local_grids(
     spec: GridSpec,
     T_world_from_base: np.ndarray,

@@ -74,10 +74,6 @@ class GridSpec:
         idx = np.asarray(index).reshape(-1, 3)
         return np.all((idx >= 0) & (idx < np.asarray(self.shape)), axis=1)
 
-    def contains(self, points: np.ndarray) -> np.ndarray:
-        """(N,) bool: which of the (N, 3) points (metres, grid frame) fall inside the grid."""
-        return self.in_bounds(self.index_of(points))
-
     def center_of(self, index: np.ndarray) -> np.ndarray:
         """(N, 3) float64 voxel centres (metres, grid frame) of an (N, 3) int index array."""
         idx = np.asarray(index, dtype=np.float64).reshape(-1, 3)

@@ -69,12 +69,6 @@ def tiles_of_keys(keys: np.ndarray, n: int) -> np.ndarray:
     return np.floor_divide(np.asarray(keys, dtype=np.int64).reshape(-1, 3)[:, :2], n)
 
 
-def tile_key_range(tile, n: int) -> tuple[int, int, int, int]:
-    """(kx0, kx1, ky0, ky1): the voxel keys of a tile, half open, n voxels per tile edge."""
-    tx, ty = int(tile[0]), int(tile[1])
-    return tx * n, (tx + 1) * n, ty * n, (ty + 1) * n
-
-
 def tiles_in_box(tile_m: float, lo_xy, hi_xy, pad_m: float = 0.0) -> list[tuple[int, int]]:
     """Tiles (sorted) meeting the world box [lo_xy, hi_xy] (m) grown by pad_m."""
     t0 = [math.floor((lo_xy[a] - pad_m) / tile_m) for a in range(2)]

@@ -11,7 +11,6 @@ whose provider gives no mask has an all-False mask (consumers then fall back to 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -105,18 +104,6 @@ class LidarDetections:
             yaws=np.zeros(0, np.float32),
             scores=np.zeros(0, np.float32),
         )
-
-
-@runtime_checkable
-class PerceptionProvider(Protocol):
-    """One sequence's perception, frame by frame (precomputed files, oracle, real models).
-
-    ``frame_index`` is the frame's position in its sequence (0-based).
-    """
-
-    def image(self, frame_index: int) -> ImagePerception: ...
-
-    def lidar(self, frame_index: int) -> LidarDetections: ...
 
 
 def box_corners(centers: np.ndarray, sizes: np.ndarray, yaws: np.ndarray) -> np.ndarray:

@@ -1,0 +1,58 @@
+"""``mobileocc status`` and ``mobileocc reprocess --dry-run``: per sequence and stage, fresh,
+stale (or would run) with the reason, or failed."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from configs.schema import Config
+from flows.pipeline.outcome import Status
+from flows.pipeline.plan import PlanCosts, plan_run, selected_sequences
+from storage.coda import check_dataset_root
+from storage.manifest import FingerprintCache, Manifest
+
+
+def _unit_state(manifest, plan, stage: str, unit, dry_run: bool) -> list[str]:
+    """Lines for one unit: nothing when fresh and whole; its reason, failure or lost frames."""
+    rec = manifest.get(plan.sequence, stage)
+    if unit.fresh:
+        bad = (rec.summary or {}).get("failed_frames") or [] if rec is not None else []
+        return [f"fresh, frame {b['frame']} left out: {b['error']}" for b in bad[:3]] + (
+            [f"fresh, {len(bad)} frame(s) left out in all"] if len(bad) > 3 else []
+        )
+    if rec is not None and rec.status in (Status.FAILED, Status.SKIPPED) and not dry_run:
+        return [f"{rec.status}: {rec.error.splitlines()[0] if rec.error else ''}"]
+    return [f"{'would run' if dry_run else 'stale'}: {unit.reason}"]
+
+
+def print_plan(cfg: Config, dry_run: bool, verify: bool = False) -> int:
+    """Print per sequence and stage what is stale (or would run, ``dry_run``) and why, and what
+    failed; returns the number of sequences with failures (or that cannot be read)."""
+    if cfg.dataset.sequences == "all":
+        check_dataset_root(cfg.dataset.root)
+    out, costs = Path(cfg.output.root), PlanCosts()
+    manifest = Manifest.load(out)
+    cache = FingerprintCache(out / ".cache" / "sequences" if out.is_dir() else None, verify)
+    plans = plan_run(cfg, manifest, cache, sequences=selected_sequences(cfg), costs=costs)
+    runs = problems = 0
+    for plan in plans:
+        if plan.error:
+            print(f"{plan.sequence:>6}  cannot be read: {plan.error}")
+            problems += 1
+            continue
+        lines = [
+            (stage, line)
+            for stage, unit in plan.units.items()
+            for line in _unit_state(manifest, plan, stage, unit, dry_run)
+        ]
+        runs += sum(not u.fresh for u in plan.units.values())
+        problems += any(line.startswith(("failed", "skipped", "fresh, ")) for _, line in lines)
+        for stage, line in lines:
+            print(f"{plan.sequence:>6}  {stage:<7} {line}")
+        if not lines and not dry_run:
+            print(f"{plan.sequence:>6}  fresh ({len(plan.units)} stages)")
+    print(
+        f"{len(plans)} sequence(s): {runs} unit(s) {'would run' if dry_run else 'stale or failed'}, "
+        f"{problems} sequence(s) with failures; {costs.line()}"
+    )
+    return problems
