@@ -702,4 +702,4 @@ def _sum_metric(metrics: dict[str, OccupancyMetric]):
 
 def _brief(row: dict) -> dict:
     """A per-sequence row: the summary numbers and per-class IoU."""
-    return {k: v for k, v in row.items() if k not in ("num_points_ignored",)}
+    return {k: v for k, v in row.items() if k not in ("num_points_ignored", "confusion")}

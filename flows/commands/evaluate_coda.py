@@ -160,7 +160,9 @@ def evaluate_coda(
     if all_static.num_points:
         results["static"] = all_static.as_dict()
         results["static_by_sequence"] = {
-            s: {k: v for k, v in c.as_dict().items() if k != "num_points_ignored"}
+            s: {
+                k: v for k, v in c.as_dict().items() if k not in ("num_points_ignored", "confusion")
+            }
             for s, c in static.items()
         }
     if labels["pedestrian boxes"]:

@@ -90,6 +90,7 @@ class StaticCounts:
             "num_points": self.num_points,
             "num_voxels": int(self.voxels_evaluated),
             "num_points_ignored": int(self.num_points_ignored),
+            "confusion": self.confusion.tolist(),  # points: rows GT class, columns voxel label
         }
 
 

@@ -23,30 +23,14 @@ from tasks.geometry import points_in_boxes, yaw_rotations
 from tasks.occupancy.nearest import nearest_indices
 from tasks.occupancy.settings import MapParams
 from tasks.occupancy.surface import NUM_MOMENTS, group_sum, point_moments
+from tasks.occupancy.voxel_keys import KEY_MASK, KEY_OFFSET
+from tasks.occupancy.voxel_keys import StaticMapError as StaticMapError
+from tasks.occupancy.voxel_keys import pack_keys as pack_keys
+from tasks.occupancy.voxel_keys import unpack_keys as unpack_keys
 from tasks.perception.lidar_clusters import ground_height
 from tasks.perception.person_points import associate_lidar_boxes
 
 NUM_OCCUPIED_CLASSES = FREE  # classes 0..8 take votes; 9 (free) never does
-_OFF = 1 << 20  # 21 bits per axis in a packed key: +-2^20 voxels
-_MASK = (1 << 21) - 1
-
-
-class StaticMapError(ValueError):
-    """Bad input to the static-map kernels (shapes, classes, parameters)."""
-
-
-def pack_keys(keys: np.ndarray) -> np.ndarray:
-    """(N, 3) int voxel keys -> (N,) int64 packed keys (sortable, 21 bits per axis)."""
-    k = np.asarray(keys, dtype=np.int64).reshape(-1, 3) + _OFF
-    if len(k) and (k.min() < 0 or k.max() > _MASK):
-        raise StaticMapError(f"voxel keys beyond +-2^20 (got {k.min() - _OFF}..{k.max() - _OFF})")
-    return (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
-
-
-def unpack_keys(packed: np.ndarray) -> np.ndarray:
-    """(N,) int64 packed keys -> (N, 3) int64 voxel keys."""
-    p = np.asarray(packed, dtype=np.int64)
-    return np.stack([(p >> 42) & _MASK, (p >> 21) & _MASK, p & _MASK], axis=1) - _OFF
 
 
 # -- per-sweep helpers ----------------------------------------------------------------------------
@@ -69,6 +53,9 @@ def _project(p, R, t, K, width, height, min_depth_m, pix, valid):
             pix[i, 0] = np.int64(u)
             pix[i, 1] = np.int64(v)
             valid[i] = True
+
+
+_OFF, _MASK = KEY_OFFSET, KEY_MASK  # numba reads them as globals
 
 
 def project_points(

@@ -181,7 +181,7 @@ def surface_fit(
     plane needs. Decisions near the edge of the given keys see fewer neighbours: give a halo of
     voxels around the ones used.
     """
-    from tasks.occupancy.static_map import pack_keys, unpack_keys
+    from tasks.occupancy.voxel_keys import pack_keys, unpack_keys
 
     pk = np.asarray(packed_keys, dtype=np.int64)
     m = np.asarray(moments, dtype=np.int64)
