@@ -12,7 +12,7 @@ WORKERS ?= 2
 MEDIAPIPE_VERSION := 0.10.21
 MODELS_DIR := .cache/models/mediapipe-$(MEDIAPIPE_VERSION)
 
-.PHONY: setup demo demo-bundled test bench clean
+.PHONY: setup browser demo demo-bundled test bench clean
 
 setup: $(SETUP_STAMP)
 
@@ -28,7 +28,7 @@ $(SETUP_STAMP): pyproject.toml Makefile
 	$(PIP) install -q --upgrade pip
 	@# torch first: the CPU build of 2.13.0; anything else would pull GBs of CUDA wheels.
 	$(PIP) install -q torch==2.13.0
-	$(PIP) install -q -e '.[dev,cluster,models]'
+	$(PIP) install -q -e '.[dev,cluster,models,viz]'
 	@# nuscenes-devkit pins numpy<2: test dependency, installed without its pins.
 	$(PIP) install -q --no-deps nuscenes-devkit==1.2.0
 	@# the bundled BlazePose models (Apache-2.0): the mediapipe wheel is fetched once (not
@@ -51,7 +51,17 @@ demo-bundled: setup
 	$(VENV)/bin/mobileocc demo --config configs/bundled-models.yaml --data $(DEMO_DATA) \
 	  --out $(DEMO_OUT)-bundled --workers $(WORKERS)
 
-test: setup
+# headless Chromium for the viewer's browser tests (tests/test_viewer.py), installed where
+# missing (root or passwordless sudo); where it cannot be, those tests skip and say why
+browser:
+	@if ! command -v chromium >/dev/null && ! command -v chromium-browser >/dev/null; then \
+	  echo "installing chromium (the viewer's browser tests)"; \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo "sudo -n" ); \
+	  { $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq chromium; } \
+	    || echo "chromium could not be installed: the viewer's browser tests will be skipped"; \
+	fi
+
+test: setup browser
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 	$(PY) -m pytest -q -n 2 --dist loadgroup

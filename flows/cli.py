@@ -179,18 +179,22 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from flows.commands.confusion_report import console_text
+    from flows.commands.report import section_table
 
     if args.labels == "coda":
         from flows.commands.evaluate_coda import evaluate_coda
 
-        results = evaluate_coda(args.dataset, args.gt, args.report)
+        res = evaluate_coda(args.dataset, args.gt, args.report)
     else:
         from flows.commands.evaluate import evaluate
 
-        results = evaluate(args.dataset, args.gt, args.report)
-    text = console_text(results)
+        res = evaluate(args.dataset, args.gt, args.report)
+    text = console_text(res)
     if text:
         print(text + "\n")
+    for key, title in (("detection", "automatic"), ("detection_manual_qa", "manual QA")):
+        if key in res:  # the paper's Table 4 bottom, computed and checked by hand
+            print(f"detection robustness ({title}):\n{section_table(key, res[key])}\n")
     print(
         f"report: {args.report / 'report.md'} (figures in {args.report / 'figures'}, "
         f"numbers in {args.report / 'results.json'})"
@@ -348,6 +352,23 @@ def cmd_bench_overhead(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_viewer(args: argparse.Namespace) -> int:
+    from flows.bench.viewer import bench_viewer
+
+    result = bench_viewer(
+        args.dataset,
+        args.sequence,
+        args.frame,
+        browser=not args.no_browser,
+        synthetic=not args.no_synthetic,
+        keep=args.keep,
+        screenshot=args.screenshot,
+    )
+    print(json.dumps(result, indent=1))
+    _write_json(args.json, result)
+    return 0
+
+
 def _add_bench_parsers(sub) -> None:
     from flows.bench import scale
 
@@ -355,7 +376,7 @@ def _add_bench_parsers(sub) -> None:
         "bench",
         help="measure speeds, memory and reference ratios: `mobileocc bench [--quick]` (the "
         "pipeline) or `mobileocc bench fit | occupancy | perception | planning | memory | scale "
-        "| overhead [options]`",
+        "| overhead | viewer [options]`",
         description="Without BENCHMARK: the pipeline benchmark (flows/bench/pipeline.py) with the "
         "options below; `mobileocc bench BENCHMARK --help` for the others.",
     )
@@ -485,6 +506,23 @@ def _add_bench_parsers(sub) -> None:
     v.add_argument("--frames", type=int, default=2, help="raw frames per sequence")
     v.set_defaults(func=cmd_bench_overhead)
 
+    w = bench.add_parser(
+        "viewer",
+        help="the 3D viewer: page size, time to show and Chromium CPU per frame, 0.2 / 0.02 m "
+        "(flows/bench/viewer.py, docs/viewer.md)",
+    )
+    w.add_argument("--dataset", type=Path, default=None, help="also a frame of this dataset")
+    w.add_argument("--sequence", default=None)
+    w.add_argument("--frame", type=int, default=0)
+    w.add_argument("--no-browser", action="store_true", help="skip the Chromium timings")
+    w.add_argument("--no-synthetic", action="store_true", help="only the --dataset frame")
+    w.add_argument("--keep", type=Path, default=None, help="keep the pages (and screenshots) here")
+    w.add_argument("--json", type=Path, default=None)
+    w.add_argument(
+        "--screenshot", type=Path, default=None, help="with --dataset: the served viewer, as PNG"
+    )
+    w.set_defaults(func=cmd_bench_viewer)
+
 
 def cmd_cluster(args: argparse.Namespace) -> int:
     from flows.deploy.clusters import ClusterSpecError, hold_cluster, load_cluster_spec, render
@@ -582,6 +620,32 @@ def cmd_show(args: argparse.Namespace) -> int:
     png = show(args.path, args.png, frame=args.frame)
     print(png)
     return 0
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from flows.commands.view import view
+    from flows.viewer.draw import Layers
+    from storage.layout import StoreError
+
+    chosen = {"mask": args.mask, "style": args.style, "max_voxels": args.max_voxels}
+    layers = Layers(unknown=args.unknown, **{k: v for k, v in chosen.items() if v is not None})
+    try:
+        return view(
+            args.dataset,
+            args.sequence,
+            args.frame,
+            args.port,
+            args.host,
+            args.html,
+            args.frames,
+            layers,
+            args.qa,
+            args.qa_frames,
+            args.data,
+        )
+    except (StoreError, ValueError, OSError) as exc:
+        print(f"mobileocc view: {exc}", file=sys.stderr)
+        return EXIT_USAGE
 
 
 def cmd_models(args: argparse.Namespace) -> int:
@@ -766,6 +830,33 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frame", type=int, default=None)
     p.add_argument("--png", type=Path, default=None, help="output PNG path")
     p.set_defaults(func=cmd_show)
+
+    p = sub.add_parser(
+        "view",
+        help="look at a dataset in 3D in the browser (served on localhost, or --html FILE), "
+        "and the manual detection QA (--qa)",
+    )
+    p.add_argument("--dataset", type=Path, required=True, help="the output store (OUT)")
+    p.add_argument("--sequence", default=None, help="sequence to open (default: the first)")
+    p.add_argument("--frame", type=int, default=None, help="frame index (frames table `frame`)")
+    p.add_argument("--port", type=int, default=8080, help="viewer port (next free when taken)")
+    p.add_argument("--host", default="127.0.0.1", help="address to serve on")
+    p.add_argument("--html", type=Path, default=None, help="write one self-contained HTML page")
+    p.add_argument("--frames", type=int, default=1, help="--html: frames in the page (<= 50)")
+    p.add_argument("--qa", action="store_true", help="manual detection QA pass (saved in OUT/qa/)")
+    p.add_argument("--qa-frames", type=int, default=None, help="QA frames per condition (100)")
+    p.add_argument(
+        "--mask", choices=["none", "camera", "lidar"], default=None, help="voxels inside it only"
+    )
+    p.add_argument("--unknown", action="store_true", help="show unknown space in grey")
+    p.add_argument(
+        "--style", choices=["points", "cubes"], default=None, help="voxels as squares or boxes"
+    )
+    p.add_argument(
+        "--max-voxels", type=int, default=None, help="per layer; beyond, voxels merge into blocks"
+    )
+    p.add_argument("--data", type=Path, default=None, help="raw data root (default: recorded)")
+    p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("models", help="the bundled network files (set-up runs this)")
     msub = p.add_subparsers(dest="action", required=True)

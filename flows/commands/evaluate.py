@@ -640,6 +640,13 @@ def evaluate(
             **{c: v.as_dict() for c, v in tot.detection.items()},
             "all": _sum(tot.detection.values()).as_dict(),
         }
+    from flows.viewer.qa import manual_qa_section  # the paper's Table 4 bottom, beside the above
+
+    manual, note = manual_qa_section(out, {s: ds.store_path(s).stem for s in ds.sequences})
+    if manual:
+        results["detection_manual_qa"] = manual
+    if note:
+        tot.notes["manual QA"] = note
     if tot.tracking:
         results["tracking"] = {
             **{s: v.as_dict() for s, v in tot.tracking.items()},

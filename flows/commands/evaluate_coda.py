@@ -176,6 +176,13 @@ def evaluate_coda(
         }
     results["labels"] = labels
     notes = {}
+    from flows.viewer.qa import manual_qa_section  # the paper's Table 4 bottom
+
+    manual, note = manual_qa_section(out, {s: ds.store_path(s).stem for s in ds.sequences})
+    if manual:
+        results["detection_manual_qa"] = manual
+    if note:
+        notes["manual QA"] = {"note": note}
     if unknown:
         notes["unknown box classes"] = {
             "note": ", ".join(sorted(unknown)) + " (not in the mapping: left out)"

@@ -8,6 +8,7 @@ and renders what it finds. ``results`` (JSON-like; numpy scalars / arrays allowe
 - ``static``: ``StaticCounts.as_dict()`` (per_class_iou, miou, coverage, voxel / point accuracy).
 - ``pedestrian_boxes``, ``pedestrian_lidar``: {sequence: ``PRCounts.as_dict()``}, "all" included.
 - ``detection``: {condition: ``DetectionCounts.as_dict()``}.
+- ``detection_manual_qa``: the same, counted from the manual QA table (flows/viewer/qa.py).
 - ``occupancy``: ``OccupancyScores.as_dict()``, or {name: that} for several rows.
 - ``fit``: {metric: value} or {row: {metric: value}} (PVE / MPJPE / PA-MPJPE in mm, MPERE).
 - ``tracking``: {sequence: ``TrackingScores.as_dict()``}.
@@ -42,6 +43,7 @@ import numpy as np
 from flows.commands import confusion_report
 from storage.atomic import atomic_write_text, write_atomically
 from tasks import conventions as C
+from tasks.metrics.bev import DIFF_COLORS
 
 _PERCENT = {
     "iou",
@@ -95,17 +97,7 @@ _LABELS = {
     "MPJPE_mm": "MPJPE (mm)",
     "PA_MPJPE_mm": "PA-MPJPE (mm)",
 }
-_DIFF_COLORS = np.array(
-    [
-        [255, 255, 255],  # free in both
-        [44, 160, 44],  # correct: green
-        [255, 165, 0],  # wrong class: orange
-        [31, 90, 220],  # missed: blue
-        [220, 30, 30],  # extra: red
-        [200, 200, 200],
-    ],
-    dtype=np.uint8,
-)  # unknown: light grey
+_DIFF_COLORS = DIFF_COLORS  # tasks.metrics.bev: the same colours as the 3D viewer's
 
 _HOW_TO_READ = {
     "static": "Static voxel labels against labelled ground-truth LiDAR points. IoU is per point (a point "
@@ -117,6 +109,10 @@ _HOW_TO_READ = {
     "pedestrian_lidar": "Pedestrian voxels against voxelised LiDAR body points at +-1 voxel tolerance. "
     "Precision: pedestrian voxels near a LiDAR body voxel; recall: LiDAR body voxels near "
     "a pedestrian voxel. 'all' sums the counts of every sequence.",
+    "detection_manual_qa": "Manual QA (`mobileocc view --qa`, the paper's Table 4 bottom): per condition, "
+    "labelled persons a reviewer marked T (correct) or W (not a person), persons the labels "
+    "missed M_vis (visible) / M_occ (occluded). Recall = T / (T + M_vis), precision = "
+    "T / (T + W).",
     "detection": "Per condition: T matched persons (IoU >= 0.5), M_vis / M_occ missed visible / occluded, W false "
     "positives. Recall = T / (T + M_vis), precision = T / (T + W).",
     "occupancy": "Occ3D metric over camera-visible voxels: IoU per class, mIoU over the 9 occupied classes "
@@ -155,6 +151,7 @@ _TITLES = {
     "pedestrian_boxes": "Pedestrian voxels (vs GT 3D boxes)",
     "pedestrian_lidar": "Pedestrian voxels (vs LiDAR body GT)",
     "detection": "Detection robustness",
+    "detection_manual_qa": "Detection robustness (manual QA)",
     "occupancy": "Semantic occupancy (Occ3D metric)",
     "fit": "Body fit accuracy",
     "box_heading": "Pedestrian box heading (vs GT)",
@@ -171,6 +168,7 @@ _COLUMNS = {
     "pedestrian_boxes": ["precision", "recall", "f1", "pred_total", "ref_total"],
     "pedestrian_lidar": ["precision", "recall", "f1", "pred_total", "ref_total"],
     "detection": ["T", "M_vis", "M_occ", "W", "recall", "precision", "miss_vis"],
+    "detection_manual_qa": ["T", "M_vis", "M_occ", "W", "recall", "precision", "miss_vis"],
     "tracking": ["mota", "idf1", "hota", "deta", "assa", "switches", "num_objects"],
     "velocity": ["ave_o", "ave_t", "num_voxels_o", "num_voxels_t"],
     "velocity_vertex_gt": ["ave_o", "ave_t", "num_voxels_o", "num_voxels_t"],
@@ -325,6 +323,12 @@ def _section_markdown(name: str, section, figure_names: list[str]) -> str:
     for fig in figure_names:
         parts += ["", f"![{fig}](figures/{fig}.png)"]
     return "\n".join(parts) + "\n"
+
+
+def section_table(name: str, section) -> str:
+    """One results section (to_jsonable form) as its Markdown table, without the how-to-read
+    line (the console summary of `mobileocc evaluate`)."""
+    return _rows_table(name, section) if isinstance(section, dict) else _fmt(name, section)
 
 
 # ---- figures ------------------------------------------------------------------------------------

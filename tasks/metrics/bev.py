@@ -21,6 +21,18 @@ DIFF_NAMES: tuple[str, ...] = (
     "extra",
     "unknown",
 )
+#: RGB colours of the DIFF_* codes, shared by the report's BEV figure and the 3D viewer
+DIFF_COLORS = np.array(
+    [
+        [255, 255, 255],  # free in both
+        [44, 160, 44],  # correct: green
+        [255, 165, 0],  # wrong class: orange
+        [31, 90, 220],  # missed: blue
+        [220, 30, 30],  # extra: red
+        [200, 200, 200],  # unknown: light grey
+    ],
+    dtype=np.uint8,
+)
 
 
 def bev_top_labels(grid: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
