@@ -91,7 +91,17 @@ def test_report_sections_and_gt_bodies_near_perfect(built, tmp_path):
     )
     # the exact GT bodies and vertex velocities are in: pedestrian rays near perfect
     assert saved["ray_iou_per_class"]["2m"]["pedestrian"] > 0.9
-    assert saved["ray_ave_per_class"]["all"]["pedestrian (m/s)"] < 0.2
+    # The ray AVE's ground-truth flow is one velocity per person (OpenOcc's per-instance flow),
+    # the store's is per vertex (exact here: AVE 0.0002 m/s against the per-vertex GT, above).
+    # So each true-positive ray's error is the limb's motion about its body's velocity at the
+    # voxel it hits, and the figure is a mix of the limb groups' per-person AVEs: above the
+    # torso's, below the legs'. It follows the gait phase, not a fixed bound: on this scene
+    # (seed 9; 318 rays, every one on its GT voxel) legs take 41% of the rays at 0.49 m/s, arms
+    # 21% at 0.13, torso 38% at 0.02: 0.235 (0.35 in mid-stride frame 0, 0.11 in frame 2); the
+    # old "< 0.2" held for seed 5's gaits. Rays reading their GT flow off the person (zero) land
+    # near the walking speed (1.06-1.21 m/s), above the legs' figure.
+    ray_ave = saved["ray_ave_per_class"]["all"]["pedestrian (m/s)"]
+    assert limbs["torso"]["ave_o_person_gt"] < ray_ave < limbs["legs"]["ave_o_person_gt"]
     # detection: every GT person in view counted once (T + misses), condition from the metadata
     d = res["detection"]["crowded"]
     assert d["T"] + d["M_vis"] + d["M_occ"] > 0 and d["T"] >= d["M_vis"]
