@@ -225,6 +225,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    from flows.commands.confusion_report import console_text
     from flows.commands.report import section_table
     from storage.publish import reading
 
@@ -237,6 +238,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             from flows.commands.evaluate import evaluate
 
             res = evaluate(args.dataset, args.gt, args.report)
+    text = console_text(res)
+    if text:
+        print(text + "\n")
     for key, title in (("detection", "automatic"), ("detection_manual_qa", "manual QA")):
         if key in res:  # the paper's Table 4 bottom, computed and checked by hand
             print(f"detection robustness ({title}):\n{section_table(key, res[key])}\n")

@@ -282,6 +282,12 @@ class StaticMapProduct(Product):
     keys: np.ndarray = array(np.int64, ("K", 3), "integer voxel keys")
     labels: np.ndarray = array(np.uint8, ("K",), "class id (max voting)")
     counts: np.ndarray = array(np.uint16, ("K", 9), "votes per occupied class 0..8")
+    surface: np.ndarray = array(
+        np.float32,
+        ("K", 6),
+        "centroid of the voxel's points relative to its corner (m), unit normal of their plane "
+        "towards the sensor (zeros: no plane)",
+    )
 
     @staticmethod
     def file_name(tile) -> str:
@@ -385,8 +391,14 @@ class WindowVotesProduct(Product):
 
     seen_keys: np.ndarray = array(np.int64, ("A",), "packed voxel keys with camera votes")
     seen_counts: np.ndarray = array(np.uint16, ("A", 9), "camera votes per class 0..8")
+    seen_moments: np.ndarray = array(
+        np.int64, ("A", 13), "point moments (tasks/occupancy/surface.py), fixed point"
+    )
     unseen_keys: np.ndarray = array(np.int64, ("U",), "packed voxel keys with fallback votes")
     unseen_counts: np.ndarray = array(np.uint16, ("U", 9), "fallback votes per class 0..8")
+    unseen_moments: np.ndarray = array(
+        np.int64, ("U", 13), "point moments (tasks/occupancy/surface.py), fixed point"
+    )
 
     @staticmethod
     def file_name(window: int, tile) -> str:

@@ -11,6 +11,7 @@ import pytest
 from flows.bench.common import make_config, run_stages
 from flows.commands.evaluate import _boxes_to_base, _condition, evaluate
 from flows.commands.evaluate_coda import evaluate_coda
+from tasks import conventions as C
 
 
 @pytest.fixture(scope="module")
@@ -20,7 +21,7 @@ def built(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("evaluate")
     data, out = root / "data", root / "out"
-    simulate(data, sequences=1, frames=4, seed=5, pedestrians=3, crowd="crowded", progress=False)
+    simulate(data, sequences=1, frames=4, seed=9, pedestrians=3, crowd="crowded", progress=False)
     cfg = make_config(data, out, {"fuse.body_source": "ground-truth"})
     run_stages(cfg, ("detect", "track", "map", "fuse", "export"))
     return data, out
@@ -41,8 +42,23 @@ def test_report_sections_and_gt_bodies_near_perfect(built, tmp_path):
         "Pedestrian velocity (AVE) per limb group",
         "Notes",
         "Sample frames",
+        "Occupancy per class: IoU beside the voxel counts",
+        "Occupancy confusion matrices",
+        "Where the wrong voxels lie",
     ):
         assert title in md, title
+    # issue 30: a confusion matrix per sequence (and summed) over the Occ3D metric's voxels, the
+    # counts behind each class's IoU, and where each class's wrong voxels lie
+    cm = np.array(res["confusion"]["0"]["matrix"])
+    assert cm.shape == (10, 10) and cm.sum() == res["occupancy"]["num_voxels"]
+    assert res["confusion"]["all"]["matrix"] == res["confusion"]["0"]["matrix"]
+    ped = res["occupancy_classes"]["0"]["pedestrian"]
+    assert ped["gt_voxels"] == cm[0].sum() and ped["labelled_voxels"] == cm[:, 0].sum()
+    assert ped["iou"] == pytest.approx(res["occupancy"]["per_class_iou"]["pedestrian"])
+    for name, kinds in res["error_locations"]["0"].items():
+        c = list(res["confusion"]["0"]["classes"]).index(name)
+        assert sum(kinds["false"].values()) == cm[:, c].sum() - cm[c, c]
+        assert sum(kinds["missed"].values()) == cm[c].sum() - cm[c, c]
     saved = json.loads((tmp_path / "report" / "results.json").read_text())
     assert saved["pedestrian_lidar"]["all"] == res["pedestrian_lidar"]["all"]
     figs = sorted(p.name for p in (tmp_path / "report" / "figures").glob("*.png"))
@@ -75,7 +91,17 @@ def test_report_sections_and_gt_bodies_near_perfect(built, tmp_path):
     )
     # the exact GT bodies and vertex velocities are in: pedestrian rays near perfect
     assert saved["ray_iou_per_class"]["2m"]["pedestrian"] > 0.9
-    assert saved["ray_ave_per_class"]["all"]["pedestrian (m/s)"] < 0.2
+    # The ray AVE's ground-truth flow is one velocity per person (OpenOcc's per-instance flow),
+    # the store's is per vertex (exact here: AVE 0.0002 m/s against the per-vertex GT, above).
+    # So each true-positive ray's error is the limb's motion about its body's velocity at the
+    # voxel it hits, and the figure is a mix of the limb groups' per-person AVEs: above the
+    # torso's, below the legs'. It follows the gait phase, not a fixed bound: on this scene
+    # (seed 9; 318 rays, every one on its GT voxel) legs take 41% of the rays at 0.49 m/s, arms
+    # 21% at 0.13, torso 38% at 0.02: 0.235 (0.35 in mid-stride frame 0, 0.11 in frame 2); the
+    # old "< 0.2" held for seed 5's gaits. Rays reading their GT flow off the person (zero) land
+    # near the walking speed (1.06-1.21 m/s), above the legs' figure.
+    ray_ave = saved["ray_ave_per_class"]["all"]["pedestrian (m/s)"]
+    assert limbs["torso"]["ave_o_person_gt"] < ray_ave < limbs["legs"]["ave_o_person_gt"]
     # detection: every GT person in view counted once (T + misses), condition from the metadata
     d = res["detection"]["crowded"]
     assert d["T"] + d["M_vis"] + d["M_occ"] > 0 and d["T"] >= d["M_vis"]
@@ -139,7 +165,8 @@ def test_coda_labels_reproduce_the_synthetic_figures(built, tmp_path):
     # `evaluate --labels coda` reads the simulator's 3d_semantic (CODa terrain ids) and 3d_bbox
     # files through the CODa reader; its figures must agree with the exact-GT evaluation within
     # what the labels hold: terrain only (so fewer points of other classes can land in a road or
-    # terrain voxel: IoU >= the GT one), the same pedestrian boxes (written to 6 decimals).
+    # terrain voxel: IoU >= the GT one; equal to the GT one counted over the road and terrain
+    # points alone), the same pedestrian boxes (written to 6 decimals).
     data, out = built
     syn = evaluate(out, None, tmp_path / "syn", sample_frames=0)
     coda = evaluate_coda(out, None, tmp_path / "coda")
@@ -148,15 +175,26 @@ def test_coda_labels_reproduce_the_synthetic_figures(built, tmp_path):
         coda["labels"]["pedestrian boxes"] > 0 and coda["labels"]["boxes skipped (malformed)"] == 0
     )
     assert set(coda["static"]["per_class_iou"]) == {"road", "terrain"}
-    for cls in ("road", "terrain"):
-        s, c = syn["static"]["per_class_iou"][cls], coda["static"]["per_class_iou"][cls]
-        assert s - 1e-9 <= c <= s + 0.1, (cls, s, c)
+    cm = np.array(syn["static"]["confusion"])
+    ground = [C.ROAD, C.TERRAIN]
+    for cls in ground:
+        name = C.CLASS_NAMES[cls]
+        s, c = syn["static"]["per_class_iou"][name], coda["static"]["per_class_iou"][name]
+        # the GT points CODa's labels hold: road and terrain (walls, trees, kerb poles on the
+        # lawns put points of other classes in terrain voxels, which only the exact GT counts)
+        tp = cm[cls, cls]
+        only = tp / (cm[cls].sum() + cm[ground, cls].sum() - tp)
+        assert s - 1e-9 <= c and abs(c - only) <= 0.01, (name, s, c, only)
     # Boxes stand on the ground, so the top of their 0.1 m bottom slab lies exactly on the voxel
-    # centres of the z = 0.1 m layer: float32 (GT) vs 6-decimal (JSON) box values decide those
-    # few voxels either way (4 of 170 in this scene).
+    # centres of the z = 0.1 m layer: float32 (GT) vs 6-decimal (JSON) box values used to decide
+    # each box's whole footprint layer either way (here 114 vs 123 matches: the GT boxes' bottoms
+    # at +1.5e-9 m put the feet layer of three boxes in the slab (2 + 4 + 3 voxels), the JSON
+    # ones' in the body).
+    # The metric now reads a centre within 1e-5 m of a face as on it (BOX_FACE_TOL_M): the same
+    # boxes give the same counts.
     a, b = syn["pedestrian_boxes"]["all"], coda["pedestrian_boxes"]["all"]
     for key in ("pred_matched", "pred_total", "ref_matched", "ref_total"):
-        assert abs(a[key] - b[key]) <= max(5, 0.03 * a[key]), (key, a, b)
+        assert a[key] == b[key], (key, a, b)
     # LiDAR body GT from box contents (bottom 0.1 m out) vs from per-point instances
     assert abs(syn["pedestrian_lidar"]["all"]["f1"] - coda["pedestrian_lidar"]["all"]["f1"]) < 0.05
     md = (tmp_path / "coda" / "report.md").read_text()

@@ -15,6 +15,7 @@ from tasks.occupancy.freespace import OccupancyMap
 from tasks.occupancy.mapping import (
     SweepLabels,
     WindowVotes,
+    final_maps,
     finalize_tiles,
     occupancy_tiles,
     region_occupancy,
@@ -24,7 +25,6 @@ from tasks.occupancy.mapping import (
 from tasks.occupancy.settings import FreeSpaceParams, MapParams
 from tasks.occupancy.static_map import (
     StaticSemanticMap,
-    merge_static_maps,
     pack_keys,
     sum_votes,
     unpack_keys,
@@ -92,22 +92,24 @@ def _sweep(pts, labels):
 def _whole(drive):
     """The sequential maps (SequenceMapper's arithmetic): two vote tables, one occupancy map."""
     seen, unseen, occ = (
-        StaticSemanticMap(PARAMS.voxel_size_m),
-        StaticSemanticMap(PARAMS.voxel_size_m),
+        StaticSemanticMap(PARAMS.voxel_size_m, moments=True),
+        StaticSemanticMap(PARAMS.voxel_size_m, moments=True),
         OccupancyMap(FREESPACE),
     )
     for pts, T, labels in drive:
         s, w = _sweep(pts, labels), world_points(T, pts)
-        seen.add_sweep(w, s.labels, keep=s.keep & s.in_image)
-        unseen.add_sweep(w, s.labels, keep=s.keep & ~s.in_image)
+        seen.add_sweep(w, s.labels, keep=s.keep & s.in_image, origin_world=T[:3, 3])
+        unseen.add_sweep(w, s.labels, keep=s.keep & ~s.in_image, origin_world=T[:3, 3])
         occ.insert_scan(
             w[s.keep],
             T[:3, 3],
             max_range_m=FREESPACE.max_range_m,
             discretize=FREESPACE.discretize,
         )
-    camera = seen.finalize(PARAMS, GROUND)
-    return merge_static_maps(camera, unseen.finalize(PARAMS, GROUND)), camera, occ
+    final, camera = final_maps(
+        [(*m.packed_counts(), m.packed_moments()) for m in (seen, unseen)], PARAMS, GROUND
+    )
+    return final, camera, occ
 
 
 def _tiled(drive):
@@ -117,7 +119,7 @@ def _tiled(drive):
     for w, (a, b) in enumerate(plan.windows):
         wv = WindowVotes(PARAMS)
         for pts, T, labels in drive[a:b]:
-            wv.add(world_points(T, pts), _sweep(pts, labels))
+            wv.add(world_points(T, pts), _sweep(pts, labels), T[:3, 3])
         for tile, arrays in wv.by_tile():
             votes[(w, tile)] = arrays
     groups = static_groups(
@@ -153,7 +155,7 @@ def test_tiles_windows_and_regions_equal_the_whole_sequence_maps(drive):
     assert len(plan.windows) == 4 and len(plan.regions) > 4 and len({t for t, _, _ in static}) > 20
     keys = np.concatenate([m.keys for _, m, _ in static])
     order = np.argsort(pack_keys(keys))
-    for name in ("keys", "labels", "counts"):
+    for name in ("keys", "labels", "counts", "surface"):
         got = np.concatenate([getattr(m, name) for _, m, _ in static])[order]
         np.testing.assert_array_equal(got, getattr(final, name), err_msg=name)
     for tile, m, _ in static:  # every voxel in its own tile, ascending in it

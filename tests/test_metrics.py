@@ -155,6 +155,27 @@ def test_pedestrian_boxes_by_hand():
     )
 
 
+def test_box_slab_top_on_voxel_centres_is_decided_by_geometry_not_rounding():
+    # a box standing on the ground (z = 0, a voxel face of a 0.2 m grid from z = -1 m): the top
+    # of its 0.1 m bottom slab lies exactly on the centres of the z = 0.1 m layer, and its side
+    # faces on voxel centres too. Float32 ground truth and 6-decimal 3d_bbox JSON put the box a
+    # few 1e-7 m either way; the voxels must not follow (the whole footprint layer did).
+    kw = dict(shape=(10, 10, 15), range_min=(0.0, 0.0, -1.0), voxel_size_m=0.2, yaws=[0.0])
+    ref = None
+    for eps in (0.0, 1.5e-9, -3.7e-10, 4e-7, -4e-7):
+        body, bottom = box_voxel_masks(
+            centers=[(1.0, 1.0, 0.85 + eps)], sizes=[(0.6, 0.6, 1.7)], bottom_exclude_m=0.1, **kw
+        )
+        if ref is None:
+            ref = (body, bottom)
+            # the feet layer (z 0..0.2 m, centre on the slab top) is body; x, y 0.7..1.3 m: the
+            # centres 0.7 and 1.3 on the faces are inside (4 x 4 footprint)
+            assert body[:, :, 5].sum() == 16 and not bottom.any()
+            assert body.sum() == 16 * 9  # centres z 0.1..1.7 m (1.7 m on the top face)
+        np.testing.assert_array_equal(body, ref[0], err_msg=str(eps))
+        np.testing.assert_array_equal(bottom, ref[1], err_msg=str(eps))
+
+
 def test_rotated_box_voxels():
     kw = dict(
         shape=(7, 7, 1),

@@ -10,7 +10,12 @@ truth for a sequence, a grid that is not the ground truth's) is replaced by a no
 Definitions beyond the kernels' own (each kernel's docstring has the rest):
 - frames: the published frames of each sequence (frames table ``raw_frame``), base frame grids;
 - static: GT LiDAR points of the frame (organised sweep order, reader's ``min_range_m``) in the
-  base frame, pedestrian points (class 0 or a pedestrian instance) left out;
+  base frame, pedestrian points (class 0 or a pedestrian instance) left out; a point in a free
+  voxel takes the voxel 3 ``map.surface_noise_m`` further along its ray when that one is occupied
+  (the voxel of the surface the range noise threw it in front of: tasks/metrics/static.py);
+- per-class counts, confusion matrices, where each class's wrong voxels lie: over the same
+  camera-visible voxels as the Occ3D metric, the sensor the LiDAR centre
+  (flows/commands/confusion_report.py, tasks/metrics/confusion.py);
 - pedestrian vs boxes: GT boxes (LiDAR frame) moved to the base frame, mask_camera visible voxels;
 - pedestrian vs LiDAR body: GT points with a pedestrian instance that project into cam0, voxelised;
   evaluated region = voxels whose centre projects into cam0 (the camera frustum on the grid);
@@ -52,6 +57,7 @@ from storage.products import Bodies, Detections, Tracks
 from tasks import conventions as C
 from tasks.geometry import match_boxes, transform_points
 from tasks.metrics._common import PRCounts
+from tasks.metrics.confusion import ErrorLocations, error_locations
 from tasks.metrics.detection import DetectionCounts, detection_counts
 from tasks.metrics.heading import heading_errors_deg, heading_summary
 from tasks.metrics.occupancy import OccupancyMetric
@@ -74,6 +80,7 @@ from tasks.metrics.velocity import (
     voxel_velocity_errors,
 )
 from tasks.occupancy.grid import GridSpec
+from tasks.occupancy.settings import MapParams
 
 #: a GT person counts as "visible" for detection when at least this fraction of its silhouette shows
 VISIBLE_FRACTION = 0.3
@@ -185,6 +192,7 @@ class _Totals:
 
     def __init__(self) -> None:
         self.occ: dict[str, OccupancyMetric] = {}
+        self.locations: dict[str, ErrorLocations] = {}  # where each class's wrong voxels lie
         self.static: dict[str, StaticCounts] = {}
         self.boxes: dict[str, PRCounts] = {}
         self.lidar: dict[str, PRCounts] = {}
@@ -251,6 +259,10 @@ def _evaluate_sequence(
             "velocity and BEV comparisons skipped"
         )
     condition = "night" if coda.info.is_night else _condition(coda.info.metadata)
+    # a return up to 3 sigma of range noise in front of its surface belongs to the surface's voxel
+    noise_tol = 3 * float(
+        (config.get("map") or {}).get("surface_noise_m", MapParams.surface_noise_m)
+    )
     frustum = _frustum(shape, range_min, vs, T_bl, cam)
     if same_grid:
         tot.rays[seq] = SequenceRays(
@@ -305,7 +317,7 @@ def _evaluate_sequence(
         is_ped = (pcls == C.PEDESTRIAN) | ((pinst >= 1) & (pinst < 1000))
         pcls[is_ped] = C.UNLABELED
         pts_base = transform_points(T_bl, sweep.points_lidar)
-        st = st + static_counts(pred, range_min, vs, pts_base, pcls)
+        st = st + static_counts(pred, range_min, vs, pts_base, pcls, T_bl[:3, 3], noise_tol)
         # pedestrian vs boxes and vs LiDAR body points
         centers, yaws = _boxes_to_base(T_bl, gtf.box_center, gtf.box_yaw)
         bx = bx + pedestrian_box_counts(
@@ -317,6 +329,9 @@ def _evaluate_sequence(
         )
         if same_grid:
             occ.update(pred, gtf.occupancy, mask_cam)
+            tot.locations[seq] = tot.locations.get(seq, ErrorLocations()) + error_locations(
+                pred, gtf.occupancy, mask_cam, (T_bl[:3, 3] - range_min) / vs
+            )
             gvel = np.zeros(shape + (2,), np.float32)
             for j, tid in enumerate(gtf.track_id):
                 gvel[gtf.occupancy_instance == tid] = gtf.velocity_base[j]
@@ -444,6 +459,7 @@ def _evaluate_sequence(
         tot.velocity_vertex[seq] = vv
     if not same_grid:
         tot.occ.pop(seq)
+        tot.locations.pop(seq, None)
         tot.velocity.pop(seq)
     if tracks is not None:
         tot.tracking[seq] = tracking_scores(track_frames)
@@ -755,6 +771,9 @@ def evaluate(
         results["occupancy_by_sequence"] = {
             s: _brief(m.compute().as_dict()) for s, m in tot.occ.items()
         }
+        from flows.commands.confusion_report import sections
+
+        results.update(sections(tot.occ, tot.locations))
     if tot.trajectory:
         results["trajectory"] = tot.trajectory
     results.update(ray_sections(tot.rays))
@@ -863,4 +882,4 @@ def _sum_metric(metrics: dict[str, OccupancyMetric]):
 
 def _brief(row: dict) -> dict:
     """A per-sequence row: the summary numbers and per-class IoU."""
-    return {k: v for k, v in row.items() if k not in ("num_points_ignored",)}
+    return {k: v for k, v in row.items() if k not in ("num_points_ignored", "confusion")}

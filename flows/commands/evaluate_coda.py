@@ -4,7 +4,9 @@ label-quality table, protocol of its "Occupancy Label Quality" section).
 - Static: every published frame with a ``3d_semantic`` file; its labelled points (CODa terrain ids
   mapped to our classes by :mod:`tasks.metrics.coda_labels`; Unlabeled / Unknown ignored) moved to
   the base frame and looked up in the frame's grid (:func:`tasks.metrics.static.static_counts`:
-  per-class IoU, mIoU over the classes present, GT point coverage, point / voxel accuracy).
+  per-class IoU, mIoU over the classes present, GT point coverage, point / voxel accuracy; a
+  point in a free voxel takes the voxel 3 ``map.surface_noise_m`` further along its ray when that
+  one is occupied, as in the synthetic evaluation).
 - Pedestrians vs boxes: the frame's ``3d_bbox`` boxes whose class maps to pedestrian, in the base
   frame (yaw only: the grid test is yaw-oriented; CODa pedestrian boxes have roll / pitch ~ 0),
   camera-visible voxels (mask_camera), bottom 0.1 m of each box left out
@@ -43,6 +45,7 @@ from tasks.metrics.pedestrian import (
     voxelize_points,
 )
 from tasks.metrics.static import StaticCounts, static_counts
+from tasks.occupancy.settings import MapParams
 
 #: the bottom of each pedestrian box left out (the paper: "exclude the bottom 0.1 m")
 BOTTOM_EXCLUDE_M = 0.1
@@ -84,6 +87,10 @@ def evaluate_coda(
         cam = coda.info.calibration.cameras[camera]
         T_bl = coda.info.calibration.T_base_from_lidar
         frustum = _frustum(shape, range_min, vs, T_bl, cam)
+        # a return up to 3 sigma of range noise in front of its surface belongs to its voxel
+        noise_tol = 3 * float(
+            (config.get("map") or {}).get("surface_noise_m", MapParams.surface_noise_m)
+        )
         st, bx, li = StaticCounts(), PRCounts(), PRCounts()
         raw_frames = [int(r) for r in ds.table("frames", seq).column("raw_frame").to_pylist()]
         for k, raw in enumerate(raw_frames):
@@ -94,7 +101,13 @@ def evaluate_coda(
             if frame.semantic_labels is not None:
                 labels["frames with 3d_semantic"] += 1
                 st = st + static_counts(
-                    pred, range_min, vs, pts_base, semantic_to_classes(frame.semantic_labels)
+                    pred,
+                    range_min,
+                    vs,
+                    pts_base,
+                    semantic_to_classes(frame.semantic_labels),
+                    T_bl[:3, 3],
+                    noise_tol,
                 )
             if not coda.path("3d_bbox", "os1", raw, ".json").exists():
                 continue
@@ -147,7 +160,9 @@ def evaluate_coda(
     if all_static.num_points:
         results["static"] = all_static.as_dict()
         results["static_by_sequence"] = {
-            s: {k: v for k, v in c.as_dict().items() if k != "num_points_ignored"}
+            s: {
+                k: v for k, v in c.as_dict().items() if k not in ("num_points_ignored", "confusion")
+            }
             for s, c in static.items()
         }
     if labels["pedestrian boxes"]:

@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flows.commands import confusion_report
 from storage.atomic import atomic_write_text, write_atomically
 from tasks import conventions as C
 from tasks.metrics.bev import DIFF_COLORS
@@ -194,6 +195,8 @@ _COLUMNS = {
     "velocity_vertex_gt": ["ave_o", "ave_t", "num_voxels_o", "num_voxels_t"],
 }
 _MAX_PNG_BYTES = 300_000
+_TITLES.update(confusion_report.TITLES)
+_HOW_TO_READ.update(confusion_report.HOW_TO_READ)
 
 
 class ReportError(ValueError):
@@ -330,6 +333,8 @@ def _section_markdown(name: str, section, figure_names: list[str]) -> str:
         parts.append(f"{_fmt(name, section)}")
     elif name == "static":
         parts.append(_static_table(section))
+    elif name in confusion_report.SECTIONS:
+        parts.append(confusion_report.markdown(name, section))
     elif name in ("pedestrian_boxes", "pedestrian_lidar") and all(
         isinstance(v, dict) for v in section.values()
     ):

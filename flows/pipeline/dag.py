@@ -29,26 +29,34 @@ CODE_VERSIONS: dict[str, str] = {
     #             5: along tracks (tasks/fit/track_fit.py): left / right swaps decided, one shape
     #                per track, the temporal refinement, gap-filled bodies (Bodies.mirrored,
     #                .gap_filled); fit.init_provider lidar-keypoints
-    "map": "4",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path;
+    "map": "5",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path;
     #             3: 2d_rect cameras read as the rectified pinhole (real CODa calibration);
     #             4: both maps written by spatial tile (map_tiles.npz + tiles/*.npz, map.tile_m), built in
     #                parallel windows / regions; the voxels are the same, the product files are not.
     #             (fuse not bumped: it reads the tiles near its frames and writes the same bytes; its key
     #             follows the map's key)
-    "fuse": "3",  # 2: mask_camera is inside mask_lidar (Occ3D); class_counts among voxels with
+    #             5: voxels holding only the range noise of a neighbour's surface dropped, each voxel's
+    #                surface kept (tasks/occupancy/surface.py; window votes carry point moments); the
+    #                ground under a person kept; a person's other points removed whatever their label
+    "fuse": "4",  # 2: mask_camera is inside mask_lidar (Occ3D); class_counts among voxels with
     #               mask_lidar = 1 (as documented); store attrs carry the stage key, not a config hash;
     #               the rectified camera; 3: pedestrian voxel velocity from each vertex's motion along
-    #               the track (fuse.velocity "vertex"), the mean over the body surface in the voxel
-    "export": "4",  # 2: instances carry the fitted bodies, 3D boxes and velocities; 3: source paths
+    #               the track (fuse.velocity "vertex"), the mean over the body surface in the voxel;
+    #               4: static voxels from points on each map voxel's surface (right at any offset of
+    #               the grid, e.g. 10 Hz); every occupied voxel in mask_lidar
+    "export": "5",  # 2: instances carry the fitted bodies, 3D boxes and velocities; 3: source paths
     #                 relative to the dataset root, box yaw from the body's forward axis, no NaN
     #                 velocity, chamfer_m / reproj_px written, config_hash of the stage inputs; the
-    #                 rectified camera's K and T in the sequences table
-    #                 4: instances carry keypoints_mirrored and gap_filled, and a row per gap-filled
+    #                 rectified camera's K and T in the sequences table; 4: the Occ3D metadata says
+    #                 semantics is free where mask_lidar is 0 and keeps hidden occupied voxels' class;
+    #                 5: instances carry keypoints_mirrored and gap_filled, and a row per gap-filled
     #                 body (no 2D box or keypoints)
 }
 #: Version of the dataset-level Occ3D / nuScenes exports (OUT/exports/, made after the sequences
 #: are published; part of their key in the manifest): bump when their files change for the same
 #: dataset. 2: labels.npz carries OpenOcc's flow; annotations.json and the training infos in time
 #: order, the infos with the occupancy challenge's prev / next / frame_idx / can_bus / occ_gt_path;
-#: the metadata's FlashOcc settings (depth, BEV flips, input sizes and their frustum coverage)
-DATASET_EXPORTS_VERSION = "2"
+#: the metadata's FlashOcc settings (depth, BEV flips, input sizes and their frustum coverage);
+#: 3: the metadata says semantics is free where mask_lidar is 0 and keeps the class of occupied
+#: voxels hidden from the camera (issue 30)
+DATASET_EXPORTS_VERSION = "3"

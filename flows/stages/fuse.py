@@ -129,7 +129,7 @@ def maps_near(
     keys = np.concatenate([o.keys for o in occ]) if occ else np.empty((0, 3), np.int64)
     logodds = np.concatenate([o.logodds for o in occ]) if occ else np.empty(0, np.float32)
     return (
-        join_static_tiles(sv, [(p.keys, p.labels, p.counts) for p in static]),
+        join_static_tiles(sv, [(p.keys, p.labels, p.counts, p.surface) for p in static]),
         OccupancyMap.from_arrays(inputs.freespace, keys, logodds),
     )
 

@@ -65,6 +65,7 @@ def _labeller(inp: MapInputs, seq, threads: int) -> SweepLabeller:
         cam.height,
         inp.assoc_min_iou,
         threads,
+        inp.ground_class_ids,
     )
 
 
@@ -97,7 +98,11 @@ def map_window(
             d.lidar_sizes,
             d.lidar_yaws,
         )
-        votes.add(world_points(frame.T_world_from_lidar, frame.points_lidar), sweep)
+        votes.add(
+            world_points(frame.T_world_from_lidar, frame.points_lidar),
+            sweep,
+            frame.T_world_from_lidar[:3, 3],
+        )
         frames.append(frame.index)
         masks.append(sweep.keep)
     KeepMasks.of(frames, masks).write(work, KeepMasks.file_name(window))
@@ -176,7 +181,11 @@ def map_static(
     for tile, smap, camera in finalize_tiles(tiles, load, inp.settings, inp.ground_class_ids):
         if len(smap.keys):
             StaticMapProduct(
-                np.array(smap.voxel_size_m, np.float64), smap.keys, smap.labels, smap.counts
+                np.array(smap.voxel_size_m, np.float64),
+                smap.keys,
+                smap.labels,
+                smap.counts,
+                smap.surface,
             ).write(out_dir / TILES, StaticMapProduct.file_name(tile))
         out.append(
             {

@@ -231,7 +231,9 @@ def grid_metadata(ds: Dataset, sequences: list[str]) -> dict:
         "num_classes": len(g["class_names"]),
         "free_class": g["free_class"],
         "unknown": "not a class: voxels with mask_camera == 0 (camera view) or mask_lidar == 0 (LiDAR) "
-        "are unknown; semantics holds the free id there",
+        "are unknown to that sensor; semantics holds the free id where mask_lidar == 0 (every "
+        "occupied voxel is in mask_lidar) and keeps the class of occupied voxels hidden from the "
+        "camera (mask_camera == 0)",
         "flashocc": flashocc_settings(ds, sequences, g),
     }
 

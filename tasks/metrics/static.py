@@ -1,7 +1,10 @@
 """Static semantic voxels vs ground-truth labelled LiDAR points (the paper's Tab. label quality, top).
 
 Every labelled GT point inside the grid looks up the label of its voxel (``floor((p - range_min)
-/ voxel_size_m)``, free when the voxel is free). From that:
+/ voxel_size_m)``, free when the voxel is free). A voxel holds the surface that passes through it,
+not every return of it (storage/SCHEMA.md, "Voxel convention"): with a sensor position and a noise
+tolerance, a point whose voxel is free takes the voxel ``tolerance_m`` further along its ray
+(:func:`surface_voxel_index`), where the surface whose range noise put it in front lies. From that:
 
 - per-class IoU at point level: TP = points of GT class c whose voxel is c; FN = points of GT class
   c whose voxel is anything else (free included); FP = points of another GT class whose voxel is c.
@@ -87,17 +90,57 @@ class StaticCounts:
             "num_points": self.num_points,
             "num_voxels": int(self.voxels_evaluated),
             "num_points_ignored": int(self.num_points_ignored),
+            "confusion": self.confusion.tolist(),  # points: rows GT class, columns voxel label
         }
 
 
+def surface_voxel_index(
+    labels: np.ndarray,
+    range_min,
+    voxel_size_m: float,
+    points: np.ndarray,
+    sensor: np.ndarray | None = None,
+    tolerance_m: float = 0.0,
+) -> np.ndarray:
+    """(N, 3) int64 voxel index of each point: its own voxel (floor rule), or, where that is free
+    in labels (X, Y, Z) and a sensor (3,) is given, the voxel of the point moved tolerance_m
+    further along its ray from the sensor, when that one is occupied (a return thrown in front of
+    its surface by range noise). points (N, 3) float metres, grid frame; indices may lie outside
+    the grid."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    lo = np.asarray(range_min, dtype=np.float64)
+    idx = np.floor((pts - lo) / float(voxel_size_m)).astype(np.int64)
+    if sensor is None or tolerance_m <= 0 or not len(pts):
+        return idx
+    shape = np.asarray(labels.shape)
+    inside = np.all((idx >= 0) & (idx < shape), axis=1)
+    free = np.zeros(len(pts), dtype=bool)
+    free[inside] = labels[tuple(idx[inside].T)] == C.FREE
+    ray = pts[free] - np.asarray(sensor, dtype=np.float64).reshape(3)
+    ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-12)
+    beyond = np.floor((pts[free] + tolerance_m * ray - lo) / float(voxel_size_m)).astype(np.int64)
+    ok = np.all((beyond >= 0) & (beyond < shape), axis=1)
+    ok[ok] = labels[tuple(beyond[ok].T)] != C.FREE
+    rows = np.flatnonzero(free)[ok]
+    idx[rows] = beyond[ok]
+    return idx
+
+
 def static_counts(
-    labels: np.ndarray, range_min, voxel_size_m: float, points: np.ndarray, gt_classes: np.ndarray
+    labels: np.ndarray,
+    range_min,
+    voxel_size_m: float,
+    points: np.ndarray,
+    gt_classes: np.ndarray,
+    sensor: np.ndarray | None = None,
+    tolerance_m: float = 0.0,
 ) -> StaticCounts:
     """Counts of one frame (or one accumulated map) against its labelled GT points.
 
     labels: (X, Y, Z) uint8 class ids (9 free) of the grid; range_min: (3,) metres, the grid's
     corner in the points' frame; voxel_size_m: metres; points: (N, 3) float metres in the grid's
-    frame; gt_classes: (N,) uint8 our class ids (0..8), UNLABELED (255) ignored.
+    frame; gt_classes: (N,) uint8 our class ids (0..8), UNLABELED (255) ignored. sensor (3,) and
+    tolerance_m: the noise tolerance of :func:`surface_voxel_index` (None / 0: the floor rule).
     """
     labels = check_label_grid("labels", labels)
     pts = np.asarray(points, dtype=np.float64)
@@ -114,9 +157,7 @@ def static_counts(
             f"gt_classes: class id {int(cls[labelled][cls[labelled] >= C.FREE][0])} "
             f"is not an occupied class (0..{C.FREE - 1}) or {C.UNLABELED}"
         )
-    idx = np.floor((pts - np.asarray(range_min, dtype=np.float64)) / float(voxel_size_m)).astype(
-        np.int64
-    )
+    idx = surface_voxel_index(labels, range_min, voxel_size_m, pts, sensor, tolerance_m)
     inside = np.all((idx >= 0) & (idx < np.asarray(labels.shape)), axis=1)
     keep = labelled & inside
     idx, g = idx[keep], cls[keep].astype(np.int64)

@@ -34,9 +34,11 @@ def local_grids(
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """The dataset's grids of one frame (arrays of storage/SCHEMA.md) and its class counts.
 
-    mask_lidar is the union of this frame's LiDAR rays (traversed or hit voxels) and the voxels
-    the sequence's occupancy map has observed (known free or occupied), so "unknown" means never
-    observed; mask_camera is cam0's visibility restricted to mask_lidar (Occ3D: camera-visible =
+    mask_lidar is the union of this frame's LiDAR rays (traversed or hit voxels), the voxels
+    the sequence's occupancy map has observed (known free or occupied) and the occupied voxels
+    (a label is LiDAR evidence: static voxels come from returns, a body from its fit to the
+    person's returns, and it fills the voxels behind the visible surface too), so "unknown" means
+    never observed and semantics is free wherever mask_lidar is 0; mask_camera is cam0's visibility restricted to mask_lidar (Occ3D: camera-visible =
     seen by the camera and observed by the LiDAR, so no voxel is called free without LiDAR
     evidence). class_counts (10,) int64: voxels per class among those with mask_lidar = 1.
     points_lidar: (N, 3) float32 this frame's sweep, LiDAR frame; the rest as
@@ -56,7 +58,9 @@ def local_grids(
         fusion=fusion,
         threads=threads,
     )
-    mask_lidar = grids.mask_lidar.astype(bool) | (grids.occupancy_state >= 0)
+    mask_lidar = (
+        grids.mask_lidar.astype(bool) | (grids.occupancy_state >= 0) | (grids.semantics != FREE)
+    )
     counts = np.bincount(grids.semantics[mask_lidar], minlength=FREE + 1).astype(np.int64)
     return {
         "semantics": grids.semantics,

@@ -22,11 +22,11 @@ Two ways to run it, with the same result voxel for voxel:
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from tasks.conventions import PEDESTRIAN
+from tasks.conventions import PEDESTRIAN, ROAD, TERRAIN
 from tasks.geometry import transform_points
 from tasks.occupancy.freespace import OccupancyMap
 from tasks.occupancy.settings import FreeSpaceParams, MapParams
@@ -43,6 +43,7 @@ from tasks.occupancy.static_map import (
     unpack_keys,
     vote,
 )
+from tasks.occupancy.surface import NUM_MOMENTS, group_sum, surface_fit
 from tasks.occupancy.tiles import BLOCK_VOXELS, ground_halo_tiles, tiles_of_keys, voxels_per_tile
 
 
@@ -59,7 +60,8 @@ class SweepLabels:
 class SweepLabeller:
     """Labels and person removal of single sweeps: class_lut (256,) uint8 Cityscapes train id ->
     class id (UNLABELED: none); K (3, 3), T_cam_from_lidar (4, 4), width / height: the camera;
-    assoc_min_iou: see :func:`pedestrian_boxes_for_masking`; threads: nearest-neighbour search."""
+    assoc_min_iou: see :func:`pedestrian_boxes_for_masking`; threads: nearest-neighbour search;
+    ground_class_ids: the classes of the ground people stand on (``map.ground_classes``)."""
 
     def __init__(
         self,
@@ -71,9 +73,11 @@ class SweepLabeller:
         height: int,
         assoc_min_iou: float,
         threads: int | None = None,
+        ground_class_ids: tuple[int, ...] = (ROAD, TERRAIN),
     ):
         self.params, self.lut, self.K, self.T_cam = params, class_lut, K, T_cam_from_lidar
         self.size, self.min_iou, self.threads = (width, height), assoc_min_iou, threads
+        self.ground = tuple(ground_class_ids)
 
     def __call__(
         self,
@@ -120,7 +124,55 @@ class SweepLabeller:
             box_margin_m=p.pedestrian_box_margin_m,
             projection=projection,
         )
-        return SweepLabels(labels, ~people & (labels != PEDESTRIAN), projection[1])
+        people |= labels == PEDESTRIAN
+        if p.person_ground_keep_m > 0 and people.any():
+            labels, ground_back = _ground_under_people(
+                points_lidar,
+                labels,
+                people,
+                self.ground,
+                p.person_ground_keep_m,
+                p.ground_cell_m,
+                self.threads,
+            )
+            # only the ground under a person goes back to the map: every other point of the
+            # person stays removed whatever its label (a point out of the image takes the label of
+            # the nearest in-view point, a mask's edge the background's)
+            people &= ~ground_back
+        return SweepLabels(labels, ~people, projection[1])
+
+
+def _ground_under_people(
+    points_lidar: np.ndarray,
+    labels: np.ndarray,
+    people: np.ndarray,
+    ground: tuple[int, ...],
+    keep_m: float,
+    cell_m: float,
+    threads: int | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(labels (N,) uint8, given back (N,) bool) where the points of ``people`` (N,) bool at
+    most keep_m above the local
+    ground (the lowest point of their cell_m cell and its neighbours, LiDAR frame) are ground (a
+    class of ``ground``), not person: the ground a person stands on (a box with its margin, the person's image mask or
+    label seen from the camera's other viewpoint holds it). Such a point keeps its label when the
+    image says ground, else takes the label of the nearest ground-level point outside the people
+    (PEDESTRIAN where none). Soles within keep_m of the ground are taken too: they lie within
+    the range noise of the ground plane, which the surface fit assigns to the ground's voxel.
+    given back: the points of people that now carry a ground label (the only ones to keep)."""
+    from tasks.occupancy.nearest import nearest_indices
+    from tasks.perception.lidar_clusters import ground_height
+
+    p = np.asarray(points_lidar, dtype=np.float64).reshape(-1, 3)
+    low = p[:, 2] - ground_height(p, cell_m) <= keep_m
+    out = labels.copy()
+    under = people & low
+    out[under & ~np.isin(labels, ground)] = PEDESTRIAN
+    ask = np.flatnonzero(under & (out == PEDESTRIAN))
+    src = np.flatnonzero(low & ~people & np.isin(labels, ground))
+    if len(ask) and len(src):
+        out[ask] = labels[src][nearest_indices(p[src], p[ask], threads)]
+    return out, under & np.isin(out, ground)
 
 
 class SequenceMapper:
@@ -139,13 +191,22 @@ class SequenceMapper:
         height: int,
         assoc_min_iou: float,
         threads: int | None = None,
+        ground_class_ids: tuple[int, ...] = (ROAD, TERRAIN),
     ):
         self.params, self.freespace = params, freespace
         self.labeller = SweepLabeller(
-            params, class_lut, K, T_cam_from_lidar, width, height, assoc_min_iou, threads
+            params,
+            class_lut,
+            K,
+            T_cam_from_lidar,
+            width,
+            height,
+            assoc_min_iou,
+            threads,
+            ground_class_ids,
         )
-        self.seen = StaticSemanticMap(params.voxel_size_m)
-        self.unseen = StaticSemanticMap(params.voxel_size_m)
+        self.seen = StaticSemanticMap(params.voxel_size_m, moments=True)
+        self.unseen = StaticSemanticMap(params.voxel_size_m, moments=True)
         self.occupancy = OccupancyMap(freespace, threads=threads)
         self.kept = self.removed = 0
 
@@ -166,8 +227,9 @@ class SequenceMapper:
             points_lidar, semantic, mask_labels, boxes_xyxy, lidar_centers, lidar_sizes, lidar_yaws
         )
         world = world_points(T_world_from_lidar, points_lidar)
-        self.seen.add_sweep(world, s.labels, keep=s.keep & s.in_image)
-        self.unseen.add_sweep(world, s.labels, keep=s.keep & ~s.in_image)
+        origin = T_world_from_lidar[:3, 3]
+        self.seen.add_sweep(world, s.labels, keep=s.keep & s.in_image, origin_world=origin)
+        self.unseen.add_sweep(world, s.labels, keep=s.keep & ~s.in_image, origin_world=origin)
         self.occupancy.insert_scan(
             world[s.keep],
             T_world_from_lidar[:3, 3],
@@ -178,11 +240,38 @@ class SequenceMapper:
         self.kept += int(s.keep.sum())
 
     def finish(self, ground_class_ids: tuple[int, ...]) -> tuple[StaticMap, StaticMap]:
-        """(the final static map, the camera-labelled part of it) after the ground check and max
-        voting; the occupancy map is ``self.occupancy``."""
-        p, ground = self.params, tuple(ground_class_ids)
-        camera = self.seen.finalize(p, ground)
-        return merge_static_maps(camera, self.unseen.finalize(p, ground)), camera
+        """(the final static map, the camera-labelled part of it) after the surface fit, the
+        ground check and max voting; the occupancy map is ``self.occupancy``."""
+        sides = [(*m.packed_counts(), m.packed_moments()) for m in (self.seen, self.unseen)]
+        return final_maps(sides, self.params, ground_class_ids)
+
+
+def final_maps(
+    sides: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    params: MapParams,
+    ground_class_ids: tuple[int, ...],
+    select=None,
+) -> tuple[StaticMap, StaticMap]:
+    """(the static map, its camera-labelled part) from the raw votes of the camera-seen and the
+    unseen points: sides = [(packed keys (K,) ascending, counts (K, 9) uint16, moments (K, 13)
+    int64)] * 2. The surface fit (:func:`tasks.occupancy.surface.surface_fit`) runs on both sides'
+    points together (one geometry) and drops the voxels that only hold noise in front of a
+    neighbour's surface; each side is then voted (ground check, max voting) and the camera's side
+    wins where both have a voxel. select(packed keys) -> bool: the voxels to return (all: None)."""
+    vs, ground = params.voxel_size_m, tuple(ground_class_ids)
+    keys, moments = group_sum(
+        np.concatenate([k for k, _, _ in sides]), np.concatenate([m for _, _, m in sides])
+    )
+    fit = surface_fit(keys, moments, vs, params.surface_noise_m, params.surface_min_points)
+    maps = []
+    for k, counts, _ in sides:
+        keep = fit.keep[np.searchsorted(keys, k)] if len(k) else np.zeros(0, bool)
+        if select is not None:
+            keep &= select(k)
+        maps.append(vote(k, counts, params, ground, select=keep))
+    merged = merge_static_maps(maps[0], maps[1])
+    surface = fit.surface[np.searchsorted(keys, pack_keys(merged.keys))]
+    return replace(merged, surface=surface), maps[0]
 
 
 def world_points(T_world_from_lidar: np.ndarray, points_lidar: np.ndarray) -> np.ndarray:
@@ -194,8 +283,9 @@ def world_points(T_world_from_lidar: np.ndarray, points_lidar: np.ndarray) -> np
 # ---- by tiles ------------------------------------------------------------------------------------
 
 
-#: a tile's raw votes: (camera-seen packed keys (A,), counts (A, 9), unseen packed keys (B,), counts (B, 9))
-TileVotes = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+#: a tile's raw votes: (camera-seen packed keys (A,), counts (A, 9), moments (A, 13), unseen packed
+#: keys (B,), counts (B, 9), moments (B, 13))
+TileVotes = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
 class WindowVotes:
@@ -205,27 +295,42 @@ class WindowVotes:
 
     def __init__(self, params: MapParams):
         self.n = voxels_per_tile(params.tile_m, params.voxel_size_m)
-        self.seen = StaticSemanticMap(params.voxel_size_m)
-        self.unseen = StaticSemanticMap(params.voxel_size_m)
+        self.seen = StaticSemanticMap(params.voxel_size_m, moments=True)
+        self.unseen = StaticSemanticMap(params.voxel_size_m, moments=True)
         self.kept = self.removed = 0
 
-    def add(self, world: np.ndarray, sweep: SweepLabels) -> None:
-        """world: (N, 3) float32 the sweep's points in the world frame (:func:`world_points`)."""
-        self.seen.add_sweep(world, sweep.labels, keep=sweep.keep & sweep.in_image)
-        self.unseen.add_sweep(world, sweep.labels, keep=sweep.keep & ~sweep.in_image)
+    def add(self, world: np.ndarray, sweep: SweepLabels, origin_world: np.ndarray) -> None:
+        """world: (N, 3) float32 the sweep's points in the world frame (:func:`world_points`);
+        origin_world: (3,) the LiDAR's position."""
+        self.seen.add_sweep(
+            world, sweep.labels, keep=sweep.keep & sweep.in_image, origin_world=origin_world
+        )
+        self.unseen.add_sweep(
+            world, sweep.labels, keep=sweep.keep & ~sweep.in_image, origin_world=origin_world
+        )
         self.removed += int((~sweep.keep).sum())
         self.kept += int(sweep.keep.sum())
 
     def by_tile(self) -> Iterator[tuple[tuple[int, int], TileVotes]]:
         """(tile, its votes) for every tile with votes, tiles ascending; keys ascending in each."""
-        parts = [_split_by_tile(*m.packed_counts(), self.n) for m in (self.seen, self.unseen)]
-        empty = (np.empty(0, np.int64), np.empty((0, 9), np.uint16))
+        parts = [
+            _split_by_tile(*m.packed_counts(), self.n, m.packed_moments())
+            for m in (self.seen, self.unseen)
+        ]
+        empty = (
+            np.empty(0, np.int64),
+            np.empty((0, 9), np.uint16),
+            np.empty((0, NUM_MOMENTS), np.int64),
+        )
         for tile in sorted(set(parts[0]) | set(parts[1])):
             yield tile, (*parts[0].get(tile, empty), *parts[1].get(tile, empty))
 
 
-def _split_by_tile(packed: np.ndarray, counts: np.ndarray, n: int) -> dict[tuple[int, int], tuple]:
-    """Rows of a sorted vote table grouped by tile (each group keeps the ascending key order)."""
+def _split_by_tile(
+    packed: np.ndarray, counts: np.ndarray, n: int, *more: np.ndarray
+) -> dict[tuple[int, int], tuple]:
+    """Rows of a sorted vote table (and of the arrays ``more`` on the same rows) grouped by tile
+    (each group keeps the ascending key order)."""
     if not len(packed):
         return {}
     tiles = tiles_of_keys(unpack_keys(packed), n)
@@ -233,7 +338,7 @@ def _split_by_tile(packed: np.ndarray, counts: np.ndarray, n: int) -> dict[tuple
     t = tiles[order]
     cut = np.flatnonzero(np.any(t[1:] != t[:-1], axis=1)) + 1
     return {
-        (int(t[a, 0]), int(t[a, 1])): (packed[order[a:b]], counts[order[a:b]])
+        (int(t[a, 0]), int(t[a, 1])): tuple(x[order[a:b]] for x in (packed, counts, *more))
         for a, b in zip(np.r_[0, cut], np.r_[cut, len(t)])
     }
 
@@ -252,7 +357,7 @@ def finalize_tiles(
     :meth:`SequenceMapper.finish` restricted to the tile. Tiles are loaded once per call while
     they are within the halo of the tiles still to come (give tiles in ascending order).
     """
-    p, ground = params, tuple(ground_class_ids)
+    p = params
     n = voxels_per_tile(p.tile_m, p.voxel_size_m)
     h = ground_halo_tiles(p)
     cache: dict[tuple[int, int], TileVotes | None] = {}
@@ -261,20 +366,38 @@ def finalize_tiles(
         for t in [t for t in cache if t[0] < tile[0] - h]:
             del cache[t]
         votes = [cache[t] if t in cache else cache.setdefault(t, load(t)) for t in near]
-        maps = []
-        for side in (0, 2):  # camera-seen, then unseen
-            keys, counts = sum_votes([(v[side], v[side + 1]) for v in votes if v is not None])
-            inside = np.all(tiles_of_keys(unpack_keys(keys), n) == tile, axis=1)
-            maps.append(vote(keys, counts, p, ground, select=inside))
-        yield tile, merge_static_maps(maps[0], maps[1]), len(maps[0].keys)
+        sides = [
+            _sum_side([(v[side], v[side + 1], v[side + 2]) for v in votes if v is not None])
+            for side in (0, 3)  # camera-seen, then unseen
+        ]
+        smap, camera = final_maps(
+            sides,
+            p,
+            ground_class_ids,
+            lambda keys, tile=tile: np.all(tiles_of_keys(unpack_keys(keys), n) == tile, axis=1),
+        )
+        yield tile, smap, len(camera.keys)
+
+
+def _sum_side(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]):
+    """(packed keys, counts, moments) of one side summed over parts (windows or tiles)."""
+    keys, counts = sum_votes([(k, c) for k, c, _ in parts])
+    if not parts:
+        return keys, counts, np.zeros((0, NUM_MOMENTS), np.int64)
+    mk, mm = group_sum(
+        np.concatenate([k for k, _, _ in parts]), np.concatenate([m for _, _, m in parts])
+    )
+    assert np.array_equal(mk, keys), "moments and votes cover the same voxels"
+    return keys, counts, mm
 
 
 def sum_tile_votes(parts: list[TileVotes]) -> TileVotes | None:
-    """One tile's votes of several windows added (:func:`tasks.occupancy.static_map.sum_votes`)."""
+    """One tile's votes of several windows added (:func:`tasks.occupancy.static_map.sum_votes`,
+    moments exactly)."""
     if not parts:
         return None
-    seen = sum_votes([(p[0], p[1]) for p in parts])
-    unseen = sum_votes([(p[2], p[3]) for p in parts])
+    seen = _sum_side([(p[0], p[1], p[2]) for p in parts])
+    unseen = _sum_side([(p[3], p[4], p[5]) for p in parts])
     return (*seen, *unseen)
 
 
@@ -312,11 +435,10 @@ def occupancy_tiles(
         yield tile, unpack_keys(pk), v
 
 
-def join_static_tiles(
-    voxel_size_m: float, parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
-) -> StaticMap:
+def join_static_tiles(voxel_size_m: float, parts: list[tuple[np.ndarray, ...]]) -> StaticMap:
     """The static map of several tiles: parts of (keys (K, 3) int64, labels (K,) uint8, counts
-    (K, 9) uint16); keys ascending over the whole (packed order), as the whole-sequence map."""
+    (K, 9) uint16[, surface (K, 6) float32]); keys ascending over the whole (packed order), as the
+    whole-sequence map. The map has a surface when every part has one (no part: an empty one)."""
     if not parts:
         return StaticMap(
             voxel_size_m,
@@ -324,13 +446,18 @@ def join_static_tiles(
             np.empty(0, np.uint8),
             np.empty((0, 9), np.uint16),
             0,
+            np.empty((0, 6), np.float32),
         )
     keys = np.concatenate([p[0] for p in parts])
     order = np.argsort(pack_keys(keys), kind="stable")
+    surface = (
+        np.concatenate([p[3] for p in parts])[order] if all(len(p) > 3 for p in parts) else None
+    )
     return StaticMap(
         voxel_size_m,
         keys[order],
         np.concatenate([p[1] for p in parts])[order],
         np.concatenate([p[2] for p in parts])[order],
         0,
+        surface,
     )

@@ -1,9 +1,16 @@
 """The sequence's static map resampled into a frame's robot-local grid.
 
-A map as coarse as the grid or coarser is pulled by the grid's cell centres: every cell takes the
-label of the map voxel under its centre (nearest-voxel resampling, no holes where the two grids are
-offset, see :func:`tasks.occupancy.static_map.lookup_labels`). A finer map is pushed as points
-filling each map voxel (the fusion then votes per cell).
+A map that knows where its surfaces lie (``StaticMap.surface``, the map stage's) is pushed as
+points on those surfaces (:func:`tasks.occupancy.surface.surface_samples`): each grid cell that a
+surface passes through gets it, wherever the grid lies against the map's voxels (a robot that moves
+half a voxel between frames, as at 10 Hz, cuts every map voxel in two, and the surface lies in one
+half). A voxel without its own plane stands as its centroid; one coarser than the grid fills the
+cells it covers.
+
+A map without surfaces as coarse as the grid or coarser is pulled by the grid's cell centres:
+every cell takes the label of the map voxel under its centre (nearest-voxel resampling, no holes
+where the two grids are offset, see :func:`tasks.occupancy.static_map.lookup_labels`). A finer one
+is pushed as points filling each map voxel (the fusion then votes per cell).
 """
 
 from __future__ import annotations
@@ -14,6 +21,7 @@ from numba import njit
 from tasks.conventions import UNLABELED
 from tasks.occupancy.grid import GridSpec
 from tasks.occupancy.static_map import StaticMap, lookup_packed, sorted_table
+from tasks.occupancy.surface import surface_samples
 
 
 @njit(cache=True, inline="always")
@@ -93,8 +101,11 @@ def static_in_grid(
     grid (used for a finer map). Returns (points (N, 3) float32 world frame, labels (N,) uint8).
     A map as coarse as the grid or coarser: one point per labelled cell, at the cell centre, with
     the label of the map voxel under it (cells in C order); a finer map: points filling each map
-    voxel within reach_m (:meth:`StaticMap.sample_points` at the grid's voxel size).
+    voxel within reach_m (:meth:`StaticMap.sample_points` at the grid's voxel size). A map with
+    surfaces: points on them (module docstring), at a quarter of the grid's voxel apart.
     """
+    if smap.surface is not None:
+        return _surface_points(smap.crop(np.asarray(T_world_from_base)[:3, 3], reach_m), spec)
     if smap.voxel_size_m < spec.voxel_size_m - 1e-9:
         return smap.crop(np.asarray(T_world_from_base)[:3, 3], reach_m).sample_points(
             spec.voxel_size_m
@@ -113,6 +124,26 @@ def static_in_grid(
         pts,
     )
     return pts, labels[flat]
+
+
+def _surface_points(smap: StaticMap, spec: GridSpec) -> tuple[np.ndarray, np.ndarray]:
+    """(points (N, 3) float32 world frame, labels (N,) uint8) standing for a map with surfaces in
+    a grid of spec's voxel size: planes sampled at a quarter of the grid's voxel; a voxel without
+    a plane as its centroid, or, coarser than the grid, as points filling it."""
+    vs = smap.voxel_size_m
+    planar = np.any(smap.surface[:, 3:] != 0, axis=1)
+    coarse = ~planar if vs > spec.voxel_size_m + 1e-9 else np.zeros(len(planar), bool)
+    pts, rows = surface_samples(
+        smap.keys[~coarse], smap.surface[~coarse], vs, min(vs, spec.voxel_size_m) / 4
+    )
+    labels = smap.labels[~coarse][rows]
+    if coarse.any():
+        fill, fill_labels = StaticMap(
+            vs, smap.keys[coarse], smap.labels[coarse], smap.counts[coarse], 0
+        ).sample_points(spec.voxel_size_m)
+        pts = np.concatenate([pts.astype(np.float32), fill])
+        labels = np.concatenate([labels, fill_labels])
+    return pts.astype(np.float32), labels.astype(np.uint8)
 
 
 def grid_reach_m(spec: GridSpec) -> float:

@@ -42,6 +42,19 @@ class MapParams:
     pooled over ground_neighbourhood_cells neighbouring cells, vote-weighted ground_quantile) are
     rejected; a voxel needs min_votes votes.
 
+    person_ground_keep_m: points of a person (in a LiDAR box, an instance mask, labelled
+    pedestrian) at most this far above the local ground (the lowest point around them) are the
+    ground the person stands on: they stay in the map with a ground label (0: removed with the
+    person, and the ground under people who stand still is never mapped).
+
+    Surfaces (tasks/occupancy/surface.py): a voxel holds a surface where one passes through it,
+    not where the range noise of a surface in the voxel behind it throws some of its returns.
+    surface_noise_m: the LiDAR's range noise (1 sigma, m): points at most 3 sigma in front of a
+    neighbouring voxel's fitted plane that does not pass through their voxel are that plane's
+    noise, and the voxel is dropped (0: keep every voxel with votes); it also bounds the spread
+    (2 sigma) of a voxel's own points for them to be a plane. surface_min_points: points a voxel
+    needs to fit its own plane.
+
     Tiles (tasks/occupancy/tiles.py): both maps are built, stored and read by square tiles of
     tile_m (a whole number of map voxels and of 8-voxel occupancy blocks), so memory does not grow
     with the sequence. window_frames (sweeps per window) and region_tiles (a region is
@@ -53,11 +66,14 @@ class MapParams:
     outside_image_fallback: Literal["nearest", "unknown"] = "nearest"
     fallback_ground_lateral_scale: Widening = 4.0
     pedestrian_box_margin_m: NonNegative = 0.15
+    person_ground_keep_m: NonNegative = 0.03
     ground_max_deviation_m: Positive = 0.3
     ground_cell_m: Positive = 1.0
     ground_neighbourhood_cells: Count = 1
     ground_quantile: Probability = 0.5
     min_votes: AtLeastOne = 1
+    surface_noise_m: NonNegative = 0.01
+    surface_min_points: AtLeastOne = 8
     tile_m: Positive = 25.6
     window_frames: AtLeastOne = 100
     region_tiles: AtLeastOne = 4

@@ -22,30 +22,15 @@ from tasks.conventions import FREE, PEDESTRIAN, UNLABELED
 from tasks.geometry import points_in_boxes, yaw_rotations
 from tasks.occupancy.nearest import nearest_indices
 from tasks.occupancy.settings import MapParams
+from tasks.occupancy.surface import NUM_MOMENTS, group_sum, point_moments
+from tasks.occupancy.voxel_keys import KEY_MASK, KEY_OFFSET
+from tasks.occupancy.voxel_keys import StaticMapError as StaticMapError
+from tasks.occupancy.voxel_keys import pack_keys as pack_keys
+from tasks.occupancy.voxel_keys import unpack_keys as unpack_keys
 from tasks.perception.lidar_clusters import ground_height
 from tasks.perception.person_points import associate_lidar_boxes
 
 NUM_OCCUPIED_CLASSES = FREE  # classes 0..8 take votes; 9 (free) never does
-_OFF = 1 << 20  # 21 bits per axis in a packed key: +-2^20 voxels
-_MASK = (1 << 21) - 1
-
-
-class StaticMapError(ValueError):
-    """Bad input to the static-map kernels (shapes, classes, parameters)."""
-
-
-def pack_keys(keys: np.ndarray) -> np.ndarray:
-    """(N, 3) int voxel keys -> (N,) int64 packed keys (sortable, 21 bits per axis)."""
-    k = np.asarray(keys, dtype=np.int64).reshape(-1, 3) + _OFF
-    if len(k) and (k.min() < 0 or k.max() > _MASK):
-        raise StaticMapError(f"voxel keys beyond +-2^20 (got {k.min() - _OFF}..{k.max() - _OFF})")
-    return (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
-
-
-def unpack_keys(packed: np.ndarray) -> np.ndarray:
-    """(N,) int64 packed keys -> (N, 3) int64 voxel keys."""
-    p = np.asarray(packed, dtype=np.int64)
-    return np.stack([(p >> 42) & _MASK, (p >> 21) & _MASK, p & _MASK], axis=1) - _OFF
 
 
 # -- per-sweep helpers ----------------------------------------------------------------------------
@@ -68,6 +53,9 @@ def _project(p, R, t, K, width, height, min_depth_m, pix, valid):
             pix[i, 0] = np.int64(u)
             pix[i, 1] = np.int64(v)
             valid[i] = True
+
+
+_OFF, _MASK = KEY_OFFSET, KEY_MASK  # numba reads them as globals
 
 
 def project_points(
@@ -258,6 +246,10 @@ class StaticMap:
     keys: (K, 3) int64, voxel [k, k + 1) * voxel_size_m (aligned to multiples of the voxel size
     around 0, like the occupancy map). labels: (K,) uint8 class ids. counts: (K, 9) uint16 votes
     per class after the ground check. ground_rejected: ground votes removed by the check.
+    surface: (K, 6) float32 where the surface lies in each voxel (centroid of its points relative
+    to the voxel's corner, m, and the unit normal of its own plane, zeros where it has none:
+    :class:`tasks.occupancy.surface.SurfaceFit`), or None (a map built without point moments:
+    resampled by voxel centres).
     """
 
     voxel_size_m: float
@@ -265,6 +257,17 @@ class StaticMap:
     labels: np.ndarray
     counts: np.ndarray
     ground_rejected: int
+    surface: np.ndarray | None = None
+
+    def _rows(self, keep: np.ndarray) -> StaticMap:
+        return StaticMap(
+            self.voxel_size_m,
+            self.keys[keep],
+            self.labels[keep],
+            self.counts[keep],
+            self.ground_rejected,
+            None if self.surface is None else self.surface[keep],
+        )
 
     def centers(self) -> np.ndarray:
         """(K, 3) float64 voxel centres, metres, world frame."""
@@ -274,13 +277,7 @@ class StaticMap:
         """Voxels whose centre is within radius_m (horizontally) of center_world (3,)."""
         c = self.centers()
         keep = np.hypot(c[:, 0] - center_world[0], c[:, 1] - center_world[1]) <= radius_m
-        return StaticMap(
-            self.voxel_size_m,
-            self.keys[keep],
-            self.labels[keep],
-            self.counts[keep],
-            self.ground_rejected,
-        )
+        return self._rows(keep)
 
     def crop_to_grid(self, spec, T_world_from_grid: np.ndarray) -> StaticMap:
         """Voxels that can overlap a grid: centre within the grid box (spec: GridSpec in its own
@@ -292,13 +289,7 @@ class StaticMap:
             (c >= np.asarray(spec.range_min) - pad) & (c <= np.asarray(spec.range_max) + pad),
             axis=1,
         )
-        return StaticMap(
-            self.voxel_size_m,
-            self.keys[keep],
-            self.labels[keep],
-            self.counts[keep],
-            self.ground_rejected,
-        )
+        return self._rows(keep)
 
     def sample_points(self, spacing_m: float) -> tuple[np.ndarray, np.ndarray]:
         """Points filling every voxel at <= spacing_m (for voxelizing into a finer grid).
@@ -317,18 +308,25 @@ class StaticSemanticMap:
     """Accumulates semantic sweeps into per-voxel label counts (one sequence, world frame).
 
     voxel_size_m: map resolution. flush_points: pending points merged into the sorted count table
-    once this many are buffered (memory vs merge cost). State lives on the instance.
+    once this many are buffered (memory vs merge cost). moments: also keep each voxel's point
+    moments (:mod:`tasks.occupancy.surface`; every sweep then needs its sensor origin). State
+    lives on the instance.
     """
 
-    def __init__(self, voxel_size_m: float, flush_points: int = 2_000_000) -> None:
+    def __init__(
+        self, voxel_size_m: float, flush_points: int = 2_000_000, moments: bool = False
+    ) -> None:
         if not voxel_size_m > 0:
             raise StaticMapError(f"voxel_size_m must be > 0, got {voxel_size_m}")
         self.voxel_size_m = float(voxel_size_m)
         self.flush_points = int(flush_points)
+        self.with_moments = bool(moments)
         self._keys = np.empty(0, dtype=np.int64)  # sorted packed keys
         self._counts = np.empty((0, NUM_OCCUPIED_CLASSES), dtype=np.uint16)
+        self._moments = np.empty((0, NUM_MOMENTS), dtype=np.int64)
         self._pending_keys: list[np.ndarray] = []
         self._pending_labels: list[np.ndarray] = []
+        self._pending_moments: list[tuple[np.ndarray, np.ndarray]] = []
         self._pending = 0
         self.num_sweeps = 0
 
@@ -342,14 +340,20 @@ class StaticSemanticMap:
         return self._keys.nbytes + self._counts.nbytes + 9 * self._pending
 
     def add_sweep(
-        self, points_world: np.ndarray, labels: np.ndarray, keep: np.ndarray | None = None
+        self,
+        points_world: np.ndarray,
+        labels: np.ndarray,
+        keep: np.ndarray | None = None,
+        origin_world: np.ndarray | None = None,
     ) -> None:
         """Add one sweep's votes.
 
         points_world: (N, 3) float32 metres, world frame. labels: (N,) uint8 class ids (UNLABELED
         points cast no vote; FREE is rejected). keep: optional (N,) bool, False for points to drop
-        (pedestrian points).
+        (pedestrian points). origin_world: (3,) the sensor's position (needed with moments).
         """
+        if self.with_moments and origin_world is None:
+            raise StaticMapError(f"sweep {self.num_sweeps}: a map with moments needs origin_world")
         p = np.asarray(points_world).reshape(-1, 3)
         lab = np.asarray(labels).reshape(-1)
         if len(lab) != len(p):
@@ -369,8 +373,12 @@ class StaticSemanticMap:
                 f"sweep {self.num_sweeps}: class {int(lab.max())} cannot vote (expected 0..8 or 255)"
             )
         keys = np.floor(np.asarray(p[sel], dtype=np.float64) / self.voxel_size_m).astype(np.int64)
-        self._pending_keys.append(pack_keys(keys))
+        packed = pack_keys(keys)
+        self._pending_keys.append(packed)
         self._pending_labels.append(lab)
+        if self.with_moments:
+            rows = point_moments(p[sel], keys, origin_world, self.voxel_size_m)
+            self._pending_moments.append(group_sum(packed, rows))
         self._pending += len(lab)
         self.num_sweeps += 1
         if self._pending >= self.flush_points:
@@ -381,7 +389,9 @@ class StaticSemanticMap:
             return
         pk = np.concatenate(self._pending_keys)
         pl = np.concatenate(self._pending_labels)
+        pending_moments = self._pending_moments
         self._pending_keys, self._pending_labels, self._pending = [], [], 0
+        self._pending_moments = []
         if not len(pk):
             return
         uk, inv = np.unique(pk, return_inverse=True)
@@ -392,6 +402,15 @@ class StaticSemanticMap:
         counts = np.zeros((len(keys), NUM_OCCUPIED_CLASSES), dtype=np.uint32)
         counts[np.searchsorted(keys, self._keys)] = self._counts
         counts[np.searchsorted(keys, uk)] += add.astype(np.uint32)
+        if self.with_moments:
+            mk, mm = group_sum(
+                np.concatenate([k for k, _ in pending_moments]),
+                np.concatenate([m for _, m in pending_moments]),
+            )
+            moments = np.zeros((len(keys), NUM_MOMENTS), dtype=np.int64)
+            moments[np.searchsorted(keys, self._keys)] = self._moments
+            moments[np.searchsorted(keys, mk)] += mm
+            self._moments = moments
         self._keys = keys
         self._counts = np.minimum(counts, np.iinfo(np.uint16).max).astype(np.uint16)  # saturate
 
@@ -399,6 +418,12 @@ class StaticSemanticMap:
         """Raw votes so far: keys (K, 3) int64 and counts (K, 9) uint16."""
         self._flush()
         return unpack_keys(self._keys), self._counts.copy()
+
+    def packed_moments(self) -> np.ndarray:
+        """Point moments (K, 13) int64 of the voxels of :meth:`packed_counts` (same rows; a map
+        made without moments: empty)."""
+        self._flush()
+        return self._moments
 
     def packed_counts(self) -> tuple[np.ndarray, np.ndarray]:
         """Raw votes so far: packed keys (K,) int64 ascending (:func:`pack_keys`), counts (K, 9)
@@ -549,12 +574,16 @@ def merge_static_maps(primary: StaticMap, secondary: StaticMap) -> StaticMap:
     only_b = ~np.isin(b, a)
     keys = np.concatenate([primary.keys, secondary.keys[only_b]])
     order = np.argsort(pack_keys(keys), kind="stable")
+    surface = None
+    if primary.surface is not None and secondary.surface is not None:
+        surface = np.concatenate([primary.surface, secondary.surface[only_b]])[order]
     return StaticMap(
         primary.voxel_size_m,
         keys[order],
         np.concatenate([primary.labels, secondary.labels[only_b]])[order],
         np.concatenate([primary.counts, secondary.counts[only_b]])[order],
         primary.ground_rejected + secondary.ground_rejected,
+        surface,
     )
 
 

@@ -1,15 +1,15 @@
 """Exact ground truth of a synthetic frame: semantic occupancy, keypoints, visibility.
 
-Occupancy rule: a voxel is occupied when a solid or a surface intersects it. This is computed as
-the union of (a) voxels holding a surface sample (every triangle sampled with gaps below a quarter
-voxel, voxel index ``floor((p - range_min) / voxel_size)``) and (b) voxels whose centre lies
-inside a solid. Solids count a voxel only where it meets their interior (samples are moved
-``CLOSED_TOL_M`` inwards, so a box face lying on a voxel face does not spill into the next voxel).
-Ground surfaces have no interior and use the closed cube: a ground sample on a voxel face counts
-for both neighbours. Label precedence: pedestrians, then
-the other solids (most samples wins, interiors count as full), then the ground surfaces (most
-samples wins). A flat ground at z = 0 (a voxel boundary) therefore occupies the layers just below
-and just above it, which is where its noisy LiDAR returns fall.
+Occupancy rule (the voxel convention of storage/SCHEMA.md and storage/GT_FORMAT.md): a voxel is
+occupied when a surface passes through it or a solid meets its interior; a surface lying on a
+voxel face belongs to the voxel on its solid's side. This is computed as the union of (a) voxels
+holding a surface sample (every triangle sampled with gaps below a quarter voxel, voxel index
+``floor((p - range_min) / voxel_size)``, each sample moved ``CLOSED_TOL_M`` to the solid's side
+first, so a face lying on a voxel face counts only for the voxel behind it) and (b) voxels whose
+centre lies inside a solid. The ground is the top of the earth: its solid side is below it, so the
+flat ground at z = 0 (a voxel face of the benchmark grid) occupies the layer just below it, not the
+one above. Label precedence: pedestrians, then the other solids (most samples wins, interiors count
+as full), then the ground surfaces (most samples wins).
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ class GridSpec:
 
 
 def _flat_indices(
-    points_base: np.ndarray, grid: GridSpec, closed: bool = True
+    points_base: np.ndarray, grid: GridSpec, closed: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
     """(N, 3) base points -> flat voxel indices (M,) int64 of every voxel whose cube holds a
     point, with the sample index (M,) of each. closed: a point within CLOSED_TOL_M of a face also
@@ -101,14 +101,17 @@ def occupancy_grid(inp: OccupancyInput, grid: GridSpec) -> tuple[np.ndarray, np.
     counts_ground = np.zeros((n_vox, C.NUM_CLASSES), dtype=np.int64)
     for verts, faces, cls, is_ground in inp.static_tris:
         pts = sample_triangles(verts, faces, spacing)
-        if not is_ground:
-            # Move samples a hair into the (convex) solid, so a face lying on a voxel face only
-            # occupies the voxel on the solid's side: the voxel must meet the solid's interior.
+        # Move samples a hair to the solid's side, so a face lying on a voxel face only occupies
+        # the voxel behind it: into the (convex) solid, or below the ground (its tiles face up,
+        # the earth lies under them).
+        if is_ground:
+            towards = np.broadcast_to([0.0, 0.0, -1.0], pts.shape)
+        else:
             towards = verts.mean(axis=0) - pts
-            pts = pts + CLOSED_TOL_M * towards / np.maximum(
-                np.linalg.norm(towards, axis=1, keepdims=True), 1e-12
-            )
-        flat, _ = _flat_indices(pts, grid, closed=is_ground)
+        pts = pts + CLOSED_TOL_M * towards / np.maximum(
+            np.linalg.norm(towards, axis=1, keepdims=True), 1e-12
+        )
+        flat, _ = _flat_indices(pts, grid)
         target = counts_ground if is_ground else counts_obj
         target[:, cls] += np.bincount(flat, minlength=n_vox)
     centres = grid.centres().reshape(*grid.shape, 3)

@@ -1,9 +1,12 @@
 """Seeded generator of a synthetic campus block: static solids, pedestrians and the robot path.
 
 World frame: z up, the ground at z = 0, the road along +x centred on y = 0 (7.2 m wide), lawns
-(terrain) beside it, then low walls, trees, poles and buildings. The robot drives along y = 0 at
-``robot_speed_mps``. Instance ids: pedestrians 1..K (their track ids), static things >= 1000,
-ground 0.
+(terrain) beside it, then trees and buildings. The robot drives along y = 0 at
+``robot_speed_mps``. Every class stands inside the benchmark grid (robot-local x 0.4-10 m,
+|y| <= 4.8 m) along the way: poles at the kerbs (|y| = 3.7 m), low walls along the outer edge of
+the lawns (their faces at |y| = 4.75 m), parked vehicles on the left half of the road with a car,
+a delivery truck and a bike right ahead of the start, tree crowns reaching over the lawns.
+Instance ids: pedestrians 1..K (their track ids), static things >= 1000, ground 0.
 """
 
 from __future__ import annotations
@@ -23,6 +26,12 @@ from tasks.sim.geometry import (
 )
 
 ROAD_HALF_WIDTH_M = 3.6  # on a 0.2 m voxel boundary, so no voxel straddles road and lawn
+#: |y| of the kerb poles (radius 0.08 m: between the road's edge and the lawn walkways)
+POLE_Y_M = 3.7
+#: the longest half-length (m) of each vehicle kind (_vehicle)
+VEHICLE_HALF_LENGTH_M = {"car": 2.4, "truck": 4.0, "two-wheeler": 0.95}
+#: |y| of the middle of the low walls (0.3 m thick: their road-side faces at 4.75 m, in the grid)
+WALL_Y_M = 4.9
 STATIC_INSTANCE_BASE = 1000
 SENSORS = ("os1-128", "os1-64", "os1-32")
 CROWDS = ("uncrowded", "crowded")
@@ -182,6 +191,7 @@ def build_scene(options: SimOptions) -> Scene:
     solids: list[Solid] = []
     surfaces: list[Surface] = []
     objects: list[LabelledObject] = []
+    poles: list[tuple[float, float]] = []  # (x, y) world m, kept clear by the people
     next_id = [STATIC_INSTANCE_BASE]
 
     def new_id() -> int:
@@ -213,27 +223,32 @@ def build_scene(options: SimOptions) -> Scene:
                 )
             )
             x += length + rng.uniform(3, 10)
-        # Low walls along the lawns, with openings.
+        # Low walls along the outer edge of the lawns, with openings.
         x = x0
         while x < x1:
             length = rng.uniform(4, 12)
             if rng.random() < 0.6:
+                height = rng.uniform(0.6, 1.2)
                 solids.append(
                     box_solid(
-                        [x + length / 2, side * 9.0, 0.5],
-                        [length, 0.3, 1.0],
+                        [x + length / 2, side * WALL_Y_M, height / 2],
+                        [length, 0.3, height],
                         0.0,
                         C.OTHER_STRUCTURE,
                         new_id(),
                     )
                 )
             x += length + rng.uniform(1, 4)
-        # Poles just off the road edge.
-        x = x0 + rng.uniform(0, 10)
-        while x < x1:
+        # Poles (street lights, signs) at the kerb, one within a few metres ahead of the start.
+        xs = [rng.uniform(1.0, 6.0)]
+        while xs[0] > x0:
+            xs.insert(0, xs[0] - rng.uniform(9, 15))
+        while xs[-1] < x1:
+            xs.append(xs[-1] + rng.uniform(9, 15))
+        for x in xs[1:-1]:
             solids.append(
                 cylinder_solid(
-                    [x, side * (ROAD_HALF_WIDTH_M + 1.4), 0.0],
+                    [x, side * POLE_Y_M, 0.0],
                     0.08,
                     rng.uniform(3.5, 5.0),
                     C.POLE,
@@ -241,12 +256,12 @@ def build_scene(options: SimOptions) -> Scene:
                     segments=8,
                 )
             )
-            x += rng.uniform(9, 15)
-        # Trees on the lawns: trunk and crown share the vegetation class and an instance.
+            poles.append((x, side * POLE_Y_M))
+        # Trees behind the walls: trunk and crown share the vegetation class and an instance.
         x = x0 + rng.uniform(0, 6)
         while x < x1:
             iid = new_id()
-            y = side * rng.uniform(5.8, 7.5)
+            y = side * rng.uniform(5.4, 6.0)  # behind the walls, crowns over the lawns
             trunk_h = rng.uniform(1.8, 2.6)
             solids.append(
                 cylinder_solid(
@@ -264,47 +279,85 @@ def build_scene(options: SimOptions) -> Scene:
             )
             x += rng.uniform(6, 12)
         # Parked vehicles along the left road edge (the right half of the road and the lawn
-        # strips are the walkways).
-        x = x0 + rng.uniform(0, 8)
-        while side > 0 and x < x1:
-            kind = rng.choice(["car", "car", "car", "truck", "two-wheeler"])
-            iid = new_id()
-            parts, obj = _vehicle(rng, str(kind), x, side, iid)
-            solids.extend(parts)
-            objects.append(obj)
-            x += obj.size[0] + rng.uniform(3.0, 14.0)
+        # strips are the walkways). Right ahead of the start one of each kind, close together in
+        # random order (every vehicle class in the benchmark grid); random ones before and after.
+        if side > 0:
+            group: list[tuple[list[Solid], LabelledObject]] = []
+            x = rng.uniform(-1.0, 2.0)
+            for kind in (str(k) for k in rng.permutation(list(VEHICLE_HALF_LENGTH_M))):
+                if group:  # just behind the previous one (its longest half-length ahead)
+                    prev = group[-1][1]
+                    x = prev.center[0] + prev.size[0] / 2 + rng.uniform(1.0, 2.5)
+                    x += VEHICLE_HALF_LENGTH_M[kind]
+                group.append(_vehicle(rng, kind, x, side, new_id()))
+            rear = min(o.center[0] - o.size[0] / 2 for _, o in group)
+            front = max(o.center[0] + o.size[0] / 2 for _, o in group)
+            x = x0 + rng.uniform(0, 8)
+            while x < x1:
+                if rear - 1.0 <= x <= front + 1.0:
+                    for parts, obj in group:
+                        solids.extend(parts)
+                        objects.append(obj)
+                    x = front + rng.uniform(3.0, 14.0) + max(VEHICLE_HALF_LENGTH_M.values())
+                    rear = np.inf
+                    continue
+                kind = str(rng.choice(["car", "car", "car", "truck", "two-wheeler"]))
+                parts, obj = _vehicle(rng, kind, x, side, new_id())
+                if obj.center[0] + obj.size[0] / 2 > rear - 1.0 and np.isfinite(rear):
+                    x = rear - 1.0  # would touch the group: place the group next
+                    continue
+                solids.extend(parts)
+                objects.append(obj)
+                x += obj.size[0] + rng.uniform(3.0, 14.0)
 
-    peds = _pedestrians(rng, options, duration, objects)
+    peds = _pedestrians(rng, options, duration, objects, poles)
     return Scene(options, tuple(solids), tuple(surfaces), tuple(objects), tuple(peds))
 
 
-#: Walkways (y ranges, world m): the right half of the road (clear of the robot's line) and the
-#: lawn strips beside the road, inside the benchmark grid's |y| <= 4.8.
-WALKWAYS = ((-3.4, -0.8), (-4.6, -3.8), (3.8, 4.6))
+#: Walkways (y ranges of a person's centre, world m): the right half of the road (clear of the
+#: robot's line and of the kerb poles) and the lawn strips between the kerb poles and the walls,
+#: inside the benchmark grid's |y| <= 4.8.
+WALKWAYS = ((-3.25, -0.8), (-4.45, -4.15), (4.15, 4.45))
+#: distance (m) a person's centre keeps from a pole's axis
+POLE_CLEARANCE_M = 0.45
 
 
-def _in_vehicle(x: float, y: float, objects, margin: float = 0.6) -> bool:
+def _in_vehicle(x: float, y: float, objects, margin: float = 0.6, poles=()) -> bool:
+    """(x, y) within margin of a parked vehicle, or within POLE_CLEARANCE_M of a pole."""
     return any(
         abs(x - o.center[0]) < o.size[0] / 2 + margin
         and abs(y - o.center[1]) < o.size[1] / 2 + margin
         for o in objects
-    )
+    ) or any(np.hypot(x - px, y - py) < POLE_CLEARANCE_M for px, py in poles)
 
 
 def _pedestrians(
-    rng: np.random.Generator, options: SimOptions, duration: float, objects: list[LabelledObject]
+    rng: np.random.Generator,
+    options: SimOptions,
+    duration: float,
+    objects: list[LabelledObject],
+    poles: list[tuple[float, float]] = (),
 ) -> list[PedestrianSpec]:
     """People mostly ahead of the robot (within ~10 m) and in the camera view, on the walkways;
-    crossings and standing spots avoid the parked vehicles, and a new person whose path comes
-    within MIN_GAP_M of an earlier one's at some time is redrawn (up to 30 times)."""
+    crossings and standing spots avoid the parked vehicles and the poles, and a new person whose
+    path comes within MIN_GAP_M of an earlier one's (or within POLE_CLEARANCE_M of a pole) at
+    some time is redrawn (up to 30 times)."""
     times = np.arange(0.0, duration + 0.25, 0.25)
     out: list[PedestrianSpec] = []
     tracks: list[np.ndarray] = []
+    pole_xy = np.asarray(poles, dtype=np.float64).reshape(-1, 2)
     for k in range(options.num_pedestrians):
         for _ in range(30):
-            spec = _draw_pedestrian(rng, k + 1, options, duration, objects)
+            spec = _draw_pedestrian(rng, k + 1, options, duration, objects, poles)
             track = _track(spec, times)
-            if all(np.min(np.linalg.norm(track - other, axis=1)) >= MIN_GAP_M for other in tracks):
+            clear_of_poles = (
+                not len(pole_xy)
+                or np.min(np.linalg.norm(track[:, None, :] - pole_xy[None], axis=2))
+                >= POLE_CLEARANCE_M
+            )
+            if clear_of_poles and all(
+                np.min(np.linalg.norm(track - other, axis=1)) >= MIN_GAP_M for other in tracks
+            ):
                 break
         out.append(spec)
         tracks.append(track)
@@ -329,6 +382,7 @@ def _draw_pedestrian(
     options: SimOptions,
     duration: float,
     objects: list[LabelledObject],
+    poles: list[tuple[float, float]] = (),
 ) -> PedestrianSpec:
     v_robot = options.robot_speed_mps
     betas = np.clip(rng.normal(0.0, 0.8, 10), -2.0, 2.0).astype(np.float32)
@@ -356,7 +410,7 @@ def _draw_pedestrian(
         t_mid = t_start + abs(y0) / speed
         x = v_robot * t_mid + rng.uniform(4.0, 8.0)
         for _ in range(20):  # cross in a gap between parked vehicles
-            if not any(_in_vehicle(x, y, objects) for y in np.linspace(-5, 5, 21)):
+            if not any(_in_vehicle(x, y, objects, poles=poles) for y in np.linspace(-5, 5, 21)):
                 break
             x += rng.uniform(0.5, 2.0)
         return PedestrianSpec(
@@ -372,7 +426,7 @@ def _draw_pedestrian(
         )
     start = [rng.uniform(3.0, 9.0) + v_robot * duration * rng.uniform(0, 0.8), lane]
     for _ in range(20):
-        if not _in_vehicle(start[0], start[1], objects):
+        if not _in_vehicle(start[0], start[1], objects, poles=poles):
             break
         start[0] += rng.uniform(0.5, 2.0)
     heading = float(rng.uniform(-np.pi, np.pi))

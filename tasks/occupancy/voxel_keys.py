@@ -1,0 +1,28 @@
+"""Packed voxel keys: (N, 3) integer voxel keys as sortable int64 (the static map's tables, the
+surface fit's moments), in a module of their own so both import them."""
+
+from __future__ import annotations
+
+import numpy as np
+
+KEY_OFFSET = 1 << 20  # 21 bits per axis in a packed key: +-2^20 voxels
+KEY_MASK = (1 << 21) - 1
+
+
+class StaticMapError(ValueError):
+    """Bad input to the static-map kernels (shapes, classes, parameters)."""
+
+
+def pack_keys(keys: np.ndarray) -> np.ndarray:
+    """(N, 3) int voxel keys -> (N,) int64 packed keys (sortable, 21 bits per axis)."""
+    k = np.asarray(keys, dtype=np.int64).reshape(-1, 3) + KEY_OFFSET
+    if len(k) and (k.min() < 0 or k.max() > KEY_MASK):
+        lo, hi = k.min() - KEY_OFFSET, k.max() - KEY_OFFSET
+        raise StaticMapError(f"voxel keys beyond +-2^20 (got {lo}..{hi})")
+    return (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
+
+
+def unpack_keys(packed: np.ndarray) -> np.ndarray:
+    """(N,) int64 packed keys -> (N, 3) int64 voxel keys."""
+    p = np.asarray(packed, dtype=np.int64)
+    return np.stack([(p >> 42) & KEY_MASK, (p >> 21) & KEY_MASK, p & KEY_MASK], axis=1) - KEY_OFFSET

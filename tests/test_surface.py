@@ -1,0 +1,82 @@
+"""Surfaces in the static map's voxels (tasks/occupancy/surface.py): analytic planes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tasks.occupancy.static_map import pack_keys
+from tasks.occupancy.surface import (
+    FACE_TOLERANCE_M,
+    SurfaceError,
+    group_sum,
+    point_moments,
+    surface_fit,
+    surface_samples,
+)
+
+VS = 0.2
+
+
+def _ground(n: int, z0: float, noise: float, seed: int = 0):
+    """Noisy returns of the plane z = z0 over x in [2, 4), y in [-1, 1), seen from (0, 0, 0.9)."""
+    rng = np.random.default_rng(seed)
+    p = np.column_stack([rng.uniform(2, 4, n), rng.uniform(-1, 1, n), np.full(n, z0)])
+    origin = np.array([0.0, 0.0, 0.9])
+    d = (p - origin) / np.linalg.norm(p - origin, axis=1, keepdims=True)
+    return (p + d * rng.normal(0.0, noise, n)[:, None]).astype(np.float32), origin
+
+
+def _fit(points, origin, noise=0.01, min_points=8):
+    keys = np.floor(points.astype(np.float64) / VS).astype(np.int64)
+    packed, moments = group_sum(pack_keys(keys), point_moments(points, keys, origin, VS))
+    return packed, surface_fit(packed, moments, VS, noise, min_points)
+
+
+def test_moments_of_any_split_add_to_the_same_integers():
+    pts, origin = _ground(5000, 0.0, 0.01)
+    keys = np.floor(pts.astype(np.float64) / VS).astype(np.int64)
+    rows = point_moments(pts, keys, origin, VS)
+    whole = group_sum(pack_keys(keys), rows)
+    halves = [group_sum(pack_keys(keys[s]), rows[s]) for s in (slice(0, 1234), slice(1234, None))]
+    again = group_sum(
+        np.concatenate([k for k, _ in halves]), np.concatenate([m for _, m in halves])
+    )
+    assert np.array_equal(whole[0], again[0]) and np.array_equal(whole[1], again[1])
+    assert whole[1].dtype == np.int64 and whole[1][:, 0].sum() == 5000
+
+
+def test_ground_on_a_voxel_face_keeps_only_the_layer_below():
+    """The ground at z = 0, a voxel face: about half the returns fall in the layer above; the
+    surface belongs to the layer below (the earth's side), the layer above is noise."""
+    pts, origin = _ground(40000, 0.0, 0.01)
+    packed, fit = _fit(pts, origin)
+    z = (packed & ((1 << 21) - 1)) - (1 << 20)
+    assert set(z[fit.keep].tolist()) == {-1}
+    assert (z == 0).sum() > 20  # the noise did put points above
+    # the kept voxels resample to points of their plane, just below z = 0 (moved 2 mm into the
+    # earth, and the centroid of a voxel's own points lies ~2 mm lower: the returns above z = 0
+    # are in the voxel above), inside their cubes
+    from tasks.occupancy.static_map import unpack_keys
+
+    keys = unpack_keys(packed[fit.keep])
+    sp, rows = surface_samples(keys, fit.surface[fit.keep], VS, VS / 4)
+    assert len(np.unique(rows)) == len(keys)
+    assert np.all((sp[:, 2] < -FACE_TOLERANCE_M / 2) & (sp[:, 2] > -3 * FACE_TOLERANCE_M))
+    assert np.all(np.floor(sp / VS).astype(np.int64) == keys[rows])
+
+
+def test_ground_inside_a_voxel_is_not_dropped_and_noise_zero_keeps_everything():
+    pts, origin = _ground(20000, 0.1, 0.01)  # the middle of the layer [0, 0.2)
+    packed, fit = _fit(pts, origin)
+    assert fit.keep.all() and fit.planar.mean() > 0.9
+    pts, origin = _ground(20000, 0.0, 0.01)
+    _, fit = _fit(pts, origin, noise=0.0)
+    assert fit.keep.all()
+
+
+def test_bad_moments_are_refused():
+    with pytest.raises(SurfaceError, match="moments"):
+        surface_fit(np.zeros(2, np.int64), np.zeros((3, 13), np.int64), VS, 0.01, 8)
+    with pytest.raises(SurfaceError, match="min_points"):
+        surface_fit(np.zeros(0, np.int64), np.zeros((0, 13), np.int64), VS, 0.01, 2)
