@@ -281,6 +281,16 @@ def published_names(root: str | os.PathLike) -> set[str]:
     return names
 
 
+def _read_current(path: Path) -> tuple[Any, str]:
+    """A sequence's ``current.json`` parsed, and "" or why it cannot be read."""
+    try:
+        return json.loads(path.read_bytes()), ""
+    except FileNotFoundError:
+        return None, f"{path} is missing"
+    except (OSError, ValueError) as exc:
+        return None, f"{path} cannot be read ({exc})"
+
+
 def check_publication(
     root: str | os.PathLike, sequence: str, version: str, deep: bool = False
 ) -> str:
@@ -292,12 +302,9 @@ def check_publication(
     if sequence in pending_publications(root):
         return "its publication was interrupted (the next run completes it)"
     path = root / OCCUPANCY_DIR / sequence / CURRENT_FILE
-    try:
-        current = json.loads(path.read_bytes())
-    except FileNotFoundError:
-        return f"{path} is missing"
-    except (OSError, ValueError) as exc:
-        return f"{path} cannot be read ({exc})"
+    current, problem = _read_current(path)
+    if problem:
+        return problem
     if not isinstance(current, dict) or not isinstance(current.get("files"), dict):
         return f"{path} does not list the published files"
     if current.get("version") != version:
@@ -310,12 +317,9 @@ def damaged_publication(root: str | os.PathLike, sequence: str) -> str:
     ``stat`` per file: ``current.json`` missing or unreadable, or a file it lists missing or of
     another size (a ``current.json`` of a store published before file lists: not checked)."""
     path = Path(root) / OCCUPANCY_DIR / sequence / CURRENT_FILE
-    try:
-        current = json.loads(path.read_bytes())
-    except FileNotFoundError:
-        return f"{path} is missing"
-    except (OSError, ValueError) as exc:
-        return f"{path} cannot be read ({exc})"
+    current, problem = _read_current(path)
+    if problem:
+        return problem
     version = current.get("version") if isinstance(current, dict) else None
     if not isinstance(version, str):
         return f"{path} does not name a version"

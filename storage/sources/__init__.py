@@ -66,6 +66,47 @@ class SequenceSource(Protocol):
         ...
 
 
+class SelectedFrames:
+    """The frame-level part of :class:`SequenceSource` common to every source: the selected
+    frames' count, a raw frame's position among them, and all frames in order (its ``frame``)."""
+
+    sequence: str
+    info: SequenceInfo
+
+    def __len__(self) -> int:
+        return self.info.num_frames
+
+    def position(self, raw_frame: int) -> int:
+        """The position in ``info.frame_indices`` of a raw frame number (ValueError if not selected)."""
+        try:
+            return self.info.frame_indices.index(int(raw_frame))
+        except ValueError:
+            raise ValueError(
+                f"sequence {self.sequence}: raw frame {raw_frame} is not a selected frame"
+            ) from None
+
+    def frame(self, i: int) -> Frame:
+        raise NotImplementedError
+
+    def frames(self) -> Iterator[Frame]:
+        for i in range(len(self)):
+            yield self.frame(i)
+
+
+class CheckProblems:
+    """What a source's check found (``problems``: (blocking, message) pairs, declared by each
+    facts class)."""
+
+    problems: list[tuple[bool, str]]
+
+    def problem(self, blocking: bool, message: str) -> None:
+        self.problems.append((blocking, message))
+
+    @property
+    def blocking(self) -> bool:
+        return any(b for b, _ in self.problems)
+
+
 def source_relative(path: str | os.PathLike, source_root: str | os.PathLike) -> str:
     """``path`` (a source file under ``source_root``) as a POSIX path relative to ``source_root``:
     what the frames table stores, so the dataset reads the same wherever the raw data is mounted."""

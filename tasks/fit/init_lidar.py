@@ -168,6 +168,17 @@ def _gm(x2: np.ndarray, sigma: float) -> np.ndarray:
     return x2 / (x2 + sigma * sigma)
 
 
+def _batch_inputs(keypoints, K, up_cam, points_cam, counts):
+    """The per-person inputs as arrays: keypoints (B, 17, 3), B, K (3, 3), unit up (B, 3), and
+    each person's points (a list of (P_b, 3))."""
+    kp = np.asarray(keypoints, np.float64).reshape(-1, 17, 3)
+    B = len(kp)
+    up = np.broadcast_to(np.asarray(up_cam, np.float64), (B, 3))
+    up = up / np.linalg.norm(up, axis=1, keepdims=True)
+    pts = _person_points(np.asarray(points_cam, np.float64).reshape(-1, 3), np.asarray(counts))
+    return kp, B, np.asarray(K, np.float64), up, pts
+
+
 def _person_points(points_cam: np.ndarray, counts: np.ndarray) -> list[np.ndarray]:
     ends = np.cumsum(counts)
     return [points_cam[e - c : e].astype(np.float64) for c, e in zip(counts, ends)]
@@ -193,12 +204,7 @@ def facing_costs(
     counts (B,) how many belong to each; up_cam (3,) or (B, 3) gravity's up in the cam frame.
     """
     s = settings
-    kp = np.asarray(keypoints, np.float64).reshape(-1, 17, 3)
-    B = len(kp)
-    K = np.asarray(K, np.float64)
-    up = np.broadcast_to(np.asarray(up_cam, np.float64), (B, 3))
-    up = up / np.linalg.norm(up, axis=1, keepdims=True)
-    pts = _person_points(np.asarray(points_cam, np.float64).reshape(-1, 3), np.asarray(counts))
+    kp, B, K, up, pts = _batch_inputs(keypoints, K, up_cam, points_cam, counts)
     conf_ok = kp[..., 2] >= s.keypoint_min_confidence
     has_pts = np.array([len(p) >= max(s.min_lidar_points, 1) for p in pts])
     has_kp = conf_ok.sum(1) >= 2
@@ -325,12 +331,7 @@ def initial_bodies(
     mirror them first for the mirrored one), placed on the points. Other arguments as
     :func:`facing_costs`."""
     s = settings
-    kp = np.asarray(keypoints, np.float64).reshape(-1, 17, 3)
-    B = len(kp)
-    K = np.asarray(K, np.float64)
-    up = np.broadcast_to(np.asarray(up_cam, np.float64), (B, 3))
-    up = up / np.linalg.norm(up, axis=1, keepdims=True)
-    pts = _person_points(np.asarray(points_cam, np.float64).reshape(-1, 3), np.asarray(counts))
+    kp, B, K, up, pts = _batch_inputs(keypoints, K, up_cam, points_cam, counts)
     ok = kp[..., 2] >= s.keypoint_min_confidence
     heading = np.asarray(heading, np.int64).reshape(B)
     facing = costs.facing_cam[np.arange(B), heading]

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from storage.sources import CheckProblems
 from storage.sources.coda import (
     IMAGE_EXTENSIONS,
     POINTS_PER_SWEEP,
@@ -36,7 +37,7 @@ SAMPLES = 3
 
 
 @dataclass
-class SequenceFacts:
+class SequenceFacts(CheckProblems):
     """Facts about one sequence of a download (see the module docstring)."""
 
     sequence: str
@@ -59,13 +60,6 @@ class SequenceFacts:
     pose_stamp_diff_s: float = 0.0
     frames_read: int = 0
     problems: list[tuple[bool, str]] = field(default_factory=list)
-
-    def problem(self, blocking: bool, message: str) -> None:
-        self.problems.append((blocking, message))
-
-    @property
-    def blocking(self) -> bool:
-        return any(b for b, _ in self.problems)
 
 
 def _image(seq: CodaSequence, cam: str, frame: int) -> Path | None:

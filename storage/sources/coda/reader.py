@@ -55,6 +55,7 @@ import numpy as np
 
 from storage.files import InputError, open_regular, read_bytes, read_text, regular_stat
 from storage.sequence_data import Box3D, Calibration, Frame, SequenceInfo
+from storage.sources import SelectedFrames
 from storage.sources.coda.calibration import read_calibration
 from storage.sources.coda.layout import (
     COLUMNS_PER_BEAM,
@@ -221,7 +222,7 @@ def box_rotation(rpy: np.ndarray) -> np.ndarray:
     return rz @ ry @ rx
 
 
-class CodaSequence:
+class CodaSequence(SelectedFrames):
     """The CODa sequence source (storage.sources.SequenceSource). One sequence of a CODa-layout root. Cheap to build (no sweep is read); frames on demand.
 
     frame_stride: keep a frame every k raw frames (2 for 5 Hz). lidar_source: ``3d_comp`` (what
@@ -466,18 +467,6 @@ class CodaSequence:
         return files
 
     # -- frame level ------------------------------------------------------------------------
-    def __len__(self) -> int:
-        return self.info.num_frames
-
-    def position(self, raw_frame: int) -> int:
-        """The position in ``info.frame_indices`` of a raw frame number (ValueError if not selected)."""
-        try:
-            return self.info.frame_indices.index(int(raw_frame))
-        except ValueError:
-            raise ValueError(
-                f"sequence {self.sequence}: raw frame {raw_frame} is not a selected frame"
-            ) from None
-
     def frame(self, i: int) -> Frame:
         """The i-th selected frame (i indexes ``info.frame_indices``); CodaFrameError if its files
         are missing or unreadable."""
@@ -522,10 +511,6 @@ class CodaSequence:
             intensity_present=sweep.intensity_present,
             point_index=sweep.index,
         )
-
-    def frames(self):
-        for i in range(len(self)):
-            yield self.frame(i)
 
     def image(self, camera: str, raw_frame: int) -> np.ndarray:
         """(H, W, 3) uint8 RGB of ``camera``'s image at a raw frame, its size checked against the

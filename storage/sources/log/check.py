@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from storage.files import InputError
+from storage.sources import CheckProblems
 from storage.sources.log.reader import LogFacts, LogSequence
 
 #: sampled sweeps in the fast mode
@@ -25,7 +26,7 @@ SAMPLES = 3
 
 
 @dataclass
-class LogCheckFacts:
+class LogCheckFacts(CheckProblems):
     """Facts about one log (see the module docstring)."""
 
     sequence: str
@@ -38,13 +39,6 @@ class LogCheckFacts:
     frames_read: int = 0
     images_read: int = 0
     problems: list[tuple[bool, str]] = field(default_factory=list)
-
-    def problem(self, blocking: bool, message: str) -> None:
-        self.problems.append((blocking, message))
-
-    @property
-    def blocking(self) -> bool:
-        return any(b for b, _ in self.problems)
 
 
 def inspect_log(open_sequence, sequence: str, deep: bool = False) -> LogCheckFacts:

@@ -41,6 +41,7 @@ from storage.sequence_data import (
     RawCameraCalibration,
     SequenceInfo,
 )
+from storage.sources import SelectedFrames
 from storage.sources.log.bag import LogFile, LogFormatError, log_files, quick_fingerprint, where
 from storage.sources.log.images import (
     CameraInfo,
@@ -161,7 +162,7 @@ def _stamped_edges(tf: Transforms | None) -> dict[str, StampedEdge]:
     return out
 
 
-class LogSequence:
+class LogSequence(SelectedFrames):
     """One robot log as a sequence. Cheap to reopen (the index is cached by fingerprint); frames
     are read on demand, one message at a time.
 
@@ -728,17 +729,6 @@ class LogSequence:
         """The LiDAR's point layout in words (its first sweep), for check-data."""
         return self._cloud(0, self.min_range_m, self.max_range_m).layout.describe()
 
-    def __len__(self) -> int:
-        return self.info.num_frames
-
-    def position(self, raw_frame: int) -> int:
-        try:
-            return self.info.frame_indices.index(int(raw_frame))
-        except ValueError:
-            raise ValueError(
-                f"sequence {self.sequence}: raw frame {raw_frame} is not a selected frame"
-            ) from None
-
     def frame(self, i: int) -> Frame:
         """The i-th selected frame (its sweep decoded; images on demand with :meth:`image`)."""
         if not 0 <= i < len(self):
@@ -760,10 +750,6 @@ class LogSequence:
             intensity_present=cloud.intensity_present,
             point_index=cloud.index,
         )
-
-    def frames(self):
-        for i in range(len(self)):
-            yield self.frame(i)
 
     def image(self, camera: str, raw_frame: int) -> np.ndarray:
         """(H, W, 3) uint8 RGB of ``camera`` matched to raw frame ``raw_frame``, in the pinhole of
