@@ -738,7 +738,7 @@ def _export(env: Env, to: Path, capsys, *more: str) -> tuple[int, str]:
         ("a-file", "exists and is not a folder"),
         ("others", "holds files that are not a mobileocc export"),
         ("/proc/mobileocc-export", "is not writable"),
-        ("nowhere/deeper", "does not exist"),
+        ("a-file/deeper", "a file stands where its folder"),
     ],
 )
 def test_export_refuses_a_place_it_cannot_take(target, says, built, tmp_path, capsys):

@@ -225,8 +225,15 @@ def reusable(unit: UnitPlan, final: Path) -> bool:
     """Whether an output folder found at a unit's key can stand for running it: it is whole
     (its completion record verifies, content hashes included: the plan may have run the unit
     because hashing found it damaged), the unit is not forced, and it is not the export stage,
-    whose work is the publication itself (made again whenever the plan says it must be)."""
-    return not unit.force and unit.stage != "export" and not check_record(final, deep=True)
+    whose work is the publication itself (made again whenever the plan says it must be), and it
+    does not run because its upstream is being made again (flows.pipeline.plan: then it is made
+    from that upstream's new output, as the plan says)."""
+    return (
+        not unit.force
+        and unit.stage != "export"
+        and not unit.reason.startswith("upstream ")  # its upstream is being made again: so is it
+        and not check_record(final, deep=True)
+    )
 
 
 def remove_output(final: Path) -> None:
@@ -732,13 +739,18 @@ def check_export_target(target: Path) -> None:
             f"export target {target} holds files that are not a mobileocc export; choose a new "
             "or empty folder (an earlier export there is replaced as a whole)"
         )
-    parent = target.parent
-    if not parent.is_dir():
-        raise ExportTargetError(f"export target {target}: its folder {parent} does not exist")
-    probe = temporary_name(target)  # os.access says yes to root, even where nothing can go
+    parent = (
+        target.parent
+    )  # made where missing, as `mkdir -p` (docs/exports.md: --to data/nuscenes)
     try:
+        parent.mkdir(parents=True, exist_ok=True)
+        probe = temporary_name(target)  # os.access says yes to root, even where nothing can go
         probe.mkdir()
         probe.rmdir()
+    except FileExistsError:
+        raise ExportTargetError(
+            f"export target {target}: a file stands where its folder {parent} should be"
+        ) from None
     except OSError as exc:
         raise ExportTargetError(
             f"export target {target}: its folder {parent} is not writable ({exc.strerror})"
