@@ -724,8 +724,40 @@ def export_dataset(
         check_export_target(target)
     with staged_folder(target) as tmp:
         _export_into(ex, out_root, data_root, fmt, tmp, gt)
+        write_record(tmp, format_record(fmt), format=fmt, key=key)
+        if not ours:
+            keep_other_formats(target, tmp, fmt)
         write_record(tmp, EXPORT_RECORD, format=fmt, key=key)
     return target
+
+
+def format_record(fmt: str) -> str:
+    """The record of one format's files in an export folder (``.mobileocc-export-<fmt>.json``)."""
+    return f".mobileocc-export-{fmt}.json"
+
+
+def keep_other_formats(target: Path, staged: Path, fmt: str) -> None:
+    """Carry into ``staged`` the files another format's export wrote into ``target`` (FlashOcc
+    wants the nuScenes tables and the Occ3D ``gts/`` in one folder: docs/exports.md), as its
+    record lists them, so that exporting one format into a shared folder replaces that format's
+    files only (a withdrawn sequence's old files go) and keeps the other's."""
+    for other in ("occ3d", "nuscenes"):
+        name = format_record(other)
+        if other == fmt or not (target / name).is_file():
+            continue
+        try:
+            files = read_record(target, name)["files"]
+        except ValueError:
+            continue  # an unreadable record: that export is not kept
+        for rel in [*files, name]:
+            src, dst = target / rel, staged / rel
+            if dst.exists() or not src.is_file():
+                continue
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                os.link(src, dst)
+            except OSError:
+                shutil.copy2(src, dst)
 
 
 def check_export_target(target: Path) -> None:
