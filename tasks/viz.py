@@ -81,11 +81,15 @@ def bev_image(
 
 def depth_colors(depth: np.ndarray, max_depth: float = 30.0) -> np.ndarray:
     """(N,) depths in metres -> (N, 3) uint8, near red through yellow and green to far blue."""
-    t = np.clip(np.asarray(depth, float) / max_depth, 0.0, 1.0)
-    r = np.clip(1.5 - np.abs(4 * t - 0.5), 0, 1)
-    g = np.clip(1.5 - np.abs(4 * t - 1.7), 0, 1)
-    b = np.clip(1.5 - np.abs(4 * t - 3.2), 0, 1)
-    return (255 * np.stack([r, g, b], axis=1)).astype(np.uint8)
+    return ramp_colors(np.asarray(depth, float) / max_depth, (0.5, 1.7, 3.2))
+
+
+def ramp_colors(t: np.ndarray, centres: tuple[float, float, float]) -> np.ndarray:
+    """(N,) values in [0, 1] (clipped) -> (N, 3) uint8: a "jet"-like ramp whose red, green and
+    blue channels peak where 4 t equals their ``centres``."""
+    t = np.clip(np.asarray(t, np.float64), 0.0, 1.0)
+    rgb = [np.clip(1.5 - np.abs(4 * t - c), 0, 1) for c in centres]
+    return (255 * np.stack(rgb, axis=1)).astype(np.uint8)
 
 
 def draw_points(

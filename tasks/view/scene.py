@@ -31,6 +31,7 @@ from tasks.metrics.bev import (
     DIFF_WRONG_CLASS,
 )
 from tasks.perception.types import box_corners
+from tasks.viz import ramp_colors
 
 #: at most this many voxels (or blocks) per layer by default: ~200k instanced cubes or points
 #: draw smoothly in a software-rendered browser (measured: flows/bench/viewer.py)
@@ -334,11 +335,7 @@ def velocity_arrows(
 
 def height_colors(z: np.ndarray, z_min: float = -1.0, z_max: float = 3.0) -> np.ndarray:
     """(N,) heights m -> (N, 3) uint8, low dark blue through cyan and yellow to high red."""
-    t = np.clip((np.asarray(z, np.float64) - z_min) / (z_max - z_min), 0.0, 1.0)
-    r = np.clip(1.5 - np.abs(4 * t - 3.0), 0, 1)
-    g = np.clip(1.5 - np.abs(4 * t - 2.0), 0, 1)
-    b = np.clip(1.5 - np.abs(4 * t - 1.0), 0, 1)
-    return (255 * np.stack([r, g, b], axis=1)).astype(np.uint8)
+    return ramp_colors((np.asarray(z, np.float64) - z_min) / (z_max - z_min), (3.0, 2.0, 1.0))
 
 
 def lidar_points(

@@ -46,12 +46,9 @@ def _base(source_root: Path) -> Path:
     return source_root if source_root.is_dir() else source_root.parent
 
 
-def read_ref_sweep(ref: MessageRef, source_root: Path, min_range_m: float) -> np.ndarray:
-    """(N, 5) float32 x y z intensity ring of a referenced sweep, LiDAR frame, no-returns and
-    returns nearer than ``min_range_m`` dropped."""
-    from storage.sources.log.pointcloud import Field, decode_pointcloud2
-    from storage.sources.log.positions import pointcloud2_of
-
+def _message(ref: MessageRef, source_root: Path):
+    """(log, index, stream, raw bytes) of a referenced message; LogFormatError naming the log
+    when the topic or the index is not there."""
     log, index = _open(str(_base(source_root) / ref.log))
     stream = index.streams.get(ref.topic)
     if stream is None or not 0 <= ref.index < len(stream.log_ns):
@@ -59,6 +56,16 @@ def read_ref_sweep(ref: MessageRef, source_root: Path, min_range_m: float) -> np
     raw = log.raw(
         ref.topic, ref.index, int(stream.log_ns[ref.index]), int(stream.ordinal[ref.index])
     )
+    return log, index, stream, raw
+
+
+def read_ref_sweep(ref: MessageRef, source_root: Path, min_range_m: float) -> np.ndarray:
+    """(N, 5) float32 x y z intensity ring of a referenced sweep, LiDAR frame, no-returns and
+    returns nearer than ``min_range_m`` dropped."""
+    from storage.sources.log.pointcloud import Field, decode_pointcloud2
+    from storage.sources.log.positions import pointcloud2_of
+
+    log, index, stream, raw = _message(ref, source_root)
     msg = pointcloud2_of(raw, log.ros1)
     cloud = decode_pointcloud2(
         [Field(*f) for f in msg.fields], msg.data, height=msg.height, width=msg.width,
@@ -80,13 +87,7 @@ def ref_image(ref: MessageRef, source_root: Path) -> tuple[bytes, str]:
     from storage.sources.log.index import COMPRESSED_IMAGE
     from storage.sources.log.reader import _strip_transport, camera_namespace
 
-    log, index = _open(str(_base(source_root) / ref.log))
-    stream = index.streams.get(ref.topic)
-    if stream is None or not 0 <= ref.index < len(stream.log_ns):
-        raise LogFormatError(f"{log.path}: no message {ref.index} on topic {ref.topic}", log.path)
-    raw = log.raw(
-        ref.topic, ref.index, int(stream.log_ns[ref.index]), int(stream.ordinal[ref.index])
-    )
+    log, index, stream, raw = _message(ref, source_root)
     msg = log.deserialize(bytes(raw), stream.msgtype, ref.topic)
     info = index.camera_info.get(camera_namespace(ref.topic) + "/camera_info")
     rectified = "rect" in _strip_transport(ref.topic).rsplit("/", 1)[-1]
