@@ -37,6 +37,7 @@ from pydantic.dataclasses import dataclass as pydantic_dataclass
 from pydantic.fields import FieldInfo
 
 from configs.sources import CameraTopics, LogSettings, PoseMode
+from storage.network_files import DEFAULT_BUNDLED_CACHE
 from tasks.bounds import AtLeastOne, Count, NonNegative, Positive, Probability, VoxelSize
 from tasks.conventions import CITYSCAPES_TO_CLASS, CLASS_NAMES, FREE, UNLABELED
 from tasks.fit.settings import (
@@ -344,7 +345,7 @@ class ModelsConfig(BlazePoseSettings, Section):
 
     device: Literal["cpu", "cuda", "auto"] = "auto"
     #: the bundled BlazePose .tflite files, extracted by `make setup` from the mediapipe wheel
-    bundled_dir: Path = Path(".cache/models/mediapipe-0.10.21")
+    bundled_dir: Path = DEFAULT_BUNDLED_CACHE
     detector: DetectorModelConfig = DetectorModelConfig()
     keypoints: KeypointModelConfig = KeypointModelConfig()
     masks: MaskModelConfig = MaskModelConfig()

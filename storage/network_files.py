@@ -38,8 +38,11 @@ BUNDLED_MODELS = {
         "e9a5c5cb17f736fafd4c2ec1da3b3d331d6edbe8a0d32395855aeb2cdfd64b9f",
     ),
 }
-#: where set-up puts them unless told otherwise (relative to the working directory)
+#: where set-up puts them unless told otherwise: relative to the working directory, else to the
+#: checkout that `make setup` ran in (:func:`bundled_model`)
 DEFAULT_BUNDLED_CACHE = Path(".cache/models/mediapipe-" + MEDIAPIPE_VERSION)
+#: the checkout (or installed tree) this module lives in
+_CHECKOUT = Path(__file__).resolve().parents[1]
 
 
 class ModelFileError(ValueError):
@@ -148,16 +151,21 @@ def _sha256(path: Path) -> str:
 
 def bundled_model(cache: str | os.PathLike, name: str) -> Path:
     """The extracted bundled model ``name`` under ``cache``; a clear error when set-up has not
-    extracted it (nothing is downloaded here)."""
+    extracted it (nothing is downloaded here). A relative ``cache`` is looked up in the working
+    directory, then in the checkout `make setup` ran in, so a run from a data folder finds it."""
     if name not in BUNDLED_MODELS:
         raise ModelFileError(f"{name}: not a bundled model; bundled: {sorted(BUNDLED_MODELS)}")
-    path = Path(cache) / name
-    if not path.is_file():
-        raise ModelFileError(
-            f"{path}: bundled model missing; run `make setup` (or `mobileocc models "
-            f"unpack-bundled --wheel mediapipe-{MEDIAPIPE_VERSION}-*.whl --cache {cache}`)"
-        )
-    return path
+    cache = Path(cache)
+    tried = [cache / name]
+    if not cache.is_absolute():
+        tried.append(_CHECKOUT / cache / name)
+    for path in tried:
+        if path.is_file():
+            return path
+    raise ModelFileError(
+        f"{' or '.join(map(str, tried))}: bundled model missing; run `make setup` (or `mobileocc "
+        f"models unpack-bundled --wheel mediapipe-{MEDIAPIPE_VERSION}-*.whl --cache {cache}`)"
+    )
 
 
 def extract_bundled_models(wheel: str | os.PathLike, cache: str | os.PathLike) -> list[Path]:

@@ -564,6 +564,29 @@ def test_cli_unpacks_the_bundled_models(tmp_path, capsys):
         assert (tmp_path / "cache" / name).read_bytes() == (have / name).read_bytes()
 
 
+def test_bundled_models_are_found_from_another_working_directory(tmp_path, monkeypatch):
+    """The default cache is relative: a run from a data folder (not the checkout) takes the files
+    `make setup` extracted into the checkout; where neither place has one, the error names both."""
+    from storage.network_files import BUNDLED_MODELS, DEFAULT_BUNDLED_CACHE, bundled_model
+
+    monkeypatch.chdir(tmp_path)
+    have = Path(__file__).resolve().parents[1] / DEFAULT_BUNDLED_CACHE
+    with pytest.raises(ModelFileError, match=r"missing") as err:
+        bundled_model("no/such/cache", "pose_detection.tflite")
+    assert str(tmp_path / "no/such/cache") not in str(err.value)  # relative, as configured
+    assert str(have.parents[2] / "no/such/cache/pose_detection.tflite") in str(err.value)
+    if not all((have / n).is_file() for n in BUNDLED_MODELS):
+        pytest.skip(f"bundled models not extracted to {have} (make setup does it)")
+    for name in BUNDLED_MODELS:
+        assert bundled_model(DEFAULT_BUNDLED_CACHE, name) == have / name
+    here = tmp_path / DEFAULT_BUNDLED_CACHE
+    here.mkdir(parents=True)
+    (here / "pose_detection.tflite").write_bytes(b"a local copy")
+    assert bundled_model(DEFAULT_BUNDLED_CACHE, "pose_detection.tflite").resolve() == (
+        here / "pose_detection.tflite"
+    )
+
+
 def test_model_detections_take_ground_truth_identities_by_box():
     """Synthetic data: a model detection starts its fit from the oracle's body of the person its
     box matches (IoU >= 0.5); unmatched detections and persons out of view take none."""
