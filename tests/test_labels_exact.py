@@ -319,3 +319,63 @@ def test_a_person_outline_outside_its_image_mask_leaves_no_trace(edge_m):
         assert np.any(final.labels[raised] == C.POLE)  # the outline mapped, as before the fix
     else:
         assert not raised.any(), (final.keys[raised], final.labels[raised])
+
+
+def test_a_pole_out_of_view_is_mapped_beside_a_person_in_view():
+    """Found with RayIoU on the 4-sequence benchmark (exact inputs, sequence 1): a kerb pole
+    beside the path, never in the camera's view, was missing from every frame's labels (mask_lidar
+    1, semantics free; RayIoU pole 47). Its returns took the label of the nearest raised in-view
+    point, a person walking ahead, and were then removed with the people. The out-of-view
+    fallback now never hands out the pedestrian label."""
+    rng = np.random.default_rng(6)
+    xs, ys = np.meshgrid(np.arange(-3.0, 8.0, 0.05), np.arange(-4.0, 4.0, 0.05), indexing="ij")
+    ground = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, -0.9)], 1)
+    # a person 4 m ahead (in view), a pole 3.7 m to the right of the sensor (out of view)
+    by, bz = np.meshgrid(
+        np.arange(-0.2, 0.2001, 0.02), np.arange(-0.8, 0.8001, 0.02), indexing="ij"
+    )
+    body = np.stack([np.full(by.size, 4.0), by.ravel(), bz.ravel()], 1)
+    a, pz = np.meshgrid(np.linspace(-1.2, 1.2, 9), np.arange(-0.8, 2.0, 0.03), indexing="ij")
+    pole = np.stack(
+        [1.0 - 0.08 * np.sin(a.ravel()), -3.7 + 0.08 * np.cos(a.ravel()), pz.ravel()], 1
+    )
+    # and a wall farther ahead (in view), farther from the pole than the person
+    wy, wz = np.meshgrid(np.arange(-1.0, 1.0, 0.03), np.arange(-0.8, 0.6, 0.03), indexing="ij")
+    wall = np.stack([np.full(wy.size, 7.0), wy.ravel(), wz.ravel()], 1)
+    pts = np.concatenate([ground, body, pole, wall])
+    d = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    pts = (pts + d * rng.normal(0.0, NOISE_M, (len(d), 1))).astype(np.float32)
+    mapper = SequenceMapper(
+        MapParams(voxel_size_m=VOXEL),
+        FreeSpaceParams(voxel_size_m=VOXEL),
+        C.CITYSCAPES_TO_CLASS,
+        K,
+        T_CAM_FROM_LIDAR,
+        640,
+        480,
+        0.3,
+        threads=1,
+    )
+    semantic = np.full((480, 640), C.CLASS_TO_CITYSCAPES[C.ROAD], np.uint8)
+    semantic[:240] = C.CLASS_TO_CITYSCAPES[C.OTHER_STRUCTURE]  # the wall above the horizon
+    semantic[180:301, 304:336] = C.CLASS_TO_CITYSCAPES[C.PEDESTRIAN]
+    mask = np.zeros((480, 640), np.uint16)
+    mask[180:301, 304:336] = 1
+    mapper.add_sweep(
+        pts,
+        np.eye(4),
+        semantic,
+        mask,
+        np.array([[304.0, 180.0, 336.0, 300.0]], np.float32),
+        np.zeros((0, 3), np.float32),
+        np.zeros((0, 3), np.float32),
+        np.zeros(0, np.float32),
+    )
+    final, _ = mapper.finish((C.ROAD, C.TERRAIN))
+    assert not np.any(final.labels == C.PEDESTRIAN)
+    at_pole = (final.keys[:, 0] == 4) & (final.keys[:, 1] == -19) & (final.keys[:, 2] >= -3)
+    assert at_pole.sum() >= 8, final.keys[(final.keys[:, 0] == 4) & (final.keys[:, 1] == -19)]
+    at_person = (
+        (final.keys[:, 0] == 20) & (np.abs(final.keys[:, 1]) <= 1) & (final.keys[:, 2] >= -4)
+    )
+    assert not at_person.any()
