@@ -39,11 +39,10 @@ CODE_VERSIONS: dict[str, str] = {
     #                surface kept (tasks/occupancy/surface.py; window votes carry point moments); the
     #                ground under a person kept; a person's other points removed whatever their label
     #             6: points within map.person_edge_m of a person's removed points removed too (a
-    #                body's outline projecting just outside its image mask stayed in the map); the
-    #                out-of-view fallback never hands out the pedestrian label (static structure
-    #                beside the path was removed with the people); a voxel without a plane whose
-    #                points crowd the face of a better-sampled voxel behind it is that surface's
-    #                noise (a pole's arc just behind a face filled the voxel in front)
+    #                body's outline projecting just outside its image mask stayed in the map); a
+    #                voxel without a plane of its own whose points crowd the face of a better-sampled
+    #                voxel behind it is that surface's noise (a pole's arc just behind a face filled
+    #                the voxel in front)
     "fuse": "4",  # 2: mask_camera is inside mask_lidar (Occ3D); class_counts among voxels with
     #               mask_lidar = 1 (as documented); store attrs carry the stage key, not a config hash;
     #               the rectified camera; 3: pedestrian voxel velocity from each vertex's motion along

@@ -133,9 +133,7 @@ def lift_image_semantics(
     local ground (the lowest point of its ``ground_cell_m`` cell's 3 x 3 neighbourhood) takes the
     label of the nearest such in-image point, any other point that of the nearest other in-image
     point, so the side of a car beside the robot is not labelled road and the road beside it not
-    car; never pedestrian: people are removed by their masks and LiDAR boxes, not by a label
-    carried out of view; on exact distance ties the in-image point that comes first) or "unknown"
-    (UNLABELED).
+    car; on exact distance ties the in-image point that comes first) or "unknown" (UNLABELED).
     ``fallback_ground_lateral_scale`` > 1 stretches the LiDAR y axis (across the direction of
     travel, LiDAR x forward) when matching ground points: roads, sidewalks and lawn strips run along the robot's
     path, so the ground beside the robot takes the label seen ahead at the same lateral offset
@@ -161,10 +159,7 @@ def lift_image_semantics(
     labels[valid] = lut[img[pix[valid, 1], pix[valid, 0]].astype(np.uint8)]
     if fallback == "nearest" and not valid.all():
         low = p[:, 2] - ground_height(p, params.ground_cell_m) < params.ground_max_deviation_m
-        # never a person's label: people out of view are the LiDAR boxes' to remove, and a
-        # pole or wall beside the robot that took the label of a person in view was removed with
-        # the people (issue 30: kerb poles beside the path never mapped)
-        labelled = valid & (labels != UNLABELED) & (labels != PEDESTRIAN)
+        labelled = valid & (labels != UNLABELED)
         stretched = p * np.array([1.0, params.fallback_ground_lateral_scale, 1.0])
         for level, q in ((low, stretched), (~low, p)):
             src, dst = labelled & level, ~valid & level
