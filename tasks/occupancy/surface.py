@@ -24,7 +24,7 @@ map's windows and tiles) add up to exactly the same integers. :func:`surface_fit
   ``3 noise_m``, and the plane does not pass through v (for w's own plane: the plane with w's
   normal through the centroid of v's and w's points together, as w's alone are cut at their
   shared face): the points of v are the near tail of that surface;
-- a voxel v with fewer than ``min_points`` points and no plane is **noise** (dropped) when its
+- a voxel v with fewer than ``min_points`` points and no plane of its own is **noise** (dropped) when its
   centroid lies within ``3 noise_m`` of every face it shares with a neighbour w that has at least
   ``min_points`` points and lies behind v as seen from the sensor (a tail at a corner of w, where
   no plane fits); with more points but fewer than w's, when its centroid lies within ``noise_m``
@@ -234,10 +234,12 @@ def surface_fit(
             # with their centroid within 1 sigma (the near tail of a surface without a plane,
             # a pole's arc, seen over many sweeps; a surface reaching into v puts its points
             # at its own depth there, beyond 1 sigma once it is more than that inside)
-            v = np.flatnonzero((w >= 0) & ~has_plane & ~tail)
+            # (a sparse voxel may borrow its neighbourhood's plane: a pole's arc fits a plane
+            # that, tilted, reaches into the voxel in front beyond the pole's own extent)
+            v = np.flatnonzero((w >= 0) & ~planar & ~tail)
             v = v[(count[w[v]] >= min_points) & (toward[v] @ d < 0)]
             sparse = count[v] < min_points
-            v = v[sparse | (count[v] < count[w[v]])]
+            v = v[sparse | (~has_plane[v] & (count[v] < count[w[v]]))]
             sparse = count[v] < min_points
             within = np.where(sparse, reach, noise_m)
             hug = np.ones(len(v), dtype=bool)
