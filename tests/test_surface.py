@@ -69,7 +69,13 @@ def test_ground_on_a_voxel_face_keeps_only_the_layer_below():
 def test_ground_inside_a_voxel_is_not_dropped_and_noise_zero_keeps_everything():
     pts, origin = _ground(20000, 0.1, 0.01)  # the middle of the layer [0, 0.2)
     packed, fit = _fit(pts, origin)
-    assert fit.keep.all() and fit.planar.mean() > 0.9
+    from tasks.occupancy.static_map import unpack_keys
+
+    x = unpack_keys(packed)[:, 0]
+    # the patch ends at x = 2.0, a voxel face: the few returns that the range noise throws across
+    # it (x key 9) hug that face and are its tail; every voxel of the patch keeps its surface
+    assert fit.keep[x >= 10].all() and fit.planar[x >= 10].mean() > 0.9
+    assert not fit.keep[x == 9].any()
     pts, origin = _ground(20000, 0.0, 0.01)
     _, fit = _fit(pts, origin, noise=0.0)
     assert fit.keep.all()
@@ -80,3 +86,48 @@ def test_bad_moments_are_refused():
         surface_fit(np.zeros(2, np.int64), np.zeros((3, 13), np.int64), VS, 0.01, 8)
     with pytest.raises(SurfaceError, match="min_points"):
         surface_fit(np.zeros(0, np.int64), np.zeros((0, 13), np.int64), VS, 0.01, 2)
+
+
+def _pole(x_front: float, sweeps: int, seed: int = 0, arc: float = 1.3, side_m: float = 0.0):
+    """Noisy returns of a vertical pole (radius 0.08 m, axis at y = 0.1, the middle of a voxel
+    column) whose nearest point to the sensor lies at x = x_front, z in [0.2, 1.0), seen over many
+    sweeps from positions along x < 0 at height 0.9 (the robot driving towards it)."""
+    rng = np.random.default_rng(seed)
+    r, cx, cy = 0.08, x_front + 0.08, 0.1
+    pts, origin = [], None
+    for k in range(sweeps):
+        origin = np.array([-6.0 + 0.1 * k, side_m, 0.9])
+        a = rng.uniform(-arc, arc, 400)  # the visible arc, facing -x
+        z = rng.uniform(0.2, 1.0, 400)
+        p = np.column_stack([cx - r * np.cos(a), cy + r * np.sin(a), z])
+        d = (p - origin) / np.linalg.norm(p - origin, axis=1, keepdims=True)
+        pts.append(p + d * rng.normal(0.0, 0.01, 400)[:, None])
+    return np.concatenate(pts).astype(np.float32), origin
+
+
+@pytest.mark.parametrize(
+    ("x_front", "sweeps", "arc", "side_m", "front_kept"),
+    [(2.02, 40, 1.3, 0.0, False), (1.96, 40, 1.3, 0.0, True), (1.995, 40, 1.3, 0.0, True)],
+)
+def test_a_pole_just_behind_a_voxel_face_does_not_fill_the_voxel_in_front(
+    x_front, sweeps, arc, side_m, front_kept
+):
+    """Found on the 4-sequence benchmark with exact inputs (sequence 1: pole IoU 52.0, 160 of 185
+    false pole voxels one voxel in front of a true one, on the sensor side): a pole's front 2 cm
+    behind a voxel face throws a few % of its returns into the voxel in front, over a sequence
+    more than surface_min_points; its arc fits no plane, so only sparse tails were dropped. A
+    voxel without a plane whose points hug the face of a voxel with more points behind it (its
+    centroid within 1 sigma of that face) is that surface's tail; a pole reaching 4 cm into
+    the voxel keeps it, and so does one reaching 5 mm into it (sequence 0's kerb pole across a
+    voxel face: its front voxel holds ~25 % of the points of the one behind, a tail 1-8 %)."""
+    pts, origin = _pole(x_front, sweeps, arc=arc, side_m=side_m)
+    packed, fit = _fit(pts, origin)
+    from tasks.occupancy.static_map import unpack_keys
+
+    keys = unpack_keys(packed)
+    along = (keys[:, 2] >= 1) & (keys[:, 2] <= 4)  # z in [0.2, 1.0), the pole's length
+    front = along & (keys[:, 0] == 9)  # x in [1.8, 2.0)
+    behind = along & (keys[:, 0] == 10)
+    assert front.sum() >= 3 and behind.sum() >= 4  # the noise put points in front either way
+    assert fit.keep[behind].all()
+    assert fit.keep[front].all() if front_kept else not fit.keep[front].any()

@@ -125,6 +125,8 @@ class SweepLabeller:
             projection=projection,
         )
         people |= labels == PEDESTRIAN
+        if p.person_edge_m > 0 and people.any():
+            people = person_edges(points_lidar, people, p.person_edge_m, self.threads)
         if p.person_ground_keep_m > 0 and people.any():
             labels, ground_back = _ground_under_people(
                 points_lidar,
@@ -140,6 +142,40 @@ class SweepLabeller:
             # the nearest in-view point, a mask's edge the background's)
             people &= ~ground_back
         return SweepLabels(labels, ~people, projection[1])
+
+
+def person_edges(
+    points_lidar: np.ndarray, people: np.ndarray, edge_m: float, threads: int | None = None
+) -> np.ndarray:
+    """``people`` (N,) bool grown by one step: every point within edge_m (m) of a person's point
+    is a person's point too. points_lidar: (N, 3) float, LiDAR frame, m.
+
+    A body's outline as the LiDAR sees it projects partly just outside the person's image mask
+    (pixel edges, the LiDAR-to-camera parallax); where no confirmed LiDAR box holds the person,
+    those returns took the label of what lies behind the outline in the image and stayed in the
+    static map (issue 30: a trail of pole and wall voxels along a walking person's path). Points
+    of the person lie within the LiDAR's point spacing of the masked ones. One step, not a flood:
+    a static surface touching a person loses only its returns within edge_m of the person in
+    that sweep (the ground under the feet goes back with ``person_ground_keep_m``)."""
+    from tasks.occupancy.nearest import nearest_indices
+
+    p = np.asarray(points_lidar, dtype=np.float64).reshape(-1, 3)
+    out = np.asarray(people, dtype=bool).copy()
+    src = p[out]
+    if not len(src) or edge_m <= 0:
+        return out
+    # only points in a cell next to a person's cell can be within edge_m of one
+    cell = np.floor(p / edge_m).astype(np.int64)
+    offsets = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    grown = np.unique(pack_keys((np.unique(cell[out], axis=0)[:, None] + offsets).reshape(-1, 3)))
+    ask = np.flatnonzero(~out)
+    ask = ask[np.isin(pack_keys(cell[ask]), grown)]
+    near = np.zeros(len(p), dtype=bool)
+    if len(ask):
+        nearest = nearest_indices(src, p[ask], threads)
+        d2 = np.sum((p[ask] - src[nearest]) ** 2, axis=1)
+        near[ask[d2 <= edge_m**2]] = True
+    return out | near
 
 
 def _ground_under_people(

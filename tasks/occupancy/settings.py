@@ -45,7 +45,12 @@ class MapParams:
     person_ground_keep_m: points of a person (in a LiDAR box, an instance mask, labelled
     pedestrian) at most this far above the local ground (the lowest point around them) are the
     ground the person stands on: they stay in the map with a ground label (0: removed with the
-    person, and the ground under people who stand still is never mapped).
+    person, and the ground under people who stand still is never mapped). person_edge_m: points
+    within this distance of a removed person point are the same person's too (0: off). A body's
+    outline seen by the LiDAR projects partly just outside its image mask (pixel edges, the
+    LiDAR-to-camera parallax); when no confirmed LiDAR box holds the person, those returns took the
+    background's label (pole, wall) and left a trail of stray voxels along the person's walk
+    (issue 30, exact inputs).
 
     Surfaces (tasks/occupancy/surface.py): a voxel holds a surface where one passes through it,
     not where the range noise of a surface in the voxel behind it throws some of its returns.
@@ -67,6 +72,7 @@ class MapParams:
     fallback_ground_lateral_scale: Widening = 4.0
     pedestrian_box_margin_m: NonNegative = 0.15
     person_ground_keep_m: NonNegative = 0.03
+    person_edge_m: NonNegative = 0.1
     ground_max_deviation_m: Positive = 0.3
     ground_cell_m: Positive = 1.0
     ground_neighbourhood_cells: Count = 1

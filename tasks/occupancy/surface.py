@@ -24,10 +24,13 @@ map's windows and tiles) add up to exactly the same integers. :func:`surface_fit
   ``3 noise_m``, and the plane does not pass through v (for w's own plane: the plane with w's
   normal through the centroid of v's and w's points together, as w's alone are cut at their
   shared face): the points of v are the near tail of that surface;
-- a voxel v with fewer than ``min_points`` points and no plane is **noise** (dropped) when its
+- a voxel v with fewer than ``min_points`` points and no plane of its own is **noise** (dropped) when its
   centroid lies within ``3 noise_m`` of every face it shares with a neighbour w that has at least
   ``min_points`` points and lies behind v as seen from the sensor (a tail at a corner of w, where
-  no plane fits).
+  no plane fits); with more points but fewer than w's, when its centroid lies within ``noise_m``
+  of those faces (the near tail of a surface without a plane, a pole's arc a few cm behind the
+  face, over a sequence's sweeps: its points crowd the face, while a surface reaching into v
+  puts them at its own depth there).
 
 A plane "passes through" a voxel when it meets the voxel's cube, the plane moved
 :data:`FACE_TOLERANCE_M` into the solid first (a surface within that distance in front of a voxel
@@ -55,6 +58,11 @@ MOMENT_UNIT_M = 1e-5
 NUM_MOMENTS = 13
 #: a surface this close in front of a voxel face belongs to the voxel behind the face, m
 FACE_TOLERANCE_M = 0.002
+
+#: a voxel without a plane of its own is a tail of the better-sampled voxel behind it only when
+#: it holds less than 1 / TAIL_SHARE of that voxel's points (besides the case of a few points
+#: without any plane); measured: a pole 2 cm behind a face throws 1-8 %, one across it ~25 %
+TAIL_SHARE = 10
 
 _IU = np.triu_indices(3)
 
@@ -226,15 +234,28 @@ def surface_fit(
             tail[v[near & ~_passes(nw, through, voxel_size_m)]] = True
             if not d.any():
                 continue
-            # a few points hugging the faces shared with a well-sampled voxel behind them
-            v = np.flatnonzero((w >= 0) & ~has_plane & (count < min_points) & ~tail)
+            # points hugging the faces shared with a well-sampled voxel behind them: a few
+            # within 3 sigma (a tail at a corner of w), or more than that but fewer than w's
+            # with their centroid within 1 sigma (the near tail of a surface without a plane,
+            # a pole's arc, seen over many sweeps; a surface reaching into v puts its points
+            # at its own depth there, beyond 1 sigma once it is more than that inside)
+            # (a sparse voxel may borrow its neighbourhood's plane: a pole's arc fits a plane
+            # that, tilted, reaches into the voxel in front beyond the pole's own extent)
+            # Past the first case, a tail also holds few points next to w's: a surface lying
+            # within about 1.3 sigma behind the face throws over a tenth of its returns forward,
+            # a surface reaching into v more (a pole across a voxel face: about a quarter).
+            v = np.flatnonzero((w >= 0) & ~planar & ~tail)
             v = v[(count[w[v]] >= min_points) & (toward[v] @ d < 0)]
+            first = (count[v] < min_points) & ~has_plane[v]
+            v = v[first | (count[v] * TAIL_SHARE < count[w[v]])]
+            sparse = count[v] < min_points
+            within = np.where(sparse, reach, noise_m)
             hug = np.ones(len(v), dtype=bool)
             for a in range(3):
                 if d[a] > 0:
-                    hug &= mean[v, a] >= voxel_size_m - reach
+                    hug &= mean[v, a] >= voxel_size_m - within
                 elif d[a] < 0:
-                    hug &= mean[v, a] <= reach
+                    hug &= mean[v, a] <= within
             tail[v[hug]] = True
     # what stands for the voxel in other grids: its plane where one passes through its cube,
     # else the centroid of its points
