@@ -451,7 +451,10 @@ class FitConfig(ObjectiveSettings, FitSettings, Section):
     tasks.fit.weights.ObjectiveSettings, where the initial estimates and the body model come
     from."""
 
-    preset: str = "ut_campus"
+    #: the paper's 3DPW weights: on our persons they fit better than its UT-Campus ones (CODa's)
+    #: from every start and with every keypoint source measured (docs/fit-benchmark.md, "The
+    #: default preset")
+    preset: str = "3dpw"
     #: named loss-weight presets beside the paper's four (tasks.fit.weights.FIT_PRESETS)
     presets: dict[str, LossWeightsConfig] = Field(default_factory=dict)
     #: initial estimates: the oracle (synthetic data), CLIFF (precomputed files or an export),

@@ -448,3 +448,23 @@ def test_warm_start_carries_a_tracks_fit_into_its_next_frame(model):
     for r in (3, 5):
         np.testing.assert_array_equal(res.params.betas[r], est.betas[r])
     assert np.abs(world[5] - world[1]).max() > 0.05
+
+
+def test_a_unit_of_several_threads_runs_torch_on_one():
+    """limit_threads sizes BLAS / OpenMP to the unit's share but torch to one thread, also in a
+    fresh thread (the thread runner's): torch's pool is the OpenMP runtime threadpoolctl limits,
+    so the order of the two decides (a 2-thread unit ran the fit on 2 torch threads)."""
+    import threading
+
+    from flows.pipeline.parallel import limit_threads
+
+    seen = {}
+
+    def unit():
+        limit_threads(2)
+        seen["torch"] = torch.get_num_threads()
+
+    t = threading.Thread(target=unit)
+    t.start()
+    t.join()
+    assert seen["torch"] == 1

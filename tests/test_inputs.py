@@ -103,6 +103,7 @@ def _candidates(value: Any) -> list[Any]:
             "cuda",
             "v1.0-mini",
             "3dpw",
+            "ut_campus",
             "thread",
             "dask",
             "yolox",

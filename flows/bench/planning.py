@@ -113,7 +113,7 @@ def _summaries(frames: int) -> dict[str, dict]:
             "skipped_few_points": 2,
             "dropped_far_from_estimate": 0,
             "device": "cpu",
-            "preset": "ut_campus",
+            "preset": "3dpw",
         },
         "map": {
             "implemented": True,

@@ -28,13 +28,18 @@ def limit_threads(threads: int) -> None:
     """Size this process's kernel thread pools for a unit that owns ``threads`` cores: BLAS /
     OpenMP pools to ``threads``; torch to one thread always (its results depend on its thread count,
     so outputs stay byte-identical whatever the workers' allotment; the parallelism comes from the
-    workers). The occupancy kernels take their count as an argument (Runtime.threads)."""
+    workers). The occupancy kernels take their count as an argument (Runtime.threads).
+
+    Order matters: torch's intra-op pool is the OpenMP runtime it ships (libgomp), which
+    threadpoolctl's OpenMP limit sets too, so torch is sized after it (the other way round a unit
+    of 2 threads ran torch on 2: the fit stage at a fifth of its one-thread rate under load,
+    docs/fit-benchmark.md)."""
     import torch
     from threadpoolctl import threadpool_limits
 
+    threadpool_limits(limits=threads)
     if torch.get_num_threads() != 1:
         torch.set_num_threads(1)
-    threadpool_limits(limits=threads)
 
 
 def _limited(fn: Callable[..., Any], threads: int, *args: Any) -> Any:
