@@ -24,6 +24,12 @@ map's windows and tiles) add up to exactly the same integers. :func:`surface_fit
   ``3 noise_m``, and the plane does not pass through v (for w's own plane: the plane with w's
   normal through the centroid of v's and w's points together, as w's alone are cut at their
   shared face): the points of v are the near tail of that surface;
+- but a voxel v that the own plane of a voxel w sharing a face with it reaches into (w's plane
+  flat to the noise, as wide as the voxel, facing v across that face most; through v's and w's
+  points together) is **the surface curving on** across the face (a tree's crown bulging a
+  centimetre into v: its returns hug the face like a tail's, a few % of w's) and is kept
+  whatever the rules above and below say (a neighbour's plane across an edge or a corner, a
+  curved surface's tangent, passes in front of it);
 - a voxel v with fewer than ``min_points`` points and no plane of its own is **noise** (dropped) when its
   centroid lies within ``3 noise_m`` of every face it shares with a neighbour w that has at least
   ``min_points`` points and lies behind v as seen from the sensor (a tail at a corner of w, where
@@ -63,6 +69,15 @@ FACE_TOLERANCE_M = 0.002
 #: it holds less than 1 / TAIL_SHARE of that voxel's points (besides the case of a few points
 #: without any plane); measured: a pole 2 cm behind a face throws 1-8 %, one across it ~25 %
 TAIL_SHARE = 10
+
+#: a voxel's own plane vouches for the voxel in front of it (a surface curving on across their
+#: shared face) only where it spans the voxel: its points spread along it at least this share of
+#: the voxel's edge (1 sigma) both ways (spread evenly over a whole face: 0.29; a 16 cm pole's
+#: visible arc, or one of its facets: under 0.23 of a 0.2 m voxel), and spread across it no more
+#: than WIDE_FLAT_SIGMAS noise sigmas (flat to the noise; a pole's arc seen from several sides
+#: over a sequence spreads wider along and across: measured 1.6 sigma, a crown's 0.2-1.0)
+WIDE_SPREAD = 0.25
+WIDE_FLAT_SIGMAS = 1.5
 
 _IU = np.triu_indices(3)
 
@@ -217,9 +232,30 @@ def surface_fit(
     tail = np.zeros(k, dtype=bool)
     if k and noise_m > 0:
         reach = 3.0 * noise_m
+        # a voxel in front of the own plane of a voxel sharing a face with it (the face the
+        # plane faces most, its normal's dominant axis) into which that plane reaches (with that
+        # voxel's normal through both voxels' points, as below) holds that surface curving on
+        # across the face (a tree's crown), not its noise: no other neighbour's plane
+        # (extrapolated across an edge or a corner) nor its points' depth makes it a tail
+        reached = np.zeros(k, dtype=bool)
+        facing = np.argmax(np.abs(normal), axis=1)
+        lam = np.linalg.eigvalsh(cov)
+        wide = lam[:, 1] >= (WIDE_SPREAD * voxel_size_m) ** 2
+        wide &= lam[:, 0] <= (WIDE_FLAT_SIGMAS * noise_m) ** 2
+        for d, w in zip(_OFFSETS, rows):
+            if np.abs(d).sum() != 1:
+                continue
+            a = int(np.flatnonzero(d)[0])
+            v = np.flatnonzero(w >= 0)
+            v = v[planar[w[v]] & ~reached[v]]
+            v = v[(facing[w[v]] == a) & (normal[w[v], a] * d[a] < 0) & wide[w[v]]]
+            wv = w[v]
+            cv, cw = count[v][:, None], count[wv][:, None]
+            both = (cv * mean[v] + cw * (mean[wv] + d * voxel_size_m)) / (cv + cw)
+            reached[v[_passes(normal[wv], both, voxel_size_m)]] = True
         for d, w in zip(_OFFSETS, rows):
             # the near tail of a plane: its own (another voxel's points) or the neighbourhood's
-            v = np.flatnonzero((w >= 0) & ~tail)
+            v = np.flatnonzero((w >= 0) & ~tail & ~reached)
             v = v[has_plane[w[v]] & ((d != 0).any() | ~planar[v])]
             wv = w[v]
             nw = plane_n[wv]
@@ -244,7 +280,7 @@ def surface_fit(
             # Past the first case, a tail also holds few points next to w's: a surface lying
             # within about 1.3 sigma behind the face throws over a tenth of its returns forward,
             # a surface reaching into v more (a pole across a voxel face: about a quarter).
-            v = np.flatnonzero((w >= 0) & ~planar & ~tail)
+            v = np.flatnonzero((w >= 0) & ~planar & ~tail & ~reached)
             v = v[(count[w[v]] >= min_points) & (toward[v] @ d < 0)]
             first = (count[v] < min_points) & ~has_plane[v]
             v = v[first | (count[v] * TAIL_SHARE < count[w[v]])]
