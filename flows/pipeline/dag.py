@@ -31,7 +31,7 @@ CODE_VERSIONS: dict[str, str] = {
     #                .gap_filled); fit.init_provider lidar-keypoints
     #             6: default preset 3dpw (was ut_campus); torch really on 1 thread in a unit of
     #                several (flows/pipeline/parallel.limit_threads sized it after threadpoolctl)
-    "map": "6",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path;
+    "map": "7",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path;
     #             3: 2d_rect cameras read as the rectified pinhole (real CODa calibration);
     #             4: both maps written by spatial tile (map_tiles.npz + tiles/*.npz, map.tile_m), built in
     #                parallel windows / regions; the voxels are the same, the product files are not.
@@ -45,6 +45,8 @@ CODE_VERSIONS: dict[str, str] = {
     #                voxel without a plane of its own whose points crowd the face of a better-sampled
     #                voxel behind it is that surface's noise (a pole's arc just behind a face filled
     #                the voxel in front)
+    #             7: fragments of fewer than map.min_fragment_voxels voxels of one class dropped
+    #                (a missed passer-by's returns, single noisy labels in vegetation)
     "fuse": "4",  # 2: mask_camera is inside mask_lidar (Occ3D); class_counts among voxels with
     #               mask_lidar = 1 (as documented); store attrs carry the stage key, not a config hash;
     #               the rectified camera; 3: pedestrian voxel velocity from each vertex's motion along
