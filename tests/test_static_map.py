@@ -16,6 +16,7 @@ from tasks.conventions import (
     PEDESTRIAN,
     ROAD,
     TERRAIN,
+    TWO_WHEELER,
     UNLABELED,
     VEGETATION,
 )
@@ -380,3 +381,54 @@ def test_lookup_labels_resamples_an_offset_grid_without_holes():
     )  # offset 0.1
     assert lookup_labels(road, centres).tolist() == [4] * 9
     assert lookup_labels(road, np.array([[5.0, 0.1, -0.1]])).tolist() == [255]
+
+
+def _block(x0, x1, y0, y1, z0, z1):
+    return [[x, y, z] for x in range(x0, x1) for y in range(y0, y1) for z in range(z0, z1)]
+
+
+def test_small_fragments_are_per_class_and_26_connected():
+    from tasks.occupancy.static_map import small_fragments
+
+    wall = _block(0, 4, 0, 1, 0, 5)  # 20 voxels
+    stray = [[10, 10, 6], [10, 10, 7]]  # a 2-voxel column alone
+    touching = [[4, 1, 5], [5, 1, 5]]  # 2 voxels of another class touching the wall's corner
+    diagonal = [[20, 0, 0], [21, 1, 1], [22, 2, 2], [23, 3, 3], [24, 4, 4]]  # corners only
+    keys = np.array(wall + stray + touching + diagonal, np.int64)
+    labels = np.array(
+        [OTHER_STRUCTURE] * 20 + [TWO_WHEELER] * 2 + [VEGETATION] * 2 + [CAR] * 5, np.uint8
+    )
+    small = small_fragments(keys, labels, 5)
+    assert not small[:20].any()  # the wall
+    assert small[20:24].all()  # the column, and the fragment that only touches another class
+    assert not small[24:].any()  # 5 voxels joined by corners are one fragment of 5
+    assert not small_fragments(keys, labels, 1).any()  # 1: off
+
+
+def test_the_final_map_drops_fragments_smaller_than_any_object():
+    """Issue 30, crowded night: the returns of a passer-by that no detector removed, labelled
+    two-wheeler by the image, stayed in the map as a 2-voxel column with 8 votes; single noisy
+    other-structure labels in vegetation made 1-vote voxels. Both are fragments no static object
+    is as small as, and go; the wall and the bush stay."""
+    from tasks.occupancy.mapping import final_maps
+
+    params = dataclasses.replace(MAP, surface_noise_m=0.0)  # every voxel with votes is a surface
+    m = StaticSemanticMap(VS, moments=True)
+    origin = np.zeros(3)
+    parts = [
+        (_block(10, 14, 5, 6, 0, 5), OTHER_STRUCTURE, 8),  # a wall
+        (_block(10, 13, -8, -5, 0, 3), VEGETATION, 8),  # a bush
+        ([[12, -5, 3]], OTHER_STRUCTURE, 1),  # a stray label on the bush
+        ([[20, 0, 6], [20, 0, 7]], TWO_WHEELER, 8),  # a missed passer-by's torso
+    ]
+    for keys, cls, n in parts:
+        m.add_sweep(_at(keys, n), np.full(len(keys) * n, cls, np.uint8), origin_world=origin)
+    empty = StaticSemanticMap(VS, moments=True)
+    sides = [(*s.packed_counts(), s.packed_moments()) for s in (m, empty)]
+    final, _ = final_maps(sides, params, GROUND)
+    got = _labels(final)
+    assert sorted(set(got.values())) == [OTHER_STRUCTURE, VEGETATION]
+    assert len(got) == 20 + 27
+    assert (12, -5, 3) not in got and (20, 0, 6) not in got
+    kept, _ = final_maps(sides, dataclasses.replace(params, min_fragment_voxels=1), GROUND)
+    assert _labels(kept)[(20, 0, 6)] == TWO_WHEELER and len(kept.keys) == 20 + 27 + 3

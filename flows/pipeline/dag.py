@@ -48,6 +48,8 @@ CODE_VERSIONS: dict[str, str] = {
     #             7: a voxel that the own plane (flat, voxel-wide) of the voxel behind it reaches
     #                into is kept: a tree's crown bulging across a voxel face is no tail
     #                (tasks/occupancy/surface.py, WIDE_SPREAD)
+    #                and fragments of fewer than map.min_fragment_voxels voxels of one class dropped
+    #                (a missed passer-by's returns, single noisy labels in vegetation)
     "fuse": "4",  # 2: mask_camera is inside mask_lidar (Occ3D); class_counts among voxels with
     #               mask_lidar = 1 (as documented); store attrs carry the stage key, not a config hash;
     #               the rectified camera; 3: pedestrian voxel velocity from each vertex's motion along

@@ -39,6 +39,7 @@ from tasks.occupancy.static_map import (
     pedestrian_boxes_for_masking,
     pedestrian_point_mask,
     project_points,
+    small_fragments,
     sum_votes,
     unpack_keys,
     vote,
@@ -293,15 +294,27 @@ def final_maps(
     int64)] * 2. The surface fit (:func:`tasks.occupancy.surface.surface_fit`) runs on both sides'
     points together (one geometry) and drops the voxels that only hold noise in front of a
     neighbour's surface; each side is then voted (ground check, max voting) and the camera's side
-    wins where both have a voxel. select(packed keys) -> bool: the voxels to return (all: None)."""
+    wins where both have a voxel; the voxels of fragments of that map smaller than
+    ``params.min_fragment_voxels`` (:func:`tasks.occupancy.static_map.small_fragments`, over all
+    the voxels given: give a halo of :func:`tasks.occupancy.tiles.ground_halo_tiles`) are dropped
+    before the final vote. select(packed keys) -> bool: the voxels to return (all: None)."""
     vs, ground = params.voxel_size_m, tuple(ground_class_ids)
     keys, moments = group_sum(
         np.concatenate([k for k, _, _ in sides]), np.concatenate([m for _, _, m in sides])
     )
     fit = surface_fit(keys, moments, vs, params.surface_noise_m, params.surface_min_points)
+    keeps = [
+        fit.keep[np.searchsorted(keys, k)] if len(k) else np.zeros(0, bool) for k, _, _ in sides
+    ]
+    if params.min_fragment_voxels > 1:  # fragments of the voted map (all voxels given) go
+        voted = [vote(k, c, params, ground, select=kp) for (k, c, _), kp in zip(sides, keeps)]
+        whole = merge_static_maps(voted[0], voted[1])
+        small = pack_keys(
+            whole.keys[small_fragments(whole.keys, whole.labels, params.min_fragment_voxels)]
+        )
+        keeps = [kp & ~np.isin(k, small) for (k, _, _), kp in zip(sides, keeps)]
     maps = []
-    for k, counts, _ in sides:
-        keep = fit.keep[np.searchsorted(keys, k)] if len(k) else np.zeros(0, bool)
+    for (k, counts, _), keep in zip(sides, keeps):
         if select is not None:
             keep &= select(k)
         maps.append(vote(k, counts, params, ground, select=keep))

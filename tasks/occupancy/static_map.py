@@ -505,6 +505,52 @@ def vote(
     )
 
 
+#: the 13 neighbour offsets of a 26-neighbourhood that come after a voxel in packed-key order
+_FORWARD = np.array(
+    [
+        (i, j, k)
+        for i in (-1, 0, 1)
+        for j in (-1, 0, 1)
+        for k in (-1, 0, 1)
+        if (i, j, k) > (0, 0, 0)
+    ],
+    dtype=np.int64,
+)
+
+
+def small_fragments(keys: np.ndarray, labels: np.ndarray, min_voxels: int) -> np.ndarray:
+    """(K,) bool: True for the voxels of a fragment, a set of voxels of one class connected
+    through faces, edges or corners (26-neighbourhood), that holds fewer than ``min_voxels``
+    voxels. keys (K, 3) int64 voxel indices, labels (K,) class ids. Only the voxels given count:
+    give a halo of at least ``min_voxels`` voxels around the ones whose answer is used."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    keys = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
+    labels = np.asarray(labels).reshape(-1)
+    n = len(keys)
+    if min_voxels <= 1 or n == 0:
+        return np.zeros(n, dtype=bool)
+    packed = pack_keys(keys)
+    order = np.argsort(packed, kind="stable")
+    table = packed[order]
+    rows, cols = [], []
+    for off in _FORWARD:
+        q = keys + off
+        inside = np.all((q >= -_OFF) & (q <= _MASK - _OFF), axis=1)
+        qp = pack_keys(np.where(inside[:, None], q, keys))
+        at = np.minimum(np.searchsorted(table, qp), n - 1)
+        hit = inside & (table[at] == qp)
+        other = order[at]
+        same = hit & (labels[other] == labels)
+        rows.append(np.nonzero(same)[0])
+        cols.append(other[same])
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    graph = coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    return np.bincount(comp)[comp] < min_voxels
+
+
 def sum_votes(parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
     """Votes of several windows of sweeps added: parts of (packed keys (K,) int64 ascending, counts
     (K, 9) uint16) -> the same for their union. Counts saturate at 65535 like

@@ -77,12 +77,16 @@ def tiles_in_box(tile_m: float, lo_xy, hi_xy, pad_m: float = 0.0) -> list[tuple[
 
 
 def ground_halo_tiles(params: MapParams) -> int:
-    """Tiles of halo a tile's ground check reads on each side: the check pools the ground votes of
-    cells up to ``ground_neighbourhood_cells`` away, i.e. voxel centres less than
-    ``(ground_neighbourhood_cells + 1) * ground_cell_m`` away (one voxel more for the centres'
-    rounding)."""
+    """Tiles of halo a tile's ground check and fragment check read on each side: the ground check
+    pools the ground votes of cells up to ``ground_neighbourhood_cells`` away, i.e. voxel centres
+    less than ``(ground_neighbourhood_cells + 1) * ground_cell_m`` away (one voxel more for the
+    centres' rounding); a fragment of fewer than ``min_fragment_voxels`` voxels reaches less than
+    that many voxels from any of its voxels, so a halo that wide sees whether it is one."""
     p = params
-    reach_m = (p.ground_neighbourhood_cells + 1) * p.ground_cell_m + p.voxel_size_m
+    reach_m = max(
+        (p.ground_neighbourhood_cells + 1) * p.ground_cell_m + p.voxel_size_m,
+        p.min_fragment_voxels * p.voxel_size_m,
+    )
     return max(1, math.ceil(reach_m / p.tile_m))
 
 
