@@ -37,7 +37,6 @@ from pydantic.dataclasses import dataclass as pydantic_dataclass
 from pydantic.fields import FieldInfo
 
 from configs.sources import CameraTopics, LogSettings, PoseMode
-from storage.network_files import DEFAULT_BUNDLED_CACHE
 from tasks.bounds import AtLeastOne, Count, NonNegative, Positive, Probability, VoxelSize
 from tasks.conventions import CITYSCAPES_TO_CLASS, CLASS_NAMES, FREE, UNLABELED
 from tasks.fit.settings import (
@@ -55,6 +54,7 @@ from tasks.occupancy.settings import FreeSpaceParams, FuseSettings, MapParams
 from tasks.occupancy.tiles import check_tiling
 from tasks.perception.lidar_clusters import LidarClusterParams
 from tasks.perception.models.settings import (
+    DEFAULT_BUNDLED_CACHE,
     BlazePoseSettings,
     DetectorSettings,
     KeypointSettings,

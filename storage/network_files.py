@@ -23,10 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from storage.atomic import atomic_write_bytes
+from tasks.perception.models.settings import DEFAULT_BUNDLED_CACHE as DEFAULT_BUNDLED_CACHE
+from tasks.perception.models.settings import MEDIAPIPE_VERSION
 
-#: the wheel set-up downloads (pip download mediapipe==0.10.21 --no-deps): the last release line
-#: that still ships the pose models inside the package (1.x no longer does)
-MEDIAPIPE_VERSION = "0.10.21"
 #: file name -> (path inside the wheel, sha256 of the file)
 BUNDLED_MODELS = {
     "pose_detection.tflite": (
@@ -38,9 +37,6 @@ BUNDLED_MODELS = {
         "e9a5c5cb17f736fafd4c2ec1da3b3d331d6edbe8a0d32395855aeb2cdfd64b9f",
     ),
 }
-#: where set-up puts them unless told otherwise: relative to the working directory, else to the
-#: checkout that `make setup` ran in (:func:`bundled_model`)
-DEFAULT_BUNDLED_CACHE = Path(".cache/models/mediapipe-" + MEDIAPIPE_VERSION)
 #: the checkout (or installed tree) this module lives in
 _CHECKOUT = Path(__file__).resolve().parents[1]
 

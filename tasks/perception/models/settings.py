@@ -5,9 +5,17 @@ defaults point here)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 from tasks.bounds import AtLeastOne, Count, Positive, PositiveFraction, Probability
+
+#: the wheel set-up downloads (pip download mediapipe==0.10.21 --no-deps): the last release line
+#: that still ships the pose models inside the package (1.x no longer does)
+MEDIAPIPE_VERSION = "0.10.21"
+#: where set-up puts them unless told otherwise: relative to the working directory, else to the
+#: checkout that `make setup` ran in (:func:`bundled_model`)
+DEFAULT_BUNDLED_CACHE = Path(".cache/models/mediapipe-" + MEDIAPIPE_VERSION)
 
 
 @dataclass(frozen=True)
