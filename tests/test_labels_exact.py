@@ -44,14 +44,12 @@ def _wall_sweeps(x_face: float, sweeps: int, seed: int = 0) -> list[np.ndarray]:
     return out
 
 
-def _map_of(sweeps: list[np.ndarray], poses: list[np.ndarray] | None = None):
-    """The static map of sweeps labelled car by an all-car semantic image (the map stage's
-    kernels, exact perception)."""
-    lut = C.CITYSCAPES_TO_CLASS
-    mapper = SequenceMapper(
-        MapParams(voxel_size_m=VOXEL),
+def _mapper(params: MapParams) -> SequenceMapper:
+    """The map stage's sequence mapper for the test camera (640 x 480), one thread."""
+    return SequenceMapper(
+        params,
         FreeSpaceParams(voxel_size_m=VOXEL),
-        lut,
+        C.CITYSCAPES_TO_CLASS,
         K,
         T_CAM_FROM_LIDAR,
         640,
@@ -59,6 +57,12 @@ def _map_of(sweeps: list[np.ndarray], poses: list[np.ndarray] | None = None):
         0.3,
         threads=1,
     )
+
+
+def _map_of(sweeps: list[np.ndarray], poses: list[np.ndarray] | None = None):
+    """The static map of sweeps labelled car by an all-car semantic image (the map stage's
+    kernels, exact perception)."""
+    mapper = _mapper(MapParams(voxel_size_m=VOXEL))
     semantic = np.full((480, 640), C.CLASS_TO_CITYSCAPES[C.CAR], np.uint8)
     none = np.zeros((0, 3), np.float32)
     for i, pts in enumerate(sweeps):
@@ -182,17 +186,7 @@ def test_the_ground_a_person_stands_on_is_mapped():
     ground = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, -0.9)], 1)
     d = ground / np.linalg.norm(ground, axis=1, keepdims=True)
     pts = (ground + d * rng.normal(0.0, NOISE_M, (len(d), 1))).astype(np.float32)
-    mapper = SequenceMapper(
-        MapParams(voxel_size_m=VOXEL),
-        FreeSpaceParams(voxel_size_m=VOXEL),
-        C.CITYSCAPES_TO_CLASS,
-        K,
-        T_CAM_FROM_LIDAR,
-        640,
-        480,
-        0.3,
-        threads=1,
-    )
+    mapper = _mapper(MapParams(voxel_size_m=VOXEL))
     semantic = np.full((480, 640), C.CLASS_TO_CITYSCAPES[C.ROAD], np.uint8)
     # a person standing behind the sensor (out of the camera's view: its LiDAR box counts alone)
     box_c = np.array([[-4.0, 0.0, -0.05]], np.float32)
@@ -230,17 +224,7 @@ def test_a_person_out_of_view_leaves_no_trace_in_the_map():
     pts = np.concatenate([ground, wall, body])
     d = pts / np.linalg.norm(pts, axis=1, keepdims=True)
     pts = (pts + d * rng.normal(0.0, NOISE_M, (len(d), 1))).astype(np.float32)
-    mapper = SequenceMapper(
-        MapParams(voxel_size_m=VOXEL),
-        FreeSpaceParams(voxel_size_m=VOXEL),
-        C.CITYSCAPES_TO_CLASS,
-        K,
-        T_CAM_FROM_LIDAR,
-        640,
-        480,
-        0.3,
-        threads=1,
-    )
+    mapper = _mapper(MapParams(voxel_size_m=VOXEL))
     semantic = np.full((480, 640), C.CLASS_TO_CITYSCAPES[C.ROAD], np.uint8)
     semantic[:240] = C.CLASS_TO_CITYSCAPES[C.OTHER_STRUCTURE]  # above the horizon: the wall
     mapper.add_sweep(
@@ -282,17 +266,7 @@ def test_a_person_outline_outside_its_image_mask_leaves_no_trace(edge_m):
     pts = np.concatenate([ground, body])
     d = pts / np.linalg.norm(pts, axis=1, keepdims=True)
     pts = (pts + d * rng.normal(0.0, NOISE_M, (len(d), 1))).astype(np.float32)
-    mapper = SequenceMapper(
-        MapParams(voxel_size_m=VOXEL, person_edge_m=edge_m),
-        FreeSpaceParams(voxel_size_m=VOXEL),
-        C.CITYSCAPES_TO_CLASS,
-        K,
-        T_CAM_FROM_LIDAR,
-        640,
-        480,
-        0.3,
-        threads=1,
-    )
+    mapper = _mapper(MapParams(voxel_size_m=VOXEL, person_edge_m=edge_m))
     # the image: a pole behind the person; the person's mask one pixel short of its outline
     semantic = np.full((480, 640), C.CLASS_TO_CITYSCAPES[C.ROAD], np.uint8)
     semantic[:240] = C.CLASS_TO_CITYSCAPES[C.POLE]

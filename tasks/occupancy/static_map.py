@@ -23,7 +23,7 @@ from tasks.geometry import points_in_boxes, yaw_rotations
 from tasks.occupancy.nearest import nearest_indices
 from tasks.occupancy.settings import MapParams
 from tasks.occupancy.surface import NUM_MOMENTS, group_sum, point_moments
-from tasks.occupancy.voxel_keys import KEY_MASK, KEY_OFFSET
+from tasks.occupancy.voxel_keys import KEY_MASK, KEY_OFFSET, key_rows
 from tasks.occupancy.voxel_keys import StaticMapError as StaticMapError
 from tasks.occupancy.voxel_keys import pack_keys as pack_keys
 from tasks.occupancy.voxel_keys import unpack_keys as unpack_keys
@@ -536,13 +536,9 @@ def small_fragments(keys: np.ndarray, labels: np.ndarray, min_voxels: int) -> np
     table = packed[order]
     rows, cols = [], []
     for off in _FORWARD:
-        q = keys + off
-        inside = np.all((q >= -_OFF) & (q <= _MASK - _OFF), axis=1)
-        qp = pack_keys(np.where(inside[:, None], q, keys))
-        at = np.minimum(np.searchsorted(table, qp), n - 1)
-        hit = inside & (table[at] == qp)
-        other = order[at]
-        same = hit & (labels[other] == labels)
+        at = key_rows(table, keys + off)
+        other = order[np.maximum(at, 0)]
+        same = (at >= 0) & (labels[other] == labels)
         rows.append(np.nonzero(same)[0])
         cols.append(other[same])
     r, c = np.concatenate(rows), np.concatenate(cols)

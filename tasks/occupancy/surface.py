@@ -172,13 +172,6 @@ _OFFSETS = np.array(
 )
 
 
-def _neighbour(packed: np.ndarray, keys: np.ndarray, d: np.ndarray, pack) -> np.ndarray:
-    """Row of the voxel keys + d in the sorted packed table (-1 where absent)."""
-    q = pack(keys + d)
-    at = np.minimum(np.searchsorted(packed, q), len(packed) - 1)
-    return np.where(packed[at] == q, at, -1)
-
-
 def _passes(normal: np.ndarray, point_rel: np.ndarray, voxel_size_m: float) -> np.ndarray:
     """(K,) bool: the plane through point_rel (K, 3) (relative to the voxel's corner) with unit
     normal (K, 3) towards the sensor, moved FACE_TOLERANCE_M into the solid, meets the voxel's
@@ -204,7 +197,7 @@ def surface_fit(
     plane needs. Decisions near the edge of the given keys see fewer neighbours: give a halo of
     voxels around the ones used.
     """
-    from tasks.occupancy.voxel_keys import pack_keys, unpack_keys
+    from tasks.occupancy.voxel_keys import key_rows, unpack_keys
 
     pk = np.asarray(packed_keys, dtype=np.int64)
     m = np.asarray(moments, dtype=np.int64)
@@ -218,7 +211,7 @@ def surface_fit(
     normal, planar = _plane(count, cov, toward, min_points, noise_m)
     # the voxel's 3 x 3 x 3 neighbourhood pooled, in the voxel's frame
     step_q = voxel_size_m / MOMENT_UNIT_M
-    rows = [_neighbour(pk, keys, d, pack_keys) for d in _OFFSETS] if k else []
+    rows = [key_rows(pk, keys + d) for d in _OFFSETS] if k else []
     pooled = np.zeros((k, NUM_MOMENTS))
     for d, w in zip(_OFFSETS, rows):
         ok = np.flatnonzero(w >= 0)

@@ -26,3 +26,15 @@ def unpack_keys(packed: np.ndarray) -> np.ndarray:
     """(N,) int64 packed keys -> (N, 3) int64 voxel keys."""
     p = np.asarray(packed, dtype=np.int64)
     return np.stack([(p >> 42) & KEY_MASK, (p >> 21) & KEY_MASK, p & KEY_MASK], axis=1) - KEY_OFFSET
+
+
+def key_rows(table: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """Row of each voxel key in ``table``, the sorted (T,) packed keys; -1 where it is absent or
+    beyond the packable range. keys: (N, 3) int voxel keys. Returns (N,) int64."""
+    k = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
+    if not len(table):
+        return np.full(len(k), -1, np.int64)
+    inside = np.all((k >= -KEY_OFFSET) & (k <= KEY_MASK - KEY_OFFSET), axis=1)
+    q = pack_keys(np.where(inside[:, None], k, 0))
+    at = np.minimum(np.searchsorted(table, q), len(table) - 1)
+    return np.where(inside & (table[at] == q), at, -1)
