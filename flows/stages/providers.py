@@ -186,10 +186,12 @@ class OracleInit:
         return np.flatnonzero(tracks.gt_index >= 0)
 
     def estimates(self, tracks: Tracks, rows: np.ndarray) -> BodyParams:
-        truths = []
+        truths, bodies = [], {}  # one read per frame (a frame's file holds every person)
         for r in rows:
-            gt = read_frame_gt(self.seq.root, self.seq.sequence, int(tracks.frame[r]))
-            truths.append(BodyParams.of(gt).take([int(tracks.gt_index[r])]))
+            f = int(tracks.frame[r])
+            if f not in bodies:
+                bodies[f] = BodyParams.of(read_frame_gt(self.seq.root, self.seq.sequence, f))
+            truths.append(bodies[f].take([int(tracks.gt_index[r])]))
         truth = BodyParams.concat(truths)
         rng = frame_rng(self.spec.seed, self.seq.sequence, int(rows[0]), 3)
         return oracle_initial_estimate(
