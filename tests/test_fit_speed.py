@@ -133,3 +133,39 @@ def test_icp_transform_written_per_coordinate_gives_the_same_bits():
         T[:, :3, 3] = torch.randn(k, 3, dtype=torch.float64, generator=g)
         R, t = T[:, None, :3, :3], T[:, None, :3, 3]
         assert torch.equal(_apply(T, x), (R * x[..., None, :]).sum(-1) + t)
+
+
+def test_a_fit_without_its_posed_bodies_and_final_terms_gives_the_same_parameters(model):
+    from tasks.body.prior import GMMPosePrior, generate_pose_prior
+    from tasks.fit.init_oracle import oracle_initial_estimate
+    from tasks.fit.lidar_sim import R_CAM_FROM_LIDAR, SENSORS, observe_bodies, walking_track_params
+    from tasks.fit.optimize import ragged_points
+    from tasks.fit.settings import FitSettings
+    from tasks.fit.track_fit import persons_fit
+    from tasks.fit.weights import FIT_PRESETS
+
+    K = np.array([[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]])
+    T_cl = np.eye(4)
+    T_cl[:3, :3] = R_CAM_FROM_LIDAR
+    rng = np.random.default_rng(5)
+    truth = walking_track_params(model, rng.normal(0, 0.8, 10), [0.3, 1.3, 5.0], 0.5, 1.2, 3, 5.0)
+    obs = observe_bodies(
+        model, *(getattr(truth, f) for f in BodyParams.FIELDS), SENSORS["ouster-64"], rng, K
+    )
+    pts, counts = ragged_points(obs.points_lidar, obs.point_mask)
+    start = oracle_initial_estimate(model, truth, np.random.default_rng(1))
+    g = generate_pose_prior()
+    prior = GMMPosePrior(g["means"], g["covars"], g["weights"])
+    fit = persons_fit(
+        model, prior, K, T_cl, FIT_PRESETS["3dpw"], FitSettings(iterations=12, nn_every=3)
+    )
+    full = fit(obs.keypoints, pts, counts, start, iterations=12)
+    lean = fit(obs.keypoints, pts, counts, start, iterations=12, posed=False, terms=False)
+    for k in BodyParams.FIELDS:
+        assert np.array_equal(getattr(full, k), getattr(lean, k)), k
+    assert full.vertices.shape == (3, model.v_template.shape[0], 3)
+    assert lean.vertices.shape == (3, 0, 3) and lean.joints.shape == (3, 0, 3)
+    assert set(lean.residuals) == {"icp_fitness", "visible_vertices", "steps"}
+    for k in lean.residuals:
+        assert np.array_equal(full.residuals[k], lean.residuals[k]), k
+    assert {"L_J", "L_3D", "total"} <= set(full.residuals)

@@ -115,6 +115,8 @@ def fit_persons(
     keypoint_weights=None,
     frozen: tuple[str, ...] = (),
     coupling=None,
+    posed: bool = True,
+    terms: bool = True,
 ) -> FitResult:
     """Fit B persons jointly (batched Adam), returning cam-frame bodies.
 
@@ -136,6 +138,9 @@ def fit_persons(
     'body_pose', 'transl'; e.g. a track's shape). coupling: a term tying persons together,
     joints (B, 24, 3) cam frame -> (B,) added to the objective (residual 'L_coupling'; e.g. the
     acceleration penalty of tasks/fit/refine.py); with it no person leaves the batch early.
+    posed=False: vertices / joints (B, 0, 3) (a caller that poses the bodies itself);
+    terms=False: residuals 'icp_fitness', 'visible_vertices' and 'steps' only (the loss terms at
+    the result cost a last refresh of the Chamfer pairs; a caller that refits skips them).
     """
     B = len(init)
     kp_np, pts_l, counts = np.asarray(keypoints), np.asarray(points), np.asarray(counts).reshape(-1)
@@ -186,17 +191,20 @@ def fit_persons(
         free,
     )
 
+    residuals = {}
     with torch.no_grad():
-        full = _posed(model, x)
-        _, terms = problem.objective(x, refresh=True)
-    residuals = {k: v.double().cpu().numpy() for k, v in terms.items()}
+        if terms:
+            _, final = problem.objective(x, refresh=True)
+            residuals = {k: v.double().cpu().numpy() for k, v in final.items()}
+        full = _posed(model, x) if posed else None
     residuals["icp_fitness"] = icp_fitness
     residuals["visible_vertices"] = problem.visible_count.cpu().numpy().astype(np.float64)
     residuals["steps"] = steps.cpu().numpy().astype(np.float64)
     rows = {k: x[:, s].cpu().numpy().astype(np.float32) for k, s in _SLICES.items()}
+    none = np.zeros((B, 0, 3), np.float32)
     return FitResult(
-        vertices=full.vertices.cpu().numpy().astype(np.float32),
-        joints=full.joints.cpu().numpy().astype(np.float32),
+        vertices=none if full is None else full.vertices.cpu().numpy().astype(np.float32),
+        joints=none if full is None else full.joints.cpu().numpy().astype(np.float32),
         residuals=residuals,
         **rows,
     )

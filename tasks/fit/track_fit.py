@@ -109,7 +109,7 @@ def fit_tracks(
     """Fit every row of a sequence (steps 1-6 of the module docstring).
 
     fit: callable (keypoints (k, 17, 3), points_lidar (n, 3), counts (k,), init BodyParams, *,
-    iterations, frozen, coupling, use_icp, lr) -> tasks.fit.optimize.FitResult: the
+    iterations, frozen, coupling, use_icp, lr, posed, terms) -> tasks.fit.optimize.FitResult: the
     per-person fit (tasks.fit.optimize.fit_persons) with the camera, the objective's weights and
     the fit settings bound (lr None: the settings'). model: the body model. init:
     the provider's starts (cam frame, one per row) or None (weight-free). run: maps a function
@@ -145,7 +145,8 @@ def fit_tracks(
         init = _weight_free(
             model, costs, heading, kp, rows, pts_cam, up_cam, start, s.batch_persons
         )
-    params, residuals, warm = _per_frame(rows, fit, model, init, kp, s, run)
+    # the refinement's refit gives the rows' final loss terms: the per-frame fits skip theirs
+    params, residuals, warm = _per_frame(rows, fit, model, init, kp, s, run, not refine.enabled)
     shapes: dict = {}
     if s.shared_shape and R:
         betas, shapes = track_shapes(rows.track_id, params.betas, rows.counts)
@@ -170,6 +171,7 @@ def fit_tracks(
                 coupling=coupling,
                 use_icp=False,
                 lr=refine.learning_rate,
+                posed=False,
             )
 
         steps = residuals.get("steps", np.zeros(R))
@@ -291,8 +293,9 @@ def _weight_free(model, costs, heading, kp, rows, pts_cam, up_cam, s, batch) -> 
     return BodyParams(*(np.concatenate([getattr(p, f) for p in parts]) for f in _FIELDS))
 
 
-def _per_frame(rows: TrackRows, fit, model, init: BodyParams, kp, s: FitSettings, run):
-    """Step 4: the per-frame fits. Returns params, residuals (dict of (R,)), warm (R,) bool."""
+def _per_frame(rows: TrackRows, fit, model, init: BodyParams, kp, s: FitSettings, run, terms=True):
+    """Step 4: the per-frame fits. Returns params, residuals (dict of (R,); the final loss terms
+    only with ``terms``), warm (R,) bool."""
     R, batch = len(rows), s.batch_persons
     pos = np.asarray(rows.position)
     ids = np.asarray(rows.track_id)
@@ -305,7 +308,7 @@ def _per_frame(rows: TrackRows, fit, model, init: BodyParams, kp, s: FitSettings
     cold = np.flatnonzero(~warm)
 
     def args(sel, start, its):
-        return (fit, kp[sel], *rows.points_of(sel), start, its)
+        return (fit, kp[sel], *rows.points_of(sel), start, its, terms)
 
     def store(sel, result):
         for k in _FIELDS:
@@ -339,10 +342,12 @@ def _per_frame(rows: TrackRows, fit, model, init: BodyParams, kp, s: FitSettings
     return BodyParams(*(out[k] for k in _FIELDS)), residuals, warm
 
 
-def _fit_call(fit, keypoints, points_lidar, counts, start, iterations):
+def _fit_call(fit, keypoints, points_lidar, counts, start, iterations, terms=True):
     """One batch of the per-frame fits (a module-level function: the stage may run it on
-    another process)."""
-    return fit(keypoints, points_lidar, counts, start, iterations=iterations)
+    another process); the bodies are posed later (:func:`posed_result`), not here."""
+    return fit(
+        keypoints, points_lidar, counts, start, iterations=iterations, posed=False, terms=terms
+    )
 
 
 def _previous_frame_row(ids: np.ndarray, pos: np.ndarray) -> np.ndarray:
@@ -374,6 +379,8 @@ def persons_fit(model, prior, K, T_cam_from_lidar, weights, settings: FitSetting
         coupling=None,
         use_icp=True,
         lr=None,
+        posed=True,
+        terms=True,
     ):
         lr = settings.learning_rate if lr is None else lr
         return fit_persons(
@@ -390,6 +397,8 @@ def persons_fit(model, prior, K, T_cam_from_lidar, weights, settings: FitSetting
             use_icp=use_icp,
             frozen=frozen,
             coupling=coupling,
+            posed=posed,
+            terms=terms,
         )
 
     return fit
