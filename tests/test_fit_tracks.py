@@ -286,17 +286,17 @@ def _fit_ids(model, rows, start, flips):
 def test_legs_swapped_alone_follow_the_start(model):
     """A back view whose legs alone came swapped, as BlazePose does: the track decides to keep
     the labelling (the arms are right), so the legs stay swapped unless each chain follows the
-    provider's start (``follow_start: all``: legs relabelled, arms and face untouched); with
+    provider's start (``follow_start: always``: legs relabelled, arms and face untouched); with
     ``undecided`` (the default) only rows the track could not decide follow it."""
     rows, kp, start = _standing_back_view(model, lambda k: _swap_chain(k, 2))
     legs = np.asarray(rows.keypoints)
     assert np.abs(legs - kp).max() > 10.0  # the swap moved keypoints (pixels)
-    every = _fit_ids(model, rows, start, FlipSettings(follow_start="all"))
+    every = _fit_ids(model, rows, start, FlipSettings(follow_start="always"))
     assert every.flips.decided.all() and not every.flips.mirrored.any()
     np.testing.assert_allclose(every.keypoints, kp, atol=1e-3)
     assert every.flips.chains[:, 2].all() and not every.flips.chains[:, :2].any()
     assert every.flips.counts()["chains_to_start"] == 3
-    for mode in ("undecided", "off"):
+    for mode in ("undecided", "never"):
         kept = _fit_ids(model, rows, start, FlipSettings(follow_start=mode))
         np.testing.assert_allclose(kept.keypoints, legs, atol=1e-3)
     # the same rows left undecided by the track (a margin nothing reaches): relabelled by default

@@ -111,7 +111,7 @@ def _candidates(value: Any) -> list[Any]:
             "log",
             "coda",
             "lidar-odometry",
-            "off",
+            "never",
             value + "x",
         ]
     if value is None:

@@ -97,7 +97,7 @@ class FlipSettings:
     keypoints as detected. follow_start: with a provider's start (not the weight-free one, which
     is built from the chosen labelling), relabel the face, arms and legs each towards the start's
     projected keypoints (tasks.fit.flips.chains_towards) in the rows left undecided
-    ('undecided'), in every row ('all') or nowhere ('off'); start_margin: by at least this
+    ('undecided'), in every row ('always') or nowhere ('never'); start_margin: by at least this
     mean distance (fraction of the start's projected height). start_max_distance: with
     follow_start on, keypoints farther than this from the start's (fraction of its projected
     height) are dropped (tasks.fit.flips.far_from_start; None: none).
@@ -112,7 +112,7 @@ class FlipSettings:
     velocity_window_s: Positive = 0.45
     smooth_max_step_s: Positive = 0.5
     min_margin: NonNegative = 0.5
-    follow_start: Literal["off", "undecided", "all"] = "undecided"
+    follow_start: Literal["never", "undecided", "always"] = "undecided"
     start_margin: NonNegative = 0.02
     start_max_distance: Positive | None = 0.2
 

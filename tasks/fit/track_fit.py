@@ -147,7 +147,7 @@ def fit_tracks(
         )
         heading = decision.heading
         kp = np.where(decision.mirrored[:, None, None], mirrored(kp), kp)
-        if init is not None and flips.follow_start != "off" and R:
+        if init is not None and flips.follow_start != "never" and R:
             # the rows the track left undecided (or all): each chain labelled as the start is
             decision, kp = _follow_start(model, init, kp, rows.K, decision, start, flips)
     if init is None:
@@ -216,7 +216,7 @@ def _follow_start(model, init: BodyParams, kp, K, decision: FlipDecision, start,
         .numpy()
     )
     uv = cam[..., :2] / np.maximum(cam[..., 2:3], 1e-3) @ np.asarray(K)[:2, :2].T + K[:2, 2]
-    which = np.ones(len(kp), bool) if flips.follow_start == "all" else ~decision.decided
+    which = np.ones(len(kp), bool) if flips.follow_start == "always" else ~decision.decided
     kp, chains = chains_towards(kp, uv, which, start.keypoint_min_confidence, flips.start_margin)
     dropped = None
     if flips.start_max_distance is not None:
