@@ -113,7 +113,7 @@ class FlipSettings:
     smooth_max_step_s: Positive = 0.5
     min_margin: NonNegative = 0.5
     follow_start: Literal["never", "undecided", "always"] = "undecided"
-    start_margin: NonNegative = 0.02
+    start_margin: NonNegative = 0.05
     start_max_distance: Positive | None = 0.2
 
 
