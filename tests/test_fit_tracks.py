@@ -14,7 +14,7 @@ from tasks.body.poses import sample_plausible_poses
 from tasks.body.prior import GMMPosePrior, generate_pose_prior
 from tasks.body.procedural import default_body_model
 from tasks.body.rotations import axis_angle_to_matrix
-from tasks.fit.flips import decide_flips
+from tasks.fit.flips import CHAINS, chains_towards, decide_flips
 from tasks.fit.gaps import (
     OCCLUDED,
     SEEN_THROUGH,
@@ -231,6 +231,125 @@ def test_flip_with_both_candidates_equally_poor_is_kept_and_counted():
         FlipSettings(enabled=False),
     )
     assert not off.mirrored.any()
+
+
+def _swap_chain(kp, chain):
+    out = np.array(kp, copy=True)
+    left, right = (list(x) for x in CHAINS[chain])
+    out[:, left], out[:, right] = kp[:, right], kp[:, left]
+    return out
+
+
+def _identity_fit(keypoints, points_lidar, counts, init, **kw):
+    from types import SimpleNamespace
+
+    return SimpleNamespace(**{f: getattr(init, f) for f in BodyParams.FIELDS}, residuals={})
+
+
+def _standing_back_view(model, swap):
+    """Three frames of a person standing with its back to the camera, keypoints changed by
+    swap; its TrackRows, the true keypoints and an oracle-like start."""
+    from tasks.fit.track_fit import TrackRows
+
+    truth, obs, kp = _track(model, 0.0, 0.0, frames=3)
+    pts, counts = ragged_points(obs.points_lidar, obs.point_mask)
+    n = len(kp)
+    rows = TrackRows(
+        np.ones(n, np.int64),
+        np.arange(n),
+        swap(kp).astype(np.float32),
+        pts.astype(np.float32),
+        counts,
+        K,
+        T_CL,
+        np.stack([np.eye(4)] * n),
+        np.arange(n) * 0.2,
+    )
+    return rows, kp, oracle_initial_estimate(model, truth, np.random.default_rng(1))
+
+
+def _fit_ids(model, rows, start, flips):
+    from tasks.fit.track_fit import fit_tracks
+
+    return fit_tracks(
+        rows,
+        _identity_fit,
+        model,
+        start,
+        FitSettings(shared_shape=False),
+        INIT,
+        flips,
+        RefineSettings(enabled=False),
+    )
+
+
+def test_legs_swapped_alone_follow_the_start(model):
+    """A back view whose legs alone came swapped, as BlazePose does: the track decides to keep
+    the labelling (the arms are right), so the legs stay swapped unless each chain follows the
+    provider's start (``follow_start: always``: legs relabelled, arms and face untouched); with
+    ``undecided`` (the default) only rows the track could not decide follow it."""
+    rows, kp, start = _standing_back_view(model, lambda k: _swap_chain(k, 2))
+    legs = np.asarray(rows.keypoints)
+    assert np.abs(legs - kp).max() > 10.0  # the swap moved keypoints (pixels)
+    # standing, the legs are ~0.055 start heights apart in the image: a margin below that
+    near = FlipSettings(start_margin=0.02)
+    every = _fit_ids(model, rows, start, dataclasses.replace(near, follow_start="always"))
+    assert every.flips.decided.all() and not every.flips.mirrored.any()
+    np.testing.assert_allclose(every.keypoints, kp, atol=1e-3)
+    assert every.flips.chains[:, 2].all() and not every.flips.chains[:, :2].any()
+    assert every.flips.counts()["chains_to_start"] == 3
+    for mode in ("undecided", "never"):
+        kept = _fit_ids(model, rows, start, dataclasses.replace(near, follow_start=mode))
+        np.testing.assert_allclose(kept.keypoints, legs, atol=1e-3)
+    # the same rows left undecided by the track (a margin nothing reaches): relabelled by default
+    undecided = _fit_ids(model, rows, start, dataclasses.replace(near, min_margin=100.0))
+    assert undecided.flips.counts() == {
+        "flipped": 0,
+        "kept": 0,
+        "undecided": 3,
+        "chains_to_start": 3,
+        "keypoints_dropped": 0,  # exact keypoints, all near the start's
+    }
+    np.testing.assert_allclose(undecided.keypoints, kp, atol=1e-3)
+
+
+def test_a_keypoint_far_from_the_start_is_dropped(model):
+    """With ``start_max_distance`` a keypoint far from the start's (a wrist 0.6 heights off, as
+    on a person cut by the image border) gets confidence 0 and is counted; the others keep
+    theirs; without the setting (None) nothing is dropped."""
+
+    def wild(k):
+        out = np.array(k, copy=True)
+        out[:, 9, :2] += [0.0, -200.0]  # left wrist 200 px up, about 0.6 heights
+        return out
+
+    rows, kp, start = _standing_back_view(model, wild)
+    got = _fit_ids(model, rows, start, FlipSettings(start_max_distance=0.3))
+    assert (got.keypoints[:, 9, 2] == 0).all()
+    others = np.delete(np.arange(17), 9)
+    np.testing.assert_allclose(got.keypoints[:, others], kp[:, others], atol=1e-3)
+    assert got.flips.counts()["keypoints_dropped"] == 3
+    kept = _fit_ids(model, rows, start, FlipSettings(start_max_distance=None))
+    assert (kept.keypoints[:, 9, 2] > 0).all() and "keypoints_dropped" not in kept.flips.counts()
+
+
+def test_chains_towards_a_start_keep_ties_and_unconfident_chains():
+    """Keypoints as far from the start either way (a chain whose left and right coincide) or
+    below the confidence threshold are kept as detected; rows not selected are untouched."""
+    uv = np.zeros((3, 17, 2))
+    uv[:, :, 1] = np.linspace(0, 170, 17)  # 170 px tall
+    uv[:, 5::2, 0], uv[:, 6::2, 0] = 10.0, -10.0  # left keypoints at +10 px, right at -10
+    kp = np.concatenate([uv, np.ones((3, 17, 1))], -1)
+    sw = _swap_chain(kp, 1)  # arms swapped
+    sw[1, 5:11, 2] = 0.1  # row 1: the arms not confident
+    for left, right in zip(*CHAINS[1]):  # row 2: each pair on its start pair's midpoint: a tie
+        sw[2, [left, right], :2] = (uv[2, left] + uv[2, right]) / 2
+    out, chains = chains_towards(sw, uv, np.ones(3, bool), 0.3, 0.02)
+    assert chains[:, 1].tolist() == [True, False, False]
+    np.testing.assert_array_equal(out[0], kp[0])
+    np.testing.assert_array_equal(out[1:], sw[1:])
+    out, chains = chains_towards(sw, uv, np.zeros(3, bool), 0.3, 0.02)
+    assert not chains.any() and np.array_equal(out, sw)
 
 
 # ---- one shape per track -----------------------------------------------------------------------

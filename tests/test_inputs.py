@@ -111,6 +111,7 @@ def _candidates(value: Any) -> list[Any]:
             "log",
             "coda",
             "lidar-odometry",
+            "never",
             value + "x",
         ]
     if value is None:

@@ -37,21 +37,33 @@ class FlipDecision:
     """Per row: mirrored (R,) bool: fit the mirrored keypoints; heading (R,) int64: the chosen
     candidate heading (index into the FacingCosts candidates); margin (R,) float64: min-marginal
     cost of the other labelling minus the chosen one's (>= 0); decided (R,) bool: margin >=
-    min_margin (else kept as detected); speed_mps (R,) float64: the track's speed there."""
+    min_margin (else kept as detected); speed_mps (R,) float64: the track's speed there; chains
+    (R, 3) bool or None: the chains (:data:`CHAINS`: face, arms, legs) relabelled afterwards
+    towards the start (:func:`chains_towards`, ``follow_start``); dropped (R, 17) bool or None:
+    keypoints dropped as far from the start (:func:`far_from_start`)."""
 
     mirrored: np.ndarray
     heading: np.ndarray
     margin: np.ndarray
     decided: np.ndarray
     speed_mps: np.ndarray
+    chains: np.ndarray | None = None
+    dropped: np.ndarray | None = None
 
     def counts(self) -> dict[str, int]:
-        """How many rows were flipped, kept as detected by decision, and left undecided."""
-        return {
+        """How many rows were flipped, kept as detected by decision, and left undecided; with
+        chains, how many rows had a chain relabelled towards the start; with dropped, how many
+        keypoints were dropped as far from it."""
+        out = {
             "flipped": int((self.mirrored & self.decided).sum()),
             "kept": int((~self.mirrored & self.decided).sum()),
             "undecided": int((~self.decided).sum()),
         }
+        if self.chains is not None:
+            out["chains_to_start"] = int(self.chains.any(1).sum())
+        if self.dropped is not None:
+            out["keypoints_dropped"] = int(self.dropped.sum())
+        return out
 
 
 def track_velocities_ls(
@@ -162,3 +174,73 @@ def _min_marginals(unary: np.ndarray, yaw: np.ndarray, t: np.ndarray, s: FlipSet
     for k in range(n - 2, -1, -1):
         bwd[k] = (pair[k] + (unary[k + 1] + bwd[k + 1])[None, :]).min(1)
     return fwd + bwd
+
+
+#: COCO-17 left / right chains relabelled as one (left indices, right indices): the face's eyes
+#: and ears, the arms, the legs. BlazePose may swap one chain and not the others (e.g. the legs
+#: of a person seen from behind)
+CHAINS: tuple[tuple[tuple[int, ...], tuple[int, ...]], ...] = (
+    ((1, 3), (2, 4)),
+    ((5, 7, 9), (6, 8, 10)),
+    ((11, 13, 15), (12, 14, 16)),
+)
+
+
+def chains_towards(
+    keypoints, start_uv, rows, min_confidence: float, margin: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Relabel left / right per chain (:data:`CHAINS`) of some rows towards a start body.
+
+    keypoints (R, 17, 3) (u, v, confidence) px; start_uv (R, 17, 2) px: the start bodies'
+    projected COCO-17 keypoints (e.g. a provider's estimate); rows (R,) bool: which rows may be
+    relabelled (e.g. those the track left undecided). Per row and chain, over its left / right
+    pairs whose two keypoints are both at least ``min_confidence``: the mean distance of the
+    keypoints as labelled and chain-swapped to the start's, in units of the start's projected
+    height (its keypoints' vertical extent); the chain is swapped when that is smaller by more
+    than ``margin``. Returns the keypoints (relabelled where swapped) and swapped (R, 3) bool,
+    one column per chain."""
+    kp = np.array(keypoints, np.float64, copy=True)
+    uv = np.asarray(start_uv, np.float64)
+    R = len(kp)
+    rows = np.asarray(rows, bool).reshape(R)
+    swapped = np.zeros((R, len(CHAINS)), bool)
+    if R == 0:
+        return kp, swapped
+    height = np.maximum(np.ptp(uv[..., 1], axis=1), 1.0)  # (R,)
+    for c, (left, right) in enumerate(CHAINS):
+        L, Rt = list(left), list(right)
+        ok = (kp[:, L, 2] >= min_confidence) & (kp[:, Rt, 2] >= min_confidence)  # (R, n)
+        n = ok.sum(1)
+        d_as = np.linalg.norm(kp[:, L, :2] - uv[:, L], axis=-1) + np.linalg.norm(
+            kp[:, Rt, :2] - uv[:, Rt], axis=-1
+        )
+        d_sw = np.linalg.norm(kp[:, Rt, :2] - uv[:, L], axis=-1) + np.linalg.norm(
+            kp[:, L, :2] - uv[:, Rt], axis=-1
+        )
+        mean_as = (d_as * ok).sum(1) / np.maximum(2 * n, 1) / height
+        mean_sw = (d_sw * ok).sum(1) / np.maximum(2 * n, 1) / height
+        swap = rows & (n > 0) & (mean_sw + margin < mean_as)
+        swapped[:, c] = swap
+        if swap.any():
+            idx = np.flatnonzero(swap)
+            a, b = kp[np.ix_(idx, L)].copy(), kp[np.ix_(idx, Rt)].copy()
+            kp[np.ix_(idx, L)], kp[np.ix_(idx, Rt)] = b, a
+    return kp, swapped
+
+
+def far_from_start(keypoints, start_uv, rows, max_distance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Drop (confidence 0) the keypoints of some rows that lie farther than ``max_distance``
+    start heights from the start body's projected keypoint (e.g. a person cut by the image
+    border, whose keypoints a detector squeezes into the visible part).
+
+    keypoints (R, 17, 3), start_uv (R, 17, 2) px, rows (R,) bool as :func:`chains_towards`.
+    Returns the keypoints and dropped (R, 17) bool."""
+    kp = np.array(keypoints, np.float64, copy=True)
+    uv = np.asarray(start_uv, np.float64)
+    if len(kp) == 0:
+        return kp, np.zeros((0, 17), bool)
+    height = np.maximum(np.ptp(uv[..., 1], axis=1), 1.0)
+    dist = np.linalg.norm(kp[..., :2] - uv, axis=-1) / height[:, None]
+    dropped = np.asarray(rows, bool)[:, None] & (dist > max_distance) & (kp[..., 2] > 0)
+    kp[..., 2] = np.where(dropped, 0.0, kp[..., 2])
+    return kp, dropped

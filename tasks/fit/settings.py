@@ -94,7 +94,13 @@ class FlipSettings:
     from the second. velocity_window_s: half-width of the window whose positions give a row's
     velocity (a least-squares line). smooth_max_step_s: rows farther apart are not tied by smoothness.
     min_margin: a smaller difference between the two labellings' min-marginal costs keeps the
-    keypoints as detected.
+    keypoints as detected. follow_start: with a provider's start (not the weight-free one, which
+    is built from the chosen labelling), relabel the face, arms and legs each towards the start's
+    projected keypoints (tasks.fit.flips.chains_towards) in the rows left undecided
+    ('undecided'), in every row ('always') or nowhere ('never'); start_margin: by at least this
+    mean distance (fraction of the start's projected height). start_max_distance: with
+    follow_start on, keypoints farther than this from the start's (fraction of its projected
+    height) are dropped (tasks.fit.flips.far_from_start; None: none).
     """
 
     enabled: bool = True
@@ -106,6 +112,9 @@ class FlipSettings:
     velocity_window_s: Positive = 0.45
     smooth_max_step_s: Positive = 0.5
     min_margin: NonNegative = 0.5
+    follow_start: Literal["never", "undecided", "always"] = "undecided"
+    start_margin: NonNegative = 0.05
+    start_max_distance: Positive | None = 0.2
 
 
 @dataclass(frozen=True)

@@ -27,7 +27,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from tasks.body.params import BodyParams
-from tasks.fit.flips import FlipDecision, FlipSettings, decide_flips
+from tasks.fit.flips import (
+    FlipDecision,
+    FlipSettings,
+    chains_towards,
+    decide_flips,
+    far_from_start,
+)
 from tasks.fit.init_lidar import (
     FacingCosts,
     InitLidarSettings,
@@ -141,6 +147,9 @@ def fit_tracks(
         )
         heading = decision.heading
         kp = np.where(decision.mirrored[:, None, None], mirrored(kp), kp)
+        if init is not None and flips.follow_start != "never" and R:
+            # the rows the track left undecided (or all): each chain labelled as the start is
+            decision, kp = _follow_start(model, init, kp, rows.K, decision, start, flips)
     if init is None:
         init = _weight_free(
             model, costs, heading, kp, rows, pts_cam, up_cam, start, s.batch_persons
@@ -189,6 +198,32 @@ def fit_tracks(
         res2["icp_fitness"] = residuals.get("icp_fitness", np.zeros(R))
         residuals = res2
     return TrackFitResult(params, init, kp.astype(np.float32), decision, warm, residuals, shapes)
+
+
+def _follow_start(model, init: BodyParams, kp, K, decision: FlipDecision, start, flips):
+    """tasks.fit.flips.chains_towards the provider's starts projected by K: (decision with
+    its chains (R, 3) bool, keypoints)."""
+    import torch
+
+    from tasks.fit.optimize import model_keypoints
+
+    posed = posed_result(model, init, {})
+    cam = (
+        model_keypoints(
+            torch.as_tensor(posed.joints),
+            torch.as_tensor(posed.vertices),
+            model.keypoint_vertex_ids,
+        )
+        .double()
+        .numpy()
+    )
+    uv = cam[..., :2] / np.maximum(cam[..., 2:3], 1e-3) @ np.asarray(K)[:2, :2].T + K[:2, 2]
+    which = np.ones(len(kp), bool) if flips.follow_start == "always" else ~decision.decided
+    kp, chains = chains_towards(kp, uv, which, start.keypoint_min_confidence, flips.start_margin)
+    dropped = None
+    if flips.start_max_distance is not None:
+        kp, dropped = far_from_start(kp, uv, np.ones(len(kp), bool), flips.start_max_distance)
+    return dataclasses.replace(decision, chains=chains, dropped=dropped), kp
 
 
 def posed_result(model, params: BodyParams, residuals: dict, chunk: int = 256):
