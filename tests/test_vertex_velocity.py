@@ -211,6 +211,39 @@ def test_tracked_bodies_translate_rigidly_and_fall_back_across_gaps():
     np.testing.assert_allclose(vel[0], np.broadcast_to([0.3, 0.0, 0.0], vel[0].shape))
     assert bodies.frame(3)[0].size == 0
 
+    # fuse.velocity "articulated": the person's velocity (0.3, 0) plus the motion relative to
+    # the pelvis, none for a rigid walk; with the right arm swinging, its vertices keep their
+    # swing (the same as the central difference's, less the pelvis' walk)
+    def tracked(p, relative):
+        return TrackedBodies(
+            model,
+            betas,
+            go,
+            p,
+            transl,
+            np.full(4, 7),
+            frames,
+            np.tile([0.3, 0.0], (4, 1)),
+            stamps,
+            poses,
+            T_base_from_lidar,
+            max_gap_s=0.25,
+            relative=relative,
+        )
+
+    rows, _, vel = tracked(pose, True).frame(1)
+    np.testing.assert_allclose(vel[0], np.broadcast_to([0.3, 0.0, 0.0], vel[0].shape), atol=2e-4)
+    swing = pose.copy()
+    swing[:, 3 * 16 + 2] = 0.8 * stamps[frames]  # right shoulder (joint 17): 0.8 rad/s
+    _, _, art = tracked(swing, True).frame(1)
+    _, _, cd = tracked(swing, False).frame(1)
+    expect = T_base_from_lidar[:3, :3] @ poses[1][:3, :3].T @ walk
+    np.testing.assert_allclose(
+        art[0] - cd[0] + expect, np.broadcast_to([0.3, 0, 0], art[0].shape), atol=2e-4
+    )
+    speed = np.linalg.norm(art[0] - [0.3, 0, 0], axis=1)
+    assert speed.max() > 0.3 and np.median(speed) < 1e-3  # the arm moves, most of the body not
+
 
 def _axis_angle(R):
     from scipy.spatial.transform import Rotation

@@ -21,7 +21,7 @@ CODE_VERSIONS: dict[str, str] = {
     #               first sweep (every later stage's key follows through its upstream keys)
     "track": "5",  # 2: offline back-fill and stitching; 3: world-position check; 4: person points past the
     #               image side; 5: 2d_rect cameras read as the rectified pinhole (real CODa calibration)
-    "fit": "6",  # 2: L_3D caps the vertex -> point distances (fit.chamfer_vertex_max_m); 100 iterations;
+    "fit": "7",  # 2: L_3D caps the vertex -> point distances (fit.chamfer_vertex_max_m); 100 iterations;
     #             3: detections with fewer than fit.min_points LiDAR points are not fitted, fits
     #                that moved more than fit.max_shift_m from their estimate are dropped;
     #             4: bodies carry chamfer_m and reproj_px (typed products); the rectified camera;
@@ -31,6 +31,8 @@ CODE_VERSIONS: dict[str, str] = {
     #                .gap_filled); fit.init_provider lidar-keypoints
     #             6: default preset 3dpw (was ut_campus); torch really on 1 thread in a unit of
     #                several (flows/pipeline/parallel.limit_threads sized it after threadpoolctl)
+    #             7 (smooth): the refinement starts from each track's Whittaker-smoothed root,
+    #                orientation and pose (fit.refine.*_cutoff_hz)
     "map": "7",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path;
     #             3: 2d_rect cameras read as the rectified pinhole (real CODa calibration);
     #             4: both maps written by spatial tile (map_tiles.npz + tiles/*.npz, map.tile_m), built in
