@@ -71,6 +71,7 @@ class _People:
             self.T,
             gap,
             relative=inputs.fusion.velocity == "articulated",
+            neighbours=inputs.fusion.velocity_neighbours,
         )
 
     def __call__(self, position: int, frame: int) -> list[PedestrianMesh]:

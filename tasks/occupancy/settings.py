@@ -111,6 +111,8 @@ class FuseSettings:
     this far in time (the direct neighbours at 5 Hz, up to one missing frame at 10 Hz): across a
     longer gap a swinging limb's difference shrinks to its mean (at 0.4 s apart a 1 Hz gait swing
     keeps ~25 % of its speed); without a neighbour the vertices take the person's velocity.
+    velocity_neighbours: fits on each side of a frame in each vertex's derivative (1: the
+    central difference; 2: the slope of the quartic through five fits, tasks/track/velocity.py).
     """
 
     camera_mask: bool = True
@@ -118,3 +120,4 @@ class FuseSettings:
     camera_pixel_stride: AtLeastOne | None = 2
     velocity: Literal["vertex", "person", "articulated"] = "vertex"
     velocity_max_gap_s: Positive = 0.25
+    velocity_neighbours: AtLeastOne = 1
