@@ -45,7 +45,7 @@ class _People:
     for fits, the ground truth's ``vertex_velocity_base`` for the simulator's bodies)."""
 
     def __init__(self, inputs: FuseInputs, seq, out_root: Path, fit_dir: Path | None):
-        self.inputs, self.seq, self.per_vertex = inputs, seq, inputs.fusion.velocity == "vertex"
+        self.inputs, self.seq, self.per_vertex = inputs, seq, inputs.fusion.velocity != "person"
         self.T = seq.info.calibration.T_base_from_lidar
         if inputs.body_source == "ground-truth":
             self.faces = read_sequence_gt(seq.root, seq.sequence).person_faces
@@ -70,6 +70,8 @@ class _People:
             seq.info.poses,
             self.T,
             gap,
+            relative=inputs.fusion.velocity == "articulated",
+            neighbours=inputs.fusion.velocity_neighbours,
         )
 
     def __call__(self, position: int, frame: int) -> list[PedestrianMesh]:

@@ -7,13 +7,22 @@ expressed in the base axes of frame t; :func:`tasks.track.velocity.vertex_veloci
 one-sided at a track's ends. A neighbour farther than ``max_gap_s`` away does not count (the fit
 there is missing or was dropped: a difference over a long gap would blur a swinging limb into its
 mean); with neither neighbour, every vertex takes the person's own velocity.
+
+``relative=True`` (fuse.velocity "articulated"): a vertex's velocity is the person's (the
+tracker's, as fuse.velocity "person" gives every voxel) plus the vertex's velocity relative to the
+body's root (the pelvis joint), both differences taken as above: the torso then moves nearly with
+the person, a swinging leg keeps its swing, and the fits' frame-to-frame jitter of the whole body
+(root translation) drops out.
+
+``neighbours=k`` > 1 (fuse.velocity_neighbours): the derivative takes up to k fits on each side
+(each within ``max_gap_s`` of the next): the slope of the polynomial through them, which follows
+a swinging limb closer than the central difference at 5 Hz.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from tasks.body.posing import posed_vertices
 from tasks.track.velocity import track_neighbours, vertex_velocities_in_base
 
 
@@ -44,6 +53,8 @@ class TrackedBodies:
         T_world_from_lidar,
         T_base_from_lidar,
         max_gap_s: float,
+        relative: bool = False,
+        neighbours: int = 1,
     ):
         self.model = model
         self.params = tuple(
@@ -58,15 +69,23 @@ class TrackedBodies:
         self.prev, self.next = track_neighbours(
             self.track_id, self.stamps_s[self.position], max_gap_s
         )
-        self._posed: dict[int, np.ndarray] = {}
+        self.relative = bool(relative)
+        # the k-th neighbours on each side (each step within max_gap_s)
+        self.sides = [[self.prev], [self.next]]
+        for _ in range(max(1, int(neighbours)) - 1):
+            for side, link in zip(self.sides, (self.prev, self.next)):
+                last = side[-1]
+                side.append(np.where(last >= 0, link[np.maximum(last, 0)], -1))
+        self._posed: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
-    def _pose(self, rows: np.ndarray) -> dict[int, np.ndarray]:
-        """Vertices (V, 3) float32 of each row (LiDAR frame of its frame), reusing the last call's."""
+    def _pose(self, rows: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """(vertices (V, 3) float32, pelvis (1, 3)) of each row (LiDAR frame of its frame),
+        reusing the last call's."""
         todo = np.array([r for r in rows if r not in self._posed], np.int64)
         got = {int(r): self._posed[int(r)] for r in rows if r in self._posed}
         if len(todo):
-            verts = posed_vertices(self.model, *(p[todo] for p in self.params))
-            got.update({int(r): v for r, v in zip(todo, verts)})
+            verts, roots = posed_vertices_and_root(self.model, *(p[todo] for p in self.params))
+            got.update({int(r): (v, j) for r, v, j in zip(todo, verts, roots)})
         self._posed = got
         return got
 
@@ -74,23 +93,45 @@ class TrackedBodies:
         """The bodies of frame ``position``: (rows (K,) int64 into the fits, vertices (K, V, 3)
         float32 LiDAR frame, vertex velocities (K, V, 3) float64 m/s base axes)."""
         rows = np.flatnonzero(self.position == position)
-        near = np.concatenate([self.prev[rows], self.next[rows]])
+        near = np.concatenate([a[rows] for side in self.sides for a in side])
         posed = self._pose(np.unique(np.concatenate([rows, near[near >= 0]])))
         nv = self.model.v_template.shape[0]
         verts = (
-            np.stack([posed[int(r)] for r in rows])
+            np.stack([posed[int(r)][0] for r in rows])
             if len(rows)
             else np.zeros((0, nv, 3), np.float32)
         )
         vel = np.zeros((len(rows), nv, 3))
         for k, r in enumerate(rows):
-            trio = [self.prev[r], r, self.next[r]]
+            trio = [a[r] for a in self.sides[0][::-1]] + [r] + [a[r] for a in self.sides[1]]
             at = [self.position[q] if q >= 0 else position for q in trio]
-            vel[k] = vertex_velocities_in_base(
-                [posed[int(q)] if q >= 0 else None for q in trio],
-                self.T_world_from_lidar[at],
-                self.stamps_s[at],
-                self.T_base_from_lidar,
-                np.r_[self.velocity_base[r], 0.0],
-            )
+            person = np.r_[self.velocity_base[r], 0.0]
+
+            def diff(part, q=trio, at=at, person=person):
+                return vertex_velocities_in_base(
+                    [posed[int(x)][part] if x >= 0 else None for x in q],
+                    self.T_world_from_lidar[at],
+                    self.stamps_s[at],
+                    self.T_base_from_lidar,
+                    person,
+                )
+
+            vel[k] = diff(0)
+            if self.relative:  # the person's velocity + the motion relative to the pelvis
+                vel[k] += person - diff(1)
         return rows, verts, vel
+
+
+def posed_vertices_and_root(model, betas, global_orient, body_pose, transl):
+    """Vertices (B, V, 3) float32 and pelvis joints (B, 1, 3) float32 of B bodies (SMPL
+    parameters), in the frame the parameters are expressed in."""
+    import torch
+
+    if len(betas) == 0:
+        nv = model.v_template.shape[0]
+        return np.zeros((0, nv, 3), np.float32), np.zeros((0, 1, 3), np.float32)
+    with torch.no_grad():
+        out = model(
+            *(torch.as_tensor(np.asarray(a)) for a in (betas, global_orient, body_pose, transl))
+        )
+    return out.vertices.numpy(), out.joints[:, :1].numpy()

@@ -146,6 +146,8 @@ def refine_tracks(
     ids = np.asarray(track_id, np.int64)
     t = np.asarray(stamps_s, np.float64)
     T = np.asarray(T_ref_from_cam, np.float64)
+    if s.root_cutoff_hz > 0 or s.orient_cutoff_hz > 0 or s.pose_cutoff_hz > 0:
+        fits = smooth_tracks(fits, ids, t, T, step_s, s)
     win = windows(ids, position, s.window_frames, s.overlap_frames)
     take = keep_centre(win, position, R)
     out = {k: np.array(getattr(fits, k), np.float32, copy=True) for k in _FIELDS}
@@ -208,3 +210,115 @@ def acceleration_error(track_id, stamps_s, pred, truth, max_step_s: float = np.i
 
         out[ok] = np.linalg.norm(acc(p) - acc(g), axis=-1).mean(-1)
     return out, ok
+
+
+def whittaker_lambda(cutoff_hz: float, step_s: float) -> float:
+    """The Whittaker smoother's weight on the squared second differences (per frame^2) that
+    halves a sine of frequency ``cutoff_hz`` at frame step ``step_s``: its gain at frequency f
+    is 1 / (1 + lam (2 - 2 cos 2 pi f step)^2) ~ 1 / (1 + (f / f_c)^4) for f well below the
+    rate, with lam = 1 / (2 pi f_c step)^4: the same cut-off at every rate."""
+    return 1.0 / (2.0 * np.pi * float(cutoff_hz) * float(step_s)) ** 4
+
+
+def whittaker_smooth(y, prev, nxt, coef, lam) -> np.ndarray:
+    """Minimiser x (R, D) of sum_r |x_r - y_r|^2 + lam_r |a_r|^2 with a_r = coef[r] . (x_prev,
+    x_r, x_next) (the scaled second divided difference of rows with both neighbours, rows of one
+    chain linked by prev / nxt (R,) int64, -1 none); lam: scalar or (D,) per column. Exact:
+    one banded solve per chain and column weight."""
+    y = np.asarray(y, np.float64)
+    R, D = y.shape
+    lam = np.broadcast_to(np.asarray(lam, np.float64), (D,))
+    ok = (prev >= 0) & (nxt >= 0)
+    rows = np.flatnonzero(ok)
+    # sparse D2 (m, R): one row per interior row
+    Dm = np.zeros((len(rows), R))
+    Dm[np.arange(len(rows)), prev[rows]] = coef[rows, 0]
+    Dm[np.arange(len(rows)), rows] = coef[rows, 1]
+    Dm[np.arange(len(rows)), nxt[rows]] += coef[rows, 2]
+    DtD = Dm.T @ Dm
+    out = np.empty_like(y)
+    for value in np.unique(lam):
+        cols = np.flatnonzero(lam == value)
+        out[:, cols] = np.linalg.solve(np.eye(R) + value * DtD, y[:, cols])
+    return out
+
+
+def _rotations_smooth(aa, prev, nxt, coef, lam) -> np.ndarray:
+    """Smooth rotations (R, K, 3) axis-angle: the Whittaker smoother on the matrices' entries,
+    projected back onto rotations (nearest in Frobenius norm)."""
+    from tasks.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+
+    R, K = aa.shape[:2]
+    M = axis_angle_to_matrix(torch.as_tensor(aa, dtype=torch.float64)).numpy()
+    S = whittaker_smooth(M.reshape(R, K * 9), prev, nxt, coef, lam).reshape(R, K, 3, 3)
+    U, _, Vt = np.linalg.svd(S)
+    d = np.sign(np.linalg.det(U @ Vt))
+    U[..., :, 2] *= d[..., None]
+    return matrix_to_axis_angle(torch.as_tensor(U @ Vt)).numpy()
+
+
+def smooth_tracks(
+    fits: BodyParams, track_id, stamps_s, T_world_from_cam, step_s: float, settings
+) -> BodyParams:
+    """The closed-form start of the refinement: each track's pelvis path and global
+    orientation (in a world-fixed frame) and its body pose (local joint rotations) through a
+    Whittaker smoother of cut-off ``settings.root_cutoff_hz`` / ``orient_cutoff_hz`` /
+    ``pose_cutoff_hz`` (0: that part as fitted); neighbours farther apart than
+    ``tie_max_step_s`` split a track. fits cam frame; T_world_from_cam (R, 4, 4)."""
+    s = settings
+    ids = np.asarray(track_id, np.int64)
+    t = np.asarray(stamps_s, np.float64)
+    T = np.asarray(T_world_from_cam, np.float64)
+    prev, nxt = neighbours(ids, t, s.tie_max_step_s)
+    coef = divided_difference_coefficients(t, prev, nxt, step_s)
+    # rows of all tracks in one system: chains never share a term, so one solve is the same as
+    # one per track; keep systems small by splitting by track
+    go = np.array(fits.global_orient, np.float64)
+    pose = np.array(fits.body_pose, np.float64)
+    transl = np.array(fits.transl, np.float64)
+    Rwc = T[:, :3, :3]
+    for tid in np.unique(ids):
+        rows = np.flatnonzero(ids == tid)
+        if len(rows) < 3:
+            continue
+        loc = -np.ones(len(ids), np.int64)
+        loc[rows] = np.arange(len(rows))
+        p = np.where(prev[rows] >= 0, loc[np.maximum(prev[rows], 0)], -1)
+        n = np.where(nxt[rows] >= 0, loc[np.maximum(nxt[rows], 0)], -1)
+        c = coef[rows]
+        if s.root_cutoff_hz > 0:
+            # pelvis = R_wc (J0 + transl) + t_wc; J0 is the track's: smoothing moves transl by
+            # R_cw (smoothed - fitted) of the world position of transl itself
+            w = np.einsum("rij,rj->ri", Rwc[rows], transl[rows]) + T[rows, :3, 3]
+            ws = whittaker_smooth(w, p, n, c, whittaker_lambda(s.root_cutoff_hz, step_s))
+            transl[rows] += np.einsum("rji,rj->ri", Rwc[rows], ws - w)
+        if s.orient_cutoff_hz > 0:
+            Rw = Rwc[rows] @ _aa_to_matrix(go[rows])
+            aw = _rotations_smooth(
+                _matrix_to_aa(Rw)[:, None], p, n, c, whittaker_lambda(s.orient_cutoff_hz, step_s)
+            )[:, 0]
+            go[rows] = _matrix_to_aa(np.transpose(Rwc[rows], (0, 2, 1)) @ _aa_to_matrix(aw))
+        if s.pose_cutoff_hz > 0:
+            pose[rows] = _rotations_smooth(
+                pose[rows].reshape(len(rows), 23, 3),
+                p,
+                n,
+                c,
+                whittaker_lambda(s.pose_cutoff_hz, step_s),
+            ).reshape(len(rows), 69)
+    f32 = np.float32
+    return BodyParams(
+        np.asarray(fits.betas, f32), go.astype(f32), pose.astype(f32), transl.astype(f32)
+    )
+
+
+def _aa_to_matrix(aa) -> np.ndarray:
+    from tasks.body.rotations import axis_angle_to_matrix
+
+    return axis_angle_to_matrix(torch.as_tensor(np.asarray(aa, np.float64))).numpy()
+
+
+def _matrix_to_aa(M) -> np.ndarray:
+    from tasks.body.rotations import matrix_to_axis_angle
+
+    return matrix_to_axis_angle(torch.as_tensor(np.asarray(M, np.float64))).numpy()

@@ -128,6 +128,10 @@ class RefineSettings:
     term is in pixels^2); torso_weight: w_torso of the spine, neck, head, collars and shoulders,
     which move nearly with the pelvis (joint_weight is then w_limbs). tie_max_step_s: neighbours farther apart are not tied. window_frames /
     overlap_frames: the windows of a long track. batch_rows: rows per batched refit.
+    root_cutoff_hz / orient_cutoff_hz / pose_cutoff_hz: the refit's closed-form start, each
+    track's pelvis path, global orientation (both in a world-fixed frame) and local joint
+    rotations through a Whittaker smoother that halves a sine of this frequency, the same at any
+    frame rate (tasks/fit/refine.py smooth_tracks; 0: that part starts as fitted).
     """
 
     enabled: bool = True
@@ -140,6 +144,9 @@ class RefineSettings:
     window_frames: AtLeastOne = 48
     overlap_frames: Count = 8
     batch_rows: AtLeastOne = 256
+    root_cutoff_hz: NonNegative = 3.0
+    orient_cutoff_hz: NonNegative = 3.0
+    pose_cutoff_hz: NonNegative = 3.0
 
 
 @dataclass(frozen=True)

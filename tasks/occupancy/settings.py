@@ -104,15 +104,20 @@ class FuseSettings:
 
     velocity: "vertex": a pedestrian voxel's velocity is the mean velocity of the body surface in
     it, each vertex's from the posed bodies of the track's neighbouring frames
-    (tasks/body/motion.py); "person": every voxel of a person takes the person's velocity.
+    (tasks/body/motion.py); "person": every voxel of a person takes the person's velocity;
+    "articulated": the person's velocity plus the surface's velocity relative to the body's
+    pelvis (tasks/body/motion.py).
     velocity_max_gap_s: a neighbouring frame counts for the vertex velocities when it lies at most
     this far in time (the direct neighbours at 5 Hz, up to one missing frame at 10 Hz): across a
     longer gap a swinging limb's difference shrinks to its mean (at 0.4 s apart a 1 Hz gait swing
     keeps ~25 % of its speed); without a neighbour the vertices take the person's velocity.
+    velocity_neighbours: fits on each side of a frame in each vertex's derivative (1: the
+    central difference; 2: the slope of the quartic through five fits, tasks/track/velocity.py).
     """
 
     camera_mask: bool = True
     camera_method: Literal["auto", "rays", "zbuffer"] = "auto"
     camera_pixel_stride: AtLeastOne | None = 2
-    velocity: Literal["vertex", "person"] = "vertex"
+    velocity: Literal["vertex", "person", "articulated"] = "vertex"
     velocity_max_gap_s: Positive = 0.25
+    velocity_neighbours: AtLeastOne = 1

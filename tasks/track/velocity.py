@@ -95,11 +95,15 @@ def vertex_velocities_in_base(
 ) -> np.ndarray:
     """Per-vertex velocity of one body in one frame from its neighbours along the track.
 
-    vertices_lidar: [previous, this, next]: (V, 3) float metres (the same topology), each in the
+    vertices_lidar: [previous, this, next] (or [.., second previous, previous, this, next, second
+    next, ..], this in the middle): (V, 3) float metres (the same topology), each in the
     LiDAR frame of its own frame, whose pose is the matching T_world_from_lidar (4, 4) float64;
     previous / next None where the track has none (:func:`track_neighbours`). stamps_s: the three
-    times, seconds. The vertices go to the world (robot motion removed), then: central difference
-    with both neighbours, one-sided with one, ``fallback_base`` (3,) m/s base axes (e.g. the
+    times, seconds. The vertices go to the world (robot motion removed), then: with more than
+    three frames, the slope at this frame of the polynomial through all of them
+    (:func:`derivative_weights`; five equal steps: (x-2 - 8 x-1 + 8 x1 - x2) / 12 h, which damps
+    a sine of 1 Hz at 5 Hz by 7 %, the central difference by 24 %); central difference with both
+    direct neighbours, one-sided with one, ``fallback_base`` (3,) m/s base axes (e.g. the
     person's velocity) with none. Returns (V, 3) float64 m/s in the base axes of this frame.
     """
     world = [
@@ -110,8 +114,17 @@ def vertex_velocities_in_base(
     ]
     R_base_from_world = (
         np.asarray(T_base_from_lidar, np.float64)[:3, :3]
-        @ np.asarray(T_world_from_lidar[1], np.float64)[:3, :3].T
+        @ np.asarray(T_world_from_lidar[len(world) // 2], np.float64)[:3, :3].T
     )
+    c = len(world) // 2  # the centre: this frame
+    have = [i for i, w in enumerate(world) if w is not None]
+    if len(have) > 3:  # more than one neighbour on a side: the interpolating polynomial's slope
+        tau = np.array([float(stamps_s[i]) - float(stamps_s[c]) for i in have])
+        w = derivative_weights(tau)
+        v = sum(wi * world[i] for wi, i in zip(w, have))
+        return v @ R_base_from_world.T
+    world = world[c - 1 : c + 2]
+    stamps_s = list(stamps_s[c - 1 : c + 2])
     a = 0 if world[0] is not None else 1
     b = 2 if world[2] is not None else 1
     if a == b:
@@ -122,3 +135,14 @@ def vertex_velocities_in_base(
     if not dt > 0:
         raise ValueError(f"vertex_velocities_in_base: times {stamps_s} do not increase")
     return ((world[b] - world[a]) / dt) @ R_base_from_world.T
+
+
+def derivative_weights(tau) -> np.ndarray:
+    """Weights w (n,) with sum_i w_i f(tau_i) = f'(0) exactly for every polynomial f of degree
+    < n: tau (n,) distinct times (s) relative to the frame (one of them 0)."""
+    tau = np.asarray(tau, np.float64)
+    n = len(tau)
+    V = np.vander(tau, n, increasing=True).T  # V[k, i] = tau_i^k
+    e = np.zeros(n)
+    e[1] = 1.0
+    return np.linalg.solve(V, e)
