@@ -474,6 +474,35 @@ def test_whittaker_smoother_keeps_lines_and_cuts_at_the_same_frequency_at_any_ra
             assert lo <= gain <= hi, (rate, f, gain)
 
 
+def test_whittaker_smoother_is_the_exact_minimiser_on_uneven_steps_and_scales_to_long_tracks():
+    rng = np.random.default_rng(4)
+    t = np.cumsum(rng.uniform(0.1, 0.3, 40))
+    t = np.concatenate([t, t[-1] + 2.0 + t])  # two chains: a gap longer than the tie
+    ids = np.ones(len(t), int)
+    prev, nxt = neighbours(ids, t, 0.5)
+    coef = divided_difference_coefficients(t, prev, nxt, 0.2)
+    y = rng.normal(size=(len(t), 3))
+    lam = np.array([0.5, 5.0, 50.0])
+    # the dense normal equations, per column
+    inner = np.flatnonzero((prev >= 0) & (nxt >= 0))
+    D2 = np.zeros((len(inner), len(t)))
+    D2[np.arange(len(inner)), prev[inner]] = coef[inner, 0]
+    D2[np.arange(len(inner)), inner] = coef[inner, 1]
+    D2[np.arange(len(inner)), nxt[inner]] = coef[inner, 2]
+    want = np.stack(
+        [np.linalg.solve(np.eye(len(t)) + w * D2.T @ D2, y[:, k]) for k, w in enumerate(lam)], 1
+    )
+    np.testing.assert_allclose(whittaker_smooth(y, prev, nxt, coef, lam), want, atol=1e-10)
+    # a person in view for an hour at 10 Hz: a dense system would take 10 GB
+    n = 36_000
+    t = np.arange(n) / 10.0
+    prev, nxt = neighbours(np.zeros(n, int), t, 0.5)
+    coef = divided_difference_coefficients(t, prev, nxt, 0.1)
+    line = np.stack([0.5 * t, np.ones(n)], 1)
+    out = whittaker_smooth(line, prev, nxt, coef, whittaker_lambda(3.0, 0.1))
+    np.testing.assert_allclose(out, line, atol=1e-6)
+
+
 def _world_track(model, rate, frames, rng, walk=(0.0, 0.0, 0.0)):
     """A standing person (pose from the prior's samples) gliding at ``walk`` m/s in the world,
     seen from a camera that drives and turns: cam-frame params, T_world_from_cam, the world
