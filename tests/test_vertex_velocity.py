@@ -188,33 +188,8 @@ def test_tracked_bodies_translate_rigidly_and_fall_back_across_gaps():
     world_t = np.array([2.0, 0.0, 0.0]) + walk * stamps[frames, None]
     go = np.stack([_axis_angle(R) for R in R_lw])
     transl = np.einsum("kij,kj->ki", R_lw, J0 + world_t) + t_lw - J0
-    bodies = TrackedBodies(
-        model,
-        betas,
-        go,
-        pose,
-        transl,
-        np.full(4, 7),
-        frames,
-        np.tile([0.3, 0.0], (4, 1)),
-        stamps,
-        poses,
-        T_base_from_lidar,
-        max_gap_s=0.25,
-    )
-    for position in (0, 1, 2):
-        rows, _, vel = bodies.frame(position)
-        assert rows.tolist() == [position]
-        expect = T_base_from_lidar[:3, :3] @ poses[position][:3, :3].T @ walk
-        np.testing.assert_allclose(vel[0], np.broadcast_to(expect, vel[0].shape), atol=2e-4)
-    rows, _, vel = bodies.frame(5)  # 0.6 s from its previous fit: the person's velocity
-    np.testing.assert_allclose(vel[0], np.broadcast_to([0.3, 0.0, 0.0], vel[0].shape))
-    assert bodies.frame(3)[0].size == 0
 
-    # fuse.velocity "articulated": the person's velocity (0.3, 0) plus the motion relative to
-    # the pelvis, none for a rigid walk; with the right arm swinging, its vertices keep their
-    # swing (the same as the central difference's, less the pelvis' walk)
-    def tracked(p, relative):
+    def tracked(p, relative=False):
         return TrackedBodies(
             model,
             betas,
@@ -231,6 +206,19 @@ def test_tracked_bodies_translate_rigidly_and_fall_back_across_gaps():
             relative=relative,
         )
 
+    bodies = tracked(pose)
+    for position in (0, 1, 2):
+        rows, _, vel = bodies.frame(position)
+        assert rows.tolist() == [position]
+        expect = T_base_from_lidar[:3, :3] @ poses[position][:3, :3].T @ walk
+        np.testing.assert_allclose(vel[0], np.broadcast_to(expect, vel[0].shape), atol=2e-4)
+    rows, _, vel = bodies.frame(5)  # 0.6 s from its previous fit: the person's velocity
+    np.testing.assert_allclose(vel[0], np.broadcast_to([0.3, 0.0, 0.0], vel[0].shape))
+    assert bodies.frame(3)[0].size == 0
+
+    # fuse.velocity "articulated": the person's velocity (0.3, 0) plus the motion relative to
+    # the pelvis, none for a rigid walk; with the right arm swinging, its vertices keep their
+    # swing (the same as the central difference's, less the pelvis' walk)
     rows, _, vel = tracked(pose, True).frame(1)
     np.testing.assert_allclose(vel[0], np.broadcast_to([0.3, 0.0, 0.0], vel[0].shape), atol=2e-4)
     swing = pose.copy()
