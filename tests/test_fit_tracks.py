@@ -297,12 +297,12 @@ def test_legs_swapped_alone_follow_the_start(model):
     """A back view whose legs alone came swapped, as BlazePose does: the track decides to keep
     the labelling (the arms are right), so the legs stay swapped unless each chain follows the
     provider's start (``follow_start: always``: legs relabelled, arms and face untouched); with
-    ``undecided`` (the default) only rows the track could not decide follow it."""
+    ``undecided`` (configs/bundled-models.yaml's) only rows the track could not decide follow it."""
     rows, kp, start = _standing_back_view(model, lambda k: _swap_chain(k, 2))
     legs = np.asarray(rows.keypoints)
     assert np.abs(legs - kp).max() > 10.0  # the swap moved keypoints (pixels)
     # standing, the legs are ~0.055 start heights apart in the image: a margin below that
-    near = FlipSettings(start_margin=0.02)
+    near = FlipSettings(start_margin=0.02, follow_start="undecided")
     every = _fit_ids(model, rows, start, dataclasses.replace(near, follow_start="always"))
     assert every.flips.decided.all() and not every.flips.mirrored.any()
     np.testing.assert_allclose(every.keypoints, kp, atol=1e-3)
@@ -311,7 +311,7 @@ def test_legs_swapped_alone_follow_the_start(model):
     for mode in ("undecided", "never"):
         kept = _fit_ids(model, rows, start, dataclasses.replace(near, follow_start=mode))
         np.testing.assert_allclose(kept.keypoints, legs, atol=1e-3)
-    # the same rows left undecided by the track (a margin nothing reaches): relabelled by default
+    # the same rows left undecided by the track (a margin nothing reaches): relabelled
     undecided = _fit_ids(model, rows, start, dataclasses.replace(near, min_margin=100.0))
     assert undecided.flips.counts() == {
         "flipped": 0,
@@ -334,12 +334,13 @@ def test_a_keypoint_far_from_the_start_is_dropped(model):
         return out
 
     rows, kp, start = _standing_back_view(model, wild)
-    got = _fit_ids(model, rows, start, FlipSettings(start_max_distance=0.3))
+    follow = FlipSettings(follow_start="undecided")
+    got = _fit_ids(model, rows, start, dataclasses.replace(follow, start_max_distance=0.3))
     assert (got.keypoints[:, 9, 2] == 0).all()
     others = np.delete(np.arange(17), 9)
     np.testing.assert_allclose(got.keypoints[:, others], kp[:, others], atol=1e-3)
     assert got.flips.counts()["keypoints_dropped"] == 3
-    kept = _fit_ids(model, rows, start, FlipSettings(start_max_distance=None))
+    kept = _fit_ids(model, rows, start, dataclasses.replace(follow, start_max_distance=None))
     assert (kept.keypoints[:, 9, 2] > 0).all() and "keypoints_dropped" not in kept.flips.counts()
 
 

@@ -112,6 +112,7 @@ def _candidates(value: Any) -> list[Any]:
             "coda",
             "lidar-odometry",
             "never",
+            "undecided",
             value + "x",
         ]
     if value is None:

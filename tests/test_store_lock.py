@@ -26,12 +26,13 @@ from storage.manifest import (
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _contend(out: str, start_at: float, queue, times: int = 30) -> None:
+def _contend(out: str, ready, queue, times: int = 30) -> None:
     """Take the lock ``times`` times (retrying at once when refused), each time checking that
-    nobody else is inside; report (pid, refusals, overlaps)."""
+    nobody else is inside; report (pid, refusals, overlaps). All start together when every
+    process has reached the barrier ``ready`` (a start time on the clock let processes forked
+    late on a loaded machine run one after the other, and never race)."""
     random.seed(os.getpid())
-    while time.time() < start_at:
-        time.sleep(0.001)
+    ready.wait(timeout=120)
     refused, overlaps, got, deadline = 0, 0, 0, time.time() + 120
     while got < times and time.time() < deadline:
         try:
@@ -64,8 +65,8 @@ def test_racing_processes_never_hold_the_lock_together(left_behind, tmp_path):
             (out / ".lock").write_text(
                 '{"host": "x", "pid": 999999999}' if left_behind == "dead pid" else ""
             )
-        queue, start_at = ctx.Queue(), time.time() + 0.5
-        procs = [ctx.Process(target=_contend, args=(str(out), start_at, queue)) for _ in range(12)]
+        queue, ready = ctx.Queue(), ctx.Barrier(12)
+        procs = [ctx.Process(target=_contend, args=(str(out), ready, queue)) for _ in range(12)]
         for p in procs:
             p.start()
         results = [queue.get(timeout=180) for _ in procs]

@@ -100,7 +100,11 @@ class FlipSettings:
     ('undecided'), in every row ('always') or nowhere ('never'); start_margin: by at least this
     mean distance (fraction of the start's projected height). start_max_distance: with
     follow_start on, keypoints farther than this from the start's (fraction of its projected
-    height) are dropped (tasks.fit.flips.far_from_start; None: none).
+    height) are dropped (tasks.fit.flips.far_from_start; None: none). Off by default: with the
+    simulator's keypoints (the default config) the track's own decision is the better judge
+    (benchmark sequence 1: MPJPE 43.4 mm off, 45.4 on); with a real network's keypoints it is
+    not (bundled BlazePose, 4 sequences: 77.1 -> 64.8 mm), so configs/bundled-models.yaml turns
+    it on (docs/fit-benchmark.md, "What BlazePose gets wrong").
     """
 
     enabled: bool = True
@@ -112,7 +116,7 @@ class FlipSettings:
     velocity_window_s: Positive = 0.45
     smooth_max_step_s: Positive = 0.5
     min_margin: NonNegative = 0.5
-    follow_start: Literal["never", "undecided", "always"] = "undecided"
+    follow_start: Literal["never", "undecided", "always"] = "never"
     start_margin: NonNegative = 0.05
     start_max_distance: Positive | None = 0.2
 
