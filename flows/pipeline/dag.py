@@ -31,10 +31,10 @@ CODE_VERSIONS: dict[str, str] = {
     #                .gap_filled); fit.init_provider lidar-keypoints
     #             6: default preset 3dpw (was ut_campus); torch really on 1 thread in a unit of
     #                several (flows/pipeline/parallel.limit_threads sized it after threadpoolctl)
-    #             7: with a provider's start, undecided rows' face / arms / legs relabelled
-    #                towards it and keypoints far from it dropped (fit.flips.follow_start,
-    #                .start_max_distance; summary flips_chains_to_start, flips_keypoints_dropped)
-    #                and the refinement starts from each track's Whittaker-smoothed root,
+    #             7: fit.flips.follow_start (off by default): with a provider's start, undecided
+    #                rows' face / arms / legs relabelled towards it and keypoints far from it
+    #                dropped (.start_max_distance; summary flips_chains_to_start,
+    #                flips_keypoints_dropped); the refinement starts from each track's Whittaker-smoothed root,
     #                orientation and pose (fit.refine.*_cutoff_hz)
     "map": "7",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path;
     #             3: 2d_rect cameras read as the rectified pinhole (real CODa calibration);
