@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from tasks.body.posing import posed_vertices_and_root
 from tasks.track.velocity import track_neighbours, vertex_velocities_in_base
 
 
@@ -120,18 +121,3 @@ class TrackedBodies:
             if self.relative:  # the person's velocity + the motion relative to the pelvis
                 vel[k] += person - diff(1)
         return rows, verts, vel
-
-
-def posed_vertices_and_root(model, betas, global_orient, body_pose, transl):
-    """Vertices (B, V, 3) float32 and pelvis joints (B, 1, 3) float32 of B bodies (SMPL
-    parameters), in the frame the parameters are expressed in."""
-    import torch
-
-    if len(betas) == 0:
-        nv = model.v_template.shape[0]
-        return np.zeros((0, nv, 3), np.float32), np.zeros((0, 1, 3), np.float32)
-    with torch.no_grad():
-        out = model(
-            *(torch.as_tensor(np.asarray(a)) for a in (betas, global_orient, body_pose, transl))
-        )
-    return out.vertices.numpy(), out.joints[:, :1].numpy()

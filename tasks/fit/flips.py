@@ -206,7 +206,7 @@ def chains_towards(
     swapped = np.zeros((R, len(CHAINS)), bool)
     if R == 0:
         return kp, swapped
-    height = np.maximum(np.ptp(uv[..., 1], axis=1), 1.0)  # (R,)
+    height = _start_height(uv)
     for c, (left, right) in enumerate(CHAINS):
         L, Rt = list(left), list(right)
         ok = (kp[:, L, 2] >= min_confidence) & (kp[:, Rt, 2] >= min_confidence)  # (R, n)
@@ -239,8 +239,13 @@ def far_from_start(keypoints, start_uv, rows, max_distance: float) -> tuple[np.n
     uv = np.asarray(start_uv, np.float64)
     if len(kp) == 0:
         return kp, np.zeros((0, 17), bool)
-    height = np.maximum(np.ptp(uv[..., 1], axis=1), 1.0)
+    height = _start_height(uv)
     dist = np.linalg.norm(kp[..., :2] - uv, axis=-1) / height[:, None]
     dropped = np.asarray(rows, bool)[:, None] & (dist > max_distance) & (kp[..., 2] > 0)
     kp[..., 2] = np.where(dropped, 0.0, kp[..., 2])
     return kp, dropped
+
+
+def _start_height(start_uv: np.ndarray) -> np.ndarray:
+    """(R,) the start bodies' projected heights (px; their keypoints' vertical extent, >= 1)."""
+    return np.maximum(np.ptp(start_uv[..., 1], axis=1), 1.0)

@@ -252,15 +252,13 @@ def whittaker_smooth(y, prev, nxt, coef, lam) -> np.ndarray:
 def _rotations_smooth(aa, prev, nxt, coef, lam) -> np.ndarray:
     """Smooth rotations (R, K, 3) axis-angle: the Whittaker smoother on the matrices' entries,
     projected back onto rotations (nearest in Frobenius norm)."""
-    from tasks.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-
     R, K = aa.shape[:2]
-    M = axis_angle_to_matrix(torch.as_tensor(aa, dtype=torch.float64)).numpy()
+    M = _aa_to_matrix(aa)
     S = whittaker_smooth(M.reshape(R, K * 9), prev, nxt, coef, lam).reshape(R, K, 3, 3)
     U, _, Vt = np.linalg.svd(S)
     d = np.sign(np.linalg.det(U @ Vt))
     U[..., :, 2] *= d[..., None]
-    return matrix_to_axis_angle(torch.as_tensor(U @ Vt)).numpy()
+    return _matrix_to_aa(U @ Vt)
 
 
 def smooth_tracks(
@@ -277,8 +275,7 @@ def smooth_tracks(
     T = np.asarray(T_world_from_cam, np.float64)
     prev, nxt = neighbours(ids, t, s.tie_max_step_s)
     coef = divided_difference_coefficients(t, prev, nxt, step_s)
-    # rows of all tracks in one system: chains never share a term, so one solve is the same as
-    # one per track; keep systems small by splitting by track
+    # one solve per track (its rows renumbered 0..n-1): chains never share a term
     go = np.array(fits.global_orient, np.float64)
     pose = np.array(fits.body_pose, np.float64)
     transl = np.array(fits.transl, np.float64)

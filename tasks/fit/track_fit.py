@@ -205,19 +205,14 @@ def _follow_start(model, init: BodyParams, kp, K, decision: FlipDecision, start,
     its chains (R, 3) bool, keypoints)."""
     import torch
 
+    from tasks.fit.losses import project_points
     from tasks.fit.optimize import model_keypoints
 
     posed = posed_result(model, init, {})
-    cam = (
-        model_keypoints(
-            torch.as_tensor(posed.joints),
-            torch.as_tensor(posed.vertices),
-            model.keypoint_vertex_ids,
-        )
-        .double()
-        .numpy()
+    cam = model_keypoints(
+        torch.as_tensor(posed.joints), torch.as_tensor(posed.vertices), model.keypoint_vertex_ids
     )
-    uv = cam[..., :2] / np.maximum(cam[..., 2:3], 1e-3) @ np.asarray(K)[:2, :2].T + K[:2, 2]
+    uv = project_points(cam.double(), torch.as_tensor(np.asarray(K), dtype=torch.float64)).numpy()
     which = np.ones(len(kp), bool) if flips.follow_start == "always" else ~decision.decided
     kp, chains = chains_towards(kp, uv, which, start.keypoint_min_confidence, flips.start_margin)
     dropped = None
