@@ -568,6 +568,10 @@ class DaskConfig(Strict):
     gpu_fit: bool = False
     #: route the detect stage's frame chunks to those workers (image_provider 'models' on CUDA)
     gpu_detect: bool = False
+    #: run the units as Prefect tasks: auto = only where a Prefect API is configured
+    #: (PREFECT_API_URL); otherwise they run on the same thread pool / Dask cluster without Prefect,
+    #: whose temporary server would cost seconds and keep nothing (flows/pipeline/local.py)
+    prefect: Literal["auto", "always", "never"] = "auto"
 
 
 class Config(Strict):

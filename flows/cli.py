@@ -166,6 +166,12 @@ def _run(args: argparse.Namespace, force: bool) -> int:
 
 
 def _run_flow(cfg, force: bool, progress: bool, verify: bool, prune: bool = False):
+    from flows.pipeline.local import run_without_prefect, uses_prefect
+
+    if not uses_prefect(cfg):
+        return run_without_prefect(
+            cfg, force=force, progress=progress, verify=verify, lock_held=True, prune=prune
+        )
     from flows.pipeline.run import rebuild_dataset
     from flows.pipeline.runtime import prefect_api
 

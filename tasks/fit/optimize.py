@@ -29,6 +29,7 @@ calling thread.
 from __future__ import annotations
 
 import copy
+import hashlib
 import math
 from dataclasses import dataclass
 
@@ -162,7 +163,7 @@ def fit_persons(
         if keypoint_weights is None
         else torch.as_tensor(np.asarray(keypoint_weights), dtype=f32, device=dev)
     )
-    vis_fn = _visibility_fn(model, kp[..., 2], weights, use_visibility)
+    vis_fn = _visibility_fn(model, kp[..., 2], weights, use_visibility, s.data_vertices)
     x = torch.cat(
         [
             torch.as_tensor(np.asarray(getattr(init, k)), dtype=f32, device=dev).reshape(B, -1)
@@ -255,20 +256,55 @@ class _PersonPoints:
         )
 
 
-def _visibility_fn(model, conf: torch.Tensor, weights: FitWeights, use_visibility: bool):
-    """verts (B, V, 3) -> Visibility of the persons whose keypoint confidences are conf (B, 17)."""
+def _visibility_fn(
+    model, conf: torch.Tensor, weights: FitWeights, use_visibility: bool, data_vertices=None
+):
+    """verts (B, V, 3) -> Visibility of the persons whose keypoint confidences are conf (B, 17);
+    with ``data_vertices``, only that many vertices spread evenly over the template's surface
+    count as visible (:func:`uniform_vertex_subset`): ICP and L_3D read no others."""
     faces = model.faces_tensor
     parts = torch.as_tensor(vertex_parts(model.lbs_weights), device=conf.device)
+    keep = None
+    if data_vertices is not None and data_vertices < model.num_vertices:
+        template = model.v_template.detach().cpu().numpy()
+        keep = torch.as_tensor(_memo_subset(template, data_vertices), device=conf.device)
 
     def visibility(verts: torch.Tensor) -> Visibility:
         if use_visibility:
-            return visibility_masks(verts, faces, parts, conf, w=weights.w, j_conf=weights.j_conf)
-        ones = torch.ones(verts.shape[:2], dtype=torch.bool, device=verts.device)
-        return Visibility(
-            ones, torch.zeros(verts.shape[0], 24, dtype=torch.bool, device=verts.device), ones
-        )
+            vis = visibility_masks(verts, faces, parts, conf, w=weights.w, j_conf=weights.j_conf)
+        else:
+            ones = torch.ones(verts.shape[:2], dtype=torch.bool, device=verts.device)
+            none = torch.zeros(verts.shape[0], 24, dtype=torch.bool, device=verts.device)
+            vis = Visibility(ones, none, ones)
+        if keep is None:
+            return vis
+        return Visibility(vis.vertex_mask & keep, vis.occluded_joints, vis.front_vertex_mask)
 
     return visibility
+
+
+_SUBSETS: dict[tuple[str, int], np.ndarray] = {}
+
+
+def _memo_subset(template: np.ndarray, count: int) -> np.ndarray:
+    key = (hashlib.sha1(np.ascontiguousarray(template).tobytes()).hexdigest(), count)
+    if key not in _SUBSETS:
+        _SUBSETS[key] = uniform_vertex_subset(template, count)
+    return _SUBSETS[key]
+
+
+def uniform_vertex_subset(vertices: np.ndarray, count: int) -> np.ndarray:
+    """(V,) bool: ``count`` of the (V, 3) vertices spread evenly over the shape, by farthest-point
+    sampling from vertex 0 (deterministic; each pick the vertex farthest from those picked)."""
+    points = np.asarray(vertices, np.float64)
+    chosen = np.zeros(points.shape[0], bool)
+    nearest = np.full(points.shape[0], np.inf)
+    pick = 0
+    for _ in range(min(count, points.shape[0])):
+        chosen[pick] = True
+        nearest = np.minimum(nearest, np.sum((points - points[pick]) ** 2, axis=1))
+        pick = int(np.argmax(nearest))
+    return chosen
 
 
 def _align_rigidly(

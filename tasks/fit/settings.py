@@ -50,6 +50,9 @@ class FitSettings:
     warm_iterations: Count = 30
     shared_shape: bool = True
     seed: int = 0
+    #: ICP and L_3D read at most this many of the visible vertices, spread evenly over the
+    #: template's surface (tasks.fit.optimize.uniform_vertex_subset; None: every visible vertex)
+    data_vertices: AtLeastOne | None = 1500
 
 
 @dataclass(frozen=True)
