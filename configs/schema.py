@@ -539,8 +539,10 @@ class MapConfig(MapParams, Section):
     freespace: FreeSpaceConfig = FreeSpaceConfig()
     #: which labels the map's points take: the camera's (lifted image semantics, the outside-image
     #: fallback beyond), the geometry's (tasks/occupancy/geometric_classes.py: no segmenter
-    #: needed), or the camera's where it has one and the geometry's elsewhere
-    point_classes: Literal["camera", "geometry", "camera+geometry"] = "camera"
+    #: needed), the camera's where it has one and the geometry's elsewhere, or auto:
+    #: camera+geometry where detect gives no image semantics (models.semantic.kind none), else
+    #: camera (tasks.occupancy.mapping.SweepLabeller)
+    point_classes: Literal["auto", "camera", "geometry", "camera+geometry"] = "auto"
     geometry: GeometricClassesConfig = GeometricClassesConfig()
 
 
