@@ -19,8 +19,10 @@ Steps (lengths in metres, heights above the local ground):
    ``ground_window_cells`` cells is the top of something (a car's roof, a wall's top), not ground;
    a cell without ground (under or behind an object) borrows the height of the nearest cells with
    ground within ``ground_borrow_m``.
-   Points within ``ground_tolerance_m`` of their cell's plane are ground; points farther below are
-   UNLABELED (returns below the ground are multipath).
+   Points within ``ground_tolerance_m`` of their cell's plane are ground, unless their local
+   surface (below) is clearly steeper (|n_z| < ``ground_min_nz``: a wall's foot, which is also
+   left out of the fit); points farther below are UNLABELED (returns below the ground are
+   multipath).
 2. ROAD vs TERRAIN on ground points: the plane's residual RMS above ``terrain_min_roughness_m``
    is TERRAIN (grass, gravel); else the intensity corrected for incidence (a return's intensity
    ~ reflectivity x (f + (1 - f) |cos incidence|), f = ``intensity_incidence_floor``), median over
@@ -31,7 +33,8 @@ Steps (lengths in metres, heights above the local ground):
    ``cluster_tol_m``); each cluster of at least ``min_cluster_points`` points gets one class from
    its size and shape: its footprint (PCA of xy, 2-98 percentile extents: length >= width), its
    top (98th percentile height), the share of its points below ``clearance_m`` (vehicles stand on
-   wheels), and per point the local normal of the ``normal_neighbours`` nearest points (vertical
+   wheels), and per point the local normal of the ``normal_neighbours`` nearest centroids of
+   ``normal_voxel_m`` voxels (vertical
    plane: |n_z| < ``vertical_max_nz``; sloped or scattered: |n_z| in [vertical_max_nz,
    ``sloped_max_nz``] or scattering lambda3 / lambda1 >= ``scattering_min``):
 
@@ -72,6 +75,10 @@ from tasks.conventions import (
 )
 from tasks.perception.lidar_clusters import cluster_points
 
+#: a neighbourhood with lambda2 / lambda1 below this is a line (one scan ring): it has no normal
+LINEAR = 0.05
+#: the narrowest gate (m) of the ground's second fit (a LiDAR's range noise is ~1-3 cm)
+MIN_INLIER_M = 0.03
 #: cells without ground of their own take the mean height of this many nearest cells with ground
 GROUND_BORROW = 4
 
@@ -82,14 +89,15 @@ class GeometricClassSettings:
     metres, heights above the local ground, intensities in the sensor's units."""
 
     ground_cell_m: Positive = 1.0
-    ground_band_m: Positive = 0.25
+    ground_band_m: Positive = 0.15
     ground_min_support: AtLeastOne = 5
-    ground_tolerance_m: Positive = 0.1
+    ground_tolerance_m: Positive = 0.08
     ground_window_cells: AtLeastOne = 3
     ground_max_slope: NonNegative = 0.3
     ground_step_m: NonNegative = 0.2
+    ground_min_nz: PositiveFraction = 0.85
     ground_borrow_m: Positive = 10.0
-    terrain_min_roughness_m: Positive = 0.04
+    terrain_min_roughness_m: Positive = 0.025
     intensity_incidence_floor: Probability = 0.2
     intensity_neighbours: AtLeastOne = 5
     road_max_intensity: NonNegative = 60.0
@@ -99,10 +107,11 @@ class GeometricClassSettings:
     cluster_tol_m: Positive = 0.25
     min_cluster_points: AtLeastOne = 20
     normal_neighbours: AtLeastOne = 12
+    normal_voxel_m: Positive = 0.1
     vertical_max_nz: PositiveFraction = 0.3
     sloped_max_nz: PositiveFraction = 0.9
     scattering_min: PositiveFraction = 0.1
-    clearance_m: Positive = 0.2
+    clearance_m: Positive = 0.1
     column_m: Positive = 0.25
     grounded_min_share: Probability = 0.6
     top_margin_deg: NonNegative = 1.0
@@ -115,7 +124,7 @@ class GeometricClassSettings:
     structure_min_share: Probability = 0.5
     structure_min_height_m: Positive = 3.6
     wall_max_width_m: Positive = 0.6
-    wall_min_length_m: Positive = 1.5
+    wall_min_length_m: Positive = 2.5
     car_min_height_m: Positive = 1.2
     car_max_height_m: Positive = 2.1
     car_min_length_m: Positive = 2.5
@@ -153,6 +162,18 @@ def _offsets(r: int) -> np.ndarray:
     return np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
 
 
+def _cell_sigma(cid: np.ndarray, res: np.ndarray, use: np.ndarray, m: int) -> np.ndarray:
+    """(m,) robust sigma (1.4826 x the median absolute value) of res (N,) over the points use
+    (N,) bool of each of m cells (NaN: none)."""
+    out = np.full(m, np.nan)
+    i = np.flatnonzero(use)
+    if len(i):
+        o = i[np.lexsort((np.abs(res[i]), cid[i]))]
+        cells, start, num = np.unique(cid[o], return_index=True, return_counts=True)
+        out[cells] = 1.4826 * np.abs(res[o[start + num // 2]])
+    return out
+
+
 def _fit_planes(
     cid: np.ndarray, d: np.ndarray, z: np.ndarray, use: np.ndarray, m: int, max_slope: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -180,14 +201,14 @@ def _fit_planes(
 
 
 def ground_model(
-    points: np.ndarray, s: GeometricClassSettings, upright: np.ndarray | None = None
+    points: np.ndarray, s: GeometricClassSettings, steep: np.ndarray | None = None
 ) -> GroundModel:
     """The local ground (:class:`GroundModel`) of points (N, 3) float32, z up, metres (step 1 of
-    the module docstring). upright: (N,) bool, points on a vertical surface (a wall's foot): never
-    ground, nor part of the ground's fit (None: none)."""
+    the module docstring). steep: (N,) bool, points on a surface steeper than the ground may be
+    (a wall's foot): never ground, nor part of the ground's fit (None: none)."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     n = len(p)
-    flat = np.ones(n, bool) if upright is None else ~np.asarray(upright, bool)
+    flat = np.ones(n, bool) if steep is None else ~np.asarray(steep, bool)
     nan = np.full(n, np.nan)
     up = np.tile([0.0, 0.0, 1.0], (n, 1))
     if n == 0:
@@ -215,16 +236,16 @@ def ground_model(
     band = flat & (p[:, 2] >= seed[cid]) & (p[:, 2] <= seed[cid] + s.ground_band_m)
     coef, count = _fit_planes(cid, d, p[:, 2], band, m, s.ground_max_slope)
     res = p[:, 2] - (coef[cid, 0] * d[:, 0] + coef[cid, 1] * d[:, 1] + coef[cid, 2])
-    inlier = band & (np.abs(res) <= s.ground_tolerance_m)
+    # refit through the points within 3 robust sigma of the first plane (at least
+    # MIN_INLIER_M, at most the tolerance): the foot of a wall or a wheel in the band, a few
+    # centimetres up, would otherwise lift the plane beside it
+    sigma = _cell_sigma(cid, res, band & (np.abs(res) <= s.ground_tolerance_m), m)
+    gate = np.clip(3.0 * np.nan_to_num(sigma, nan=s.ground_tolerance_m), MIN_INLIER_M, None)
+    inlier = band & (np.abs(res) <= np.minimum(gate, s.ground_tolerance_m)[cid])
     coef, count = _fit_planes(cid, d, p[:, 2], inlier, m, s.ground_max_slope)
     res = p[:, 2] - (coef[cid, 0] * d[:, 0] + coef[cid, 1] * d[:, 1] + coef[cid, 2])
     has = np.isfinite(seed) & (count > 0)
-    rough = np.full(m, np.nan)
-    i = np.flatnonzero(inlier & (np.abs(res) <= s.ground_tolerance_m))
-    if len(i):
-        o = i[np.lexsort((np.abs(res[i]), cid[i]))]
-        cells_i, start, num = np.unique(cid[o], return_index=True, return_counts=True)
-        rough[cells_i] = 1.4826 * np.abs(res[o[start + num // 2]])
+    rough = _cell_sigma(cid, res, band & (np.abs(res) <= s.ground_tolerance_m), m)
     # a cell above a neighbour by more than the step and the slope allows is an object's top
     valid = has.copy()
     h0 = np.where(has, coef[:, 2], np.inf)
@@ -300,17 +321,27 @@ def _ground_classes(
     return out
 
 
-def _normals(p: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """(|n_z| (N,), scattering lambda3 / lambda1 (N,)) of each point's k nearest points' PCA."""
-    k = min(k, len(p))
+def _normals(p: np.ndarray, k: int, voxel_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(|n_z| (N,), scattering lambda3 / lambda1 (N,), linear (N,) bool: lambda2 / lambda1 <
+    LINEAR, no normal) of each point: the PCA of the k nearest
+    centroids of ``voxel_m`` voxels around its voxel's centroid. Centroids, not points: near the
+    sensor the returns lie a centimetre apart, the range noise's size, and k nearest points would
+    look scattered on any surface; centroids span the same ~voxel_m x k**0.5 at every range."""
+    keys = np.floor(p / voxel_m).astype(np.int64)
+    _, inv = np.unique(keys, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    count = np.bincount(inv)
+    c = np.stack([np.bincount(inv, p[:, i]) for i in range(3)], 1) / count[:, None]
+    k = min(k, len(c))
     if k < 3:
-        return np.zeros(len(p)), np.zeros(len(p))
-    _, nb = cKDTree(p).query(p, k=k)
-    q = p[nb] - p[nb].mean(axis=1, keepdims=True)
+        return np.zeros(len(p)), np.zeros(len(p)), np.ones(len(p), bool)
+    _, nb = cKDTree(c).query(c, k=k)
+    q = c[nb] - c[nb].mean(axis=1, keepdims=True)
     w, v = np.linalg.eigh(np.einsum("nki,nkj->nij", q, q) / k)
     with np.errstate(invalid="ignore", divide="ignore"):
         scattering = np.nan_to_num(w[:, 0] / w[:, 2])
-    return np.abs(v[:, 2, 0]), scattering
+        linear = ~(w[:, 1] >= LINEAR * w[:, 2])
+    return np.abs(v[:, 2, 0])[inv], scattering[inv], linear[inv]
 
 
 def _cluster_classes(
@@ -411,10 +442,11 @@ def geometric_classes(
         return out
     rows = np.flatnonzero(finite)
     q = p[rows]
-    nz, scattering = _normals(q, settings.normal_neighbours)
-    g = ground_model(
-        q, settings, (nz < settings.vertical_max_nz) & (scattering < settings.scattering_min)
-    )
+    nz, scattering, linear = _normals(q, settings.normal_neighbours, settings.normal_voxel_m)
+    # a surface clearly steeper than the ground may be (a wall's foot, a kerb's face, a wheel):
+    # neither ground nor part of its fit; a linear neighbourhood (one scan ring) has no normal
+    steep = (nz < settings.ground_min_nz) & ~linear
+    g = ground_model(q, settings, steep)
     inten = None if intensities is None else np.asarray(intensities, np.float64)[rows]
     sub = np.full(len(q), UNLABELED, np.uint8)
     sub[g.ground] = _ground_classes(q, inten, g, settings)
