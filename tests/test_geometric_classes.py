@@ -247,3 +247,16 @@ def test_road_and_terrain_recall_on_simulated_sweeps(synthetic_root, tmp_path):
     assert result["frames"] == 4
     assert scores["road"]["recall"] > 0.9 and scores["terrain"]["recall"] > 0.8
     assert scores["road"]["precision"] > 0.95 and scores["terrain"]["precision"] > 0.9
+
+
+def test_auto_takes_the_geometry_where_detect_gives_no_semantics():
+    from configs.schema import load_config
+    from flows.pipeline.inputs import map_inputs
+
+    assert map_inputs(load_config()).point_classes == "camera"  # the oracle's semantics
+    none = {"detect.image_provider": "models", "detect.models.semantic.kind": "none"}
+    assert map_inputs(load_config(overrides=none)).point_classes == "camera+geometry"
+    chosen = load_config(overrides={**none, "map.point_classes": "camera"})
+    assert map_inputs(chosen).point_classes == "camera"
+    tuned = load_config(overrides={"map.geometry.pole_min_height_m": 3.0})
+    assert map_inputs(tuned).geometry.pole_min_height_m == 3.0
