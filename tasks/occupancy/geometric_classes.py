@@ -13,41 +13,45 @@ Steps (lengths in metres, heights above the local ground):
 
 1. Ground, per ``ground_cell_m`` cell of the xy plane: the seed is the lowest z that at least
    ``ground_min_support`` points of the cell lie within ``ground_band_m`` above (so a few returns
-   below the road, multipath, never become the ground, as the per-cell minimum would), then a
-   least-squares plane through the points of that band. A cell whose plane lies more than
+   below the road, multipath, never become the ground, as the per-cell minimum would); a
+   least-squares plane through the points of that band, refitted through those within 3 robust
+   sigma of it (at least ``MIN_INLIER_M``, at most ``ground_tolerance_m``). Points on a surface
+   clearly steeper than ground (|n_z| < ``ground_min_nz`` of the normal below: a wall's foot, a
+   wheel) are neither ground nor in the fit. A cell whose plane lies more than
    ``ground_step_m`` + ``ground_max_slope`` x distance above a neighbour's within
-   ``ground_window_cells`` cells is the top of something (a car's roof, a wall's top), not ground;
-   a cell without ground (under or behind an object) borrows the height of the nearest cells with
-   ground within ``ground_borrow_m``.
-   Points within ``ground_tolerance_m`` of their cell's plane are ground, unless their local
-   surface (below) is clearly steeper (|n_z| < ``ground_min_nz``: a wall's foot, which is also
-   left out of the fit); points farther below are UNLABELED (returns below the ground are
-   multipath).
-2. ROAD vs TERRAIN on ground points: the plane's residual RMS above ``terrain_min_roughness_m``
-   is TERRAIN (grass, gravel); else the intensity corrected for incidence (a return's intensity
-   ~ reflectivity x (f + (1 - f) |cos incidence|), f = ``intensity_incidence_floor``), median over
-   the ``intensity_neighbours`` nearest ground points: <= ``road_max_intensity`` ROAD, in
-   [``terrain_min_intensity``, ``terrain_max_intensity``] TERRAIN, anything else UNLABELED (also
-   every smooth ground point when intensities are None).
+   ``ground_window_cells`` cells is the top of something (a car's roof), not ground; a cell
+   without ground (under or behind an object) borrows the mean height of the nearest cells with
+   ground within ``ground_borrow_m``. Points within ``ground_tolerance_m`` of their cell's plane
+   are ground; points farther below are UNLABELED (returns below the ground are multipath).
+2. ROAD vs TERRAIN on ground points: a cell whose robust residual sigma exceeds
+   ``terrain_min_roughness_m`` is TERRAIN (grass, gravel); else the intensity corrected for
+   incidence (a return's intensity ~ reflectivity x (f + (1 - f) |cos incidence|), f =
+   ``intensity_incidence_floor``), median over the ``intensity_neighbours`` nearest ground
+   points: <= ``road_max_intensity`` ROAD, in [``terrain_min_intensity``,
+   ``terrain_max_intensity``] TERRAIN, anything else UNLABELED (also every smooth ground point
+   when intensities are None).
 3. The other points (above the ground) are clustered (voxels of ``cluster_voxel_m`` linked within
    ``cluster_tol_m``); each cluster of at least ``min_cluster_points`` points gets one class from
    its size and shape: its footprint (PCA of xy, 2-98 percentile extents: length >= width), its
-   top (98th percentile height), the share of its points below ``clearance_m`` (vehicles stand on
-   wheels), and per point the local normal of the ``normal_neighbours`` nearest centroids of
-   ``normal_voxel_m`` voxels (vertical
-   plane: |n_z| < ``vertical_max_nz``; sloped or scattered: |n_z| in [vertical_max_nz,
-   ``sloped_max_nz``] or scattering lambda3 / lambda1 >= ``scattering_min``):
+   top and foot (98th / 2nd percentile height), the share of its ``column_m`` xy columns whose
+   lowest point lies within ``clearance_m`` of the ground ("grounded": a wall stands on the
+   ground, a car on wheels), whether the sensor's top beam reaches it (within ``top_margin_deg``:
+   then its top may be unseen), and per point the normal of the ``normal_neighbours`` nearest
+   centroids of ``normal_voxel_m`` voxels (vertical plane: |n_z| < ``vertical_max_nz`` and
+   scattering lambda3 / lambda1 < ``scattering_min``; sloped or scattered: |n_z| in
+   [vertical_max_nz, ``sloped_max_nz``] or scattering >= scattering_min):
 
-   - POLE: length <= ``pole_max_width_m``, top >= ``pole_min_height_m``;
+   - POLE: length <= ``pole_max_width_m``, top >= ``pole_min_height_m``, foot <=
+     ``pole_max_bottom_m``;
    - VEGETATION: sloped / scattered share >= ``vegetation_min_share``, top >=
      ``vegetation_min_height_m``, length >= ``vegetation_min_length_m`` (a wide, curved or
      porous mass above head height: a crown);
-   - OTHER_STRUCTURE: vertical-plane share >= ``structure_min_share`` and either top >=
-     ``structure_min_height_m`` (a building's face, taller than vehicles) or a thin low wall
-     (width <= ``wall_max_width_m``, length >= ``wall_min_length_m``, reaching the ground: low
-     share >= ``wall_min_low_share``);
-   - CAR: top in [``car_min_height_m``, ``car_max_height_m``], length in [``car_min_length_m``,
-     ``car_max_length_m``], low share < ``wall_min_low_share`` (ground clearance);
+   - OTHER_STRUCTURE: vertical-plane share >= ``structure_min_share``, longer than a pole, and
+     either top >= ``structure_min_height_m`` (a building's face, taller than vehicles) or a thin
+     wall under the top beam (width <= ``wall_max_width_m``, length >= ``wall_min_length_m``,
+     grounded share >= ``grounded_min_share``);
+   - CAR: under the top beam, top in [``car_min_height_m``, ``car_max_height_m``], length in
+     [``car_min_length_m``, ``car_max_length_m``], grounded share < ``grounded_min_share``;
    - anything else (trucks, two-wheelers, people, fragments): UNLABELED.
 
 Deterministic; no randomness. The defaults are set on the simulator's sweeps (its ground is flat,
@@ -135,8 +139,8 @@ class GeometricClassSettings:
 class GroundModel:
     """The local ground of a sweep, per point: ground (N,) bool, below (N,) bool (more than the
     tolerance below the ground: multipath), height (N,) float64 m above the ground (NaN where no
-    ground is known nearby), roughness (N,) float64 m (residual RMS of the point's ground cell,
-    NaN where the cell has no ground), normal (N, 3) float64 unit ground normal (z up)."""
+    ground is known nearby), roughness (N,) float64 m (robust residual sigma of the point's ground
+    cell, NaN where the cell has no ground), normal (N, 3) float64 unit ground normal (z up)."""
 
     ground: np.ndarray
     below: np.ndarray
