@@ -260,3 +260,38 @@ def test_auto_takes_the_geometry_where_detect_gives_no_semantics():
     assert map_inputs(chosen).point_classes == "camera"
     tuned = load_config(overrides={"map.geometry.pole_min_height_m": 3.0})
     assert map_inputs(tuned).geometry.pole_min_height_m == 3.0
+
+
+def test_map_stage_with_geometry_labels_only_what_the_geometry_knows(synthetic_root, tmp_path):
+    """The map stage (tiled, through the pipeline's runner) with map.point_classes geometry: the
+    static map holds only the geometry's classes (the oracle camera's truck / two-wheeler labels
+    are not used), road and terrain among them; the camera's map differs."""
+    from flows.bench.common import make_config, run_stages
+    from storage.products import TILES, MapTiles, StaticMapProduct
+    from tasks.conventions import PEDESTRIAN, TRUCK, TWO_WHEELER
+
+    labels = {}
+    for mode in ("geometry", "camera"):
+        out = tmp_path / mode
+        cfg = make_config(
+            synthetic_root,
+            out,
+            {
+                "dataset.sequences": ["0"],
+                "dataset.max_range_m": 30.0,
+                "map.point_classes": mode,
+            },
+        )
+        done = run_stages(cfg, ("detect", "map")).outcomes
+        map_dir = out / done[("0", "map")].location
+        index = MapTiles.read(map_dir)
+        labels[mode] = np.concatenate(
+            [
+                StaticMapProduct.read(map_dir / TILES, StaticMapProduct.file_name(t)).labels
+                for t in index.static_tiles
+            ]
+        )
+    geo = np.bincount(labels["geometry"], minlength=256)
+    assert geo[ROAD] > 100 and geo[TERRAIN] > 10
+    assert geo[[PEDESTRIAN, TRUCK, TWO_WHEELER]].sum() == 0
+    assert not np.array_equal(geo, np.bincount(labels["camera"], minlength=256))
