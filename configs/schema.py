@@ -49,6 +49,7 @@ from tasks.fit.settings import (
     RefineSettings,
 )
 from tasks.fit.weights import FIT_PRESETS, FitWeights, LossWeights, ObjectiveSettings
+from tasks.occupancy.geometric_classes import GeometricClassSettings
 from tasks.occupancy.grid import GridSpec
 from tasks.occupancy.settings import FreeSpaceParams, FuseSettings, MapParams
 from tasks.occupancy.tiles import check_tiling
@@ -521,6 +522,12 @@ DEFAULT_CITYSCAPES_TO_CLASS = {
 
 
 @pydantic_dataclass(config=STRICT, frozen=True)
+class GeometricClassesConfig(GeometricClassSettings, Section):
+    """Per-point classes from geometry (``map.point_classes`` geometry / camera+geometry):
+    tasks/occupancy/geometric_classes.py."""
+
+
+@pydantic_dataclass(config=STRICT, frozen=True)
 class MapConfig(MapParams, Section):
     """The static semantic map: tasks.occupancy.settings.MapParams, the class mapping, and the
     free / unknown map."""
@@ -530,6 +537,13 @@ class MapConfig(MapParams, Section):
     )
     ground_classes: list[str] = Field(default_factory=lambda: ["road", "terrain"])
     freespace: FreeSpaceConfig = FreeSpaceConfig()
+    #: which labels the map's points take: the camera's (lifted image semantics, the outside-image
+    #: fallback beyond), the geometry's (tasks/occupancy/geometric_classes.py: no segmenter
+    #: needed), the camera's where it has one and the geometry's elsewhere, or auto:
+    #: camera+geometry where detect gives no image semantics (models.semantic.kind none), else
+    #: camera (tasks.occupancy.mapping.SweepLabeller)
+    point_classes: Literal["auto", "camera", "geometry", "camera+geometry"] = "auto"
+    geometry: GeometricClassesConfig = GeometricClassesConfig()
 
 
 @pydantic_dataclass(config=STRICT, frozen=True)

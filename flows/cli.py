@@ -408,6 +408,15 @@ def cmd_bench_perception(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_geometric_classes(args: argparse.Namespace) -> int:
+    from flows.bench.geometric_classes import bench_geometric_classes, format_table
+
+    result = bench_geometric_classes(_config(args), args.every)
+    print(format_table(result))
+    _write_json(args.json, result)
+    return 0
+
+
 def cmd_bench_planning(args: argparse.Namespace) -> int:
     import shutil
     import tempfile
@@ -473,7 +482,8 @@ def _add_bench_parsers(sub) -> None:
     p = sub.add_parser(
         "bench",
         help="measure speeds, memory and reference ratios: `mobileocc bench [--quick]` (the "
-        "pipeline) or `mobileocc bench fit | fit-tracks | occupancy | perception | planning | "
+        "pipeline) or `mobileocc bench fit | fit-tracks | occupancy | perception | "
+        "geometric-classes | planning | "
         "memory | scale | overhead | viewer | logs [options]`",
         description="Without BENCHMARK: the pipeline benchmark (flows/bench/pipeline.py) with the "
         "options below; `mobileocc bench BENCHMARK --help` for the others.",
@@ -599,6 +609,16 @@ def _add_bench_parsers(sub) -> None:
     q.add_argument("--boxes", choices=["provider", "gt"], default="provider")
     q.add_argument("--json", type=Path, default=None)
     q.set_defaults(func=cmd_bench_perception)
+
+    c = bench.add_parser(
+        "geometric-classes",
+        help="per-point classes from geometry (map.point_classes geometry) vs the simulator's "
+        "point labels: precision / recall / IoU per class, confusion (docs/geometric-classes.md)",
+    )
+    _add_config_args(c, runtime=False)
+    c.add_argument("--every", type=_at_least(1), default=1, help="every N-th 5 Hz frame")
+    c.add_argument("--json", type=Path, default=None)
+    c.set_defaults(func=cmd_bench_geometric_classes)
 
     n = bench.add_parser(
         "planning", help="status / reprocess --dry-run / no-op rebuild vs dataset size"

@@ -113,6 +113,7 @@ def _candidates(value: Any) -> list[Any]:
             "lidar-odometry",
             "never",
             "undecided",
+            "geometry",
             value + "x",
         ]
     if value is None:

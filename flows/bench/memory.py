@@ -211,6 +211,8 @@ def _untiled_process(data_root: str, sequence: str, detect_dir: str, overrides: 
         cam.width,
         cam.height,
         inp.assoc_min_iou,
+        point_classes=inp.point_classes,
+        geometry=inp.geometry,
     )
     for i in range(len(seq)):
         f = seq.frame(i)
@@ -224,6 +226,7 @@ def _untiled_process(data_root: str, sequence: str, detect_dir: str, overrides: 
             d.lidar_centers,
             d.lidar_sizes,
             d.lidar_yaws,
+            f.intensity if f.intensity_present else None,
         )
     final, _ = mapper.finish(inp.ground_class_ids)
     keys, _ = mapper.occupancy.to_arrays()

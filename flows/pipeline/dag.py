@@ -38,7 +38,7 @@ CODE_VERSIONS: dict[str, str] = {
     #                orientation and pose (fit.refine.*_cutoff_hz)
     #             8: ICP and L_3D read 1,500 of the visible vertices spread over the surface
     #                (fit.data_vertices; 2.9x the person-fits per CPU-second, MPJPE +0.06 mm)
-    "map": "7",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path;
+    "map": "8",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path;
     #             3: 2d_rect cameras read as the rectified pinhole (real CODa calibration);
     #             4: both maps written by spatial tile (map_tiles.npz + tiles/*.npz, map.tile_m), built in
     #                parallel windows / regions; the voxels are the same, the product files are not.
@@ -57,6 +57,8 @@ CODE_VERSIONS: dict[str, str] = {
     #                (tasks/occupancy/surface.py, WIDE_SPREAD)
     #                and fragments of fewer than map.min_fragment_voxels voxels of one class dropped
     #                (a missed passer-by's returns, single noisy labels in vegetation)
+    #             8: map.point_classes: labels from the sweep's geometry where no camera label
+    #                (tasks/occupancy/geometric_classes.py; auto: when detect gives no semantics)
     "fuse": "4",  # 2: mask_camera is inside mask_lidar (Occ3D); class_counts among voxels with
     #               mask_lidar = 1 (as documented); store attrs carry the stage key, not a config hash;
     #               the rectified camera; 3: pedestrian voxel velocity from each vertex's motion along

@@ -51,6 +51,7 @@ from tasks.fit.settings import (
     RefineSettings,
 )
 from tasks.fit.weights import FitWeights
+from tasks.occupancy.geometric_classes import GeometricClassSettings
 from tasks.occupancy.grid import GridSpec
 from tasks.occupancy.settings import FreeSpaceParams, FuseSettings, MapParams
 from tasks.perception.lidar_clusters import LidarClusterParams
@@ -464,6 +465,10 @@ class MapInputs:
     freespace: FreeSpaceParams
     #: LiDAR boxes confirmed by an image detection at this IoU remove points in the camera view
     assoc_min_iou: float
+    #: where the points' labels come from (map.point_classes, "auto" resolved: camera, geometry,
+    #: camera+geometry) and the geometry's settings
+    point_classes: str = "camera"
+    geometry: GeometricClassSettings = GeometricClassSettings()
 
 
 @dataclass(frozen=True)
@@ -575,6 +580,16 @@ def fit_inputs(config: Config) -> FitInputs:
     )
 
 
+def point_classes(config: Config) -> str:
+    """map.point_classes with "auto" resolved: camera+geometry where the detect stage gives no
+    image semantics (image_provider 'models' with semantic.kind 'none'), else camera."""
+    m, det = config.map, config.detect
+    if m.point_classes != "auto":
+        return m.point_classes
+    no_semantics = det.image_provider == "models" and det.models.semantic.kind == "none"
+    return "camera+geometry" if no_semantics else "camera"
+
+
 def map_inputs(config: Config) -> MapInputs:
     m = config.map
     lut = tuple(sorted((int(k), CLASS_NAMES.index(v)) for k, v in m.cityscapes_to_class.items()))
@@ -585,6 +600,8 @@ def map_inputs(config: Config) -> MapInputs:
         m.to(MapParams),
         m.freespace.to(FreeSpaceParams),
         config.track.person_points.assoc_min_iou,
+        point_classes(config),
+        m.geometry.to(GeometricClassSettings),
     )
 
 

@@ -66,6 +66,8 @@ def _labeller(inp: MapInputs, seq, threads: int) -> SweepLabeller:
         inp.assoc_min_iou,
         threads,
         inp.ground_class_ids,
+        point_classes=inp.point_classes,
+        geometry=inp.geometry,
     )
 
 
@@ -97,6 +99,8 @@ def map_window(
             d.lidar_centers,
             d.lidar_sizes,
             d.lidar_yaws,
+            frame.intensity if frame.intensity_present else None,
+            frame.T_world_from_lidar,
         )
         votes.add(
             world_points(frame.T_world_from_lidar, frame.points_lidar),

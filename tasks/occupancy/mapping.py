@@ -26,9 +26,14 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from tasks.conventions import PEDESTRIAN, ROAD, TERRAIN
+from tasks.conventions import PEDESTRIAN, ROAD, TERRAIN, UNLABELED
 from tasks.geometry import transform_points
 from tasks.occupancy.freespace import OccupancyMap
+from tasks.occupancy.geometric_classes import (
+    GeometricClassSettings,
+    geometric_classes,
+    gravity_aligned,
+)
 from tasks.occupancy.settings import FreeSpaceParams, MapParams
 from tasks.occupancy.static_map import (
     StaticMap,
@@ -47,6 +52,9 @@ from tasks.occupancy.static_map import (
 from tasks.occupancy.surface import NUM_MOMENTS, group_sum, surface_fit
 from tasks.occupancy.tiles import BLOCK_VOXELS, ground_halo_tiles, tiles_of_keys, voxels_per_tile
 
+#: the label sources of ``map.point_classes`` (:class:`SweepLabeller`)
+POINT_CLASSES = ("camera", "geometry", "camera+geometry")
+
 
 @dataclass(frozen=True)
 class SweepLabels:
@@ -62,7 +70,14 @@ class SweepLabeller:
     """Labels and person removal of single sweeps: class_lut (256,) uint8 Cityscapes train id ->
     class id (UNLABELED: none); K (3, 3), T_cam_from_lidar (4, 4), width / height: the camera;
     assoc_min_iou: see :func:`pedestrian_boxes_for_masking`; threads: nearest-neighbour search;
-    ground_class_ids: the classes of the ground people stand on (``map.ground_classes``)."""
+    ground_class_ids: the classes of the ground people stand on (``map.ground_classes``).
+
+    point_classes (``map.point_classes``): where the labels come from. "camera": the image
+    semantics lifted to the points, ``params.outside_image_fallback`` beyond the image;
+    "geometry": :func:`tasks.occupancy.geometric_classes.geometric_classes` with ``geometry``
+    (no segmenter needed; the image still removes people); "camera+geometry": the camera's label
+    where a point is in the image and its pixel has a class, the geometry's everywhere else (it
+    replaces the outside-image fallback: a point the geometry cannot tell stays UNLABELED)."""
 
     def __init__(
         self,
@@ -75,10 +90,17 @@ class SweepLabeller:
         assoc_min_iou: float,
         threads: int | None = None,
         ground_class_ids: tuple[int, ...] = (ROAD, TERRAIN),
+        *,
+        point_classes: str = "camera",
+        geometry: GeometricClassSettings | None = None,
     ):
+        if point_classes not in POINT_CLASSES:
+            raise ValueError(f"point_classes must be one of {POINT_CLASSES}, got {point_classes!r}")
         self.params, self.lut, self.K, self.T_cam = params, class_lut, K, T_cam_from_lidar
         self.size, self.min_iou, self.threads = (width, height), assoc_min_iou, threads
         self.ground = tuple(ground_class_ids)
+        self.point_classes = point_classes
+        self.geometry = geometry if geometry is not None else GeometricClassSettings()
 
     def __call__(
         self,
@@ -89,24 +111,37 @@ class SweepLabeller:
         lidar_centers: np.ndarray,
         lidar_sizes: np.ndarray,
         lidar_yaws: np.ndarray,
+        intensity: np.ndarray | None = None,
+        T_world_from_lidar: np.ndarray | None = None,
     ) -> SweepLabels:
         """points_lidar (N, 3) float32 LiDAR frame; semantic (H, W) Cityscapes train ids,
         mask_labels (H, W) instance labels (> 0: a person), image boxes (D, 4), LiDAR pedestrian
-        boxes (M, 3) / (M,)."""
+        boxes (M, 3) / (M,). For point_classes with geometry: intensity (N,) (None: not
+        measured), T_world_from_lidar (4, 4) whose rotation turns the points z up (None: the
+        LiDAR is level)."""
         p, (width, height) = self.params, self.size
         projection = project_points(
             points_lidar, self.K, self.T_cam, width, height
         )  # once per sweep
-        labels = lift_image_semantics(
-            points_lidar,
-            semantic,
-            self.K,
-            self.T_cam,
-            self.lut,
-            p,
-            projection=projection,
-            threads=self.threads,
-        )
+        if self.point_classes == "geometry":
+            labels = self._geometry(points_lidar, intensity, T_world_from_lidar)
+        else:
+            labels = lift_image_semantics(
+                points_lidar,
+                semantic,
+                self.K,
+                self.T_cam,
+                self.lut,
+                p
+                if self.point_classes == "camera"
+                else replace(p, outside_image_fallback="unknown"),
+                projection=projection,
+                threads=self.threads,
+            )
+            if self.point_classes == "camera+geometry":
+                fill = labels == UNLABELED
+                if fill.any():
+                    labels[fill] = self._geometry(points_lidar, intensity, T_world_from_lidar)[fill]
         boxes = pedestrian_boxes_for_masking(
             boxes_xyxy,
             lidar_centers,
@@ -143,6 +178,14 @@ class SweepLabeller:
             # the nearest in-view point, a mask's edge the background's)
             people &= ~ground_back
         return SweepLabels(labels, ~people, projection[1])
+
+    def _geometry(self, points_lidar, intensity, T_world_from_lidar) -> np.ndarray:
+        up = (
+            np.asarray(points_lidar, np.float32)
+            if T_world_from_lidar is None
+            else gravity_aligned(T_world_from_lidar, points_lidar)
+        )
+        return geometric_classes(up, intensity, self.geometry)
 
 
 def person_edges(
@@ -229,6 +272,9 @@ class SequenceMapper:
         assoc_min_iou: float,
         threads: int | None = None,
         ground_class_ids: tuple[int, ...] = (ROAD, TERRAIN),
+        *,
+        point_classes: str = "camera",
+        geometry: GeometricClassSettings | None = None,
     ):
         self.params, self.freespace = params, freespace
         self.labeller = SweepLabeller(
@@ -241,6 +287,8 @@ class SequenceMapper:
             assoc_min_iou,
             threads,
             ground_class_ids,
+            point_classes=point_classes,
+            geometry=geometry,
         )
         self.seen = StaticSemanticMap(params.voxel_size_m, moments=True)
         self.unseen = StaticSemanticMap(params.voxel_size_m, moments=True)
@@ -257,11 +305,20 @@ class SequenceMapper:
         lidar_centers: np.ndarray,
         lidar_sizes: np.ndarray,
         lidar_yaws: np.ndarray,
+        intensity: np.ndarray | None = None,
     ) -> None:
-        """One sweep (N, 3) float32 LiDAR frame with its pose (4, 4) and its detections (as
-        :meth:`SweepLabeller.__call__`)."""
+        """One sweep (N, 3) float32 LiDAR frame with its pose (4, 4), its detections and
+        intensities (as :meth:`SweepLabeller.__call__`)."""
         s = self.labeller(
-            points_lidar, semantic, mask_labels, boxes_xyxy, lidar_centers, lidar_sizes, lidar_yaws
+            points_lidar,
+            semantic,
+            mask_labels,
+            boxes_xyxy,
+            lidar_centers,
+            lidar_sizes,
+            lidar_yaws,
+            intensity,
+            T_world_from_lidar,
         )
         world = world_points(T_world_from_lidar, points_lidar)
         origin = T_world_from_lidar[:3, 3]
