@@ -35,8 +35,10 @@ from pathlib import Path
 
 import numpy as np
 
-#: stamp of every log's first message (2024-01-01 00:00:00 UTC): the sources carry no usable time
+#: the first log's first stamp (2024-01-01 00:00:00 UTC; the sources carry no usable time); log i
+#: starts i hours later, so that no two logs overlap in time (exports order scenes by time)
 START_NS = 1_704_067_200_000_000_000
+HOUR_NS = 3_600_000_000_000
 
 
 @dataclass(frozen=True)
@@ -377,7 +379,7 @@ def to_jpeg(raw: bytes, name: str) -> tuple[bytes, tuple[int, int], str]:
     return buf.getvalue(), size, f"{name}: {im.format} re-encoded as JPEG (quality 92)"
 
 
-def convert(src: Source, clone: Path, out_dir: Path) -> dict:
+def convert(src: Source, clone: Path, out_dir: Path, start_ns: int) -> dict:
     """Write ``out_dir/src.name/src.name.mcap``; returns the facts PROVENANCE.md records."""
     K, D, T_cam_from_lidar = read_calib_txt(git_blob(clone, src.commit, src.calib).decode())
     frames, changes, size = [], [], None
@@ -392,7 +394,7 @@ def convert(src: Source, clone: Path, out_dir: Path) -> dict:
             "fields x, y, z, intensity kept as float32 (ring and timestamp dropped)"
         )
         frames.append(
-            Frame(START_NS + k * 100_000_000, pts[keep], pcd["intensity"][keep].astype(np.float32), jpeg)
+            Frame(start_ns + k * 100_000_000, pts[keep], pcd["intensity"][keep].astype(np.float32), jpeg)
         )  # fmt: skip
     normal, d = ground_plane(frames[0].points)
     T_base = base_from_lidar(normal, d)
@@ -412,6 +414,7 @@ def convert(src: Source, clone: Path, out_dir: Path) -> dict:
         "points": [int(len(f.points)) for f in frames],
         "image_size": list(size),
         "mcap_bytes": path.stat().st_size,
+        "start_ns": start_ns,
     }
 
 
@@ -435,7 +438,7 @@ def write_provenance(path: Path, src: Source, facts: dict) -> None:
         "camera transform is the source's reference extrinsic T). No poses.",
         "- Changed:",
         *[f"  - {c}" for c in facts["changes"]],
-        f"  - stamps: the sources have none usable; sweep k is at {START_NS} + k * 100 ms",
+        f"  - stamps: the sources have none usable; sweep k is at {facts['start_ns']} + k * 100 ms",
         f"  - base_link (not in the source): on the ground plane found in the sweep (RANSAC, "
         f"convert.py `ground_plane`), {facts['lidar_height_m']} m below the LiDAR, its z axis "
         f"the plane normal ({facts['ground_tilt_deg']} deg from the LiDAR's z)",
@@ -460,13 +463,13 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     clones = dict(r.split("=", 1) for r in args.repo)
     facts = []
-    for src in SOURCES:
+    for i, src in enumerate(SOURCES):
         if args.only and src.name not in args.only:
             continue
         if src.repo not in clones:
             print(f"skipping {src.name}: no --repo {src.repo}=PATH", file=sys.stderr)
             continue
-        facts.append(convert(src, Path(clones[src.repo]), args.out))
+        facts.append(convert(src, Path(clones[src.repo]), args.out, START_NS + i * HOUR_NS))
         write_provenance(args.out / src.name / "PROVENANCE.md", src, facts[-1])
         print(json.dumps(facts[-1], indent=1))
     return 0
