@@ -29,7 +29,7 @@ import json
 import shutil
 import subprocess
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from io import BytesIO
 from pathlib import Path
 
@@ -56,7 +56,12 @@ class Source:
     lidar_frame: str
     camera_ns: str
     notes: str = ""
-    extra: dict = field(default_factory=dict)
+    #: "calibanything": calib.txt with K, D, T; "acfr": a camera_info.yaml (``camera_info``) and
+    #: the per-sample extrinsics CSV of acfr/cam_lidar_calibration (``calib``)
+    calib_kind: str = "calibanything"
+    camera_info: str = ""
+    licence_note: str = ""
+    licence_file: str = "LICENSE"
 
 
 SOURCES = (
@@ -85,6 +90,32 @@ SOURCES = (
         lidar_frame="hesai_lidar",
         camera_ns="/camera/front",
         notes="a road with a truck and a car ahead; 1920 x 1200 raw (distorted) JPEG",
+    ),
+    Source(
+        name="acfr_lab",
+        repo="acfr/cam_lidar_calibration",
+        commit="65c40c7fc9d4a74907fad2bd295b40922bb7799c",
+        licence="BSD (package.xml at this commit); the repository is Apache-2.0 since db09cd8",
+        pcds=("data/vlp/pcd/pose2_full.pcd",),
+        images=("data/vlp/images/pose2.png",),
+        calib="data/vlp/calibration_quickstart.csv",
+        camera_info="cfg/camera_info.yaml",
+        calib_kind="acfr",
+        lidar_topic="/velodyne_points",
+        lidar_frame="velodyne",
+        camera_ns="/sekonix_camera/port_a_cam_1",
+        notes=(
+            "a lab with a chessboard on a tripod and a person standing about 4 m ahead-right of a "
+            "static VLP-16 + fisheye camera rig; 1920 x 1208 raw fisheye image"
+        ),
+        licence_note=(
+            "The .pcd and the camera_info.yaml are read at commit 65c40c7 (2021-03-11), whose "
+            "package.xml declares `<license>BSD</license>` (no licence text or copyright line in "
+            "the repository then); the .pcd files were removed in 7297bd8. The repository added an "
+            "Apache-2.0 LICENCE in db09cd8 (2024-02-02); the image and the calibration CSV are "
+            "byte-identical at its HEAD ecda574 under that licence"
+        ),
+        licence_file="LICENCE",
     ),
 )
 
@@ -162,6 +193,33 @@ def read_pcd(raw: bytes, what: str) -> dict[str, np.ndarray]:
             off += n * dt.itemsize
         return out
     raise ValueError(f"{what}: DATA {mode!r}: expected ascii, binary or binary_compressed")
+
+
+def euler_zyx(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """R = Rz(yaw) Ry(pitch) Rx(roll), radians (ROS / tf convention)."""
+    cr, sr, cp, sp, cy, sy = (f(a) for a in (roll, pitch, yaw) for f in (np.cos, np.sin))
+    Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    return Rz @ Ry @ Rx
+
+
+def read_acfr_calib(csv: str, camera_info_yaml: str):
+    """acfr/cam_lidar_calibration: ``camera_info.yaml`` (K, fisheye D, size) and a CSV of one
+    extrinsic estimate per sample set (roll, pitch, yaw rad, x, y, z m): T_lidar_from_cam, the
+    camera's pose in the LiDAR frame (its inverse puts the chessboard's returns behind the camera). The tool reports a filtered mean; the per-parameter median of the rows stands
+    in for it. Returns K (3, 3), D (4,), model, T_cam_from_lidar (4, 4), (width, height)."""
+    import yaml
+
+    info = yaml.safe_load(camera_info_yaml)
+    K = np.array(info["K"], np.float64).reshape(3, 3)
+    D = np.array(info["D"], np.float64)
+    model = {"fisheye": "equidistant"}.get(info["distortion_model"], info["distortion_model"])
+    rows = np.loadtxt(BytesIO(csv.encode()), delimiter=",", skiprows=1, ndmin=2)
+    r, p, y, *t = np.median(rows[:, :6], axis=0)
+    T_lidar_from_cam = np.eye(4)
+    T_lidar_from_cam[:3, :3], T_lidar_from_cam[:3, 3] = euler_zyx(r, p, y), t
+    return K, D, model, np.linalg.inv(T_lidar_from_cam), (info["width"], info["height"])
 
 
 def read_calib_txt(text: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -264,6 +322,8 @@ def write_mcap(
     size: tuple[int, int],
     T_cam_from_lidar: np.ndarray,
     T_base_from_lidar: np.ndarray,
+    model: str = "plumb_bob",
+    P: np.ndarray | None = None,
 ) -> Path:
     """A ROS 2 MCAP (zstd chunks) of ``frames`` with /tf_static and the camera's CameraInfo."""
     from rosbags.rosbag2 import StoragePlugin, Writer
@@ -346,11 +406,11 @@ def write_mcap(
             header=header(fr.stamp_ns, optical),
             height=h,
             width=w,
-            distortion_model="plumb_bob",
+            distortion_model=model,
             d=np.asarray(D, np.float64),
             k=np.asarray(K, np.float64).reshape(-1),
             r=np.eye(3).reshape(-1),
-            p=np.c_[K, np.zeros(3)].reshape(-1),
+            p=(np.c_[K, np.zeros(3)] if P is None else P).reshape(-1),
             binning_x=0,
             binning_y=0,
             roi=T["sensor_msgs/msg/RegionOfInterest"](
@@ -381,7 +441,13 @@ def to_jpeg(raw: bytes, name: str) -> tuple[bytes, tuple[int, int], str]:
 
 def convert(src: Source, clone: Path, out_dir: Path, start_ns: int) -> dict:
     """Write ``out_dir/src.name/src.name.mcap``; returns the facts PROVENANCE.md records."""
-    K, D, T_cam_from_lidar = read_calib_txt(git_blob(clone, src.commit, src.calib).decode())
+    calib = git_blob(clone, src.commit, src.calib).decode()
+    if src.calib_kind == "acfr":
+        info = git_blob(clone, src.commit, src.camera_info).decode()
+        K, D, model, T_cam_from_lidar, _ = read_acfr_calib(calib, info)
+    else:
+        (K, D, T_cam_from_lidar), model = read_calib_txt(calib), "plumb_bob"
+    P = None
     frames, changes, size = [], [], None
     for k, (pcd_path, img_path) in enumerate(zip(src.pcds, src.images, strict=True)):
         pcd = read_pcd(git_blob(clone, src.commit, pcd_path), pcd_path)
@@ -391,23 +457,40 @@ def convert(src: Source, clone: Path, out_dir: Path, start_ns: int) -> dict:
         changes.append(what)
         changes.append(
             f"{pcd_path}: {len(pts)} points, {int((~keep).sum())} NaN / zero dropped; "
-            "fields x, y, z, intensity kept as float32 (ring and timestamp dropped)"
+            "fields x, y, z, intensity kept as float32 ("
+            + ", ".join(f for f in pcd if f not in ("x", "y", "z", "intensity"))
+            + " dropped)"
         )
         frames.append(
             Frame(start_ns + k * 100_000_000, pts[keep], pcd["intensity"][keep].astype(np.float32), jpeg)
         )  # fmt: skip
+    if model == "equidistant":  # P = [K | 0] would crop the fisheye's edges (the person)
+        import cv2
+
+        Kp = cv2.fisheye.estimateNewCameraMatrixForUndistortRectify(
+            K, D.reshape(1, 4), size, np.eye(3), balance=1.0
+        )
+        P = np.c_[Kp, np.zeros(3)]
     normal, d = ground_plane(frames[0].points)
     T_base = base_from_lidar(normal, d)
     tilt = float(np.degrees(np.arccos(min(1.0, normal[2]))))
     path = write_mcap(
-        out_dir / src.name / f"{src.name}.mcap", src, frames, K, D, size, T_cam_from_lidar, T_base
-    )
+        out_dir / src.name / f"{src.name}.mcap",
+        src, frames, K, D, size, T_cam_from_lidar, T_base, model, P,
+    )  # fmt: skip
     return {
         "name": src.name,
         "repo": src.repo,
         "commit": src.commit,
         "licence": src.licence,
-        "files": list(src.pcds) + list(src.images) + [src.calib],
+        "files": [
+            *src.pcds,
+            *src.images,
+            src.calib,
+            *([src.camera_info] if src.camera_info else []),
+        ],
+        "distortion_model": model,
+        "P": None if P is None else [round(float(v), 3) for v in P[:, :3].ravel()],
         "changes": changes,
         "lidar_height_m": round(d, 3),
         "ground_tilt_deg": round(tilt, 2),
@@ -428,14 +511,30 @@ def write_provenance(path: Path, src: Source, facts: dict) -> None:
         "",
         f"- Source: https://github.com/{src.repo}, commit `{src.commit}`",
         *[f"  - [`{f}`]({base}{f})" for f in facts["files"]],
-        f"- Licence: {src.licence} (the repository's LICENSE; a copy: "
-        f"`../LICENSE-{src.repo.split('/')[1]}`). No NOTICE file in the source repository.",
+        f"- Licence: {src.licence} (a copy of the repository's {src.licence_file}: "
+        f"`../LICENSE-{src.repo.split('/')[1]}`). No NOTICE file in the source repository."
+        + (f" {src.licence_note}." if src.licence_note else ""),
         f"- Converted by `tests/data/real/convert.py` (this repository) into a ROS 2 MCAP "
         f"(zstd chunks): `{src.lidar_topic}` PointCloud2 (frame `{src.lidar_frame}`), "
         f"`{src.camera_ns}/image_raw/compressed` CompressedImage, `{src.camera_ns}/camera_info` "
-        "CameraInfo (raw camera: K and plumb_bob D of the source's calib.txt, R = I, "
-        "P = [K | 0]), `/tf_static` (base_link -> LiDAR -> camera optical frame; the LiDAR -> "
-        "camera transform is the source's reference extrinsic T). No poses.",
+        f"CameraInfo (the raw camera: K and {facts['distortion_model']} D, R = I, "
+        + (
+            "P = [K | 0]), "
+            if facts["P"] is None
+            else "P = [K' | 0] with K' from OpenCV's fisheye."
+            "estimateNewCameraMatrixForUndistortRectify(K, D, size, I, balance=1): the whole "
+            f"fisheye view in the rectified image, K' = {facts['P']}), "
+        )
+        + "`/tf_static` (base_link -> LiDAR -> camera optical frame). "
+        + (
+            "K, D and the LiDAR -> camera extrinsic T: the source's calib.txt (its reference "
+            "values)."
+            if src.calib_kind == "calibanything"
+            else "K, D: camera_info.yaml; the extrinsic: the per-parameter median of the 50 "
+            "estimates (roll, pitch, yaw, x, y, z: the camera's pose in the LiDAR frame) in "
+            "calibration_quickstart.csv (the tool's own figure is a filtered mean)."
+        )
+        + " No poses.",
         "- Changed:",
         *[f"  - {c}" for c in facts["changes"]],
         f"  - stamps: the sources have none usable; sweep k is at {facts['start_ns']} + k * 100 ms",
