@@ -402,6 +402,15 @@ def cmd_bench_perception(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_lidar_people(args: argparse.Namespace) -> int:
+    from flows.bench.lidar_people import bench_lidar_people
+
+    result = bench_lidar_people(_config(args), args.multipath, args.ground)
+    print(json.dumps(result, indent=1))
+    _write_json(args.json, result)
+    return 0
+
+
 def cmd_bench_planning(args: argparse.Namespace) -> int:
     import shutil
     import tempfile
@@ -593,6 +602,15 @@ def _add_bench_parsers(sub) -> None:
     q.add_argument("--boxes", choices=["provider", "gt"], default="provider")
     q.add_argument("--json", type=Path, default=None)
     q.set_defaults(func=cmd_bench_perception)
+
+    lp = bench.add_parser(
+        "lidar-people", help="the LiDAR people detector vs the simulator's people (+ multipath)"
+    )
+    _add_config_args(lp, runtime=False)
+    lp.add_argument("--multipath", type=_at_least(0), default=0, help="returns below the road")
+    lp.add_argument("--ground", choices=["robust", "linefit"], default="robust")
+    lp.add_argument("--json", type=Path, default=None)
+    lp.set_defaults(func=cmd_bench_lidar_people)
 
     n = bench.add_parser(
         "planning", help="status / reprocess --dry-run / no-op rebuild vs dataset size"

@@ -1,0 +1,97 @@
+"""The LiDAR people detector on analytic scenes: the robust ground under multipath returns, the
+person score against posts, poles and bushes (issue 39 item 2)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tasks.perception.lidar_clusters import (
+    LidarClusterParams,
+    detect_pedestrians_lidar,
+    ground_height,
+    person_score,
+    robust_ground_height,
+)
+from tests import lidar_shapes as S
+
+GROUND_Z = -1.7
+#: the old detector: the per-cell minimum as the ground, no score gate
+OLD = LidarClusterParams(ground_percentile=0.0, ground_max_drop_m=1e6, min_score=0.0)
+
+
+def _road(rng, n=20000):
+    return S.ground(rng, n, (-2.0, 20.0), (-8.0, 8.0), GROUND_Z)
+
+
+def test_person_over_multipath_returns_is_detected_at_its_height():
+    rng = np.random.default_rng(3)
+    person = S.person(rng, 8.4, 0.3, GROUND_Z, height_m=1.75, density=400.0)
+    # 100 multipath returns 4 m below the road around the person (the KITTI sweep of issue 39)
+    below = S.multipath(rng, 100, (6.5, 10.5), (-1.5, 2.0), GROUND_Z, depth_m=(3.9, 4.1))
+    points = np.concatenate([_road(rng), person, below]).astype(np.float32)
+    det = detect_pedestrians_lidar(points)
+    assert len(det) == 1
+    np.testing.assert_allclose(det.centers[0, :2], [8.4, 0.3], atol=0.15)
+    assert abs(det.sizes[0, 2] - 1.75) < 0.08
+    assert det.scores[0] > 0.8
+    # the old per-cell minimum puts the ground 4 m down: the person is 5.75 m tall and dropped
+    assert len(detect_pedestrians_lidar(points, OLD)) == 0
+
+
+def test_robust_ground_ignores_multipath_and_follows_a_slope():
+    rng = np.random.default_rng(4)
+    xy = rng.uniform([-10, -10], [30, 10], (30000, 2))
+    plane = GROUND_Z + 0.05 * xy[:, 0]  # a 5 % slope
+    road = np.column_stack([xy, plane + rng.normal(0, 0.02, len(xy))])
+    below = S.multipath(rng, 400, (-10, 30), (-10, 10), 0.0, depth_m=(1.0, 6.0))
+    below[:, 2] += GROUND_Z + 0.05 * below[:, 0]
+    points = np.concatenate([road, below])
+    ground = robust_ground_height(points, 2.0, 0.1, 0.5)[: len(road)]
+    err = ground - plane
+    # the 3 x 3 neighbourhood's lowest cell lies up to 2 cells downhill: 0.2 m on a 5 % slope
+    assert np.abs(err).max() < 0.3 and np.median(np.abs(err)) < 0.15
+    old = ground_height(points, 2.0)[: len(road)] - plane
+    assert np.median(old) < -1.0  # the minimum sinks to the multipath
+
+
+def test_robust_ground_lets_an_object_cell_borrow_its_neighbours_ground():
+    rng = np.random.default_rng(5)
+    road = _road(rng, 8000)
+    wall = np.column_stack(
+        [rng.uniform(4.0, 6.0, 6000), rng.uniform(0.0, 2.0, 6000), rng.uniform(-1.5, 1.0, 6000)]
+    )
+    inside = (road[:, 0] >= 4) & (road[:, 0] < 6) & (road[:, 1] >= 0) & (road[:, 1] < 2)
+    points = np.concatenate([road[~inside], wall])
+    ground = robust_ground_height(points, 2.0, 0.1, 0.5)[-len(wall) :]
+    np.testing.assert_allclose(ground, GROUND_Z, atol=0.1)
+
+
+@pytest.mark.parametrize(
+    "name,make",
+    [
+        ("3 m pole", lambda rng: S.column(rng, 5.0, -1.0, 0.08, GROUND_Z, 3.0)),
+        ("0.2 m post, 1.8 m", lambda rng: S.column(rng, 5.0, -1.0, 0.1, GROUND_Z, 1.8)),
+        ("wide bush", lambda rng: S.bush(rng, 5.0, -1.0, GROUND_Z, radius=0.55, height_m=1.2)),
+        ("low bush", lambda rng: S.bush(rng, 5.0, -1.0, GROUND_Z, radius=0.5, height_m=1.05)),
+    ],
+)
+def test_posts_poles_and_bushes_are_not_people(name, make):
+    rng = np.random.default_rng(6)
+    thing = make(rng)
+    points = np.concatenate([_road(rng, 8000), thing]).astype(np.float32)
+    assert len(detect_pedestrians_lidar(points)) == 0, name
+    above = thing[thing[:, 2] > GROUND_Z + 0.2]
+    score, _ = person_score(above, GROUND_Z)
+    assert score < 0.3, (name, score)
+    # the old gates alone took the ones that fit the height / footprint boxes
+    if name != "3 m pole":
+        assert len(detect_pedestrians_lidar(points, OLD)) == 1, name
+
+
+def test_person_score_of_people_at_range_and_a_child():
+    rng = np.random.default_rng(7)
+    for x, height, density in [(5.0, 1.8, 400.0), (15.0, 1.7, 60.0), (6.0, 1.3, 300.0)]:
+        person = S.person(rng, x, 1.0, GROUND_Z, height_m=height, density=density)
+        score, parts = person_score(person[person[:, 2] > GROUND_Z + 0.2], GROUND_Z)
+        assert score >= 0.5, (x, height, parts)
