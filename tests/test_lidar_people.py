@@ -95,3 +95,85 @@ def test_person_score_of_people_at_range_and_a_child():
         person = S.person(rng, x, 1.0, GROUND_Z, height_m=height, density=density)
         score, parts = person_score(person[person[:, 2] > GROUND_Z + 0.2], GROUND_Z)
         assert score >= 0.5, (x, height, parts)
+
+
+# --- removal from the static map needs a confirmed person (issue 39) ------------------------------
+
+W, H = 640, 480
+K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+# LiDAR x forward, y left, z up -> camera x right, y down, z forward, same origin
+T_CAM_FROM_LIDAR = np.array([[0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0], [0, 0, 0, 1]], np.float64)
+
+
+def test_only_confirmed_lidar_boxes_remove_static_returns():
+    from tasks.occupancy.static_map import pedestrian_boxes_for_masking
+    from tasks.perception.models.proposals import project_lidar_boxes
+
+    # in view: a person and a post candidate; behind the camera: a person and a bush candidate
+    centers = np.array([[6, 0.5, -0.8], [5, -1, -0.8], [-6, 0, -0.8], [-5, 2, -0.8]], np.float32)
+    sizes = np.tile(np.array([[0.5, 0.4, 1.75]], np.float32), (4, 1))
+    yaws = np.zeros(4, np.float32)
+    scores = np.array([0.95, 0.2, 0.9, 0.25], np.float32)
+    image_box, _ = project_lidar_boxes(centers[:1], sizes[:1], yaws[:1], T_CAM_FROM_LIDAR, K, W, H)
+    kept = pedestrian_boxes_for_masking(
+        image_box, centers, sizes, yaws, K, T_CAM_FROM_LIDAR, W, H, 0.3, scores, 0.5
+    )
+    # the image confirms the person in view; behind, only the person-like box counts
+    np.testing.assert_allclose(kept[:, :3], centers[[0, 2]])
+    everything = pedestrian_boxes_for_masking(
+        image_box, centers, sizes, yaws, K, T_CAM_FROM_LIDAR, W, H, 0.3
+    )
+    np.testing.assert_allclose(everything[:, :3], centers[[0, 2, 3]])  # unscored: as before
+
+
+# --- a person seen once gets a track (issue 38 item 4) --------------------------------------------
+
+
+def _keypoints(conf: float) -> np.ndarray:
+    kp = np.zeros((1, 17, 3), np.float32)
+    kp[..., 2] = conf
+    return kp
+
+
+@pytest.mark.parametrize("world_check", [True, False])
+def test_one_frame_person_in_plain_view_gets_a_confirmed_track(world_check):
+    from tasks.track.ocsort import PedestrianTracker
+    from tasks.track.offline import Confirmation, WorldCheck, detection_evidence, track_offline
+
+    boxes = [np.array([[100.0, 80.0, 160.0, 260.0]])]
+    scores = [np.array([0.9])]
+    positions = [np.array([[4.0, 1.0]])]
+    check = WorldCheck(enabled=world_check)
+
+    def run(evidence):
+        return track_offline(
+            boxes,
+            scores,
+            PedestrianTracker(),
+            positions=positions,
+            times_s=np.zeros(1),
+            check=check,
+            evidence=evidence,
+        )[0]
+
+    sure = detection_evidence(scores[0], _keypoints(0.9), np.array([0]), np.array([0.95]))
+    assert sure.tolist() == [True]
+    assert run([sure]).tolist() == [1]
+    assert run(None).tolist() == [-1]  # OC-SORT's hit count alone: never a track
+    # each source of evidence is needed: no LiDAR candidate, a post-like one, few keypoints, a
+    # weak image box, or confirmation turned off
+    for args in [
+        (scores[0], _keypoints(0.9), np.array([-1]), np.zeros(0)),
+        (scores[0], _keypoints(0.9), np.array([0]), np.array([0.2])),
+        (scores[0], _keypoints(0.3), np.array([0]), np.array([0.95])),
+        (np.array([0.4]), _keypoints(0.9), np.array([0]), np.array([0.95])),
+    ]:
+        weak = detection_evidence(*args)
+        assert weak.tolist() == [False]
+        assert run([weak]).tolist() == [-1]
+    off = detection_evidence(*sure_args(), Confirmation(enabled=False))
+    assert off.tolist() == [False]
+
+
+def sure_args():
+    return np.array([0.9]), _keypoints(0.9), np.array([0]), np.array([0.95])

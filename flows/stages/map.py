@@ -97,6 +97,7 @@ def map_window(
             d.lidar_centers,
             d.lidar_sizes,
             d.lidar_yaws,
+            d.lidar_scores,
         )
         votes.add(
             world_points(frame.T_world_from_lidar, frame.points_lidar),

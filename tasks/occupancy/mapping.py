@@ -89,10 +89,11 @@ class SweepLabeller:
         lidar_centers: np.ndarray,
         lidar_sizes: np.ndarray,
         lidar_yaws: np.ndarray,
+        lidar_scores: np.ndarray | None = None,
     ) -> SweepLabels:
         """points_lidar (N, 3) float32 LiDAR frame; semantic (H, W) Cityscapes train ids,
         mask_labels (H, W) instance labels (> 0: a person), image boxes (D, 4), LiDAR pedestrian
-        boxes (M, 3) / (M,)."""
+        boxes (M, 3) / (M,) and their scores (M,) (None: every box out of view counts)."""
         p, (width, height) = self.params, self.size
         projection = project_points(
             points_lidar, self.K, self.T_cam, width, height
@@ -117,6 +118,8 @@ class SweepLabeller:
             width,
             height,
             self.min_iou,
+            lidar_scores,
+            p.lidar_person_min_score,
         )
         people = pedestrian_point_mask(
             points_lidar,
@@ -257,11 +260,19 @@ class SequenceMapper:
         lidar_centers: np.ndarray,
         lidar_sizes: np.ndarray,
         lidar_yaws: np.ndarray,
+        lidar_scores: np.ndarray | None = None,
     ) -> None:
         """One sweep (N, 3) float32 LiDAR frame with its pose (4, 4) and its detections (as
         :meth:`SweepLabeller.__call__`)."""
         s = self.labeller(
-            points_lidar, semantic, mask_labels, boxes_xyxy, lidar_centers, lidar_sizes, lidar_yaws
+            points_lidar,
+            semantic,
+            mask_labels,
+            boxes_xyxy,
+            lidar_centers,
+            lidar_sizes,
+            lidar_yaws,
+            lidar_scores,
         )
         world = world_points(T_world_from_lidar, points_lidar)
         origin = T_world_from_lidar[:3, 3]
