@@ -135,6 +135,11 @@ def _keypoints(conf: float) -> np.ndarray:
     return kp
 
 
+def _plain_view():
+    """One detection: image score 0.9, 17 keypoints of confidence 0.9, LiDAR box 0 scoring 0.95."""
+    return np.array([0.9]), _keypoints(0.9), np.array([0]), np.array([0.95])
+
+
 @pytest.mark.parametrize("world_check", [True, False])
 def test_one_frame_person_in_plain_view_gets_a_confirmed_track(world_check):
     from tasks.track.ocsort import PedestrianTracker
@@ -156,7 +161,7 @@ def test_one_frame_person_in_plain_view_gets_a_confirmed_track(world_check):
             evidence=evidence,
         )[0]
 
-    sure = detection_evidence(scores[0], _keypoints(0.9), np.array([0]), np.array([0.95]))
+    sure = detection_evidence(*_plain_view())
     assert sure.tolist() == [True]
     assert run([sure]).tolist() == [1]
     assert run(None).tolist() == [-1]  # OC-SORT's hit count alone: never a track
@@ -171,9 +176,5 @@ def test_one_frame_person_in_plain_view_gets_a_confirmed_track(world_check):
         weak = detection_evidence(*args)
         assert weak.tolist() == [False]
         assert run([weak]).tolist() == [-1]
-    off = detection_evidence(*sure_args(), Confirmation(enabled=False))
+    off = detection_evidence(*_plain_view(), Confirmation(enabled=False))
     assert off.tolist() == [False]
-
-
-def sure_args():
-    return np.array([0.9]), _keypoints(0.9), np.array([0]), np.array([0.95])
