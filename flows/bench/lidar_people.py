@@ -10,7 +10,9 @@ optionally with N multipath returns added (copies of random ground returns 1-6 m
 by the frame). A person counts when at least ``detect.lidar_clusters.min_points`` of the sweep's
 returns hit it within ``max_range_m``; a box matches a person (Hungarian, one to one) when its
 centre lies within ``MATCH_M`` horizontally of the person's ground-truth box centre. Reported:
-recall, precision, the false boxes by the class of the thing they sit on (the ground truth's
+recall, precision (also of the persons and boxes whose centre lies in the benchmark grid's
+x-y extent, ``fuse.grid``, base frame: ``in_grid``; a matched box outside it counts as a box
+outside), the false boxes by the class of the thing they sit on (the ground truth's
 point classes), the height error of the matched boxes, and for the ground model the fraction of
 ground returns taken for ground and of non-ground returns taken for ground (``--ground linefit``
 adds the linefit library's segmentation, if it is installed, for comparison).
@@ -25,6 +27,7 @@ from flows.pipeline.inputs import open_sequence
 from flows.pipeline.plan import selected_sequences
 from storage.gt import read_frame_gt
 from tasks.conventions import CLASS_NAMES
+from tasks.geometry import transform_points
 from tasks.perception.lidar_clusters import (
     LidarClusterParams,
     detect_pedestrians_lidar,
@@ -83,6 +86,8 @@ def bench_lidar_people(config, multipath: int = 0, ground: str = "robust") -> di
     p: LidarClusterParams = config.detect.lidar_clusters.to(LidarClusterParams)
     ground_ids = [CLASS_NAMES.index(n) for n in GROUND_CLASS_NAMES]
     persons = matched = boxes = 0
+    grid = {"persons": 0, "boxes": 0, "matched": 0}
+    lo, hi = np.asarray(config.fuse.grid.range_min), np.asarray(config.fuse.grid.range_max)
     false_on: dict[str, int] = {}
     height_err: list[float] = []
     rates = {"robust": [0, 0], "minimum": [0, 0], "linefit": [0, 0]}
@@ -136,11 +141,22 @@ def bench_lidar_people(config, multipath: int = 0, ground: str = "robust") -> di
             persons += rows.size
             boxes += len(det)
             used = np.zeros(len(det), bool)
+            T_base_from_lidar = np.linalg.inv(gt.T_world_from_base) @ gt.T_world_from_lidar
+
+            def in_grid(centres_lidar):
+                base = transform_points(T_base_from_lidar, np.asarray(centres_lidar, np.float64))
+                return np.all((base[:, :2] >= lo[:2]) & (base[:, :2] < hi[:2]), axis=1)
+
+            person_in = in_grid(gt.box_center[rows].reshape(-1, 3))
+            box_in = in_grid(det.centers.reshape(-1, 3))
+            grid["persons"] += int(person_in.sum())
+            grid["boxes"] += int(box_in.sum())
             if rows.size and len(det):
                 d = np.linalg.norm(gt.box_center[rows, None, :2] - det.centers[None, :, :2], axis=2)
                 r, c = linear_sum_assignment(np.where(d <= MATCH_M, d, 1e6))
                 ok = d[r, c] <= MATCH_M
                 matched += int(ok.sum())
+                grid["matched"] += int((ok & person_in[r]).sum())
                 used[c[ok]] = True
                 height_err.extend((det.sizes[c[ok], 2] - gt.box_size[rows[r[ok]], 2]).tolist())
             for k in np.flatnonzero(~used):  # what the false box sits on
@@ -159,6 +175,11 @@ def bench_lidar_people(config, multipath: int = 0, ground: str = "robust") -> di
         "precision": matched / max(boxes, 1),
         "false_boxes_on": dict(sorted(false_on.items())),
         "height_abs_err_median_m": float(np.median(err)) if err.size else float("nan"),
+        "in_grid": {
+            **grid,
+            "recall": grid["matched"] / max(grid["persons"], 1),
+            "precision": grid["matched"] / max(grid["boxes"], 1),
+        },
         "ground": {
             name: {
                 "ground_taken": v[0] / max(ground_total, 1),
