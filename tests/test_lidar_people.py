@@ -178,3 +178,32 @@ def test_one_frame_person_in_plain_view_gets_a_confirmed_track(world_check):
         assert run([weak]).tolist() == [-1]
     off = detection_evidence(*_plain_view(), Confirmation(enabled=False))
     assert off.tolist() == [False]
+
+
+def test_person_points_keep_the_ground_out_over_multipath_returns():
+    """The track stage's person points drop ground returns by the same robust ground: with the
+    per-cell minimum, returns 4 m below the road left the road in the person's box."""
+    from tasks.perception.person_points import (
+        PersonPointParams,
+        person_point_indices,
+        project_points,
+    )
+
+    rng = np.random.default_rng(8)
+    person = S.person(rng, 6.0, 0.3, GROUND_Z, density=900.0)
+    road = S.ground(rng, 30000, (1.0, 12.0), (-4.0, 4.0), GROUND_Z, noise_m=0.01)
+    # 100 returns 1.5-2.5 m below the road behind the person: most of them inside the image
+    below = S.multipath(rng, 100, (7.0, 10.0), (-1.0, 2.0), GROUND_Z, depth_m=(1.5, 2.5))
+    points = np.concatenate([person, road, below]).astype(np.float32)
+    uv, _ = project_points(person, K, T_CAM_FROM_LIDAR, 0.1)
+    box = np.array([[*uv.min(axis=0) - 4, *uv.max(axis=0) + 4]])
+    truth = np.arange(len(person))
+
+    def wrong(params):
+        (found,) = person_point_indices(points, K, T_CAM_FROM_LIDAR, (W, H), box, params=params)
+        assert np.isin(truth, found).mean() > 0.9
+        return 1 - np.isin(found, truth).mean()
+
+    assert wrong(PersonPointParams()) < 0.1  # the ground under the feet only
+    old = PersonPointParams(ground_percentile=0.0, ground_max_drop_m=1e6)
+    assert wrong(old) > 0.5  # the road in the box joined the person
