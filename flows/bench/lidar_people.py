@@ -20,6 +20,8 @@ adds the linefit library's segmentation, if it is installed, for comparison).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
@@ -72,9 +74,10 @@ def _linefit(seq, seq_id: str):
     is_ground = (gt.point_instance[returned] == 0) & np.isin(gt.point_class[returned], ground_ids)
     near = is_ground & (np.linalg.norm(pts[:, :2], axis=1) < 8.0)
     height = -float(np.median(pts[near, 2]))
-    with tempfile.NamedTemporaryFile("w", suffix=".toml", delete=False) as f:
-        f.write(f"[important]\nheight = {height:.3f}\n")
-    return ground_seg(f.name)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "linefit.toml"
+        path.write_text(f"[important]\nheight = {height:.3f}\n")
+        return ground_seg(str(path))  # reads the file here
 
 
 def _ground_rates(points, truth_ground, ground_z, tol_m):
