@@ -66,7 +66,7 @@ from tasks.perception.oracle import OracleNoise
 from tasks.perception.person_points import PersonPointParams
 from tasks.poses.odometry import OdometrySettings
 from tasks.track.ocsort import TrackerParams
-from tasks.track.offline import OfflineParams, WorldCheck
+from tasks.track.offline import Confirmation, OfflineParams, WorldCheck
 from tasks.track.rate import GateRate
 
 CONFIG_DIR = Path(__file__).resolve().parent
@@ -412,12 +412,18 @@ class WorldCheckConfig(WorldCheck, Section):
 
 
 @pydantic_dataclass(config=STRICT, frozen=True)
+class ConfirmConfig(Confirmation, Section):
+    """A tracklet confirmed by one detection's evidence: tasks.track.offline.Confirmation."""
+
+
+@pydantic_dataclass(config=STRICT, frozen=True)
 class TrackConfig(GateRate, OfflineParams, TrackerParams, Section):
     """OC-SORT (tasks.track.ocsort.TrackerParams), the offline refinement
     (tasks.track.offline.OfflineParams, WorldCheck), person points, and the rate the
     frame-counted gates are given at (tasks.track.rate.GateRate: scaled to dataset.rate_hz)."""
 
     world_check: WorldCheckConfig = WorldCheckConfig()
+    confirm: ConfirmConfig = ConfirmConfig()
     person_points: PersonPointsConfig = PersonPointsConfig()
 
 

@@ -417,6 +417,24 @@ def cmd_bench_geometric_classes(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_lidar_people(args: argparse.Namespace) -> int:
+    from flows.bench.lidar_people import bench_lidar_people
+
+    result = bench_lidar_people(_config(args), args.multipath, args.ground)
+    print(json.dumps(result, indent=1))
+    _write_json(args.json, result)
+    return 0
+
+
+def cmd_bench_track_confirm(args: argparse.Namespace) -> int:
+    from flows.bench.track_confirm import bench_track_confirm
+
+    result = bench_track_confirm(_config(args), args.log_frames)
+    print(json.dumps(result, indent=1))
+    _write_json(args.json, result)
+    return 0
+
+
 def cmd_bench_planning(args: argparse.Namespace) -> int:
     import shutil
     import tempfile
@@ -619,6 +637,25 @@ def _add_bench_parsers(sub) -> None:
     c.add_argument("--every", type=_at_least(1), default=1, help="every N-th 5 Hz frame")
     c.add_argument("--json", type=Path, default=None)
     c.set_defaults(func=cmd_bench_geometric_classes)
+
+    lp = bench.add_parser(
+        "lidar-people", help="the LiDAR people detector vs the simulator's people (+ multipath)"
+    )
+    _add_config_args(lp, runtime=False)
+    lp.add_argument("--multipath", type=_at_least(0), default=0, help="returns below the road")
+    lp.add_argument("--ground", choices=["robust", "linefit"], default="robust")
+    lp.add_argument("--json", type=Path, default=None)
+    lp.set_defaults(func=cmd_bench_lidar_people)
+
+    tc = bench.add_parser(
+        "track-confirm", help="tracks confirmed by evidence vs by hit count, on short logs"
+    )
+    _add_config_args(tc, runtime=False)
+    tc.add_argument(
+        "--log-frames", type=_csv(int), default=(1, 2, 0), help="log lengths (0: whole sequence)"
+    )
+    tc.add_argument("--json", type=Path, default=None)
+    tc.set_defaults(func=cmd_bench_track_confirm)
 
     n = bench.add_parser(
         "planning", help="status / reprocess --dry-run / no-op rebuild vs dataset size"

@@ -119,7 +119,7 @@ def test_kernel_sections_take_their_defaults_from_the_kernels():
 
     from tasks.occupancy.settings import FreeSpaceParams, FuseSettings, MapParams
     from tasks.perception.oracle import OracleNoise
-    from tasks.track.offline import OfflineParams, WorldCheck
+    from tasks.track.offline import Confirmation, OfflineParams, WorldCheck
 
     cfg = load_config()
     for section, kernel in (
@@ -127,6 +127,7 @@ def test_kernel_sections_take_their_defaults_from_the_kernels():
         (cfg.map, MapParams),
         (cfg.map.freespace, FreeSpaceParams),
         (cfg.track.world_check, WorldCheck),
+        (cfg.track.confirm, Confirmation),
         (cfg.track, OfflineParams),
         (cfg.fuse, FuseSettings),
     ):

@@ -404,6 +404,7 @@ def test_map_and_fuse_stages_by_tile_equal_the_whole_maps(synthetic_root, tmp_pa
             d.lidar_centers,
             d.lidar_sizes,
             d.lidar_yaws,
+            d.lidar_scores,
         )
     final, _ = mapper.finish(inp.ground_class_ids)
     tiles = [

@@ -15,6 +15,7 @@ from tasks.perception.person_points import (
     project_points,
 )
 from tasks.perception.types import ImagePerception, LidarDetections, box_corners
+from tests import lidar_shapes
 
 W, H = 640, 480
 K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
@@ -279,7 +280,8 @@ def test_ground_height_borrows_neighbour_cells():
 
 def test_lidar_clusters_find_person_next_to_wall_reject_wall_and_pole():
     rng = np.random.default_rng(1)
-    person = _cylinder(rng, 400, 6.0, 0.5, 0.22, GROUND_Z + 0.02, GROUND_Z + 1.75, front_only=False)
+    # person-shaped (a plain 0.22 m cylinder is a bollard: the person score rejects it)
+    person = lidar_shapes.person(rng, 6.0, 0.5, GROUND_Z + 0.02, density=900.0)
     pole = _cylinder(rng, 400, 4.0, -2.0, 0.1, GROUND_Z, GROUND_Z + 4.0, front_only=False)
     short_post = _cylinder(rng, 100, 3.0, 2.0, 0.05, GROUND_Z, GROUND_Z + 0.6, front_only=False)
     points = np.concatenate(

@@ -226,6 +226,7 @@ def _untiled_process(data_root: str, sequence: str, detect_dir: str, overrides: 
             d.lidar_centers,
             d.lidar_sizes,
             d.lidar_yaws,
+            d.lidar_scores,
             f.intensity if f.intensity_present else None,
         )
     final, _ = mapper.finish(inp.ground_class_ids)

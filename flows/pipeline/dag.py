@@ -15,12 +15,16 @@ STAGES: dict[str, tuple[str, ...]] = {
 #: Explicit code versions: bump a stage's version when its output for the same input changes.
 #: (A key from code versions, not from source hashes: refactors do not invalidate datasets.)
 CODE_VERSIONS: dict[str, str] = {
-    "detect": "3",  # 2: the oracle's miss curve calibrated on the paper's detection table; 3: a frame
+    "detect": "4",  # 2: the oracle's miss curve calibrated on the paper's detection table; 3: a frame
     #               with bad input is left out (failed_frames in the summary) instead of failing the
     #               sequence, images decoded and size-checked, a sweep's channels from its sequence's
     #               first sweep (every later stage's key follows through its upstream keys)
-    "track": "5",  # 2: offline back-fill and stitching; 3: world-position check; 4: person points past the
+    #               4: lidar-clusters: a robust ground (low percentile, multipath rejected) and a
+    #               person score from shape (detect.lidar_clusters.min_score gates the boxes)
+    "track": "6",  # 2: offline back-fill and stitching; 3: world-position check; 4: person points past the
     #               image side; 5: 2d_rect cameras read as the rectified pinhole (real CODa calibration)
+    #               6: tracklets confirmed by one detection's evidence (track.confirm: image score,
+    #               a matched LiDAR candidate's person score, keypoints): a person seen once is tracked
     "fit": "8",  # 2: L_3D caps the vertex -> point distances (fit.chamfer_vertex_max_m); 100 iterations;
     #             3: detections with fewer than fit.min_points LiDAR points are not fitted, fits
     #                that moved more than fit.max_shift_m from their estimate are dropped;
@@ -59,6 +63,8 @@ CODE_VERSIONS: dict[str, str] = {
     #                (a missed passer-by's returns, single noisy labels in vegetation)
     #             8: map.point_classes: labels from the sweep's geometry where no camera label
     #                (tasks/occupancy/geometric_classes.py; auto: when detect gives no semantics)
+    #                and out of the camera's view a LiDAR pedestrian box removes points only with a
+    #                score of at least map.lidar_person_min_score (a false box deleted a real post)
     "fuse": "4",  # 2: mask_camera is inside mask_lidar (Occ3D); class_counts among voxels with
     #               mask_lidar = 1 (as documented); store attrs carry the stage key, not a config hash;
     #               the rectified camera; 3: pedestrian voxel velocity from each vertex's motion along

@@ -58,7 +58,7 @@ from tasks.perception.lidar_clusters import LidarClusterParams
 from tasks.perception.oracle import OracleNoise
 from tasks.perception.person_points import PersonPointParams
 from tasks.track.ocsort import TrackerParams
-from tasks.track.offline import OfflineParams, WorldCheck
+from tasks.track.offline import Confirmation, OfflineParams, WorldCheck
 from tasks.track.rate import GateRate, gates_at_rate
 
 #: config keys that only say where things are or how many workers run (no stage reads them)
@@ -434,6 +434,8 @@ class TrackInputs:
     offline: OfflineParams
     world_check: WorldCheck
     person_points: PersonPointParams
+    #: tracklets confirmed by one detection's evidence (image, LiDAR and keypoints agreeing)
+    confirm: Confirmation
 
 
 @dataclass(frozen=True)
@@ -554,7 +556,12 @@ def track_inputs(config: Config) -> TrackInputs:
         t.to(GateRate),
     )
     return TrackInputs(
-        source(config), tracker, offline, check, t.person_points.to(PersonPointParams)
+        source(config),
+        tracker,
+        offline,
+        check,
+        t.person_points.to(PersonPointParams),
+        t.confirm.to(Confirmation),
     )
 
 

@@ -99,6 +99,7 @@ def map_window(
             d.lidar_centers,
             d.lidar_sizes,
             d.lidar_yaws,
+            d.lidar_scores,
             frame.intensity if frame.intensity_present else None,
             frame.T_world_from_lidar,
         )

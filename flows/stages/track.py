@@ -13,7 +13,7 @@ from flows.pipeline.inputs import TrackInputs
 from flows.stages.common import StageContext, detected_positions
 from storage.products import Detections, Tracks, labels_to_masks
 from tasks.track.ocsort import PedestrianTracker
-from tasks.track.offline import track_offline
+from tasks.track.offline import detection_evidence, track_offline
 from tasks.track.product import FramePersons, frame_persons, track_rows
 
 
@@ -36,7 +36,9 @@ def _frame(ctx: StageContext[TrackInputs], seq, cam, i: int) -> tuple[int, dict,
         inp.person_points,
         inp.world_check,
     )
-    rows = {k: getattr(d, k) for k in ("boxes_xyxy", "scores", "keypoints", "gt_index")}
+    rows = {
+        k: getattr(d, k) for k in ("boxes_xyxy", "scores", "keypoints", "gt_index", "lidar_scores")
+    }
     return frame.index, rows, persons
 
 
@@ -53,6 +55,12 @@ def run_track(ctx: StageContext[TrackInputs]) -> dict:
         [p.world_xy for p in persons],
         seq.info.stamps_ns[at] * 1e-9,
         inp.world_check,
+        [
+            detection_evidence(
+                d["scores"], d["keypoints"], p.lidar_box, d["lidar_scores"], inp.confirm
+            )
+            for d, p in zip(dets, persons)
+        ],
     )
     tracks = Tracks(
         **track_rows(

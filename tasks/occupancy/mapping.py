@@ -111,14 +111,15 @@ class SweepLabeller:
         lidar_centers: np.ndarray,
         lidar_sizes: np.ndarray,
         lidar_yaws: np.ndarray,
+        lidar_scores: np.ndarray | None = None,
         intensity: np.ndarray | None = None,
         T_world_from_lidar: np.ndarray | None = None,
     ) -> SweepLabels:
         """points_lidar (N, 3) float32 LiDAR frame; semantic (H, W) Cityscapes train ids,
         mask_labels (H, W) instance labels (> 0: a person), image boxes (D, 4), LiDAR pedestrian
-        boxes (M, 3) / (M,). For point_classes with geometry: intensity (N,) (None: not
-        measured), T_world_from_lidar (4, 4) whose rotation turns the points z up (None: the
-        LiDAR is level)."""
+        boxes (M, 3) / (M,) and their scores (M,) (None: every box out of view counts). For
+        point_classes with geometry: intensity (N,) (None: not measured), T_world_from_lidar
+        (4, 4) whose rotation turns the points z up (None: the LiDAR is level)."""
         p, (width, height) = self.params, self.size
         projection = project_points(
             points_lidar, self.K, self.T_cam, width, height
@@ -152,6 +153,8 @@ class SweepLabeller:
             width,
             height,
             self.min_iou,
+            lidar_scores,
+            p.lidar_person_min_score,
         )
         people = pedestrian_point_mask(
             points_lidar,
@@ -305,6 +308,7 @@ class SequenceMapper:
         lidar_centers: np.ndarray,
         lidar_sizes: np.ndarray,
         lidar_yaws: np.ndarray,
+        lidar_scores: np.ndarray | None = None,
         intensity: np.ndarray | None = None,
     ) -> None:
         """One sweep (N, 3) float32 LiDAR frame with its pose (4, 4), its detections and
@@ -317,6 +321,7 @@ class SequenceMapper:
             lidar_centers,
             lidar_sizes,
             lidar_yaws,
+            lidar_scores,
             intensity,
             T_world_from_lidar,
         )

@@ -37,7 +37,11 @@ class MapParams:
     level, see :func:`lift_image_semantics`, or "unknown"); fallback_ground_lateral_scale > 1:
     out-of-view ground points match in-view ground with the lateral axis stretched (ground classes
     run in strips along the robot's path), 1 = plain nearest neighbour. pedestrian_box_margin_m
-    grows the LiDAR pedestrian boxes whose points are removed. Ground consistency: road / terrain
+    grows the LiDAR pedestrian boxes whose points are removed. lidar_person_min_score: outside the
+    camera's view a LiDAR pedestrian box removes points only with a score of at least this (the
+    lidar-clusters detector's person score; in view an image detection must confirm the box), so
+    an unconfirmed candidate on a post or a bush leaves its returns in the map (issue 39; 0: every
+    box, as before). Ground consistency: road / terrain
     votes farther than ground_max_deviation_m from the local ground height (per ground_cell_m cell,
     pooled over ground_neighbourhood_cells neighbouring cells, vote-weighted ground_quantile) are
     rejected; a voxel needs min_votes votes.
@@ -78,6 +82,7 @@ class MapParams:
     outside_image_fallback: Literal["nearest", "unknown"] = "nearest"
     fallback_ground_lateral_scale: Widening = 4.0
     pedestrian_box_margin_m: NonNegative = 0.15
+    lidar_person_min_score: Probability = 0.5
     person_ground_keep_m: NonNegative = 0.03
     person_edge_m: NonNegative = 0.1
     ground_max_deviation_m: Positive = 0.3

@@ -214,6 +214,8 @@ def pedestrian_boxes_for_masking(
     width: int,
     height: int,
     min_iou: float,
+    lidar_scores: np.ndarray | None = None,
+    out_of_view_min_score: float = 0.0,
 ) -> np.ndarray:
     """(M', 7) LiDAR pedestrian boxes [cx, cy, cz, l, w, h, yaw] used to remove people's points.
 
@@ -221,7 +223,10 @@ def pedestrian_boxes_for_masking(
     frame; lidar_yaws: (M,) rad. Inside the camera view (width x height, K, T_cam_from_lidar) the
     image decides (instance masks are sharper and a geometric LiDAR detector fires on trunks and
     posts): a box there counts only if an image detection confirms it (IoU >= min_iou of its
-    projected corners). Outside the view the LiDAR boxes are all there is, so they all count.
+    projected corners). Outside the view the LiDAR boxes are all there is: a box counts there when
+    its person score (lidar_scores (M,), e.g. tasks.perception.lidar_clusters.person_score) is at
+    least out_of_view_min_score (None: every box counts). An unconfirmed candidate's returns stay
+    in the map: a false box on a post would delete the post (issue 39).
     """
     centers = np.asarray(lidar_centers).reshape(-1, 3)
     boxes = np.column_stack(
@@ -235,6 +240,9 @@ def pedestrian_boxes_for_masking(
     )
     confirmed = np.zeros(len(boxes), bool)
     confirmed[matched[matched >= 0]] = True
+    if lidar_scores is not None:
+        sure = np.asarray(lidar_scores, np.float64).reshape(-1) >= out_of_view_min_score
+        return boxes[(~in_view & sure) | confirmed]
     return boxes[~in_view | confirmed]
 
 

@@ -2,7 +2,8 @@
 
 1. Project the sweep into the image with K and T_cam_from_lidar (z > ``min_depth_m``, inside),
    and drop ground points (less than ``ground_tol_m`` above the local ground of
-   :func:`tasks.perception.lidar_clusters.ground_height`): ground runs continuously from the
+   :func:`tasks.perception.lidar_clusters.robust_ground_height`, cells of ``ground_cell_m``, its
+   ``ground_percentile`` and ``ground_max_drop_m``: returns below the road do not sink it): ground runs continuously from the
    feet to the background and would bridge the range gaps of step 3. After step 3 the ground-band
    points of the selection lying within ``feet_radius_m`` (horizontally) of the chosen points are
    added back: they are the feet.
@@ -40,7 +41,7 @@ from scipy.spatial import cKDTree
 
 from tasks.bounds import AtLeastOne, NonNegative, Positive, PositiveFraction, Probability
 from tasks.geometry import box_iou
-from tasks.perception.lidar_clusters import ground_height
+from tasks.perception.lidar_clusters import robust_ground_height
 from tasks.perception.types import box_corners
 
 #: a LiDAR box whose corner is nearer the camera plane than this has no image box (is not matched)
@@ -65,6 +66,9 @@ class PersonPointParams:
     #: step 1: points less than this above the local ground are ground (None keeps all)
     ground_tol_m: float | None = 0.15
     ground_cell_m: Positive = 2.0
+    #: step 1: the ground model's quantile per cell and outlier drop (robust_ground_height)
+    ground_percentile: Probability = 0.1
+    ground_max_drop_m: Positive = 0.5
     feet_radius_m: NonNegative = 0.1
     #: step 4 (0 = off)
     edge_grow_m: NonNegative = 0.25
@@ -147,6 +151,10 @@ def associate_lidar_boxes(
     return matched
 
 
+def _ground(points: np.ndarray, p: PersonPointParams) -> np.ndarray:
+    return robust_ground_height(points, p.ground_cell_m, p.ground_percentile, p.ground_max_drop_m)
+
+
 def _split_by_range(ranges: np.ndarray, gap_m: float) -> list[np.ndarray]:
     order = np.argsort(ranges, kind="stable")
     cuts = np.flatnonzero(np.diff(ranges[order]) > gap_m) + 1
@@ -194,7 +202,7 @@ def person_point_indices(
     is_ground = np.zeros(idx.size, bool)
     lidar_xyz = points[idx]
     if p.ground_tol_m is not None and idx.size:
-        is_ground = lidar_xyz[:, 2] - ground_height(lidar_xyz, p.ground_cell_m) < p.ground_tol_m
+        is_ground = lidar_xyz[:, 2] - _ground(lidar_xyz, p) < p.ground_tol_m
     side_cut = (boxes[:, 0] <= p.edge_margin_px) | (boxes[:, 2] >= width - p.edge_margin_px)
     edge = None  # the points outside the image, gathered once if some box nears a side
     if p.edge_grow_m > 0 and side_cut.any():
@@ -211,10 +219,7 @@ def person_point_indices(
         out_idx = np.flatnonzero(near_side)
         out_ground = np.zeros(out_idx.size, bool)
         if p.ground_tol_m is not None and out_idx.size:
-            out_ground = (
-                points[out_idx, 2] - ground_height(points[out_idx], p.ground_cell_m)
-                < p.ground_tol_m
-            )
+            out_ground = points[out_idx, 2] - _ground(points[out_idx], p) < p.ground_tol_m
         edge = _OutsidePoints(points, out_idx[~out_ground], out_idx[out_ground])
     u, v = uv[:, 0], uv[:, 1]
     col, row = u.astype(np.int64), v.astype(np.int64)

@@ -34,6 +34,17 @@ position history across a missed frame were added after the validation seeds sho
 behind occluders (without them: uncrowded 94.5, night 78.3), so those seeds are no longer held out.
 Shorter OC-SORT ``max_age`` (5 frames) helped two sequences and hurt others: the reference 30 stays.
 
+Confirmation by evidence (``Confirmation``; issue 38 item 4): OC-SORT confirms a track by a count
+of consecutive hits, and never on a sequence's first frame, so a log of one or two frames never
+yielded a track, and a person seen once got no body. A tracklet OC-SORT never confirmed is
+confirmed all the same when one of its detections carries the evidence of a person in plain view,
+from independent sources: an image detection scoring at least ``min_image_score``, a LiDAR
+candidate matched to it (person_points.associate_lidar_boxes) whose person score is at least
+``min_lidar_score``, and at least ``min_keypoints`` keypoints with confidence
+``keypoint_min_conf`` or more. Such a tracklet is a track of its own (it may still be stitched to
+another); without that evidence, an unconfirmed tracklet is kept only if it joins a confirmed
+track, as before.
+
 Ids of the result are 1, 2, ... in order of first appearance (frame, then input row): deterministic
 for given input.
 """
@@ -45,7 +56,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from tasks.bounds import AtLeastOne, Count, NonNegative, Positive, Widening
+from tasks.bounds import AtLeastOne, Count, NonNegative, Positive, Probability, Widening
 
 
 def backfill_ids(
@@ -133,6 +144,71 @@ class WorldCheck:
 
     def gate(self, dt: float) -> float:
         return self.tol_m + self.speed_sigma_mps * abs(dt)
+
+
+@dataclass(frozen=True)
+class Confirmation:
+    """Confirmation of a tracklet OC-SORT never confirmed, by the evidence of one detection (the
+    module docstring). enabled False: OC-SORT's hit count alone (the reference behaviour)."""
+
+    enabled: bool = True
+    min_image_score: Probability = 0.6
+    min_lidar_score: Probability = 0.5
+    min_keypoints: Count = 8
+    keypoint_min_conf: Probability = 0.5
+
+
+def detection_evidence(
+    scores: np.ndarray,
+    keypoints: np.ndarray,
+    lidar_box: np.ndarray,
+    lidar_scores: np.ndarray,
+    confirm: Confirmation = Confirmation(),
+) -> np.ndarray:
+    """(D,) bool: the frame's detections that confirm a tracklet on their own.
+
+    scores: (D,) image detection scores; keypoints: (D, 17, 3) pixels + confidence; lidar_box:
+    (D,) int64 matched LiDAR box row (-1: none); lidar_scores: (M,) the frame's LiDAR box scores.
+    """
+    scores = np.asarray(scores, np.float64).reshape(-1)
+    count = scores.size
+    lidar_box = np.asarray(lidar_box, np.int64).reshape(count)
+    lidar_scores = np.asarray(lidar_scores, np.float64).reshape(-1)
+    if not confirm.enabled or count == 0:
+        return np.zeros(count, bool)
+    lidar = np.zeros(count, np.float64)
+    has = lidar_box >= 0
+    lidar[has] = lidar_scores[lidar_box[has]]
+    conf = np.asarray(keypoints, np.float64).reshape(count, -1, 3)[:, :, 2]
+    sure_keypoints = (conf >= confirm.keypoint_min_conf).sum(axis=1)
+    return (
+        (scores >= confirm.min_image_score)
+        & has
+        & (lidar >= confirm.min_lidar_score)
+        & (sure_keypoints >= confirm.min_keypoints)
+    )
+
+
+def _evidence_confirmed(
+    tracklet_keys: list[np.ndarray],
+    evidence: list[np.ndarray],
+    confirmed_ids: dict[int, int],
+    first_id: int,
+) -> dict[int, int]:
+    """confirmed_ids plus the tracklets with a detection of evidence, under new ids from first_id
+    (in order of their key)."""
+    out = dict(confirmed_ids)
+    found = sorted(
+        {
+            int(key)
+            for keys, sure in zip(tracklet_keys, evidence)
+            for key, ok in zip(np.asarray(keys, np.int64), np.asarray(sure, bool))
+            if ok and key >= 0 and int(key) not in confirmed_ids
+        }
+    )
+    for k, key in enumerate(found):
+        out[key] = first_id + k
+    return out
 
 
 def _observations(ids: list[np.ndarray]) -> dict[int, list[tuple[int, int]]]:
@@ -367,28 +443,37 @@ def track_offline(
     positions: list[np.ndarray] | None = None,
     times_s: np.ndarray | None = None,
     check: WorldCheck = WorldCheck(),
+    evidence: list[np.ndarray] | None = None,
 ) -> list[np.ndarray]:
     """Track a whole sequence: ``tracker.update`` per frame, then back-fill, splitting, stitching.
 
     boxes_xyxy: per frame (D_f, 4) float pixels; scores: per frame (D_f,) float. tracker: a fresh
     ``PedestrianTracker`` (one per sequence). positions (optional): per frame (D_f, 2) world xy of
     each detection, metres, NaN = unknown, with times_s (F,) seconds: with ``check.enabled`` tracks
-    are then split (``split_tracks``) and re-stitched on positions where they exist. Returns per
+    are then split (``split_tracks``) and re-stitched on positions where they exist. evidence
+    (optional): per frame (D_f,) bool, the detections that confirm their tracklet on their own
+    (:func:`detection_evidence`). Returns per
     frame (D_f,) int64 ids aligned with the input rows, 1, 2, ... by first appearance; -1 =
     untracked.
     """
     online = [tracker.update(b, s) for b, s in zip(boxes_xyxy, scores)]
-    ids = (
-        backfill_ids(tracker.tracklet_keys, online, tracker.confirmed_ids)
+    confirmed = tracker.confirmed_ids
+    if evidence is not None:
+        first = max([int(r.max()) for r in online if r.size] + list(confirmed.values()) + [0]) + 1
+        confirmed = _evidence_confirmed(tracker.tracklet_keys, evidence, confirmed, first)
+    # back-fill: every row of a confirmed tracklet (without it: of those the evidence confirmed)
+    fill = (
+        confirmed
         if offline.backfill
-        else online
+        else {k: v for k, v in confirmed.items() if k not in tracker.confirmed_ids}
     )
+    ids = backfill_ids(tracker.tracklet_keys, online, fill)
     parent, provisional = None, set()
     if positions is not None and check.enabled:
         if times_s is None:
             raise ValueError("track_offline: positions need times_s")
         if check.tentative:
-            ids, provisional = _with_tentative(ids, tracker.tracklet_keys, tracker.confirmed_ids)
+            ids, provisional = _with_tentative(ids, tracker.tracklet_keys, confirmed)
         ids, positions, parent = split_tracks(ids, positions, times_s, check)
         provisional = {f for f, p in parent.items() if p in provisional}
     else:
