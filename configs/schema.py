@@ -375,7 +375,9 @@ class ModelsConfig(BlazePoseSettings, Section):
 
 
 class DetectConfig(Strict):
-    image_provider: Literal["oracle", "precomputed", "models"] = "oracle"
+    #: models: the bundled BlazePose keypoints and masks on the LiDAR detector's boxes (no ground
+    #: truth, nothing to download); oracle: the simulator's truth + noise (configs/oracle.yaml)
+    image_provider: Literal["oracle", "precomputed", "models"] = "models"
     lidar_provider: Literal["lidar-clusters", "oracle", "precomputed", "none"] = "lidar-clusters"
     precomputed_dir: Path | None = None
     oracle: OracleNoiseConfig = OracleNoiseConfig()
@@ -458,8 +460,8 @@ class FitConfig(ObjectiveSettings, FitSettings, Section):
     #: named loss-weight presets beside the paper's four (tasks.fit.weights.FIT_PRESETS)
     presets: dict[str, LossWeightsConfig] = Field(default_factory=dict)
     #: initial estimates: the oracle (synthetic data), CLIFF (precomputed files or an export),
-    #: or lidar-keypoints (no network, no ground truth: tasks/fit/init_lidar.py)
-    init_provider: Literal["oracle", "precomputed", "cliff", "lidar-keypoints"] = "oracle"
+    #: or lidar-keypoints (the default: no network, no ground truth: tasks/fit/init_lidar.py)
+    init_provider: Literal["oracle", "precomputed", "cliff", "lidar-keypoints"] = "lidar-keypoints"
     init_lidar: InitLidarConfig = InitLidarConfig()
     flips: FlipsConfig = FlipsConfig()
     refine: RefineConfig = RefineConfig()

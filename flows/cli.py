@@ -130,8 +130,12 @@ def _run(args: argparse.Namespace, force: bool) -> int:
     from flows.pipeline.units import check_run_paths, run_units, summary_table
     from storage.manifest import FingerprintCache, Manifest, run_lock
 
+    from flows.commands.perception_sources import truth_problem
+
     cfg = _config(args)
     ids, out, verify = check_run_paths(cfg), Path(cfg.output.root), getattr(args, "verify", False)
+    if (problem := truth_problem(cfg, ids, args.config)) is not None:
+        raise UsageError(problem)  # before any work: a setting that reads gt/ is never silent
     prune = getattr(args, "prune", False)
     if cfg.dask.address:
         from flows.pipeline.runtime import check_scheduler
@@ -257,7 +261,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def cmd_check_data(args: argparse.Namespace) -> int:
     from flows.commands.check_data import check_data
 
-    code, text = check_data(_config(args), deep=args.deep)
+    code, text = check_data(_config(args), deep=args.deep, config_path=args.config)
     print(text)
     return code
 
