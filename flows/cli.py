@@ -126,11 +126,10 @@ def _run(args: argparse.Namespace, force: bool) -> int:
     # Prefect's temporary server gets 20 s to start by default: a busy machine (a build beside
     # the run, other agents) misses that and the run fails before its first stage
     os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
+    from flows.commands.perception_sources import truth_problem
     from flows.pipeline.plan import PlanCosts, plan_without_hashing
     from flows.pipeline.units import check_run_paths, run_units, summary_table
     from storage.manifest import FingerprintCache, Manifest, run_lock
-
-    from flows.commands.perception_sources import truth_problem
 
     cfg = _config(args)
     ids, out, verify = check_run_paths(cfg), Path(cfg.output.root), getattr(args, "verify", False)
