@@ -70,6 +70,8 @@ from tasks.track.rate import GateRate
 
 CONFIG_DIR = Path(__file__).resolve().parent
 DEFAULT_CONFIG = CONFIG_DIR / "default.yaml"
+#: the simulator's oracle (perception and initial bodies from gt/): benchmarks, ablations, tests
+ORACLE_CONFIG = CONFIG_DIR / "oracle.yaml"
 
 #: every model and section: unknown keys are errors, values frozen, numbers finite (no .inf / .nan)
 STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)

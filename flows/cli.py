@@ -126,15 +126,15 @@ def _run(args: argparse.Namespace, force: bool) -> int:
     # Prefect's temporary server gets 20 s to start by default: a busy machine (a build beside
     # the run, other agents) misses that and the run fails before its first stage
     os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
-    from flows.commands.perception_sources import truth_problem
+    from flows.commands.perception_sources import run_problem
     from flows.pipeline.plan import PlanCosts, plan_without_hashing
     from flows.pipeline.units import check_run_paths, run_units, summary_table
     from storage.manifest import FingerprintCache, Manifest, run_lock
 
     cfg = _config(args)
     ids, out, verify = check_run_paths(cfg), Path(cfg.output.root), getattr(args, "verify", False)
-    if (problem := truth_problem(cfg, ids, args.config)) is not None:
-        raise UsageError(problem)  # before any work: a setting that reads gt/ is never silent
+    if (problem := run_problem(cfg, ids, args.config)) is not None:
+        raise UsageError(problem)  # before any work: gt/ the config reads, the bundled models
     prune = getattr(args, "prune", False)
     if cfg.dask.address:
         from flows.pipeline.runtime import check_scheduler

@@ -13,7 +13,7 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 
-from configs.schema import load_config
+from configs.schema import ORACLE_CONFIG, load_config
 from flows.pipeline.units import run_units, summary_table
 
 pytestmark = [pytest.mark.slow]
@@ -43,7 +43,10 @@ def scenes(tmp_path_factory):
         simulate(data, 1, 4, seed=5, pedestrians=3, progress=False, fast=True, fmt=fmt)
         out = root / f"out-{fmt}"
         report = run_units(
-            load_config(overrides={"dataset.root": str(data), "output.root": str(out), **CHEAP}),
+            load_config(
+                ORACLE_CONFIG,
+                overrides={"dataset.root": str(data), "output.root": str(out), **CHEAP},
+            ),
             progress=False,
         )
         assert report.exit_code == 0, summary_table(report)
@@ -109,7 +112,9 @@ def test_the_planner_memo_works_for_logs(scenes, tmp_path):
     shutil.copytree(scenes["mcap"].parent / "mcap" / "gt", data / "gt", copy_function=os.link)
     out = tmp_path / "out"
     shutil.copytree(scenes["mcap"], out, symlinks=True)
-    cfg = load_config(overrides={"dataset.root": str(data), "output.root": str(out), **CHEAP})
+    cfg = load_config(
+        ORACLE_CONFIG, overrides={"dataset.root": str(data), "output.root": str(out), **CHEAP}
+    )
     assert selected_sequences(cfg) == ["0"]
     cache = FingerprintCache(out / ".cache" / "sequences")
     [first] = plan_run(cfg, Manifest.load(out), cache)

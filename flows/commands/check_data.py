@@ -327,7 +327,7 @@ def check_data(
     the data's checks, then per sequence the perception source of each stage; exit code 2 when
     the config reads ground truth (gt/) that a sequence lacks (flows/commands/perception_sources.py),
     1 when a problem of the data blocks a run, else 0."""
-    from flows.commands.perception_sources import source_lines, truth_problem
+    from flows.commands.perception_sources import run_problem, source_lines
     from flows.pipeline.plan import selected_sequences
 
     root = config.dataset.root
@@ -342,7 +342,7 @@ def check_data(
     given = config_path if config_path is not None else "configs/default.yaml"
     text = "\n".join([head, "", f"perception per sequence (config {given}):"])
     text += "\n" + "\n".join(source_lines(config, ids)) + "\n\n" + tail
-    problem = truth_problem(config, ids, config_path)
+    problem = run_problem(config, ids, config_path)
     if problem is not None:
         return 2, f"{text.replace('ready to run', 'not ready')}\nREFUSED: {problem}"
     return code, text

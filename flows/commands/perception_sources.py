@@ -139,3 +139,24 @@ def truth_problem(config: Config, sequences: list[str], config_path: Path | None
         "with the default config (no --config: it reads no gt/); configs/oracle.yaml is for "
         "simulated data with gt/ only"
     )
+
+
+def model_problem(config: Config) -> str | None:
+    """None when the bundled models the config runs are in place; else the error that says to
+    run `make setup` (checked before a run, not in the detect stage of every sequence)."""
+    from storage.network_files import ModelFileError, bundled_model
+
+    d, m = config.detect, config.detect.models
+    if d.image_provider != "models" or "blazepose" not in (m.keypoints.kind, m.masks.kind):
+        return None
+    try:
+        bundled_model(m.bundled_dir, "pose_landmark_full.tflite")
+    except ModelFileError as exc:
+        return f"detect.models (the bundled BlazePose): {exc}"
+    return None
+
+
+def run_problem(config: Config, sequences: list[str], config_path: Path | None) -> str | None:
+    """What keeps a run of ``sequences`` from starting (gt/ the config reads but a sequence lacks,
+    bundled models not extracted), in one message; None when nothing does."""
+    return truth_problem(config, sequences, config_path) or model_problem(config)
