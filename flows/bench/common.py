@@ -21,7 +21,7 @@ def make_config(data_root: Path, out_root: Path, overrides: dict | None = None):
             "dataset.root": str(data_root),
             "output.root": str(out_root),
             **(overrides or {}),
-        }
+        },
     )
 
 
