@@ -16,6 +16,7 @@ from the defaults; ``mobileocc config show`` prints everything resolved.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import json
@@ -672,7 +673,13 @@ def load_config(path: Path | str | None = None, overrides: dict[str, Any] | None
     Raises ConfigError listing every validation error with its key path.
     """
     path = Path(path) if path is not None else DEFAULT_CONFIG
-    tree = read_config_dict(path)
+    return config_from_tree(read_config_dict(path), str(path), overrides)
+
+
+def config_from_tree(tree: dict, source: str, overrides: dict[str, Any] | None = None) -> Config:
+    """Validate a config tree (a YAML file's, or a resolved config recorded beside a dataset)
+    with dotted ``overrides``; ConfigError names ``source`` and every error's key path."""
+    tree = copy.deepcopy(tree)
     for dotted, value in (overrides or {}).items():
         _set_dotted(tree, dotted, value)
     try:
@@ -687,4 +694,4 @@ def load_config(path: Path | str | None = None, overrides: dict[str, Any] | None
             elif err["type"] == "missing_argument":  # a section's words for "missing"
                 msg = "Field required"
             errors.append((loc or "<root>", msg))
-        raise ConfigError(str(path), errors) from None
+        raise ConfigError(source, errors) from None

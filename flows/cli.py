@@ -43,7 +43,9 @@ def _add_config_args(p: argparse.ArgumentParser, runtime: bool = True) -> None:
         )
 
 
-def _config(args: argparse.Namespace):
+def _config(args: argparse.Namespace, built: bool = False):
+    """The config of a command line; ``built``: with no --config, the one the dataset at --out was
+    built with (status, reprocess, export: flows/commands/build_config.py)."""
     from configs.schema import load_config
 
     overrides = {}
@@ -71,6 +73,13 @@ def _config(args: argparse.Namespace):
             overrides[key] = str(value) if isinstance(value, Path) else value
     if getattr(args, "address", None):
         overrides["dask.runner"] = "dask"
+    if built:
+        from flows.commands.build_config import config_for_dataset
+
+        cfg, note = config_for_dataset(args.config, overrides, overrides.get("output.root"))
+        if note:
+            print(note, file=sys.stderr)
+        return cfg
     return load_config(args.config, overrides)
 
 
@@ -131,7 +140,7 @@ def _run(args: argparse.Namespace, force: bool) -> int:
     from flows.pipeline.units import check_run_paths, run_units, summary_table
     from storage.manifest import FingerprintCache, Manifest, run_lock
 
-    cfg = _config(args)
+    cfg = _config(args, built=args.command == "reprocess")
     ids, out, verify = check_run_paths(cfg), Path(cfg.output.root), getattr(args, "verify", False)
     if (problem := run_problem(cfg, ids, args.config)) is not None:
         raise UsageError(problem)  # before any work: gt/ the config reads, the bundled models
@@ -191,7 +200,8 @@ def cmd_reprocess(args: argparse.Namespace) -> int:
 def _print_plan(args: argparse.Namespace, dry_run: bool) -> int:
     from flows.commands.status import print_plan
 
-    return EXIT_FAILED if print_plan(_config(args), dry_run, args.verify) else EXIT_OK
+    cfg = _config(args, built=True)
+    return EXIT_FAILED if print_plan(cfg, dry_run, args.verify) else EXIT_OK
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -210,7 +220,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         return 2
     from storage.publish import reading
 
-    cfg = _config(args)
+    cfg = _config(args, built=True)
     explicit = args.data is not None or any(
         o.partition("=")[0].strip() == "dataset.root" for o in args.overrides
     )

@@ -806,6 +806,7 @@ def _export_into(
             scene_prefix=ex.scene_prefix,
             val_sequences=ex.val_sequences,
             gt_root=data_root_for(out_root, data_root) if gt else None,
+            source_root=_source_root(out_root, data_root),
         )
     else:
         export_nuscenes(
@@ -818,6 +819,18 @@ def _export_into(
             val_sequences=ex.val_sequences,
             **({"infos_data_root": ex.infos_data_root} if ex.infos_data_root else {}),
         )
+
+
+def _source_root(out_root: Path, data_root: Path | None) -> Path | None:
+    """The raw data root where one is known (the Occ3D export of robot logs names each image with
+    the extension the nuScenes export gives it); None where it is not (it is not needed for the
+    CODa layout, and export_occ3d says so when it is)."""
+    from storage.manifest import recorded_data_root
+
+    for root in (data_root, recorded_data_root(out_root)):
+        if root is not None and Path(root).exists():  # a folder, or a single log file
+            return Path(root)
+    return None
 
 
 def _first_line(text: str) -> str:
