@@ -756,9 +756,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_show(args: argparse.Namespace) -> int:
-    from flows.commands.show import show
+    from flows.commands.show import ShowError, show
+    from storage.layout import StoreError
 
-    png = show(args.path, args.png, frame=args.frame)
+    try:
+        png = show(args.path, args.png, frame=args.frame, sequence=args.sequence)
+    except (ShowError, StoreError, FileNotFoundError) as exc:
+        print(f"mobileocc show: {exc}", file=sys.stderr)
+        return EXIT_USAGE
     print(png)
     return 0
 
@@ -1002,9 +1007,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "show", help="render a bird's-eye view and the camera image of a frame to PNG"
     )
-    p.add_argument("path", type=Path, help="a sequence folder (see README)")
+    p.add_argument(
+        "path",
+        type=Path,
+        help="a dataset (rebuild's --out), a robot log, or a ground-truth folder ROOT/gt/SEQ",
+    )
     p.add_argument("--frame", type=int, default=None)
-    p.add_argument("--png", type=Path, default=None, help="output PNG path")
+    p.add_argument("--sequence", default=None, help="of a dataset or a folder of logs")
+    p.add_argument("--png", type=Path, default=Path("frame.png"), help="output PNG (frame.png)")
     p.set_defaults(func=cmd_show)
 
     p = sub.add_parser(
