@@ -50,13 +50,27 @@ def no_truth(copy_dataset):
 
 def test_default_config_runs_end_to_end_without_ground_truth(no_truth, tmp_path, capsys):
     out = tmp_path / "out"
-    code = cli.main(["rebuild", "--data", str(no_truth), "--out", str(out), *CHEAP])
+    args = ["--data", str(no_truth), "--out", str(out), *CHEAP[:-1]]  # progress on: not --quiet
+    code = cli.main(["rebuild", *args])
     text = capsys.readouterr()
     assert code == 0, text.out + text.err
     assert not (no_truth / "gt").exists()
     manifest = Manifest.load(out)
     assert all(manifest.get("0", s).status == "done" for s in ("detect", "fit", "export"))
     assert read_table(out, "frames", "0").num_rows == 2
+    # not a terminal: a plain line per stage, no progress bar's carriage returns
+    assert "\r" not in text.err and "detect: 1 unit(s) ended" in text.err, text.err
+    # status with only --out takes the config the dataset was built with: nothing is stale
+    assert cli.main(["status", "--out", str(out)]) == 0
+    text = capsys.readouterr()
+    assert "0 unit(s) stale or failed" in text.out and "note:" not in text.err, text
+    # another config is named, with the keys where it differs
+    assert cli.main(["status", *ORACLE_ARGS, "--out", str(out), *CHEAP[:-1]]) == 0
+    text = capsys.readouterr()
+    assert "6 unit(s) stale" in text.out and "in 3 key(s)" in text.err, text
+    for key in ("detect.image_provider ('models' -> 'oracle')", "fit.init_provider"):
+        assert key in text.err, text.err
+    assert "dask." not in text.err and "output.root" not in text.err
 
 
 def test_a_config_that_reads_gt_is_refused_where_there_is_none(no_truth, tmp_path, capsys):

@@ -3,8 +3,8 @@ otherwise (issue 38: without the build's ``--config`` every unit was called stal
 
 The run records its resolved config in ``OUT/manifest.json`` (``meta.config``, with
 ``meta.data_root``: flows/pipeline/units.py run_units). With no ``--config`` these commands take
-that record (``--set`` / ``--data`` still apply on top); with one, the keys where it differs from
-the record are named (how a run is spread, ``dask.*``, and where its data and output are, are
+that record (``--set`` / ``--data`` still apply on top); with one (and no ``--data``: the recorded
+raw data root), the keys where it differs from the record are named (how a run is spread, ``dask.*``, and where its data and output are, are
 left out: they change no output).
 """
 
@@ -67,7 +67,9 @@ def config_for_dataset(
     if config_path is None:
         return config_from_tree(built, f"{out}/manifest.json (the config it was built with)",
                                 overrides), None  # fmt: skip
-    config = load_config(config_path, overrides)
+    # the raw data are where the dataset was built from, unless --data says otherwise
+    root = {"dataset.root": built["dataset"]["root"]} if "root" in built.get("dataset", {}) else {}
+    config = load_config(config_path, {**root, **overrides})
     diff = differing_keys(built, config.model_dump(mode="json"))
     if not diff:
         return config, None
