@@ -936,7 +936,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "check-data",
         help="check a CODa-layout download or robot logs before a run: a table per sequence "
-        "(and a log's topics), exit 1 on blocking problems",
+        "(and a log's topics) and each stage's perception source, exit 1 on blocking problems, "
+        "2 when the config reads ground truth (gt/) a sequence lacks",
     )
     _add_config_args(p, runtime=False)
     p.add_argument(

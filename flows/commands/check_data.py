@@ -4,8 +4,11 @@ robot logs ready for a run?
 For every selected sequence it prints one table row (frames found and how they were selected,
 LiDAR channels, missing / truncated files, labels present, camera calibration, reprojection
 figures, time unit, intensity, pose / timestamp agreement, day / night) and then each problem.
-Exit code 1 when a problem blocks a run (missing or truncated files of selected frames, an
-unreadable sequence, images that are not the calibration's size), else 0.
+Then, per sequence, the perception source each stage will use and whether the run reads the
+simulator's ground truth (flows/commands/perception_sources.py). Exit code 2 when the config reads
+gt/ that a sequence lacks, or the bundled models it runs are missing (a run would be refused);
+1 when a problem blocks a run (missing or truncated files of selected frames, an unreadable
+sequence, images that are not the calibration's size), else 0.
 
 Fast: file sizes, a directory listing, the small text files, three sweeps per sequence and one
 image header per camera (storage/sources/coda/check.py). ``--deep`` reads every sweep, label file and
