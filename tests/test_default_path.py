@@ -111,3 +111,28 @@ def test_missing_bundled_models_say_make_setup(no_truth, tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == cli.EXIT_USAGE and "make setup" in err and str(empty) in err, err
     assert not (out / "manifest.json").exists()
+
+
+def test_check_data_names_the_calibration_of_the_source_in_hand():
+    """Issue 38: a log's ground-height warning named CODa's calib_os1_to_base.yaml."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from flows.commands.check_data import _figures
+
+    xy = np.mgrid[-5:5:0.25, -5:5:0.25].reshape(2, -1).T
+    ground = np.c_[xy, np.full(len(xy), -1.0)].astype(np.float32)  # 1 m below the base
+    calib = SimpleNamespace(cameras={}, T_base_from_lidar=np.eye(4), T_cam1_from_cam0=None)
+    said = {}
+    for log in (False, True):
+        problems: list[str] = []
+        facts = SimpleNamespace(
+            seq=SimpleNamespace(info=SimpleNamespace(calibration=calib)),
+            sample_points=[ground],
+            problem=lambda blocking, msg, out=problems: out.append(msg),
+        )
+        assert abs(_figures(facts, "cam0", log=log)["ground"] + 1.0) < 0.05
+        [said[log]] = problems
+    assert "calib_os1_to_base.yaml" in said[False] and "/tf_static" not in said[False]
+    assert "/tf_static" in said[True] and "calib_os1" not in said[True]
