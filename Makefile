@@ -12,7 +12,7 @@ WORKERS ?= 2
 MEDIAPIPE_VERSION := 0.10.21
 MODELS_DIR := .cache/models/mediapipe-$(MEDIAPIPE_VERSION)
 
-.PHONY: setup browser demo demo-bundled test bench clean
+.PHONY: setup browser demo demo-oracle demo-bundled test bench clean
 
 setup: $(SETUP_STAMP)
 
@@ -43,10 +43,17 @@ $(SETUP_STAMP): pyproject.toml Makefile
 	fi
 	@rm -f $(VENV)/.setup-*; touch $@
 
+# the default (real) path on the simulated data: no ground truth read; the report scores it
+# against the simulator's truth
 demo: setup
 	$(VENV)/bin/mobileocc demo --data $(DEMO_DATA) --out $(DEMO_OUT) --workers $(WORKERS)
 
-# the demo with real networks: LiDAR boxes + the bundled BlazePose keypoints and masks
+# the simulator's oracle (perception and the fit's start from gt/ + noise)
+demo-oracle: setup
+	$(VENV)/bin/mobileocc demo --config configs/oracle.yaml --data $(DEMO_DATA) \
+	  --out $(DEMO_OUT)-oracle --workers $(WORKERS)
+
+# BlazePose keypoints and masks with the oracle's semantics and start
 demo-bundled: setup
 	$(VENV)/bin/mobileocc demo --config configs/bundled-models.yaml --data $(DEMO_DATA) \
 	  --out $(DEMO_OUT)-bundled --workers $(WORKERS)

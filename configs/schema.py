@@ -16,6 +16,7 @@ from the defaults; ``mobileocc config show`` prints everything resolved.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import json
@@ -71,6 +72,8 @@ from tasks.track.rate import GateRate
 
 CONFIG_DIR = Path(__file__).resolve().parent
 DEFAULT_CONFIG = CONFIG_DIR / "default.yaml"
+#: the simulator's oracle (perception and initial bodies from gt/): benchmarks, ablations, tests
+ORACLE_CONFIG = CONFIG_DIR / "oracle.yaml"
 
 #: every model and section: unknown keys are errors, values frozen, numbers finite (no .inf / .nan)
 STRICT = ConfigDict(extra="forbid", allow_inf_nan=False)
@@ -376,7 +379,9 @@ class ModelsConfig(BlazePoseSettings, Section):
 
 
 class DetectConfig(Strict):
-    image_provider: Literal["oracle", "precomputed", "models"] = "oracle"
+    #: models: the bundled BlazePose keypoints and masks on the LiDAR detector's boxes (no ground
+    #: truth, nothing to download); oracle: the simulator's truth + noise (configs/oracle.yaml)
+    image_provider: Literal["oracle", "precomputed", "models"] = "models"
     lidar_provider: Literal["lidar-clusters", "oracle", "precomputed", "none"] = "lidar-clusters"
     precomputed_dir: Path | None = None
     oracle: OracleNoiseConfig = OracleNoiseConfig()
@@ -465,8 +470,8 @@ class FitConfig(ObjectiveSettings, FitSettings, Section):
     #: named loss-weight presets beside the paper's four (tasks.fit.weights.FIT_PRESETS)
     presets: dict[str, LossWeightsConfig] = Field(default_factory=dict)
     #: initial estimates: the oracle (synthetic data), CLIFF (precomputed files or an export),
-    #: or lidar-keypoints (no network, no ground truth: tasks/fit/init_lidar.py)
-    init_provider: Literal["oracle", "precomputed", "cliff", "lidar-keypoints"] = "oracle"
+    #: or lidar-keypoints (the default: no network, no ground truth: tasks/fit/init_lidar.py)
+    init_provider: Literal["oracle", "precomputed", "cliff", "lidar-keypoints"] = "lidar-keypoints"
     init_lidar: InitLidarConfig = InitLidarConfig()
     flips: FlipsConfig = FlipsConfig()
     refine: RefineConfig = RefineConfig()
@@ -692,7 +697,13 @@ def load_config(path: Path | str | None = None, overrides: dict[str, Any] | None
     Raises ConfigError listing every validation error with its key path.
     """
     path = Path(path) if path is not None else DEFAULT_CONFIG
-    tree = read_config_dict(path)
+    return config_from_tree(read_config_dict(path), str(path), overrides)
+
+
+def config_from_tree(tree: dict, source: str, overrides: dict[str, Any] | None = None) -> Config:
+    """Validate a config tree (a YAML file's, or a resolved config recorded beside a dataset)
+    with dotted ``overrides``; ConfigError names ``source`` and every error's key path."""
+    tree = copy.deepcopy(tree)
     for dotted, value in (overrides or {}).items():
         _set_dotted(tree, dotted, value)
     try:
@@ -707,4 +718,4 @@ def load_config(path: Path | str | None = None, overrides: dict[str, Any] | None
             elif err["type"] == "missing_argument":  # a section's words for "missing"
                 msg = "Field required"
             errors.append((loc or "<root>", msg))
-        raise ConfigError(str(path), errors) from None
+        raise ConfigError(source, errors) from None

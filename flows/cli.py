@@ -43,7 +43,9 @@ def _add_config_args(p: argparse.ArgumentParser, runtime: bool = True) -> None:
         )
 
 
-def _config(args: argparse.Namespace):
+def _config(args: argparse.Namespace, built: bool = False):
+    """The config of a command line; ``built``: with no --config, the one the dataset at --out was
+    built with (status, reprocess, export: flows/commands/build_config.py)."""
     from configs.schema import load_config
 
     overrides = {}
@@ -71,6 +73,13 @@ def _config(args: argparse.Namespace):
             overrides[key] = str(value) if isinstance(value, Path) else value
     if getattr(args, "address", None):
         overrides["dask.runner"] = "dask"
+    if built:
+        from flows.commands.build_config import config_for_dataset
+
+        cfg, note = config_for_dataset(args.config, overrides, overrides.get("output.root"))
+        if note:
+            print(note, file=sys.stderr)
+        return cfg
     return load_config(args.config, overrides)
 
 
@@ -126,12 +135,15 @@ def _run(args: argparse.Namespace, force: bool) -> int:
     # Prefect's temporary server gets 20 s to start by default: a busy machine (a build beside
     # the run, other agents) misses that and the run fails before its first stage
     os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
+    from flows.commands.perception_sources import run_problem
     from flows.pipeline.plan import PlanCosts, plan_without_hashing
     from flows.pipeline.units import check_run_paths, run_units, summary_table
     from storage.manifest import FingerprintCache, Manifest, run_lock
 
-    cfg = _config(args)
+    cfg = _config(args, built=args.command == "reprocess")
     ids, out, verify = check_run_paths(cfg), Path(cfg.output.root), getattr(args, "verify", False)
+    if (problem := run_problem(cfg, ids, args.config)) is not None:
+        raise UsageError(problem)  # before any work: gt/ the config reads, the bundled models
     prune = getattr(args, "prune", False)
     if cfg.dask.address:
         from flows.pipeline.runtime import check_scheduler
@@ -194,7 +206,8 @@ def cmd_reprocess(args: argparse.Namespace) -> int:
 def _print_plan(args: argparse.Namespace, dry_run: bool) -> int:
     from flows.commands.status import print_plan
 
-    return EXIT_FAILED if print_plan(_config(args), dry_run, args.verify) else EXIT_OK
+    cfg = _config(args, built=True)
+    return EXIT_FAILED if print_plan(cfg, dry_run, args.verify) else EXIT_OK
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -213,7 +226,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         return 2
     from storage.publish import reading
 
-    cfg = _config(args)
+    cfg = _config(args, built=True)
     explicit = args.data is not None or any(
         o.partition("=")[0].strip() == "dataset.root" for o in args.overrides
     )
@@ -263,7 +276,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def cmd_check_data(args: argparse.Namespace) -> int:
     from flows.commands.check_data import check_data
 
-    code, text = check_data(_config(args), deep=args.deep)
+    code, text = check_data(_config(args), deep=args.deep, config_path=args.config)
     print(text)
     return code
 
@@ -806,9 +819,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_show(args: argparse.Namespace) -> int:
-    from flows.commands.show import show
+    from flows.commands.show import ShowError, show
+    from storage.layout import StoreError
 
-    png = show(args.path, args.png, frame=args.frame)
+    try:
+        png = show(args.path, args.png, frame=args.frame, sequence=args.sequence)
+    except (ShowError, StoreError, FileNotFoundError) as exc:
+        print(f"mobileocc show: {exc}", file=sys.stderr)
+        return EXIT_USAGE
     print(png)
     return 0
 
@@ -981,7 +999,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "check-data",
         help="check a CODa-layout download or robot logs before a run: a table per sequence "
-        "(and a log's topics), exit 1 on blocking problems",
+        "(and a log's topics) and each stage's perception source, exit 1 on blocking problems, "
+        "2 when the config reads ground truth (gt/) a sequence lacks",
     )
     _add_config_args(p, runtime=False)
     p.add_argument(
@@ -1052,9 +1071,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "show", help="render a bird's-eye view and the camera image of a frame to PNG"
     )
-    p.add_argument("path", type=Path, help="a sequence folder (see README)")
+    p.add_argument(
+        "path",
+        type=Path,
+        help="a dataset (rebuild's --out), a robot log, or a ground-truth folder ROOT/gt/SEQ",
+    )
     p.add_argument("--frame", type=int, default=None)
-    p.add_argument("--png", type=Path, default=None, help="output PNG path")
+    p.add_argument("--sequence", default=None, help="of a dataset or a folder of logs")
+    p.add_argument("--png", type=Path, default=Path("frame.png"), help="output PNG (frame.png)")
     p.set_defaults(func=cmd_show)
 
     p = sub.add_parser(

@@ -92,6 +92,36 @@ def ramp_colors(t: np.ndarray, centres: tuple[float, float, float]) -> np.ndarra
     return (255 * np.stack(rgb, axis=1)).astype(np.uint8)
 
 
+def bev_points(
+    points_base: np.ndarray,
+    range_min: np.ndarray,
+    range_max: np.ndarray,
+    voxel_size_m: float,
+    scale: int = 8,
+) -> np.ndarray:
+    """Top-down view of a sweep with no labels (a robot log before the pipeline ran).
+
+    points_base (N, 3) float32 base frame, metres; range_min / range_max (3,) the grid's bounds;
+    columns of ``voxel_size_m`` holding returns take the colour of their highest return's height
+    (the depth ramp over the grid's z range), the rest white. Same orientation as
+    :func:`bev_image` (x up, y left). Returns (X*scale, Y*scale, 3) uint8."""
+    lo, hi = np.asarray(range_min, np.float64), np.asarray(range_max, np.float64)
+    X, Y = (np.round((hi[:2] - lo[:2]) / voxel_size_m)).astype(int)
+    p = np.asarray(points_base, np.float64).reshape(-1, 3)
+    ij = np.floor((p[:, :2] - lo[:2]) / voxel_size_m).astype(np.int64)
+    keep = (ij[:, 0] >= 0) & (ij[:, 0] < X) & (ij[:, 1] >= 0) & (ij[:, 1] < Y)
+    keep &= (p[:, 2] >= lo[2]) & (p[:, 2] < hi[2])
+    top = np.full((X, Y), -np.inf)
+    np.maximum.at(top, (ij[keep, 0], ij[keep, 1]), p[keep, 2])
+    has = np.isfinite(top)
+    img = np.empty((X, Y, 3), np.float64)
+    img[:] = C.CLASS_COLORS[C.FREE]
+    img[has] = depth_colors(top[has] - lo[2], max_depth=float(hi[2] - lo[2]))
+    img = np.flip(img, axis=(0, 1))
+    img = np.repeat(np.repeat(img, scale, axis=0), scale, axis=1)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
 def draw_points(
     image: np.ndarray,
     points_lidar: np.ndarray,

@@ -37,6 +37,7 @@ from flows import cli
 from flows.pipeline.units import run_units, summary_table
 from storage.manifest import Manifest
 from storage.tables import read_table
+from tests.oracle import oracle_yaml
 
 pytestmark = [pytest.mark.slow]
 
@@ -77,7 +78,7 @@ def clean(synthetic_root, tmp_path_factory):
     data = synthetic_root
     work = tmp_path_factory.mktemp("clean")
     config = work / "faults.yaml"
-    config.write_text(yaml.safe_dump(CHEAP))
+    config.write_text(yaml.safe_dump(oracle_yaml(CHEAP)))
     out = work / "out"
     report = run_units(
         load_config(config, {"dataset.root": str(data), "output.root": str(out)}), progress=False

@@ -19,7 +19,7 @@ import pytest
 from PIL import Image
 from pyquaternion import Quaternion
 
-from configs.schema import load_config
+from configs.schema import ORACLE_CONFIG, load_config
 from flows.cli import main
 from flows.pipeline.run import rebuild_dataset
 from storage.dataset import open_dataset
@@ -41,12 +41,13 @@ def demo(synthetic_root, tmp_path_factory, prefect_harness):
     os.chdir(work)
     try:
         cfg = load_config(
+            ORACLE_CONFIG,
             overrides={
                 "dataset.root": "demo-data",
                 "output.root": "demo-out",
                 "fit.iterations": 5,
                 "export.val_sequences": ["1"],
-            }
+            },
         )
         report = rebuild_dataset(cfg, progress=False)
         assert not report.failed

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from configs.schema import load_config
+from configs.schema import ORACLE_CONFIG, load_config
 from flows.pipeline.dag import STAGES
 from flows.pipeline.run import rebuild_dataset
 from storage.manifest import Manifest
@@ -43,7 +43,8 @@ MAP_SPLIT = {"map.tile_m": 6.4, "map.region_tiles": 1, "map.window_frames": 1}
 
 def _config(data: Path, out: Path, **overrides):
     return load_config(
-        overrides={"dataset.root": str(data), "output.root": str(out), **MAP_SPLIT, **overrides}
+        ORACLE_CONFIG,
+        overrides={"dataset.root": str(data), "output.root": str(out), **MAP_SPLIT, **overrides},
     )
 
 
@@ -309,6 +310,8 @@ def _cli(dataset: Path, out: Path, address: str, env: dict) -> subprocess.Popen:
         [
             str(BIN / "mobileocc"),
             "rebuild",
+            "--config",
+            str(ORACLE_CONFIG),
             "--data",
             str(dataset),
             "--out",

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from configs.schema import load_config
+from configs.schema import ORACLE_CONFIG, load_config
 from flows.pipeline.dag import STAGES
 from flows.pipeline.run import rebuild_dataset
 from storage.manifest import Manifest, StoreLockedError, run_lock
@@ -22,12 +22,13 @@ pytestmark = [pytest.mark.usefixtures("prefect_harness"), pytest.mark.xdist_grou
 def _config(data: Path, out: Path, **overrides):
     # few fit iterations: these tests are about orchestration, not fit quality
     return load_config(
+        ORACLE_CONFIG,
         overrides={
             "dataset.root": str(data),
             "output.root": str(out),
             "fit.iterations": 5,
             **overrides,
-        }
+        },
     )
 
 

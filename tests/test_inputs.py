@@ -25,6 +25,7 @@ from flows.pipeline.inputs import (
     stage_inputs,
 )
 from flows.pipeline.plan import unit_keys
+from tests.oracle import oracle_config
 
 #: leaves only read when a provider the default config does not choose is chosen (each checked
 #: below with that provider)
@@ -49,10 +50,14 @@ PROVIDER_ONLY = {
         "detect.models.masks.kind": "none",
         "detect.models.keypoints.path": "/k.onnx",
     },
+    # the oracle's seed: read by the simulator's oracle only (configs/oracle.yaml)
+    "detect.seed": {"detect.image_provider": "oracle"},
 }
 #: every leaf under these prefixes is read only with the provider chosen
 PROVIDER_PREFIXES = {
     "detect.models.": {"detect.image_provider": "models"},
+    # the oracle's noise: with the simulator's oracle only (not the default since issue 38)
+    "detect.oracle.": {"detect.image_provider": "oracle"},
     # how robot logs are read: only with the log source
     "dataset.log.": {"dataset.format": "log"},
 }
@@ -261,7 +266,7 @@ def test_provider_settings_only_count_for_the_chosen_provider():
         load_config(overrides={**pre, "detect.oracle.box_jitter": 0.2}),
     )
     assert _state(a)[1]["detect"] == _state(b)[1]["detect"]
-    a, b = load_config(), load_config(overrides={"detect.oracle.box_jitter": 0.2})
+    a, b = oracle_config(), oracle_config({"detect.oracle.box_jitter": 0.2})
     assert _state(a)[1]["detect"] != _state(b)[1]["detect"]
 
 
@@ -297,7 +302,8 @@ def test_a_spec_keeps_its_name_in_the_key():
     ]
     assert len(specs) == 7 and len({c.KEY_TYPE for c in specs}) == len(specs)
     assert all(c.__name__.endswith("Spec") and c.KEY_TYPE.endswith("Provider") for c in specs)
-    detect = inputs.to_jsonable(stage_inputs(load_config())["detect"])
+    # the oracle's detect (configs/oracle.yaml, the default before issue 38)
+    detect = inputs.to_jsonable(stage_inputs(oracle_config())["detect"])
     assert (detect["image"]["type"], detect["lidar"]["type"]) == (
         "OracleProvider",
         "LidarClustersProvider",

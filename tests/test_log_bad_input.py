@@ -27,6 +27,7 @@ from flows import cli
 from flows.pipeline.units import run_units, summary_table
 from storage.manifest import Manifest
 from tests.log_fixture import rewrite_log
+from tests.oracle import oracle_yaml
 
 pytestmark = [pytest.mark.slow]
 
@@ -80,7 +81,7 @@ def clean(tmp_path_factory):
         for p in parents:
             node = node.setdefault(p, {})
         node[leaf] = value
-    config.write_text(yaml.safe_dump(nested))
+    config.write_text(yaml.safe_dump(oracle_yaml(nested)))
     report = run_units(
         load_config(config, {"dataset.root": str(data), "output.root": str(out)}), progress=False
     )

@@ -10,10 +10,11 @@ import os
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from configs.schema import load_config
+from configs.schema import ORACLE_CONFIG, load_config
 from flows.pipeline.units import run_units, summary_table
 
 pytestmark = [pytest.mark.slow]
@@ -43,7 +44,10 @@ def scenes(tmp_path_factory):
         simulate(data, 1, 4, seed=5, pedestrians=3, progress=False, fast=True, fmt=fmt)
         out = root / f"out-{fmt}"
         report = run_units(
-            load_config(overrides={"dataset.root": str(data), "output.root": str(out), **CHEAP}),
+            load_config(
+                ORACLE_CONFIG,
+                overrides={"dataset.root": str(data), "output.root": str(out), **CHEAP},
+            ),
             progress=False,
         )
         assert report.exit_code == 0, summary_table(report)
@@ -60,8 +64,9 @@ def _labels(out: Path) -> dict[str, bytes]:
         for p in sorted(store.rglob("*"))
         if p.is_file() and p.relative_to(store).as_posix() != "zarr.json"
     }
+    # by sample token: the scene folder is the log's own name for a log, coda-<SEQ> for a tree
     for p in sorted((out / "exports" / "occ3d" / "gts").rglob("labels.npz")):
-        files[p.relative_to(out).as_posix()] = p.read_bytes()
+        files[f"occ3d/gts/{p.parent.name}/labels.npz"] = p.read_bytes()
     return files
 
 
@@ -109,7 +114,9 @@ def test_the_planner_memo_works_for_logs(scenes, tmp_path):
     shutil.copytree(scenes["mcap"].parent / "mcap" / "gt", data / "gt", copy_function=os.link)
     out = tmp_path / "out"
     shutil.copytree(scenes["mcap"], out, symlinks=True)
-    cfg = load_config(overrides={"dataset.root": str(data), "output.root": str(out), **CHEAP})
+    cfg = load_config(
+        ORACLE_CONFIG, overrides={"dataset.root": str(data), "output.root": str(out), **CHEAP}
+    )
     assert selected_sequences(cfg) == ["0"]
     cache = FingerprintCache(out / ".cache" / "sequences")
     [first] = plan_run(cfg, Manifest.load(out), cache)
@@ -138,3 +145,57 @@ def test_the_planner_memo_works_for_logs(scenes, tmp_path):
     [changed] = plan_run(cfg, Manifest.load(out), FingerprintCache(out / ".cache" / "sequences"))
     assert changed.fingerprint != first.fingerprint
     assert changed.units["detect"].reason == "input files changed"
+
+
+def test_exports_name_a_logs_scene_and_images_as_the_log_has_them(scenes, tmp_path):
+    """Issue 38: a log's Occ3D scene had a ``coda-`` prefix and its img_path no extension; the
+    scene is the log's own name and img_path the file the nuScenes export writes."""
+    from flows import cli
+
+    occ = json.loads((scenes["coda"] / "exports/occ3d/annotations.json").read_text())
+    assert list(occ["scene_infos"]) == occ["train_split"] == ["coda-0"]
+    for fmt in ("mcap", "ros1"):
+        out = scenes[fmt]
+        occ = json.loads((out / "exports/occ3d/annotations.json").read_text())
+        assert list(occ["scene_infos"]) == occ["train_split"] == ["0"], fmt
+        assert (out / "exports/occ3d/gts/0").is_dir()
+        paths = [
+            s["camera_sensor"]["CAM_FRONT"]["img_path"] for s in occ["scene_infos"]["0"].values()
+        ]
+        assert len(paths) == 2 and all(p.startswith("samples/CAM_FRONT/0__") for p in paths)
+        nus = tmp_path / f"nus-{fmt}"
+        assert (
+            cli.main(["export", "--out", str(out), "--format", "nuscenes", "--to", str(nus)]) == 0
+        )
+        written = sorted(
+            p.relative_to(nus).as_posix() for p in (nus / "samples/CAM_FRONT").iterdir()
+        )
+        assert written == sorted(paths), (written, paths)  # the same names, extensions included
+        scenes_table = json.loads(next(nus.rglob("scene.json")).read_text())
+        assert [s["name"] for s in scenes_table] == ["0"]
+
+
+def test_show_draws_a_log_and_a_dataset_built_from_one(scenes, tmp_path, capsys):
+    """Issue 38: `show` on a log-built dataset ended in a traceback (it took only ROOT/gt/SEQ)."""
+    from PIL import Image
+
+    from flows import cli
+
+    log = scenes["mcap"].parent / "mcap" / "0.mcap"
+    for i, (path, more) in enumerate(
+        [(scenes["mcap"], ["--frame", "1"]), (log, ["--frame", "1"]), (log.parent, [])]
+    ):
+        png = tmp_path / f"{i}.png"
+        assert cli.main(["show", str(path), "--png", str(png), *more]) == 0
+        with Image.open(png) as im:
+            picture = np.asarray(im.convert("RGB"))
+        # the bird's-eye view (left) is not blank: labels or returns drawn over white
+        assert (
+            picture.shape[1] > picture.shape[0]
+            and (picture[:, : picture.shape[0] // 2] != 255).any()
+        )
+    capsys.readouterr()
+    assert cli.main(["show", str(log), "--frame", "7", "--png", str(tmp_path / "x.png")]) == 2
+    err = capsys.readouterr().err
+    assert "no frame 7" in err and "0..1" in err and "Traceback" not in err
+    assert cli.main(["show", str(tmp_path), "--png", str(tmp_path / "x.png")]) == 2

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from configs.schema import load_config
+from configs.schema import ORACLE_CONFIG, load_config
 from flows.pipeline.plan import PlanCosts, plan_run, plan_without_hashing
 from storage.completion import write_record
 from storage.manifest import (
@@ -30,7 +30,11 @@ def store(tmp_path):
         make_coda(data, seq=seq, frames=4)
     out = tmp_path / "out"
     out.mkdir()
-    return data, out, load_config(overrides={"dataset.root": str(data), "output.root": str(out)})
+    return (
+        data,
+        out,
+        load_config(ORACLE_CONFIG, overrides={"dataset.root": str(data), "output.root": str(out)}),
+    )
 
 
 def _plan(config, out: Path, verify: bool = False):

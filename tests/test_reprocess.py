@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from configs.schema import load_config
+from configs.schema import ORACLE_CONFIG, load_config
 from flows.pipeline.run import rebuild_dataset
 
 pytestmark = [
@@ -25,6 +25,7 @@ pytestmark = [
 
 def _config(data: Path, out: Path, **overrides):
     return load_config(
+        ORACLE_CONFIG,
         overrides={
             "dataset.root": str(data),
             "output.root": str(out),
@@ -32,7 +33,7 @@ def _config(data: Path, out: Path, **overrides):
             "fit.iterations": 5,
             "export.formats": [],
             **overrides,
-        }
+        },
     )
 
 

@@ -37,6 +37,7 @@ from configs.schema import load_config
 from flows import cli
 from flows.pipeline.units import run_units, summary_table
 from storage.manifest import Manifest
+from tests.oracle import oracle_yaml
 
 pytestmark = [pytest.mark.slow]
 
@@ -109,7 +110,7 @@ def built(synthetic_root, tmp_path_factory):
     a run with sequence 1's calibration broken (sequence 1 withdrawn)."""
     work = tmp_path_factory.mktemp("built")
     config = work / "faults.yaml"
-    config.write_text(yaml.safe_dump(CHEAP))
+    config.write_text(yaml.safe_dump(oracle_yaml(CHEAP)))
     out = work / "out"
     cfg = load_config(config, {"dataset.root": str(synthetic_root), "output.root": str(out)})
     report = run_units(cfg, progress=False)

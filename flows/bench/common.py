@@ -10,15 +10,18 @@ from pathlib import Path
 
 
 def make_config(data_root: Path, out_root: Path, overrides: dict | None = None):
-    """The default config pointed at ``data_root`` / ``out_root`` with dotted ``overrides``."""
-    from configs.schema import load_config
+    """The simulator's oracle config (configs/oracle.yaml: the setting every stage-speed figure
+    was measured in, perception of known quality on simulated data with gt/) pointed at
+    ``data_root`` / ``out_root`` with dotted ``overrides``."""
+    from configs.schema import ORACLE_CONFIG, load_config
 
     return load_config(
+        ORACLE_CONFIG,
         overrides={
             "dataset.root": str(data_root),
             "output.root": str(out_root),
             **(overrides or {}),
-        }
+        },
     )
 
 

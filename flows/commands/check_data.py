@@ -4,8 +4,11 @@ robot logs ready for a run?
 For every selected sequence it prints one table row (frames found and how they were selected,
 LiDAR channels, missing / truncated files, labels present, camera calibration, reprojection
 figures, time unit, intensity, pose / timestamp agreement, day / night) and then each problem.
-Exit code 1 when a problem blocks a run (missing or truncated files of selected frames, an
-unreadable sequence, images that are not the calibration's size), else 0.
+Then, per sequence, the perception source each stage will use and whether the run reads the
+simulator's ground truth (flows/commands/perception_sources.py). Exit code 2 when the config reads
+gt/ that a sequence lacks, or the bundled models it runs are missing (a run would be refused);
+1 when a problem blocks a run (missing or truncated files of selected frames, an unreadable
+sequence, images that are not the calibration's size), else 0.
 
 Fast: file sizes, a directory listing, the small text files, three sweeps per sequence and one
 image header per camera (storage/sources/coda/check.py). ``--deep`` reads every sweep, label file and
@@ -22,6 +25,8 @@ topic (type, messages, rate, frame id) with what it is used as, and what is miss
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 
@@ -45,8 +50,9 @@ MAX_EXTRINSIC_MISMATCH_M = 0.01
 MAX_FIGURE_POINTS = 30000
 
 
-def _figures(facts: SequenceFacts, camera: str) -> dict:
-    """Reprojection and ground figures of the sampled sweeps (adds warnings to facts)."""
+def _figures(facts: SequenceFacts, camera: str, log: bool = False) -> dict:
+    """Reprojection and ground figures of the sampled sweeps (adds warnings to facts, naming
+    where the calibration came from: CODa's calibration files, or a log's /tf_static)."""
     seq = facts.seq
     calib = seq.info.calibration
     pts = (
@@ -71,7 +77,12 @@ def _figures(facts: SequenceFacts, camera: str) -> dict:
             facts.problem(
                 False,
                 f"only {out['in_image']:.1%} of the sampled points fall in the {camera} image: "
-                f"check calib_os1_to_{camera}.yaml",
+                + (
+                    f"check the /tf_static chain from the LiDAR to the {camera} optical frame and "
+                    "its CameraInfo"
+                    if log
+                    else f"check calib_os1_to_{camera}.yaml"
+                ),
             )
         if cam.raw is not None and cam.raw.P_lidar_to_rect is not None:
             out["file_P"] = projection_difference_px(
@@ -89,7 +100,12 @@ def _figures(facts: SequenceFacts, camera: str) -> dict:
             facts.problem(
                 False,
                 f"the ground lies at z = {out['ground']:+.2f} m in the base frame (expected ~0): "
-                "check calib_os1_to_base.yaml / dataset.lidar_height_m",
+                + (
+                    "check the /tf_static transform from the base frame to the LiDAR (or "
+                    "dataset.lidar_height_m where the TF tree has no base frame)"
+                    if log
+                    else "check calib_os1_to_base.yaml / dataset.lidar_height_m"
+                ),
             )
     if calib.T_cam1_from_cam0 is not None and "cam1" in cams and cams["cam1"].raw is not None:
         derived = calib.T_cam1_from_cam0 @ cams["cam0"].raw.T_cam_from_lidar
@@ -274,7 +290,7 @@ def _check_logs(config: Config, ids: list[str], deep: bool) -> tuple[int, str]:
     rows, notes, blocking = [], [], False
     for sid in ids:
         facts = inspect_log(lambda s: open_sequence(config, s, with_poses=False), sid, deep=deep)
-        fig = _figures(facts, config.dataset.camera) if facts.seq is not None else {}
+        fig = _figures(facts, config.dataset.camera, log=True) if facts.seq is not None else {}
         rows.append(_log_row(facts, fig))
         if facts.seq is not None:
             f = facts.facts
@@ -305,10 +321,16 @@ def _check_logs(config: Config, ids: list[str], deep: bool) -> tuple[int, str]:
 
 
 def check_data(
-    config: Config, deep: bool = False, sequences: list[str] | None = None
+    config: Config,
+    deep: bool = False,
+    sequences: list[str] | None = None,
+    config_path: Path | None = None,
 ) -> tuple[int, str]:
-    """(exit code, report text) for the dataset of ``config`` (dataset.root, dataset.sequences)."""
-    from flows.pipeline.inputs import open_sequence, source
+    """(exit code, report text) for the dataset of ``config`` (dataset.root, dataset.sequences):
+    the data's checks, then per sequence the perception source of each stage; exit code 2 when
+    the config reads ground truth (gt/) that a sequence lacks (flows/commands/perception_sources.py),
+    1 when a problem of the data blocks a run, else 0."""
+    from flows.commands.perception_sources import run_problem, source_lines
     from flows.pipeline.plan import selected_sequences
 
     root = config.dataset.root
@@ -318,6 +340,21 @@ def check_data(
             f"{root}: no sequence found (expected the CODa layout, timestamps/<SEQ>.txt ..., or "
             "robot logs: .bag / .mcap files or ROS 2 bag folders)"
         )
+    code, text = _check_sequences(config, ids, deep)
+    head, _, tail = text.rpartition("\n\n")  # the last paragraph is the verdict
+    given = config_path if config_path is not None else "configs/default.yaml"
+    text = "\n".join([head, "", f"perception per sequence (config {given}):"])
+    text += "\n" + "\n".join(source_lines(config, ids)) + "\n\n" + tail
+    problem = run_problem(config, ids, config_path)
+    if problem is not None:
+        return 2, f"{text.replace('ready to run', 'not ready')}\nREFUSED: {problem}"
+    return code, text
+
+
+def _check_sequences(config: Config, ids: list[str], deep: bool) -> tuple[int, str]:
+    from flows.pipeline.inputs import open_sequence, source
+
+    root = config.dataset.root
     if source(config).kind == "log":
         return _check_logs(config, ids, deep)
     rows, notes, blocking = [], [], False

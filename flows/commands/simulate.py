@@ -12,6 +12,7 @@ files.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -363,7 +364,10 @@ def simulate(
     written_frames = split_style_frames(frames) if split_style else list(range(frames))
     written_frames = written_frames[::frame_step]
     bar = tqdm(
-        total=sequences * len(written_frames), desc="simulate", unit="frame", disable=not progress
+        total=sequences * len(written_frames),
+        desc="simulate",
+        unit="frame",
+        disable=not progress or not sys.stderr.isatty(),  # a bar only on a terminal
     )
     pool = None
     if workers > 1 and sequences * len(written_frames) > 1:

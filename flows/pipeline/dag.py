@@ -85,5 +85,6 @@ CODE_VERSIONS: dict[str, str] = {
 #: order, the infos with the occupancy challenge's prev / next / frame_idx / can_bus / occ_gt_path;
 #: the metadata's FlashOcc settings (depth, BEV flips, input sizes and their frustum coverage);
 #: 3: the metadata says semantics is free where mask_lidar is 0 and keeps the class of occupied
-#: voxels hidden from the camera (issue 30)
-DATASET_EXPORTS_VERSION = "3"
+#: voxels hidden from the camera (issue 30); 4: a robot log's scene is the log's own name (no
+#: ``<scene_prefix>-``), the Occ3D img_path of a log's image has its extension (issue 38)
+DATASET_EXPORTS_VERSION = "4"

@@ -660,12 +660,17 @@ def _dataset_exports(
 
 
 class _Progress:
-    """One progress line for planning, then one per stage (never one per sequence)."""
+    """One progress line for planning, then one per stage (never one per sequence); bars only on
+    a terminal: written to a file or a pipe, one plain line per stage when its last unit ends
+    (a bar's carriage-return redraws would fill the file)."""
 
     def __init__(self, report: RunReport, units: _Units, enabled: bool, sequences: int):
+        import sys
+
         self.report, self.enabled, self.plan_bar = report, enabled, None
+        self.tty = sys.stderr.isatty()
         self.bars: dict[str, Any] = {}
-        if enabled and sequences > 1:
+        if enabled and self.tty and sequences > 1:
             from tqdm import tqdm
 
             self.plan_bar = tqdm(total=sequences, desc="  plan", unit="seq", leave=True)
@@ -685,6 +690,21 @@ class _Progress:
             for s in units.stages
         }
         if not self.enabled or not any(todo.values()):
+            return
+        if not self.tty:
+            left = dict(todo)
+
+            def line(o: UnitOutcome) -> None:
+                import sys
+
+                if left.get(o.stage):
+                    left[o.stage] -= 1
+                    if not left[o.stage]:
+                        # not print(): the Prefect flows' log_prints would take it
+                        sys.stderr.write(f"{o.stage:>6}: {todo[o.stage]} unit(s) ended\n")
+                        sys.stderr.flush()
+
+            units.on_done = line
             return
         from tqdm import tqdm
 
@@ -806,6 +826,7 @@ def _export_into(
             scene_prefix=ex.scene_prefix,
             val_sequences=ex.val_sequences,
             gt_root=data_root_for(out_root, data_root) if gt else None,
+            source_root=_source_root(out_root, data_root),
         )
     else:
         export_nuscenes(
@@ -818,6 +839,18 @@ def _export_into(
             val_sequences=ex.val_sequences,
             **({"infos_data_root": ex.infos_data_root} if ex.infos_data_root else {}),
         )
+
+
+def _source_root(out_root: Path, data_root: Path | None) -> Path | None:
+    """The raw data root where one is known (the Occ3D export of robot logs names each image with
+    the extension the nuScenes export gives it); None where it is not (it is not needed for the
+    CODa layout, and export_occ3d says so when it is)."""
+    from storage.manifest import recorded_data_root
+
+    for root in (data_root, recorded_data_root(out_root)):
+        if root is not None and Path(root).exists():  # a folder, or a single log file
+            return Path(root)
+    return None
 
 
 def _first_line(text: str) -> str:

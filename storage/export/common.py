@@ -22,8 +22,18 @@ def token(kind: str, *parts: object) -> str:
     return hashlib.sha1(key.encode()).hexdigest()[:32]
 
 
-def scene_name(prefix: str, sequence: str) -> str:
-    return f"{prefix}-{sequence}"
+def scene_name(prefix: str, sequence: str, log: bool = False) -> str:
+    """A sequence's scene: ``<prefix>-<sequence>`` (CODa's sequences are numbers), or a robot
+    log's own name (``log``: the sequence is the log's file / folder stem)."""
+    return str(sequence) if log else f"{prefix}-{sequence}"
+
+
+def from_log(frames: list[dict]) -> bool:
+    """Whether a sequence's frames (the frames table's rows) come from a robot log: their source
+    paths are message references ``LOG#TOPIC@INDEX`` (storage/sources/log/refs.py)."""
+    from storage.sources.log.refs import parse_ref
+
+    return bool(frames) and parse_ref(frames[0]["lidar_path"]) is not None
 
 
 def sample_token(sequence: str, frame: int) -> str:

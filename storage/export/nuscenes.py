@@ -35,6 +35,7 @@ from storage.export.common import (
     CAM_CHANNEL,
     DETECTION_CLASSES,
     LIDAR_CHANNEL,
+    from_log,
     grid_metadata,
     link_or_copy,
     mat4,
@@ -278,9 +279,11 @@ def export_nuscenes(
     infos: dict[str, list] = {"train": [], "val": []}
     prefix = infos_data_root.rstrip("/")
 
+    scenes: dict[str, str] = {}
     for seq, log_tok in zip(chosen, log_tokens):
         info = sequence_info(ds, seq)
-        scene = scene_name(scene_prefix, seq)
+        log = from_log(info.frames)
+        scene = scenes[seq] = scene_name(scene_prefix, seq, log)
         cs_cam = token("calibrated_sensor", seq, CAM_CHANNEL)
         cs_lidar = token("calibrated_sensor", seq, LIDAR_CHANNEL)
         t["calibrated_sensor"] += [
@@ -302,7 +305,7 @@ def export_nuscenes(
         t["log"].append(
             {
                 "token": log_tok,
-                "logfile": f"{scene_prefix}_{seq}",
+                "logfile": seq if log else f"{scene_prefix}_{seq}",
                 "vehicle": "mobile-robot",
                 "date_captured": str(date),
                 "location": "ut-campus",
@@ -438,8 +441,8 @@ def export_nuscenes(
         **metadata,
         "version": version,
         "scene_prefix": scene_prefix,
-        "train_scenes": [scene_name(scene_prefix, s) for s in chosen if s not in val],
-        "val_scenes": [scene_name(scene_prefix, s) for s in chosen if s in val],
+        "train_scenes": [scenes[s] for s in chosen if s not in val],
+        "val_scenes": [scenes[s] for s in chosen if s in val],
         "infos": {split: f"{INFOS_PREFIX}_infos_{split}.pkl" for split in infos},
         "infos_data_root": prefix,
     }

@@ -26,6 +26,7 @@ from storage.atomic import atomic_write_text
 from storage.dataset import open_dataset
 from storage.export.common import (
     CAM_CHANNEL,
+    from_log,
     grid_metadata,
     mat4,
     pose_record,
@@ -52,13 +53,16 @@ def export_occ3d(
     val_sequences: Iterable[str] = (),
     sequences: Iterable[str] | None = None,
     gt_root: str | os.PathLike | None = None,
+    source_root: str | os.PathLike | None = None,
 ) -> Path:
     """Export the published dataset at ``dataset_root`` to Occ3D format under ``out_dir``.
 
     val_sequences: sequences listed in ``val_split`` (the rest go to ``train_split``).
     sequences: restrict to these (default: all published).
     gt_root: the raw data root holding synthetic ground truth (``gt/<seq>/``): export its exact
-    occupancy as ``semantics`` (the grids must be the same). Returns the annotations.json path.
+    occupancy as ``semantics`` (the grids must be the same).
+    source_root: the raw data root (needed for robot logs only: the image's extension, ".jpg" or
+    ".png", is the one the nuScenes export writes). Returns the annotations.json path.
     """
     ds = open_dataset(dataset_root)
     out = Path(out_dir)
@@ -71,9 +75,11 @@ def export_occ3d(
     chosen = list(ds.sequences if sequences is None else sequences)
     metadata = grid_metadata(ds, chosen)
     scene_infos: dict[str, dict] = {}
+    scenes: dict[str, str] = {}
     for seq in chosen:
         info = sequence_info(ds, seq)
-        scene = scene_name(scene_prefix, seq)
+        scene = scenes[seq] = scene_name(scene_prefix, seq, from_log(info.frames))
+        log_ext = _log_image_suffix(info.frames, source_root, seq)
         store = ds.store_path(seq)
         layout = open_layout(store)
         if len(info.frames) != layout.num_frames:
@@ -98,7 +104,7 @@ def export_occ3d(
                 save_npz_deterministic(out / gt_rel, compressed=True, **labels)
                 stamp_us = int(row["stamp_ns"]) // 1000
                 ego = pose_record(mat4(row["T_world_from_base"]))
-                ext = Path(row["cam0_path"]).suffix if row["cam0_path"] else ".png"
+                ext = log_ext or (Path(row["cam0_path"]).suffix if row["cam0_path"] else ".png")
                 samples[tok] = {
                     "timestamp": stamp_us,
                     "camera_sensor": {
@@ -124,8 +130,8 @@ def export_occ3d(
         sc: scene_infos[sc] for sc in sorted(scene_infos, key=lambda sc: (first[sc], sc))
     }
     annotations = {
-        "train_split": [scene_name(scene_prefix, s) for s in chosen if s not in val],
-        "val_split": [scene_name(scene_prefix, s) for s in chosen if s in val],
+        "train_split": [scenes[s] for s in chosen if s not in val],
+        "val_split": [scenes[s] for s in chosen if s in val],
         "scene_infos": scene_infos,
     }
     path = atomic_write_text(
@@ -162,6 +168,22 @@ def _time_ordered_json(annotations: dict) -> dict:
         else _sort_keys(v)
         for k, v in sorted(annotations.items())
     }
+
+
+def _log_image_suffix(frames: list[dict], source_root, sequence: str) -> str | None:
+    """A robot log's camera image suffix (every frame's image comes from one topic); None for the
+    CODa layout, whose files carry theirs."""
+    from storage.sources.log.refs import image_suffix, parse_ref
+
+    ref = parse_ref(frames[0]["cam0_path"]) if frames and frames[0]["cam0_path"] else None
+    if ref is None:
+        return None
+    if source_root is None:
+        raise ValueError(
+            f"export_occ3d: sequence {sequence!r} comes from a robot log ({ref.log}): its image "
+            "extension needs the raw data root (source_root)"
+        )
+    return image_suffix(ref, Path(source_root))
 
 
 def _gt_reader(gt_root, sequence: str, grid: dict):

@@ -77,6 +77,22 @@ def read_ref_sweep(ref: MessageRef, source_root: Path, min_range_m: float) -> np
     return out
 
 
+def image_suffix(ref: MessageRef, source_root: Path) -> str:
+    """The suffix :func:`ref_image` gives the image (".jpg" / ".png"), without decoding it: what
+    the Occ3D export's ``img_path`` names, so it matches the nuScenes export's file."""
+    from storage.sources.log.index import COMPRESSED_IMAGE
+    from storage.sources.log.reader import _strip_transport, camera_namespace
+
+    log, index, stream, raw = _message(ref, source_root)
+    info = index.camera_info.get(camera_namespace(ref.topic) + "/camera_info")
+    rectified = "rect" in _strip_transport(ref.topic).rsplit("/", 1)[-1]
+    needs = not rectified and info is not None and info.needs_rectifying()
+    if stream.msgtype != COMPRESSED_IMAGE or needs:
+        return ".png"  # decoded (and rectified) here, written as PNG
+    fmt = str(log.deserialize(bytes(raw), stream.msgtype, ref.topic).format).lower()
+    return ".png" if "png" in fmt else ".jpg"
+
+
 def ref_image(ref: MessageRef, source_root: Path) -> tuple[bytes, str]:
     """(file bytes, suffix) of a referenced camera image, in the pinhole the pipeline used."""
     from io import BytesIO

@@ -56,10 +56,11 @@ class MaskSettings:
 
 @dataclass(frozen=True)
 class SemanticSettings:
-    """Image semantics: ``oracle`` (synthetic data only), ``onnx`` (a Cityscapes export; input_size
-    (height, width) for one with a dynamic input), or none (255)."""
+    """Image semantics: none (255, the default: no Cityscapes model is bundled), ``onnx`` (a
+    Cityscapes export; input_size (height, width) for one with a dynamic input), or ``oracle``
+    (the simulator's truth: synthetic data with gt/ only)."""
 
-    kind: Literal["oracle", "onnx", "none"] = "oracle"
+    kind: Literal["oracle", "onnx", "none"] = "none"
     path: str | None = None
     input_size: tuple[int, int] | None = None
 
