@@ -1060,7 +1060,7 @@ def main(argv: list[str] | None = None) -> int:
     from flows.pipeline.signals import stop_on_signals
     from flows.pipeline.units import ExportTargetError
     from storage.files import InputError
-    from storage.layout import StoreError
+    from storage.layout import StoreError, shown
     from storage.manifest import OutputError, StoreLockedError
 
     name = f"mobileocc {args.command}"
@@ -1077,13 +1077,13 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     except (InputError, OutputError, UsageError, ExportTargetError, RunnerUnavailable) as exc:
         # --data / --out / --set / --to / the runner / a manifest that cannot be read
-        print(f"{name}: {exc}", file=sys.stderr)
+        print(f"{name}: {shown(exc)}", file=sys.stderr)
         return EXIT_USAGE
     except StoreLockedError as exc:
-        print(f"{name}: {exc}", file=sys.stderr)
+        print(f"{name}: {shown(exc)}", file=sys.stderr)
         return EXIT_BUSY
     except StoreError as exc:  # a published store that cannot be read (export, evaluate)
-        print(f"{name}: {exc}", file=sys.stderr)
+        print(f"{name}: {shown(exc)}", file=sys.stderr)
         return EXIT_FAILED
 
 

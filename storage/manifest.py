@@ -40,13 +40,13 @@ import time
 import uuid
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 from storage.atomic import atomic_write_bytes, named
 from storage.files import InputError, open_regular
-from storage.layout import TMP_PREFIX
+from storage.layout import TMP_PREFIX, shown
 
 MANIFEST = "manifest.json"
 JOURNAL = "manifest.journal"
@@ -195,9 +195,13 @@ class FingerprintCache:
         if self.folder is None:
             return {}
         try:
-            return json.loads((self.folder / f"{sequence}.json").read_text())
+            memo = json.loads((self.folder / f"{sequence}.json").read_bytes())
         except (OSError, ValueError):
             return {}  # a missing or damaged memo only costs reading the sequence again
+        # verified before use: a memo that is not the object this class writes is not used
+        if not isinstance(memo, dict) or not isinstance(memo.get("files", {}), dict):
+            return {}
+        return memo
 
     def hit(self, memo: dict, reader: Any, signature: str) -> bool:
         return (
@@ -318,6 +322,20 @@ class Manifest:
         return self.rows.get((sequence, stage))
 
     def put(self, record: StageRecord) -> None:
+        loc = record.location
+        if loc and (
+            loc != f"stages/{record.stage}/{record.sequence}/{record.key}"
+            or ".." in loc.split("/")
+            or not loc.isprintable()
+        ):
+            # nothing recorded in OUT is trusted to name a path: a row naming any folder but its
+            # own key-named one (a crafted or foreign manifest) names none, so the unit runs again
+            record = replace(
+                record,
+                location="",
+                status="failed",
+                error=f"its recorded output location {shown(repr(loc))} was refused",
+            )
         self.rows[(record.sequence, record.stage)] = record
 
     def record(self, record: StageRecord) -> None:

@@ -10,6 +10,7 @@ from flows.pipeline.inputs import source
 from flows.pipeline.outcome import Status
 from flows.pipeline.plan import PlanCosts, plan_run, selected_sequences
 from flows.pipeline.units import DAMAGED_REASONS, store_problems
+from storage.layout import shown
 from storage.manifest import FingerprintCache, Manifest
 
 
@@ -40,7 +41,7 @@ def print_plan(cfg: Config, dry_run: bool, verify: bool = False) -> int:
     runs = problems = 0
     for plan in plans:
         if plan.error:
-            print(f"{plan.sequence:>6}  cannot be read: {plan.error}")
+            print(shown(f"{plan.sequence:>6}  cannot be read: {plan.error}"))
             problems += 1
             continue
         lines = [
@@ -55,14 +56,14 @@ def print_plan(cfg: Config, dry_run: bool, verify: bool = False) -> int:
             for _, line in lines
         )
         for stage, line in lines:
-            print(f"{plan.sequence:>6}  {stage:<7} {line}")
+            print(shown(f"{plan.sequence:>6}  {stage:<7} {line}"))
         if not lines and not dry_run:
-            print(f"{plan.sequence:>6}  fresh ({len(plan.units)} stages)")
+            print(shown(f"{plan.sequence:>6}  fresh ({len(plan.units)} stages)"))
     print(
         f"{len(plans)} sequence(s): {runs} unit(s) {'would run' if dry_run else 'stale or failed'}, "
         f"{problems} sequence(s) with failures; {costs.line()}"
     )
     store = store_problems(cfg, manifest, verify) if out.is_dir() else []
     for line in store:
-        print(line)
+        print(shown(line))
     return problems + len(store)

@@ -57,6 +57,7 @@ from storage.completion import (
     read_record,
     write_record,
 )
+from storage.layout import shown
 from storage.manifest import (
     FingerprintCache,
     Manifest,
@@ -73,6 +74,7 @@ from storage.manifest import (
 )
 from storage.products import read_summary, write_summary
 from storage.publish import (
+    intent_problem,
     pending_publications,
     published_names,
     published_versions,
@@ -263,6 +265,8 @@ class RunReport:
     swept: int = 0
     #: publications (or withdrawals) a killed run left half done, completed at the start
     recovered: list[str] = field(default_factory=list)
+    #: one line per publication intent that was not one this code wrote, rolled back instead
+    rolled_back: list[str] = field(default_factory=list)
     #: sequences in the store (published, withdrawn or in the manifest) whose input is no longer
     #: under the data root, and those of them this run took out of the store (``prune``)
     gone: list[str] = field(default_factory=list)
@@ -451,7 +455,8 @@ def run_units(
         raise ValueError(f"stages {sorted(stages or ())}: expected some of {list(STAGES)}")
     with holding_lock(out_root) if lock_held else run_lock(out_root):
         report = RunReport(out_root, [])
-        report.recovered = recover_publications(out_root)  # before the sweep: it reads temporaries
+        # before the sweep: it reads temporaries
+        report.recovered = recover_publications(out_root, report.rolled_back)
         report.swept = sweep_temporaries(out_root)
         manifest = Manifest.load(out_root)
         adopt_unrecorded_outputs(manifest)
@@ -525,8 +530,12 @@ def store_problems(config: Config, manifest: Manifest, deep: bool = False) -> li
     published sequences."""
     out_root = Path(config.output.root)
     lines = [
-        f"{seq:>6}  publication interrupted by a killed run (the next rebuild or export "
-        "completes it)"
+        f"{shown(seq):>6}  "
+        + (
+            f"{garbage}: the next rebuild or export rolls it back"
+            if (garbage := intent_problem(out_root, seq))
+            else "publication interrupted by a killed run (the next rebuild or export completes it)"
+        )
         for seq in pending_publications(out_root)
     ]
     selected = selected_sequences(config) if Path(config.dataset.root).is_dir() else []
@@ -873,6 +882,7 @@ def summary_table(report: RunReport) -> str:
         )
     for seq in report.recovered:
         lines.append(f"RECOVERED {seq}: a publication a killed run left half done was completed")
+    lines += [f"ROLLED BACK {line}" for line in report.rolled_back]
     for plan in report.plans:
         for stage, unit in plan.units.items():
             if unit.reason.startswith(DAMAGED_REASONS):
@@ -897,4 +907,4 @@ def summary_table(report: RunReport) -> str:
         lines.append(f"{fmt} export: {state}")
     lines += [f"WRITE FAILED {e}" for e in report.write_errors]
     lines += [f"WARNING {p.sequence}: {w}" for p in report.plans for w in p.warnings]
-    return "\n".join(lines)
+    return "\n".join(shown(line) for line in lines)  # a name cannot forge a line
