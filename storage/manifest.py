@@ -478,6 +478,35 @@ def sweep_temporaries(root: Path) -> int:
     return n
 
 
+#: the store's cache products under ``OUT/.cache`` (all remade on demand from the inputs):
+#: the procedural body model and prior, the log indexes, the odometry, the planning memos
+PROCEDURAL_MODEL = "procedural_smpl_v1.npz"
+PROCEDURAL_PRIOR = "procedural_gmm_08_v1.pkl"
+CACHE_PRODUCTS = (
+    PROCEDURAL_MODEL,
+    PROCEDURAL_PRIOR,
+    "log-index",
+    "odometry",
+    "sequences",
+)
+
+
+def remove_caches(root: Path) -> int:
+    """Remove every cache product (``rebuild --force``: each is made again from the inputs, so a
+    damaged one that passed its check cannot outlive a forced run); returns how many. Call it
+    only while holding :func:`run_lock`."""
+    n = 0
+    for name in CACHE_PRODUCTS:
+        path = Path(root) / ".cache" / name
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+            n += 1
+        elif os.path.lexists(path):
+            path.unlink(missing_ok=True)
+            n += 1
+    return n
+
+
 def remove_stale_versions(root: Path, stage: str, sequence: str, keep: str) -> None:
     """Delete the outputs of a (sequence, stage) other than the key ``keep``."""
     folder = Path(root) / "stages" / stage / sequence

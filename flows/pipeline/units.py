@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from configs.schema import Config, config_hash
+from flows.pipeline.config_files import check_config_files
 from flows.pipeline.dag import CODE_VERSIONS, DATASET_EXPORTS_VERSION, STAGES
 from flows.pipeline.inputs import (
     DatasetExportInputs,
@@ -67,6 +68,7 @@ from storage.manifest import (
     data_root_for,
     holding_lock,
     record_data_root,
+    remove_caches,
     remove_stale_versions,
     run_lock,
     stage_dir,
@@ -349,6 +351,7 @@ def check_run_paths(config: Config, sequences: list[str] | None = None) -> list[
     (storage.files) with one clear line."""
     check_store_place(Path(config.output.root), Path(config.dataset.root))
     check_writable(Path(config.output.root))
+    check_config_files(config)  # a bad model file is the config's error, not every sequence's
     if sequences is not None:
         return [str(s) for s in sequences]
     source(config).check_root(Path(config.dataset.root))
@@ -458,6 +461,8 @@ def run_units(
         # before the sweep: it reads temporaries
         report.recovered = recover_publications(out_root, report.rolled_back)
         report.swept = sweep_temporaries(out_root)
+        if force:  # every cache product is made again too (storage.manifest.CACHE_PRODUCTS)
+            remove_caches(out_root)
         manifest = Manifest.load(out_root)
         adopt_unrecorded_outputs(manifest)
         manifest.meta.update(

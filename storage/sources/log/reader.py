@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from configs.sources import POSE_MODES, LogSettings
+from storage.npzio import NPZ_ERRORS, load_npz
 from storage.sequence_data import (
     Calibration,
     CameraCalibration,
@@ -637,11 +638,15 @@ class LogSequence(SelectedFrames):
 
         key = self.odometry_key()
         path = self.cache_dir / "odometry" / f"{key}.npz" if self.cache_dir else None
-        if path is not None and path.is_file():
-            with np.load(path, allow_pickle=False) as z:
-                return z["T_first_from_lidar"]
         s = self.settings.odometry
         n = len(self.index.streams[self.lidar_topic].stamp_ns)
+        if path is not None and path.is_file():
+            try:  # verified before use: a damaged or foreign cache file is computed again
+                cached = load_npz(path, ["T_first_from_lidar"])["T_first_from_lidar"]
+                if cached.shape == (n, 4, 4) and np.isfinite(cached).all():
+                    return cached.astype(np.float64, copy=False)
+            except NPZ_ERRORS:
+                pass
 
         def run(order, sign):  # one pass, a sweep at a time (memory flat in the log's length)
             odo, out = LidarOdometry(s), []
