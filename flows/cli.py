@@ -1085,6 +1085,11 @@ def main(argv: list[str] | None = None) -> int:
     except StoreError as exc:  # a published store that cannot be read (export, evaluate)
         print(f"{name}: {shown(exc)}", file=sys.stderr)
         return EXIT_FAILED
+    except OSError as exc:  # a full disk, a read-only place, a file that went away: one line
+        from storage.atomic import os_error_line
+
+        print(f"{name}: {shown(os_error_line(exc))}", file=sys.stderr)
+        return EXIT_FAILED
 
 
 #: commands that run units (a stop leaves finished units in the store)

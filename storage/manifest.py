@@ -28,6 +28,7 @@ and hashes every file instead.
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import hashlib
 import json
@@ -653,12 +654,43 @@ def read_lock(root: Path) -> Iterator[None]:
     if held:
         yield
         return
+    if not writable_store(root):
+        # a read-only store (a finished dataset on a read-only mount): no run can write it, so
+        # none can race this reader; the lock file may not be creatable, and is not needed
+        yield
+        return
     fd = _acquire(path, exclusive=False)
     try:
         yield
     finally:
         fcntl.flock(fd, fcntl.LOCK_UN)
         os.close(fd)
+
+
+def writable_store(root: Path) -> bool:
+    """Whether ``root`` can be written: its lock file opened for writing (created where missing,
+    as a reader's shared lock does anyway). False on a read-only file system (EROFS) or a folder
+    this user may not write (EACCES / EPERM)."""
+    try:
+        fd = os.open(root / LOCK_FILE, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
+    except OSError as exc:
+        if exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
+            return False
+        raise
+    os.close(fd)
+    return True
+
+
+def read_only_error(root: Path, exc: OSError, doing: str) -> OutputError | None:
+    """The one line for a write refused by a read-only store (EROFS, EACCES, EPERM) while
+    ``doing``; None for any other error."""
+    if exc.errno not in (errno.EROFS, errno.EACCES, errno.EPERM):
+        return None
+    why = "is on a read-only file system" if exc.errno == errno.EROFS else "is not writable here"
+    return OutputError(
+        f"output store {root} {why} ({exc.filename or root}: {exc.strerror}); {doing} needs to "
+        "write into it (reading it works: status, evaluate --report, export --to, view)"
+    )
 
 
 @contextmanager

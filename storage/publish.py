@@ -43,7 +43,7 @@ from storage.layout import (
     recorded_path,
     shown,
 )
-from storage.manifest import read_lock, run_lock
+from storage.manifest import read_lock, run_lock, writable_store
 from storage.schemas import TABLE_NAMES
 from storage.tables import (
     PARTITION_FILE,
@@ -330,11 +330,19 @@ def recover_publications(
 @contextlib.contextmanager
 def reading(root: str | os.PathLike) -> Iterator[None]:
     """Read the published dataset under the store's read lock (shared with other readers, refused
-    while a run holds it: storage.manifest.StoreLockedError). A publication interrupted by a
+    while a run holds it: storage.manifest.StoreLockedError; none on a read-only store, which no
+    run can write). A publication interrupted by a
     killed run is completed first (briefly holding the run lock), so a reader sees whole
     versions only."""
     root = Path(root)
-    if pending_publications(root):
+    pending = pending_publications(root)
+    if pending and not writable_store(root):
+        raise StoreError(
+            f"dataset {shown(root)}: the publication of {shown(', '.join(pending))} was "
+            "interrupted and the store is read-only, so it cannot be completed here; run "
+            "`mobileocc rebuild` where the store is writable"
+        )
+    if pending:
         with run_lock(root):
             recover_publications(root)
     with read_lock(root):

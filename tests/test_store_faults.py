@@ -827,6 +827,48 @@ def test_evaluate_names_a_withdrawn_sequence(built, tmp_path, capsys):
     assert "withdrawn" in results["notes"]["sequence 1"]["note"]
 
 
+def test_a_read_only_store_can_be_read(built, tmp_path, capsys, monkeypatch):
+    """Issue 41: on a read-only store (a finished dataset on a read-only mount) `status`,
+    `evaluate --report ELSEWHERE`, `export --to ELSEWHERE` and `view --html` work and write
+    nothing into it; a run, or a report into it, is one line naming the read-only place."""
+    from tests.read_only import read_only_store
+
+    out = _link_copy(built.out, tmp_path / "out")
+    before = _files(out)
+    with read_only_store(out, monkeypatch) as (ro, how):
+        env = Env(built.data, ro, built.config)
+        code, text = _cli(env, "status", capsys)
+        assert code == 0 and "fresh" in text and "Traceback" not in text, (how, text)
+        code, text = _export(env, tmp_path / "export", capsys)
+        assert code == 0 and "export written" in text, (how, text)
+        assert (tmp_path / "export" / "annotations.json").is_file()
+        for args in (
+            [
+                "evaluate",
+                "--dataset",
+                str(ro),
+                "--gt",
+                str(built.data),
+                "--report",
+                str(tmp_path / "r"),
+            ],
+            ["view", "--dataset", str(ro), "--html", str(tmp_path / "v.html")],
+        ):
+            capsys.readouterr()
+            code = cli.main(args)
+            text = "".join(capsys.readouterr())
+            assert code == 0 and "Traceback" not in text, (how, args[0], text)
+        code, text = _cli(env, "rebuild", capsys)
+        assert code == cli.EXIT_USAGE and str(ro) in text and "not writable" in text, (how, text)
+        assert len(text.strip().splitlines()) == 1, text
+        capsys.readouterr()
+        code = cli.main(["evaluate", "--dataset", str(ro), "--report", str(ro / "r")])
+        text = capsys.readouterr().err
+        assert code == cli.EXIT_FAILED and str(ro / "r") in text and "Traceback" not in text, text
+        assert "read-only" in text or "ermission denied" in text, text
+    assert _files(out) == before
+
+
 # ---- the command line's edges --------------------------------------------------------------------
 
 

@@ -154,3 +154,20 @@ def test_the_run_summary_prints_names_escaped(tmp_path):
     text = summary_table(report)
     assert "\x1b" not in text and "FAILED forged" in text
     assert not any(line.startswith("FAILED forged") for line in text.splitlines())
+
+
+def test_a_read_only_store_is_read_without_a_lock_and_refuses_recovery(tmp_path, monkeypatch):
+    from tests.read_only import read_only_store
+
+    out = tmp_path / "out"
+    _publish(out)
+    (out / ".lock").unlink(missing_ok=True)
+    with read_only_store(out, monkeypatch) as (ro, how):
+        with pub.reading(ro):  # no lock file can be made: none is needed, no run can write
+            assert pub.published_versions(ro) == {"seq0": "v1"}, how
+        assert not (ro / ".lock").exists()
+    _intent(out, "seq0", {"action": "remove"})
+    with read_only_store(out, monkeypatch) as (ro, how):
+        with pytest.raises(StoreError, match="read-only, so it cannot be completed here"):
+            with pub.reading(ro):
+                pass
