@@ -80,6 +80,7 @@ from storage.sources.coda.layout import (
     sequence_folders,
     stride_frames,
 )
+from tasks.bounds import sweep_problem
 from tasks.poses.rotations import quat_wxyz_to_matrix
 
 
@@ -180,6 +181,9 @@ def read_lidar_raw(
             path,
             frame,
         )
+    problem = sweep_problem(raw[:, :3])  # tasks/bounds.py
+    if problem:
+        raise CodaFrameError(f"{_where(path, frame)}: implausible sweep: {problem}", path, frame)
     return raw
 
 

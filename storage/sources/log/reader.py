@@ -65,6 +65,7 @@ from storage.sources.log.index import (
     stamp_ns,
 )
 from storage.sources.log.pointcloud import DecodedCloud, Field, PointLayoutError, decode_pointcloud2
+from tasks.bounds import rigid_problem
 from tasks.poses.tf import StampedEdge, TFGap, TFTree, static_edge
 
 #: PointCloud2 topics of common drivers, preferred in this order when a log has several
@@ -81,7 +82,7 @@ KNOWN_LIDAR_TOPICS = (
 BASE_FRAMES = ("base_footprint", "base_link", "base")
 WORLD_FRAMES = ("map", "world", "odom")
 #: version of what opening a log checks and returns (the planner's memo of another is not used)
-READER_VERSION = "1"
+READER_VERSION = "2"  # 2: TF graph and sweep plausibility checked (issue 41)
 #: version of the LiDAR-odometry product (bump when its poses change for the same inputs)
 ODOMETRY_VERSION = "2"
 
@@ -251,6 +252,7 @@ class LogSequence(SelectedFrames):
         static = _latest_static(index.tf_static)
         stamped = _stamped_edges(index.tf)
         self.tree = TFTree(static.static, stamped)
+        self._check_tf(index, static, stamped)
         first_stamp = int(lidar.stamp_ns[0])
         self.camera_streams = self._camera_streams(index)
         calibration = self._calibration(warnings, first_stamp)
@@ -296,6 +298,55 @@ class LogSequence(SelectedFrames):
             lighting_source="config" if self._lighting else "default",
             warnings=tuple(warnings),
         )
+
+    def _check_tf(self, index: LogIndex, static: TFTree, stamped: dict[str, StampedEdge]) -> None:
+        """The TF graph is a tree of plausible transforms (tasks/bounds.py), else the sequence
+        fails naming the topic and the value: a frame with two parents (in /tf_static, or one
+        in /tf_static and another in /tf), a cycle, a /tf_static transform whose rotation is
+        not one or whose translation is longer than a rig spans, a /tf value that is not finite."""
+        tf = index.tf_static
+        parents: dict[str, str] = {}
+        if tf is not None:
+            for k in range(len(tf.stamp_ns)):
+                child, parent = tf.frames[tf.child[k]], tf.frames[tf.parent[k]]
+                if parents.setdefault(child, parent) != parent:
+                    raise self._error(
+                        f"frame {child!r} has two parents, {parents[child]!r} and {parent!r}; "
+                        "a TF tree gives each frame one",
+                        "/tf_static",
+                        int(tf.stamp_ns[k]),
+                        k,
+                    )
+        for child, edge in stamped.items():
+            if parents.get(child, edge.parent) != edge.parent:
+                raise self._error(
+                    f"frame {child!r} has the parent {parents[child]!r} in /tf_static and "
+                    f"{edge.parent!r} in /tf; a TF tree gives each frame one",
+                    "/tf",
+                )
+            values = np.concatenate([edge.translations, edge.quats_wxyz], axis=1)
+            bad = ~np.isfinite(values).all(axis=1)
+            if bad.any():
+                k = int(np.flatnonzero(bad)[0])
+                raise self._error(
+                    f"{edge.parent!r} -> {child!r} value {k} is not finite ({values[k].tolist()})",
+                    "/tf",
+                    int(edge.stamps_ns[k]),
+                )
+        tree = TFTree(static.static, stamped)
+        for frame in sorted(tree.frames()):
+            seen = [frame]
+            while (p := tree.parent(seen[-1])) is not None:
+                if p in seen:
+                    raise self._error(
+                        f"the TF graph has a cycle: {' -> '.join(seen[seen.index(p) :] + [p])}",
+                        "/tf_static" if p in static.static else "/tf",
+                    )
+                seen.append(p)
+        for child, (parent, T) in static.static.items():
+            problem = rigid_problem(T, f"{parent!r} -> {child!r}")
+            if problem:
+                raise self._error(problem, "/tf_static")
 
     def _check_increasing(self, topic: str, stamps: np.ndarray) -> None:
         if len(stamps) == 0:

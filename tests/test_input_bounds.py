@@ -1,0 +1,91 @@
+"""Plausibility bounds of inputs (tasks/bounds.py), checked by the readers (issue 41, item 6).
+
+Each out-of-bounds value fails its frame (a sweep) or its sequence (a calibration, a pose track,
+a TF graph: tests/test_log_bad_input.py) with a line naming the file, the frame and the value."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from storage.sources.coda.calibration import read_extrinsic
+from storage.sources.coda.layout import CodaFormatError, CodaFrameError
+from storage.sources.coda.reader import POINTS_PER_SWEEP, read_lidar_raw
+from tasks.bounds import (
+    MAX_CALIBRATION_TRANSLATION_M,
+    MAX_POINT_COORDINATE_M,
+    MAX_POSE_SPEED_M_S,
+    pose_track_problem,
+    rigid_problem,
+    sweep_problem,
+)
+
+
+@pytest.mark.parametrize(
+    "points, says",
+    [
+        (np.full((4, 3), 1e30), "beyond"),
+        (np.array([[0, 0, 0], [0, 0, 2 * MAX_POINT_COORDINATE_M]]), "1 point(s) beyond"),
+        (np.zeros((5, 3)), "all 5 points are at (0, 0, 0)"),
+        (np.array([[0, 0, 0], [1.0, 2.0, 0.5]]), ""),
+        (np.zeros((0, 3)), ""),  # empty input is normal input
+    ],
+)
+def test_sweep_bounds(points, says):
+    problem = sweep_problem(points)
+    assert (says in problem) if says else problem == "", problem
+
+
+def _T(t=(0.0, 0.0, 0.0), R=None):
+    T = np.eye(4)
+    T[:3, 3] = t
+    if R is not None:
+        T[:3, :3] = R
+    return T
+
+
+@pytest.mark.parametrize(
+    "T, says",
+    [
+        (_T((1e6, 0, 0)), "translation is 1e+06 m"),
+        (_T((MAX_CALIBRATION_TRANSLATION_M * 0.99, 0, 0)), ""),
+        (_T(R=np.diag([1.0, 1.0, 2.0])), "not orthonormal"),
+        (_T(R=np.diag([1.0, 1.0, -1.0])), "not orthonormal"),  # a mirror
+        (_T((np.nan, 0, 0)), "non-finite"),
+    ],
+)
+def test_rigid_bounds(T, says):
+    problem = rigid_problem(T, "os1 -> cam0")
+    assert (says in problem) if says else problem == "", problem
+
+
+def test_pose_track_bounds():
+    stamps = np.arange(4) * 100_000_000  # 10 Hz
+    walk = np.array([[0.1 * k, 0, 0] for k in range(4)])
+    assert pose_track_problem(stamps, walk) == ""
+    jump = walk.copy()
+    jump[2, 0] += MAX_POSE_SPEED_M_S  # a 20 m step in 0.1 s
+    assert "pose 2 jumps" in pose_track_problem(stamps, jump)
+    nan = walk.copy()
+    nan[1, 1] = np.nan
+    assert "pose 1 is not finite" in pose_track_problem(stamps, nan)
+
+
+@pytest.mark.parametrize("value, says", [(1e30, "beyond 10000 m"), (0.0, "at (0, 0, 0)")])
+def test_an_implausible_coda_sweep_fails_its_frame(value, says, tmp_path):
+    raw = np.zeros((POINTS_PER_SWEEP, 4), "<f4")
+    raw[:, :3] = value
+    path = tmp_path / "3d_raw_os1_0_7.bin"
+    path.write_bytes(raw.tobytes())
+    with pytest.raises(CodaFrameError, match="implausible sweep") as err:
+        read_lidar_raw(path, frame=7)
+    assert says in str(err.value) and str(path) in str(err.value) and err.value.frame == 7
+
+
+def test_a_coda_calibration_1e6_m_long_fails_its_sequence(tmp_path):
+    path = tmp_path / "calib_os1_to_cam0.yaml"
+    data = [1, 0, 0, 1.0e6, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]
+    path.write_text(f"extrinsic_matrix:\n  rows: 4\n  cols: 4\n  data: {data}\n")
+    with pytest.raises(CodaFormatError, match="translation is 1e\\+06 m") as err:
+        read_extrinsic(path)
+    assert str(path) in str(err.value)
