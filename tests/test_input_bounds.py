@@ -89,3 +89,37 @@ def test_a_coda_calibration_1e6_m_long_fails_its_sequence(tmp_path):
     with pytest.raises(CodaFormatError, match="translation is 1e\\+06 m") as err:
         read_extrinsic(path)
     assert str(path) in str(err.value)
+
+
+@pytest.mark.parametrize("fmt", ["png-file", "compressed"])
+def test_a_16_bit_png_is_scaled_not_read_as_white(fmt, tmp_path):
+    """Regression (issue 41): a 16-bit grey PNG was read as an all-white RGB image."""
+    import io
+
+    from PIL import Image
+
+    from storage.images import read_rgb
+    from storage.sources.log.images import decode_compressed
+
+    grey = (np.arange(12, dtype=np.uint16).reshape(3, 4) * 5000).astype(np.uint16)
+    buf = io.BytesIO()
+    Image.fromarray(grey).save(buf, format="PNG")
+    if fmt == "png-file":
+        (tmp_path / "a.png").write_bytes(buf.getvalue())
+        rgb = read_rgb(tmp_path / "a.png")
+    else:
+        rgb = decode_compressed("png", buf.getvalue())
+    assert rgb.shape == (3, 4, 3) and rgb.dtype == np.uint8
+    np.testing.assert_array_equal(rgb[..., 0], np.round(grey / 257.0).astype(np.uint8))
+    assert (rgb[..., 0] == rgb[..., 2]).all() and (rgb == 255).mean() < 0.2
+
+
+def test_a_float_image_is_refused_naming_its_mode(tmp_path):
+    from PIL import Image
+
+    from storage.images import read_rgb
+
+    Image.fromarray(np.ones((3, 4), np.float32)).save(tmp_path / "f.tiff")
+    with pytest.raises(ValueError, match="mode 'F'") as err:
+        read_rgb(tmp_path / "f.tiff")
+    assert "f.tiff" in str(err.value)
