@@ -228,6 +228,34 @@ def _sweep_xyz(value: float, sweep: int = 2):
     return edit
 
 
+def _pose_jump():
+    """The robot's /tf pose 100 m away at the third stamp (a picked sweep's) (1 m/s elsewhere)."""
+    seen = []
+
+    def edit(topic, msgtype, msg, log_ns):
+        if topic != "/tf":
+            return None
+        seen.append(msg)
+        if len(seen) != 3:
+            return None
+
+        def far(t):
+            tr = t.transform
+            moved = dataclasses.replace(tr.translation, x=tr.translation.x + 100.0)
+            return dataclasses.replace(t, transform=dataclasses.replace(tr, translation=moved))
+
+        return [
+            (
+                topic,
+                msgtype,
+                dataclasses.replace(msg, transforms=[far(t) for t in msg.transforms]),
+                log_ns,
+            )
+        ]
+
+    return edit
+
+
 def _overlapping_fields(topic, msgtype, msg, log_ns):
     if topic != LIDAR:
         return None
@@ -276,6 +304,7 @@ CASES = [
         "a frame with two parents", _edit(_static_edit(_two_parents)), "two parents", "/tf_static"
     ),
     Case("a camera 1e6 m away", _edit(_static_edit(_far_camera)), "1e+06 m", "/tf_static", False),
+    Case("a pose jump of 100 m", _edit(_pose_jump()), "m/s, more than 20 m/s", "/tf"),
     Case("a sweep at 1e30 m", _edit(_sweep_xyz(1e30)), "beyond 10000 m", LIDAR, level="frame"),
     Case("a sweep of zeros", _edit(_sweep_xyz(0.0)), "at (0, 0, 0)", LIDAR, level="frame"),
     Case(

@@ -65,7 +65,7 @@ from storage.sources.log.index import (
     stamp_ns,
 )
 from storage.sources.log.pointcloud import DecodedCloud, Field, PointLayoutError, decode_pointcloud2
-from tasks.bounds import rigid_problem
+from tasks.bounds import pose_track_problem, rigid_problem
 from tasks.poses.tf import StampedEdge, TFGap, TFTree, static_edge
 
 #: PointCloud2 topics of common drivers, preferred in this order when a log has several
@@ -621,6 +621,7 @@ class LogSequence(SelectedFrames):
                 poses = self.tree.lookup(world, self.lidar_frame, lidar[keep], gap)
             except TFGap as exc:
                 raise self._error(str(exc), "/tf", int(lidar[keep][0]) if keep else None) from None
+            self._check_track("/tf", lidar[keep], poses)
             return poses, keep, f"/tf ({world} -> {self.lidar_frame})"
         track = self.index.poses[topic]
         self._check_increasing(topic, track.stamp_ns)
@@ -637,11 +638,22 @@ class LogSequence(SelectedFrames):
         )
         tree = TFTree({}, {child: edge})
         poses = tree.lookup(track.frame_id, child, lidar[keep], gap) @ T_child_from_lidar
+        self._check_track(topic, lidar[keep], poses)
         return (
             poses,
             keep,
             f"{topic} ({track.msgtype.rsplit('/', 1)[-1]}, {track.frame_id} -> {child})",
         )
+
+    def _check_track(self, topic: str, stamps: np.ndarray, poses: np.ndarray) -> None:
+        """The LiDAR's world poses at the picked sweeps are finite and never jump faster than a
+        robot drives (tasks/bounds.py), else the sequence fails naming the topic and stamp."""
+        problem = pose_track_problem(stamps, poses[:, :3, 3]) if len(poses) else ""
+        if not problem and len(poses) and not np.isfinite(poses).all():
+            problem = "a pose rotation is not finite"
+        if problem:
+            k = int(problem.split()[1]) if problem.split()[1].isdigit() else 0
+            raise self._error(f"implausible poses: {problem}", topic, int(stamps[k]))
 
     def _tf_edges(self, world: str) -> list[StampedEdge]:
         chain = self.tree.chain(self.lidar_frame)
