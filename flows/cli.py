@@ -11,6 +11,8 @@ from typing import NoReturn
 
 import yaml
 
+from tasks.bounds import MAX_SIMULATED_FRAMES
+
 
 def _add_config_args(p: argparse.ArgumentParser, runtime: bool = True) -> None:
     p.add_argument(
@@ -88,6 +90,19 @@ def _at_least(low: int):
             raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
         if value < low:
             raise argparse.ArgumentTypeError(f"must be at least {low}, got {value}")
+        return value
+
+    return parse
+
+
+def _in_range(low: int, high: int):
+    """An argparse type: a whole number in [low, high] (one usage line otherwise)."""
+    at_least = _at_least(low)
+
+    def parse(text: str) -> int:
+        value = at_least(text)
+        if value > high:
+            raise argparse.ArgumentTypeError(f"must be at most {high}, got {value}")
         return value
 
     return parse
@@ -935,7 +950,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--sequences", type=_at_least(1), default=1)
-    p.add_argument("--frames", type=_at_least(1), default=20, help="raw 10 Hz frames per sequence")
+    p.add_argument(
+        "--frames",
+        type=_in_range(1, MAX_SIMULATED_FRAMES),
+        default=20,
+        help=f"raw 10 Hz frames per sequence (at most {MAX_SIMULATED_FRAMES})",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--pedestrians", type=int, default=None)
     p.add_argument("--crowd", choices=["crowded", "uncrowded"], default="uncrowded")
@@ -1002,7 +1022,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dataset", type=Path, required=True, help="the output store (OUT)")
     p.add_argument("--sequence", default=None, help="sequence to open (default: the first)")
     p.add_argument("--frame", type=int, default=None, help="frame index (frames table `frame`)")
-    p.add_argument("--port", type=int, default=8080, help="viewer port (next free when taken)")
+    p.add_argument(
+        "--port", type=_in_range(0, 65535), default=8080, help="viewer port (next free when taken)"
+    )
     p.add_argument("--host", default="127.0.0.1", help="address to serve on")
     p.add_argument("--html", type=Path, default=None, help="write one self-contained HTML page")
     p.add_argument("--frames", type=int, default=1, help="--html: frames in the page (<= 50)")
@@ -1058,7 +1080,7 @@ def main(argv: list[str] | None = None) -> int:
     from configs.schema import ConfigError
     from flows.pipeline.runtime import RunnerUnavailable
     from flows.pipeline.signals import stop_on_signals
-    from flows.pipeline.units import ExportTargetError
+    from flows.pipeline.units import DiskFullError, ExportTargetError
     from storage.files import InputError
     from storage.layout import StoreError, shown
     from storage.manifest import OutputError, StoreLockedError
@@ -1082,6 +1104,9 @@ def main(argv: list[str] | None = None) -> int:
     except StoreLockedError as exc:
         print(f"{name}: {shown(exc)}", file=sys.stderr)
         return EXIT_BUSY
+    except DiskFullError as exc:  # a run stopped by a full disk (flows.pipeline.units)
+        print(f"{name}: {shown(exc)}", file=sys.stderr)
+        return EXIT_FAILED
     except StoreError as exc:  # a published store that cannot be read (export, evaluate)
         print(f"{name}: {shown(exc)}", file=sys.stderr)
         return EXIT_FAILED

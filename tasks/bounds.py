@@ -115,3 +115,8 @@ def pose_track_problem(stamps_ns, translations) -> str:
             f"{MAX_POSE_SPEED_M_S:g} m/s)"
         )
     return ""
+
+
+#: the most raw frames `simulate` writes per sequence: one hour at 10 Hz (each frame is a full
+#: sweep and images in memory while written; 1e9 frames grew memory past 4 GB)
+MAX_SIMULATED_FRAMES = 36_000

@@ -11,7 +11,7 @@ from flows.pipeline.outcome import Status
 from flows.pipeline.plan import PlanCosts, plan_run, selected_sequences
 from flows.pipeline.units import DAMAGED_REASONS, store_problems
 from storage.layout import shown
-from storage.manifest import FingerprintCache, Manifest
+from storage.manifest import FingerprintCache, Manifest, OutputError
 
 
 def _unit_state(manifest, plan, stage: str, unit, dry_run: bool) -> list[str]:
@@ -35,6 +35,12 @@ def print_plan(cfg: Config, dry_run: bool, verify: bool = False) -> int:
     if cfg.dataset.sequences == "all":
         source(cfg).check_root(cfg.dataset.root)
     out, costs = Path(cfg.output.root), PlanCosts()
+    if not out.is_dir():  # not "every unit stale": there is no store to describe
+        raise OutputError(
+            f"output store {shown(out)} "
+            + ("is not a folder" if out.exists() else "does not exist")
+            + " (`mobileocc rebuild` builds one there)"
+        )
     manifest = Manifest.load(out)
     cache = FingerprintCache(out / ".cache" / "sequences" if out.is_dir() else None, verify)
     plans = plan_run(cfg, manifest, cache, sequences=selected_sequences(cfg), costs=costs)
