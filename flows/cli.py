@@ -185,9 +185,12 @@ def _run_flow(cfg, force: bool, progress: bool, verify: bool, prune: bool = Fals
     from flows.pipeline.runtime import prefect_api
 
     with prefect_api():
-        return rebuild_dataset(
+        report = rebuild_dataset(
             cfg, force=force, progress=progress, verify=verify, lock_held=True, prune=prune
         )
+    if isinstance(report, Exception):  # a full disk stopped the run (flows.pipeline.run)
+        raise report
+    return report
 
 
 def cmd_rebuild(args: argparse.Namespace) -> int:
