@@ -746,6 +746,16 @@ def _in_use(root: Path, holder: dict, exclusive: bool) -> str:
     readers (they write nothing; the file may still name a run of this host that was killed
     before it could remove it: a pid no longer alive, so readers hold it)."""
     if not holder or _dead_here(holder):
+        holders = lock_holders(root / LOCK_FILE)
+        if holders:  # the kernel says who (Linux /proc/locks): name them, not a guess
+            named = "; ".join(
+                f"{'exclusive' if excl else 'shared'} lock of pid {pid} on {socket.gethostname()}"
+                f" ({cmd})"
+                for excl, pid, cmd in holders[:3]
+            )
+            if not any(excl for excl, _, _ in holders):
+                return f"{root} is being read ({named}); wait for it to finish"
+            return f"{root} is locked by another process ({named}); wait for it to finish"
         return (
             f"{root} is being read (e.g. by `mobileocc export` or `evaluate`); wait for it to finish"
             if exclusive
@@ -761,6 +771,36 @@ def _in_use(root: Path, holder: dict, exclusive: bool) -> str:
         f"{holder.get('host', '?')}, pid {holder.get('pid', '?')}, started {when}); wait for it "
         "to finish"
     )
+
+
+def lock_holders(path: Path) -> list[tuple[bool, int, str]]:
+    """(exclusive, pid, command line) of each process of this host holding a ``flock`` on
+    ``path``, from Linux's ``/proc/locks`` (empty where it cannot be read: another system, or a
+    lock held from another host over a network file system). This process is left out."""
+    try:
+        st = os.stat(path)
+        lines = Path("/proc/locks").read_text().splitlines()
+    except OSError:
+        return []
+    inode = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+    found = []
+    for line in lines:
+        parts = line.split()
+        if len(parts) < 6 or parts[1] != "FLOCK" or parts[5] != inode:
+            continue
+        try:
+            pid = int(parts[4])
+        except ValueError:
+            continue
+        if pid == os.getpid():
+            continue
+        try:
+            raw = Path(f"/proc/{pid}/cmdline").read_bytes()
+            cmd = shown(" ".join(raw.decode("utf-8", "replace").split("\0")).strip()[:120])
+        except OSError:
+            cmd = "?"
+        found.append((parts[3] == "WRITE", pid, cmd or "?"))
+    return found
 
 
 def _dead_here(holder: dict) -> bool:

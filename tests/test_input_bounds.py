@@ -123,3 +123,23 @@ def test_a_float_image_is_refused_naming_its_mode(tmp_path):
     with pytest.raises(ValueError, match="mode 'F'") as err:
         read_rgb(tmp_path / "f.tiff")
     assert "f.tiff" in str(err.value)
+
+
+def test_a_first_sweep_cut_to_the_4_channel_size_is_the_frame_named(copy_dataset):
+    """Regression (issue 41): the sequence's channel count came from its first sweep, so a first
+    sweep cut to exactly the 4-channel size made every good 5-channel frame "truncated" and
+    named the cut frame last. The count is the sweeps' majority: the cut frame alone fails."""
+    from storage.sources.coda.reader import CodaSequence
+
+    root = copy_dataset()
+    seq = CodaSequence(root, "1", frame_stride=1)
+    frames = list(seq.info.frame_indices)
+    assert seq.info.lidar_channels == 5 and len(frames) >= 3
+    first = seq.lidar_path(frames[0])
+    first.write_bytes(first.read_bytes()[: POINTS_PER_SWEEP * 4 * 4])  # a whole 4-channel size
+    seq = CodaSequence(root, "1", frame_stride=1)
+    assert seq.info.lidar_channels == 5
+    with pytest.raises(CodaFrameError) as err:
+        seq.frame(0)
+    assert err.value.frame == frames[0] and first.name in str(err.value)
+    assert seq.frame(1).points_lidar.shape[1] == 3  # the good frames read as before

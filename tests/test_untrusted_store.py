@@ -7,6 +7,7 @@ traceback; every name from a store is printed escaped (storage.layout.shown)."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -171,3 +172,34 @@ def test_a_read_only_store_is_read_without_a_lock_and_refuses_recovery(tmp_path,
         with pytest.raises(StoreError, match="read-only, so it cannot be completed here"):
             with pub.reading(ro):
                 pass
+
+
+@pytest.mark.skipif(not Path("/proc/locks").exists(), reason="Linux /proc/locks")
+@pytest.mark.parametrize("kind", ["LOCK_SH", "LOCK_EX"])
+def test_a_lock_held_by_a_foreign_process_names_it(kind, tmp_path):
+    """Regression (issue 41): a store locked by a live process that is not a run (it writes no
+    host / pid into the lock file) was "being read (e.g. by export)"; the kernel names it."""
+    import subprocess
+    import sys
+
+    from storage.manifest import StoreLockedError, run_lock
+
+    lock = tmp_path / ".lock"
+    lock.touch()
+    code = (
+        "import fcntl, sys, time; f = open(sys.argv[1], 'rb'); "
+        f"fcntl.flock(f, fcntl.{kind}); print('held', flush=True); time.sleep(60)"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code, str(lock)], stdout=subprocess.PIPE)
+    try:
+        assert proc.stdout.readline().strip() == b"held"
+        with pytest.raises(StoreLockedError) as err, run_lock(tmp_path):
+            pass
+        text = str(err.value)
+        assert (
+            f"pid {proc.pid}" in text and ("exclusive" if kind == "LOCK_EX" else "shared") in text
+        )
+        assert ("being read" in text) == (kind == "LOCK_SH"), text
+    finally:
+        proc.kill()
+        proc.wait()
