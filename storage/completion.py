@@ -105,11 +105,11 @@ def read_record(folder: str | os.PathLike, name: str = RECORD) -> dict:
 def check_files(base: str | os.PathLike, files: Mapping[str, list], deep: bool = False) -> str:
     """The first problem of a file list under ``base`` ("" when every file is there at its size,
     and with ``deep`` its content hash): a missing file, another size, other content, or a path
-    that is absolute, leaves ``base`` or goes through a symbolic link (storage.layout.recorded_path)."""
+    that is absolute or leaves ``base`` (storage.layout.recorded_path)."""
     base = Path(base)
     for rel, entry in files.items():
         try:  # a record names paths inside its folder only: never read anything outside
-            path = recorded_path(base, rel, f"the file list of {base}")
+            path = recorded_path(base, rel, f"the file list of {base}", links=False)
         except StoreError as exc:
             return str(exc)
         try:

@@ -45,12 +45,14 @@ def shown(value: object) -> str:
     )
 
 
-def recorded_path(root: str | os.PathLike, rel: object, what: str) -> Path:
+def recorded_path(root: str | os.PathLike, rel: object, what: str, links: bool = True) -> Path:
     """``root / rel`` for a path recorded in a file of the store (a publication intent, a
     completion record, a manifest row, a cache): nothing written in OUT is trusted to name a
     path, so ``rel`` must be a non-empty relative POSIX path with no ``..`` component and no
     symbolic link on the way (whoever can write OUT must not make a run read or remove anything
-    outside it). Raises StoreError naming ``what`` and the path (escaped) otherwise."""
+    outside it). Raises StoreError naming ``what`` and the path (escaped) otherwise. ``links``
+    False: the text alone is checked, no ``lstat`` per component (file lists checked on every
+    plan: a store's own files; nothing is removed through them)."""
     text = rel if isinstance(rel, str) else None
     bad = (
         "is not a path"
@@ -66,6 +68,8 @@ def recorded_path(root: str | os.PathLike, rel: object, what: str) -> Path:
     if bad:
         raise StoreError(f"{what}: the recorded path {shown(repr(rel))} {bad}; refused")
     root = Path(root)
+    if not links:
+        return root / text
     path = root
     for part in PurePosixPath(text).parts:
         path = path / part
