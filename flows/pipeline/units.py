@@ -234,8 +234,8 @@ def _execute_once(
             write_summary(tmp, summary)
             write_record(tmp, stage=unit.stage, sequence=unit.sequence, key=unit.key)  # last
     except Exception as exc:  # noqa: BLE001 - one bad sequence fails alone, with its error
-        if is_disk_full(exc):  # not this sequence's fault: the whole run stops (finish)
-            _DISK_FULL.set()
+        if is_disk_full(exc):  # not this sequence's fault: the whole run stops (finish sets
+            # the flag in the run's process: a worker process of a shared cluster keeps none)
             full = named(exc, final.parent) if isinstance(exc, OSError) else exc
             return outcome(Status.FAILED, error=DISK_FULL + os_error_line(full))
         return outcome(
@@ -424,6 +424,7 @@ class _Units:
 
     def finish(self, outcome: UnitOutcome) -> None:
         if outcome.error.startswith(DISK_FULL):  # not recorded: the unit did not fail, the disk
+            _DISK_FULL.set()  # units of this process not started yet are skipped
             raise DiskFullError(outcome.error[len(DISK_FULL) :])
         self.report.outcomes[(outcome.sequence, outcome.stage)] = outcome
         _record(self.manifest, outcome, self.report)
