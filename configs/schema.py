@@ -645,6 +645,9 @@ class ConfigError(ValueError):
     def __init__(self, source: str, errors: list[tuple[str, str]]):
         self.source = source
         self.errors = errors
+        if len(errors) == 1 and not errors[0][0]:  # the file as a whole: one line
+            super().__init__(f"{source}: {errors[0][1]}")
+            return
         lines = "\n".join(f"  {path}: {msg}" for path, msg in errors)
         super().__init__(f"{source}: {len(errors)} error(s)\n{lines}")
 
@@ -665,9 +668,17 @@ def read_config_dict(path: Path, _seen: tuple[Path, ...] = ()) -> dict:
     if path in _seen:
         raise ConfigError(str(path), [("extends", "circular extends chain")])
     try:
-        raw = yaml.safe_load(path.read_text())
+        raw = yaml.safe_load(path.read_bytes().decode("utf-8"))
     except FileNotFoundError:
         raise ConfigError(str(path), [("", "file not found")]) from None
+    except IsADirectoryError:
+        raise ConfigError(str(path), [("", "is a folder, expected a YAML file")]) from None
+    except OSError as exc:
+        raise ConfigError(str(path), [("", f"cannot be read ({exc.strerror or exc})")]) from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            str(path), [("", f"is not UTF-8 text (byte {exc.start}); expected a YAML file")]
+        ) from None
     except yaml.YAMLError as exc:
         raise ConfigError(str(path), [("", f"invalid YAML: {exc}")]) from None
     raw = raw or {}

@@ -11,6 +11,8 @@ from typing import NoReturn
 
 import yaml
 
+from tasks.bounds import MAX_SIMULATED_FRAMES
+
 
 def _add_config_args(p: argparse.ArgumentParser, runtime: bool = True) -> None:
     p.add_argument(
@@ -102,6 +104,19 @@ def _at_least(low: int):
     return parse
 
 
+def _in_range(low: int, high: int):
+    """An argparse type: a whole number in [low, high] (one usage line otherwise)."""
+    at_least = _at_least(low)
+
+    def parse(text: str) -> int:
+        value = at_least(text)
+        if value > high:
+            raise argparse.ArgumentTypeError(f"must be at most {high}, got {value}")
+        return value
+
+    return parse
+
+
 def cmd_config(args: argparse.Namespace) -> int:
     from configs.schema import ConfigError, config_hash, load_config
 
@@ -188,9 +203,12 @@ def _run_flow(cfg, force: bool, progress: bool, verify: bool, prune: bool = Fals
     from flows.pipeline.runtime import prefect_api
 
     with prefect_api():
-        return rebuild_dataset(
+        report = rebuild_dataset(
             cfg, force=force, progress=progress, verify=verify, lock_held=True, prune=prune
         )
+    if isinstance(report, Exception):  # a full disk stopped the run (flows.pipeline.run)
+        raise report
+    return report
 
 
 def cmd_rebuild(args: argparse.Namespace) -> int:
@@ -1017,7 +1035,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--sequences", type=_at_least(1), default=1)
-    p.add_argument("--frames", type=_at_least(1), default=20, help="raw 10 Hz frames per sequence")
+    p.add_argument(
+        "--frames",
+        type=_in_range(1, MAX_SIMULATED_FRAMES),
+        default=20,
+        help=f"raw 10 Hz frames per sequence (at most {MAX_SIMULATED_FRAMES})",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--pedestrians", type=int, default=None)
     p.add_argument("--crowd", choices=["crowded", "uncrowded"], default="uncrowded")
@@ -1089,7 +1112,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dataset", type=Path, required=True, help="the output store (OUT)")
     p.add_argument("--sequence", default=None, help="sequence to open (default: the first)")
     p.add_argument("--frame", type=int, default=None, help="frame index (frames table `frame`)")
-    p.add_argument("--port", type=int, default=8080, help="viewer port (next free when taken)")
+    p.add_argument(
+        "--port", type=_in_range(0, 65535), default=8080, help="viewer port (next free when taken)"
+    )
     p.add_argument("--host", default="127.0.0.1", help="address to serve on")
     p.add_argument("--html", type=Path, default=None, help="write one self-contained HTML page")
     p.add_argument("--frames", type=int, default=1, help="--html: frames in the page (<= 50)")
@@ -1145,9 +1170,9 @@ def main(argv: list[str] | None = None) -> int:
     from configs.schema import ConfigError
     from flows.pipeline.runtime import RunnerUnavailable
     from flows.pipeline.signals import stop_on_signals
-    from flows.pipeline.units import ExportTargetError
+    from flows.pipeline.units import DiskFullError, ExportTargetError
     from storage.files import InputError
-    from storage.layout import StoreError
+    from storage.layout import StoreError, shown
     from storage.manifest import OutputError, StoreLockedError
 
     name = f"mobileocc {args.command}"
@@ -1164,13 +1189,21 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     except (InputError, OutputError, UsageError, ExportTargetError, RunnerUnavailable) as exc:
         # --data / --out / --set / --to / the runner / a manifest that cannot be read
-        print(f"{name}: {exc}", file=sys.stderr)
+        print(f"{name}: {shown(exc)}", file=sys.stderr)
         return EXIT_USAGE
     except StoreLockedError as exc:
-        print(f"{name}: {exc}", file=sys.stderr)
+        print(f"{name}: {shown(exc)}", file=sys.stderr)
         return EXIT_BUSY
+    except DiskFullError as exc:  # a run stopped by a full disk (flows.pipeline.units)
+        print(f"{name}: {shown(exc)}", file=sys.stderr)
+        return EXIT_FAILED
     except StoreError as exc:  # a published store that cannot be read (export, evaluate)
-        print(f"{name}: {exc}", file=sys.stderr)
+        print(f"{name}: {shown(exc)}", file=sys.stderr)
+        return EXIT_FAILED
+    except OSError as exc:  # a full disk, a read-only place, a file that went away: one line
+        from storage.atomic import os_error_line
+
+        print(f"{name}: {shown(os_error_line(exc))}", file=sys.stderr)
         return EXIT_FAILED
 
 

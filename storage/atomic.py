@@ -18,6 +18,7 @@ so (tests/test_atomic.py).
 
 from __future__ import annotations
 
+import errno
 import os
 import shutil
 import uuid
@@ -143,3 +144,32 @@ def staged_folder(target: str | os.PathLike, replace: bool = True) -> Iterator[P
     finally:
         if tmp.exists():
             _remove(tmp)
+
+
+def _mount_point(path: Path) -> Path:
+    path = Path(os.path.abspath(path))
+    while not os.path.ismount(path) and path != path.parent:
+        path = path.parent
+    return path
+
+
+def os_error_line(exc: OSError) -> str:
+    """One line for a write that failed: a full disk names the file system (its mount point) and
+    what is free there; a read-only one says so; any other error its file and reason."""
+    where = exc.filename or ""
+    if exc.errno in (errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)):
+        place = Path(where or ".")
+        while not place.exists() and place != place.parent:
+            place = place.parent
+        try:
+            free = f"{shutil.disk_usage(place).free / 1e6:.1f} MB free"
+        except OSError:
+            free = "free space unknown"
+        return (
+            f"no space left on the file system at {_mount_point(place)} ({free}) writing "
+            f"{where or 'a file'}; free space there and run the same command again (finished "
+            "work is kept)"
+        )
+    if exc.errno == errno.EROFS:
+        return f"{where}: read-only file system; this command cannot write there"
+    return f"{where + ': ' if where else ''}{exc.strerror or exc}"

@@ -32,10 +32,18 @@ import numpy as np
 import scipy.sparse
 
 from storage.atomic import atomic_write_bytes
-from storage.npzio import save_npz_deterministic
+from storage.files import InputError, open_regular, read_bytes
+from storage.npzio import NPZ_ERRORS, load_npz, save_npz_deterministic
 from tasks.conventions import SMPL_MODEL_KEYS
 
 POSE_PRIOR_KEYS = ("means", "covars", "weights")
+
+#: bounds of what a model file may hold, checked before memory is spent on it: the file's size
+#: (the official SMPL pickles are 40-250 MB), how deep its pickle nests (a model's is < 20; a
+#: flat batch of 1,000 dict items counts 2,000) and the cells of a pickled sparse matrix made dense
+MAX_MODEL_FILE_BYTES = 1 << 30
+MAX_PICKLE_DEPTH = 10_000
+MAX_DENSE_CELLS = 1 << 27
 
 
 class UnsafePickleError(ValueError):
@@ -95,6 +103,15 @@ class _SparseStandIn(_StandIn):
         if not isinstance(st, dict):
             raise BodyFileError(f"a pickled sparse matrix with state {type(st).__name__}")
         shape = st.get("_shape", st.get("shape"))
+        try:
+            cells = int(np.prod([int(n) for n in shape], dtype=np.float64))
+        except (TypeError, ValueError):
+            raise BodyFileError(f"a pickled sparse matrix of shape {shape!r}") from None
+        if cells > MAX_DENSE_CELLS:
+            raise BodyFileError(
+                f"a pickled sparse matrix of shape {tuple(shape)}: more than {MAX_DENSE_CELLS} "
+                "cells dense (an SMPL J_regressor is 24 x V)"
+            )
         fmt = st.get("format", self.kind)
         if isinstance(fmt, bytes):
             fmt = fmt.decode("latin1")
@@ -156,6 +173,14 @@ _SAFE_BUILTINS = {
 }
 
 
+def _bytearray(*args):
+    """``bytearray`` as a pickle may call it: from bytes or text, never ``bytearray(n)`` (n
+    zero bytes: a memory bomb)."""
+    if args and isinstance(args[0], int) and not isinstance(args[0], bool):
+        raise UnsafePickleError(f"pickle calls bytearray({args[0]}), which is not allowed")
+    return bytearray(*args)
+
+
 class _RestrictedUnpickler(pickle.Unpickler):
     def find_class(self, module: str, name: str):
         if (module, name) == ("_codecs", "encode"):
@@ -166,6 +191,8 @@ class _RestrictedUnpickler(pickle.Unpickler):
             return getattr(__import__(mod, fromlist=[name]), name)
         if module in ("copy_reg", "copyreg") and name in ("_reconstructor", "__newobj__"):
             return getattr(copyreg, name)
+        if module in ("__builtin__", "builtins") and name == "bytearray":
+            return _bytearray
         if module in ("__builtin__", "builtins") and name in _SAFE_BUILTINS:
             return _SAFE_BUILTINS[name]
         if module == "collections" and name == "OrderedDict":
@@ -194,17 +221,51 @@ def _to_plain(obj):
     return obj
 
 
+def _check_structure(path: Path, data: bytes) -> None:
+    """Walk the pickle's opcodes without running any (pickletools.genops): a declared length
+    past the file's end, a stack deeper than :data:`MAX_PICKLE_DEPTH` (a 200,000-deep nesting
+    would end in a RecursionError or a crash) or a truncated pickle is a BodyFileError before
+    anything is built or allocated."""
+    import pickletools
+
+    stack, marks, deepest = 0, [], 0
+    try:
+        for op, _, _ in pickletools.genops(data):
+            before, after = op.stack_before, op.stack_after
+            if pickletools.markobject in before:
+                # items above the mark go, and the ones listed before the mark (APPENDS' list)
+                stack = (marks.pop() if marks else 0) - before.index(pickletools.markobject)
+            else:
+                stack -= len(before)
+            if pickletools.markobject in after:
+                marks.append(max(stack, 0))
+            else:
+                stack += len(after)
+            deepest = max(deepest, stack + len(marks))
+            if deepest > MAX_PICKLE_DEPTH:
+                raise BodyFileError(
+                    f"{path}: pickle nests deeper than {MAX_PICKLE_DEPTH} levels; refused"
+                )
+    except ValueError as e:  # genops: a truncated pickle, a declared length past the end
+        if isinstance(e, BodyFileError):
+            raise
+        raise BodyFileError(f"{path}: not a readable pickle ({e})") from None
+
+
 def _restricted_load(path: Path) -> dict:
     try:
-        data = path.read_bytes()
-    except OSError as e:
-        raise BodyFileError(f"{path}: cannot read ({e})") from e
+        data = read_bytes(path, what="model file", max_bytes=MAX_MODEL_FILE_BYTES)
+    except InputError as e:  # missing, a device (/dev/zero), a FIFO, too large
+        raise BodyFileError(str(e)) from None
+    _check_structure(path, data)
     try:
         obj = _RestrictedUnpickler(io.BytesIO(data), encoding="latin1").load()
     except UnsafePickleError as e:
         raise UnsafePickleError(f"{path}: {e}") from None
     except (pickle.UnpicklingError, EOFError, AttributeError, TypeError, ValueError) as e:
         raise BodyFileError(f"{path}: not a readable pickle ({type(e).__name__}: {e})") from e
+    except (RecursionError, MemoryError) as e:
+        raise BodyFileError(f"{path}: not a plausible model pickle ({type(e).__name__})") from None
     if not isinstance(obj, dict):
         raise BodyFileError(f"{path}: expected a pickled dict, got {type(obj).__name__}")
     out = {}
@@ -229,9 +290,11 @@ def load_body_model(path) -> dict[str, np.ndarray]:
     suffix = path.suffix.lower()
     if suffix == ".npz":
         try:
-            with np.load(path, allow_pickle=False) as z:
-                params = {k: z[k] for k in z.files}
-        except (OSError, ValueError) as e:
+            with open_regular(path, what="body model file") as fh:
+                params = load_npz(fh)  # each member's size checked before it is read
+        except InputError as e:
+            raise BodyFileError(str(e)) from None
+        except NPZ_ERRORS as e:
             raise BodyFileError(f"{path}: cannot read body model npz ({e})") from e
     elif suffix == ".pkl":
         raw = _restricted_load(path)
@@ -317,7 +380,10 @@ def _check_prior(path: Path, prior: dict) -> dict[str, np.ndarray]:
     missing = [k for k in POSE_PRIOR_KEYS if k not in prior]
     if missing:
         raise BodyFileError(f"{path}: pose prior lacks keys {missing}; has {sorted(prior)}")
-    out = {k: np.asarray(prior[k], dtype=np.float64) for k in POSE_PRIOR_KEYS}
+    try:
+        out = {k: np.asarray(prior[k], dtype=np.float64) for k in POSE_PRIOR_KEYS}
+    except (TypeError, ValueError, RecursionError) as e:
+        raise BodyFileError(f"{path}: pose prior arrays are not numbers ({e})") from None
     K = out["weights"].reshape(-1).shape[0]
     out["weights"] = out["weights"].reshape(-1)
     m, c = out["means"], out["covars"]

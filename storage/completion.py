@@ -25,7 +25,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 from storage.atomic import atomic_write_bytes
-from storage.layout import TMP_PREFIX
+from storage.layout import TMP_PREFIX, StoreError, recorded_path
 
 RECORD = "complete.json"
 RECORD_VERSION = 1
@@ -104,10 +104,14 @@ def read_record(folder: str | os.PathLike, name: str = RECORD) -> dict:
 
 def check_files(base: str | os.PathLike, files: Mapping[str, list], deep: bool = False) -> str:
     """The first problem of a file list under ``base`` ("" when every file is there at its size,
-    and with ``deep`` its content hash): a missing file, another size, other content."""
+    and with ``deep`` its content hash): a missing file, another size, other content, or a path
+    that is absolute or leaves ``base`` (storage.layout.recorded_path)."""
     base = Path(base)
     for rel, entry in files.items():
-        path = base / rel
+        try:  # a record names paths inside its folder only: never read anything outside
+            path = recorded_path(base, rel, f"the file list of {base}", links=False)
+        except StoreError as exc:
+            return str(exc)
         try:
             size, digest = int(entry[0]), str(entry[1])
         except (TypeError, ValueError, IndexError):

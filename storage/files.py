@@ -106,12 +106,24 @@ def open_regular(
         raise
 
 
-def read_bytes(path: Path | str, frame: int | None = None, what: str = "file") -> bytes:
-    """The whole content of a regular file; a read error names the file."""
+def read_bytes(
+    path: Path | str, frame: int | None = None, what: str = "file", max_bytes: int | None = None
+) -> bytes:
+    """The whole content of a regular file; a read error names the file. ``max_bytes``: a file
+    larger than that is refused (its size checked on the open descriptor, before a byte is read
+    or memory allocated for it)."""
     path = Path(path)
     with open_regular(path, frame, what) as fh:
+        size = os.fstat(fh.fileno()).st_size
+        if max_bytes is not None and size > max_bytes:
+            raise InputError(
+                f"{where(path, frame)}: the {what} is {size} bytes, more than the {max_bytes} "
+                "this reader takes",
+                path,
+                frame,
+            )
         try:
-            return fh.read()
+            return fh.read() if max_bytes is None else fh.read(max_bytes + 1)[:max_bytes]
         except OSError as exc:
             raise InputError(
                 f"{where(path, frame)}: cannot read the {what}: {exc.strerror or exc}", path, frame

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from storage.files import InputError, open_regular
-from storage.npzio import save_npz_deterministic
+from storage.npzio import load_npz, save_npz_deterministic
 
 #: Fields of a frame file: name -> (dtype, shape with -1 for free dims, documented in GT_FORMAT.md).
 FRAME_FIELDS: dict[str, tuple[str, tuple[int, ...]]] = {
@@ -71,11 +71,8 @@ def _load(path: Path, frame: int | None) -> dict[str, np.ndarray]:
     """Every array of a ground-truth npz (regular files only, no pickles); GTFormatError naming
     the file when it is not a readable npz."""
     try:
-        with (
-            open_regular(path, frame, "ground-truth file") as fh,
-            np.load(fh, allow_pickle=False) as z,
-        ):
-            return {k: z[k] for k in z.files}
+        with open_regular(path, frame, "ground-truth file") as fh:
+            return load_npz(fh)  # each member's size checked before it is read
     except InputError as exc:
         raise GTFormatError(str(exc), path, frame) from None
     except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:

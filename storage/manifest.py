@@ -28,6 +28,7 @@ and hashes every file instead.
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import hashlib
 import json
@@ -40,13 +41,13 @@ import time
 import uuid
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 from storage.atomic import atomic_write_bytes, named
 from storage.files import InputError, open_regular
-from storage.layout import TMP_PREFIX
+from storage.layout import TMP_PREFIX, shown
 
 MANIFEST = "manifest.json"
 JOURNAL = "manifest.journal"
@@ -195,9 +196,13 @@ class FingerprintCache:
         if self.folder is None:
             return {}
         try:
-            return json.loads((self.folder / f"{sequence}.json").read_text())
+            memo = json.loads((self.folder / f"{sequence}.json").read_bytes())
         except (OSError, ValueError):
             return {}  # a missing or damaged memo only costs reading the sequence again
+        # verified before use: a memo that is not the object this class writes is not used
+        if not isinstance(memo, dict) or not isinstance(memo.get("files", {}), dict):
+            return {}
+        return memo
 
     def hit(self, memo: dict, reader: Any, signature: str) -> bool:
         return (
@@ -318,6 +323,20 @@ class Manifest:
         return self.rows.get((sequence, stage))
 
     def put(self, record: StageRecord) -> None:
+        loc = record.location
+        if loc and (
+            loc != f"stages/{record.stage}/{record.sequence}/{record.key}"
+            or ".." in loc.split("/")
+            or not loc.isprintable()
+        ):
+            # nothing recorded in OUT is trusted to name a path: a row naming any folder but its
+            # own key-named one (a crafted or foreign manifest) names none, so the unit runs again
+            record = replace(
+                record,
+                location="",
+                status="failed",
+                error=f"its recorded output location {shown(repr(loc))} was refused",
+            )
         self.rows[(record.sequence, record.stage)] = record
 
     def record(self, record: StageRecord) -> None:
@@ -456,6 +475,35 @@ def sweep_temporaries(root: Path) -> int:
                 shutil.rmtree(tmp, ignore_errors=True)
             else:
                 tmp.unlink(missing_ok=True)
+            n += 1
+    return n
+
+
+#: the store's cache products under ``OUT/.cache`` (all remade on demand from the inputs):
+#: the procedural body model and prior, the log indexes, the odometry, the planning memos
+PROCEDURAL_MODEL = "procedural_smpl_v1.npz"
+PROCEDURAL_PRIOR = "procedural_gmm_08_v1.pkl"
+CACHE_PRODUCTS = (
+    PROCEDURAL_MODEL,
+    PROCEDURAL_PRIOR,
+    "log-index",
+    "odometry",
+    "sequences",
+)
+
+
+def remove_caches(root: Path) -> int:
+    """Remove every cache product (``rebuild --force``: each is made again from the inputs, so a
+    damaged one that passed its check cannot outlive a forced run); returns how many. Call it
+    only while holding :func:`run_lock`."""
+    n = 0
+    for name in CACHE_PRODUCTS:
+        path = Path(root) / ".cache" / name
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+            n += 1
+        elif os.path.lexists(path):
+            path.unlink(missing_ok=True)
             n += 1
     return n
 
@@ -606,12 +654,43 @@ def read_lock(root: Path) -> Iterator[None]:
     if held:
         yield
         return
+    if not writable_store(root):
+        # a read-only store (a finished dataset on a read-only mount): no run can write it, so
+        # none can race this reader; the lock file may not be creatable, and is not needed
+        yield
+        return
     fd = _acquire(path, exclusive=False)
     try:
         yield
     finally:
         fcntl.flock(fd, fcntl.LOCK_UN)
         os.close(fd)
+
+
+def writable_store(root: Path) -> bool:
+    """Whether ``root`` can be written: its lock file opened for writing (created where missing,
+    as a reader's shared lock does anyway). False on a read-only file system (EROFS) or a folder
+    this user may not write (EACCES / EPERM)."""
+    try:
+        fd = os.open(root / LOCK_FILE, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
+    except OSError as exc:
+        if exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
+            return False
+        raise
+    os.close(fd)
+    return True
+
+
+def read_only_error(root: Path, exc: OSError, doing: str) -> OutputError | None:
+    """The one line for a write refused by a read-only store (EROFS, EACCES, EPERM) while
+    ``doing``; None for any other error."""
+    if exc.errno not in (errno.EROFS, errno.EACCES, errno.EPERM):
+        return None
+    why = "is on a read-only file system" if exc.errno == errno.EROFS else "is not writable here"
+    return OutputError(
+        f"output store {root} {why} ({exc.filename or root}: {exc.strerror}); {doing} needs to "
+        "write into it (reading it works: status, evaluate --report, export --to, view)"
+    )
 
 
 @contextmanager
@@ -667,6 +746,16 @@ def _in_use(root: Path, holder: dict, exclusive: bool) -> str:
     readers (they write nothing; the file may still name a run of this host that was killed
     before it could remove it: a pid no longer alive, so readers hold it)."""
     if not holder or _dead_here(holder):
+        holders = lock_holders(root / LOCK_FILE)
+        if holders:  # the kernel says who (Linux /proc/locks): name them, not a guess
+            named = "; ".join(
+                f"{'exclusive' if excl else 'shared'} lock of pid {pid} on {socket.gethostname()}"
+                f" ({cmd})"
+                for excl, pid, cmd in holders[:3]
+            )
+            if not any(excl for excl, _, _ in holders):
+                return f"{root} is being read ({named}); wait for it to finish"
+            return f"{root} is locked by another process ({named}); wait for it to finish"
         return (
             f"{root} is being read (e.g. by `mobileocc export` or `evaluate`); wait for it to finish"
             if exclusive
@@ -682,6 +771,36 @@ def _in_use(root: Path, holder: dict, exclusive: bool) -> str:
         f"{holder.get('host', '?')}, pid {holder.get('pid', '?')}, started {when}); wait for it "
         "to finish"
     )
+
+
+def lock_holders(path: Path) -> list[tuple[bool, int, str]]:
+    """(exclusive, pid, command line) of each process of this host holding a ``flock`` on
+    ``path``, from Linux's ``/proc/locks`` (empty where it cannot be read: another system, or a
+    lock held from another host over a network file system). This process is left out."""
+    try:
+        st = os.stat(path)
+        lines = Path("/proc/locks").read_text().splitlines()
+    except OSError:
+        return []
+    inode = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+    found = []
+    for line in lines:
+        parts = line.split()
+        if len(parts) < 6 or parts[1] != "FLOCK" or parts[5] != inode:
+            continue
+        try:
+            pid = int(parts[4])
+        except ValueError:
+            continue
+        if pid == os.getpid():
+            continue
+        try:
+            raw = Path(f"/proc/{pid}/cmdline").read_bytes()
+            cmd = shown(" ".join(raw.decode("utf-8", "replace").split("\0")).strip()[:120])
+        except OSError:
+            cmd = "?"
+        found.append((parts[3] == "WRITE", pid, cmd or "?"))
+    return found
 
 
 def _dead_here(holder: dict) -> bool:

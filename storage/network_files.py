@@ -157,6 +157,15 @@ def bundled_model(cache: str | os.PathLike, name: str) -> Path:
         tried.append(_CHECKOUT / cache / name)
     for path in tried:
         if path.is_file():
+            # an unpacked file is a cache product: verified before use (its sha256, cheap next
+            # to loading the network); a damaged one is unpacked again by `make setup`
+            digest = _sha256(path)
+            if digest != BUNDLED_MODELS[name][1]:
+                raise ModelFileError(
+                    f"{path}: damaged (sha256 {digest[:12]}..., expected "
+                    f"{BUNDLED_MODELS[name][1][:12]}...); run `make setup` (or `mobileocc models "
+                    f"unpack-bundled --wheel mediapipe-{MEDIAPIPE_VERSION}-*.whl --cache {cache}`)"
+                )
             return path
     raise ModelFileError(
         f"{' or '.join(map(str, tried))}: bundled model missing; run `make setup` (or `mobileocc "

@@ -16,14 +16,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
-import zipfile
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 
 from storage.atomic import atomic_write_text
-from storage.npzio import save_npz_deterministic
+from storage.npzio import NPZ_ERRORS, load_npz, save_npz_deterministic
 
 P = TypeVar("P", bound="Product")
 
@@ -147,9 +146,8 @@ class Product:
         if not path.exists():
             raise ProductError(f"{path}: stage product is missing (was the stage output deleted?)")
         try:
-            with np.load(path, allow_pickle=False) as z:
-                arrays = {k: z[k] for k in z.files}
-        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+            arrays = load_npz(path)
+        except NPZ_ERRORS as exc:
             raise ProductError(f"{path}: cannot read stage product ({exc})") from None
         check_arrays(cls.__name__, str(path), arrays, cls.specs())
         return cls(**arrays)

@@ -40,8 +40,10 @@ from storage.layout import (
     TMP_PREFIX,
     StoreError,
     check_name,
+    recorded_path,
+    shown,
 )
-from storage.manifest import read_lock, run_lock
+from storage.manifest import read_lock, run_lock, writable_store
 from storage.schemas import TABLE_NAMES
 from storage.tables import (
     PARTITION_FILE,
@@ -164,7 +166,7 @@ def _complete(root: Path, sequence: str, intent: dict) -> None:
     root, seq_dir = Path(root), Path(root) / OCCUPANCY_DIR / sequence
     action = intent.get("action")
     if action == "publish":
-        staging = root / str(intent["staging"])
+        staging = root / intent["staging"]  # checked by _check_intent: a .tmp-* name in OUT
         target = seq_dir / f"{intent['version']}.zarr"
         seq_dir.mkdir(parents=True, exist_ok=True)
         store = staging / "occupancy.zarr"
@@ -211,19 +213,116 @@ def pending_publications(root: str | os.PathLike) -> list[str]:
     return sorted(p.stem for p in folder.glob("*.json") if not p.name.startswith("."))
 
 
-def recover_publications(root: str | os.PathLike) -> list[str]:
+def intent_problem(root: str | os.PathLike, sequence: str) -> str:
+    """Why the intent ``OUT/.publishing/<sequence>.json`` cannot be carried out ("" when it
+    can): unreadable, not JSON, or not an intent this code wrote (:func:`_check_intent`)."""
+    try:
+        _read_intent(Path(root), sequence)
+    except StoreError as exc:
+        return str(exc)
+    return ""
+
+
+def _read_intent(root: Path, sequence: str) -> dict:
+    path = _intent_path(root, sequence)
+    try:
+        check_name("sequence", sequence)
+        if not sequence.isprintable():
+            raise StoreError("its name holds a control character")
+        intent = json.loads(path.read_bytes())
+        _check_intent(root, intent)
+    except (OSError, ValueError) as exc:  # written atomically: only a foreign file is unreadable
+        why = exc.strerror if isinstance(exc, OSError) else str(exc)
+        raise StoreError(f"{shown(path)}: not a publication intent ({shown(why)})") from None
+    return intent
+
+
+def _check_intent(root: Path, intent: Any) -> None:
+    """An intent names only what this module writes: a ``.tmp-*`` staging folder directly in
+    OUT, a version usable as a name, file lists of paths inside OUT (storage.layout
+    .recorded_path); anything else (a crafted intent naming a folder outside OUT) is refused
+    with a ValueError, and nothing it names is touched."""
+    if not isinstance(intent, dict):
+        raise ValueError("not a JSON object")
+    action = intent.get("action")
+    if action == "withdraw":
+        if not isinstance(intent.get("row"), dict):
+            raise ValueError("a withdrawal without its sequences-table row")
+        return
+    if action == "remove":
+        return
+    if action != "publish":
+        raise ValueError(f"unknown publication step {shown(repr(action))}")
+    staging, version, current = intent.get("staging"), intent.get("version"), intent.get("current")
+    if not isinstance(staging, str) or not staging.startswith(TMP_PREFIX) or "/" in staging:
+        raise ValueError(
+            f"its staging folder {shown(repr(staging))} is not a {TMP_PREFIX}* folder in the store"
+        )
+    recorded_path(root, staging, "the staging folder")
+    if not isinstance(version, str):
+        raise ValueError(f"its version {shown(repr(version))} is not a name")
+    check_name("version", version)
+    if (
+        not isinstance(current, dict)
+        or current.get("version") != version
+        or not isinstance(current.get("files"), dict)
+    ):
+        raise ValueError("its current.json is not a file list of its version")
+    for rel in current["files"]:
+        recorded_path(root, rel, "a published file")
+
+
+def _roll_back(root: Path, sequence: str, why: str) -> str:
+    """An intent that cannot be carried out: removed; the sequence's published data is kept when
+    it is whole (every file its ``current.json`` lists, at its size and content), else taken out
+    (its export unit publishes it again). Returns the one line saying so."""
+    path = _intent_path(root, sequence)
+    seq_dir = root / OCCUPANCY_DIR / sequence
+    kept = "no published data"
+    if _usable_name(sequence):
+        current, problem = _read_current(seq_dir / CURRENT_FILE)
+        files = current.get("files") if isinstance(current, dict) else None
+        if not problem and isinstance(files, dict):
+            try:
+                for rel in files:
+                    recorded_path(root, rel, "a published file")
+                problem = check_files(root, files, deep=True)
+            except StoreError as exc:
+                problem = str(exc)
+        if not problem and not damaged_publication(root, sequence):
+            kept = "its published data is whole and kept"
+        elif seq_dir.exists() or published_version(root, sequence):
+            _complete(root, sequence, {"action": "remove"})
+            kept = "its published data was not whole and is taken out (the next run publishes it)"
+    path.unlink(missing_ok=True)
+    return f"{why}; rolled back: removed, {kept}"
+
+
+def _usable_name(sequence: str) -> bool:
+    try:
+        check_name("sequence", sequence)
+    except StoreError:
+        return False
+    return sequence.isprintable()
+
+
+def recover_publications(
+    root: str | os.PathLike, rolled_back: list[str] | None = None
+) -> list[str]:
     """Complete every interrupted publication (call it holding the run lock, before the
-    temporaries are swept: the staging directories it reads are temporaries); returns them."""
+    temporaries are swept: the staging directories it reads are temporaries); returns them. An
+    intent that is not one this code wrote (garbage, a crafted path) is rolled back instead
+    (:func:`_roll_back`), one line each appended to ``rolled_back``."""
     done = []
     for sequence in pending_publications(root):
-        path = _intent_path(Path(root), sequence)
         try:
-            intent = json.loads(path.read_bytes())
-        except (OSError, ValueError):  # written atomically: only a foreign file is unreadable
-            raise StoreError(
-                f"{path}: not a publication intent; remove it and run `mobileocc rebuild`"
-            ) from None
-        _complete(Path(root), sequence, intent)
+            intent = _read_intent(Path(root), sequence)
+            _complete(Path(root), sequence, intent)
+        except (ValueError, TypeError, KeyError) as exc:  # StoreError too; OSError goes up
+            line = _roll_back(Path(root), sequence, str(exc))
+            if rolled_back is not None:
+                rolled_back.append(line)
+            continue
         done.append(sequence)
     return done
 
@@ -231,11 +330,19 @@ def recover_publications(root: str | os.PathLike) -> list[str]:
 @contextlib.contextmanager
 def reading(root: str | os.PathLike) -> Iterator[None]:
     """Read the published dataset under the store's read lock (shared with other readers, refused
-    while a run holds it: storage.manifest.StoreLockedError). A publication interrupted by a
+    while a run holds it: storage.manifest.StoreLockedError; none on a read-only store, which no
+    run can write). A publication interrupted by a
     killed run is completed first (briefly holding the run lock), so a reader sees whole
     versions only."""
     root = Path(root)
-    if pending_publications(root):
+    pending = pending_publications(root)
+    if pending and not writable_store(root):
+        raise StoreError(
+            f"dataset {shown(root)}: the publication of {shown(', '.join(pending))} was "
+            "interrupted and the store is read-only, so it cannot be completed here; run "
+            "`mobileocc rebuild` where the store is writable"
+        )
+    if pending:
         with run_lock(root):
             recover_publications(root)
     with read_lock(root):
@@ -300,6 +407,9 @@ def check_publication(
     (``deep``) of other content."""
     root = Path(root)
     if sequence in pending_publications(root):
+        garbage = intent_problem(root, sequence)
+        if garbage:
+            return f"{garbage} (the next run rolls it back)"
         return "its publication was interrupted (the next run completes it)"
     path = root / OCCUPANCY_DIR / sequence / CURRENT_FILE
     current, problem = _read_current(path)

@@ -707,3 +707,13 @@ def test_a_unit_of_several_threads_runs_torch_on_one():
     t.start()
     t.join()
     assert seen["torch"] == 1
+
+
+def test_gaps_at_frames_detect_left_out_are_not_filled():
+    """Regression (issue 41): the gap filler read the sweep of a frame the detect stage had left
+    out (a cut or NaN sweep), so one bad frame failed and withdrew its whole sequence."""
+    gaps = find_gaps(np.ones(3, int), np.array([0, 2, 5]), np.arange(6) * 0.2, max_gap_frames=2)
+    assert gaps.position.tolist() == [1, 3, 4]
+    usable = gaps.only([0, 2, 3, 5])  # frames 1 and 4 were left out by detect
+    assert usable.position.tolist() == [3] and usable.before.tolist() == [1]
+    assert usable.after.tolist() == [2] and len(gaps.only([])) == 0

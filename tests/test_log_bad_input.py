@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 import yaml
 
@@ -172,6 +173,97 @@ def _stamps_backwards():
     return edit
 
 
+def _static_edit(change):
+    """An edit of the /tf_static message: ``change(transforms) -> transforms``."""
+
+    def edit(topic, msgtype, msg, log_ns):
+        if topic != "/tf_static":
+            return None
+        return [
+            (topic, msgtype, dataclasses.replace(msg, transforms=change(msg.transforms)), log_ns)
+        ]
+
+    return edit
+
+
+def _reparent(t, parent: str):
+    return dataclasses.replace(t, header=dataclasses.replace(t.header, frame_id=parent))
+
+
+def _cycle(ts):  # two extra frames, each the other's parent: rig_a -> rig_b -> rig_a
+    a = _reparent(dataclasses.replace(ts[-1], child_frame_id="rig_a"), "rig_b")
+    return [*ts, a, _reparent(dataclasses.replace(ts[-1], child_frame_id="rig_b"), "rig_a")]
+
+
+def _two_parents(ts):
+    return [*ts, _reparent(ts[-1], "somewhere_else")]
+
+
+def _far_camera(ts):  # an os1 -> camera translation of 1e6 m
+    def far(t):
+        tr = t.transform
+        moved = dataclasses.replace(tr.translation, x=1.0e6)
+        return dataclasses.replace(t, transform=dataclasses.replace(tr, translation=moved))
+
+    return [far(t) if t.child_frame_id == "stereo_left_optical_frame" else t for t in ts]
+
+
+def _sweep_xyz(value: float, sweep: int = 2):
+    """Sweep ``sweep``'s every x, y, z set to ``value`` (1e30 m, or 0: a sweep of no returns)."""
+    seen = []
+
+    def edit(topic, msgtype, msg, log_ns):
+        if topic != LIDAR:
+            return None
+        seen.append(msg)
+        if len(seen) != sweep + 1:
+            return None
+        records = np.frombuffer(bytearray(msg.data), np.uint8).reshape(-1, msg.point_step).copy()
+        for f in msg.fields:
+            if f.name in "xyz":
+                records[:, f.offset : f.offset + 4] = np.full((len(records), 1), value, "<f4").view(
+                    np.uint8
+                )
+        return [(topic, msgtype, dataclasses.replace(msg, data=records.reshape(-1)), log_ns)]
+
+    return edit
+
+
+def _pose_jump():
+    """The robot's /tf pose 100 m away at the third stamp (a picked sweep's) (1 m/s elsewhere)."""
+    seen = []
+
+    def edit(topic, msgtype, msg, log_ns):
+        if topic != "/tf":
+            return None
+        seen.append(msg)
+        if len(seen) != 3:
+            return None
+
+        def far(t):
+            tr = t.transform
+            moved = dataclasses.replace(tr.translation, x=tr.translation.x + 100.0)
+            return dataclasses.replace(t, transform=dataclasses.replace(tr, translation=moved))
+
+        return [
+            (
+                topic,
+                msgtype,
+                dataclasses.replace(msg, transforms=[far(t) for t in msg.transforms]),
+                log_ns,
+            )
+        ]
+
+    return edit
+
+
+def _overlapping_fields(topic, msgtype, msg, log_ns):
+    if topic != LIDAR:
+        return None
+    fields = [dataclasses.replace(f, offset=2) if f.name == "y" else f for f in msg.fields]
+    return [(topic, msgtype, dataclasses.replace(msg, fields=fields), log_ns)]
+
+
 @dataclass(frozen=True)
 class Case:
     name: str
@@ -207,6 +299,22 @@ CASES = [
     Case("missing CameraInfo", _edit(_drop(INFO0)), "no sensor_msgs/CameraInfo", INFO0),
     Case("TF chain with a gap", _edit(_tf_gap), "no TF path", "/tf_static"),
     Case("stamps going backwards", _edit(_stamps_backwards()), "go backwards", LIDAR),
+    # issue 41: plausibility bounds (tasks/bounds.py)
+    Case("a /tf_static cycle", _edit(_static_edit(_cycle)), "has a cycle", "/tf_static", False),
+    Case(
+        "a frame with two parents", _edit(_static_edit(_two_parents)), "two parents", "/tf_static"
+    ),
+    Case("a camera 1e6 m away", _edit(_static_edit(_far_camera)), "1e+06 m", "/tf_static", False),
+    Case("a pose jump of 100 m", _edit(_pose_jump()), "m/s, more than 20 m/s", "/tf"),
+    Case("a sweep at 1e30 m", _edit(_sweep_xyz(1e30)), "beyond 10000 m", LIDAR, level="frame"),
+    Case("a sweep of zeros", _edit(_sweep_xyz(0.0)), "at (0, 0, 0)", LIDAR, level="frame"),
+    Case(
+        "overlapping point fields",
+        _edit(_overlapping_fields),
+        "overlaps field 'x'",
+        LIDAR,
+        level="frame",
+    ),
     Case(
         "a topic with no messages",
         _edit(_drop(LIDAR), ((LIDAR, "sensor_msgs/msg/PointCloud2"),)),

@@ -828,6 +828,101 @@ def test_evaluate_names_a_withdrawn_sequence(built, tmp_path, capsys):
     assert "withdrawn" in results["notes"]["sequence 1"]["note"]
 
 
+def test_a_read_only_store_can_be_read(built, tmp_path, capsys, monkeypatch):
+    """Issue 41: on a read-only store (a finished dataset on a read-only mount) `status`,
+    `evaluate --report ELSEWHERE`, `export --to ELSEWHERE` and `view --html` work and write
+    nothing into it; a run, or a report into it, is one line naming the read-only place."""
+    from tests.read_only import read_only_store
+
+    out = _link_copy(built.out, tmp_path / "out")
+    before = _files(out)
+    with read_only_store(out, monkeypatch) as (ro, how):
+        env = Env(built.data, ro, built.config)
+        code, text = _cli(env, "status", capsys)
+        assert code == 0 and "fresh" in text and "Traceback" not in text, (how, text)
+        code, text = _export(env, tmp_path / "export", capsys)
+        assert code == 0 and "export written" in text, (how, text)
+        assert (tmp_path / "export" / "annotations.json").is_file()
+        for args in (
+            [
+                "evaluate",
+                "--dataset",
+                str(ro),
+                "--gt",
+                str(built.data),
+                "--report",
+                str(tmp_path / "r"),
+            ],
+            ["view", "--dataset", str(ro), "--html", str(tmp_path / "v.html")],
+        ):
+            capsys.readouterr()
+            code = cli.main(args)
+            text = "".join(capsys.readouterr())
+            assert code == 0 and "Traceback" not in text, (how, args[0], text)
+        code, text = _cli(env, "rebuild", capsys)
+        assert code == cli.EXIT_USAGE and str(ro) in text and "not writable" in text, (how, text)
+        assert len(text.strip().splitlines()) == 1, text
+        capsys.readouterr()
+        code = cli.main(["evaluate", "--dataset", str(ro), "--report", str(ro / "r")])
+        text = capsys.readouterr().err
+        assert code == cli.EXIT_FAILED and str(ro / "r") in text and "Traceback" not in text, text
+        assert "read-only" in text or "ermission denied" in text, text
+    assert _files(out) == before
+
+
+def _full_disk_under(monkeypatch, folder: Path, part: str = "") -> None:
+    """Every atomic write under ``folder`` (whose path holds ``part``) fails as on a full disk:
+    ENOSPC at the fsync of storage.atomic, the helper every file of the store is written through
+    (a loop device or tmpfs the test could fill is not there as a user in CI)."""
+    import errno
+
+    from storage import atomic
+
+    real = atomic._fsync_path
+
+    def fsync(path, directory=False):
+        if str(path).startswith(str(folder)) and part in str(path) and not directory:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(path, directory)
+
+    monkeypatch.setattr(atomic, "_fsync_path", fsync)
+
+
+def test_a_full_disk_ends_the_run_at_once_and_the_next_run_completes(
+    built, tmp_path, capsys, monkeypatch
+):
+    """Issue 41: a full disk while a stage writes ended in a hang, then "in use by another run"
+    and `.tmp-*` files left. Now: exit 1 and one line naming the file system, no lock and no
+    temporary left; after space is freed the next run completes, byte-identical."""
+    _inline_flow(monkeypatch)
+    env = _env(built, tmp_path)
+    (env.stage("fuse") / "complete.json").unlink()  # sequence 1's fuse runs again
+    _full_disk_under(monkeypatch, env.out, "stages/fuse")
+    code, text = _cli(env, "rebuild", capsys)
+    assert code == cli.EXIT_FAILED, text
+    assert "no space left on the file system at" in text and "MB free" in text, text
+    assert len(text.strip().splitlines()) == 1 and "Traceback" not in text, text
+    assert not (env.out / ".lock").exists()
+    assert not [p for p in env.out.rglob(".tmp-*")], list(env.out.rglob(".tmp-*"))
+    assert _published(env.out, "0") == built.published["0"]
+    monkeypatch.undo()  # space freed
+    _inline_flow(monkeypatch)
+    code, text = _cli(env, "rebuild", capsys)
+    assert code == 0, text
+    assert _published(env.out, "1") == built.published["1"]
+
+
+def test_a_full_disk_during_export_to_is_not_export_written(built, tmp_path, capsys, monkeypatch):
+    """Issue 41: a full disk during `export --to` gave exit 0 and "export written"."""
+    env = Env(built.data, built.out, built.config)  # read only
+    to = tmp_path / "export"
+    _full_disk_under(monkeypatch, tmp_path)
+    code, text = _export(env, to, capsys)
+    assert code == cli.EXIT_FAILED and "no space left on the file system" in text, text
+    assert "export written" not in text and len(text.strip().splitlines()) == 1, text
+    assert not to.exists() and not list(tmp_path.glob(".tmp-*"))
+
+
 # ---- the command line's edges --------------------------------------------------------------------
 
 
@@ -875,7 +970,46 @@ def _edge(kind: str, env: Env, tmp_path: Path) -> tuple[list[str], dict, int, st
             2,
             "dask.address tcp://127.0.0.1:9: no Dask scheduler answers there",
         ),
+        # issue 41
+        "view --port 99999": (
+            ["view", "--dataset", str(env.out), "--port", "99999"],
+            {},
+            2,
+            "--port: must be at most 65535, got 99999",
+        ),
+        "simulate --frames 1e9": (
+            ["simulate", "--out", str(tmp_path / "sim"), "--frames", "1000000000"],
+            {},
+            2,
+            "--frames: must be at most 36000",
+        ),
+        "a binary --config": (run + ["--config", str(_binary(tmp_path))], {}, 2, "is not UTF-8"),
+        "a folder as --config": (run + ["--config", str(tmp_path)], {}, 2, "is a folder"),
+        "a non-UTF-8 --out": (
+            run + ["--out", str(tmp_path) + "/\udcff"],
+            {},
+            2,
+            "the path is not UTF-8",
+        ),
+        "status --out a missing folder": (
+            env.args("status") + ["--out", str(tmp_path / "nowhere")],
+            {},
+            2,
+            "nowhere does not exist",
+        ),
+        "fit.iterations: -5": (
+            run + ["--set", "fit.iterations=-5"],
+            {},
+            2,
+            "fit.iterations: Input should be greater than or equal to 0",
+        ),
     }[kind]
+
+
+def _binary(tmp_path: Path) -> Path:
+    path = tmp_path / "garbage.yaml"
+    path.write_bytes(bytes(range(256)) * 4)
+    return path
 
 
 EDGES = [
@@ -887,6 +1021,13 @@ EDGES = [
     "simulate --frames 0",
     "a stale PREFECT_API_URL",
     "--address of a dead scheduler",
+    "view --port 99999",
+    "simulate --frames 1e9",
+    "a binary --config",
+    "a folder as --config",
+    "a non-UTF-8 --out",
+    "status --out a missing folder",
+    "fit.iterations: -5",
 ]
 
 

@@ -10,7 +10,8 @@ from flows.pipeline.inputs import source
 from flows.pipeline.outcome import Status
 from flows.pipeline.plan import PlanCosts, plan_run, selected_sequences
 from flows.pipeline.units import DAMAGED_REASONS, store_problems
-from storage.manifest import FingerprintCache, Manifest
+from storage.layout import shown
+from storage.manifest import FingerprintCache, Manifest, OutputError
 
 
 def _unit_state(manifest, plan, stage: str, unit, dry_run: bool) -> list[str]:
@@ -34,13 +35,19 @@ def print_plan(cfg: Config, dry_run: bool, verify: bool = False) -> int:
     if cfg.dataset.sequences == "all":
         source(cfg).check_root(cfg.dataset.root)
     out, costs = Path(cfg.output.root), PlanCosts()
+    if not out.is_dir():  # not "every unit stale": there is no store to describe
+        raise OutputError(
+            f"output store {shown(out)} "
+            + ("is not a folder" if out.exists() else "does not exist")
+            + " (`mobileocc rebuild` builds one there)"
+        )
     manifest = Manifest.load(out)
     cache = FingerprintCache(out / ".cache" / "sequences" if out.is_dir() else None, verify)
     plans = plan_run(cfg, manifest, cache, sequences=selected_sequences(cfg), costs=costs)
     runs = problems = 0
     for plan in plans:
         if plan.error:
-            print(f"{plan.sequence:>6}  cannot be read: {plan.error}")
+            print(shown(f"{plan.sequence:>6}  cannot be read: {plan.error}"))
             problems += 1
             continue
         lines = [
@@ -55,14 +62,14 @@ def print_plan(cfg: Config, dry_run: bool, verify: bool = False) -> int:
             for _, line in lines
         )
         for stage, line in lines:
-            print(f"{plan.sequence:>6}  {stage:<7} {line}")
+            print(shown(f"{plan.sequence:>6}  {stage:<7} {line}"))
         if not lines and not dry_run:
-            print(f"{plan.sequence:>6}  fresh ({len(plan.units)} stages)")
+            print(shown(f"{plan.sequence:>6}  fresh ({len(plan.units)} stages)"))
     print(
         f"{len(plans)} sequence(s): {runs} unit(s) {'would run' if dry_run else 'stale or failed'}, "
         f"{problems} sequence(s) with failures; {costs.line()}"
     )
     store = store_problems(cfg, manifest, verify) if out.is_dir() else []
     for line in store:
-        print(line)
+        print(shown(line))
     return problems + len(store)

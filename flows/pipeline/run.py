@@ -20,6 +20,7 @@ from flows.pipeline.outcome import UnitOutcome
 from flows.pipeline.plan import UnitPlan
 from flows.pipeline.signals import keep_stop_handlers
 from flows.pipeline.units import (  # noqa: F401 - the pipeline's API, as before the split
+    DiskFullError,
     RunReport,
     Submitter,
     _record,
@@ -74,18 +75,23 @@ def _run_units_flow(
     verify: bool = False,
     lock_held: bool = False,
     prune: bool = False,
-) -> RunReport:
+) -> RunReport | DiskFullError:
     with keep_stop_handlers():  # Prefect's SIGTERM handler would wait for the stages in flight
-        return run_units(
-            config,
-            force=force,
-            sequences=sequences,
-            progress=progress,
-            verify=verify,
-            lock_held=lock_held,
-            submitter=PrefectSubmitter(config),
-            prune=prune,
-        )
+        try:
+            return run_units(
+                config,
+                force=force,
+                sequences=sequences,
+                progress=progress,
+                verify=verify,
+                lock_held=lock_held,
+                submitter=PrefectSubmitter(config),
+                prune=prune,
+            )
+        except DiskFullError as exc:
+            # returned, not raised: Prefect would log a crash with a traceback; the caller
+            # (flows/cli.py) raises it again, one line
+            return exc
 
 
 @flow(name="rebuild-dataset", log_prints=True)

@@ -19,17 +19,21 @@ out of the dataset-level exports.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import errno
 import os
 import shutil
+import threading
 import time
 import traceback
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from configs.schema import Config, config_hash
+from flows.pipeline.config_files import check_config_files
 from flows.pipeline.dag import CODE_VERSIONS, DATASET_EXPORTS_VERSION, STAGES
 from flows.pipeline.inputs import (
     DatasetExportInputs,
@@ -48,7 +52,7 @@ from flows.pipeline.plan import (
     iter_plans,
     selected_sequences,
 )
-from storage.atomic import move_into_place, staged_folder, temporary_name
+from storage.atomic import move_into_place, named, os_error_line, staged_folder, temporary_name
 from storage.completion import (
     RECORD,
     RECORD_VERSION,
@@ -57,15 +61,18 @@ from storage.completion import (
     read_record,
     write_record,
 )
+from storage.layout import shown
 from storage.manifest import (
     FingerprintCache,
     Manifest,
+    OutputError,
     StageRecord,
     check_store_place,
     check_writable,
     data_root_for,
     holding_lock,
     record_data_root,
+    remove_caches,
     remove_stale_versions,
     run_lock,
     stage_dir,
@@ -73,6 +80,7 @@ from storage.manifest import (
 )
 from storage.products import read_summary, write_summary
 from storage.publish import (
+    intent_problem,
     pending_publications,
     published_names,
     published_versions,
@@ -80,6 +88,20 @@ from storage.publish import (
     remove_sequence,
     withdraw_sequence,
 )
+
+#: a unit's error that starts so is a full disk (or quota): the run stops (DiskFullError)
+DISK_FULL = "DISK FULL: "
+#: set when a unit met a full disk: units not yet started are skipped, the run ends at once
+_DISK_FULL = threading.Event()
+
+
+class DiskFullError(RuntimeError):
+    """The output's file system is full: the run stopped (one line: the file system, what is
+    free, what to do). Finished units are kept; the next run, after space is freed, resumes."""
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, getattr(errno, "EDQUOT", -1))
 
 
 def _error_text(exc: BaseException, where: Path) -> str:
@@ -176,6 +198,8 @@ def _execute_once(
     def outcome(status: Status, **more) -> UnitOutcome:
         return UnitOutcome(unit.sequence, unit.stage, unit.key, unit.parts, status, **more)
 
+    if _DISK_FULL.is_set():
+        return outcome(Status.SKIPPED, error="the run stopped: the output's disk is full")
     blocked = [s for s, o in upstream.items() if not o.finished]
     if blocked:
         return outcome(Status.SKIPPED, error=f"upstream {', '.join(blocked)} did not finish")
@@ -210,6 +234,10 @@ def _execute_once(
             write_summary(tmp, summary)
             write_record(tmp, stage=unit.stage, sequence=unit.sequence, key=unit.key)  # last
     except Exception as exc:  # noqa: BLE001 - one bad sequence fails alone, with its error
+        if is_disk_full(exc):  # not this sequence's fault: the whole run stops (finish sets
+            # the flag in the run's process: a worker process of a shared cluster keeps none)
+            full = named(exc, final.parent) if isinstance(exc, OSError) else exc
+            return outcome(Status.FAILED, error=DISK_FULL + os_error_line(full))
         return outcome(
             Status.FAILED,
             seconds=time.perf_counter() - started,
@@ -263,6 +291,8 @@ class RunReport:
     swept: int = 0
     #: publications (or withdrawals) a killed run left half done, completed at the start
     recovered: list[str] = field(default_factory=list)
+    #: one line per publication intent that was not one this code wrote, rolled back instead
+    rolled_back: list[str] = field(default_factory=list)
     #: sequences in the store (published, withdrawn or in the manifest) whose input is no longer
     #: under the data root, and those of them this run took out of the store (``prune``)
     gone: list[str] = field(default_factory=list)
@@ -343,8 +373,17 @@ def check_run_paths(config: Config, sequences: list[str] | None = None) -> list[
     """Before any work: the output store is writable and the dataset root holds sequences;
     returns the sequences to run. Raises storage.manifest.OutputError / the source's InputError
     (storage.files) with one clear line."""
+    for what, path in (("output store", config.output.root), ("dataset root", config.dataset.root)):
+        try:  # the store records its paths as JSON / Parquet text, which must be UTF-8
+            str(path).encode("utf-8")
+        except UnicodeEncodeError:
+            raise OutputError(
+                f"{what} {shown(path)}: the path is not UTF-8 (undecodable bytes shown as "
+                "\\udcXX); rename it or choose another folder"
+            ) from None
     check_store_place(Path(config.output.root), Path(config.dataset.root))
     check_writable(Path(config.output.root))
+    check_config_files(config)  # a bad model file is the config's error, not every sequence's
     if sequences is not None:
         return [str(s) for s in sequences]
     source(config).check_root(Path(config.dataset.root))
@@ -384,6 +423,9 @@ class _Units:
         self.finish(UnitOutcome(plan.sequence, "detect", "", {}, Status.FAILED, error=plan.error))
 
     def finish(self, outcome: UnitOutcome) -> None:
+        if outcome.error.startswith(DISK_FULL):  # not recorded: the unit did not fail, the disk
+            _DISK_FULL.set()  # units of this process not started yet are skipped
+            raise DiskFullError(outcome.error[len(DISK_FULL) :])
         self.report.outcomes[(outcome.sequence, outcome.stage)] = outcome
         _record(self.manifest, outcome, self.report)
         self.on_done(outcome)
@@ -449,10 +491,14 @@ def run_units(
     run = tuple(s for s in STAGES if stages is None or s in stages)
     if not run or set(stages or ()) - set(run):
         raise ValueError(f"stages {sorted(stages or ())}: expected some of {list(STAGES)}")
-    with holding_lock(out_root) if lock_held else run_lock(out_root):
+    _DISK_FULL.clear()
+    with holding_lock(out_root) if lock_held else run_lock(out_root), _stop_when_full(out_root):
         report = RunReport(out_root, [])
-        report.recovered = recover_publications(out_root)  # before the sweep: it reads temporaries
+        # before the sweep: it reads temporaries
+        report.recovered = recover_publications(out_root, report.rolled_back)
         report.swept = sweep_temporaries(out_root)
+        if force:  # every cache product is made again too (storage.manifest.CACHE_PRODUCTS)
+            remove_caches(out_root)
         manifest = Manifest.load(out_root)
         adopt_unrecorded_outputs(manifest)
         manifest.meta.update(
@@ -492,6 +538,25 @@ def run_units(
     return report
 
 
+@contextlib.contextmanager
+def _stop_when_full(out_root: Path) -> Iterator[None]:
+    """A full disk anywhere in a run (a unit, a publication, the manifest) ends it with one
+    DiskFullError line; the temporaries written so far are removed (they hold the space the
+    next run needs) while the lock is still held, so nothing but finished units is left."""
+    try:
+        yield
+    except DiskFullError:
+        _DISK_FULL.set()
+        sweep_temporaries(out_root)
+        raise
+    except OSError as exc:
+        if not is_disk_full(exc):
+            raise
+        _DISK_FULL.set()
+        sweep_temporaries(out_root)
+        raise DiskFullError(os_error_line(exc)) from None
+
+
 def adopt_unrecorded_outputs(manifest: Manifest) -> None:
     """A store written before completion records (no ``completion_records`` in the manifest's
     meta): record every unit output it calls done as it is (what the code of then trusted), once;
@@ -525,8 +590,12 @@ def store_problems(config: Config, manifest: Manifest, deep: bool = False) -> li
     published sequences."""
     out_root = Path(config.output.root)
     lines = [
-        f"{seq:>6}  publication interrupted by a killed run (the next rebuild or export "
-        "completes it)"
+        f"{shown(seq):>6}  "
+        + (
+            f"{garbage}: the next rebuild or export rolls it back"
+            if (garbage := intent_problem(out_root, seq))
+            else "publication interrupted by a killed run (the next rebuild or export completes it)"
+        )
         for seq in pending_publications(out_root)
     ]
     selected = selected_sequences(config) if Path(config.dataset.root).is_dir() else []
@@ -906,6 +975,7 @@ def summary_table(report: RunReport) -> str:
         )
     for seq in report.recovered:
         lines.append(f"RECOVERED {seq}: a publication a killed run left half done was completed")
+    lines += [f"ROLLED BACK {line}" for line in report.rolled_back]
     for plan in report.plans:
         for stage, unit in plan.units.items():
             if unit.reason.startswith(DAMAGED_REASONS):
@@ -930,4 +1000,4 @@ def summary_table(report: RunReport) -> str:
         lines.append(f"{fmt} export: {state}")
     lines += [f"WRITE FAILED {e}" for e in report.write_errors]
     lines += [f"WARNING {p.sequence}: {w}" for p in report.plans for w in p.warnings]
-    return "\n".join(lines)
+    return "\n".join(shown(line) for line in lines)  # a name cannot forge a line

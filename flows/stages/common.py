@@ -12,11 +12,14 @@ import numpy as np
 
 from flows.pipeline.inputs import BodyModelFiles, Runtime, SequenceRef, StageInputs
 from storage.body_model_files import (
+    BodyFileError,
+    UnsafePickleError,
     load_body_model,
     load_pose_prior,
     save_body_model_npz,
     save_pose_prior_pkl,
 )
+from storage.manifest import PROCEDURAL_MODEL, PROCEDURAL_PRIOR
 from storage.products import read_summary
 from storage.sources import SequenceSource
 from tasks.body.model import BodyModel
@@ -77,17 +80,39 @@ def frame_rng(seed: int, sequence: str, frame: int, salt: int) -> np.random.Gene
     return np.random.default_rng([seed, seq_num, frame, salt])
 
 
-#: our procedural stand-ins are generated once per output store and saved in the official formats
-PROCEDURAL_MODEL = "procedural_smpl_v1.npz"
-PROCEDURAL_PRIOR = "procedural_gmm_08_v1.pkl"
+#: our procedural stand-ins are generated once per output store and saved in the official
+#: formats: OUT/.cache/PROCEDURAL_MODEL, PROCEDURAL_PRIOR (storage.manifest.CACHE_PRODUCTS)
 
 
-def _procedural_file(out_root: Path, name: str, make, save) -> Path:
-    """OUT/.cache/<name>: our procedural stand-in, made and saved once per output store."""
+def _procedural(out_root: str, name: str) -> BodyModel | GMMPosePrior:
+    """OUT/.cache/<name>: our procedural stand-in, made and saved once per output store, loaded
+    once per process and file. A cache product like any other: verified before use (read in full
+    by its loader, every key and shape checked), made again when damaged (truncated, not a zip, a
+    key missing) or gone (``rebuild --force`` removes it: storage.manifest.remove_caches)."""
     path = Path(out_root) / ".cache" / name
-    if not path.exists():
-        save(path, make())
-    return path
+    for attempt in (0, 1):
+        if path.exists():
+            st = path.stat()
+            try:
+                return _load_procedural(str(path), name, (st.st_ino, st.st_mtime_ns, st.st_size))
+            except (BodyFileError, UnsafePickleError, OSError):
+                if attempt:
+                    raise
+        # missing or damaged: made again (deterministic bytes; concurrent makers each rename a
+        # whole file)
+        if name == PROCEDURAL_MODEL:
+            save_body_model_npz(path, generate_body_model())
+        else:
+            save_pose_prior_pkl(path, generate_pose_prior())
+    raise AssertionError("unreachable")
+
+
+@functools.lru_cache(maxsize=4)
+def _load_procedural(path: str, name: str, identity: tuple) -> BodyModel | GMMPosePrior:
+    if name == PROCEDURAL_MODEL:
+        return BodyModel(load_body_model(path))
+    p = load_pose_prior(path)
+    return GMMPosePrior(p["means"], p["covars"], p["weights"])
 
 
 @functools.lru_cache(maxsize=4)
@@ -103,15 +128,13 @@ def _load_prior(path: str) -> GMMPosePrior:
 
 def body_model(files: BodyModelFiles, out_root: Path) -> BodyModel:
     """The user's SMPL file, or our procedural model in the same format (loaded once per process)."""
-    path = files.body_model_path or _procedural_file(
-        out_root, PROCEDURAL_MODEL, generate_body_model, save_body_model_npz
-    )
-    return _load_model(str(path))
+    if files.body_model_path:
+        return _load_model(str(files.body_model_path))
+    return _procedural(str(out_root), PROCEDURAL_MODEL)
 
 
 def pose_prior(files: BodyModelFiles, out_root: Path) -> GMMPosePrior:
     """The user's gmm_08.pkl, or our generated prior in the same format."""
-    path = files.pose_prior_path or _procedural_file(
-        out_root, PROCEDURAL_PRIOR, generate_pose_prior, save_pose_prior_pkl
-    )
-    return _load_prior(str(path))
+    if files.pose_prior_path:
+        return _load_prior(str(files.pose_prior_path))
+    return _procedural(str(out_root), PROCEDURAL_PRIOR)

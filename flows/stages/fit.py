@@ -22,7 +22,7 @@ import numpy as np
 
 from flows.pipeline.inputs import FitInputs, LidarKeypointsInitSpec
 from flows.pipeline.parallel import fan_out
-from flows.stages.common import StageContext, body_model, pose_prior
+from flows.stages.common import StageContext, body_model, detected_positions, pose_prior
 from flows.stages.providers import init_provider
 from storage.products import Bodies, Tracks
 from tasks.body.params import BodyParams
@@ -137,6 +137,7 @@ def _gap_bodies(ctx: StageContext[FitInputs], seq, out: dict) -> tuple[dict, dic
     ``out``'s; and how many were filled, by the check's outcome."""
     g = ctx.inputs.gaps
     gaps = find_gaps(out["track_id"], out["position"], seq.info.stamps_ns * 1e-9, g.max_gap_frames)
+    gaps = gaps.only(detected_positions(ctx, seq))  # a frame detect left out is never read
     counts = {"gap_filled": 0, "gap_dropped_seen_through": 0}
     if not g.enabled or len(gaps) == 0:
         return {}, counts

@@ -56,6 +56,13 @@ class Gap:
     def __len__(self) -> int:
         return len(self.track_id)
 
+    def only(self, positions) -> Gap:
+        """The gaps at these frame positions only (the frames whose sweep may be read: a frame
+        the detect stage left out for bad input is never read, so never filled)."""
+        keep = np.isin(self.position, np.asarray(list(positions), np.int64))
+        return Gap(*(a[keep] for a in (self.track_id, self.position, self.before, self.after,
+                                       self.alpha)))  # fmt: skip
+
 
 def find_gaps(track_id, position, stamps_s, max_gap_frames: int) -> Gap:
     """The frame positions missing inside each track (R rows: track_id (R,), position (R,) frame

@@ -34,7 +34,8 @@ class FitSettings:
     warm_start: start a track's fit from its previous frame's fit (beyond the paper; frames then
     run in order), with warm_iterations Adam steps instead of ``iterations``. shared_shape: one
     shape per track (tasks/fit/shape.py), held while the track is refined. seed: of the
-    optimiser and the oracle's initial estimates.
+    optimiser and the oracle's initial estimates. iterations 0: no Adam step at all (the
+    initial estimates, aligned only: configs/ground-truth-inputs.yaml); below 0 is refused.
     """
 
     iterations: Count = 100

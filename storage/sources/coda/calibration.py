@@ -21,6 +21,7 @@ import yaml
 from storage.files import InputError, read_text
 from storage.sequence_data import Calibration, CameraCalibration, RawCameraCalibration
 from storage.sources.coda.layout import ROTATION_TOLERANCE, CodaFormatError, _present
+from tasks.bounds import MAX_CALIBRATION_TRANSLATION_M
 from tasks.poses.rotations import quat_wxyz_to_matrix
 
 __all__ = ["quat_wxyz_to_matrix", "read_calibration", "read_extrinsic", "read_intrinsics"]
@@ -196,6 +197,13 @@ def read_extrinsic(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
                 f"{path}: extrinsic_matrix last row {values[12:].tolist()}, expected 0 0 0 1"
             )
     _check_rotation(T[:3, :3], path, "extrinsic_matrix rotation")
+    length = float(np.linalg.norm(T[:3, 3]))
+    if length > MAX_CALIBRATION_TRANSLATION_M:  # tasks/bounds.py
+        raise CodaFormatError(
+            f"{path}: extrinsic_matrix translation is {length:.6g} m, more than the "
+            f"{MAX_CALIBRATION_TRANSLATION_M:g} m a sensor rig spans",
+            path,
+        )
     P = (
         _yaml_matrix(data, "projection_matrix", (3, 4), path)
         if "projection_matrix" in data

@@ -19,6 +19,7 @@ import re
 from pathlib import Path
 
 from storage.files import InputError, where
+from tasks.bounds import MAX_POSE_SPEED_M_S, MAX_POSITION_M, ROTATION_TOLERANCE  # noqa: F401 - re-exported
 
 #: points per organised OS1-128 sweep (128 beams x 1024 columns), no-returns included
 POINTS_PER_SWEEP = 128 * 1024
@@ -34,15 +35,12 @@ NIGHT_WORDS = ("night", "dark")
 NS_PER_S = 1_000_000_000
 #: pose times may differ from the frame timestamps by this much (half a frame at 10 Hz)
 POSE_TIME_TOLERANCE_S = 0.05
-#: a robot faster than this between two raw frames is a broken pose, not a fast robot
-MAX_SPEED_MPS = 20.0
-#: pose translations beyond this distance from the map origin are not a campus-scale map
-MAX_POSITION_M = 1.0e5
-#: rotation matrices: |R R^T - I| and |det R - 1| within this
-ROTATION_TOLERANCE = 1e-3
+#: plausibility bounds of poses and rotations: one home for every source, tasks/bounds.py
+MAX_SPEED_MPS = MAX_POSE_SPEED_M_S
 #: version of what opening a sequence checks and returns: a fingerprint memo made by another
 #: version is not used (planning opens the sequence again); bump when the checks change
-READER_VERSION = "2"
+#: (3: sweeps beyond MAX_POINT_COORDINATE_M or all zeros, calibration translations bounded)
+READER_VERSION = "3"
 #: the layout folders that hold one sub-folder per sequence (``{modality}/{sensor}/{SEQ}/``)
 SEQUENCE_MODALITIES = ("3d_comp", "3d_raw", "2d_rect", "2d_raw", "3d_bbox", "3d_semantic")
 

@@ -80,6 +80,7 @@ from storage.sources.coda.layout import (
     sequence_folders,
     stride_frames,
 )
+from tasks.bounds import sweep_problem
 from tasks.poses.rotations import quat_wxyz_to_matrix
 
 
@@ -180,6 +181,9 @@ def read_lidar_raw(
             path,
             frame,
         )
+    problem = sweep_problem(raw[:, :3])  # tasks/bounds.py
+    if problem:
+        raise CodaFrameError(f"{_where(path, frame)}: implausible sweep: {problem}", path, frame)
     return raw
 
 
@@ -352,8 +356,12 @@ class CodaSequence(SelectedFrames):
         )
 
     def _sweep_channels(self, frames) -> tuple[int, Path] | None:
-        """(channels, file) of the first selected sweep whose size is a whole 4- or 5-channel
-        sweep (sizes only); None when no sweep has such a size (each frame then fails alone)."""
+        """(channels, file) of the sequence's sweeps: the channel count most of the selected
+        sweeps' sizes give (sizes only), and the first sweep of that count. A majority, not the
+        first sweep: a first sweep cut to exactly the 4-channel size must be the frame named,
+        not every good 5-channel frame after it (issue 41). None when no sweep has a whole
+        4- or 5-channel size (each frame then fails alone)."""
+        found: dict[int, list[Path]] = {}
         for f in frames:
             path = self.lidar_path(f)
             try:
@@ -361,8 +369,12 @@ class CodaSequence(SelectedFrames):
             except InputError:
                 continue
             if channels is not None:
-                return channels, path
-        return None
+                found.setdefault(channels, []).append(path)
+        if not found:
+            return None
+        # most sweeps; a tie goes to 5 channels (CODa's 3d_raw), a cut never adds a channel
+        channels = max(found, key=lambda c: (len(found[c]), c))
+        return channels, found[channels][0]
 
     def lidar_frames_on_disk(self) -> list[int]:
         """Raw frame numbers that have a ``lidar_source`` sweep file (a directory listing)."""

@@ -45,6 +45,8 @@ def decode_compressed(fmt: str, data) -> np.ndarray:
     """(H, W, 3) uint8 RGB of a CompressedImage (``format``, ``data``)."""
     from PIL import Image, UnidentifiedImageError
 
+    from storage.images import rgb8
+
     kind = fmt.lower()
     if "compresseddepth" in kind:
         raise ImageDecodeError(
@@ -54,7 +56,7 @@ def decode_compressed(fmt: str, data) -> np.ndarray:
         raise ImageDecodeError(f"format {fmt!r}: expected jpeg or png")
     try:
         with Image.open(BytesIO(bytes(data))) as im:
-            return np.array(im.convert("RGB"))
+            return rgb8(im)  # 16-bit PNGs scaled, never read as white
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
         raise ImageDecodeError(f"format {fmt!r}: image cannot be decoded ({exc})") from None
 

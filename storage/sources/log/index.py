@@ -19,7 +19,7 @@ from struct import error as struct_error
 
 import numpy as np
 
-from storage.npzio import save_npz_deterministic
+from storage.npzio import NPZ_ERRORS, load_npz, save_npz_deterministic
 from storage.sources.log.bag import LogFile, LogFormatError, quick_fingerprint, where
 from storage.sources.log.images import CameraInfo
 from storage.sources.log.positions import Positions
@@ -337,12 +337,11 @@ def load_index(log: LogFile, cache_dir: Path | None) -> LogIndex:
     path = cache_path(cache_dir, fingerprint) if cache_dir is not None else None
     if path is not None and path.is_file():
         try:
-            with np.load(path, allow_pickle=False) as z:
-                index = _unpack(z)
+            index = _unpack(load_npz(path))
             if index.fingerprint == fingerprint:
                 log.use_positions(index.positions)
                 return index
-        except (OSError, ValueError, KeyError):  # a damaged cache file is rebuilt
+        except (*NPZ_ERRORS, TypeError, IndexError):  # a damaged cache file is rebuilt
             pass
     index = build_index(log, fingerprint)
     if path is not None:

@@ -34,6 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tasks.bounds import sweep_problem
+
 #: sensor_msgs/PointField datatypes -> numpy base type (size in bytes follows)
 DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 INTENSITY_NAMES = ("intensity", "reflectivity", "signal", "i")
@@ -111,6 +113,7 @@ class DecodedCloud:
 def _dtype(fields: list[Field], point_step: int, bigendian: bool) -> np.dtype:
     order = ">" if bigendian else "<"
     names, formats, offsets = [], [], []
+    spans: dict[str, tuple[int, int]] = {}
     for f in fields:
         if f.datatype not in DATATYPES:
             raise PointLayoutError(
@@ -125,6 +128,14 @@ def _dtype(fields: list[Field], point_step: int, bigendian: bool) -> np.dtype:
             )
         if f.name in names:
             continue  # a repeated name: the first one counts
+        end = f.offset + base.itemsize * f.count
+        for other, (start, stop) in spans.items():
+            if f.offset < stop and start < end:  # x and y sharing bytes decode to garbage
+                raise PointLayoutError(
+                    f"field {f.name!r} (bytes {f.offset}..{end - 1}) overlaps field {other!r} "
+                    f"(bytes {start}..{stop - 1}) in a point_step of {point_step} bytes"
+                )
+        spans[f.name] = (f.offset, end)
         names.append(f.name)
         formats.append(base if f.count == 1 else (base, (f.count,)))
         offsets.append(f.offset)
@@ -198,6 +209,10 @@ def decode_pointcloud2(
     xyz = np.empty((n, 3), dtype=np.float32)
     for k, c in enumerate("xyz"):
         xyz[:, k] = records[c]
+    # plausibility (tasks/bounds.py) of the returns (NaN is a ROS organised cloud's no-return)
+    problem = sweep_problem(xyz[np.isfinite(xyz).all(axis=1)])
+    if problem:
+        raise PointLayoutError(f"implausible sweep: {problem}")
     x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     # the CODa reader's range test: np.linalg.norm of float32 rows, which sums the squares as
     # (x*x + y*y) + z*z in float32; written out it is the same bits, 8x faster

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from configs.sources import POSE_MODES, LogSettings
+from storage.npzio import NPZ_ERRORS, load_npz
 from storage.sequence_data import (
     Calibration,
     CameraCalibration,
@@ -64,6 +65,7 @@ from storage.sources.log.index import (
     stamp_ns,
 )
 from storage.sources.log.pointcloud import DecodedCloud, Field, PointLayoutError, decode_pointcloud2
+from tasks.bounds import pose_track_problem, rigid_problem
 from tasks.poses.tf import StampedEdge, TFGap, TFTree, static_edge
 
 #: PointCloud2 topics of common drivers, preferred in this order when a log has several
@@ -80,7 +82,7 @@ KNOWN_LIDAR_TOPICS = (
 BASE_FRAMES = ("base_footprint", "base_link", "base")
 WORLD_FRAMES = ("map", "world", "odom")
 #: version of what opening a log checks and returns (the planner's memo of another is not used)
-READER_VERSION = "1"
+READER_VERSION = "2"  # 2: TF graph and sweep plausibility checked (issue 41)
 #: version of the LiDAR-odometry product (bump when its poses change for the same inputs)
 ODOMETRY_VERSION = "2"
 
@@ -250,6 +252,7 @@ class LogSequence(SelectedFrames):
         static = _latest_static(index.tf_static)
         stamped = _stamped_edges(index.tf)
         self.tree = TFTree(static.static, stamped)
+        self._check_tf(index, static, stamped)
         first_stamp = int(lidar.stamp_ns[0])
         self.camera_streams = self._camera_streams(index)
         calibration = self._calibration(warnings, first_stamp)
@@ -295,6 +298,55 @@ class LogSequence(SelectedFrames):
             lighting_source="config" if self._lighting else "default",
             warnings=tuple(warnings),
         )
+
+    def _check_tf(self, index: LogIndex, static: TFTree, stamped: dict[str, StampedEdge]) -> None:
+        """The TF graph is a tree of plausible transforms (tasks/bounds.py), else the sequence
+        fails naming the topic and the value: a frame with two parents (in /tf_static, or one
+        in /tf_static and another in /tf), a cycle, a /tf_static transform whose rotation is
+        not one or whose translation is longer than a rig spans, a /tf value that is not finite."""
+        tf = index.tf_static
+        parents: dict[str, str] = {}
+        if tf is not None:
+            for k in range(len(tf.stamp_ns)):
+                child, parent = tf.frames[tf.child[k]], tf.frames[tf.parent[k]]
+                if parents.setdefault(child, parent) != parent:
+                    raise self._error(
+                        f"frame {child!r} has two parents, {parents[child]!r} and {parent!r}; "
+                        "a TF tree gives each frame one",
+                        "/tf_static",
+                        int(tf.stamp_ns[k]),
+                        k,
+                    )
+        for child, edge in stamped.items():
+            if parents.get(child, edge.parent) != edge.parent:
+                raise self._error(
+                    f"frame {child!r} has the parent {parents[child]!r} in /tf_static and "
+                    f"{edge.parent!r} in /tf; a TF tree gives each frame one",
+                    "/tf",
+                )
+            values = np.concatenate([edge.translations, edge.quats_wxyz], axis=1)
+            bad = ~np.isfinite(values).all(axis=1)
+            if bad.any():
+                k = int(np.flatnonzero(bad)[0])
+                raise self._error(
+                    f"{edge.parent!r} -> {child!r} value {k} is not finite ({values[k].tolist()})",
+                    "/tf",
+                    int(edge.stamps_ns[k]),
+                )
+        tree = TFTree(static.static, stamped)
+        for frame in sorted(tree.frames()):
+            seen = [frame]
+            while (p := tree.parent(seen[-1])) is not None:
+                if p in seen:
+                    raise self._error(
+                        f"the TF graph has a cycle: {' -> '.join(seen[seen.index(p) :] + [p])}",
+                        "/tf_static" if p in static.static else "/tf",
+                    )
+                seen.append(p)
+        for child, (parent, T) in static.static.items():
+            problem = rigid_problem(T, f"{parent!r} -> {child!r}")
+            if problem:
+                raise self._error(problem, "/tf_static")
 
     def _check_increasing(self, topic: str, stamps: np.ndarray) -> None:
         if len(stamps) == 0:
@@ -569,6 +621,7 @@ class LogSequence(SelectedFrames):
                 poses = self.tree.lookup(world, self.lidar_frame, lidar[keep], gap)
             except TFGap as exc:
                 raise self._error(str(exc), "/tf", int(lidar[keep][0]) if keep else None) from None
+            self._check_track("/tf", lidar[keep], poses)
             return poses, keep, f"/tf ({world} -> {self.lidar_frame})"
         track = self.index.poses[topic]
         self._check_increasing(topic, track.stamp_ns)
@@ -585,11 +638,22 @@ class LogSequence(SelectedFrames):
         )
         tree = TFTree({}, {child: edge})
         poses = tree.lookup(track.frame_id, child, lidar[keep], gap) @ T_child_from_lidar
+        self._check_track(topic, lidar[keep], poses)
         return (
             poses,
             keep,
             f"{topic} ({track.msgtype.rsplit('/', 1)[-1]}, {track.frame_id} -> {child})",
         )
+
+    def _check_track(self, topic: str, stamps: np.ndarray, poses: np.ndarray) -> None:
+        """The LiDAR's world poses at the picked sweeps are finite and never jump faster than a
+        robot drives (tasks/bounds.py), else the sequence fails naming the topic and stamp."""
+        problem = pose_track_problem(stamps, poses[:, :3, 3]) if len(poses) else ""
+        if not problem and len(poses) and not np.isfinite(poses).all():
+            problem = "a pose rotation is not finite"
+        if problem:
+            k = int(problem.split()[1]) if problem.split()[1].isdigit() else 0
+            raise self._error(f"implausible poses: {problem}", topic, int(stamps[k]))
 
     def _tf_edges(self, world: str) -> list[StampedEdge]:
         chain = self.tree.chain(self.lidar_frame)
@@ -637,11 +701,15 @@ class LogSequence(SelectedFrames):
 
         key = self.odometry_key()
         path = self.cache_dir / "odometry" / f"{key}.npz" if self.cache_dir else None
-        if path is not None and path.is_file():
-            with np.load(path, allow_pickle=False) as z:
-                return z["T_first_from_lidar"]
         s = self.settings.odometry
         n = len(self.index.streams[self.lidar_topic].stamp_ns)
+        if path is not None and path.is_file():
+            try:  # verified before use: a damaged or foreign cache file is computed again
+                cached = load_npz(path, ["T_first_from_lidar"])["T_first_from_lidar"]
+                if cached.shape == (n, 4, 4) and np.isfinite(cached).all():
+                    return cached.astype(np.float64, copy=False)
+            except NPZ_ERRORS:
+                pass
 
         def run(order, sign):  # one pass, a sweep at a time (memory flat in the log's length)
             odo, out = LidarOdometry(s), []
