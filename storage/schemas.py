@@ -46,7 +46,12 @@ FRAMES = pa.schema(
         _f(
             "class_counts",
             _vec(NUM_CLASSES, pa.int64()),
-            "voxels per class id 0..9 among voxels with mask_lidar = 1",
+            "voxels per class id 0..10 among voxels with mask_lidar = 1 (9 unclassified, 10 free)",
+        ),
+        _f(
+            "unclassified_voxels",
+            pa.int64(),
+            "occupied voxels with no class (class 9) among voxels with mask_lidar = 1",
         ),
         _f("is_night", pa.bool_(), "frame recorded at night"),
     ]
@@ -101,10 +106,11 @@ SEQUENCES = pa.schema(
 )
 
 SCHEMA_VERSIONS: dict[str, int] = {
-    "frames": 1,
+    "frames": 2,
     "instances": 2,
     "sequences": 1,
-}  # instances 2: keypoints_mirrored, gap_filled
+}  # instances 2: keypoints_mirrored, gap_filled; frames 2: class 9 unclassified (free 10, 11
+#    class_counts), unclassified_voxels
 _BASE: dict[str, pa.Schema] = {"frames": FRAMES, "instances": INSTANCES, "sequences": SEQUENCES}
 TABLE_NAMES: tuple[str, ...] = tuple(_BASE)
 

@@ -8,7 +8,8 @@ STAGES: dict[str, tuple[str, ...]] = {
     "track": ("detect",),
     "fit": ("track",),
     "map": ("detect",),
-    "fuse": ("detect", "fit", "map"),  # detect: the frames it produced are the store's frame axis
+    "fuse": ("detect", "track", "fit", "map"),  # detect: the frames it produced are the store's
+    #                                            frame axis; track: a person's returns with no body
     "export": ("fuse", "track", "fit"),  # tables take tracks and body fits too
 }
 
@@ -36,7 +37,7 @@ CODE_VERSIONS: dict[str, str] = {
     #                dropped (.start_max_distance; summary flips_chains_to_start,
     #                flips_keypoints_dropped); the refinement starts from each track's Whittaker-smoothed root,
     #                orientation and pose (fit.refine.*_cutoff_hz)
-    "map": "7",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path;
+    "map": "8",  # 2: the out-of-view fallback keeps ground and raised points apart, strips along the path;
     #             3: 2d_rect cameras read as the rectified pinhole (real CODa calibration);
     #             4: both maps written by spatial tile (map_tiles.npz + tiles/*.npz, map.tile_m), built in
     #                parallel windows / regions; the voxels are the same, the product files are not.
@@ -55,19 +56,23 @@ CODE_VERSIONS: dict[str, str] = {
     #                (tasks/occupancy/surface.py, WIDE_SPREAD)
     #                and fragments of fewer than map.min_fragment_voxels voxels of one class dropped
     #                (a missed passer-by's returns, single noisy labels in vegetation)
-    "fuse": "4",  # 2: mask_camera is inside mask_lidar (Occ3D); class_counts among voxels with
+    #             8: returns with no class vote UNCLASSIFIED (class 9), rejected ground votes too;
+    #                a voxel with no semantic vote is UNCLASSIFIED, not dropped (issue 38); counts
+    #                (K, 10)
+    "fuse": "5",  # 2: mask_camera is inside mask_lidar (Occ3D); class_counts among voxels with
     #               mask_lidar = 1 (as documented); store attrs carry the stage key, not a config hash;
     #               the rectified camera; 3: pedestrian voxel velocity from each vertex's motion along
     #               the track (fuse.velocity "vertex"), the mean over the body surface in the voxel;
     #               4: static voxels from points on each map voxel's surface (right at any offset of
     #               the grid, e.g. 10 Hz); every occupied voxel in mask_lidar
-    "export": "5",  # 2: instances carry the fitted bodies, 3D boxes and velocities; 3: source paths
+    "export": "6",  # 2: instances carry the fitted bodies, 3D boxes and velocities; 3: source paths
     #                 relative to the dataset root, box yaw from the body's forward axis, no NaN
     #                 velocity, chamfer_m / reproj_px written, config_hash of the stage inputs; the
     #                 rectified camera's K and T in the sequences table; 4: the Occ3D metadata says
     #                 semantics is free where mask_lidar is 0 and keeps hidden occupied voxels' class;
     #                 5: instances carry keypoints_mirrored and gap_filled, and a row per gap-filled
-    #                 body (no 2D box or keypoints)
+    #                 body (no 2D box or keypoints); 6: frames table 2 (11 class_counts,
+    #                 unclassified_voxels)
 }
 #: Version of the dataset-level Occ3D / nuScenes exports (OUT/exports/, made after the sequences
 #: are published; part of their key in the manifest): bump when their files change for the same
@@ -76,4 +81,5 @@ CODE_VERSIONS: dict[str, str] = {
 #: the metadata's FlashOcc settings (depth, BEV flips, input sizes and their frustum coverage);
 #: 3: the metadata says semantics is free where mask_lidar is 0 and keeps the class of occupied
 #: voxels hidden from the camera (issue 30)
-DATASET_EXPORTS_VERSION = "3"
+#: 4: class 9 unclassified (Occ3D "others"), free 10, 11 classes
+DATASET_EXPORTS_VERSION = "4"

@@ -17,6 +17,7 @@ from storage.publish import sequence_writer, stage_store, stage_table
 from tasks.body.boxes import upright_box
 from tasks.body.params import BodyParams
 from tasks.body.posing import posed_vertices
+from tasks.conventions import UNCLASSIFIED
 from tasks.fit.reframe import reframe_params
 
 
@@ -110,6 +111,7 @@ def frame_rows(ctx: StageContext[ExportInputs], seq, fused: FusedFrames) -> list
                 "cam0_path": paths["cam0"],
                 "cam1_path": paths["cam1"],
                 "class_counts": fused.class_counts[k].tolist(),
+                "unclassified_voxels": int(fused.class_counts[k][UNCLASSIFIED]),
                 "is_night": night,
             }
         )

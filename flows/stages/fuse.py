@@ -6,6 +6,9 @@ Frames fan out in chunks aligned to the Zarr store's write units (one writer per
 (traversed or hit voxels) and the voxels the sequence's occupancy map has observed (known free or
 occupied), so "unknown" means never observed.
 mask_camera is cam0's visibility restricted to mask_lidar, as in Occ3D (storage/SCHEMA.md, "Masks").
+No return of a frame is left free: a return with nothing occupied at or next to its voxel occupies
+it, PEDESTRIAN where it is a tracked person's point (the track's points: a person whose body was
+not fitted), else UNCLASSIFIED.
 """
 
 from __future__ import annotations
@@ -26,9 +29,10 @@ from storage.products import (
     MapTiles,
     OccupancyMapProduct,
     StaticMapProduct,
+    Tracks,
 )
 from tasks.body.motion import TrackedBodies
-from tasks.conventions import FREE
+from tasks.conventions import FREE, NUM_CLASSES, PEDESTRIAN, UNCLASSIFIED
 from tasks.geometry import transform_points
 from tasks.occupancy.frame import local_grids, relative_pose
 from tasks.occupancy.freespace import OccupancyMap
@@ -136,6 +140,19 @@ def maps_near(
     )
 
 
+def _return_labels(tracks: Tracks | None, frame: int, num_points: int) -> np.ndarray:
+    """(N,) uint8 per point of a frame's sweep: PEDESTRIAN for the points of a tracked person
+    (the track stage's confirmed persons), else UNCLASSIFIED: the class of a return's voxel where
+    nothing occupied is at or next to it."""
+    out = np.full(num_points, UNCLASSIFIED, np.uint8)
+    if tracks is None:
+        return out
+    for row in np.flatnonzero(tracks.frame == frame):
+        idx = tracks.points_of(int(row))
+        out[idx[(idx >= 0) & (idx < num_points)]] = PEDESTRIAN
+    return out
+
+
 def fuse_chunk(
     ref: SequenceRef,
     inputs: FuseInputs,
@@ -146,6 +163,7 @@ def fuse_chunk(
     fit_dir: Path | None,
     start: int,
     threads: int,
+    track_dir: Path | None = None,
 ) -> list[dict]:
     """Fuse some frames (positions in the sequence) and write them as one write unit of the store,
     from index ``start`` of its frame axis (the frames detect produced, in order)."""
@@ -156,6 +174,7 @@ def fuse_chunk(
         map_dir, inputs, relative_pose(seq.info.poses[positions], T_base_from_lidar)
     )
     people = _People(inputs, seq, out_root, fit_dir)
+    tracks = Tracks.read(track_dir) if track_dir is not None else None
     camera = (
         CameraView(
             cam.K, cam.width, cam.height, relative_pose(T_base_from_lidar, cam.T_cam_from_lidar)
@@ -179,6 +198,7 @@ def fuse_chunk(
             camera,
             inputs.fusion,
             threads,
+            _return_labels(tracks, frame.index, len(frame.points_lidar)),
         )
         for name, value in grids.items():
             stacks.setdefault(name, []).append(value)
@@ -226,16 +246,18 @@ def run_fuse(ctx: StageContext[FuseInputs]) -> dict:
                 fit_dir,
                 a,
                 ctx.runtime.threads,
+                ctx.upstream.get("track"),  # absent in a stage-level run without track
             )
             for a, b in layout.write_units()
         ],
         threads=ctx.runtime.threads,
     )
     rows = [r for part in parts for r in part]
+    counts = np.array([r["counts"] for r in rows], np.int64).reshape(-1, NUM_CLASSES)
     FusedFrames(
         np.array([r["frame"] for r in rows], np.int64),
         np.array([r["stamp_ns"] for r in rows], np.int64),
-        np.array([r["counts"] for r in rows], np.int64).reshape(-1, FREE + 1),
+        np.array([r["counts"] for r in rows], np.int64).reshape(-1, NUM_CLASSES),
         np.array([r["T_world_from_base"] for r in rows], np.float64).reshape(-1, 4, 4),
     ).write(ctx.out_dir)
     return {
@@ -245,4 +267,7 @@ def run_fuse(ctx: StageContext[FuseInputs]) -> dict:
         "voxel_size_m": spec.voxel_size_m,
         "body_source": inp.body_source,
         "pedestrian_meshes": sum(r["people"] for r in rows),
+        # among voxels with mask_lidar = 1: the labels' honesty at a glance (status, end of run)
+        "occupied_voxels": int(counts[:, :FREE].sum()),
+        "unclassified_voxels": int(counts[:, UNCLASSIFIED].sum()),
     }
