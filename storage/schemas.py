@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import pyarrow as pa
 
-from tasks.conventions import NUM_CLASSES
-
 
 def _vec(n: int, t: pa.DataType = pa.float64()) -> pa.DataType:
     return pa.list_(t, n)
@@ -45,7 +43,8 @@ FRAMES = pa.schema(
         _f("cam1_path", pa.string(), "source cam1 image (null if absent)"),
         _f(
             "class_counts",
-            _vec(NUM_CLASSES, pa.int64()),
+            # variable length: version 1's 10 values (free at 9) still read beside version 2's 11
+            pa.list_(pa.int64()),
             "voxels per class id 0..10 among voxels with mask_lidar = 1 (9 unclassified, 10 free)",
         ),
         _f(
