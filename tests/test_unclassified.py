@@ -229,6 +229,7 @@ def test_no_segmenter_and_no_truth_leaves_no_return_free(copy_dataset, tmp_path,
     0.5 % of return-holding voxels are exported free."""
     from flows.bench.common import make_config, run_stages
     from flows.commands.evaluate import evaluate
+    from flows.commands.status import print_plan
     from flows.pipeline.units import unclassified_line
 
     data = copy_dataset()
@@ -248,6 +249,8 @@ def test_no_segmenter_and_no_truth_leaves_no_return_free(copy_dataset, tmp_path,
     report = run_stages(cfg, ("detect", "track", "map", "fuse", "export"))
     line = unclassified_line(report, cfg)
     assert line is not None and "semantic.kind: none" in line
+    print_plan(cfg, dry_run=False)
+    assert " 1  labels  " in capsys.readouterr().out  # status: the sequence's unclassified share
     res = evaluate(out, None, tmp_path / "report", sample_frames=0)
     assert "occupancy" not in res and "static" not in res  # no truth: no truth-based sections
     honesty = res["label_honesty"]["all"]

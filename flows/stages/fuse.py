@@ -257,7 +257,7 @@ def run_fuse(ctx: StageContext[FuseInputs]) -> dict:
     FusedFrames(
         np.array([r["frame"] for r in rows], np.int64),
         np.array([r["stamp_ns"] for r in rows], np.int64),
-        np.array([r["counts"] for r in rows], np.int64).reshape(-1, NUM_CLASSES),
+        counts,
         np.array([r["T_world_from_base"] for r in rows], np.float64).reshape(-1, 4, 4),
     ).write(ctx.out_dir)
     return {
