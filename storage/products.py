@@ -426,6 +426,22 @@ class FusedFrames(Product):
     T_world_from_base: np.ndarray = array(np.float64, ("F", 4, 4), "robot pose, m")
 
 
+@dataclasses.dataclass(frozen=True)
+class PersonVoxels(Product):
+    """fuse: per tracked detection (a Tracks row) the voxels of its LiDAR points that the labels
+    call unclassified, or pedestrian with no instance (no fitted body near the returns)."""
+
+    NAME: ClassVar[str] = "person_voxels"
+    frame: np.ndarray = array(np.int64, ("R",), "raw frame number")
+    det_index: np.ndarray = array(np.int64, ("R",), "row in that frame's Detections")
+    unclassified_voxels: np.ndarray = array(
+        np.int64, ("R",), "voxels of the person's points labelled unclassified"
+    )
+    pedestrian_voxels_without_body: np.ndarray = array(
+        np.int64, ("R",), "voxels of the person's points labelled pedestrian, instance 0"
+    )
+
+
 #: every product type, for the schema documentation test
 PRODUCTS: tuple[type[Product], ...] = (
     Detections,
@@ -437,6 +453,7 @@ PRODUCTS: tuple[type[Product], ...] = (
     KeepMasks,
     WindowVotesProduct,
     FusedFrames,
+    PersonVoxels,
 )
 
 

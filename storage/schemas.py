@@ -84,6 +84,16 @@ INSTANCES = pa.schema(
             pa.bool_(),
             "a body interpolated for a frame the track coasted over (no detection)",
         ),
+        _f(
+            "unclassified_voxels",
+            pa.int64(),
+            "voxels of the person's LiDAR points labelled unclassified (null: gap-filled row)",
+        ),
+        _f(
+            "pedestrian_voxels_without_body",
+            pa.int64(),
+            "voxels of the person's LiDAR points labelled pedestrian with instance 0 (no body)",
+        ),
     ]
 )
 
@@ -106,9 +116,10 @@ SEQUENCES = pa.schema(
 
 SCHEMA_VERSIONS: dict[str, int] = {
     "frames": 2,
-    "instances": 2,
+    "instances": 3,
     "sequences": 1,
-}  # instances 2: keypoints_mirrored, gap_filled; frames 2: class 9 unclassified (free 10, 11
+}  # instances 2: keypoints_mirrored, gap_filled; 3: unclassified_voxels,
+#    pedestrian_voxels_without_body; frames 2: class 9 unclassified (free 10, 11
 #    class_counts), unclassified_voxels
 _BASE: dict[str, pa.Schema] = {"frames": FRAMES, "instances": INSTANCES, "sequences": SEQUENCES}
 TABLE_NAMES: tuple[str, ...] = tuple(_BASE)

@@ -13,7 +13,13 @@ from storage.network_files import BUNDLED_MODELS, DEFAULT_BUNDLED_CACHE
 from tasks import conventions as C
 from tasks.metrics.free_returns import free_return_counts, label_counts
 from tasks.metrics.occupancy import OccupancyMetric
-from tasks.occupancy.fuse import PedestrianMesh, fuse_frame, occupy_returns, orphan_returns
+from tasks.occupancy.fuse import (
+    PedestrianMesh,
+    fuse_frame,
+    occupy_returns,
+    orphan_returns,
+    returns_without_class,
+)
 from tasks.occupancy.grid import GridSpec
 from tasks.occupancy.mapping import SequenceMapper
 from tasks.occupancy.resample import grid_reach_m, static_in_grid
@@ -129,6 +135,9 @@ def test_removed_person_without_a_body_still_occupies_its_returns():
     assert not confirmed.instances.any()  # no body: no instance, no velocity
     unconfirmed = _fuse(empty, None, sweep)
     assert np.all(unconfirmed.semantics[tuple(idx.T)] == C.UNCLASSIFIED)
+    n = len(np.unique(idx, axis=0))  # the instances table's per-person counts
+    assert returns_without_class(confirmed.semantics, confirmed.instances, idx) == (0, n)
+    assert returns_without_class(unconfirmed.semantics, unconfirmed.instances, idx) == (n, 0)
     # a fitted body over the returns: they are its; the rule adds nothing
     box = box_mesh((4.0, 0.5, -0.1), (0.4, 0.5, 1.7))
     body = [PedestrianMesh(3, np.asarray(box.vertices), np.asarray(box.triangles))]
@@ -231,6 +240,7 @@ def test_no_segmenter_and_no_truth_leaves_no_return_free(copy_dataset, tmp_path,
     from flows.commands.evaluate import evaluate
     from flows.commands.status import print_plan
     from flows.pipeline.units import unclassified_line
+    from storage.tables import read_table
 
     data = copy_dataset()
     shutil.rmtree(data / "gt")
@@ -258,3 +268,8 @@ def test_no_segmenter_and_no_truth_leaves_no_return_free(copy_dataset, tmp_path,
     assert honesty["free_returns_share"] < 0.005
     assert honesty["unclassified_share"] > 0.5
     assert "Label honesty" in (tmp_path / "report" / "report.md").read_text()
+    # no fit stage: every tracked person's returns are pedestrian voxels without a body
+    rows = read_table(out, "instances", "1").to_pylist()
+    without = [r["pedestrian_voxels_without_body"] for r in rows]
+    assert rows and all(v is not None for v in without) and sum(without) > 0
+    assert honesty["pedestrian_voxels_without_body"] > 0

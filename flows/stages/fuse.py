@@ -28,6 +28,7 @@ from storage.products import (
     FusedFrames,
     MapTiles,
     OccupancyMapProduct,
+    PersonVoxels,
     StaticMapProduct,
     Tracks,
 )
@@ -36,7 +37,7 @@ from tasks.conventions import FREE, NUM_CLASSES, PEDESTRIAN, UNCLASSIFIED
 from tasks.geometry import transform_points
 from tasks.occupancy.frame import local_grids, relative_pose
 from tasks.occupancy.freespace import OccupancyMap
-from tasks.occupancy.fuse import CameraView, PedestrianMesh
+from tasks.occupancy.fuse import CameraView, PedestrianMesh, returns_without_class
 from tasks.occupancy.mapping import join_static_tiles
 from tasks.occupancy.resample import grid_reach_m
 from tasks.occupancy.static_map import StaticMap
@@ -153,6 +154,24 @@ def _return_labels(tracks: Tracks | None, frame: int, num_points: int) -> np.nda
     return out
 
 
+def _person_voxels(tracks: Tracks | None, frame: int, points_base, spec, grids) -> list[tuple]:
+    """(frame, det_index, unclassified voxels, pedestrian voxels without body) per Tracks row of
+    the frame: the voxels of the person's points (:class:`storage.products.PersonVoxels`)."""
+    if tracks is None:
+        return []
+    idx = spec.index_of(points_base)
+    return [
+        (
+            frame,
+            int(tracks.det_index[r]),
+            *returns_without_class(
+                grids["semantics"], grids["instances"], idx[tracks.points_of(int(r))]
+            ),
+        )
+        for r in np.flatnonzero(tracks.frame == frame)
+    ]
+
+
 def fuse_chunk(
     ref: SequenceRef,
     inputs: FuseInputs,
@@ -202,6 +221,8 @@ def fuse_chunk(
         )
         for name, value in grids.items():
             stacks.setdefault(name, []).append(value)
+        points_base = transform_points(T_base_from_lidar, frame.points_lidar)
+        persons_voxels = _person_voxels(tracks, frame.index, points_base, inputs.grid, grids)
         rows.append(
             {
                 "frame": frame.index,
@@ -209,6 +230,7 @@ def fuse_chunk(
                 "people": len(persons),
                 "counts": counts,
                 "T_world_from_base": T_world_from_base,
+                "person_voxels": persons_voxels,
             }
         )
     write_frames(store, start, {k: np.stack(v) for k, v in stacks.items()})
@@ -260,6 +282,10 @@ def run_fuse(ctx: StageContext[FuseInputs]) -> dict:
         counts,
         np.array([r["T_world_from_base"] for r in rows], np.float64).reshape(-1, 4, 4),
     ).write(ctx.out_dir)
+    person = [p for r in rows for p in r["person_voxels"]]
+    PersonVoxels(*(np.array([p[k] for p in person], np.int64).reshape(-1) for k in range(4))).write(
+        ctx.out_dir
+    )
     return {
         "implemented": True,
         "frames": len(rows),

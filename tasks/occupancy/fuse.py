@@ -449,6 +449,22 @@ def occupy_returns(
     return sem
 
 
+def returns_without_class(
+    semantics: np.ndarray, instances: np.ndarray, return_voxels: np.ndarray
+) -> tuple[int, int]:
+    """(unclassified, pedestrian with no instance): how many distinct voxels of some returns
+    (return_voxels (N, 3) int64; rows outside the grid left out) hold UNCLASSIFIED, and
+    PEDESTRIAN with instance id 0 (a person's returns no fitted body covers). semantics (X, Y, Z)
+    uint8, instances (X, Y, Z) uint16."""
+    idx = np.asarray(return_voxels, dtype=np.int64).reshape(-1, 3)
+    inside = np.all((idx >= 0) & (idx < np.asarray(semantics.shape)), axis=1)
+    vox = np.unique(idx[inside], axis=0).reshape(-1, 3)
+    sem, inst = semantics[tuple(vox.T)], instances[tuple(vox.T)]
+    return int(np.count_nonzero(sem == UNCLASSIFIED)), int(
+        np.count_nonzero((sem == PEDESTRIAN) & (inst == 0))
+    )
+
+
 def fuse_frame(
     spec: GridSpec,
     T_world_from_base: np.ndarray,
