@@ -273,3 +273,19 @@ def test_no_segmenter_and_no_truth_leaves_no_return_free(copy_dataset, tmp_path,
     without = [r["pedestrian_voxels_without_body"] for r in rows]
     assert rows and all(v is not None for v in without) and sum(without) > 0
     assert honesty["pedestrian_voxels_without_body"] > 0
+
+
+def test_ground_truth_simulated_before_class_9_is_refused(copy_dataset):
+    """Old ground truth wrote free as 9: read now, its free space would be 'unclassified'."""
+    from storage.gt import GTFormatError, frame_path, read_frame_gt, write_frame_gt
+
+    data = copy_dataset()
+    frame = read_frame_gt(data, "0", 0)  # today's truth reads
+    path = frame_path(data, "0", 0)
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["occupancy"] = np.where(arrays["occupancy"] == C.FREE, 9, arrays["occupancy"])
+    write_frame_gt(data, "0", 0, arrays)
+    with pytest.raises(GTFormatError, match="simulate again"):
+        read_frame_gt(data, "0", 0)
+    assert (frame.occupancy == C.FREE).any()
