@@ -152,7 +152,12 @@ def _run(args: argparse.Namespace, force: bool) -> int:
     os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
     from flows.commands.perception_sources import run_problem
     from flows.pipeline.plan import PlanCosts, plan_without_hashing
-    from flows.pipeline.units import check_run_paths, run_units, summary_table
+    from flows.pipeline.units import (
+        check_run_paths,
+        run_units,
+        summary_table,
+        unclassified_line,
+    )
     from storage.manifest import FingerprintCache, Manifest, run_lock
 
     cfg = _config(args, built=args.command == "reprocess")
@@ -189,6 +194,9 @@ def _run(args: argparse.Namespace, force: bool) -> int:
         else:
             report = _run_flow(cfg, force, not args.quiet, verify, prune=prune)
     print(summary_table(report))
+    warning = unclassified_line(report, cfg)
+    if warning:
+        print(warning)
     return report.exit_code
 
 
@@ -278,6 +286,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     text = console_text(res)
     if text:
         print(text + "\n")
+    if "label_honesty" in res:  # computed with or without ground truth
+        print(f"label honesty:\n{section_table('label_honesty', res['label_honesty'])}\n")
     for key, title in (("detection", "automatic"), ("detection_manual_qa", "manual QA")):
         if key in res:  # the paper's Table 4 bottom, computed and checked by hand
             print(f"detection robustness ({title}):\n{section_table(key, res[key])}\n")

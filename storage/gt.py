@@ -17,6 +17,7 @@ import numpy as np
 
 from storage.files import InputError, open_regular
 from storage.npzio import load_npz, save_npz_deterministic
+from tasks.conventions import FREE, UNCLASSIFIED
 
 #: Fields of a frame file: name -> (dtype, shape with -1 for free dims, documented in GT_FORMAT.md).
 FRAME_FIELDS: dict[str, tuple[str, tuple[int, ...]]] = {
@@ -224,4 +225,12 @@ def read_frame_gt(root: Path, seq: int | str, frame: int) -> GTFrame:
     _check(path, a, FRAME_FIELDS, OPTIONAL_FRAME_FIELDS, frame)
     kw = {f.name: a.get(f.name) for f in fields(GTFrame)}
     kw["stamp_ns"] = int(kw["stamp_ns"])
+    if np.any(np.asarray(kw["occupancy"]) == UNCLASSIFIED):  # the truth always knows the class
+        raise GTFormatError(
+            f"{path} (frame {frame}): occupancy holds class {UNCLASSIFIED}: simulated before class "
+            f"{UNCLASSIFIED} became 'unclassified' (free was {UNCLASSIFIED}, now {FREE}); "
+            "simulate again",
+            path,
+            frame,
+        )
     return GTFrame(**kw)

@@ -2,7 +2,7 @@
 
 Arrays (axis order ``[frame, x, y, z]``, grid in the ``base`` frame, see tasks.conventions):
 
-- ``semantics`` uint8 (F, X, Y, Z): class id 0..9, fill FREE (9) -- unknown voxels hold FREE and
+- ``semantics`` uint8 (F, X, Y, Z): class id 0..10 (9 unclassified), fill FREE (10) -- unknown voxels hold FREE and
   are told apart by the masks (Occ3D convention).
 - ``instances`` uint16 (F, X, Y, Z): pedestrian track id per voxel, 0 = none.
 - ``mask_lidar``, ``mask_camera`` uint8 (F, X, Y, Z): 1 observed, 0 unknown.
@@ -35,7 +35,7 @@ from zarr.codecs import ZstdCodec
 from storage.layout import CURRENT_FILE, OCCUPANCY_DIR, StoreError
 from tasks.conventions import CLASS_NAMES, FREE
 
-STORE_FORMAT_VERSION = 1
+STORE_FORMAT_VERSION = 2  # 2: class 9 unclassified, free 10
 
 #: a frame (one uint8 grid) above this many bytes is "fine": spatial chunks inside shards.
 FINE_FRAME_BYTES = 1 << 20

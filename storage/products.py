@@ -23,6 +23,10 @@ import numpy as np
 
 from storage.atomic import atomic_write_text
 from storage.npzio import NPZ_ERRORS, load_npz, save_npz_deterministic
+from tasks.conventions import FREE, NUM_CLASSES
+
+#: columns of the static map's vote counts: one per occupied class 0..9 (9: returns with no class)
+NUM_OCCUPIED = FREE
 
 P = TypeVar("P", bound="Product")
 
@@ -279,7 +283,9 @@ class StaticMapProduct(Product):
     voxel_size_m: np.ndarray = array(np.float64, (), "voxel edge, m")
     keys: np.ndarray = array(np.int64, ("K", 3), "integer voxel keys")
     labels: np.ndarray = array(np.uint8, ("K",), "class id (max voting)")
-    counts: np.ndarray = array(np.uint16, ("K", 9), "votes per occupied class 0..8")
+    counts: np.ndarray = array(
+        np.uint16, ("K", NUM_OCCUPIED), "votes per occupied class 0..9 (9: returns with no class)"
+    )
     surface: np.ndarray = array(
         np.float32,
         ("K", 6),
@@ -388,12 +394,14 @@ class WindowVotesProduct(Product):
     (tasks.occupancy.static_map.pack_keys), ascending."""
 
     seen_keys: np.ndarray = array(np.int64, ("A",), "packed voxel keys with camera votes")
-    seen_counts: np.ndarray = array(np.uint16, ("A", 9), "camera votes per class 0..8")
+    seen_counts: np.ndarray = array(np.uint16, ("A", NUM_OCCUPIED), "camera votes per class 0..9")
     seen_moments: np.ndarray = array(
         np.int64, ("A", 13), "point moments (tasks/occupancy/surface.py), fixed point"
     )
     unseen_keys: np.ndarray = array(np.int64, ("U",), "packed voxel keys with fallback votes")
-    unseen_counts: np.ndarray = array(np.uint16, ("U", 9), "fallback votes per class 0..8")
+    unseen_counts: np.ndarray = array(
+        np.uint16, ("U", NUM_OCCUPIED), "fallback votes per class 0..9"
+    )
     unseen_moments: np.ndarray = array(
         np.int64, ("U", 13), "point moments (tasks/occupancy/surface.py), fixed point"
     )
@@ -411,9 +419,25 @@ class FusedFrames(Product):
     frame: np.ndarray = array(np.int64, ("F",), "raw frame number")
     stamp_ns: np.ndarray = array(np.int64, ("F",), "Unix time of the sweep, ns")
     class_counts: np.ndarray = array(
-        np.int64, ("F", 10), "voxels per class id among voxels with mask_lidar = 1"
+        np.int64, ("F", NUM_CLASSES), "voxels per class id among voxels with mask_lidar = 1"
     )
     T_world_from_base: np.ndarray = array(np.float64, ("F", 4, 4), "robot pose, m")
+
+
+@dataclasses.dataclass(frozen=True)
+class PersonVoxels(Product):
+    """fuse: per tracked detection (a Tracks row) the voxels of its LiDAR points that the labels
+    call unclassified, or pedestrian with no instance (no fitted body near the returns)."""
+
+    NAME: ClassVar[str] = "person_voxels"
+    frame: np.ndarray = array(np.int64, ("R",), "raw frame number")
+    det_index: np.ndarray = array(np.int64, ("R",), "row in that frame's Detections")
+    unclassified_voxels: np.ndarray = array(
+        np.int64, ("R",), "voxels of the person's points labelled unclassified"
+    )
+    pedestrian_voxels_without_body: np.ndarray = array(
+        np.int64, ("R",), "voxels of the person's points labelled pedestrian, instance 0"
+    )
 
 
 #: every product type, for the schema documentation test
@@ -427,6 +451,7 @@ PRODUCTS: tuple[type[Product], ...] = (
     KeepMasks,
     WindowVotesProduct,
     FusedFrames,
+    PersonVoxels,
 )
 
 

@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import pyarrow as pa
 
-from tasks.conventions import NUM_CLASSES
-
 
 def _vec(n: int, t: pa.DataType = pa.float64()) -> pa.DataType:
     return pa.list_(t, n)
@@ -45,8 +43,14 @@ FRAMES = pa.schema(
         _f("cam1_path", pa.string(), "source cam1 image (null if absent)"),
         _f(
             "class_counts",
-            _vec(NUM_CLASSES, pa.int64()),
-            "voxels per class id 0..9 among voxels with mask_lidar = 1",
+            # variable length: version 1's 10 values (free at 9) still read beside version 2's 11
+            pa.list_(pa.int64()),
+            "voxels per class id 0..10 among voxels with mask_lidar = 1 (9 unclassified, 10 free)",
+        ),
+        _f(
+            "unclassified_voxels",
+            pa.int64(),
+            "occupied voxels with no class (class 9) among voxels with mask_lidar = 1",
         ),
         _f("is_night", pa.bool_(), "frame recorded at night"),
     ]
@@ -80,6 +84,16 @@ INSTANCES = pa.schema(
             pa.bool_(),
             "a body interpolated for a frame the track coasted over (no detection)",
         ),
+        _f(
+            "unclassified_voxels",
+            pa.int64(),
+            "voxels of the person's LiDAR points labelled unclassified (null: gap-filled row)",
+        ),
+        _f(
+            "pedestrian_voxels_without_body",
+            pa.int64(),
+            "voxels of the person's LiDAR points labelled pedestrian with instance 0 (no body)",
+        ),
     ]
 )
 
@@ -101,10 +115,12 @@ SEQUENCES = pa.schema(
 )
 
 SCHEMA_VERSIONS: dict[str, int] = {
-    "frames": 1,
-    "instances": 2,
+    "frames": 2,
+    "instances": 3,
     "sequences": 1,
-}  # instances 2: keypoints_mirrored, gap_filled
+}  # instances 2: keypoints_mirrored, gap_filled; 3: unclassified_voxels,
+#    pedestrian_voxels_without_body; frames 2: class 9 unclassified (free 10, 11
+#    class_counts), unclassified_voxels
 _BASE: dict[str, pa.Schema] = {"frames": FRAMES, "instances": INSTANCES, "sequences": SEQUENCES}
 TABLE_NAMES: tuple[str, ...] = tuple(_BASE)
 

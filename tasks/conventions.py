@@ -17,8 +17,12 @@ Arrays:
 - voxel grids ``[x, y, z]`` axis order (Occ3D): the index of a point p is
   ``floor((p - range_min) / voxel_size_m)``.
 
-Classes (Occ3D convention, free last so Occ3D's metric code applies unchanged). Unknown is not
-a class: it is where the visibility masks are 0.
+Classes (Occ3D convention, free last so Occ3D's metric code applies unchanged): 0 pedestrian,
+1 car, 2 other-structure, 3 pole, 4 road, 5 terrain, 6 truck, 7 two-wheeler, 8 vegetation (the
+9 semantic classes, ``range(NUM_SEMANTIC_CLASSES)``), 9 unclassified (occupied, class unknown: a
+voxel holding LiDAR returns that no class was given to, e.g. with no image segmenter; Occ3D's
+"others"), 10 free. Occupied is ``< FREE``. Unknown is not a class: it is where the visibility
+masks are 0.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ CLASS_NAMES: tuple[str, ...] = (
     "truck",
     "two-wheeler",
     "vegetation",
+    "unclassified",
     "free",
 )
 PEDESTRIAN = 0
@@ -46,8 +51,12 @@ TERRAIN = 5
 TRUCK = 6
 TWO_WHEELER = 7
 VEGETATION = 8
-FREE = 9
-NUM_CLASSES = 10
+#: occupied, class unknown: returns that got no class (no segmenter, a removed person with no body)
+UNCLASSIFIED = 9
+FREE = 10
+NUM_CLASSES = 11
+#: the classes with a meaning, 0..8 (mIoU's classes); occupied classes are 0..UNCLASSIFIED
+NUM_SEMANTIC_CLASSES = UNCLASSIFIED
 #: label for "no class" in per-point label arrays (e.g. a point outside the image with the
 #: ``unknown`` fallback); never written into a voxel grid.
 UNLABELED = 255
@@ -64,6 +73,7 @@ CLASS_COLORS: np.ndarray = np.array(
         [0, 0, 91],  # truck
         [0, 0, 255],  # two-wheeler
         [139, 185, 46],  # vegetation
+        [255, 170, 0],  # unclassified
         [255, 255, 255],  # free
     ],
     dtype=np.uint8,
@@ -122,7 +132,7 @@ for _name, _cls in {
 
 #: Our class id -> the Cityscapes train id a renderer paints for it (inverse of the table above).
 CLASS_TO_CITYSCAPES: np.ndarray = np.array(
-    [11, 13, 2, 5, 0, 9, 14, 18, 8, CITYSCAPES_IGNORE], dtype=np.uint8
+    [11, 13, 2, 5, 0, 9, 14, 18, 8, CITYSCAPES_IGNORE, CITYSCAPES_IGNORE], dtype=np.uint8
 )
 
 # COCO-17 keypoints (ViTPose order).

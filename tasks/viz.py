@@ -49,7 +49,7 @@ def bev_image(
 ) -> np.ndarray:
     """Top-down view of a semantic grid.
 
-    occupancy (X, Y, Z) uint8 class ids (9 free); instance (X, Y, Z) uint16 pedestrian ids or
+    occupancy (X, Y, Z) uint8 class ids (10 free); instance (X, Y, Z) uint16 pedestrian ids or
     None; visible (X, Y, Z) bool/uint8 observation mask or None (all known). Each column shows
     its highest occupied voxel (class colour, pedestrians per instance, darker when low), white
     when free, grey when no voxel of the column is visible. Returns (X*scale, Y*scale, 3) uint8.

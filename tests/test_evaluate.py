@@ -50,7 +50,7 @@ def test_report_sections_and_gt_bodies_near_perfect(built, tmp_path):
     # issue 30: a confusion matrix per sequence (and summed) over the Occ3D metric's voxels, the
     # counts behind each class's IoU, and where each class's wrong voxels lie
     cm = np.array(res["confusion"]["0"]["matrix"])
-    assert cm.shape == (10, 10) and cm.sum() == res["occupancy"]["num_voxels"]
+    assert cm.shape == (C.NUM_CLASSES, C.NUM_CLASSES) and cm.sum() == res["occupancy"]["num_voxels"]
     assert res["confusion"]["all"]["matrix"] == res["confusion"]["0"]["matrix"]
     ped = res["occupancy_classes"]["0"]["pedestrian"]
     assert ped["gt_voxels"] == cm[0].sum() and ped["labelled_voxels"] == cm[:, 0].sum()
@@ -137,8 +137,9 @@ def test_corrupted_semantics_lower_miou(built, tmp_path):
     ds = open_dataset(bad_out)
     arr = zarr.open_group(str(ds.store_path("0")), mode="r+", zarr_format=3)["semantics"]
     frame = np.asarray(arr[0])
-    occupied = frame != 9
-    frame[occupied] = (frame[occupied].astype(np.int64) + 1) % 9  # every occupied voxel mislabelled
+    occupied = frame < C.UNCLASSIFIED
+    # every semantic voxel mislabelled
+    frame[occupied] = (frame[occupied].astype(np.int64) + 1) % C.NUM_SEMANTIC_CLASSES
     arr[0] = frame
     _republish_as_is(bad_out, "0", ds.store_path("0"))
     bad = evaluate(bad_out, data, tmp_path / "bad", sample_frames=0)

@@ -14,6 +14,7 @@ from storage import occupancy_store as occ
 from storage import publish as pub
 from storage.export import export_nuscenes, export_occ3d
 from storage.export.common import quat_wxyz_from_matrix, sample_token
+from tasks import conventions as C
 from tasks.conventions import FREE, PEDESTRIAN, ROAD
 
 GRID = (48, 48, 24)
@@ -113,7 +114,7 @@ def build_tiny_dataset(root: Path, src: Path) -> Path:
                         "T_world_from_base": Twb.ravel(),
                         "lidar_path": lidar,
                         "cam0_path": cam,
-                        "class_counts": [0] * 10,
+                        "class_counts": [0] * C.NUM_CLASSES,
                         "is_night": False,
                     }
                 )
@@ -362,7 +363,7 @@ def test_flashocc_settings_for_an_asymmetric_grid(tiny):
     meta = json.loads((base / "occ3d_meta" / "occ3d_metadata.json").read_text())["flashocc"]
     assert meta["bda_aug_conf"]["flip_dx_ratio"] == 0.0
     assert meta["bda_aug_conf"]["flip_dy_ratio"] == 0.5
-    assert meta["num_classes"] == 10 and meta["Dz"] == 24 and meta["src_size"] == [H, W]
+    assert meta["num_classes"] == C.NUM_CLASSES and meta["Dz"] == 24 and meta["src_size"] == [H, W]
     cover = [s["frustum_coverage"] for s in meta["input_sizes"]]
     assert all(0 < a < b <= 1 for a, b in zip(cover, cover[1:])), cover
     assert all(

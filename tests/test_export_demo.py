@@ -27,6 +27,7 @@ from storage.export.common import DETECTION_CLASSES, sample_token
 from storage.gt import read_frame_gt
 from storage.plain_pickle import pickle_globals
 from storage.tables import read_table
+from tasks import conventions as C
 
 pytestmark = [pytest.mark.usefixtures("prefect_harness"), pytest.mark.xdist_group("prefect")]
 
@@ -184,7 +185,11 @@ def test_training_infos_read_like_flashocc(demo):
     meta = json.loads((root / "nuscenes_metadata.json").read_text())
     assert json.loads((root / "occ3d_metadata.json").read_text())["grid"] == meta["grid"]
     assert (
-        meta["num_classes"] == 10 and meta["free_class"] == 9 and meta["class_names"][9] == "free"
+        meta["num_classes"] == C.NUM_CLASSES
+        and meta["free_class"] == C.FREE
+        and meta["class_names"][C.FREE] == "free"
+        and meta["class_names"][C.UNCLASSIFIED] == "unclassified"
+        and meta["occ3d_class_names"][C.UNCLASSIFIED] == "others"
     )
     g = cfg.fuse.grid
     assert (
@@ -214,7 +219,7 @@ def test_training_infos_read_like_flashocc(demo):
             ("builtins", "bytearray"),
         }
         infos, metadata = _load_annotations(path)
-        assert metadata["version"] == "v1.0-trainval" and metadata["num_classes"] == 10
+        assert metadata["version"] == "v1.0-trainval" and metadata["num_classes"] == C.NUM_CLASSES
         assert {i["scene_name"] for i in infos} == {f"coda-{s}" for s in seqs}
         assert [i["timestamp"] for i in infos] == sorted(i["timestamp"] for i in infos)
         for index, info in enumerate(infos):
@@ -438,7 +443,7 @@ def test_infos_read_like_the_occupancy_challenge(demo):
             ours = np.asarray(ds.arrays(seq, lazy="zarr")["semantics"][frame])
             np.testing.assert_array_equal(gt["semantics"], ours)  # not the all-zero fallback
             assert gt["semantics"].any() and gt["mask_camera"].any()
-            assert (gt["semantics"] != 9).any()
+            assert (gt["semantics"] != C.FREE).any()
 
 
 def test_export_needs_no_data_after_a_rebuild_from_elsewhere(demo, tmp_path, monkeypatch, capsys):

@@ -17,6 +17,7 @@ from tasks.occupancy.fuse import CameraView, PedestrianMesh
 from tasks.occupancy.grid import GridSpec
 from tasks.occupancy.mapping import SequenceMapper
 from tasks.occupancy.settings import FreeSpaceParams, FuseSettings, MapParams
+from tasks.occupancy.static_map import NUM_OCCUPIED_CLASSES
 from tasks.occupancy.synthetic import box_mesh
 
 VOXEL = 0.2
@@ -132,7 +133,11 @@ def test_every_occupied_voxel_is_inside_mask_lidar():
     ys, zs = np.meshgrid(np.linspace(-0.25, 0.25, 11), np.linspace(-0.7, 0.7, 29), indexing="ij")
     front = np.stack([np.full(ys.size, 2.2), ys.ravel(), zs.ravel()], 1).astype(np.float32)
     empty = StaticMap(
-        VOXEL, np.zeros((0, 3), np.int64), np.zeros(0, np.uint8), np.zeros((0, 9), np.uint16), 0
+        VOXEL,
+        np.zeros((0, 3), np.int64),
+        np.zeros(0, np.uint8),
+        np.zeros((0, NUM_OCCUPIED_CLASSES), np.uint16),
+        0,
     )
     grids, _ = local_grids(
         spec,

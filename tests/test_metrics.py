@@ -116,8 +116,9 @@ def test_static_by_hand():
 
 
 def test_static_rejects_free_gt_class():
-    with pytest.raises(MetricInputError, match="class id 9"):
-        static_counts(col([0]), (0, 0, 0), 1.0, np.zeros((1, 3)), np.array([9], np.uint8))
+    for bad in (C.UNCLASSIFIED, C.FREE):  # the truth has a semantic class or none
+        with pytest.raises(MetricInputError, match=f"class id {bad}"):
+            static_counts(col([0]), (0, 0, 0), 1.0, np.zeros((1, 3)), np.array([bad], np.uint8))
 
 
 # ---- pedestrian voxels --------------------------------------------------------------------------

@@ -18,6 +18,7 @@ from storage import publish as pub
 from storage.dataset import open_dataset
 from storage.manifest import sweep_temporaries
 from storage.npzio import save_npz_deterministic
+from tasks import conventions as C
 from tasks.conventions import FREE
 
 GRID = (12, 10, 6)
@@ -68,7 +69,7 @@ def test_round_trip_attrs_and_metadata(tmp_path):
     assert (
         attrs["voxel_size_m"] == 0.2
         and attrs["frame"] == "base"
-        and attrs["class_names"][9] == "free"
+        and attrs["class_names"][C.FREE] == "free"
     )
     assert attrs["skip_empty_chunks"] is False  # coarse default: a 3-frame chunk is never all fill
     # another tool opens it directly, with dimension names and zstd in the metadata

@@ -84,20 +84,20 @@ def scene_a():
 #   -y GT free (dropped)                      | pred free
 #   +z GT free (dropped)                      | pred free
 #   -z GT road (2,3,0), leaves at z=0: 2.5    | pred road, 2.5
-EXPECTED_GT = [(0, 5.5), (9, None), (9, None), (1, 2.5), (9, None), (4, 1.5)] + [
+EXPECTED_GT = [(0, 5.5), (C.FREE, None), (C.FREE, None), (1, 2.5), (C.FREE, None), (4, 1.5)] + [
     (0, 3.5),
-    (9, None),
+    (C.FREE, None),
     (3, 2.5),
-    (9, None),
-    (9, None),
+    (C.FREE, None),
+    (C.FREE, None),
     (4, 2.5),
 ]
-EXPECTED_PRED = [(0, 8.5), (9, None), (9, None), (9, None), (8, 3.5), (5, 1.5)] + [
+EXPECTED_PRED = [(0, 8.5), (C.FREE, None), (C.FREE, None), (C.FREE, None), (8, 3.5), (5, 1.5)] + [
     (0, 4.5),
-    (9, None),
+    (C.FREE, None),
     (3, 2.5),
-    (9, None),
-    (9, None),
+    (C.FREE, None),
+    (C.FREE, None),
     (4, 2.5),
 ]
 # R3 over the 6 kept rays: GT ped 2, car 1, pole 1, road 2; predicted ped 2, terrain 1, pole 1,

@@ -7,7 +7,7 @@ import numpy as np
 from tasks.conventions import OTHER_STRUCTURE, ROAD, UNLABELED, VEGETATION
 from tasks.occupancy.grid import GridSpec
 from tasks.occupancy.resample import static_in_grid, static_labels_at_cells
-from tasks.occupancy.static_map import StaticMap, lookup_labels
+from tasks.occupancy.static_map import NUM_OCCUPIED_CLASSES, StaticMap, lookup_labels
 
 SPEC = GridSpec((0.4, -1.0, -0.6), (3.0, 1.0, 1.0), 0.2)  # 13 x 10 x 8
 
@@ -23,7 +23,9 @@ def _map(voxel_size_m: float, seed: int = 0) -> StaticMap:
     rng = np.random.default_rng(seed)
     keys = np.unique(rng.integers([-5, -25, -8], [60, 25, 8], (20000, 3)), axis=0)
     labels = rng.choice(np.array([ROAD, OTHER_STRUCTURE, VEGETATION], np.uint8), len(keys))
-    return StaticMap(voxel_size_m, keys, labels, np.zeros((len(keys), 9), np.uint16), 0)
+    return StaticMap(
+        voxel_size_m, keys, labels, np.zeros((len(keys), NUM_OCCUPIED_CLASSES), np.uint16), 0
+    )
 
 
 def test_cells_take_the_label_of_the_map_voxel_under_their_centre():
@@ -50,7 +52,11 @@ def test_finer_map_is_pushed_as_points_and_empty_map_gives_nothing():
     near = fine.crop(T[:3, 3], 3.0)
     assert len(pts) == len(near.keys) and set(lab.tolist()) <= {ROAD, OTHER_STRUCTURE, VEGETATION}
     empty = StaticMap(
-        0.2, np.zeros((0, 3), np.int64), np.zeros(0, np.uint8), np.zeros((0, 9), np.uint16), 0
+        0.2,
+        np.zeros((0, 3), np.int64),
+        np.zeros(0, np.uint8),
+        np.zeros((0, NUM_OCCUPIED_CLASSES), np.uint16),
+        0,
     )
     pts, lab = static_in_grid(empty, SPEC, T, reach_m=3.0)
     assert pts.shape == (0, 3) and lab.shape == (0,)

@@ -12,17 +12,20 @@ from tasks.conventions import (
     CAR,
     CITYSCAPES_TO_CLASS,
     CITYSCAPES_TRAIN_IDS,
+    FREE,
     OTHER_STRUCTURE,
     PEDESTRIAN,
     ROAD,
     TERRAIN,
     TWO_WHEELER,
+    UNCLASSIFIED,
     UNLABELED,
     VEGETATION,
 )
 from tasks.occupancy.freespace import OccupancyMap
 from tasks.occupancy.settings import FreeSpaceParams, MapParams
 from tasks.occupancy.static_map import (
+    NUM_OCCUPIED_CLASSES,
     StaticMapError,
     StaticSemanticMap,
     lift_image_semantics,
@@ -54,7 +57,8 @@ def test_max_voting_ties_and_pedestrian_votes():
     m.add_sweep(_at([[2, 1, 1]], 2), np.array([VEGETATION, OTHER_STRUCTURE], np.uint8))  # tie
     m.add_sweep(_at([[3, 1, 1]], 4), np.array([PEDESTRIAN] * 3 + [VEGETATION], np.uint8))
     m.add_sweep(_at([[4, 1, 1]], 2), np.full(2, PEDESTRIAN, np.uint8))  # only pedestrian votes
-    m.add_sweep(_at([[5, 1, 1]], 2), np.full(2, UNLABELED, np.uint8))  # no votes at all
+    # no class at all: the returns still hold a surface (issue 38)
+    m.add_sweep(_at([[5, 1, 1]], 2), np.full(2, UNLABELED, np.uint8))
     # keep-mask: these 5 votes for the road are dropped by the caller's pedestrian mask
     m.add_sweep(_at([[1, 1, 1]], 5), np.full(5, ROAD, np.uint8), keep=np.zeros(5, bool))
     res = m.finalize(MAP, ())
@@ -62,9 +66,10 @@ def test_max_voting_ties_and_pedestrian_votes():
         (1, 1, 1): OTHER_STRUCTURE,
         (2, 1, 1): OTHER_STRUCTURE,
         (3, 1, 1): VEGETATION,
+        (5, 1, 1): UNCLASSIFIED,
     }
     keys, counts = m.counts()
-    assert counts.dtype == np.uint16 and counts.shape == (4, 9)
+    assert counts.dtype == np.uint16 and counts.shape == (5, NUM_OCCUPIED_CLASSES)
     assert counts[[tuple(k) for k in keys].index((1, 1, 1))].tolist() == [
         0,
         0,
@@ -75,6 +80,7 @@ def test_max_voting_ties_and_pedestrian_votes():
         0,
         0,
         3 - 1,
+        0,
     ]
 
 
@@ -84,7 +90,7 @@ def test_ground_consistency_rejects_far_ground_votes():
     m.add_sweep(_at(ground, 5), np.full(len(ground) * 5, ROAD, np.uint8))
     near = [[2, 2, 1]]  # centre 0.3: 0.2 m above ground -> kept
     far = [[3, 3, 2]]  # centre 0.5: 0.4 m above -> road votes rejected, the wall votes decide
-    far_only = [[4, 4, 7]]  # centre 1.5: only road votes -> dropped
+    far_only = [[4, 4, 7]]  # centre 1.5: only road votes -> rejected, UNCLASSIFIED (a surface)
     below = [[5, 5, -2]]  # centre -0.3: 0.4 m below
     m.add_sweep(_at(near + far + far_only + below, 4), np.full(16, TERRAIN, np.uint8))
     m.add_sweep(_at(far, 1), np.full(1, OTHER_STRUCTURE, np.uint8))
@@ -92,7 +98,7 @@ def test_ground_consistency_rejects_far_ground_votes():
     lab = _labels(res)
     assert lab[(2, 2, 1)] == TERRAIN
     assert lab[(3, 3, 2)] == OTHER_STRUCTURE
-    assert (4, 4, 7) not in lab and (5, 5, -2) not in lab
+    assert lab[(4, 4, 7)] == lab[(5, 5, -2)] == UNCLASSIFIED  # the returns are there, not ground
     assert res.ground_rejected == 12
     assert sum(v == ROAD for v in lab.values()) == len(ground)
     # without the check the far votes win
@@ -137,8 +143,8 @@ def test_crop_to_grid_and_sample_points():
 
 def test_bad_votes_raise():
     m = StaticSemanticMap(VS)
-    with pytest.raises(StaticMapError, match="class 9"):
-        m.add_sweep(np.zeros((1, 3)), np.array([9], np.uint8))
+    with pytest.raises(StaticMapError, match=f"class {FREE}"):
+        m.add_sweep(np.zeros((1, 3)), np.array([FREE], np.uint8))
     with pytest.raises(StaticMapError, match="labels"):
         m.add_sweep(np.zeros((2, 3)), np.array([1], np.uint8))
 
@@ -354,13 +360,13 @@ def test_ghost_trail_removed_by_pedestrian_boxes():
 def test_merge_static_maps_primary_wins_and_fallback_fills():
     from tasks.occupancy.static_map import StaticMap, merge_static_maps
 
-    counts = np.zeros((1, 9), np.uint16)
+    counts = np.zeros((1, NUM_OCCUPIED_CLASSES), np.uint16)
     cam = StaticMap(0.2, np.array([[0, 0, 0]]), np.array([2], np.uint8), counts, 1)
     fallback = StaticMap(
         0.2,
         np.array([[0, 0, 0], [5, 0, 0]]),
         np.array([8, 4], np.uint8),
-        np.zeros((2, 9), np.uint16),
+        np.zeros((2, NUM_OCCUPIED_CLASSES), np.uint16),
         2,
     )
     merged = merge_static_maps(cam, fallback)
@@ -375,7 +381,9 @@ def test_lookup_labels_resamples_an_offset_grid_without_holes():
     from tasks.occupancy.static_map import StaticMap, lookup_labels
 
     keys = np.array([[i, 0, -1] for i in range(10)])  # a 2 m strip of road, 0.2 m voxels
-    road = StaticMap(0.2, keys, np.full(10, 4, np.uint8), np.zeros((10, 9), np.uint16), 0)
+    road = StaticMap(
+        0.2, keys, np.full(10, 4, np.uint8), np.zeros((10, NUM_OCCUPIED_CLASSES), np.uint16), 0
+    )
     centres = np.stack(
         [0.2 + 0.2 * np.arange(9), np.full(9, 0.1), np.full(9, -0.1)], 1
     )  # offset 0.1

@@ -11,6 +11,7 @@ import pytest
 from storage import occupancy_store as occ
 from storage import publish as pub
 from storage import schemas, tables
+from tasks import conventions as C
 
 
 def frame_rows(n: int, offset: int = 0) -> list[dict]:
@@ -24,7 +25,7 @@ def frame_rows(n: int, offset: int = 0) -> list[dict]:
             "T_world_from_base": eye.ravel(),
             "lidar_path": f"3d_raw/os1/0/3d_raw_os1_0_{2 * i}.bin",
             "cam0_path": f"2d_raw/cam0/0/2d_raw_cam0_0_{2 * i}.png",
-            "class_counts": list(range(10)),
+            "class_counts": list(range(C.NUM_CLASSES)),
             "is_night": False,
         }
         for i in range(n)
@@ -145,6 +146,22 @@ def test_older_partition_without_a_new_column_reads_as_null(tmp_path):
     t = tables.read_table(tmp_path, "frames")
     assert t.column("sequence").to_pylist() == ["new", "old", "old"]
     assert t.column("is_night").to_pylist() == [False, None, None]
+
+
+def test_frames_of_schema_version_1_still_read(tmp_path):
+    """Version 1 wrote 10 class counts (free at 9) as a fixed-size list and no
+    unclassified_voxels; version 2 (issue 38: class 9 unclassified) 11. Both read as one table."""
+    tables.write_partition(tmp_path, "frames", "new", frame_rows(1))
+    old = tables.to_table("frames", frame_rows(1)).drop_columns(
+        ["class_counts", "unclassified_voxels"]
+    )
+    old = old.append_column("class_counts", pa.array([list(range(10))], pa.list_(pa.int64(), 10)))
+    part = tmp_path / "tables" / "frames" / "sequence=old"
+    part.mkdir(parents=True)
+    pq.write_table(old, part / "data.parquet")
+    t = tables.read_table(tmp_path, "frames")
+    assert [len(c) for c in t.column("class_counts").to_pylist()] == [C.NUM_CLASSES, 10]
+    assert t.column("unclassified_voxels").to_pylist()[1] is None
 
 
 def test_no_rows_gives_an_empty_partition(tmp_path):

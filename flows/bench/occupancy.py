@@ -150,6 +150,7 @@ def bench_map_fuse(
     """
     import open3d as o3d
 
+    from tasks import conventions as C
     from tasks.conventions import ROAD, TERRAIN
     from tasks.occupancy.freespace import OccupancyMap
     from tasks.occupancy.fuse import CameraView, PedestrianMesh, fuse_frame
@@ -230,7 +231,7 @@ def bench_map_fuse(
             fuse_s.append(time.process_time() - t0)
     counts = {
         "pedestrian_voxels": int((g.semantics == 0).sum()),
-        "static_voxels": int(((g.semantics != 0) & (g.semantics != 9)).sum()),
+        "static_voxels": int(((g.semantics != 0) & (g.semantics != C.FREE)).sum()),
         "mask_lidar": int(g.mask_lidar.sum()),
         "mask_camera": int(g.mask_camera.sum()),
         "unknown": int((g.occupancy_state == -1).sum()),

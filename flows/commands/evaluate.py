@@ -59,6 +59,12 @@ from tasks.geometry import match_boxes, transform_points
 from tasks.metrics._common import PRCounts
 from tasks.metrics.confusion import ErrorLocations, error_locations
 from tasks.metrics.detection import DetectionCounts, detection_counts
+from tasks.metrics.free_returns import (
+    FreeReturnCounts,
+    LabelCounts,
+    free_return_counts,
+    label_counts,
+)
 from tasks.metrics.heading import heading_errors_deg, heading_summary
 from tasks.metrics.occupancy import OccupancyMetric
 from tasks.metrics.pedestrian import (
@@ -221,6 +227,37 @@ class _Totals:
         self.hist: dict[str, list] = {"velocity_error": [], "PVE_mm": [], "MPJPE_mm": []}
         self.samples: list[dict] = []
         self.rays: dict = {}  # sequence -> evaluate_rays.SequenceRays (RayIoU / OccScore)
+        #: sequence -> (FreeReturnCounts, LabelCounts): label honesty, no ground truth needed
+        self.honesty: dict[str, tuple[FreeReturnCounts, LabelCounts]] = {}
+
+
+def _label_honesty(ds, data_root: Path, seq: str, tot: _Totals, config: dict) -> None:
+    """Free returns and the unclassified / pedestrian voxel counts of every frame of ``seq``
+    (tasks/metrics/free_returns.py): the sweeps from the recorded data under data_root, the
+    labels from the dataset. Needs no ground truth."""
+    arrays = ds.arrays(seq, lazy="zarr")
+    attrs = ds.attrs(seq)
+    range_min = np.asarray(attrs["range_min"], np.float64)
+    vs = float(attrs["voxel_size_m"])
+    raw_frames = [int(r) for r in ds.table("frames", seq).column("raw_frame").to_pylist()]
+    try:
+        rec = open_recorded_sequence(config, data_root, seq)
+    except Exception as exc:  # the raw data moved: the labels alone still give counts
+        tot.notes[f"label honesty {seq}"] = (
+            f"sweeps of {seq} not readable under {data_root} ({str(exc).splitlines()[0][:160]}): "
+            "free returns not counted"
+        )
+        rec = None
+    T_bl = None if rec is None else np.asarray(rec.info.calibration.T_base_from_lidar, np.float64)
+    fr, lc = FreeReturnCounts(), LabelCounts()
+    for k, raw in enumerate(raw_frames):
+        sem = np.asarray(arrays["semantics"][k])
+        mask = np.asarray(arrays["mask_lidar"][k]).astype(bool)
+        lc = lc + label_counts(sem, mask, np.asarray(arrays["instances"][k]))
+        if rec is not None:
+            pts = transform_points(T_bl, rec.frame(rec.position(raw)).points_lidar)
+            fr = fr + free_return_counts(sem, mask, pts, range_min, vs)
+    tot.honesty[seq] = (fr, lc)
 
 
 def _evaluate_sequence(
@@ -239,6 +276,7 @@ def _evaluate_sequence(
     vs = float(attrs["voxel_size_m"])
     raw_frames = [int(r) for r in ds.table("frames", seq).column("raw_frame").to_pylist()]
     data_root, gt_root = gt_root, gt_root if gt_root.is_dir() else gt_root.parent
+    _label_honesty(ds, data_root, seq, tot, config)
     if not (gt_dir(gt_root, seq) / "sequence.npz").exists():
         tot.notes[f"sequence {seq}"] = f"no ground truth under {gt_root}/gt/{seq}: not evaluated"
         return
@@ -774,6 +812,8 @@ def evaluate(
         from flows.commands.confusion_report import sections
 
         results.update(sections(tot.occ, tot.locations))
+    if tot.honesty:
+        results["label_honesty"] = _honesty_section(tot.honesty)
     if tot.trajectory:
         results["trajectory"] = tot.trajectory
     results.update(ray_sections(tot.rays))
@@ -871,6 +911,14 @@ def evaluate(
 
     write_report(report_dir, results, {"bev": tot.samples, "histograms": hist})
     return to_jsonable(results)
+
+
+def _honesty_section(honesty: dict) -> dict:
+    """{sequence: row, "all": row}: the free-returns share and the label counts (no GT needed)."""
+    rows = {s: {**fr.as_dict(), **lc.as_dict()} for s, (fr, lc) in honesty.items()}
+    fr = _sum([f for f, _ in honesty.values()])
+    lc = _sum([c for _, c in honesty.values()])
+    return {**rows, "all": {**fr.as_dict(), **lc.as_dict()}}
 
 
 def _sum_metric(metrics: dict[str, OccupancyMetric]):

@@ -51,6 +51,8 @@ _PERCENT = {
     "iou",
     "miou",
     "geometric_iou",
+    "free_returns_share",
+    "unclassified_share",
     "precision",
     "recall",
     "f1",
@@ -65,6 +67,8 @@ _PERCENT = {
     "miss_vis",
 }
 _LABELS = {
+    "free_returns_share": "free returns (%)",
+    "unclassified_share": "unclassified (%)",
     "geometric_iou": "IoU (geom.)",
     "miou": "mIoU",
     "f1": "F1",
@@ -121,8 +125,16 @@ _HOW_TO_READ = {
     "T / (T + W).",
     "detection": "Per condition: T matched persons (IoU >= 0.5), M_vis / M_occ missed visible / occluded, W false "
     "positives. Recall = T / (T + M_vis), precision = T / (T + W).",
-    "occupancy": "Occ3D metric over camera-visible voxels: IoU per class, mIoU over the 9 occupied classes "
-    "(n/a: class in neither grid, left out of the mean), IoU (geom.) = occupied vs free.",
+    "occupancy": "Occ3D metric over camera-visible voxels: IoU per class, mIoU over the 9 semantic classes "
+    "(n/a: class in neither grid, left out of the mean; an unclassified voxel where the truth has "
+    "class c counts against c), IoU (geom.) = occupied (unclassified included) vs free, "
+    "unclassified share = unclassified voxels among the occupied ones.",
+    "label_honesty": "Needs no ground truth. Free returns share: voxels holding this frame's LiDAR "
+    "returns that the labels call free with nothing occupied among their 26 neighbours, in "
+    "26-connected clusters of >= 5 such voxels, over every return-holding voxel (0 is honest: a "
+    "return is a surface). Unclassified share: occupied voxels with no class (no segmenter or "
+    "geometric classes) among the occupied ones; pedestrian voxels without body: a tracked "
+    "person's returns with no fitted body near them. Voxels with mask_lidar = 1.",
     "fit": "Body fit errors: PVE / MPJPE in mm (lower is better), PA-MPJPE after similarity alignment, "
     "MPERE relative edge-length error (unitless).",
     "fit_acceleration": "Acceleration error of the fitted joints along their tracks (fits whose "
@@ -181,6 +193,7 @@ _TITLES = {
     "velocity_vertex_gt": "Pedestrian velocity (AVE) vs per-vertex GT",
     "velocity_by_limb": "Pedestrian velocity (AVE) per limb group",
     "trajectory": "Trajectory of robot logs (published poses vs GT)",
+    "label_honesty": "Label honesty (no ground truth needed)",
     "ray_iou": "RayIoU and OccScore (ray-based, SparseOcc / OpenOcc)",
     "ray_iou_per_class": "RayIoU per class",
     "ray_ave_per_class": "Ray AVE per moving class (m/s, true positives at 2 m)",
@@ -191,6 +204,15 @@ _COLUMNS = {
     "detection": ["T", "M_vis", "M_occ", "W", "recall", "precision", "miss_vis"],
     "detection_manual_qa": ["T", "M_vis", "M_occ", "W", "recall", "precision", "miss_vis"],
     "tracking": ["mota", "idf1", "hota", "deta", "assa", "switches", "num_objects"],
+    "label_honesty": [
+        "free_returns_share",
+        "free_return_voxels",
+        "return_voxels",
+        "unclassified_share",
+        "occupied_voxels",
+        "pedestrian_voxels",
+        "pedestrian_voxels_without_body",
+    ],
     "velocity": ["ave_o", "ave_t", "num_voxels_o", "num_voxels_t"],
     "velocity_vertex_gt": ["ave_o", "ave_t", "num_voxels_o", "num_voxels_t"],
 }

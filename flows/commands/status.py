@@ -9,7 +9,7 @@ from configs.schema import Config
 from flows.pipeline.inputs import source
 from flows.pipeline.outcome import Status
 from flows.pipeline.plan import PlanCosts, plan_run, selected_sequences
-from flows.pipeline.units import DAMAGED_REASONS, store_problems
+from flows.pipeline.units import DAMAGED_REASONS, store_problems, unclassified_share
 from storage.layout import shown
 from storage.manifest import FingerprintCache, Manifest, OutputError
 
@@ -65,6 +65,15 @@ def print_plan(cfg: Config, dry_run: bool, verify: bool = False) -> int:
             print(shown(f"{plan.sequence:>6}  {stage:<7} {line}"))
         if not lines and not dry_run:
             print(shown(f"{plan.sequence:>6}  fresh ({len(plan.units)} stages)"))
+        fused = manifest.get(plan.sequence, "fuse")
+        share = unclassified_share(fused.summary or {}) if fused is not None else None
+        if share is not None and not dry_run:
+            print(
+                shown(
+                    f"{plan.sequence:>6}  labels  {100 * share:.1f} % of occupied voxels "
+                    "unclassified"
+                )
+            )
     print(
         f"{len(plans)} sequence(s): {runs} unit(s) {'would run' if dry_run else 'stale or failed'}, "
         f"{problems} sequence(s) with failures; {costs.line()}"

@@ -8,7 +8,8 @@ STAGES: dict[str, tuple[str, ...]] = {
     "track": ("detect",),
     "fit": ("track",),
     "map": ("detect",),
-    "fuse": ("detect", "fit", "map"),  # detect: the frames it produced are the store's frame axis
+    "fuse": ("detect", "track", "fit", "map"),  # detect: the frames it produced are the store's
+    #                                            frame axis; track: a person's returns with no body
     "export": ("fuse", "track", "fit"),  # tables take tracks and body fits too
 }
 
@@ -65,19 +66,25 @@ CODE_VERSIONS: dict[str, str] = {
     #                (tasks/occupancy/geometric_classes.py; auto: when detect gives no semantics)
     #                and out of the camera's view a LiDAR pedestrian box removes points only with a
     #                score of at least map.lidar_person_min_score (a false box deleted a real post)
-    "fuse": "4",  # 2: mask_camera is inside mask_lidar (Occ3D); class_counts among voxels with
+    #                and returns with no class vote UNCLASSIFIED (class 9), rejected ground votes too;
+    #                a voxel with no semantic vote is UNCLASSIFIED, not dropped (issue 38); counts
+    #                (K, 10)
+    "fuse": "5",  # 2: mask_camera is inside mask_lidar (Occ3D); class_counts among voxels with
     #               mask_lidar = 1 (as documented); store attrs carry the stage key, not a config hash;
     #               the rectified camera; 3: pedestrian voxel velocity from each vertex's motion along
     #               the track (fuse.velocity "vertex"), the mean over the body surface in the voxel;
     #               4: static voxels from points on each map voxel's surface (right at any offset of
-    #               the grid, e.g. 10 Hz); every occupied voxel in mask_lidar
-    "export": "5",  # 2: instances carry the fitted bodies, 3D boxes and velocities; 3: source paths
+    #               the grid, e.g. 10 Hz); every occupied voxel in mask_lidar; 5: no return is
+    #               left free (one with nothing occupied among its 26 neighbours occupies its voxel:
+    #               PEDESTRIAN for a tracked person's, else UNCLASSIFIED; fuse reads track too)
+    "export": "6",  # 2: instances carry the fitted bodies, 3D boxes and velocities; 3: source paths
     #                 relative to the dataset root, box yaw from the body's forward axis, no NaN
     #                 velocity, chamfer_m / reproj_px written, config_hash of the stage inputs; the
     #                 rectified camera's K and T in the sequences table; 4: the Occ3D metadata says
     #                 semantics is free where mask_lidar is 0 and keeps hidden occupied voxels' class;
     #                 5: instances carry keypoints_mirrored and gap_filled, and a row per gap-filled
-    #                 body (no 2D box or keypoints)
+    #                 body (no 2D box or keypoints); 6: frames table 2 (11 class_counts,
+    #                 unclassified_voxels)
 }
 #: Version of the dataset-level Occ3D / nuScenes exports (OUT/exports/, made after the sequences
 #: are published; part of their key in the manifest): bump when their files change for the same
@@ -87,4 +94,5 @@ CODE_VERSIONS: dict[str, str] = {
 #: 3: the metadata says semantics is free where mask_lidar is 0 and keeps the class of occupied
 #: voxels hidden from the camera (issue 30); 4: a robot log's scene is the log's own name (no
 #: ``<scene_prefix>-``), the Occ3D img_path of a log's image has its extension (issue 38)
+#: class 9 unclassified (Occ3D "others"), free 10, 11 classes (issue 38)
 DATASET_EXPORTS_VERSION = "4"

@@ -930,6 +930,39 @@ def _first_line(text: str) -> str:
 DAMAGED_REASONS = ("output damaged", "not published as recorded")
 
 
+#: above this share of occupied voxels UNCLASSIFIED the end of a run says so (one line)
+UNCLASSIFIED_WARN_SHARE = 0.5
+
+
+def unclassified_share(summary: dict) -> float | None:
+    """Share of occupied voxels (mask_lidar = 1) with no class in a fuse summary (None: the summary
+    predates the count, or nothing is occupied)."""
+    occ, unc = summary.get("occupied_voxels"), summary.get("unclassified_voxels")
+    return unc / occ if occ and unc is not None else None
+
+
+def unclassified_line(report: RunReport, cfg) -> str | None:
+    """One line when the labels of the sequences fused are mostly (> 50 % of occupied voxels)
+    UNCLASSIFIED: why (the image semantics the config asks for) and what to configure."""
+    sums = [o.summary for (_, st), o in sorted(report.outcomes.items()) if st == "fuse"]
+    occ = sum(s.get("occupied_voxels", 0) for s in sums)
+    unc = sum(s.get("unclassified_voxels", 0) for s in sums)
+    if not occ or unc / occ <= UNCLASSIFIED_WARN_SHARE:
+        return None
+    d = cfg.detect
+    why = (
+        "no image segmenter (detect.models.semantic.kind: none)"
+        if d.image_provider == "models" and d.models.semantic.kind == "none"
+        else f"the image semantics ({d.image_provider}) gave most returns no class"
+    )
+    return (
+        f"LABELS MOSTLY UNCLASSIFIED: {100 * unc / occ:.1f} % of occupied voxels have no class: "
+        f"{why} and no geometric classes; configure detect.models.semantic (kind onnx: a "
+        "Cityscapes segmenter, configs/coda-onnx.yaml) or precomputed semantics "
+        "(storage/PERCEPTION_FORMAT.md)"
+    )
+
+
 def summary_table(report: RunReport) -> str:
     """Time per stage, cached vs run; then every sequence that failed, was skipped, lost frames
     or was withdrawn, each with its reason (one line each), and what planning cost."""

@@ -8,15 +8,18 @@ sequences (flows/pipeline/run.py, ``mobileocc export``).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from flows.pipeline.inputs import ExportInputs
 from flows.stages.common import StageContext, body_model, is_night
-from storage.products import Bodies, FusedFrames, Tracks
+from storage.products import Bodies, FusedFrames, PersonVoxels, Tracks
 from storage.publish import sequence_writer, stage_store, stage_table
 from tasks.body.boxes import upright_box
 from tasks.body.params import BodyParams
 from tasks.body.posing import posed_vertices
+from tasks.conventions import UNCLASSIFIED
 from tasks.fit.reframe import reframe_params
 
 
@@ -28,6 +31,23 @@ def instance_rows(
     body the fit interpolated for a frame the track coasted over (``gap_filled``: no 2D box, no
     keypoints)."""
     tracks = Tracks.read(ctx.upstream["track"])
+    fuse_dir = Path(ctx.upstream["fuse"])
+    person = (
+        PersonVoxels.read(fuse_dir) if (fuse_dir / f"{PersonVoxels.NAME}.npz").exists() else None
+    )
+    voxels = (
+        {}
+        if person is None
+        else {
+            (int(f), int(d)): (int(u), int(p))
+            for f, d, u, p in zip(
+                person.frame,
+                person.det_index,
+                person.unclassified_voxels,
+                person.pedestrian_voxels_without_body,
+            )
+        }
+    )
     bodies = Bodies.read(ctx.upstream["fit"]) if "fit" in ctx.upstream else Bodies.empty()
     fitted = {
         (int(f), int(d)): r
@@ -77,6 +97,9 @@ def instance_rows(
             "keypoints": tracks.keypoints[r].reshape(-1).tolist(),
             "gap_filled": False,
         }
+        counts = voxels.get((int(tracks.frame[r]), int(tracks.det_index[r])))
+        if counts is not None:
+            row["unclassified_voxels"], row["pedestrian_voxels_without_body"] = counts
         b = fitted.get((int(tracks.frame[r]), int(tracks.det_index[r])))
         if b is not None:
             row.update(body_fields(b))
@@ -110,6 +133,7 @@ def frame_rows(ctx: StageContext[ExportInputs], seq, fused: FusedFrames) -> list
                 "cam0_path": paths["cam0"],
                 "cam1_path": paths["cam1"],
                 "class_counts": fused.class_counts[k].tolist(),
+                "unclassified_voxels": int(fused.class_counts[k][UNCLASSIFIED]),
                 "is_night": night,
             }
         )

@@ -6,6 +6,9 @@ Frames fan out in chunks aligned to the Zarr store's write units (one writer per
 (traversed or hit voxels) and the voxels the sequence's occupancy map has observed (known free or
 occupied), so "unknown" means never observed.
 mask_camera is cam0's visibility restricted to mask_lidar, as in Occ3D (storage/SCHEMA.md, "Masks").
+No return of a frame is left free: a return with nothing occupied at or next to its voxel occupies
+it, PEDESTRIAN where it is a tracked person's point (the track's points: a person whose body was
+not fitted), else UNCLASSIFIED.
 """
 
 from __future__ import annotations
@@ -25,14 +28,16 @@ from storage.products import (
     FusedFrames,
     MapTiles,
     OccupancyMapProduct,
+    PersonVoxels,
     StaticMapProduct,
+    Tracks,
 )
 from tasks.body.motion import TrackedBodies
-from tasks.conventions import FREE
+from tasks.conventions import FREE, NUM_CLASSES, PEDESTRIAN, UNCLASSIFIED
 from tasks.geometry import transform_points
 from tasks.occupancy.frame import local_grids, relative_pose
 from tasks.occupancy.freespace import OccupancyMap
-from tasks.occupancy.fuse import CameraView, PedestrianMesh
+from tasks.occupancy.fuse import CameraView, PedestrianMesh, returns_without_class
 from tasks.occupancy.mapping import join_static_tiles
 from tasks.occupancy.resample import grid_reach_m
 from tasks.occupancy.static_map import StaticMap
@@ -136,6 +141,37 @@ def maps_near(
     )
 
 
+def _return_labels(tracks: Tracks | None, frame: int, num_points: int) -> np.ndarray:
+    """(N,) uint8 per point of a frame's sweep: PEDESTRIAN for the points of a tracked person
+    (the track stage's confirmed persons), else UNCLASSIFIED: the class of a return's voxel where
+    nothing occupied is at or next to it."""
+    out = np.full(num_points, UNCLASSIFIED, np.uint8)
+    if tracks is None:
+        return out
+    for row in np.flatnonzero(tracks.frame == frame):
+        idx = tracks.points_of(int(row))
+        out[idx[(idx >= 0) & (idx < num_points)]] = PEDESTRIAN
+    return out
+
+
+def _person_voxels(tracks: Tracks | None, frame: int, points_base, spec, grids) -> list[tuple]:
+    """(frame, det_index, unclassified voxels, pedestrian voxels without body) per Tracks row of
+    the frame: the voxels of the person's points (:class:`storage.products.PersonVoxels`)."""
+    if tracks is None:
+        return []
+    idx = spec.index_of(points_base)
+    return [
+        (
+            frame,
+            int(tracks.det_index[r]),
+            *returns_without_class(
+                grids["semantics"], grids["instances"], idx[tracks.points_of(int(r))]
+            ),
+        )
+        for r in np.flatnonzero(tracks.frame == frame)
+    ]
+
+
 def fuse_chunk(
     ref: SequenceRef,
     inputs: FuseInputs,
@@ -146,6 +182,7 @@ def fuse_chunk(
     fit_dir: Path | None,
     start: int,
     threads: int,
+    track_dir: Path | None = None,
 ) -> list[dict]:
     """Fuse some frames (positions in the sequence) and write them as one write unit of the store,
     from index ``start`` of its frame axis (the frames detect produced, in order)."""
@@ -156,6 +193,7 @@ def fuse_chunk(
         map_dir, inputs, relative_pose(seq.info.poses[positions], T_base_from_lidar)
     )
     people = _People(inputs, seq, out_root, fit_dir)
+    tracks = Tracks.read(track_dir) if track_dir is not None else None
     camera = (
         CameraView(
             cam.K, cam.width, cam.height, relative_pose(T_base_from_lidar, cam.T_cam_from_lidar)
@@ -179,9 +217,12 @@ def fuse_chunk(
             camera,
             inputs.fusion,
             threads,
+            _return_labels(tracks, frame.index, len(frame.points_lidar)),
         )
         for name, value in grids.items():
             stacks.setdefault(name, []).append(value)
+        points_base = transform_points(T_base_from_lidar, frame.points_lidar)
+        persons_voxels = _person_voxels(tracks, frame.index, points_base, inputs.grid, grids)
         rows.append(
             {
                 "frame": frame.index,
@@ -189,6 +230,7 @@ def fuse_chunk(
                 "people": len(persons),
                 "counts": counts,
                 "T_world_from_base": T_world_from_base,
+                "person_voxels": persons_voxels,
             }
         )
     write_frames(store, start, {k: np.stack(v) for k, v in stacks.items()})
@@ -226,18 +268,24 @@ def run_fuse(ctx: StageContext[FuseInputs]) -> dict:
                 fit_dir,
                 a,
                 ctx.runtime.threads,
+                ctx.upstream.get("track"),  # absent in a stage-level run without track
             )
             for a, b in layout.write_units()
         ],
         threads=ctx.runtime.threads,
     )
     rows = [r for part in parts for r in part]
+    counts = np.array([r["counts"] for r in rows], np.int64).reshape(-1, NUM_CLASSES)
     FusedFrames(
         np.array([r["frame"] for r in rows], np.int64),
         np.array([r["stamp_ns"] for r in rows], np.int64),
-        np.array([r["counts"] for r in rows], np.int64).reshape(-1, FREE + 1),
+        counts,
         np.array([r["T_world_from_base"] for r in rows], np.float64).reshape(-1, 4, 4),
     ).write(ctx.out_dir)
+    person = [p for r in rows for p in r["person_voxels"]]
+    PersonVoxels(*(np.array([p[k] for p in person], np.int64).reshape(-1) for k in range(4))).write(
+        ctx.out_dir
+    )
     return {
         "implemented": True,
         "frames": len(rows),
@@ -245,4 +293,7 @@ def run_fuse(ctx: StageContext[FuseInputs]) -> dict:
         "voxel_size_m": spec.voxel_size_m,
         "body_source": inp.body_source,
         "pedestrian_meshes": sum(r["people"] for r in rows),
+        # among voxels with mask_lidar = 1: the labels' honesty at a glance (status, end of run)
+        "occupied_voxels": int(counts[:, :FREE].sum()),
+        "unclassified_voxels": int(counts[:, UNCLASSIFIED].sum()),
     }

@@ -240,6 +240,8 @@ def grid_metadata(ds: Dataset, sequences: list[str]) -> dict:
         "class_names": g["class_names"],
         "num_classes": len(g["class_names"]),
         "free_class": g["free_class"],
+        # Occ3D's own names: its "others" is our "unclassified" (occupied, class unknown)
+        "occ3d_class_names": ["others" if n == "unclassified" else n for n in g["class_names"]],
         "unknown": "not a class: voxels with mask_camera == 0 (camera view) or mask_lidar == 0 (LiDAR) "
         "are unknown to that sensor; semantics holds the free id where mask_lidar == 0 (every "
         "occupied voxel is in mask_lidar) and keeps the class of occupied voxels hidden from the "

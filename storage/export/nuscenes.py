@@ -83,6 +83,7 @@ CATEGORY_NAMES = (
     "vehicle.truck",
     "vehicle.two_wheeler",
     "static.vegetation",
+    "static.others",  # unclassified: occupied, class unknown (Occ3D's "others")
 )
 VERSIONS = ("v1.0-trainval", "v1.0-mini", "v1.0-test")
 #: nuScenes visibility levels: (token, level, lower bound of the visible fraction)

@@ -1,7 +1,8 @@
 """Occ3D export: ``gts/<scene>/<sample_token>/labels.npz``, ``annotations.json``, ``occ3d_metadata.json``.
 
 labels.npz (written deterministically, np.load reads it): ``semantics``, ``mask_lidar``,
-``mask_camera``, uint8, shape (X, Y, Z) in [x, y, z] order, free = 9 (last class); masks 0/1;
+``mask_camera``, uint8, shape (X, Y, Z) in [x, y, z] order, free = 10 (last class; 9
+unclassified, Occ3D's "others"); masks 0/1;
 and OpenOcc's ``flow``, float16 (X, Y, Z, 2): (vx, vy) m/s of each voxel, base-frame axes, the
 robot's own motion removed (the store's ``velocity``: non-zero at pedestrian voxels), read with
 the same masks. Scene names and sample tokens equal those of the nuScenes export, so trainers

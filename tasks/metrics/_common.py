@@ -30,7 +30,7 @@ def check_label_grid(name: str, grid, shape: tuple[int, ...] | None = None) -> n
     if a.size and (a.min() < 0 or a.max() > C.FREE):
         bad = a[(a < 0) | (a > C.FREE)][0]
         raise MetricInputError(
-            f"{name}: class id {int(bad)} outside 0..{C.FREE} (0 pedestrian .. 9 free)"
+            f"{name}: class id {int(bad)} outside 0..{C.FREE} (0 pedestrian .. 8 vegetation, 9 unclassified, 10 free)"
         )
     return a
 

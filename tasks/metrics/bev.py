@@ -38,7 +38,7 @@ DIFF_COLORS = np.array(
 def bev_top_labels(grid: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     """Class of the highest occupied (and visible) voxel of each column.
 
-    grid: (X, Y, Z) uint8 class ids (9 free); mask: (X, Y, Z) bool visibility or None (all visible).
+    grid: (X, Y, Z) uint8 class ids (10 free); mask: (X, Y, Z) bool visibility or None (all visible).
     Returns (X, Y) uint8: a class id 0..8, FREE when the column has no occupied visible voxel,
     UNLABELED (255) when no voxel of the column is visible.
     """
@@ -56,7 +56,7 @@ def bev_top_labels(grid: np.ndarray, mask: np.ndarray | None = None) -> np.ndarr
 def bev_difference(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     """Per-column summary of the voxel-wise comparison of two grids.
 
-    pred, gt: (X, Y, Z) uint8 class ids (9 free); mask: (X, Y, Z) bool visibility or None (all).
+    pred, gt: (X, Y, Z) uint8 class ids (10 free); mask: (X, Y, Z) bool visibility or None (all).
     Over the visible voxels of a column: wrong class (both occupied, classes differ), missed (GT
     occupied, predicted free), extra (predicted occupied, GT free). The column shows the error kind
     with most voxels (ties: wrong class, missed, extra), else correct when it holds an occupied

@@ -1,4 +1,4 @@
-"""CODa's own labels in our 10 classes: the mapping tables behind ``mobileocc evaluate --labels coda``.
+"""CODa's own labels in our classes: the mapping tables behind ``mobileocc evaluate --labels coda``.
 
 CODa (ut-amrl/coda-devkit, helpers/constants.py and docs/DATA_REPORT.md) labels LiDAR points of the
 *terrain* with 25 ids (3d_semantic) and objects with 3D boxes of 59 class names (3d_bbox). Our

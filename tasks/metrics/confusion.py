@@ -21,7 +21,7 @@ Each wrong voxel lies, relative to its reference (first match wins):
   within ``reach_voxels`` in front of or behind it (a range error);
 - ``elsewhere``: neither (a wrong label, a missed or invented object).
 
-Grids are ``[x, y, z]`` class ids (:mod:`tasks.conventions`, 9 free); the sensor is a point in
+Grids are ``[x, y, z]`` class ids (:mod:`tasks.conventions`, 10 free); the sensor is a point in
 the grid's frame, given in voxel units (``(p - range_min) / voxel_size_m``).
 """
 
@@ -58,7 +58,7 @@ def _zeros() -> np.ndarray:
 
 @dataclass(frozen=True)
 class ErrorLocations:
-    """counts (2, 9, 4) int64: [kind (false, missed), class 0..8, location (:data:`LOCATIONS`)].
+    """counts (2, 10, 4) int64: [kind (false, missed), class 0..9 (9 unclassified), location (:data:`LOCATIONS`)].
     Add two to sum frames or sequences."""
 
     counts: np.ndarray = field(default_factory=_zeros)
@@ -122,7 +122,7 @@ def error_locations(
 ) -> ErrorLocations:
     """Where the false and missed voxels of each class lie (module docstring) in one frame.
 
-    pred, gt: (X, Y, Z) integer class ids (0..8 occupied, 9 free); mask: (X, Y, Z) bool voxels
+    pred, gt: (X, Y, Z) integer class ids (0..9 occupied, 9 unclassified, 10 free); mask: (X, Y, Z) bool voxels
     evaluated (e.g. mask_camera; None: all); sensor_voxel: (3,) float the sensor's position in
     voxel units of the grid (``(p_sensor - range_min) / voxel_size_m``, base frame).
     """

@@ -19,22 +19,27 @@ from tasks.metrics._common import check_label_grid, check_mask
 
 @dataclass(frozen=True)
 class OccupancyScores:
-    """per_class_iou (NUM_CLASSES - 1,) float64 over classes 0..8 (NaN: class in neither grid);
-    miou: nanmean of it; geometric_iou: occupied-vs-free IoU; confusion (NUM_CLASSES, NUM_CLASSES)
-    int64 voxel counts, rows ground truth, columns prediction; num_voxels evaluated."""
+    """per_class_iou (NUM_SEMANTIC_CLASSES,) float64 over the semantic classes 0..8 (NaN: class in
+    neither grid; an UNCLASSIFIED voxel where the truth has class c counts against c); miou:
+    nanmean of it; geometric_iou: occupied-vs-free IoU (UNCLASSIFIED is occupied);
+    unclassified_share: UNCLASSIFIED voxels among the predicted occupied ones (NaN: none);
+    confusion (NUM_CLASSES, NUM_CLASSES) int64 voxel counts, rows ground truth, columns
+    prediction; num_voxels evaluated."""
 
     per_class_iou: np.ndarray
     miou: float
     geometric_iou: float
     confusion: np.ndarray
     num_voxels: int
+    unclassified_share: float = float("nan")
 
     def as_dict(self) -> dict:
-        names = C.CLASS_NAMES[: C.FREE]
+        names = C.CLASS_NAMES[: C.NUM_SEMANTIC_CLASSES]
         return {
             "per_class_iou": {n: float(v) for n, v in zip(names, self.per_class_iou)},
             "miou": float(self.miou),
             "geometric_iou": float(self.geometric_iou),
+            "unclassified_share": float(self.unclassified_share),
             "num_voxels": int(self.num_voxels),
         }
 
@@ -54,7 +59,7 @@ class OccupancyMetric:
     def update(self, pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> None:
         """Add one frame.
 
-        pred, gt: (X, Y, Z) integer class ids (0..8 occupied, 9 free), base frame [x, y, z];
+        pred, gt: (X, Y, Z) integer class ids (0..8 semantic, 9 unclassified, 10 free), base frame [x, y, z];
         mask: (X, Y, Z) bool / uint8 mask_camera (1 = evaluated), None = every voxel.
         """
         gt = check_label_grid("gt", gt)
@@ -73,7 +78,7 @@ class OccupancyMetric:
         union = cm.sum(0) + cm.sum(1) - np.diag(cm)
         with np.errstate(invalid="ignore", divide="ignore"):
             iou = np.where(union > 0, tp / np.maximum(union, 1), np.nan)
-        occ = iou[: self.free_class]
+        occ = iou[: min(self.free_class, C.NUM_SEMANTIC_CLASSES)]
         miou = float(np.nanmean(occ)) if np.any(~np.isnan(occ)) else float("nan")
         f = self.free_class
         occ_tp = cm[:f, :f].sum()
@@ -81,4 +86,7 @@ class OccupancyMetric:
         occ_fp = cm[f, :f].sum()  # free in GT, predicted occupied
         den = occ_tp + occ_fn + occ_fp
         geo = float(occ_tp / den) if den else float("nan")
-        return OccupancyScores(occ.copy(), miou, geo, cm.copy(), int(cm.sum()))
+        pred_occ = cm[:, :f].sum()
+        unc = cm[:, C.UNCLASSIFIED].sum() if f > C.UNCLASSIFIED else 0
+        share = float(unc / pred_occ) if pred_occ else float("nan")
+        return OccupancyScores(occ.copy(), miou, geo, cm.copy(), int(cm.sum()), share)

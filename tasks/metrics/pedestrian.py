@@ -104,7 +104,7 @@ def pedestrian_box_counts(
 ) -> PRCounts:
     """Pedestrian voxels of one frame vs its GT pedestrian boxes (definitions in the module doc).
 
-    pred: (X, Y, Z) uint8 class ids (0 pedestrian, 9 free) in the grid frame; range_min (3,) m;
+    pred: (X, Y, Z) uint8 class ids (0 pedestrian, 10 free) in the grid frame; range_min (3,) m;
     voxel_size_m m; centers (B, 3) m, sizes (B, 3) m (l, w, h), yaws (B,) rad: boxes in the grid
     frame; visible: (X, Y, Z) bool mask_camera or None (all); reference_occupied: (X, Y, Z) bool
     voxels counted as occupied for recall, None = ``pred != FREE``.

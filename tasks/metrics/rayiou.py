@@ -320,11 +320,12 @@ class RayCounts:
         """RayIoU (and per threshold), mAVE, OccScore, per-class IoU / AVE; NaN where undefined."""
         iou = self.per_class_iou()
         ave = self.per_class_ave(settings.flow_classes)
+        iou = iou[:, : C.NUM_SEMANTIC_CLASSES]  # an unclassified hit counts against the GT's class
         ray_iou = _nanmean(iou)
         mave = _nanmean(ave)
         w_iou, w_ave = settings.occ_score_weights
         occ = w_iou * ray_iou + w_ave * max(1.0 - mave, 0.0) if np.isfinite(mave) else np.nan
-        names = C.CLASS_NAMES[: len(self.gt)]
+        names = C.CLASS_NAMES[: len(self.gt)]  # flow classes may be any of them
         return {
             "ray_iou": ray_iou,
             **{f"ray_iou_{t:g}m": _nanmean(iou[k]) for k, t in enumerate(self.thresholds_m)},

@@ -34,7 +34,7 @@ _N = C.NUM_CLASSES
 @dataclass(frozen=True)
 class StaticCounts:
     """Accumulable counts. confusion (NUM_CLASSES, NUM_CLASSES) int64 points, rows GT class,
-    columns voxel label (9 = free voxel); voxel counts over occupied voxels holding GT points."""
+    columns voxel label (10 = free voxel, 9 = unclassified: counts against the GT class); voxel counts over occupied voxels holding GT points."""
 
     confusion: np.ndarray = field(default_factory=lambda: np.zeros((_N, _N), dtype=np.int64))
     voxels_evaluated: int = 0
@@ -53,7 +53,7 @@ class StaticCounts:
         """IoU per class id in ``classes`` (default: the classes present in the GT points)."""
         cm = self.confusion
         if classes is None:
-            classes = [c for c in range(C.FREE) if cm[c].sum() > 0]
+            classes = [c for c in range(C.NUM_SEMANTIC_CLASSES) if cm[c].sum() > 0]
         out = {}
         for c in classes:
             tp = cm[c, c]
@@ -137,7 +137,7 @@ def static_counts(
 ) -> StaticCounts:
     """Counts of one frame (or one accumulated map) against its labelled GT points.
 
-    labels: (X, Y, Z) uint8 class ids (9 free) of the grid; range_min: (3,) metres, the grid's
+    labels: (X, Y, Z) uint8 class ids (10 free) of the grid; range_min: (3,) metres, the grid's
     corner in the points' frame; voxel_size_m: metres; points: (N, 3) float metres in the grid's
     frame; gt_classes: (N,) uint8 our class ids (0..8), UNLABELED (255) ignored. sensor (3,) and
     tolerance_m: the noise tolerance of :func:`surface_voxel_index` (None / 0: the floor rule).
@@ -152,10 +152,11 @@ def static_counts(
             f"gt_classes: expected ({len(pts)},) class ids, got shape {cls.shape}"
         )
     labelled = cls != C.UNLABELED
-    if np.any(cls[labelled] >= C.FREE):
+    if np.any(cls[labelled] >= C.NUM_SEMANTIC_CLASSES):
+        bad = cls[labelled][cls[labelled] >= C.NUM_SEMANTIC_CLASSES][0]
         raise MetricInputError(
-            f"gt_classes: class id {int(cls[labelled][cls[labelled] >= C.FREE][0])} "
-            f"is not an occupied class (0..{C.FREE - 1}) or {C.UNLABELED}"
+            f"gt_classes: class id {int(bad)} "
+            f"is not a semantic class (0..{C.NUM_SEMANTIC_CLASSES - 1}) or {C.UNLABELED}"
         )
     idx = surface_voxel_index(labels, range_min, voxel_size_m, pts, sensor, tolerance_m)
     inside = np.all((idx >= 0) & (idx < np.asarray(labels.shape)), axis=1)

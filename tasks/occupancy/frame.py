@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tasks.conventions import FREE
+from tasks.conventions import FREE, NUM_CLASSES
 from tasks.geometry import transform_points
 from tasks.occupancy.fuse import CameraView, PedestrianMesh, fuse_frame
 from tasks.occupancy.grid import GridSpec
@@ -31,6 +31,7 @@ def local_grids(
     camera: CameraView | None,
     fusion: FuseSettings,
     threads: int | None = None,
+    return_labels: np.ndarray | None = None,
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """The dataset's grids of one frame (arrays of storage/SCHEMA.md) and its class counts.
 
@@ -40,7 +41,10 @@ def local_grids(
     person's returns, and it fills the voxels behind the visible surface too), so "unknown" means
     never observed and semantics is free wherever mask_lidar is 0; mask_camera is cam0's visibility restricted to mask_lidar (Occ3D: camera-visible =
     seen by the camera and observed by the LiDAR, so no voxel is called free without LiDAR
-    evidence). class_counts (10,) int64: voxels per class among those with mask_lidar = 1.
+    evidence). class_counts (NUM_CLASSES,) int64: voxels per class among those with mask_lidar = 1.
+    No return of this frame is left free (:func:`tasks.occupancy.fuse.occupy_returns`; return_labels
+    (N,) uint8 per point of points_lidar: the class an orphan return's voxel takes, None:
+    UNCLASSIFIED).
     points_lidar: (N, 3) float32 this frame's sweep, LiDAR frame; the rest as
     :func:`tasks.occupancy.fuse.fuse_frame` (threads: for its rays; the grids do not depend on it).
     """
@@ -57,11 +61,12 @@ def local_grids(
         camera=camera,
         fusion=fusion,
         threads=threads,
+        return_labels=return_labels,
     )
     mask_lidar = (
         grids.mask_lidar.astype(bool) | (grids.occupancy_state >= 0) | (grids.semantics != FREE)
     )
-    counts = np.bincount(grids.semantics[mask_lidar], minlength=FREE + 1).astype(np.int64)
+    counts = np.bincount(grids.semantics[mask_lidar], minlength=NUM_CLASSES).astype(np.int64)
     return {
         "semantics": grids.semantics,
         "instances": grids.instances,

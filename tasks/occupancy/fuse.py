@@ -2,7 +2,8 @@
 
 Priority: pedestrian voxels (body-mesh volume + surface, per-instance ids) over static voxels (the
 majority label of the static-map points in the voxel) over the rest, which is free in
-``semantics``; the OctoMap state at each voxel centre (-1 unknown / 0 free / 1 occupied) comes
+``semantics``; then no return of this frame is left free (:func:`occupy_returns`: a return with
+nothing occupied at or next to its voxel occupies its voxel, UNCLASSIFIED or the class given); the OctoMap state at each voxel centre (-1 unknown / 0 free / 1 occupied) comes
 along in ``occupancy_state``. Visibility: ``mask_lidar`` (voxels crossed or hit by this frame's
 LiDAR rays) and ``mask_camera`` (voxels seen from cam0 up to the first occupied voxel of a ray).
 """
@@ -15,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from tasks.conventions import FREE, PEDESTRIAN
+from tasks.conventions import FREE, PEDESTRIAN, UNCLASSIFIED
 from tasks.occupancy.grid import GridSpec
 from tasks.occupancy.settings import FuseSettings
 from tasks.occupancy.visibility import camera_mask, lidar_mask
@@ -389,6 +390,81 @@ def voxelize_labels(
     return vflat[first], vlab[first]
 
 
+#: the 27 offsets of a voxel and its 26 neighbours
+_NEIGHBOURHOOD = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1).reshape(
+    -1, 3
+)
+
+
+def orphan_returns(occupied: np.ndarray, return_voxels: np.ndarray) -> np.ndarray:
+    """(N,) bool: True for the returns whose voxel and its 26 neighbours hold nothing occupied.
+
+    occupied: (X, Y, Z) bool. return_voxels: (N, 3) int64 voxel indices of returns (rows outside
+    the grid are never orphans)."""
+    occ = np.asarray(occupied, dtype=bool)
+    idx = np.asarray(return_voxels, dtype=np.int64).reshape(-1, 3)
+    shape = np.asarray(occ.shape, dtype=np.int64)
+    inside = np.all((idx >= 0) & (idx < shape), axis=1)
+    near = np.zeros(len(idx), dtype=bool)
+    padded = np.pad(occ, 1)  # the neighbours of a border voxel outside the grid are not occupied
+    for off in _NEIGHBOURHOOD:
+        q = idx[inside] + off + 1
+        near[inside] |= padded[q[:, 0], q[:, 1], q[:, 2]]
+    return inside & ~near
+
+
+def occupy_returns(
+    semantics: np.ndarray, return_voxels: np.ndarray, return_labels: np.ndarray | None = None
+) -> np.ndarray:
+    """Returns are never free: the voxel of every return of :func:`orphan_returns` (nothing
+    occupied at or next to it) takes its label, so each cluster of return voxels has an occupied
+    voxel among their 26 neighbours (the voxel convention of storage/SCHEMA.md lets a rule move a
+    return's voxel by one, no further).
+
+    semantics: (X, Y, Z) uint8 class ids (FREE where free), not changed. return_voxels: (N, 3)
+    int64 voxel indices of this frame's returns. return_labels: (N,) uint8 the class an orphan
+    return's voxel takes (None: UNCLASSIFIED; PEDESTRIAN for a confirmed person's returns with no
+    fitted body near them). Returns (semantics (X, Y, Z) uint8, a new array)."""
+    sem = np.array(semantics, dtype=np.uint8, copy=True)
+    idx = np.asarray(return_voxels, dtype=np.int64).reshape(-1, 3)
+    lab = (
+        np.full(len(idx), UNCLASSIFIED, np.uint8)
+        if return_labels is None
+        else np.asarray(return_labels, dtype=np.uint8).reshape(-1)
+    )
+    if len(lab) != len(idx):
+        raise FuseError(f"{len(idx)} returns but {len(lab)} return labels")
+    if len(lab) and lab.max() >= FREE:
+        raise FuseError(f"return label {int(lab.max())} is not an occupied class (0..{FREE - 1})")
+    orphan = orphan_returns(sem < FREE, idx)
+    if orphan.any():
+        # one label per voxel, whatever the order of the points: the lowest class id among the
+        # voxel's orphan returns (PEDESTRIAN before UNCLASSIFIED)
+        flat = np.ravel_multi_index(tuple(idx[orphan].T), sem.shape)
+        out = sem.reshape(-1)
+        best = np.full(len(out), FREE, np.uint8)
+        np.minimum.at(best, flat, lab[orphan])
+        cells = np.unique(flat)
+        out[cells] = best[cells]
+    return sem
+
+
+def returns_without_class(
+    semantics: np.ndarray, instances: np.ndarray, return_voxels: np.ndarray
+) -> tuple[int, int]:
+    """(unclassified, pedestrian with no instance): how many distinct voxels of some returns
+    (return_voxels (N, 3) int64; rows outside the grid left out) hold UNCLASSIFIED, and
+    PEDESTRIAN with instance id 0 (a person's returns no fitted body covers). semantics (X, Y, Z)
+    uint8, instances (X, Y, Z) uint16."""
+    idx = np.asarray(return_voxels, dtype=np.int64).reshape(-1, 3)
+    inside = np.all((idx >= 0) & (idx < np.asarray(semantics.shape)), axis=1)
+    vox = np.unique(idx[inside], axis=0).reshape(-1, 3)
+    sem, inst = semantics[tuple(vox.T)], instances[tuple(vox.T)]
+    return int(np.count_nonzero(sem == UNCLASSIFIED)), int(
+        np.count_nonzero((sem == PEDESTRIAN) & (inst == 0))
+    )
+
+
 def fuse_frame(
     spec: GridSpec,
     T_world_from_base: np.ndarray,
@@ -403,6 +479,7 @@ def fuse_frame(
     fusion: FuseSettings = FuseSettings(),
     velocity_dtype=np.float16,
     threads: int | None = None,
+    return_labels: np.ndarray | None = None,
 ) -> FrameGrids:
     """Fuse one frame into the robot-local grid.
 
@@ -421,6 +498,8 @@ def fuse_frame(
     rays would take seconds per frame at 0.02 m)).
     velocity_dtype: float16 (default, 221 MB at 0.02 m on the benchmark extent) or float32.
     threads: for the visibility rays (None: one thread per core; the grids do not depend on it).
+    return_labels: (M,) uint8 per LiDAR point, the class its voxel takes when nothing occupied is
+    at or next to it (:func:`occupy_returns`; None: UNCLASSIFIED).
     """
     T = np.asarray(T_world_from_base, dtype=np.float64)
     if T.shape != (4, 4):
@@ -460,6 +539,14 @@ def fuse_frame(
         instances[f] = ped.instance_id
         velocity[f] = vel
     semantics = semantics.reshape(spec.shape)
+    if lidar_points_base is not None:
+        pts = np.asarray(lidar_points_base, dtype=np.float64).reshape(-1, 3)
+        finite = np.all(np.isfinite(pts), axis=1)
+        semantics = occupy_returns(
+            semantics,
+            spec.index_of(pts[finite]),
+            None if return_labels is None else np.asarray(return_labels).reshape(-1)[finite],
+        )
     instances = instances.reshape(spec.shape)
     velocity = velocity.reshape(*spec.shape, 2)
     state = (

@@ -36,6 +36,7 @@ from tasks.occupancy.geometric_classes import (
 )
 from tasks.occupancy.settings import FreeSpaceParams, MapParams
 from tasks.occupancy.static_map import (
+    NUM_OCCUPIED_CLASSES,
     StaticMap,
     StaticSemanticMap,
     lift_image_semantics,
@@ -352,7 +353,7 @@ def final_maps(
     select=None,
 ) -> tuple[StaticMap, StaticMap]:
     """(the static map, its camera-labelled part) from the raw votes of the camera-seen and the
-    unseen points: sides = [(packed keys (K,) ascending, counts (K, 9) uint16, moments (K, 13)
+    unseen points: sides = [(packed keys (K,) ascending, counts (K, 10) uint16, moments (K, 13)
     int64)] * 2. The surface fit (:func:`tasks.occupancy.surface.surface_fit`) runs on both sides'
     points together (one geometry) and drops the voxels that only hold noise in front of a
     neighbour's surface; each side is then voted (ground check, max voting) and the camera's side
@@ -394,8 +395,8 @@ def world_points(T_world_from_lidar: np.ndarray, points_lidar: np.ndarray) -> np
 # ---- by tiles ------------------------------------------------------------------------------------
 
 
-#: a tile's raw votes: (camera-seen packed keys (A,), counts (A, 9), moments (A, 13), unseen packed
-#: keys (B,), counts (B, 9), moments (B, 13))
+#: a tile's raw votes: (camera-seen packed keys (A,), counts (A, 10), moments (A, 13), unseen packed
+#: keys (B,), counts (B, 10), moments (B, 13))
 TileVotes = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
@@ -430,7 +431,7 @@ class WindowVotes:
         ]
         empty = (
             np.empty(0, np.int64),
-            np.empty((0, 9), np.uint16),
+            np.empty((0, NUM_OCCUPIED_CLASSES), np.uint16),
             np.empty((0, NUM_MOMENTS), np.int64),
         )
         for tile in sorted(set(parts[0]) | set(parts[1])):
@@ -548,14 +549,14 @@ def occupancy_tiles(
 
 def join_static_tiles(voxel_size_m: float, parts: list[tuple[np.ndarray, ...]]) -> StaticMap:
     """The static map of several tiles: parts of (keys (K, 3) int64, labels (K,) uint8, counts
-    (K, 9) uint16[, surface (K, 6) float32]); keys ascending over the whole (packed order), as the
+    (K, 10) uint16[, surface (K, 6) float32]); keys ascending over the whole (packed order), as the
     whole-sequence map. The map has a surface when every part has one (no part: an empty one)."""
     if not parts:
         return StaticMap(
             voxel_size_m,
             np.empty((0, 3), np.int64),
             np.empty(0, np.uint8),
-            np.empty((0, 9), np.uint16),
+            np.empty((0, NUM_OCCUPIED_CLASSES), np.uint16),
             0,
             np.empty((0, 6), np.float32),
         )

@@ -8,7 +8,10 @@ grows with the mapped volume, not with the number of sweeps. :meth:`StaticSemant
 applies the ground-consistency check (road / terrain votes far from a robust local ground height
 are rejected) and max voting.
 
-Class ids are those of :mod:`tasks.conventions` (0 pedestrian .. 8 vegetation, 255 unlabeled).
+Class ids are those of :mod:`tasks.conventions` (0 pedestrian .. 8 vegetation, 9 unclassified,
+255 unlabeled). No return is thrown away for want of a class: an UNLABELED point votes
+UNCLASSIFIED, and so does a ground vote the ground check rejects; any vote for a semantic class
+outvotes those, so a voxel is UNCLASSIFIED only when its returns carry no class at all.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from tasks.conventions import FREE, PEDESTRIAN, UNLABELED
+from tasks.conventions import FREE, NUM_SEMANTIC_CLASSES, PEDESTRIAN, UNCLASSIFIED, UNLABELED
 from tasks.geometry import points_in_boxes, yaw_rotations
 from tasks.occupancy.nearest import nearest_indices
 from tasks.occupancy.settings import MapParams
@@ -30,7 +33,7 @@ from tasks.occupancy.voxel_keys import unpack_keys as unpack_keys
 from tasks.perception.lidar_clusters import ground_height
 from tasks.perception.person_points import associate_lidar_boxes
 
-NUM_OCCUPIED_CLASSES = FREE  # classes 0..8 take votes; 9 (free) never does
+NUM_OCCUPIED_CLASSES = FREE  # classes 0..9 take votes (9: returns with no class); free never does
 
 
 # -- per-sweep helpers ----------------------------------------------------------------------------
@@ -252,8 +255,9 @@ class StaticMap:
     """The final static map: one row per labelled voxel, world frame.
 
     keys: (K, 3) int64, voxel [k, k + 1) * voxel_size_m (aligned to multiples of the voxel size
-    around 0, like the occupancy map). labels: (K,) uint8 class ids. counts: (K, 9) uint16 votes
-    per class after the ground check. ground_rejected: ground votes removed by the check.
+    around 0, like the occupancy map). labels: (K,) uint8 class ids. counts: (K, 10) uint16 votes
+    per occupied class 0..9 after the ground check (column 9: returns with no class, and rejected
+    ground votes). ground_rejected: ground votes removed by the check.
     surface: (K, 6) float32 where the surface lies in each voxel (centroid of its points relative
     to the voxel's corner, m, and the unit normal of its own plane, zeros where it has none:
     :class:`tasks.occupancy.surface.SurfaceFit`), or None (a map built without point moments:
@@ -357,7 +361,7 @@ class StaticSemanticMap:
         """Add one sweep's votes.
 
         points_world: (N, 3) float32 metres, world frame. labels: (N,) uint8 class ids (UNLABELED
-        points cast no vote; FREE is rejected). keep: optional (N,) bool, False for points to drop
+        points vote UNCLASSIFIED; FREE is rejected). keep: optional (N,) bool, False for points to drop
         (pedestrian points). origin_world: (3,) the sensor's position (needed with moments).
         """
         if self.with_moments and origin_world is None:
@@ -366,7 +370,7 @@ class StaticSemanticMap:
         lab = np.asarray(labels).reshape(-1)
         if len(lab) != len(p):
             raise StaticMapError(f"sweep {self.num_sweeps}: {len(p)} points but {len(lab)} labels")
-        sel = lab != UNLABELED
+        sel = np.ones(len(lab), dtype=bool)
         if keep is not None:
             keep = np.asarray(keep, dtype=bool).reshape(-1)
             if len(keep) != len(p):
@@ -376,9 +380,10 @@ class StaticSemanticMap:
             sel &= keep
         sel &= np.all(np.isfinite(p), axis=1)
         lab = lab[sel].astype(np.uint8)
+        lab[lab == UNLABELED] = UNCLASSIFIED  # a return with no class still holds a surface
         if len(lab) and lab.max() >= NUM_OCCUPIED_CLASSES:
             raise StaticMapError(
-                f"sweep {self.num_sweeps}: class {int(lab.max())} cannot vote (expected 0..8 or 255)"
+                f"sweep {self.num_sweeps}: class {int(lab.max())} cannot vote (expected 0..9 or 255)"
             )
         keys = np.floor(np.asarray(p[sel], dtype=np.float64) / self.voxel_size_m).astype(np.int64)
         packed = pack_keys(keys)
@@ -423,7 +428,7 @@ class StaticSemanticMap:
         self._counts = np.minimum(counts, np.iinfo(np.uint16).max).astype(np.uint16)  # saturate
 
     def counts(self) -> tuple[np.ndarray, np.ndarray]:
-        """Raw votes so far: keys (K, 3) int64 and counts (K, 9) uint16."""
+        """Raw votes so far: keys (K, 3) int64 and counts (K, 10) uint16."""
         self._flush()
         return unpack_keys(self._keys), self._counts.copy()
 
@@ -434,7 +439,7 @@ class StaticSemanticMap:
         return self._moments
 
     def packed_counts(self) -> tuple[np.ndarray, np.ndarray]:
-        """Raw votes so far: packed keys (K,) int64 ascending (:func:`pack_keys`), counts (K, 9)
+        """Raw votes so far: packed keys (K,) int64 ascending (:func:`pack_keys`), counts (K, 10)
         uint16 (the arrays themselves, not copies)."""
         self._flush()
         return self._keys, self._counts
@@ -450,9 +455,11 @@ class StaticSemanticMap:
         Ground check: per xy cell of ``ground_cell_m``, the local ground height is the
         vote-weighted ``ground_quantile`` of the z of voxels with votes of ground_classes, over the
         (2 * ``ground_neighbourhood_cells`` + 1)^2 surrounding cells; ground votes of a voxel whose
-        centre is more than ``ground_max_deviation_m`` from it are rejected. Voting: the class with
-        most votes (ties: the lower id), ignoring ignore_classes (the map is human-free); voxels
-        with fewer than ``min_votes`` remaining votes are dropped.
+        centre is more than ``ground_max_deviation_m`` from it are rejected (they become UNCLASSIFIED
+        votes: the returns are there, their class is not). Voting: the semantic class with most
+        votes (ties: the lower id), ignoring ignore_classes (the map is human-free); a voxel whose
+        semantic votes are fewer than ``min_votes`` is UNCLASSIFIED when its votes with the
+        UNCLASSIFIED ones reach ``min_votes``, else dropped.
         """
         if params.voxel_size_m != self.voxel_size_m:
             raise StaticMapError(
@@ -471,7 +478,7 @@ def vote(
     select: np.ndarray | None = None,
 ) -> StaticMap:
     """:meth:`StaticSemanticMap.finalize` of raw votes: packed_keys (K,) int64 ascending, counts
-    (K, 9) uint16 of voxels of ``params.voxel_size_m``. select: (K,) bool, the voxels to return (default all); the ground heights use
+    (K, 10) uint16 of voxels of ``params.voxel_size_m``. select: (K,) bool, the voxels to return (default all); the ground heights use
     every voxel given, so the votes of a tile plus its halo (:func:`tasks.occupancy.tiles.
     ground_halo_tiles`) give the tile's voxels exactly as the whole map does (the weights are
     integer vote counts: their sums are exact in float64). ground_rejected counts selected voxels.
@@ -498,12 +505,17 @@ def vote(
             & (np.abs(centers[:, 2] - height) > params.ground_max_deviation_m)
         )
         rejected = int(gvotes[bad & sel].sum())
+        counts[bad, UNCLASSIFIED] += gvotes[bad]
         counts[np.ix_(bad, g_idx)] = 0
     vote = counts.copy()
     if ignore_classes:
         vote[:, list(ignore_classes)] = 0
-    labels = np.argmax(vote, axis=1).astype(np.uint8)
-    keep = (vote.max(axis=1) >= max(1, params.min_votes)) & sel
+    semantic = vote[:, :NUM_SEMANTIC_CLASSES]
+    need = max(1, params.min_votes)
+    labels = np.argmax(semantic, axis=1).astype(np.uint8)
+    classed = semantic.max(axis=1) >= need
+    labels[~classed] = UNCLASSIFIED
+    keep = (classed | (vote.sum(axis=1) >= need)) & sel
     return StaticMap(
         voxel_size_m,
         keys[keep],
@@ -557,7 +569,7 @@ def small_fragments(keys: np.ndarray, labels: np.ndarray, min_voxels: int) -> np
 
 def sum_votes(parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
     """Votes of several windows of sweeps added: parts of (packed keys (K,) int64 ascending, counts
-    (K, 9) uint16) -> the same for their union. Counts saturate at 65535 like
+    (K, 10) uint16) -> the same for their union. Counts saturate at 65535 like
     :class:`StaticSemanticMap`'s (a sum of non-negative counts saturated once equals any order of
     saturated partial sums), so the windows of a sequence sum to its sequential votes."""
     parts = [(np.asarray(k, np.int64), np.asarray(c, np.uint16)) for k, c in parts if len(k)]
@@ -614,13 +626,27 @@ def merge_static_maps(primary: StaticMap, secondary: StaticMap) -> StaticMap:
 
     Used to let camera-labelled votes decide every voxel the camera saw, and fallback labels (points
     outside the image) fill only the voxels it never saw: out-of-view points outnumber in-view ones
-    several times, so pooling their votes would let the fallback outvote the camera.
+    several times, so pooling their votes would let the fallback outvote the camera. Where the
+    primary voxel is UNCLASSIFIED and the secondary's has a class, the secondary's wins (a class
+    beats no class).
     """
     if primary.voxel_size_m != secondary.voxel_size_m:
         raise StaticMapError(
             f"cannot merge maps of {primary.voxel_size_m} m and {secondary.voxel_size_m} m voxels"
         )
     a, b = pack_keys(primary.keys), pack_keys(secondary.keys)
+    classed_b = b[secondary.labels != UNCLASSIFIED]
+    weak_a = (primary.labels == UNCLASSIFIED) & np.isin(a, classed_b)
+    if weak_a.any():
+        primary = StaticMap(
+            primary.voxel_size_m,
+            primary.keys[~weak_a],
+            primary.labels[~weak_a],
+            primary.counts[~weak_a],
+            primary.ground_rejected,
+            None if primary.surface is None else primary.surface[~weak_a],
+        )
+        a = a[~weak_a]
     only_b = ~np.isin(b, a)
     keys = np.concatenate([primary.keys, secondary.keys[only_b]])
     order = np.argsort(pack_keys(keys), kind="stable")

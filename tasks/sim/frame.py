@@ -84,7 +84,7 @@ class ObjectBox:
 @dataclass(frozen=True)
 class SimFrame:
     """Everything one frame produces. Poses (4, 4) float64; grids (X, Y, Z) in the base frame
-    (occupancy uint8 class ids with 9 free, occupancy_instance uint16 track ids)."""
+    (occupancy uint8 class ids with 10 free, occupancy_instance uint16 track ids)."""
 
     index: int
     t_s: float

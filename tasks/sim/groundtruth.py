@@ -93,7 +93,7 @@ class OccupancyInput:
 
 
 def occupancy_grid(inp: OccupancyInput, grid: GridSpec) -> tuple[np.ndarray, np.ndarray]:
-    """Semantic occupancy (X, Y, Z) uint8 (class ids, 9 free) and pedestrian instance grid
+    """Semantic occupancy (X, Y, Z) uint8 (class ids, 10 free) and pedestrian instance grid
     (X, Y, Z) uint16 (track id, 0 none), base frame, see the module doc for the rule."""
     n_vox = int(np.prod(grid.shape))
     spacing = grid.voxel_size_m / 4

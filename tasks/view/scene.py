@@ -189,7 +189,7 @@ def class_layer(
 ) -> VoxelLayer:
     """Occupied voxels in the class colours (tasks.conventions.CLASS_COLORS).
 
-    semantics (X, Y, Z) uint8 class ids (9 free); mask (X, Y, Z) uint8/bool: only voxels where it
+    semantics (X, Y, Z) uint8 class ids (10 free); mask (X, Y, Z) uint8/bool: only voxels where it
     is 1 (mask_camera or mask_lidar: what a network trained with that mask is scored on), or
     None for every occupied voxel."""
     return select_voxels(
