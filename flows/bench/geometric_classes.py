@@ -19,15 +19,15 @@ import numpy as np
 from flows.pipeline.inputs import open_sequence
 from flows.pipeline.plan import selected_sequences
 from storage.gt import read_frame_gt
-from tasks.conventions import CLASS_NAMES, FREE, UNLABELED
+from tasks.conventions import CLASS_NAMES, NUM_SEMANTIC_CLASSES, UNLABELED
 from tasks.occupancy.geometric_classes import (
     GeometricClassSettings,
     geometric_classes,
     gravity_aligned,
 )
 
-#: the occupied classes (0 .. FREE - 1): rows of the confusion matrix
-CLASSES = FREE
+#: the semantic classes (0 .. 8): rows of the confusion matrix
+CLASSES = NUM_SEMANTIC_CLASSES
 
 
 def sweep_confusion(truth: np.ndarray, predicted: np.ndarray) -> np.ndarray:
