@@ -6,7 +6,7 @@ from __future__ import annotations
 STAGES: dict[str, tuple[str, ...]] = {
     "detect": (),
     "track": ("detect",),
-    "fit": ("track",),
+    "fit": ("detect", "track"),  # detect: the frames it produced (the gap filler reads no other)
     "map": ("detect",),
     "fuse": ("detect", "track", "fit", "map"),  # detect: the frames it produced are the store's
     #                                            frame axis; track: a person's returns with no body

@@ -257,7 +257,7 @@ class _PersonPoints:
 
 
 def _visibility_fn(
-    model, conf: torch.Tensor, weights: FitWeights, use_visibility: bool, data_vertices=None
+    model, conf: torch.Tensor, weights: FitWeights, use_visibility: bool, data_vertices
 ):
     """verts (B, V, 3) -> Visibility of the persons whose keypoint confidences are conf (B, 17);
     with ``data_vertices``, only that many vertices spread evenly over the template's surface
