@@ -252,8 +252,10 @@ def test_road_and_terrain_recall_on_simulated_sweeps(synthetic_root, tmp_path):
 def test_auto_takes_the_geometry_where_detect_gives_no_semantics():
     from configs.schema import load_config
     from flows.pipeline.inputs import map_inputs
+    from tests.oracle import oracle_config
 
-    assert map_inputs(load_config()).point_classes == "camera"  # the oracle's semantics
+    assert map_inputs(oracle_config()).point_classes == "camera"  # the oracle's semantics
+    assert map_inputs(load_config()).point_classes == "camera+geometry"  # the default path's
     none = {"detect.image_provider": "models", "detect.models.semantic.kind": "none"}
     assert map_inputs(load_config(overrides=none)).point_classes == "camera+geometry"
     chosen = load_config(overrides={**none, "map.point_classes": "camera"})

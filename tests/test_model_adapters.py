@@ -581,7 +581,8 @@ def test_bundled_models_are_found_from_another_working_directory(tmp_path, monke
         assert bundled_model(DEFAULT_BUNDLED_CACHE, name) == have / name
     here = tmp_path / DEFAULT_BUNDLED_CACHE
     here.mkdir(parents=True)
-    (here / "pose_detection.tflite").write_bytes(b"a local copy")
+    # a copy of its own (a damaged one is refused: the files are verified by sha256)
+    (here / "pose_detection.tflite").write_bytes((have / "pose_detection.tflite").read_bytes())
     assert bundled_model(DEFAULT_BUNDLED_CACHE, "pose_detection.tflite").resolve() == (
         here / "pose_detection.tflite"
     )

@@ -252,6 +252,7 @@ def test_no_segmenter_and_no_truth_leaves_no_return_free(copy_dataset, tmp_path,
             "dataset.sequences": ["1"],
             "detect.image_provider": "models",
             "detect.models.semantic.kind": "none",
+            "map.point_classes": "camera",  # no geometric classes either: mostly unclassified
             "detect.models.device": "cpu",
             "detect.models.bundled_dir": str(BUNDLED_DIR),
         },

@@ -66,6 +66,8 @@ def _linefit(seq, seq_id: str):
 
     from linefit import ground_seg
 
+    from storage.atomic import atomic_write_text
+
     frame = seq.frame(0)
     gt = read_frame_gt(seq.root, seq_id, frame.index)
     pts = np.asarray(frame.points_lidar, np.float64)
@@ -76,7 +78,7 @@ def _linefit(seq, seq_id: str):
     height = -float(np.median(pts[near, 2]))
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "linefit.toml"
-        path.write_text(f"[important]\nheight = {height:.3f}\n")
+        atomic_write_text(path, f"[important]\nheight = {height:.3f}\n")
         return ground_seg(str(path))  # reads the file here
 
 

@@ -41,6 +41,7 @@ from flows.pipeline.inputs import (
     dataset_export_inputs,
     export_inputs,
     inputs_hash,
+    map_inputs,
     runtime,
     source,
 )
@@ -949,17 +950,22 @@ def unclassified_line(report: RunReport, cfg) -> str | None:
     unc = sum(s.get("unclassified_voxels", 0) for s in sums)
     if not occ or unc / occ <= UNCLASSIFIED_WARN_SHARE:
         return None
-    d = cfg.detect
+    d, classes = cfg.detect, map_inputs(cfg).point_classes
     why = (
         "no image segmenter (detect.models.semantic.kind: none)"
         if d.image_provider == "models" and d.models.semantic.kind == "none"
         else f"the image semantics ({d.image_provider}) gave most returns no class"
     )
+    if "geometry" in classes:
+        why += f", and the geometric classes (map.point_classes: {classes}) could not tell them"
+        more = ""
+    else:
+        why += f" and no geometric classes (map.point_classes: {classes})"
+        more = ", or map.point_classes: camera+geometry (docs/geometric-classes.md)"
     return (
         f"LABELS MOSTLY UNCLASSIFIED: {100 * unc / occ:.1f} % of occupied voxels have no class: "
-        f"{why} and no geometric classes; configure detect.models.semantic (kind onnx: a "
-        "Cityscapes segmenter, configs/coda-onnx.yaml) or precomputed semantics "
-        "(storage/PERCEPTION_FORMAT.md)"
+        f"{why}; configure detect.models.semantic (kind onnx: a Cityscapes segmenter, "
+        f"configs/coda-onnx.yaml) or precomputed semantics (storage/PERCEPTION_FORMAT.md){more}"
     )
 
 
