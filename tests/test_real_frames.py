@@ -233,18 +233,15 @@ def no_truth_runs(tmp_path_factory):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason="needs issue 38 merge", strict=False)
 def test_default_config_runs_on_a_real_log(tmp_path):
-    """``rebuild`` with no config and no settings at all (issue 38 item 1). Measured 2026-12-08
-    on today's code: exit 1, FramesFailed '... no ground truth for sequence acfr_lab frame 0'."""
+    """``rebuild`` with no config and no settings at all (issue 38 item 1). Before issue 38: exit 1, FramesFailed '... no ground truth for sequence acfr_lab frame 0'."""
     assert _rebuild("acfr_lab", tmp_path / "out", {}) == 0
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason="needs issue 38 merge", strict=False)
 @pytest.mark.parametrize("name", LOGS)
 def test_default_path_runs_on_a_real_log(no_truth_runs, name):
-    """Measured 2026-12-08 on today's code: exit 0 for both logs (with NO_TRUTH; with no config
+    """Before issue 38: exit 0 for both logs (with NO_TRUTH; with no config
     at all: exit 1, 'no ground truth for sequence ... frame 0')."""
     code, out = no_truth_runs[name]
     assert code == 0
@@ -252,11 +249,10 @@ def test_default_path_runs_on_a_real_log(no_truth_runs, name):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason="needs issue 38 merge", strict=False)
 @pytest.mark.parametrize("name", LOGS)
 def test_no_return_is_exported_free(no_truth_runs, name):
     """At most 0.5 % of the return-holding voxels are free with nothing occupied beside them
-    (clusters >= 5). Measured 2026-12-08 on today's code (NO_TRUTH): sc_street 100 % of 411
+    (clusters >= 5). Before issue 38 (NO_TRUTH): sc_street 100 % of 411
     return voxels, sc_road 98.3 % of 926, acfr_lab 97.3 % of 1,286: every voxel of the 0.2 m
     grid is exported free, the ground and the person included."""
     code, out = no_truth_runs[name]
@@ -271,12 +267,18 @@ PERSON_BOX_BASE_M = (2.3, 2.75, -2.35, -1.75, 0.05, 2.0)
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason="needs issue 38 merge", strict=False)
+@pytest.mark.xfail(
+    reason="not yet: in this cluttered lab the person's returns join one 9,425-point cluster "
+    "with the floor, walls and tripod (VLP-16 tilted 6.8 deg), so the LiDAR detector proposes "
+    "no box on him and the image models are never run there",
+    strict=False,
+)
 def test_the_person_in_view_is_labelled_pedestrian(no_truth_runs):
     """>= 70 % of the grid voxels holding the standing person's returns are exported pedestrian
-    (issue 38: a person in plain view in a single frame gets a body). Measured 2026-12-08 on
-    today's code (NO_TRUTH): 0 %: detect finds 0 image detections and 25 LiDAR boxes, track
-    confirms no track, and the grid is all free."""
+    (issue 38: a person in plain view in a single frame gets a body). Before issue 38 (NO_TRUTH):
+    0 %: 0 image detections and 25 LiDAR boxes, no track, the grid all free. After it (the
+    default path, 2026-12-08): one LiDAR box, scored 0.38, on another object, 0 image
+    detections, no track; the person's voxels are occupied (unclassified), not pedestrian."""
     code, out = no_truth_runs["acfr_lab"]
     assert code == 0
     occ3d = out / "exports" / "occ3d"
