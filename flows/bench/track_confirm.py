@@ -5,7 +5,7 @@
 
 For every sequence under DATA (``mobileocc simulate``): the detect stage's own code on every
 frame (dataset.rate_hz), each detection's person points and LiDAR box (the track stage's
-tasks.track.product.frame_persons), then the sequence cut into logs of ``n`` frames (0: the whole
+flows.stages.track.persons_of), then the sequence cut into logs of ``n`` frames (0: the whole
 sequence) and each log tracked on its own (tasks.track.offline.track_offline) twice: OC-SORT's
 hit count alone, and with ``track.confirm`` (tasks.track.offline.Confirmation). Reported per n and
 rule: tracked rows, MOTA, IDF1, misses, false positives and id switches against the ground-truth
@@ -23,12 +23,12 @@ import numpy as np
 from flows.pipeline.inputs import detect_inputs, open_sequence, sequence_ref, track_inputs
 from flows.pipeline.plan import selected_sequences
 from flows.stages.detect import detect_frames
+from flows.stages.track import persons_of
 from storage.gt import read_frame_gt
-from storage.products import Detections, labels_to_masks
+from storage.products import Detections
 from tasks.metrics.tracking import tracking_scores
 from tasks.track.ocsort import PedestrianTracker
 from tasks.track.offline import Confirmation, detection_evidence, track_offline
-from tasks.track.product import frame_persons
 
 
 def _frames(config, seq_id: str, inp) -> list[dict]:
@@ -42,20 +42,7 @@ def _frames(config, seq_id: str, inp) -> list[dict]:
         for i in positions:
             frame = seq.frame(i)
             d = Detections.read(Path(tmp), Detections.file_name(frame.index))
-            persons = frame_persons(
-                frame.points_lidar,
-                frame.T_world_from_lidar,
-                d.boxes_xyxy,
-                labels_to_masks(d.mask_labels, len(d.scores)),
-                d.lidar_centers,
-                d.lidar_sizes,
-                d.lidar_yaws,
-                cam.K,
-                cam.T_cam_from_lidar,
-                (cam.width, cam.height),
-                inp.person_points,
-                inp.world_check,
-            )
+            persons = persons_of(frame, d, cam, inp)
             gt = read_frame_gt(seq.root, seq_id, frame.index)
             seen = np.flatnonzero(np.all(np.isfinite(gt.box2d), axis=1) & (gt.visible_fraction > 0))
             out.append(

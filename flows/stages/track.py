@@ -17,12 +17,10 @@ from tasks.track.offline import detection_evidence, track_offline
 from tasks.track.product import FramePersons, frame_persons, track_rows
 
 
-def _frame(ctx: StageContext[TrackInputs], seq, cam, i: int) -> tuple[int, dict, FramePersons]:
-    """Frame i's raw number, detections (without the image-sized arrays: a sequence's worth of
-    them would not fit in memory) and persons."""
-    inp, frame = ctx.inputs, seq.frame(i)
-    d = Detections.read(ctx.upstream["detect"], Detections.file_name(frame.index))
-    persons = frame_persons(
+def persons_of(frame, d: Detections, cam, inp: TrackInputs) -> FramePersons:
+    """One frame's persons (each detection's LiDAR points, world positions) from its detections
+    ``d``: the track stage's per-frame step (benchmarks call it too)."""
+    return frame_persons(
         frame.points_lidar,
         frame.T_world_from_lidar,
         d.boxes_xyxy,
@@ -36,6 +34,14 @@ def _frame(ctx: StageContext[TrackInputs], seq, cam, i: int) -> tuple[int, dict,
         inp.person_points,
         inp.world_check,
     )
+
+
+def _frame(ctx: StageContext[TrackInputs], seq, cam, i: int) -> tuple[int, dict, FramePersons]:
+    """Frame i's raw number, detections (without the image-sized arrays: a sequence's worth of
+    them would not fit in memory) and persons."""
+    inp, frame = ctx.inputs, seq.frame(i)
+    d = Detections.read(ctx.upstream["detect"], Detections.file_name(frame.index))
+    persons = persons_of(frame, d, cam, inp)
     rows = {
         k: getattr(d, k) for k in ("boxes_xyxy", "scores", "keypoints", "gt_index", "lidar_scores")
     }
