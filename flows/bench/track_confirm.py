@@ -38,7 +38,12 @@ def _frames(config, seq_id: str, inp) -> list[dict]:
     out = []
     with tempfile.TemporaryDirectory() as tmp:
         positions = list(range(seq.info.num_frames))
-        detect_frames(sequence_ref(config, seq_id), detect_inputs(config), positions, Path(tmp))
+        rows = detect_frames(
+            sequence_ref(config, seq_id), detect_inputs(config), positions, Path(tmp)
+        )
+        bad = [row for row in rows if "error" in row]
+        if bad:  # the benchmark needs every frame (e.g. ground truth of an older simulator)
+            raise ValueError(f"sequence {seq_id} frame {bad[0]['frame']}: {bad[0]['error']}")
         for i in positions:
             frame = seq.frame(i)
             d = Detections.read(Path(tmp), Detections.file_name(frame.index))
