@@ -32,8 +32,6 @@ def print_plan(cfg: Config, dry_run: bool, verify: bool = False) -> int:
     failed or is damaged, then what is wrong with the store as a whole (interrupted publications,
     sequences gone from the input, stale dataset exports); returns the number of sequences with
     failures (or that cannot be read) plus the number of store problems."""
-    if cfg.dataset.sequences == "all":
-        source(cfg).check_root(cfg.dataset.root)
     out, costs = Path(cfg.output.root), PlanCosts()
     if not out.is_dir():  # not "every unit stale": there is no store to describe
         raise OutputError(
@@ -41,6 +39,8 @@ def print_plan(cfg: Config, dry_run: bool, verify: bool = False) -> int:
             + ("is not a folder" if out.exists() else "does not exist")
             + " (`mobileocc rebuild` builds one there)"
         )
+    if cfg.dataset.sequences == "all":
+        source(cfg).check_root(cfg.dataset.root)
     manifest = Manifest.load(out)
     cache = FingerprintCache(out / ".cache" / "sequences" if out.is_dir() else None, verify)
     plans = plan_run(cfg, manifest, cache, sequences=selected_sequences(cfg), costs=costs)
