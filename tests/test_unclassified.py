@@ -21,18 +21,12 @@ from tasks.occupancy.fuse import (
     returns_without_class,
 )
 from tasks.occupancy.grid import GridSpec
-from tasks.occupancy.mapping import SequenceMapper
 from tasks.occupancy.resample import grid_reach_m, static_in_grid
-from tasks.occupancy.settings import FreeSpaceParams, MapParams
+from tasks.occupancy.settings import MapParams
 from tasks.occupancy.static_map import StaticMap, merge_static_maps
 from tasks.occupancy.synthetic import box_mesh
+from tests.test_labels_exact import VOXEL, _mapper
 
-VOXEL = 0.2
-K = np.array([[300.0, 0.0, 319.5], [0.0, 300.0, 239.5], [0.0, 0.0, 1.0]])
-#: camera looking along the LiDAR's +x
-T_CAM_FROM_LIDAR = np.array(
-    [[0.0, -1.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
-)
 SPEC = GridSpec((0.4, -2.0, -1.0), (8.0, 2.0, 2.2), VOXEL)
 
 
@@ -52,17 +46,7 @@ def _wall(x_face: float = 5.05) -> np.ndarray:
 
 def _map(sweep: np.ndarray, semantic_id: int):
     """The static map of one sweep (LiDAR = world = base) whose semantic image is one id."""
-    mapper = SequenceMapper(
-        MapParams(voxel_size_m=VOXEL),
-        FreeSpaceParams(voxel_size_m=VOXEL),
-        C.CITYSCAPES_TO_CLASS,
-        K,
-        T_CAM_FROM_LIDAR,
-        640,
-        480,
-        0.3,
-        threads=1,
-    )
+    mapper = _mapper(MapParams(voxel_size_m=VOXEL))
     none = np.zeros((0, 3), np.float32)
     mapper.add_sweep(
         sweep,
